@@ -1,0 +1,1 @@
+"""MFGNet training side (PyTorch): network, losses, ModelNet40 protocol, training, evaluation."""

@@ -1,0 +1,54 @@
+"""Checkpoint files: a dict of tensors and plain values, always read with ``weights_only=True``."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+import torch
+
+from model.config import MFGNetConfig
+from model.network import MFGNet
+
+BUNDLED_DIR = Path(__file__).resolve().parent / "checkpoints"
+
+
+def resolve_checkpoint(name_or_path: str | os.PathLike) -> Path:
+    """A path, or the name of a bundled checkpoint (``clean`` -> ``model/checkpoints/clean.pt``)."""
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    bundled = BUNDLED_DIR / f"{name_or_path}.pt"
+    if bundled.exists():
+        return bundled
+    raise FileNotFoundError(f"no checkpoint file or bundled checkpoint named {name_or_path!r}")
+
+
+def save_checkpoint(path: str | os.PathLike, model: MFGNet, **extra) -> None:
+    """Atomically write ``{"model": state_dict, "config": {...}, **extra}``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save({"model": model.state_dict(), "config": model.cfg.to_dict(), **extra}, tmp)
+    os.replace(tmp, path)
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict:
+    return torch.load(resolve_checkpoint(path), map_location="cpu", weights_only=True)
+
+
+def load_model(path: str | os.PathLike) -> MFGNet:
+    """The network of a checkpoint, in eval mode."""
+    data = read_checkpoint(path)
+    model = MFGNet(MFGNetConfig.from_dict(data["config"]))
+    model.load_state_dict(data["model"])
+    return model.eval()
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

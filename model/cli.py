@@ -1,0 +1,89 @@
+"""Training-side ``mfgnet`` sub-commands (loaded by ``service.cli`` through entry points)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from model.data import SETTINGS, load_pairs, make_test_pairs, save_pairs
+
+Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
+
+
+def make_pairs(
+    out: Annotated[Path, typer.Option(help="output .npz")],
+    setting: Setting = "clean",
+    split: Annotated[str, typer.Option(help="train or test")] = "test",
+    count: Annotated[Optional[int], typer.Option(help="number of pairs (default: one per shape)")] = None,
+    seed: int = 0,
+    data: Annotated[Optional[str], typer.Option(help="ModelNet40 directory ($MFGNET_DATA)")] = None,
+) -> None:
+    """Write seeded registration pairs (source, target, rotation, translation, label) to an npz."""
+    pairs = make_test_pairs(setting, split, count, seed, data)
+    save_pairs(out, pairs)
+    typer.echo(f"wrote {len(pairs['source'])} {setting} pairs to {out}")
+
+
+def train(
+    setting: Setting = "clean",
+    out: Annotated[Path, typer.Option(help="run directory (checkpoints, log.jsonl)")] = Path("runs/clean"),
+    epochs: int = 50,
+    batch_size: int = 8,
+    lr: float = 1e-4,
+    weight_decay: float = 1e-3,
+    seed: int = 0,
+    resume: Annotated[bool, typer.Option(help="continue from OUT/last.pt")] = False,
+    init: Annotated[Optional[str], typer.Option(help="initial weights (fine-tuning)")] = None,
+    patience: int = 10,
+    max_minutes: Optional[float] = None,
+    checkpoint_minutes: float = 5.0,
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
+    data: Optional[str] = None,
+    threads: Optional[int] = None,
+    iterations: int = 4,
+    share_weights: bool = False,
+) -> None:
+    """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
+    from model.train import TrainOptions
+    from model.train import train as run
+
+    opts = TrainOptions(
+        setting=setting, out=str(out), epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
+        seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,
+        checkpoint_minutes=checkpoint_minutes, device=device, data=data, threads=threads,
+        config={"iterations": iterations, "share_weights": share_weights},
+    )
+    best = run(opts)
+    typer.echo(f"best checkpoint: {best}")
+
+
+def evaluate(
+    checkpoint: Annotated[Optional[str], typer.Option(help="checkpoint path or bundled name")] = None,
+    pairs: Annotated[Optional[Path], typer.Option(help="pairs .npz (else made from --setting)")] = None,
+    setting: Setting = "clean",
+    count: Optional[int] = None,
+    seed: int = 0,
+    iterations: Optional[int] = None,
+    keypoints: Optional[int] = None,
+    batch_size: int = 16,
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="write the metrics here")] = None,
+    data: Optional[str] = None,
+) -> None:
+    """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
+    from model.checkpoint import load_model
+    from model.inference import predict_poses
+    from model.metrics import registration_metrics
+
+    if checkpoint is None:
+        raise typer.BadParameter("give --checkpoint")
+    data_pairs = load_pairs(pairs) if pairs else make_test_pairs(setting, "test", count, seed, data)
+    model = load_model(checkpoint)
+    R, t, secs = predict_poses(model, data_pairs, batch_size, iterations, keypoints, progress=True)
+    metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
+    text = json.dumps(metrics, indent=2)
+    typer.echo(text)
+    if json_out:
+        json_out.write_text(text + "\n")

@@ -1,0 +1,52 @@
+"""The paper's registration metrics (RMSE / MAE of Euler angles and translation) plus isotropic
+errors and recall, pooled over all pairs. Pure numpy + scipy."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+RECALL_THRESHOLDS = {"recall_r1_t001": (1.0, 0.01), "recall_r5_t005": (5.0, 0.05)}
+
+
+def euler_zyx_deg(R: np.ndarray) -> np.ndarray:
+    """``[M, 3, 3]`` rotations -> ``[M, 3]`` Euler angles, scipy ``as_euler("zyx", degrees=True)``."""
+    return Rotation.from_matrix(np.asarray(R, dtype=np.float64)).as_euler("zyx", degrees=True)
+
+
+def rotation_angle_deg(R_pred: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Isotropic rotation error ``angle(R_pred^T R_gt)`` in degrees, ``[M]``."""
+    rel = np.einsum("mji,mjk->mik", np.asarray(R_pred, np.float64), np.asarray(R_gt, np.float64))
+    cos = (np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = None) -> dict[str, float]:
+    """Metrics over ``M`` pairs: ``R [M, 3, 3]``, ``t [M, 3]``.
+
+    Euler differences are wrapped into ``[-180, 180)`` degrees (equal to the paper's plain
+    difference inside its 45-degree range, correct beyond it).
+    """
+    R_pred, R_gt = np.asarray(R_pred, np.float64), np.asarray(R_gt, np.float64)
+    t_pred, t_gt = np.asarray(t_pred, np.float64), np.asarray(t_gt, np.float64)
+    d_euler = euler_zyx_deg(R_pred) - euler_zyx_deg(R_gt)  # [M, 3]
+    d_euler = (d_euler + 180.0) % 360.0 - 180.0
+    d_t = t_pred - t_gt  # [M, 3]
+    iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
+    iso_t = np.linalg.norm(d_t, axis=1)  # [M]
+    out = {
+        "n": len(R_pred),
+        "rmse_r": float(np.sqrt(np.mean(d_euler**2))),
+        "mae_r": float(np.mean(np.abs(d_euler))),
+        "rmse_t": float(np.sqrt(np.mean(d_t**2))),
+        "mae_t": float(np.mean(np.abs(d_t))),
+        "iso_r_mean": float(iso_r.mean()),
+        "iso_r_median": float(np.median(iso_r)),
+        "iso_t_mean": float(iso_t.mean()),
+        "iso_t_median": float(np.median(iso_t)),
+    }
+    for key, (max_r, max_t) in RECALL_THRESHOLDS.items():
+        out[key] = float(np.mean((iso_r < max_r) & (iso_t < max_t)))
+    if seconds is not None:
+        out["ms_per_pair"] = 1000.0 * seconds / max(len(R_pred), 1)
+    return out

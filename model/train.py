@@ -1,0 +1,180 @@
+"""Training loop: Adam, step learning-rate drop, periodic + best checkpoints, resume, JSONL log."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model.checkpoint import read_checkpoint, save_checkpoint
+from model.config import MFGNetConfig
+from model.data import TrainPairStream, load_shapes, make_pairs, protocol_for
+from model.inference import predict_poses
+from model.losses import registration_losses, sample_training_keypoints
+from model.metrics import registration_metrics
+from model.network import MFGNet
+
+
+@dataclass
+class TrainOptions:
+    setting: str = "clean"
+    out: str = "runs/clean"
+    epochs: int = 50
+    batch_size: int = 8
+    lr: float = 1e-4
+    weight_decay: float = 1e-3
+    lr_drop_at: float = 0.8  # fraction of the epochs after which lr is divided by 10
+    seed: int = 0
+    val_fraction: float = 0.04  # training shapes held out for validation
+    val_pairs: int = 256
+    checkpoint_minutes: float = 5.0
+    patience: int = 10  # epochs without validation improvement before stopping
+    max_minutes: float | None = None  # stop (after a checkpoint) when this much time has passed
+    max_batches_per_epoch: int | None = None
+    resume: bool = False
+    init: str | None = None  # start from these weights (fine-tuning), fresh optimizer
+    device: str = "auto"
+    data: str | None = None
+    threads: int | None = None
+    config: dict = field(default_factory=dict)  # MFGNetConfig overrides
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def split_validation(n: int, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Deterministic train / validation split of ``n`` shape indices."""
+    rng = np.random.default_rng([seed, 7919])
+    perm = rng.permutation(n)
+    n_val = max(1, int(round(n * fraction)))
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def lr_at(opts: TrainOptions, epoch: int) -> float:
+    return opts.lr * (0.1 if epoch >= math.floor(opts.lr_drop_at * opts.epochs) else 1.0)
+
+
+def train(opts: TrainOptions) -> Path:
+    """Train (or resume) a model; returns the path of the best checkpoint."""
+    out = Path(opts.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if opts.threads:
+        torch.set_num_threads(opts.threads)
+    device = pick_device(opts.device)
+    torch.manual_seed(opts.seed)
+
+    shapes, _ = load_shapes("train", opts.setting, opts.data)
+    train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
+    protocol = protocol_for(opts.setting)
+    stream = TrainPairStream(shapes[train_idx], protocol, opts.seed)
+    val_shapes = shapes[val_idx][: opts.val_pairs]
+    val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
+
+    last_path, best_path, log_path = out / "last.pt", out / "best.pt", out / "log.jsonl"
+    state = {"epoch": 0, "batch": 0, "best": float("inf"), "best_epoch": -1, "stale": 0}
+    if opts.resume and last_path.exists():
+        ckpt = read_checkpoint(last_path)
+        cfg = MFGNetConfig.from_dict(ckpt["config"])
+        model = MFGNet(cfg).to(device)
+        model.load_state_dict(ckpt["model"])
+        optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
+        optimizer.load_state_dict(ckpt["optimizer"])
+        state.update(ckpt["state"])
+        print(f"resumed from {last_path} at epoch {state['epoch']} batch {state['batch']}")
+    else:
+        cfg = MFGNetConfig.from_dict({**MFGNetConfig().to_dict(), **opts.config})
+        model = MFGNet(cfg).to(device)
+        if opts.init:
+            model.load_state_dict(read_checkpoint(opts.init)["model"])
+            print(f"initialised from {opts.init}")
+        optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
+    (out / "config.json").write_text(json.dumps({"model": cfg.to_dict(), "train": asdict(opts)}, indent=2))
+
+    def checkpoint(path: Path, **extra) -> None:
+        save_checkpoint(path, model, optimizer=optimizer.state_dict(), state=dict(state),
+                        protocol=asdict(protocol), setting=opts.setting, **extra)
+
+    begin = time.time()
+    last_save = time.time()
+    generator = torch.Generator().manual_seed(opts.seed)
+    from tqdm import tqdm
+
+    while state["epoch"] < opts.epochs:
+        epoch = state["epoch"]
+        for group in optimizer.param_groups:
+            group["lr"] = lr_at(opts, epoch)
+        model.train()
+        n_batches = len(train_idx) // opts.batch_size
+        if opts.max_batches_per_epoch:
+            n_batches = min(n_batches, opts.max_batches_per_epoch)
+        sums = {"keypoint": 0.0, "matching": 0.0, "credibility": 0.0, "total": 0.0}
+        seen, epoch_start, compute = 0, time.time(), 0.0
+        bar = tqdm(total=n_batches, initial=state["batch"], desc=f"epoch {epoch}", unit="batch", mininterval=5)
+        for b, batch in enumerate(stream.epoch(epoch, opts.batch_size)):
+            if b >= n_batches:
+                break
+            if b < state["batch"]:
+                continue  # resuming inside an epoch: the stream is reproducible, skip what was done
+            tic = time.perf_counter()
+            src, tgt, R_gt, t_gt = (torch.from_numpy(batch[k]).to(device)
+                                    for k in ("source", "target", "rotation", "translation"))
+            src_idx, tgt_idx = sample_training_keypoints(
+                src, tgt, R_gt, t_gt, cfg.train_positives, cfg.train_negatives, cfg.match_threshold,
+                generator if device.type == "cpu" else None)
+            outputs = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
+            losses = registration_losses(outputs, src, tgt, R_gt, t_gt, cfg.match_threshold)
+            optimizer.zero_grad(set_to_none=True)
+            losses.total.backward()
+            optimizer.step()
+            compute += time.perf_counter() - tic
+            for k in ("keypoint", "matching", "credibility", "total"):
+                sums[k] += float(getattr(losses, k).detach())
+            seen += 1
+            state["batch"] = b + 1
+            bar.update(1)
+            bar.set_postfix(loss=f"{sums['total'] / seen:.3f}", ms_pair=f"{1000 * compute / seen / opts.batch_size:.0f}")
+            if time.time() - last_save > 60 * opts.checkpoint_minutes:
+                checkpoint(last_path)
+                last_save = time.time()
+            if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
+                break
+        bar.close()
+        if state["batch"] < n_batches:  # stopped by max_minutes inside an epoch
+            checkpoint(last_path)
+            print(f"stopped after {opts.max_minutes} min at epoch {epoch} batch {state['batch']}")
+            break
+        R, t, secs = predict_poses(model, val_pairs, batch_size=16)
+        val = registration_metrics(R, t, val_pairs["rotation"], val_pairs["translation"], secs)
+        record = {
+            "epoch": epoch, "lr": lr_at(opts, epoch), "batches": seen,
+            **{f"train_{k}": v / max(seen, 1) for k, v in sums.items()},
+            **{f"val_{k}": v for k, v in val.items()},
+            "s_per_pair": compute / max(seen * opts.batch_size, 1),
+            "epoch_minutes": (time.time() - epoch_start) / 60, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        with log_path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+        print(json.dumps(record))
+        state["epoch"], state["batch"] = epoch + 1, 0
+        metric = val["mae_r"]
+        if metric < state["best"]:
+            state["best"], state["best_epoch"], state["stale"] = metric, epoch, 0
+            checkpoint(best_path, val=val)
+        else:
+            state["stale"] += 1
+        checkpoint(last_path)
+        last_save = time.time()
+        if state["stale"] >= opts.patience:
+            print(f"validation plateaued for {opts.patience} epochs; stopping at epoch {epoch}")
+            break
+        if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
+            break
+    return best_path

@@ -1,0 +1,100 @@
+"""How far a registration result can be trusted: overlap, residual and degenerate geometry.
+
+``reliable`` is a deliberately simple rule: neither cloud is degenerate (all points identical or
+on one line — a rotation about that line cannot be observed) and at least
+``RELIABLE_INLIER_RATIO`` of the moved source points have a target point within
+``inlier_distance``.  Coplanar clouds only earn a warning: their pose is usually determined, but it
+can be ambiguous (sliding within the plane, symmetric outlines).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
+DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
+IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
+
+IDENTICAL = "identical"  # first word of each degeneracy warning
+COLLINEAR = "collinear"
+COPLANAR = "coplanar"
+EMPTY = "empty"
+_DEGENERATE = (EMPTY, IDENTICAL, COLLINEAR)  # kinds that make a result unreliable
+
+
+@dataclass(frozen=True)
+class Quality:
+    """Quality of a ``src_to_tgt`` pose (distances in the caller's units)."""
+
+    inlier_ratio: float  # fraction of moved source points with a target point within inlier_distance
+    residual_rms: float  # RMS of those inlier distances; 0 when there is none
+    reliable: bool
+    warnings: list[str] = field(default_factory=list)
+
+
+def degeneracy_warnings(points: np.ndarray) -> list[str]:
+    """Warnings about degenerate geometry of ``points (N, 3)``; empty when the cloud is fine.
+
+    Each warning starts with its kind: ``"empty"``, ``"identical"`` (all points the same),
+    ``"collinear"`` (second principal spread below ``DEGENERACY_RATIO`` of the first) or
+    ``"coplanar"`` (third principal spread below it).  At most one kind is reported: the strongest.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("points contain NaN or Inf")
+    if points.shape[0] == 0:
+        return [f"{EMPTY}: the cloud has no points"]
+    centred = points - points.mean(axis=0)  # [N, 3]
+    magnitude = max(float(np.abs(points).max()), np.finfo(np.float64).tiny)
+    if float(np.abs(centred).max()) <= IDENTICAL_TOLERANCE * magnitude:
+        return [f"{IDENTICAL}: all {points.shape[0]} points are the same; no pose can be determined"]
+    spread = np.linalg.svd(centred, compute_uv=False) / np.sqrt(points.shape[0])  # [3] RMS per axis
+    if spread[1] <= DEGENERACY_RATIO * spread[0]:
+        return [
+            f"{COLLINEAR}: the points lie on a line (spread ratio {spread[1] / spread[0]:.2g}); "
+            "the rotation about that line cannot be determined"
+        ]
+    if spread[2] <= DEGENERACY_RATIO * spread[0]:
+        return [
+            f"{COPLANAR}: the points lie in a plane (spread ratio {spread[2] / spread[0]:.2g}); "
+            "the pose may be ambiguous (sliding in the plane, symmetric outlines)"
+        ]
+    return []
+
+
+def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float) -> Quality:
+    """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
+
+    A moved source point ``R p + t`` is an inlier when its nearest target point is at most
+    ``inlier_distance`` away (caller's units).  Warnings name the cloud (``"source ..."``,
+    ``"target ..."``) and flag a low inlier ratio.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    tgt = np.asarray(tgt, dtype=np.float64)
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if R.shape != (3, 3) or t.shape != (3,):
+        raise ValueError(f"R must be (3, 3) and t (3,), got {R.shape} and {t.shape}")
+    if not inlier_distance > 0:
+        raise ValueError(f"inlier_distance must be positive, got {inlier_distance}")
+    src_warnings = degeneracy_warnings(src)
+    tgt_warnings = degeneracy_warnings(tgt)
+    warnings = [f"source {w}" for w in src_warnings] + [f"target {w}" for w in tgt_warnings]
+    degenerate = any(w.startswith(_DEGENERATE) for w in src_warnings + tgt_warnings)
+
+    inlier_ratio, residual_rms = 0.0, 0.0
+    if src.shape[0] and tgt.shape[0]:
+        src_in_tgt = src @ R.T + t  # [N, 3]
+        dist, _ = cKDTree(tgt).query(src_in_tgt, k=1)  # [N]
+        inlier_dist = dist[dist <= inlier_distance]
+        inlier_ratio = float(inlier_dist.size / src.shape[0])
+        residual_rms = float(np.sqrt(np.mean(inlier_dist**2))) if inlier_dist.size else 0.0
+    if inlier_ratio < RELIABLE_INLIER_RATIO:
+        warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}")
+    reliable = not degenerate and inlier_ratio >= RELIABLE_INLIER_RATIO
+    return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

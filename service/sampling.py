@@ -1,0 +1,171 @@
+"""Deterministic, order-independent resampling of a point cloud to the network's working size.
+
+The indices returned by :func:`resample_indices` depend only on the geometry of the cloud, never
+on the order in which the points arrive: permuting the input selects the same points (same
+coordinates, same output order).  Only points that share identical coordinates can come back under
+different indices, and then the coordinates are the same.
+
+Strategy:
+
+* ``N <= size``: every point, in canonical order (lexicographic by ``x, y, z``, ties by index).
+* ``size < N <= VOXEL_TRIGGER * size``: farthest-point sampling (FPS) on all points.
+* ``N > VOXEL_TRIGGER * size``: an order-independent voxel-grid reduction to roughly
+  ``VOXEL_TARGET * size`` representatives first (each voxel keeps the point closest to the voxel's
+  centre), then FPS on those.  200,000 points take a few tens of milliseconds.
+
+FPS starts from the point farthest from the centroid and always runs on candidates sorted in
+canonical order, so every ``argmax`` tie is broken lexicographically by coordinates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+DEFAULT_SIZE = 768  # working size W of the network
+VOXEL_TRIGGER = 8  # reduce with a voxel grid first when N > VOXEL_TRIGGER * size
+VOXEL_TARGET = 3.5  # aim for about this many occupied voxels per requested point ...
+VOXEL_ACCEPT = (3.0, 4.0)  # ... and accept a voxel size whose occupancy / size lies in this range
+VOXEL_MAX_TRIES = 6  # voxel-size adjustments (each costs one sort of N keys)
+VOXEL_MAX_CELLS_PER_AXIS = 1_000_000  # keeps linear voxel keys far from int64 overflow
+
+
+def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE) -> np.ndarray:
+    """Indices of ``min(N, size)`` points chosen by geometry alone.
+
+    Args:
+        points: ``(N, 3)`` finite coordinates (any float dtype).
+        size: number of points wanted (``>= 1``).
+
+    Returns:
+        ``(min(N, size),)`` int64 indices into ``points``: all points in canonical order when
+        ``N <= size``, else the farthest-point-sampling picks in the order they were picked (so any
+        prefix is itself a well-spread subsample).
+
+    Raises:
+        ValueError: ``points`` is not ``(N, 3)``, holds NaN/Inf, or ``size < 1``.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if size < 1:
+        raise ValueError(f"size must be >= 1, got {size}")
+    points = points.astype(np.float64, copy=False)
+    if not np.isfinite(points).all():
+        raise ValueError("points contain NaN or Inf")
+    n = points.shape[0]
+    if n <= size:
+        return canonical_order(points)
+    if n > VOXEL_TRIGGER * size:
+        candidates = _voxel_representatives(points, size)
+        if candidates.shape[0] < size:  # too few distinct places (heavy duplication): use everything
+            candidates = np.arange(n)
+    else:
+        candidates = np.arange(n)
+    candidates = candidates[canonical_order(points[candidates])]  # ties -> lexicographic order
+    picks = _farthest_point_sampling(points[candidates], size)  # [size] into candidates
+    return candidates[picks].astype(np.int64)
+
+
+def canonical_order(points: np.ndarray) -> np.ndarray:
+    """``(N,)`` int64 permutation sorting ``points (N, 3)`` by ``x``, then ``y``, ``z``, then index."""
+    index = np.arange(points.shape[0])
+    return np.lexsort((index, points[:, 2], points[:, 1], points[:, 0])).astype(np.int64)
+
+
+def _farthest_point_sampling(points: np.ndarray, size: int) -> np.ndarray:
+    """FPS picks ``(size,)`` into ``points (M, 3)`` (``M >= size``), starting farthest from the centroid.
+
+    ``np.argmax`` returns the first maximum, so ties go to the earliest point in the given order.
+    Picked points get a distance of -1 and are never picked twice, even among duplicates.
+    """
+    x, y, z = (np.ascontiguousarray(points[:, k]) for k in range(3))  # [M] each
+    centroid = points.mean(axis=0)  # [3]
+    min_dist2 = (x - centroid[0]) ** 2 + (y - centroid[1]) ** 2 + (z - centroid[2]) ** 2  # [M]
+    i = int(np.argmax(min_dist2))  # start: farthest from the centroid
+    min_dist2[:] = np.inf
+    picks = np.empty(size, dtype=np.int64)
+    dist2 = np.empty_like(x)
+    scratch = np.empty_like(x)
+    for k in range(size):
+        picks[k] = i
+        np.subtract(x, x[i], out=dist2)
+        np.multiply(dist2, dist2, out=dist2)
+        np.subtract(y, y[i], out=scratch)
+        np.multiply(scratch, scratch, out=scratch)
+        np.add(dist2, scratch, out=dist2)
+        np.subtract(z, z[i], out=scratch)
+        np.multiply(scratch, scratch, out=scratch)
+        np.add(dist2, scratch, out=dist2)
+        np.minimum(min_dist2, dist2, out=min_dist2)
+        min_dist2[i] = -1.0
+        i = int(np.argmax(min_dist2))
+    return picks
+
+
+def _voxel_representatives(points: np.ndarray, size: int) -> np.ndarray:
+    """Indices of one point per occupied voxel, ~``VOXEL_TARGET * size`` of them, in any order.
+
+    The grid is anchored at the bounding-box minimum and its voxel size depends only on the bounding
+    box and on occupancy counts, so the result does not depend on the input order.  Each voxel is
+    represented by the original point closest to the voxel's centre (ties: lexicographic).
+    """
+    coords = np.ascontiguousarray(points.T)  # [3, N]: column reductions are much faster this way
+    lo = coords.min(axis=1)  # [3]
+    extent = coords.max(axis=1) - lo  # [3]
+    if not extent.max() > 0:  # every point identical
+        return canonical_order(points)[:size]
+    offsets = coords - lo[:, None]  # [3, N], >= 0
+    target = VOXEL_TARGET * size
+    min_voxel = extent.max() / VOXEL_MAX_CELLS_PER_AXIS
+    # First guess: the points lie on a surface of about half the bounding box's surface area.
+    area = extent[0] * extent[1] + extent[1] * extent[2] + extent[2] * extent[0]
+    voxel = float(np.sqrt(area / target)) if area > 0 else float(extent.max() / target)
+    tried: list[tuple[float, int]] = []
+    for _ in range(VOXEL_MAX_TRIES):
+        voxel = max(voxel, min_voxel)
+        count = _occupied_voxels(_voxel_keys(np.floor(offsets / voxel), extent, voxel))
+        tried.append((voxel, count))
+        if VOXEL_ACCEPT[0] * size <= count <= VOXEL_ACCEPT[1] * size:
+            break
+        # occupancy ~ voxel^-d: d = 2 for a surface at first, then estimated from the last two tries
+        d = 2.0
+        if len(tried) >= 2:
+            (v0, c0), (v1, c1) = tried[-2], tried[-1]
+            if v0 != v1 and c0 > 0 and c1 > 0 and c0 != c1:
+                d = float(np.clip(-np.log(c1 / c0) / np.log(v1 / v0), 1.0, 3.0))
+        voxel = voxel * (max(count, 1) / target) ** (1.0 / d)
+    # Keep the try closest to the target (in ratio), preferring those with at least `size` voxels.
+    voxel, _ = min(tried, key=lambda vc: (vc[1] < size, abs(np.log(max(vc[1], 1) / target))))
+
+    cell = np.floor(offsets / voxel)  # [3, N] voxel coordinates of each point
+    keys = _voxel_keys(cell, extent, voxel)  # [N]
+    from_centre = offsets - (cell + 0.5) * voxel  # [3, N]
+    dist2 = from_centre[0] ** 2 + from_centre[1] ** 2 + from_centre[2] ** 2  # [N] to the voxel centre
+    order = np.argsort(keys)  # [N] groups points by voxel
+    sorted_keys = keys[order]
+    is_start = np.empty(order.shape[0], dtype=bool)
+    is_start[0] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=is_start[1:])
+    group = np.cumsum(is_start) - 1  # [N] voxel number of each sorted point
+    sorted_dist2 = dist2[order]
+    group_min = np.minimum.reduceat(sorted_dist2, np.flatnonzero(is_start))  # [V]
+    is_closest = sorted_dist2 == group_min[group]
+    candidates, candidate_group = order[is_closest], group[is_closest]  # usually one per voxel
+    c = points[candidates]  # [C, 3]
+    tie_order = np.lexsort((candidates, c[:, 2], c[:, 1], c[:, 0], candidate_group))
+    first = np.ones(tie_order.shape[0], dtype=bool)
+    first[1:] = candidate_group[tie_order][1:] != candidate_group[tie_order][:-1]
+    return candidates[tie_order[first]]
+
+
+def _voxel_keys(cell: np.ndarray, extent: np.ndarray, voxel: float) -> np.ndarray:
+    """``(N,)`` int64 linear key of the voxel coordinates ``cell (3, N)`` (non-negative, floored)."""
+    cells = np.floor(extent / voxel).astype(np.int64) + 1  # [3] cells per axis
+    ijk = cell.astype(np.int64)  # [3, N]
+    return ijk[0] + cells[0] * (ijk[1] + cells[1] * ijk[2])
+
+
+def _occupied_voxels(keys: np.ndarray) -> int:
+    """Number of distinct ``keys (N,)`` (a plain sort: faster than ``np.unique`` here)."""
+    sorted_keys = np.sort(keys)
+    return int(np.count_nonzero(sorted_keys[1:] != sorted_keys[:-1])) + 1

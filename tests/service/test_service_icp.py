@@ -1,0 +1,125 @@
+"""Specification of ``service.icp.icp``: point-to-point refinement of a nearly right pose."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from service.icp import icp
+
+
+def smooth_shape(n: int, seed: int) -> np.ndarray:
+    """``(n, 3)`` points on an ellipsoid surface and on the surface of a box touching it."""
+    rng = np.random.default_rng(seed)
+    half = n // 2
+    directions = rng.normal(size=(half, 3))
+    ellipsoid = directions / np.linalg.norm(directions, axis=1, keepdims=True) * [1.0, 0.6, 0.4]
+    box = rng.uniform(-0.4, 0.4, size=(n - half, 3))
+    face = rng.integers(0, 3, size=n - half)
+    box[np.arange(n - half), face] = np.sign(rng.normal(size=n - half)) * 0.4
+    return np.concatenate([ellipsoid, box * [1.0, 0.8, 0.6] + [1.2, 0.2, 0.0]])
+
+
+def partial_pair(seed: int, n: int = 1200) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two partial, overlapping views ``src (<=768, 3)``, ``tgt (<=768, 3)`` of one shape, and the
+    ``src_to_tgt`` pose ``R (3, 3)``, ``t (3,)``."""
+    shape = smooth_shape(n, seed)
+    src_in_shape = shape[shape[:, 0] < 0.9][:768]  # crop one side each: partial overlap
+    tgt_in_shape = shape[shape[:, 0] > -0.3][:768]
+    R = Rotation.from_rotvec([0.3, -0.5, 0.8]).as_matrix()
+    t = np.array([0.2, -0.1, 0.4])
+    return src_in_shape, tgt_in_shape @ R.T + t, R, t
+
+
+def rotation_error_rad(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    return float(np.linalg.norm(Rotation.from_matrix(R_a @ R_b.T).as_rotvec()))
+
+
+def perturbed(R: np.ndarray, t: np.ndarray, degrees: float, shift: float) -> tuple[np.ndarray, np.ndarray]:
+    R_delta = Rotation.from_rotvec(np.deg2rad(degrees) * np.array([0.6, 0.8, 0.0])).as_matrix()
+    return R_delta @ R, t + shift * np.array([1.0, -1.0, 0.5])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_recovers_a_small_perturbation_of_the_true_pose(seed: int) -> None:
+    src, tgt, R, t = partial_pair(seed)
+    R0, t0 = perturbed(R, t, degrees=6.0, shift=0.05)
+    result = icp(src, tgt, R0, t0, max_distance=0.2)
+    assert rotation_error_rad(result.rotation, R) < 1e-5
+    np.testing.assert_allclose(result.translation, t, atol=1e-5)
+    assert 0 < result.iterations <= 30
+    assert result.inlier_ratio > 0.5
+    assert result.residual_rms < 1e-5
+
+
+def test_refines_between_independently_sampled_clouds() -> None:
+    shape_a, shape_b = smooth_shape(768, seed=10), smooth_shape(768, seed=11)  # no shared points
+    R = Rotation.from_rotvec([0.1, 0.4, -0.2]).as_matrix()
+    t = np.array([0.0, 0.3, -0.2])
+    R0, t0 = perturbed(R, t, degrees=5.0, shift=0.05)
+    result = icp(shape_a, shape_b @ R.T + t, R0, t0, max_distance=0.2)
+    assert rotation_error_rad(result.rotation, R) < rotation_error_rad(R0, R) / 2
+    assert np.linalg.norm(result.translation - t) < np.linalg.norm(t0 - t) / 2
+
+
+def test_leaves_an_aligned_pair_aligned() -> None:
+    src, tgt, R, t = partial_pair(3)
+    result = icp(src, tgt, R, t, max_distance=0.2)
+    assert rotation_error_rad(result.rotation, R) < 1e-9
+    np.testing.assert_allclose(result.translation, t, atol=1e-9)
+    assert result.iterations <= 2
+
+
+def test_truncated_cost_does_not_increase() -> None:
+    src, tgt, R, t = partial_pair(4)
+    R0, t0 = perturbed(R, t, degrees=10.0, shift=0.1)
+    tree = cKDTree(tgt)
+
+    def truncated_cost(R_: np.ndarray, t_: np.ndarray) -> float:
+        dist = tree.query(src @ R_.T + t_)[0]
+        return float(np.minimum(dist, 0.2) ** 2 @ np.ones_like(dist))
+
+    costs = [truncated_cost(R0, t0)]
+    for iterations in range(1, 8):
+        result = icp(src, tgt, R0, t0, max_distance=0.2, max_iterations=iterations, tolerance=0.0)
+        costs.append(truncated_cost(result.rotation, result.translation))
+    assert all(b <= a + 1e-12 for a, b in zip(costs, costs[1:], strict=False))
+
+
+def test_keeps_the_initial_pose_with_fewer_than_three_inliers() -> None:
+    src, tgt, R, t = partial_pair(5)
+    t_far = t + 100.0
+    result = icp(src, tgt, R, t_far, max_distance=0.2)
+    assert result.iterations == 0
+    np.testing.assert_array_equal(result.rotation, R)
+    np.testing.assert_array_equal(result.translation, t_far)
+    assert result.inlier_ratio == 0.0 and result.residual_rms == 0.0
+
+
+def test_768_points_take_a_few_milliseconds() -> None:
+    src, tgt, R, t = partial_pair(6)
+    R0, t0 = perturbed(R, t, degrees=3.0, shift=0.02)
+    icp(src, tgt, R0, t0, max_distance=0.2)  # warm-up
+    start = time.perf_counter()
+    icp(src, tgt, R0, t0, max_distance=0.2)
+    assert time.perf_counter() - start < 0.1  # typically ~5 ms; generous for a busy machine
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"max_distance": 0.0}, "max_distance"), ({"max_distance": 1.0, "max_iterations": -1}, "max_iterations")],
+)
+def test_rejects_bad_options(kwargs: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        icp(np.zeros((4, 3)), np.zeros((4, 3)), np.eye(3), np.zeros(3), **kwargs)
+
+
+def test_rejects_bad_shapes() -> None:
+    with pytest.raises(ValueError, match="R0"):
+        icp(np.zeros((4, 3)), np.zeros((4, 3)), np.eye(4), np.zeros(3), max_distance=1.0)
+    with pytest.raises(ValueError, match="src"):
+        icp(np.zeros((4, 2)), np.zeros((4, 3)), np.eye(3), np.zeros(3), max_distance=1.0)
