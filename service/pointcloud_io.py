@@ -94,7 +94,8 @@ def _checked(points: np.ndarray, name: str) -> np.ndarray:
         raise PointCloudFormatError(f"{name}: need at least 3 columns (x, y, z), got shape {points.shape}")
     if points.shape[0] == 0:
         raise PointCloudFormatError(f"{name}: the cloud is empty")
-    xyz = points[:, :3].astype(np.float32)  # [N, 3]
+    with np.errstate(over="ignore"):  # values beyond float32 become inf and are refused below
+        xyz = points[:, :3].astype(np.float32)  # [N, 3]
     bad = ~np.isfinite(xyz).all(axis=1)
     if bad.any():
         raise PointCloudFormatError(

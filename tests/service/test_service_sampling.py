@@ -20,7 +20,7 @@ def sphere_and_box(n: int, seed: int) -> np.ndarray:
     box = rng.uniform(-0.5, 0.5, size=(n - half, 3))
     face = rng.integers(0, 3, size=n - half)
     box[np.arange(n - half), face] = np.sign(rng.normal(size=n - half)) * 0.5
-    return np.concatenate([ellipsoid, box + [1.5, 0.0, 0.0]])
+    return np.concatenate([ellipsoid, box + np.array([1.5, 0.0, 0.0])])
 
 
 @pytest.mark.parametrize("n", [32, 768, 5000, 200_000])
@@ -80,7 +80,9 @@ def test_heavily_duplicated_cloud_still_gives_distinct_indices() -> None:
     indices = resample_indices(points, 768)
     assert np.unique(indices).size == 768
     assert np.unique(points[indices[:100]], axis=0).shape[0] == 100  # every place before any repeat
-    np.testing.assert_array_equal(points[indices], points[permutation][resample_indices(points[permutation], 768)])
+    np.testing.assert_array_equal(
+        points[indices], points[permutation][resample_indices(points[permutation], 768)]
+    )
 
 
 def test_identical_points_give_the_requested_number_of_indices() -> None:
@@ -90,7 +92,9 @@ def test_identical_points_give_the_requested_number_of_indices() -> None:
 
 def test_float32_and_float64_inputs_select_the_same_points() -> None:
     points = sphere_and_box(3000, seed=7).astype(np.float32)
-    np.testing.assert_array_equal(resample_indices(points, 300), resample_indices(points.astype(np.float64), 300))
+    np.testing.assert_array_equal(
+        resample_indices(points, 300), resample_indices(points.astype(np.float64), 300)
+    )
 
 
 def test_200k_points_take_well_under_a_second() -> None:

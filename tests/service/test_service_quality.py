@@ -1,0 +1,121 @@
+"""Specification of ``service.quality``: overlap, residual, degenerate geometry, reliability."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.quality import RELIABLE_INLIER_RATIO, assess, degeneracy_warnings
+
+
+def blob(n: int = 300, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).normal(size=(n, 3)) * [2.0, 1.0, 0.5]
+
+
+def test_a_well_spread_cloud_has_no_warnings() -> None:
+    assert degeneracy_warnings(blob()) == []
+
+
+def test_identical_points_are_detected() -> None:
+    (warning,) = degeneracy_warnings(np.tile([[1e3, -2.0, 0.1]], (50, 1)))
+    assert warning.startswith("identical")
+
+
+def test_a_single_point_is_identical() -> None:
+    assert degeneracy_warnings(np.zeros((1, 3)))[0].startswith("identical")
+
+
+def test_collinear_points_are_detected_even_with_tiny_noise() -> None:
+    rng = np.random.default_rng(1)
+    line = rng.uniform(-5, 5, size=(200, 1)) * np.array([[0.6, 0.0, 0.8]]) + [10.0, 20.0, 30.0]
+    (warning,) = degeneracy_warnings(line + rng.normal(scale=1e-4, size=line.shape))
+    assert warning.startswith("collinear")
+
+
+def test_two_points_are_collinear() -> None:
+    assert degeneracy_warnings(np.array([[0.0, 0, 0], [1, 1, 1]]))[0].startswith("collinear")
+
+
+def test_coplanar_points_get_a_note() -> None:
+    rng = np.random.default_rng(2)
+    plane = np.c_[rng.uniform(-1, 1, size=(200, 2)), np.zeros(200)]
+    rotated = plane @ Rotation.random(random_state=3).as_matrix().T
+    (warning,) = degeneracy_warnings(rotated)
+    assert warning.startswith("coplanar") and "ambiguous" in warning
+
+
+def test_empty_cloud_is_reported() -> None:
+    assert degeneracy_warnings(np.zeros((0, 3)))[0].startswith("empty")
+
+
+def test_rejects_nan_points() -> None:
+    with pytest.raises(ValueError, match="NaN"):
+        degeneracy_warnings(np.array([[0.0, np.nan, 0.0]]))
+
+
+def test_perfect_alignment_is_reliable() -> None:
+    src = blob()
+    R = Rotation.random(random_state=4).as_matrix()
+    t = np.array([1.0, 2.0, 3.0])
+    quality = assess(src, src @ R.T + t, R, t, inlier_distance=0.01)
+    assert quality.inlier_ratio == 1.0
+    assert quality.residual_rms == pytest.approx(0.0, abs=1e-12)
+    assert quality.reliable and quality.warnings == []
+
+
+def test_residual_is_the_rms_of_inlier_distances_only() -> None:
+    tgt = blob(200, seed=5) * 10  # far apart target points
+    src = tgt.copy()
+    src[:100, 0] += 0.3  # 100 points 0.3 away
+    src[100:150, 0] += 0.1  # 50 points 0.1 away
+    src[150:, 0] += 50.0  # 50 outliers
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.5)
+    assert quality.inlier_ratio == pytest.approx(150 / 200)
+    assert quality.residual_rms == pytest.approx(np.sqrt((100 * 0.09 + 50 * 0.01) / 150))
+
+
+def test_no_inliers_gives_zero_residual_and_a_warning() -> None:
+    src = blob()
+    quality = assess(src, src, np.eye(3), np.array([100.0, 0.0, 0.0]), inlier_distance=0.1)
+    assert quality.inlier_ratio == 0.0 and quality.residual_rms == 0.0
+    assert not quality.reliable
+    assert any(w.startswith("low overlap") for w in quality.warnings)
+
+
+@pytest.mark.parametrize(("inliers", "reliable"), [(30, True), (29, False)])
+def test_reliability_threshold_on_the_inlier_ratio(inliers: int, reliable: bool) -> None:
+    assert RELIABLE_INLIER_RATIO == 0.3
+    tgt = blob(100, seed=6) * 10
+    src = tgt.copy()
+    src[inliers:] += 1000.0  # the others are far away
+    assert assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1).reliable is reliable
+
+
+def test_collinear_source_is_never_reliable() -> None:
+    line = np.linspace(0, 1, 50)[:, None] * np.array([[1.0, 2.0, 3.0]])
+    quality = assess(line, line, np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert quality.inlier_ratio == 1.0 and not quality.reliable
+    assert quality.warnings[0].startswith("source collinear")
+    assert quality.warnings[1].startswith("target collinear")
+
+
+def test_identical_target_is_never_reliable() -> None:
+    quality = assess(np.zeros((5, 3)) + 1e-12, np.zeros((5, 3)), np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert not quality.reliable
+    assert any(w.startswith("target identical") for w in quality.warnings)
+
+
+def test_coplanar_pair_stays_reliable_with_a_warning() -> None:
+    rng = np.random.default_rng(7)
+    plane = np.c_[rng.uniform(-1, 1, size=(200, 2)), np.zeros(200)]
+    quality = assess(plane, plane, np.eye(3), np.zeros(3), inlier_distance=0.01)
+    assert quality.reliable
+    assert [w.split(":")[0] for w in quality.warnings] == ["source coplanar", "target coplanar"]
+
+
+def test_rejects_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="inlier_distance"):
+        assess(blob(), blob(), np.eye(3), np.zeros(3), inlier_distance=0.0)
+    with pytest.raises(ValueError, match="R must be"):
+        assess(blob(), blob(), np.eye(4), np.zeros(3), inlier_distance=0.1)
