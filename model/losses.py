@@ -74,7 +74,7 @@ def registration_losses(out: RegistrationOutput, src, tgt, R_gt, t_gt, threshold
 
 def _pick(mask: torch.Tensor, count: int, generator: torch.Generator | None) -> torch.Tensor:
     """``count`` random indices per row where ``mask [B, N]`` is true, topped up from the rest."""
-    key = torch.rand(mask.shape, generator=generator) + 2.0 * mask  # [B, N]
+    key = torch.rand(mask.shape, generator=generator).to(mask.device) + 2.0 * mask  # [B, N]
     return key.topk(count, dim=-1).indices  # [B, count]
 
 

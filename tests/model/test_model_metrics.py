@@ -1,0 +1,91 @@
+"""``model.metrics``: the paper's RMSE / MAE of zyx Euler angles and translation, isotropic errors, recall."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from model.metrics import euler_zyx_deg, registration_metrics, rotation_angle_deg
+
+KEYS = {"n", "rmse_r", "mae_r", "rmse_t", "mae_t", "iso_r_mean", "iso_r_median", "iso_t_mean", "iso_t_median",
+        "recall_r1_t001", "recall_r5_t005"}
+
+
+def zyx(*angles_deg: tuple[float, float, float]) -> np.ndarray:
+    return Rotation.from_euler("zyx", angles_deg, degrees=True).as_matrix()
+
+
+def test_euler_zyx_deg_inverts_scipy_from_euler() -> None:
+    angles = np.array([[10.0, 20.0, 30.0], [-45.0, 5.0, 170.0]])
+    np.testing.assert_allclose(euler_zyx_deg(zyx(*angles)), angles, atol=1e-10)
+
+
+def test_rmse_and_mae_of_euler_angles_and_translation_by_hand() -> None:
+    R_gt = zyx((10, 20, 30), (0, 0, 0), (-30, 15, 40))
+    R_pred = zyx((11, 18, 30), (0, 0, 3), (-30, 15, 40))  # errors (1, -2, 0), (0, 0, 3), (0, 0, 0) degrees
+    t_gt = np.array([[0.1, 0.2, 0.3], [0.0, 0.0, 0.0], [-0.4, 0.1, 0.0]])
+    t_pred = t_gt + np.array([[0.01, 0.0, 0.0], [0.0, -0.02, 0.0], [0.0, 0.0, 0.0]])
+    m = registration_metrics(R_pred, t_pred, R_gt, t_gt)
+    assert set(m) == KEYS  # no timing without seconds
+    assert m["n"] == 3
+    assert m["rmse_r"] == pytest.approx(math.sqrt((1 + 4 + 9) / 9), rel=1e-9)
+    assert m["mae_r"] == pytest.approx((1 + 2 + 3) / 9, rel=1e-9)
+    assert m["rmse_t"] == pytest.approx(math.sqrt((0.01**2 + 0.02**2) / 9), rel=1e-9)
+    assert m["mae_t"] == pytest.approx((0.01 + 0.02) / 9, rel=1e-9)
+    assert m["iso_t_mean"] == pytest.approx((0.01 + 0.02) / 3, rel=1e-9)
+    assert m["iso_t_median"] == pytest.approx(0.01, rel=1e-9)
+    # isotropic errors: pair 0 by scipy's rotation magnitude, pair 1 a pure 3-degree turn, pair 2 none
+    iso0 = np.degrees((Rotation.from_matrix(R_pred[0]).inv() * Rotation.from_matrix(R_gt[0])).magnitude())
+    assert 1.0 < iso0 < 3.0
+    assert m["iso_r_median"] == pytest.approx(iso0, rel=1e-6)
+    assert m["iso_r_mean"] == pytest.approx((iso0 + 3.0 + 0.0) / 3, rel=1e-6)
+
+
+def test_isotropic_error_of_a_10_degree_rotation_about_z() -> None:
+    R_gt = zyx((25, -10, 40))
+    R_pred = zyx((10, 0, 0)) @ R_gt
+    assert rotation_angle_deg(R_pred, R_gt)[0] == pytest.approx(10.0, abs=1e-9)
+    assert rotation_angle_deg(R_gt, R_pred)[0] == pytest.approx(10.0, abs=1e-9)
+    assert rotation_angle_deg(R_gt, R_gt)[0] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_isotropic_error_handles_180_degrees() -> None:
+    assert rotation_angle_deg(zyx((180, 0, 0)), np.eye(3)[None])[0] == pytest.approx(180.0, abs=1e-6)
+
+
+def test_recall_needs_both_the_rotation_and_the_translation_under_the_thresholds() -> None:
+    R_gt = np.broadcast_to(np.eye(3), (4, 3, 3))
+    R_pred = zyx((0.5, 0, 0), (0.5, 0, 0), (3, 0, 0), (6, 0, 0))
+    t_gt = np.zeros((4, 3))
+    t_pred = np.array([[0.005, 0, 0], [0.02, 0, 0], [0.0, 0.04, 0], [0, 0, 0]])
+    m = registration_metrics(R_pred, t_pred, R_gt, t_gt)
+    assert m["recall_r1_t001"] == pytest.approx(1 / 4)  # only the first: < 1 deg and < 0.01
+    assert m["recall_r5_t005"] == pytest.approx(3 / 4)  # the last fails on 6 deg > 5 deg
+
+
+def test_euler_differences_wrap_around_180_degrees() -> None:
+    R_gt = zyx((-179, 0, 0), (0, 0, 179))
+    R_pred = zyx((179, 0, 0), (0, 0, -178))  # 2 and 3 degrees away, not 358 and 357
+    m = registration_metrics(R_pred, np.zeros((2, 3)), R_gt, np.zeros((2, 3)))
+    assert m["mae_r"] == pytest.approx((2 + 3) / 6, rel=1e-6)
+    assert m["rmse_r"] == pytest.approx(math.sqrt((4 + 9) / 6), rel=1e-6)
+    assert m["iso_r_mean"] == pytest.approx(2.5, rel=1e-6)
+
+
+def test_perfect_predictions_have_zero_error_and_full_recall() -> None:
+    R = zyx((10, 20, 30), (-40, 5, 12))
+    t = np.array([[0.1, 0.2, 0.3], [-0.4, 0.0, 0.5]])
+    m = registration_metrics(R.astype(np.float32), t.astype(np.float32), R, t)
+    assert m["mae_r"] < 1e-3
+    assert m["mae_t"] < 1e-6
+    assert m["recall_r1_t001"] == m["recall_r5_t005"] == 1.0
+
+
+def test_milliseconds_per_pair_from_seconds() -> None:
+    R = zyx((0, 0, 0), (0, 0, 0))
+    m = registration_metrics(R, np.zeros((2, 3)), R, np.zeros((2, 3)), seconds=0.5)
+    assert m["ms_per_pair"] == pytest.approx(250.0)
+    assert set(m) == KEYS | {"ms_per_pair"}

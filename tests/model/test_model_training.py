@@ -1,0 +1,178 @@
+"""Training: a few optimizer steps lower the loss, ``model.train.train`` writes and resumes its run
+directory, and checkpoints reproduce the network exactly."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint, save_checkpoint
+from model.config import MFGNetConfig
+from model.data import PairProtocol, make_pairs
+from model.losses import registration_losses, sample_training_keypoints
+from model.network import MFGNet
+from model.train import TrainOptions, train
+
+TINY = {"iterations": 2, "keypoints": 32, "emb_dims": 16, "encoder_blocks": 2, "matcher_channels": 8,
+        "knn": 8, "train_positives": 16, "train_negatives": 16}
+
+
+def sphere_shapes(count: int, points: int = 1024, seed: int = 0) -> np.ndarray:
+    p = np.random.default_rng(seed).normal(size=(count, points, 3))
+    return (p / np.linalg.norm(p, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def training_batch(seed: int = 0) -> tuple[torch.Tensor, ...]:
+    pairs = make_pairs(sphere_shapes(2, seed=seed), PairProtocol(), np.random.default_rng(seed))
+    return tuple(torch.from_numpy(pairs[k]) for k in ("source", "target", "rotation", "translation"))
+
+
+def test_five_adam_steps_on_a_fixed_batch_lower_the_total_loss() -> None:
+    torch.manual_seed(0)
+    cfg = MFGNetConfig(**TINY)
+    model = MFGNet(cfg).train()
+    src, tgt, R, t = training_batch()
+    src_idx, tgt_idx = sample_training_keypoints(src, tgt, R, t, cfg.train_positives, cfg.train_negatives,
+                                                 cfg.match_threshold, torch.Generator().manual_seed(0))
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+
+    def total_loss() -> torch.Tensor:
+        out = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
+        return registration_losses(out, src, tgt, R, t, cfg.match_threshold).total
+
+    losses = []
+    for _ in range(5):
+        loss = total_loss()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        losses.append(float(loss.detach()))
+    final = float(total_loss().detach())
+    assert all(np.isfinite(losses))
+    assert final < 0.95 * losses[0], (losses, final)
+
+
+def test_every_parameter_receives_a_gradient() -> None:
+    torch.manual_seed(0)
+    cfg = MFGNetConfig(**TINY)
+    model = MFGNet(cfg).train()
+    src, tgt, R, t = training_batch(1)
+    src_idx, tgt_idx = sample_training_keypoints(src, tgt, R, t, 16, 16, cfg.match_threshold)
+    out = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
+    registration_losses(out, src, tgt, R, t, cfg.match_threshold).total.backward()
+    no_grad = [name for name, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert no_grad == []
+
+
+# --- the training loop ----------------------------------------------------------------------------
+
+
+@pytest.fixture
+def synthetic_modelnet(tmp_path):
+    """A ModelNet40-shaped training file of 40 sphere shapes (float16 like the real one)."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(40, seed=3).astype(np.float16),
+             labels=np.arange(40) % 20)
+    return folder
+
+
+def options(out, data, **overrides) -> TrainOptions:
+    return TrainOptions(**{
+        "out": str(out), "data": str(data), "epochs": 1, "batch_size": 2, "max_batches_per_epoch": 2,
+        "val_pairs": 8, "device": "cpu", "config": dict(TINY), **overrides})
+
+
+def test_train_writes_checkpoints_and_log_and_resume_continues(tmp_path, synthetic_modelnet, capsys) -> None:
+    run = tmp_path / "run"
+    best = train(options(run, synthetic_modelnet))
+    assert best == run / "best.pt"
+    assert {"best.pt", "last.pt", "log.jsonl", "config.json"} <= {p.name for p in run.iterdir()}
+    assert not list(run.glob("*.tmp"))
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in records] == [0]
+    assert records[0]["batches"] == 2
+    expected_keys = {"train_total", "train_keypoint", "train_matching", "train_credibility",
+                     "val_mae_r", "val_n"}
+    assert expected_keys <= set(records[0])
+    assert np.isfinite(records[0]["train_total"])
+    last = read_checkpoint(run / "last.pt")
+    assert last["state"]["epoch"] == 1
+    assert last["config"]["emb_dims"] == TINY["emb_dims"]
+    assert "optimizer" in last
+    first_weights = {k: v.clone() for k, v in last["model"].items()}
+    assert load_model(run / "best.pt").cfg == MFGNetConfig(**TINY)
+
+    capsys.readouterr()
+    train(options(run, synthetic_modelnet, epochs=2, resume=True))
+    assert "resumed from" in capsys.readouterr().out
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["epoch"] for r in records] == [0, 1]  # the finished epoch is not repeated
+    last = read_checkpoint(run / "last.pt")
+    assert last["state"]["epoch"] == 2
+    changed = [k for k, v in last["model"].items()
+               if v.is_floating_point() and not torch.equal(v, first_weights[k])]
+    assert changed  # training went on from the saved weights
+
+
+def test_train_config_overrides_reach_the_saved_model(tmp_path, synthetic_modelnet) -> None:
+    run = tmp_path / "run"
+    train(options(run, synthetic_modelnet, config={**TINY, "share_weights": True}, max_batches_per_epoch=1))
+    model = load_model(run / "last.pt")
+    assert model.cfg.share_weights
+    assert len(model.matchers) == 1
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["model"]["share_weights"] is True
+    assert saved["train"]["batch_size"] == 2
+
+
+# --- checkpoints ----------------------------------------------------------------------------------
+
+
+def test_checkpoint_round_trip_reproduces_outputs_exactly(tmp_path) -> None:
+    torch.manual_seed(0)
+    cfg = MFGNetConfig(**{**TINY, "share_weights": True, "feature_diff": "target_minus_source",
+                          "centroid": "unweighted"})
+    model = MFGNet(cfg)
+    src, tgt, _, _ = training_batch(2)
+    model.train()
+    model(src, tgt)  # move the BatchNorm running statistics away from their defaults
+    model.eval()
+    save_checkpoint(tmp_path / "ck" / "model.pt", model, note="hello", state={"epoch": 3})
+    loaded = load_model(tmp_path / "ck" / "model.pt")
+    assert not loaded.training
+    assert loaded.cfg == cfg
+    with torch.no_grad():
+        a, b = model(src, tgt), loaded(src, tgt)
+    assert torch.equal(a.rotation, b.rotation)
+    assert torch.equal(a.translation, b.translation)
+    assert torch.equal(a.steps[-1].scores, b.steps[-1].scores)
+    extra = read_checkpoint(tmp_path / "ck" / "model.pt")
+    assert extra["note"] == "hello"
+    assert extra["state"] == {"epoch": 3}
+    assert [p.name for p in (tmp_path / "ck").iterdir()] == ["model.pt"]  # written atomically, no leftovers
+
+
+def test_unknown_checkpoint_name_is_a_clear_error() -> None:
+    with pytest.raises(FileNotFoundError, match="no-such-model"):
+        resolve_checkpoint("no-such-model")
+
+
+@pytest.mark.parametrize("device", [
+    "meta",  # shapes and devices only: stands in for an accelerator on CPU-only machines
+    pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")),
+])
+def test_a_training_step_keeps_every_tensor_on_the_model_device(device: str) -> None:
+    torch.manual_seed(0)
+    cfg = MFGNetConfig(**TINY)
+    model = MFGNet(cfg).to(device).train()
+    src, tgt, R, t = (x.to(device) for x in training_batch(3))
+    src_idx, tgt_idx = sample_training_keypoints(src, tgt, R, t, 16, 16, cfg.match_threshold)  # no generator
+    assert src_idx.device.type == tgt_idx.device.type == device
+    out = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
+    total = registration_losses(out, src, tgt, R, t, cfg.match_threshold).total
+    assert total.device.type == device
+    total.backward()
