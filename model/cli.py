@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -17,9 +17,9 @@ def make_pairs(
     out: Annotated[Path, typer.Option(help="output .npz")],
     setting: Setting = "clean",
     split: Annotated[str, typer.Option(help="train or test")] = "test",
-    count: Annotated[Optional[int], typer.Option(help="number of pairs (default: one per shape)")] = None,
+    count: Annotated[int | None, typer.Option(help="number of pairs (default: one per shape)")] = None,
     seed: int = 0,
-    data: Annotated[Optional[str], typer.Option(help="ModelNet40 directory ($MFGNET_DATA)")] = None,
+    data: Annotated[str | None, typer.Option(help="ModelNet40 directory ($MFGNET_DATA)")] = None,
 ) -> None:
     """Write seeded registration pairs (source, target, rotation, translation, label) to an npz."""
     pairs = make_test_pairs(setting, split, count, seed, data)
@@ -36,13 +36,13 @@ def train(
     weight_decay: float = 1e-3,
     seed: int = 0,
     resume: Annotated[bool, typer.Option(help="continue from OUT/last.pt")] = False,
-    init: Annotated[Optional[str], typer.Option(help="initial weights (fine-tuning)")] = None,
+    init: Annotated[str | None, typer.Option(help="initial weights (fine-tuning)")] = None,
     patience: int = 10,
-    max_minutes: Optional[float] = None,
+    max_minutes: float | None = None,
     checkpoint_minutes: float = 5.0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
-    data: Optional[str] = None,
-    threads: Optional[int] = None,
+    data: str | None = None,
+    threads: int | None = None,
     iterations: int = 4,
     share_weights: bool = False,
 ) -> None:
@@ -61,16 +61,16 @@ def train(
 
 
 def evaluate(
-    checkpoint: Annotated[Optional[str], typer.Option(help="checkpoint path or bundled name")] = None,
-    pairs: Annotated[Optional[Path], typer.Option(help="pairs .npz (else made from --setting)")] = None,
+    checkpoint: Annotated[str | None, typer.Option(help="checkpoint path or bundled name")] = None,
+    pairs: Annotated[Path | None, typer.Option(help="pairs .npz (else made from --setting)")] = None,
     setting: Setting = "clean",
-    count: Optional[int] = None,
+    count: int | None = None,
     seed: int = 0,
-    iterations: Optional[int] = None,
-    keypoints: Optional[int] = None,
+    iterations: int | None = None,
+    keypoints: int | None = None,
     batch_size: int = 16,
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="write the metrics here")] = None,
-    data: Optional[str] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
+    data: str | None = None,
 ) -> None:
     """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
     from model.checkpoint import load_model

@@ -11,6 +11,7 @@ training fast on a CPU:
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import torch
@@ -40,6 +41,16 @@ class BNReLULinear(nn.Module):
         return self.norm_relu(self.linear(x))
 
 
+def pair_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Exact Euclidean distances ``[B, K, L]`` between ``a [B, K, d]`` and ``b [B, L, d]``.
+
+    ``torch.cdist`` (non-matmul mode) in PyTorch; the explicit difference when exporting to ONNX.
+    """
+    if torch.onnx.is_in_onnx_export():
+        return ((a[:, :, None] - b[:, None]) ** 2).sum(-1).sqrt()
+    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")
+
+
 def knn_indices(points: torch.Tensor, k: int) -> torch.Tensor:
     """Indices ``[B, N, k]`` of the k nearest points of each point (itself included)."""
     sq = (points * points).sum(-1)  # [B, N]
@@ -63,12 +74,14 @@ class EdgeConvBlock(nn.Module):
         self.edge_out = nn.Linear(out_ch, out_ch)
         self.point = nn.Linear(out_ch, out_ch)
 
-    def forward(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, idx_kn: torch.Tensor) -> torch.Tensor:
+        """``x [B, N, C_in]``, neighbour indices ``idx_kn [B, k, N]`` (k-major: the max over
+        neighbours is then an element-wise maximum of contiguous slabs) -> ``[B, N, C]``."""
         y = self.edge.linear(x)  # [B, N, C] = W x, per point (rewrite 1)
-        e = gather_points(y, idx) - y[:, :, None]  # [B, N, k, C] = W x_j - W x_i
+        e = gather_points(y, idx_kn) - y[:, None]  # [B, k, N, C] = W x_j - W x_i
         e = self.edge.norm_relu(e)
         # max(e W^T + b) = max(e W^T) + b: the bias is added after the max (exact).
-        e = F.linear(e, self.edge_out.weight).amax(dim=2) + self.edge_out.bias  # [B, N, C]
+        e = F.linear(e, self.edge_out.weight).max(dim=1).values + self.edge_out.bias  # [B, N, C]
         return self.point(e)  # [B, N, C]
 
 
@@ -78,14 +91,14 @@ class Encoder(nn.Module):
     def __init__(self, cfg: MFGNetConfig):
         super().__init__()
         chans = [3] + [cfg.emb_dims] * cfg.encoder_blocks
-        self.blocks = nn.ModuleList(EdgeConvBlock(a, b) for a, b in zip(chans[:-1], chans[1:], strict=True))
+        self.blocks = nn.ModuleList(EdgeConvBlock(a, b) for a, b in itertools.pairwise(chans))
         self.k = cfg.knn
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        idx = knn_indices(points, self.k)  # [B, N, k]
+        idx_kn = knn_indices(points, self.k).transpose(1, 2)  # [B, k, N]
         x = points
         for block in self.blocks:
-            x = block(x, idx)
+            x = block(x, idx_kn)
         return x  # [B, N, D]
 
 
@@ -120,7 +133,7 @@ class PairMLP(nn.Module):
         """``a [B, K, d]``, ``b [B, L, d]`` with pair difference ``a - b`` -> scores ``[B, K, L]``."""
         W = self.first.linear.weight  # [C, 1 + d + e]
         w_norm, W_d = W[:, 0], W[:, 1 : 1 + self.diff_dims]
-        dist = torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")  # [B, K, L]
+        dist = pair_distance(a, b)  # [B, K, L]
         pa, pb = F.linear(a, W_d), F.linear(b, W_d)  # [B, K, C], [B, L, C]
         if extra_a is not None:
             pa_extra = F.linear(extra_a, W[:, 1 + self.diff_dims :])  # [B, K, C]
@@ -145,7 +158,7 @@ class CredibilityHead(nn.Module):
         w = self.pre.weight  # [C, 2]
         # pre([F, S]) then max over b; the bias commutes with the max (exact).
         h = F_mat[..., None] * w[:, 0] + S_mat[..., None] * w[:, 1]  # [B, K, L, C]
-        h = h.amax(dim=2) + self.pre.bias  # [B, K, C]
+        h = h.max(dim=2).values + self.pre.bias  # [B, K, C]
         return self.post(h).squeeze(-1)  # [B, K]
 
 

@@ -54,7 +54,7 @@ def split_validation(n: int, fraction: float, seed: int) -> tuple[np.ndarray, np
     """Deterministic train / validation split of ``n`` shape indices."""
     rng = np.random.default_rng([seed, 7919])
     perm = rng.permutation(n)
-    n_val = max(1, int(round(n * fraction)))
+    n_val = max(1, round(n * fraction))
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
 
@@ -99,8 +99,15 @@ def train(opts: TrainOptions) -> Path:
     (out / "config.json").write_text(json.dumps({"model": cfg.to_dict(), "train": asdict(opts)}, indent=2))
 
     def checkpoint(path: Path, **extra) -> None:
-        save_checkpoint(path, model, optimizer=optimizer.state_dict(), state=dict(state),
-                        protocol=asdict(protocol), setting=opts.setting, **extra)
+        save_checkpoint(
+            path,
+            model,
+            optimizer=optimizer.state_dict(),
+            state=dict(state),
+            protocol=asdict(protocol),
+            setting=opts.setting,
+            **extra,
+        )
 
     begin = time.time()
     last_save = time.time()
@@ -124,11 +131,19 @@ def train(opts: TrainOptions) -> Path:
             if b < state["batch"]:
                 continue  # resuming inside an epoch: the stream is reproducible, skip what was done
             tic = time.perf_counter()
-            src, tgt, R_gt, t_gt = (torch.from_numpy(batch[k]).to(device)
-                                    for k in ("source", "target", "rotation", "translation"))
+            src, tgt, R_gt, t_gt = (
+                torch.from_numpy(batch[k]).to(device) for k in ("source", "target", "rotation", "translation")
+            )
             src_idx, tgt_idx = sample_training_keypoints(
-                src, tgt, R_gt, t_gt, cfg.train_positives, cfg.train_negatives, cfg.match_threshold,
-                generator if device.type == "cpu" else None)
+                src,
+                tgt,
+                R_gt,
+                t_gt,
+                cfg.train_positives,
+                cfg.train_negatives,
+                cfg.match_threshold,
+                generator if device.type == "cpu" else None,
+            )
             outputs = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
             losses = registration_losses(outputs, src, tgt, R_gt, t_gt, cfg.match_threshold)
             optimizer.zero_grad(set_to_none=True)
@@ -140,7 +155,9 @@ def train(opts: TrainOptions) -> Path:
             seen += 1
             state["batch"] = b + 1
             bar.update(1)
-            bar.set_postfix(loss=f"{sums['total'] / seen:.3f}", ms_pair=f"{1000 * compute / seen / opts.batch_size:.0f}")
+            bar.set_postfix(
+                loss=f"{sums['total'] / seen:.3f}", ms_pair=f"{1000 * compute / seen / opts.batch_size:.0f}"
+            )
             if time.time() - last_save > 60 * opts.checkpoint_minutes:
                 checkpoint(last_path)
                 last_save = time.time()
@@ -154,11 +171,14 @@ def train(opts: TrainOptions) -> Path:
         R, t, secs = predict_poses(model, val_pairs, batch_size=16)
         val = registration_metrics(R, t, val_pairs["rotation"], val_pairs["translation"], secs)
         record = {
-            "epoch": epoch, "lr": lr_at(opts, epoch), "batches": seen,
+            "epoch": epoch,
+            "lr": lr_at(opts, epoch),
+            "batches": seen,
             **{f"train_{k}": v / max(seen, 1) for k, v in sums.items()},
             **{f"val_{k}": v for k, v in val.items()},
             "s_per_pair": compute / max(seen * opts.batch_size, 1),
-            "epoch_minutes": (time.time() - epoch_start) / 60, "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "epoch_minutes": (time.time() - epoch_start) / 60,
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
         with log_path.open("a") as f:
             f.write(json.dumps(record) + "\n")

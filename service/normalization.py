@@ -26,6 +26,12 @@ def _check_cloud(points: np.ndarray, name: str) -> np.ndarray:
     return points
 
 
+def rms_radius(points: np.ndarray) -> float:
+    """RMS distance of ``points (N, 3)`` from their centroid (the scale statistic of ``fit``)."""
+    points = np.asarray(points, dtype=np.float64)
+    return _rms_radius(points, points.mean(axis=0))
+
+
 def _rms_radius(points_in_frame: np.ndarray, center: np.ndarray) -> float:
     """RMS distance of ``points (N, 3)`` from ``center (3,)``."""
     return float(np.sqrt(np.mean(np.sum((points_in_frame - center) ** 2, axis=1))))

@@ -1,0 +1,1 @@
+"""Training-side export: checkpoints -> ONNX graphs + manifest, parity checks, checkpoint importers."""

@@ -1,0 +1,127 @@
+"""Parity of the exported graphs with PyTorch, through the runtime's own pipeline (``Registrar``)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from model.metrics import rotation_angle_deg
+from model.network import MFGNet
+from service.registrar import Registrar
+
+GRAPH_TOL = 1e-4  # absolute, per graph output
+ROTATION_TOL_DEG = 1e-3
+TRANSLATION_TOL = 1e-5
+TIE_GAP = 1e-5  # pairs whose best two matching scores are closer than this may flip argmax
+SELECTION_GAP = GRAPH_TOL  # significance / credibility near-ties within the graph tolerance
+
+
+class ParityError(AssertionError):
+    """The exported graphs do not reproduce the PyTorch model."""
+
+
+@dataclass
+class ParityReport:
+    pairs: int
+    compared: int
+    excluded_ties: int
+    keypoint_boundary_ties: int  # pairs where the K-th / (K+1)-th significance scores nearly tie
+    max_encoder_diff: float
+    max_matcher_diff: float
+    max_rotation_diff_deg: float
+    max_translation_diff: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@torch.no_grad()
+def check_parity(
+    model: MFGNet,
+    registrar: Registrar,
+    pairs: dict[str, np.ndarray],
+    iterations: int | None = None,
+    keypoints: int | None = None,
+    min_compared: int = 50,
+) -> ParityReport:
+    """Compare per-graph outputs and final poses of ``registrar`` and ``model`` on ``pairs``.
+
+    Raises ``ParityError`` when a tolerance is exceeded or fewer than ``min_compared`` pairs are
+    comparable (pairs with near-tied matching scores are excluded and counted).
+    """
+    model = model.eval()
+    n_iter = iterations or model.cfg.iterations
+    K = keypoints or model.cfg.keypoints
+    enc_diff = match_diff = rot_diff = trans_diff = 0.0
+    compared = excluded = boundary = 0
+    for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
+        src_t, tgt_t = torch.from_numpy(src[None]), torch.from_numpy(tgt[None])
+        emb_ref, score_ref = model.embed(src_t)
+        emb, score = registrar.embed(src[None])
+        enc_diff = max(
+            enc_diff, float(np.abs(emb - emb_ref.numpy()).max()), float(np.abs(score - score_ref.numpy()).max())
+        )
+        e_s, (e_t, score_t) = emb, registrar.embed(tgt[None])
+        out = registrar.run_network(src, tgt, n_iter, K)
+        ref = model(src_t, tgt_t, iterations=n_iter, keypoints=K)
+        if not _same_keypoints(ref, out):
+            # Top-K is the same sort on both sides; it can only differ where scores nearly tie.
+            if min(_boundary_gap(score[0], K), _boundary_gap(score_t[0], K)) >= SELECTION_GAP:
+                raise ParityError(f"keypoint selection differs without a near-tie (pair {compared + excluded})")
+            boundary += 1
+            ref = model(
+                src_t,
+                tgt_t,
+                iterations=n_iter,
+                keypoints=K,
+                src_idx=torch.from_numpy(out.src_kp[None]),
+                tgt_idx=torch.from_numpy(out.tgt_kp[None]),
+            )
+        # one matcher call on the same inputs as the first iteration of the reference
+        ps, pt = src[out.src_kp][None], tgt[out.tgt_kp][None]
+        scores, logit = registrar.match(0, ps, pt, e_s[:, out.src_kp], e_t[:, out.tgt_kp])
+        s_ref, l_ref = model.matcher(0)(
+            *(torch.from_numpy(np.ascontiguousarray(a)) for a in (ps, pt, e_s[:, out.src_kp], e_t[:, out.tgt_kp]))
+        )
+        match_diff = max(
+            match_diff, float(np.abs(scores - s_ref.numpy()).max()), float(np.abs(logit - l_ref.numpy()).max())
+        )
+        if out.min_top2_gap < TIE_GAP or out.min_median_gap < SELECTION_GAP:
+            excluded += 1
+            continue
+        compared += 1
+        rot_diff = max(rot_diff, float(rotation_angle_deg(out.rotation[None], ref.rotation.double().numpy())[0]))
+        trans_diff = max(trans_diff, float(np.abs(out.translation - ref.translation[0].double().numpy()).max()))
+    report = ParityReport(
+        len(pairs["source"]), compared, excluded, boundary, enc_diff, match_diff, rot_diff, trans_diff
+    )
+    problems = []
+    if enc_diff > GRAPH_TOL:
+        problems.append(f"encoder differs by {enc_diff:.2e} > {GRAPH_TOL}")
+    if match_diff > GRAPH_TOL:
+        problems.append(f"matcher differs by {match_diff:.2e} > {GRAPH_TOL}")
+    if rot_diff > ROTATION_TOL_DEG:
+        problems.append(f"rotation differs by {rot_diff:.2e} deg > {ROTATION_TOL_DEG}")
+    if trans_diff > TRANSLATION_TOL:
+        problems.append(f"translation differs by {trans_diff:.2e} > {TRANSLATION_TOL}")
+    if compared < min_compared:
+        problems.append(f"only {compared} comparable pairs (< {min_compared}); {excluded} excluded as ties")
+    if problems:
+        raise ParityError("ONNX parity failed: " + "; ".join(problems) + f" ({report.to_dict()})")
+    return report
+
+
+def _same_keypoints(ref, out) -> bool:
+    return set(ref.src_idx[0].tolist()) == set(out.src_kp.tolist()) and set(ref.tgt_idx[0].tolist()) == set(
+        out.tgt_kp.tolist()
+    )
+
+
+def _boundary_gap(scores: np.ndarray, k: int) -> float:
+    """Gap between the K-th and (K+1)-th highest significance scores of one cloud."""
+    if len(scores) <= k:
+        return np.inf
+    top = np.sort(scores)[::-1]
+    return float(top[k - 1] - top[k])

@@ -1,0 +1,99 @@
+"""Model directories: ``manifest.json`` + ONNX graphs, verified by sha256 before anything is loaded."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+MANIFEST = "manifest.json"
+MODEL_NAME = re.compile(r"^[a-z0-9][a-z0-9_.-]{0,63}$")
+
+
+class ModelIntegrityError(RuntimeError):
+    """A model directory is incomplete or a file does not match its manifest hash."""
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A verified model directory."""
+
+    directory: Path
+    name: str
+    version: str
+    sha256: str  # of manifest.json itself
+    config: dict
+    graphs: dict[str, Path]  # role ("encoder", "matcher_0", ...) -> verified file
+    normalization: dict
+    accuracy: dict = field(default_factory=dict)
+    raw: dict = field(default_factory=dict)
+
+    @property
+    def matcher_files(self) -> list[Path]:
+        count = sum(1 for role in self.graphs if role.startswith("matcher_"))
+        return [self.graphs[f"matcher_{i}"] for i in range(count)]
+
+
+def load_manifest(directory: str | Path) -> Manifest:
+    """Read ``directory/manifest.json`` and verify every graph's sha256.
+
+    Raises:
+        ModelIntegrityError: missing or malformed manifest, missing graph, hash mismatch, or a
+            folder name that differs from the manifest's ``name``.
+    """
+    directory = Path(directory)
+    path = directory / MANIFEST
+    if not path.is_file():
+        raise ModelIntegrityError(f"model {directory.name!r}: {MANIFEST} is missing")
+    try:
+        raw = json.loads(path.read_text())
+        name, version, graphs = raw["name"], str(raw["version"]), raw["graphs"]
+        config, normalization = raw["config"], raw["normalization"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ModelIntegrityError(f"model {directory.name!r}: malformed {MANIFEST} ({exc})") from None
+    if name != directory.name or not MODEL_NAME.match(name):
+        raise ModelIntegrityError(f"model folder {directory.name!r} does not match manifest name {name!r}")
+    verified: dict[str, Path] = {}
+    for role, entry in graphs.items():
+        file = directory / Path(entry["file"]).name  # never leave the model directory
+        if not file.is_file():
+            raise ModelIntegrityError(f"model {name!r}: graph file {file.name} is missing")
+        if sha256_file(file) != entry["sha256"]:
+            raise ModelIntegrityError(f"model {name!r}: sha256 of {file.name} does not match the manifest")
+        verified[role] = file
+    if "encoder" not in verified or "matcher_0" not in verified:
+        raise ModelIntegrityError(f"model {name!r}: manifest needs an encoder and at least one matcher")
+    return Manifest(directory, name, version, sha256_file(path), config, verified, normalization,
+                    raw.get("accuracy", {}), raw)
+
+
+def bundled_models_dir() -> Path:
+    """``service/models`` inside the installed package (works for wheels and editable installs)."""
+    return Path(str(resources.files("service") / "models"))
+
+
+def discover_model_dirs(extra_dirs: list[str | Path] | None = None) -> list[Path]:
+    """Bundled model folders, then every model folder inside (or equal to) each extra directory."""
+    found: list[Path] = []
+    for root in [bundled_models_dir(), *[Path(d) for d in extra_dirs or []]]:
+        if _looks_like_model(root):
+            found.append(root)
+        elif root.is_dir():
+            found.extend(sorted(p for p in root.iterdir() if p.is_dir() and _looks_like_model(p)))
+    return found
+
+
+def _looks_like_model(path: Path) -> bool:
+    """A folder with a manifest or ONNX graphs (one without a manifest is reported, not skipped)."""
+    return path.is_dir() and ((path / MANIFEST).is_file() or any(path.glob("*.onnx")))
