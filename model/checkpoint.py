@@ -52,3 +52,22 @@ def file_sha256(path: str | os.PathLike) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def bundle_checkpoint(run_dir: str | os.PathLike, name: str, which: str = "best.pt") -> Path:
+    """Copy a run's weights (no optimizer state), config and log into ``model/checkpoints/<name>.*``."""
+    import json
+    import shutil
+
+    run_dir = Path(run_dir)
+    data = torch.load(run_dir / which, map_location="cpu", weights_only=True)
+    keep = {k: data[k] for k in ("model", "config", "state", "protocol", "setting", "val") if k in data}
+    BUNDLED_DIR.mkdir(parents=True, exist_ok=True)
+    target = BUNDLED_DIR / f"{name}.pt"
+    torch.save(keep, target)
+    (BUNDLED_DIR / f"{name}.json").write_text(
+        json.dumps({"config": data["config"], "from": f"{run_dir.name}/{which}", "state": data.get("state"),
+                    "val": data.get("val")}, indent=2) + "\n")
+    if (run_dir / "log.jsonl").exists():
+        shutil.copyfile(run_dir / "log.jsonl", BUNDLED_DIR / f"{name}.log.jsonl")
+    return target

@@ -52,9 +52,16 @@ def pair_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def knn_indices(points: torch.Tensor, k: int) -> torch.Tensor:
-    """Indices ``[B, N, k]`` of the k nearest points of each point (itself included)."""
-    sq = (points * points).sum(-1)  # [B, N]
-    d2 = sq[:, :, None] + sq[:, None, :] - 2 * points @ points.transpose(1, 2)  # [B, N, N]
+    """Indices ``[B, N, k]`` of the k nearest points of each point (itself included).
+
+    Squared distances are summed per coordinate from explicit differences (no ``|a|^2 + |b|^2 -
+    2ab`` cancellation), so PyTorch and ONNX Runtime compute bit-identical values and pick the
+    same neighbours.
+    """
+    d2 = None
+    for c in range(3):
+        diff = points[:, :, None, c] - points[:, None, :, c]  # [B, N, N]
+        d2 = diff * diff if d2 is None else d2 + diff * diff
     return d2.topk(k, dim=-1, largest=False).indices
 
 

@@ -1,0 +1,172 @@
+"""``mfgnet bench``: in-process latency of the ONNX pipeline vs PyTorch eager, per stage and size.
+
+Everything is measured in one run on the same seeded pairs, so ratios are meaningful even on a
+noisy machine. Output: JSON (``--json``) and a short table; ``--compare baseline.json`` prints the
+change of every figure.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+SIZES = (512, 1024, 2048, 4096)
+ITERATIONS = (1, 2, 3, 4, 5, 6)
+
+
+def percentiles(samples_ms: list[float]) -> dict[str, float]:
+    a = np.asarray(samples_ms)
+    return {
+        "p50": float(np.percentile(a, 50)),
+        "p95": float(np.percentile(a, 95)),
+        "p99": float(np.percentile(a, 99)),
+        "mean": float(a.mean()),
+        "n": len(a),
+    }
+
+
+def time_calls(fn, repeats: int, warmup: int = 2) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    out = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        fn()
+        out.append(1000 * (time.perf_counter() - tic))
+    return out
+
+
+def bench_pipeline(
+    registrar,
+    pairs: dict,
+    repeats: int,
+    iterations: int | None = None,
+    keypoints: int | None = None,
+    working_size: int = 768,
+) -> dict:
+    """Total and per-stage latency of ``Registrar.register`` cycling over the pairs."""
+    stages: dict[str, list[float]] = {}
+    totals: list[float] = []
+    n = len(pairs["source"])
+    for i in range(repeats + 2):
+        res = registrar.register(
+            pairs["source"][i % n],
+            pairs["target"][i % n],
+            iterations=iterations,
+            keypoints=keypoints,
+            working_size=working_size,
+        )
+        if i < 2:
+            continue
+        totals.append(res.timing_ms["total"])
+        for stage, ms in res.timing_ms.items():
+            stages.setdefault(stage, []).append(ms)
+    return {"total": percentiles(totals), "stages": {k: float(np.median(v)) for k, v in stages.items()}}
+
+
+def bench_torch(model, pairs: dict, repeats: int, iterations: int | None = None) -> dict:
+    import torch
+
+    n = len(pairs["source"])
+    state = {"i": 0}
+
+    @torch.no_grad()
+    def call():
+        i = state["i"] % n
+        state["i"] += 1
+        model(
+            torch.from_numpy(pairs["source"][i : i + 1]),
+            torch.from_numpy(pairs["target"][i : i + 1]),
+            iterations=iterations,
+        )
+
+    return {"total": percentiles(time_calls(call, repeats))}
+
+
+def run_bench(model_name: str, checkpoint: str, repeats: int, setting: str, seed: int, threads: int) -> dict:
+    import torch
+
+    from model.checkpoint import load_model
+    from model.data import make_test_pairs
+    from service.manifest import bundled_models_dir
+    from service.registrar import Registrar
+
+    torch.set_num_threads(threads)
+    registrar = Registrar(bundled_models_dir() / model_name, threads=threads)
+    model = load_model(checkpoint)
+    pairs = make_test_pairs(setting, "test", count=16, seed=seed)
+    report: dict = {
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "python": platform.python_version(),
+            "threads": threads,
+        },
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "model": model_name,
+        "checkpoint": checkpoint,
+        "pairs": f"{setting} test pairs, seed {seed}, 768 points per cloud",
+    }
+    report["pipeline_768"] = bench_pipeline(registrar, pairs, repeats)
+    report["torch_eager_768"] = bench_torch(model, pairs, repeats)
+    report["speedup_vs_torch"] = report["torch_eager_768"]["total"]["p50"] / report["pipeline_768"]["total"]["p50"]
+    report["iterations"] = {
+        str(n): bench_pipeline(registrar, pairs, max(5, repeats // 2), iterations=n)["total"] for n in ITERATIONS
+    }
+    sized = {}
+    for size in SIZES:
+        rng = np.random.default_rng(size)
+        resized = {k: [resize_cloud(p, size, rng) for p in pairs[k][:4]] for k in ("source", "target")}
+        sized[str(size)] = bench_pipeline(registrar, resized, max(5, repeats // 2), working_size=size)["total"]
+    report["working_size"] = sized
+    return report
+
+
+def resize_cloud(points: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
+    """``size`` points: a random subset, or the cloud plus jittered copies of its points."""
+    if size <= len(points):
+        return points[rng.choice(len(points), size, replace=False)]
+    extra = points[rng.integers(0, len(points), size - len(points))] + rng.normal(0, 0.005, (size - len(points), 3))
+    return np.concatenate([points, extra.astype(points.dtype)])
+
+
+def flatten(d: dict, prefix: str = "") -> dict[str, float]:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[key] = float(v)
+    return out
+
+
+def bench(
+    model: Annotated[str, typer.Option(help="bundled model name")] = "clean",
+    checkpoint: Annotated[str, typer.Option(help="checkpoint with the same weights (torch eager)")] = "clean",
+    repeats: int = 30,
+    setting: str = "clean",
+    seed: int = 0,
+    threads: int = 2,
+    json_out: Annotated[Path | None, typer.Option("--json", help="write the report here")] = None,
+    compare: Annotated[Path | None, typer.Option(help="baseline report: print the change per figure")] = None,
+) -> None:
+    """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager."""
+    report = run_bench(model, checkpoint, repeats, setting, seed, threads)
+    text = json.dumps(report, indent=2)
+    if json_out:
+        json_out.write_text(text + "\n")
+    typer.echo(text)
+    if compare:
+        base, now = flatten(json.loads(compare.read_text())), flatten(report)
+        for key in sorted(set(base) & set(now)):
+            if base[key]:
+                typer.echo(
+                    f"{key:45s} {base[key]:10.3f} -> {now[key]:10.3f} ({100 * (now[key] / base[key] - 1):+.1f}%)"
+                )

@@ -1,0 +1,92 @@
+"""Export: graphs and manifest, parity with PyTorch through the runtime pipeline, importer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from export.onnx_export import export_graphs, fold_batchnorm, write_manifest
+from export.parity import check_parity
+from model.config import MFGNetConfig
+from model.data import PairProtocol, make_pairs
+from model.network import MFGNet
+from service.registrar import Registrar
+
+
+def synthetic_pairs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Pairs of smooth random shapes (no dataset needed) through the paper's protocol."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0, 2 * np.pi, (count, 1024))
+    v = rng.uniform(-1, 1, (count, 1024))
+    radii = rng.uniform(0.4, 1.0, (count, 1, 3))
+    shapes = np.stack([np.sqrt(1 - v**2) * np.cos(u), np.sqrt(1 - v**2) * np.sin(u), v], -1) * radii
+    shapes += 0.1 * np.sin(3 * shapes[..., [1, 2, 0]])
+    return make_pairs(shapes.astype(np.float32), PairProtocol(), rng)
+
+
+def trained_like_model(seed: int = 0, **cfg) -> MFGNet:
+    """A seeded network whose BatchNorm statistics are non-trivial (one pass in train mode)."""
+    torch.manual_seed(seed)
+    model = MFGNet(MFGNetConfig(**cfg))
+    pairs = synthetic_pairs(4, seed + 1)
+    model.train()
+    with torch.no_grad():
+        model(torch.from_numpy(pairs["source"]), torch.from_numpy(pairs["target"]))
+    return model.eval()
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    model = trained_like_model(iterations=2)
+    out = tmp_path_factory.mktemp("models") / "tiny"
+    files = export_graphs(model, out)
+    write_manifest(out, "tiny", model, files, "0" * 64, {}, 0.53, "0.0.1", "test")
+    return model, out
+
+
+def test_fold_batchnorm_is_exact():
+    model = trained_like_model()
+    folded = fold_batchnorm(model)
+    x = torch.from_numpy(synthetic_pairs(1)["source"])
+    with torch.no_grad():
+        for a, b in zip(model.embed(x), folded.embed(x), strict=True):
+            assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_export_writes_one_matcher_graph_per_weight_set(exported):
+    model, out = exported
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert set(manifest["graphs"]) == {"encoder", "matcher_0", "matcher_1"}
+    assert manifest["config"]["iterations"] == 2 and manifest["opset"] >= 17
+    for entry in manifest["graphs"].values():
+        assert len(entry["sha256"]) == 64 and (out / entry["file"]).is_file()
+
+
+def test_encoder_graph_accepts_any_number_of_points(exported):
+    _, out = exported
+    registrar = Registrar(out, warmup=False)
+    for n in (32, 500, 1500):
+        emb, score = registrar.embed(np.random.default_rng(n).normal(size=(1, n, 3)).astype(np.float32))
+        assert emb.shape == (1, n, 64) and score.shape == (1, n)
+
+
+BUNDLED = Path(__file__).resolve().parents[2] / "service" / "models" / "clean"
+BUNDLED_CKPT = Path(__file__).resolve().parents[2] / "model" / "checkpoints" / "clean.pt"
+
+
+@pytest.mark.skipif(not (BUNDLED / "manifest.json").exists() or not BUNDLED_CKPT.exists(),
+                    reason="bundled clean model or checkpoint not present")
+def test_bundled_onnx_model_matches_bundled_checkpoint():
+    from model.checkpoint import file_sha256, load_model
+
+    manifest = json.loads((BUNDLED / "manifest.json").read_text())
+    model = load_model(BUNDLED_CKPT)
+    registrar = Registrar(BUNDLED, warmup=False)
+    assert manifest["source_checkpoint_sha256"] == file_sha256(BUNDLED_CKPT), "re-export after re-bundling"
+    report = check_parity(model, registrar, synthetic_pairs(16, seed=9), min_compared=8)
+    assert report.max_encoder_diff <= 1e-4 and report.max_matcher_diff <= 1e-4
+    assert report.max_rotation_diff_deg <= 1e-3 and report.max_translation_diff <= 1e-5

@@ -1,0 +1,155 @@
+"""The runtime pipeline: model verification, input handling, normalisation properties, sizes."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
+from service.registrar import InputError, Registrar
+
+BUNDLED = bundled_models_dir() / "clean"
+pytestmark = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'clean' absent")
+
+
+def shape(n: int, seed: int = 0) -> np.ndarray:
+    """A smooth closed surface sampled with ``n`` points (no dataset needed)."""
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0, 2 * np.pi, n), rng.uniform(-1, 1, n)
+    pts = np.stack([np.sqrt(1 - v**2) * np.cos(u), 0.6 * np.sqrt(1 - v**2) * np.sin(u), 0.8 * v], -1)
+    return pts + 0.15 * np.sin(3 * pts[:, [1, 2, 0]])
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    return Registrar(BUNDLED, threads=1)
+
+
+def test_result_is_a_proper_rigid_transform_with_valid_correspondences(registrar):
+    src = shape(900)
+    R = Rotation.from_euler("zyx", [20, 10, -15], degrees=True).as_matrix()
+    tgt = shape(700, seed=1) @ R.T + [0.1, -0.2, 0.3]
+    res = registrar.register(src, tgt, return_iterations=True)
+    assert np.allclose(res.rotation @ res.rotation.T, np.eye(3), atol=1e-6) and np.linalg.det(res.rotation) > 0
+    assert res.transform.shape == (4, 4) and np.allclose(res.transform[3], [0, 0, 0, 1])
+    assert ((0 <= res.source_index) & (res.source_index < 900)).all()
+    assert ((0 <= res.target_index) & (res.target_index < 700)).all()
+    assert ((0 <= res.credibility) & (res.credibility <= 1)).all() and res.weight.sum() == pytest.approx(1, abs=1e-4)
+    assert len(res.iteration_poses) == res.iterations == registrar.default_iterations
+    assert np.allclose(res.iteration_poses[-1].rotation, res.rotation)
+    assert {"preprocess", "encoder", "iterations", "svd", "total"} <= set(res.timing_ms)
+
+
+@pytest.mark.parametrize("n", [32, 768, 5000, 100_000])
+def test_accepts_clouds_from_32_to_100k_points(registrar, n):
+    src = shape(n, seed=2)
+    res = registrar.register(src, src[::-1] + 0.05)
+    assert np.isfinite(res.transform).all()
+
+
+def test_scaling_and_offsetting_both_inputs_maps_the_pose(registrar):
+    src, tgt = shape(768, 3), shape(768, 4) @ Rotation.from_euler("z", 25, degrees=True).as_matrix().T
+    base = registrar.register(src, tgt)
+    a, offset = 1000.0, np.array([5e3, -2e3, 7e2])
+    scaled = registrar.register(a * src + offset, a * tgt + offset)
+    assert np.allclose(scaled.rotation, base.rotation, atol=1e-4)
+    # tgt ~ R src + t  =>  a tgt + o ~ R (a src + o) + a t + o - R o
+    assert np.allclose(scaled.translation, a * base.translation + offset - base.rotation @ offset, atol=1e-3 * a)
+
+
+def test_permuting_input_points_does_not_change_the_pose(registrar):
+    src, tgt = shape(3000, 5), shape(2500, 6) + 0.2
+    rng = np.random.default_rng(0)
+    p, q = rng.permutation(3000), rng.permutation(2500)
+    base, perm = registrar.register(src, tgt), registrar.register(src[p], tgt[q])
+    assert np.allclose(base.transform, perm.transform, atol=1e-5)
+    assert np.array_equal(p[perm.source_index], base.source_index)
+
+
+def test_initial_transform_is_composed(registrar):
+    src = shape(768, 7)
+    guess = np.eye(4)
+    guess[:3, 3] = [1.0, 0, 0]
+    res = registrar.register(src, src + [1.0, 0, 0], initial_transform=guess)
+    assert np.isfinite(res.transform).all()
+    with pytest.raises(InputError, match="rigid"):
+        registrar.register(src, src, initial_transform=np.diag([2.0, 1, 1, 1]))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"iterations": 0}, "iterations"), ({"iterations": 9}, "iterations"), ({"keypoints": 8}, "keypoints"),
+     ({"keypoints": 600}, "keypoints"), ({"refine": "bogus"}, "refine")],
+)
+def test_rejects_out_of_range_options(registrar, kwargs, message):
+    with pytest.raises(InputError, match=message):
+        registrar.register(shape(100), shape(100), **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("cloud", "message"),
+    [(np.full((100, 3), np.nan), "NaN"), (np.zeros((100, 2)), "shape"), (np.zeros((10, 3)), "at least"),
+     (np.array([["a", "b", "c"]] * 40), "dtype"), (np.full((100, 3), 1e39), "overflow")],
+)
+def test_rejects_bad_clouds_with_a_clear_message(registrar, cloud, message):
+    with pytest.raises(InputError, match=message):
+        registrar.register(cloud, shape(100))
+
+
+def test_degenerate_geometry_is_flagged_unreliable(registrar):
+    line = np.linspace(0, 1, 200)[:, None] * [1.0, 2.0, 3.0]
+    res = registrar.register(line, line + 0.1)
+    assert not res.reliable and any("collinear" in w for w in res.warnings)
+
+
+def test_icp_refinement_runs_and_reports_quality(registrar):
+    src = shape(768, 8)
+    tgt = src @ Rotation.from_euler("x", 3, degrees=True).as_matrix().T
+    res = registrar.register(src, tgt, refine="icp")
+    assert "refine" in res.timing_ms and 0 <= res.inlier_ratio <= 1 and res.residual_rms >= 0
+
+
+def _copy_model(tmp_path: Path) -> Path:
+    target = tmp_path / "clean"
+    shutil.copytree(BUNDLED, target)
+    return target
+
+
+def test_tampered_graph_is_refused(tmp_path):
+    model = _copy_model(tmp_path)
+    graph = model / "matcher_0.onnx"
+    data = bytearray(graph.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    graph.write_bytes(bytes(data))
+    with pytest.raises(ModelIntegrityError, match="sha256 of matcher_0.onnx"):
+        Registrar(model)
+
+
+def test_missing_graph_or_manifest_is_refused(tmp_path):
+    model = _copy_model(tmp_path)
+    (model / "encoder.onnx").unlink()
+    with pytest.raises(ModelIntegrityError, match="missing"):
+        load_manifest(model)
+    (model / "manifest.json").unlink()
+    with pytest.raises(ModelIntegrityError, match="manifest.json is missing"):
+        load_manifest(model)
+
+
+def test_runtime_never_imports_torch():
+    """Every runtime module imports without torch, ``model`` or ``export`` (the CLI loads training-side
+    commands through entry points only, so it is left out of the walk)."""
+    code = (
+        "import sys, importlib, pkgutil, service\n"
+        "for m in pkgutil.walk_packages(service.__path__, 'service.'):\n"
+        "    if m.name != 'service.cli':\n"
+        "        importlib.import_module(m.name)\n"
+        "bad = sorted(n for n in sys.modules if n.split('.')[0] in ('torch', 'model', 'export'))\n"
+        "assert not bad, bad\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
