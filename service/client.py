@@ -1,0 +1,198 @@
+"""A small HTTP client for the MFGNet service (``mfgnet serve``).
+
+    >>> with MfgnetClient("http://127.0.0.1:8000") as client:
+    ...     client.wait_ready(timeout=30)
+    ...     response = client.register(source, target, refine="icp")
+    ...     R, t = pose_from_response(response)  # target ~= source @ R.T + t
+
+Every server error (``{"error": "..."}`` with a 4xx/5xx status), and a server that cannot be
+reached, raises :class:`MfgnetError` carrying the status (0 when no response came) and the
+server's message.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from typing import Any
+
+import httpx
+import numpy as np
+
+REGISTER_PATH = "/v1/register"
+MODELS_PATH = "/v1/models"
+READY_PATH = "/v2/health/ready"
+
+
+class MfgnetError(Exception):
+    """The server answered with an error status (or could not be reached: ``status == 0``)."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(f"HTTP {status}: {message}" if status else message)
+        self.status = status
+        self.message = message
+
+
+class MfgnetClient:
+    """``MfgnetClient(base_url, api_key=None, timeout=30.0)``; usable as a context manager.
+
+    ``api_key`` is sent as ``Authorization: Bearer <key>`` (the server asks for it when it sets
+    ``MFGNET_API_KEY``).
+    ``transport`` (an ``httpx`` transport) is for tests.
+    """
+
+    def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 30.0,
+                 transport: httpx.BaseTransport | None = None):
+        headers = {"Accept": "application/json"}
+        if api_key:
+            headers["Authorization"] = f"Bearer {api_key}"
+        self.base_url = base_url.rstrip("/")
+        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> MfgnetClient:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    # -- endpoints ---------------------------------------------------------------------------
+    def register(
+        self,
+        source,
+        target,
+        model: str | None = None,
+        iterations: int | None = None,
+        keypoints: int | None = None,
+        refine: str | None = None,
+        initial_transform=None,
+        return_correspondences: bool = True,
+        return_iterations: bool = False,
+        binary: bool = False,
+    ) -> dict:
+        """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
+
+        Args:
+            source: ``(N, 3)`` points (array or nested lists).
+            target: ``(M, 3)`` points.
+            model, iterations, keypoints, refine (``"none"`` | ``"icp"``), initial_transform (4x4):
+                left out of the request when ``None`` (the server's defaults apply).
+            binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
+                the options as form fields (smaller and faster than JSON for large clouds).
+
+        Raises:
+            MfgnetError: the server refused the request or could not be reached.
+        """
+        options: dict[str, Any] = {
+            "model": model,
+            "iterations": iterations,
+            "keypoints": keypoints,
+            "refine": refine,
+            "initial_transform": None if initial_transform is None else np.asarray(initial_transform).tolist(),
+            "return_correspondences": return_correspondences,
+            "return_iterations": return_iterations,
+        }
+        options = {key: value for key, value in options.items() if value is not None}
+        if binary:
+            files = {"source": ("source.npy", _npy_bytes(source), "application/octet-stream"),
+                     "target": ("target.npy", _npy_bytes(target), "application/octet-stream")}
+            form = {key: _form_value(value) for key, value in options.items()}
+            return self._request("POST", REGISTER_PATH, data=form, files=files)
+        body = {"source": _as_list(source), "target": _as_list(target), **options}
+        return self._request("POST", REGISTER_PATH, json=body)
+
+    def models(self) -> list:
+        """``GET /v1/models``: the served models (a list of dicts)."""
+        payload = self._request("GET", MODELS_PATH)
+        if isinstance(payload, dict) and "models" in payload:
+            return list(payload["models"])
+        return list(payload)
+
+    def ready(self) -> bool:
+        """``GET /v2/health/ready`` answers 200 (False on any other status or no answer)."""
+        try:
+            return self._http.get(READY_PATH).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def wait_ready(self, timeout: float = 60.0, interval: float = 0.2) -> None:
+        """Poll :meth:`ready` until it is true; ``TimeoutError`` after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        while not self.ready():
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"{self.base_url} was not ready within {timeout:g} s")
+            time.sleep(interval)
+
+    # -- plumbing ----------------------------------------------------------------------------
+    def _request(self, method: str, path: str, **kwargs) -> Any:
+        try:
+            response = self._http.request(method, path, **kwargs)
+        except httpx.TimeoutException as exc:
+            raise MfgnetError(0, f"no answer from {self.base_url}{path} in time ({exc})") from exc
+        except httpx.HTTPError as exc:
+            raise MfgnetError(0, f"cannot reach {self.base_url}{path} ({exc})") from exc
+        if response.status_code >= 400:
+            raise MfgnetError(response.status_code, _error_message(response))
+        try:
+            return response.json()
+        except ValueError as exc:
+            text = response.text[:200]
+            raise MfgnetError(response.status_code, f"the server's answer is not JSON: {text!r}") from exc
+
+
+def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(R (3, 3), t (3,))`` of a register response (``target ~= source @ R.T + t``).
+
+    Uses ``transform`` (4x4) when present, else ``rotation`` and ``translation``.
+
+    Raises:
+        ValueError: the response has no pose of the right shape.
+    """
+    if "transform" in response:
+        T = np.asarray(response["transform"], dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"transform must be 4x4, got shape {T.shape}")
+        return T[:3, :3].copy(), T[:3, 3].copy()
+    if "rotation" not in response or "translation" not in response:
+        raise ValueError("the response has neither 'transform' nor 'rotation' and 'translation'")
+    R = np.asarray(response["rotation"], dtype=np.float64)
+    t = np.asarray(response["translation"], dtype=np.float64)
+    if R.shape != (3, 3) or t.shape != (3,):
+        raise ValueError(f"rotation must be 3x3 and translation length 3, got {R.shape} and {t.shape}")
+    return R, t
+
+
+def _as_list(points) -> list:
+    return np.asarray(points).tolist() if isinstance(points, np.ndarray) else points
+
+
+def _npy_bytes(points) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, np.asarray(points, dtype=np.float32), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def _form_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, dict)):
+        return json.dumps(value)
+    return str(value)
+
+
+def _error_message(response: httpx.Response) -> str:
+    """The server's ``error`` text (FastAPI's ``detail`` as a fallback, else the raw body)."""
+    try:
+        payload = response.json()
+    except ValueError:
+        return response.text.strip()[:500] or response.reason_phrase
+    if isinstance(payload, dict):
+        for key in ("error", "detail", "message"):
+            if key in payload:
+                value = payload[key]
+                return value if isinstance(value, str) else json.dumps(value)
+    return json.dumps(payload)[:500]

@@ -1,0 +1,104 @@
+"""Specification of ``mfgnet models``: bundled and --model-dir models with their manifest figures, and
+models that fail verification listed with the reason."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from cli_support import snapshot_model
+from typer.testing import CliRunner
+
+from service.cli import app
+from service.manifest import bundled_models_dir
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def models_root(tmp_path_factory) -> Path:
+    """A folder of model folders: a verified ``clean`` and a ``bare`` one with a graph but no manifest."""
+    root = tmp_path_factory.mktemp("models")
+    snapshot_model(root)
+    (root / "bare").mkdir()
+    (root / "bare" / "encoder.onnx").write_bytes(b"\0")
+    return root
+
+
+@pytest.fixture(scope="module")
+def tampered_model(tmp_path_factory, models_root) -> Path:
+    """A copy of ``clean`` whose ``matcher_2.onnx`` no longer matches the manifest."""
+    tampered = tmp_path_factory.mktemp("tampered") / "clean"
+    shutil.copytree(models_root / "clean", tampered)
+    (tampered / "matcher_2.onnx").write_bytes(b"tampered")
+    return tampered
+
+
+def list_models(*args) -> tuple[int, object, str]:
+    result = runner.invoke(app, ["models", *map(str, args)])
+    return result.exit_code, result.stdout, result.stderr
+
+
+def test_bundled_models_are_listed_as_json() -> None:
+    if not (bundled_models_dir() / "clean" / "manifest.json").exists():
+        pytest.skip("the bundled model 'clean' is not exported yet")
+    code, out, _ = list_models("--json")
+    assert code == 0
+    entries = json.loads(out)
+    clean = next(e for e in entries if e["name"] == "clean")
+    assert clean["status"] == "ok" and Path(clean["directory"]) == bundled_models_dir() / "clean"
+
+
+def test_json_gives_name_version_iterations_keypoints_accuracy_and_hash(models_root) -> None:
+    code, out, _ = list_models("--json", "--model-dir", models_root)
+    assert code == 0
+    entries = json.loads(out)
+    clean = next(e for e in entries if e["directory"] == str(models_root / "clean"))
+    manifest = json.loads((models_root / "clean" / "manifest.json").read_text())
+    assert clean["status"] == "ok"
+    assert clean["name"] == "clean" and clean["version"] == manifest["version"]
+    assert clean["iterations"] == manifest["config"]["iterations"]
+    assert clean["keypoints"] == manifest["config"]["keypoints"]
+    assert clean["accuracy"] == manifest["accuracy"] and len(clean["sha256"]) == 64
+
+
+def test_models_failing_verification_are_listed_with_the_reason(models_root, tampered_model) -> None:
+    code, out, _ = list_models("--json", "--model-dir", models_root, "--model-dir", tampered_model)
+    assert code == 0  # the verified models are still usable
+    failed = {e["directory"]: e for e in json.loads(out) if e["status"] == "failed"}
+    assert "manifest.json is missing" in failed[str(models_root / "bare")]["error"]
+    assert "sha256 of matcher_2.onnx does not match" in failed[str(tampered_model)]["error"]
+
+
+def test_table_shows_the_figures_and_the_failures(models_root) -> None:
+    code, out, _ = list_models("--model-dir", models_root)
+    assert code == 0
+    header, *rows = out.splitlines()
+    assert header.split() == ["NAME", "VERSION", "ITER", "K", "ACCURACY", "DIRECTORY"]
+    assert any(row.startswith("clean") and row.endswith(str(models_root / "clean")) for row in rows)
+    assert any(row.startswith("FAILED bare:") and "manifest.json is missing" in row for row in rows)
+
+
+def test_table_shows_the_manifests_accuracy_figures(tmp_path, models_root) -> None:
+    model = tmp_path / "clean"
+    shutil.copytree(models_root / "clean", model)
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest["accuracy"] = {"metrics": {"rmse_r": 1.25, "mae_r": 0.5, "n": 100}, "on": "val pairs"}
+    (model / "manifest.json").write_text(json.dumps(manifest))  # graphs are hashed, the manifest is not
+    code, out, _ = list_models("--model-dir", model)
+    row = next(line for line in out.splitlines() if line.endswith(str(model)))
+    assert code == 0 and "rmse_r 1.25 mae_r 0.5 (on val pairs)" in row
+
+
+def test_exit_code_1_when_no_model_is_usable(tmp_path, monkeypatch) -> None:
+    import service.manifest
+
+    monkeypatch.setattr(service.manifest, "bundled_models_dir", lambda: tmp_path / "none")
+    (tmp_path / "bare").mkdir()
+    (tmp_path / "bare" / "encoder.onnx").write_bytes(b"\0")
+    code, out, _ = list_models("--model-dir", tmp_path)
+    assert code == 1 and out.startswith("FAILED bare:")
+    code, out, _ = list_models("--model-dir", tmp_path / "empty")
+    assert code == 1 and "no models found" in out

@@ -1,0 +1,314 @@
+"""Specification of ``mfgnet register`` in-process: every readable format, the JSON record, the aligned
+cloud, initial transforms, and clear exit-code-2 errors for bad input.
+
+Accuracy is not asserted (the bundled model may be early in training): only that the pose is a proper
+rigid transform and that every file format yields the same pose as the ``.npy`` reference."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_support import snapshot_model, synthetic_pair
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from service.cli import app
+from service.pointcloud_io import read_points, write_points
+
+runner = CliRunner()
+FAST = ("--iterations", "1", "--keypoints", "32")  # one small matcher pass: the tests check plumbing, not accuracy
+RECORD_KEYS = {"rotation", "translation", "transform", "euler_zyx_deg", "quality", "warnings", "model",
+               "iterations", "timing_ms"}
+SOURCE, TARGET = synthetic_pair()
+
+
+# ------------------------------------------------------------------------- hand-made file writers
+
+
+def write_ply_ascii(path: Path, xyz: np.ndarray) -> None:
+    header = (f"ply\nformat ascii 1.0\ncomment hand-made\nelement vertex {len(xyz)}\nproperty float x\n"
+              "property float y\nproperty float z\nproperty uchar red\nend_header\n")
+    body = "".join(f"{x:.9g} {y:.9g} {z:.9g} 200\n" for x, y, z in xyz)
+    path.write_text(header + body)
+
+
+def write_ply_big_endian(path: Path, xyz: np.ndarray) -> None:
+    header = (f"ply\nformat binary_big_endian 1.0\nelement vertex {len(xyz)}\nproperty float x\n"
+              "property float y\nproperty float z\nend_header\n")
+    path.write_bytes(header.encode() + xyz.astype(">f4").tobytes())
+
+
+def pcd_header(n: int, data: str) -> bytes:
+    return (f"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\n"
+            f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n").encode()
+
+
+def write_pcd_ascii(path: Path, xyz: np.ndarray) -> None:
+    path.write_bytes(pcd_header(len(xyz), "ascii") + "".join(f"{x:.9g} {y:.9g} {z:.9g}\n" for x, y, z in xyz).encode())
+
+
+def write_pcd_binary_compressed(path: Path, xyz: np.ndarray) -> None:
+    raw = np.ascontiguousarray(xyz.astype("<f4").T).tobytes()  # field-major: all x, all y, all z
+    compressed = b"".join(bytes([len(raw[i : i + 32]) - 1]) + raw[i : i + 32] for i in range(0, len(raw), 32))
+    path.write_bytes(pcd_header(len(xyz), "binary_compressed") + struct.pack("<II", len(compressed), len(raw))
+                     + compressed)
+
+
+# format id -> (file suffix, writer)
+FORMATS = {
+    "ply-binary": (".ply", write_points),
+    "ply-ascii": (".ply", write_ply_ascii),
+    "ply-binary-big-endian": (".ply", write_ply_big_endian),
+    "pcd-binary": (".pcd", write_points),
+    "pcd-ascii": (".pcd", write_pcd_ascii),
+    "pcd-binary-compressed": (".pcd", write_pcd_binary_compressed),
+    "xyz": (".xyz", write_points),
+    "txt": (".txt", write_points),
+    "csv": (".csv", write_points),
+    "npy": (".npy", write_points),
+    "npz": (".npz", write_points),
+}
+
+
+def write_pair(folder: Path, fmt: str) -> tuple[Path, Path]:
+    suffix, writer = FORMATS[fmt]
+    src, tgt = folder / f"source{suffix}", folder / f"target{suffix}"
+    writer(src, SOURCE)
+    writer(tgt, TARGET)
+    return src, tgt
+
+
+def assert_proper_pose_record(record: dict) -> None:
+    """The JSON record is complete and its pose is a proper rigid transform."""
+    assert set(record) == RECORD_KEYS
+    R, t, T = (np.asarray(record[k], dtype=np.float64) for k in ("rotation", "translation", "transform"))
+    assert R.shape == (3, 3) and t.shape == (3,) and T.shape == (4, 4)
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-6)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-6)
+    assert np.allclose(T[:3, :3], R) and np.allclose(T[:3, 3], t) and np.array_equal(T[3], [0, 0, 0, 1])
+    euler = np.asarray(record["euler_zyx_deg"])
+    assert euler.shape == (3,) and np.allclose(Rotation.from_euler("zyx", euler, degrees=True).as_matrix(), R)
+    quality = record["quality"]
+    assert set(quality) == {"inlier_ratio", "residual_rms", "reliable"}
+    assert 0.0 <= quality["inlier_ratio"] <= 1.0 and quality["residual_rms"] >= 0.0
+    assert isinstance(quality["reliable"], bool) and isinstance(record["warnings"], list)
+    assert record["model"]["name"] == "clean" and len(record["model"]["sha256"]) == 64
+    assert record["iterations"] >= 1 and record["timing_ms"]["total"] > 0
+
+
+def assert_clean_failure(result, *fragments: str) -> None:
+    """Exit code 2, the message on stderr, no traceback."""
+    assert result.exit_code == 2, result.output
+    assert not isinstance(result.exception, Exception), result.exception  # SystemExit only
+    assert "Traceback" not in result.output
+    for fragment in fragments:
+        assert fragment in result.stderr, result.stderr
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    return snapshot_model(tmp_path_factory.mktemp("models"))
+
+
+@pytest.fixture(scope="module", autouse=True)
+def shared_registrars():
+    """One loaded ``Registrar`` per model folder for the whole module (loading costs more than a small run)."""
+    import service.registrar
+
+    loaded: dict[tuple[str, int | None], service.registrar.Registrar] = {}
+    real = service.registrar.Registrar
+
+    def cached(directory, threads=None, warmup=True):
+        key = (str(Path(directory).resolve()), threads)
+        if key not in loaded:
+            loaded[key] = real(directory, threads=threads, warmup=warmup)
+        return loaded[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(service.registrar, "Registrar", cached)
+        yield
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, model_dir) -> dict:
+    """The record of the ``.npy`` pair, written with ``--out``."""
+    folder = tmp_path_factory.mktemp("reference")
+    src, tgt = write_pair(folder, "npy")
+    out = folder / "pose.json"
+    result = register(src, tgt, "--out", out, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    return json.loads(out.read_text())
+
+
+def register(*args, model_dir: Path, fast: bool = True):
+    """``mfgnet register ARGS --model-dir MODEL_DIR`` (plus ``FAST`` options unless ``fast=False``)."""
+    return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *(FAST if fast else ())])
+
+
+# ---------------------------------------------------------------------------------------- formats
+
+
+def test_reference_record_is_well_formed_and_proper(reference) -> None:
+    assert_proper_pose_record(reference)
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_every_format_round_trips_to_the_same_pose_and_aligned_cloud(tmp_path, model_dir, reference, fmt) -> None:
+    src, tgt = write_pair(tmp_path, fmt)
+    out, aligned = tmp_path / "pose.json", tmp_path / f"aligned{FORMATS[fmt][0]}"
+    result = register(src, tgt, "--out", out, "--write-aligned", aligned, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    record = json.loads(out.read_text())
+    assert_proper_pose_record(record)
+    assert np.allclose(record["transform"], reference["transform"], atol=1e-5)  # same points read from every format
+    R, t = np.asarray(record["rotation"]), np.asarray(record["translation"])
+    assert np.allclose(read_points(aligned), SOURCE.astype(np.float64) @ R.T + t, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------------------- output
+
+
+def test_summary_prints_the_matrix_model_quality_and_time(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--out", tmp_path / "pose.json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    record = json.loads((tmp_path / "pose.json").read_text())
+    out = result.stdout
+    assert out.startswith("transform (source -> target):")
+    rows = [[float(v) for v in line.strip(" []").split()] for line in out.splitlines()[1:5]]
+    assert np.allclose(rows, record["transform"], atol=1e-6)
+    for label in ("model        clean 0", "inlier ratio", "reliable", "warnings", "total"):
+        assert label in out
+    assert "wrote" in result.stderr and "wrote" not in out
+
+
+def test_json_flag_prints_only_the_record(tmp_path, model_dir, reference) -> None:
+    src, tgt = write_pair(tmp_path, "npz")
+    result = register(src, tgt, "--json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)
+    assert_proper_pose_record(record)
+    assert np.allclose(record["transform"], reference["transform"], atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["json-list", "npy", "previous-out-file"])
+def test_initial_transform_is_read_from_json_npy_or_a_previous_out_file(tmp_path, model_dir, reference, kind):
+    src, tgt = write_pair(tmp_path, "npy")
+    if kind == "json-list":
+        init = tmp_path / "init.json"
+        init.write_text(json.dumps(np.eye(4).tolist()))
+    elif kind == "npy":
+        init = tmp_path / "init.npy"
+        np.save(init, np.eye(4))
+    else:
+        init = tmp_path / "pose.json"
+        init.write_text(json.dumps(reference))
+    result = register(src, tgt, "--initial-transform", init, "--json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)
+    assert_proper_pose_record(record)
+    if kind != "previous-out-file":  # the identity guess changes nothing
+        assert np.allclose(record["transform"], reference["transform"], atol=1e-5)
+
+
+def test_icp_refinement_reports_its_time(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--refine", "icp", "--iterations", "2", "--keypoints", "64", "--json",
+                      model_dir=model_dir, fast=False)
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)
+    assert_proper_pose_record(record)
+    assert record["iterations"] == 2 and "refine" in record["timing_ms"]
+
+
+# ------------------------------------------------------------------------------------- bad input
+
+
+def test_rejects_an_unknown_extension(tmp_path, model_dir) -> None:
+    bad = tmp_path / "cloud.obj"
+    bad.write_text("v 0 0 0\n")
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "unknown extension")
+
+
+def test_rejects_rows_with_too_few_columns(tmp_path, model_dir) -> None:
+    bad = tmp_path / "flat.xyz"
+    bad.write_text("1 2\n3 4\n")
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(tgt, bad, model_dir=model_dir), "flat.xyz", "column")
+
+
+def test_rejects_an_empty_cloud(tmp_path, model_dir) -> None:
+    bad = tmp_path / "empty.csv"
+    bad.write_text("x,y,z\n")
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "empty.csv", "empty")
+
+
+def test_rejects_nan_points(tmp_path, model_dir) -> None:
+    bad = tmp_path / "nan.npy"
+    points = SOURCE.copy()
+    points[7, 1] = np.nan
+    np.save(bad, points)
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "nan.npy", "NaN", "index 7")
+
+
+def test_rejects_a_ply_without_xyz(tmp_path, model_dir) -> None:
+    bad = tmp_path / "broken.ply"
+    bad.write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n1\n2\n")
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "broken.ply", "lacks properties")
+
+
+def test_rejects_a_missing_file(tmp_path, model_dir) -> None:
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(tmp_path / "nowhere.ply", tgt, model_dir=model_dir), "nowhere.ply",
+                         "No such file")
+
+
+def test_rejects_too_few_points(tmp_path, model_dir) -> None:
+    small = tmp_path / "small.npy"
+    np.save(small, SOURCE[:10])
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(small, tgt, model_dir=model_dir), "at least 32 points")
+
+
+@pytest.mark.parametrize(("matrix", "fragment"), [(np.diag([1.0, 1.0, -1.0, 1.0]), "rigid"),
+                                                   (np.eye(3), "4x4")])
+def test_rejects_a_bad_initial_transform(tmp_path, model_dir, matrix, fragment) -> None:
+    init = tmp_path / "init.json"
+    init.write_text(json.dumps(matrix.tolist()))
+    src, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(src, tgt, "--initial-transform", init, model_dir=model_dir), fragment)
+
+
+def test_rejects_out_of_range_options(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(src, tgt, "--keypoints", "4", model_dir=model_dir, fast=False), "keypoints")
+
+
+def test_rejects_an_unknown_model_and_lists_the_available_ones(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(src, tgt, "--model", "nope", model_dir=model_dir), "'nope' not found", "clean")
+
+
+def test_rejects_an_unwritable_aligned_format_before_registering(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--write-aligned", tmp_path / "aligned.obj", model_dir=model_dir)
+    assert_clean_failure(result, "aligned.obj", "unknown extension")
+
+
+def test_a_corrupted_model_fails_with_exit_code_1(tmp_path, model_dir) -> None:
+    broken = tmp_path / "clean"
+    shutil.copytree(model_dir, broken)
+    (broken / "matcher_1.onnx").write_bytes(b"not a graph")
+    src, tgt = write_pair(tmp_path, "npy")
+    result = runner.invoke(app, ["register", str(src), str(tgt), "--model", str(broken), *FAST])
+    assert result.exit_code == 1
+    assert "sha256 of matcher_1.onnx does not match" in result.stderr and "Traceback" not in result.output

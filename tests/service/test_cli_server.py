@@ -1,0 +1,130 @@
+"""``mfgnet register --server`` and ``service.client`` against a real ``mfgnet serve`` (uvicorn, a
+subprocess on 127.0.0.1, torch hidden as in the container): same pose as in-process, the server's
+error messages on 4xx."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_support import python_without_torch, snapshot_model, synthetic_pair
+from typer.testing import CliRunner
+
+import service
+from service.cli import app
+from service.client import MfgnetClient, MfgnetError
+from service.pointcloud_io import read_points
+
+pytestmark = pytest.mark.skipif(not (Path(service.__file__).parent / "api" / "app.py").exists(),
+                                reason="service/api/app.py does not exist yet")
+runner = CliRunner()
+OPTIONS = ("--iterations", "2", "--keypoints", "64")  # small and fast; the same on both sides
+MFGNET = "import sys; sys.argv = ['mfgnet', *sys.argv[1:]]; from service.cli import main; main()"
+SOURCE, TARGET = synthetic_pair()
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    return snapshot_model(tmp_path_factory.mktemp("models"))
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory, model_dir) -> str:
+    """Base URL of ``mfgnet serve --model-dir <snapshot>`` (bundled models off), ready."""
+    workdir = tmp_path_factory.mktemp("server")
+    python, env = python_without_torch(workdir)
+    env.update(MFGNET_BUNDLED_MODELS="false", MFGNET_API_KEY="", MFGNET_LOG_LEVEL="warning")
+    port = free_port()
+    args = ["serve", "--host", "127.0.0.1", "--port", str(port), "--model-dir", str(model_dir), "--threads", "1"]
+    log_path = workdir / "server.log"
+    with log_path.open("w") as log:
+        process = subprocess.Popen([*python, "-c", MFGNET, *args], env=env, stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        with MfgnetClient(url) as client:
+            deadline = time.monotonic() + 90
+            while not client.ready():
+                if process.poll() is not None or time.monotonic() > deadline:
+                    pytest.fail(f"mfgnet serve did not become ready:\n{log_path.read_text()[-3000:]}")
+                time.sleep(0.2)
+        yield url
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+@pytest.fixture
+def pair_files(tmp_path) -> tuple[Path, Path]:
+    src, tgt = tmp_path / "source.ply", tmp_path / "target.pcd"
+    from service.pointcloud_io import write_points
+
+    write_points(src, SOURCE)
+    write_points(tgt, TARGET)
+    return src, tgt
+
+
+def register(*args) -> tuple[int, dict | None, str]:
+    result = runner.invoke(app, ["register", *map(str, args), *OPTIONS, "--json"])
+    record = json.loads(result.stdout) if result.exit_code == 0 else None
+    return result.exit_code, record, result.stderr
+
+
+@pytest.mark.parametrize("upload", ["json", "binary"])
+def test_server_mode_gives_the_same_transform_as_in_process(server, model_dir, pair_files, tmp_path, upload):
+    src, tgt = pair_files
+    code, local, err = register(src, tgt, "--model-dir", model_dir)
+    assert code == 0, err
+    aligned = tmp_path / "aligned.npz"
+    extra = ["--binary"] if upload == "binary" else []
+    code, remote, err = register(src, tgt, "--server", server, "--write-aligned", aligned, *extra)
+    assert code == 0, err
+    assert remote["model"]["sha256"] == local["model"]["sha256"]
+    assert np.allclose(remote["transform"], local["transform"], atol=1e-4)
+    assert remote["iterations"] == local["iterations"] == 2
+    assert set(remote) == set(local) and "queue" in remote["timing_ms"]
+    R, t = np.asarray(remote["rotation"]), np.asarray(remote["translation"])
+    assert np.allclose(read_points(aligned), SOURCE.astype(np.float64) @ R.T + t, atol=1e-5)
+
+
+def test_server_refusal_exits_2_with_the_servers_message(server, tmp_path, pair_files) -> None:
+    small = tmp_path / "small.npy"
+    np.save(small, SOURCE[:5])
+    code, _, err = register(small, pair_files[1], "--server", server)
+    assert code == 2
+    assert "server: HTTP 4" in err and "32" in err and "Traceback" not in err
+
+
+def test_client_raises_mfgnet_error_with_the_servers_message_on_4xx(server) -> None:
+    with MfgnetClient(server) as client:
+        with pytest.raises(MfgnetError) as info:
+            client.register(SOURCE[:5], TARGET)
+        assert 400 <= info.value.status < 500
+        assert "source" in info.value.message and "32" in info.value.message
+        with pytest.raises(MfgnetError) as info:
+            client.register(SOURCE, TARGET, model="nope")
+        assert info.value.status == 404 and "nope" in info.value.message
+
+
+def test_client_sees_the_served_model_and_readiness(server) -> None:
+    with MfgnetClient(server) as client:
+        assert client.ready()
+        client.wait_ready(timeout=1)
+        assert [m["name"] for m in client.models()] == ["clean"]
+        response = client.register(SOURCE, TARGET, iterations=1, keypoints=32)
+    assert len(response["correspondences"]) == 32
+    assert {"source_index", "target_index", "credibility", "weight"} == set(response["correspondences"][0])
