@@ -38,9 +38,9 @@ def test_result_is_a_proper_rigid_transform_with_valid_correspondences(registrar
     res = registrar.register(src, tgt, return_iterations=True)
     assert np.allclose(res.rotation @ res.rotation.T, np.eye(3), atol=1e-6) and np.linalg.det(res.rotation) > 0
     assert res.transform.shape == (4, 4) and np.allclose(res.transform[3], [0, 0, 0, 1])
-    assert ((0 <= res.source_index) & (res.source_index < 900)).all()
-    assert ((0 <= res.target_index) & (res.target_index < 700)).all()
-    assert ((0 <= res.credibility) & (res.credibility <= 1)).all() and res.weight.sum() == pytest.approx(1, abs=1e-4)
+    assert ((res.source_index >= 0) & (res.source_index < 900)).all()
+    assert ((res.target_index >= 0) & (res.target_index < 700)).all()
+    assert ((res.credibility >= 0) & (res.credibility <= 1)).all() and res.weight.sum() == pytest.approx(1, abs=1e-4)
     assert len(res.iteration_poses) == res.iterations == registrar.default_iterations
     assert np.allclose(res.iteration_poses[-1].rotation, res.rotation)
     assert {"preprocess", "encoder", "iterations", "svd", "total"} <= set(res.timing_ms)
