@@ -58,7 +58,7 @@ def test_fold_batchnorm_is_exact():
 
 
 def test_export_writes_one_matcher_graph_per_weight_set(exported):
-    model, out = exported
+    _, out = exported
     manifest = json.loads((out / "manifest.json").read_text())
     assert set(manifest["graphs"]) == {"encoder", "matcher_0", "matcher_1"}
     assert manifest["config"]["iterations"] == 2 and manifest["opset"] >= 17
