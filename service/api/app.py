@@ -1,0 +1,127 @@
+"""``create_app(settings)`` builds the FastAPI app; ``run_server(settings)`` serves it with uvicorn (one process).
+
+Start-up is instant: models load in a background thread, ``/v2/health/live`` answers at once and
+``/v2/health/ready`` turns 200 once every model is verified, loaded and warmed up.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.openapi.utils import get_openapi
+
+from service.api.errors import install_error_handlers
+from service.api.limiter import InferenceLimiter
+from service.api.metrics import Metrics
+from service.api.middleware import RequestContextMiddleware
+from service.api.registry import ModelEntry, ModelRegistry
+from service.api.routes import metrics as metrics_routes
+from service.api.routes import models, oip, register
+from service.api.runner import Runner
+from service.api.schemas import BatchRequest, InferRequest, RegisterRequest
+from service.core.config import Settings
+from service.core.logging import configure_logging
+
+# Request bodies are read by the routes themselves (content-type dispatch, point counting before
+# conversion), so their schemas are added to the OpenAPI components here.
+REQUEST_SCHEMAS = (RegisterRequest, BatchRequest, InferRequest)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    settings = settings or Settings()
+    metrics = Metrics()
+    registry = ModelRegistry.discover(
+        settings.model_dirs,
+        bundled=settings.bundled_models,
+        threads=settings.threads,
+        strict=settings.strict_readiness,
+        on_loaded=lambda entry: _record_load(metrics, entry),
+    )
+    limiter = InferenceLimiter(settings.max_concurrency, settings.max_queue, settings.timeout_s)
+    for entry in registry.entries.values():
+        metrics.model_ready.labels(model=entry.name).set_function(lambda e=entry: float(e.status == "ready"))
+    metrics.slots.set_function(lambda: limiter.taken)
+    metrics.running.set_function(lambda: limiter.running)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        registry.start()  # background thread: liveness answers while models load
+        try:
+            yield
+        finally:
+            limiter.shutdown()
+
+    app = FastAPI(
+        title="MFGNet registration service",
+        version=oip.server_version(),
+        description="Rigid registration of partial point clouds (MFGNet, ONNX Runtime). Poses are src_to_tgt.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.registry = registry
+    app.state.limiter = limiter
+    app.state.runner = Runner(registry, limiter, metrics, settings.default_model)
+
+    install_error_handlers(app)
+    for router in (register.router, models.router, oip.router, metrics_routes.router):
+        app.include_router(router)
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origins,
+            allow_methods=["GET", "POST"],
+            allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
+            expose_headers=["X-Request-ID", "Retry-After"],
+        )
+    app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+def _record_load(metrics: Metrics, entry: ModelEntry) -> None:
+    metrics.model_load.labels(model=entry.name).set(entry.load_seconds or 0.0)
+
+
+def _openapi(app: FastAPI) -> dict:
+    if app.openapi_schema is None:
+        schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        for model in REQUEST_SCHEMAS:
+            body = model.model_json_schema(ref_template="#/components/schemas/{model}", mode="validation")
+            components.update(body.pop("$defs", {}))
+            components[model.__name__] = body
+        # Every error body, validation included, is an ErrorResponse (not FastAPI's HTTPValidationError).
+        for path in schema.get("paths", {}).values():
+            for operation in path.values():
+                doc = operation.get("responses", {}).get("422")
+                if doc and "HTTPValidationError" in str(doc):
+                    operation["responses"]["422"] = {
+                        "description": "Validation failed",
+                        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}},
+                    }
+        for name in ("HTTPValidationError", "ValidationError"):
+            components.pop(name, None)
+        app.openapi_schema = schema
+    return app.openapi_schema
+
+
+def run_server(settings: Settings | None = None) -> None:
+    """Serve on ``settings.host:settings.port`` in this process until interrupted."""
+    import uvicorn
+
+    settings = settings or Settings()
+    configure_logging(settings.log_level)
+    uvicorn.run(
+        create_app(settings),
+        host=settings.host,
+        port=settings.port,
+        workers=1,
+        access_log=False,  # one JSON line per request comes from RequestContextMiddleware
+        log_config=None,  # keep the JSON handlers configure_logging installed
+        server_header=False,
+        timeout_graceful_shutdown=5,
+    )

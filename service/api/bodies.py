@@ -1,0 +1,273 @@
+"""Request bodies -> validated :class:`Pair` objects: JSON, multipart ``.npy`` uploads and OIP v2 tensors.
+
+Point counts are checked (413) before any conversion: from the JSON lists' lengths, the ``.npy``
+header, or the OIP tensor ``shape``. Decoding runs in a worker thread (see ``runner.py``), never on
+the event loop.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+from starlette.datastructures import UploadFile
+from starlette.requests import Request
+
+from service.api.errors import APIError, from_pydantic
+from service.api.schemas import (
+    BatchRequest,
+    InferParameters,
+    InferRequest,
+    RegisterOptions,
+    RegisterRequest,
+)
+
+JSON = "application/json"
+MULTIPART = "multipart/form-data"
+CLOUD_FIELDS = ("source", "target")
+OIP_INPUTS = {"SOURCE": "source", "TARGET": "target"}
+OIP_OUTPUTS = ("TRANSFORM", "SOURCE_INDEX", "TARGET_INDEX", "CREDIBILITY")
+MAX_FORM_FIELD_BYTES = 64 * 1024
+
+
+@dataclass
+class Pair:
+    """One registration to run: options plus the two clouds as float64 ``[N, 3]``, ``[M, 3]``."""
+
+    options: RegisterOptions
+    source: np.ndarray
+    target: np.ndarray
+
+
+def media_type(request: Request) -> str:
+    return request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+
+
+def require_media_type(request: Request, *allowed: str) -> str:
+    """The request's media type if it is one of ``allowed`` (``application/*+json`` counts as JSON), else 415."""
+    kind = media_type(request)
+    if JSON in allowed and kind.startswith("application/") and kind.endswith("+json"):
+        kind = JSON
+    if kind not in allowed:
+        shown = repr(kind[:80]) if kind else "none"
+        raise APIError(415, f"unsupported content type {shown}; use {' or '.join(allowed)}")
+    return kind
+
+
+def too_many_points(name: str, count: int, max_points: int) -> APIError:
+    return APIError(413, f"{name} has {count} points; the limit is {max_points} per cloud (max_points)")
+
+
+# -- JSON -------------------------------------------------------------------------------------------
+def load_json(body: bytes) -> Any:
+    if not body:
+        raise APIError(400, "empty request body; expected a JSON object")
+    try:
+        return json.loads(body)
+    except UnicodeDecodeError:
+        raise APIError(400, "malformed JSON: the body is not UTF-8 text") from None
+    except json.JSONDecodeError as exc:
+        raise APIError(400, f"malformed JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except RecursionError:
+        raise APIError(400, "malformed JSON: nested too deeply") from None
+
+
+def _require_object(obj: Any, what: str = "the body") -> dict:
+    if not isinstance(obj, dict):
+        raise APIError(422, f"invalid request: {what} must be a JSON object, got {type(obj).__name__}")
+    return obj
+
+
+def _count_clouds(obj: dict, max_points: int, prefix: str = "") -> None:
+    for name in CLOUD_FIELDS:
+        value = obj.get(name)
+        if isinstance(value, list) and len(value) > max_points:
+            raise too_many_points(prefix + name, len(value), max_points)
+
+
+def _pair_from_request(req: RegisterRequest) -> Pair:
+    options = RegisterOptions.model_validate(req.model_dump(exclude=set(CLOUD_FIELDS)))
+    return Pair(options, np.asarray(req.source, dtype=np.float64), np.asarray(req.target, dtype=np.float64))
+
+
+def register_pair_from_json(body: bytes, max_points: int) -> Pair:
+    obj = _require_object(load_json(body))
+    _count_clouds(obj, max_points)
+    try:
+        req = RegisterRequest.model_validate(obj)
+    except ValidationError as exc:
+        raise from_pydantic(exc) from None
+    return _pair_from_request(req)
+
+
+def batch_pairs_from_json(body: bytes, max_points: int, max_batch: int) -> list[Pair]:
+    obj = _require_object(load_json(body))
+    pairs = obj.get("pairs")
+    if isinstance(pairs, list):
+        if len(pairs) > max_batch:
+            raise APIError(413, f"pairs has {len(pairs)} entries; the limit is {max_batch} per batch (max_batch)")
+        for i, pair in enumerate(pairs):
+            if isinstance(pair, dict):
+                _count_clouds(pair, max_points, prefix=f"pairs[{i}].")
+    try:
+        batch = BatchRequest.model_validate(obj)
+    except ValidationError as exc:
+        raise from_pydantic(exc) from None
+    return [_pair_from_request(req) for req in batch.pairs]
+
+
+# -- multipart/form-data with .npy files ------------------------------------------------------------
+@dataclass
+class RegisterForm:
+    fields: dict[str, str]
+    files: dict[str, bytes]  # "source" / "target" -> raw .npy bytes
+
+
+async def read_register_form(request: Request) -> RegisterForm:
+    """Read the upload (bounded by max_body_bytes upstream); decoding happens later, off the loop."""
+    form = await request.form(max_files=len(CLOUD_FIELDS), max_fields=32, max_part_size=MAX_FORM_FIELD_BYTES)
+    try:
+        fields: dict[str, str] = {}
+        files: dict[str, bytes] = {}
+        for key, value in form.multi_items():
+            if key in fields or key in files:
+                raise APIError(422, f"invalid request: {key}: given more than once")
+            if key in CLOUD_FIELDS:
+                if not isinstance(value, UploadFile):
+                    raise APIError(422, f"invalid request: {key}: expected a .npy file upload, got a text field")
+                files[key] = await value.read()
+            elif isinstance(value, UploadFile):
+                raise APIError(422, f"invalid request: {key}: unexpected file; only source and target are files")
+            else:
+                fields[key] = value
+        missing = [name for name in CLOUD_FIELDS if name not in files]
+        if missing:
+            raise APIError(422, f"invalid request: {', '.join(missing)}: missing .npy file upload")
+        return RegisterForm(fields, files)
+    finally:
+        await form.close()
+
+
+def decode_npy(data: bytes, name: str, max_points: int) -> np.ndarray:
+    """A ``.npy`` upload -> float64 ``[N, 3]``; the header is checked before the array is read."""
+    buf = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(buf)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(buf)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(buf)
+        else:
+            raise APIError(400, f"{name}: unsupported .npy format version {version}")
+    except (ValueError, EOFError, SyntaxError):
+        raise APIError(400, f"{name}: not a valid .npy file") from None
+    if dtype.hasobject:
+        raise APIError(422, f"invalid request: {name}: object arrays are refused (they would need pickle)")
+    if len(shape) == 3 and shape[0] == 1:
+        shape = shape[1:]
+    if len(shape) != 2 or shape[1] != 3:
+        raise APIError(422, f"invalid request: {name}: expected shape [N, 3], got {list(shape)}")
+    if shape[0] > max_points:
+        raise too_many_points(name, shape[0], max_points)
+    if dtype.kind != "f" or dtype.itemsize not in (2, 4, 8):
+        raise APIError(422, f"invalid request: {name}: expected float32 or float64 values, got {dtype}")
+    try:
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, EOFError, OSError):
+        raise APIError(400, f"{name}: truncated or unreadable .npy file") from None
+    return array.reshape(-1, 3).astype(np.float64)
+
+
+def register_pair_from_form(form: RegisterForm, max_points: int) -> Pair:
+    fields: dict[str, Any] = dict(form.fields)
+    if "initial_transform" in fields:
+        try:
+            fields["initial_transform"] = json.loads(fields["initial_transform"])
+        except json.JSONDecodeError:
+            raise APIError(422, "invalid request: initial_transform: expected a JSON 4x4 array") from None
+    try:
+        options = RegisterOptions.model_validate(fields)
+    except ValidationError as exc:
+        raise from_pydantic(exc) from None
+    source, target = (decode_npy(form.files[name], name, max_points) for name in CLOUD_FIELDS)
+    return Pair(options, source, target)
+
+
+# -- Open Inference Protocol v2 ---------------------------------------------------------------------
+def _rows_before_conversion(data: list) -> int:
+    """Rows in flat (``3N``), nested (``N x 3``) or batched (``1 x N x 3``) data, without converting it."""
+    if data and isinstance(data[0], list):
+        if data[0] and isinstance(data[0][0], list):
+            return sum(len(block) if isinstance(block, list) else 1 for block in data)
+        return len(data)
+    return len(data) // 3
+
+
+def _decode_tensor(tensor, max_points: int) -> np.ndarray:
+    name = tensor.name
+    if tensor.datatype != "FP32":
+        raise APIError(422, f"invalid request: {name}: datatype must be FP32, got {tensor.datatype!r}")
+    shape = list(tensor.shape)
+    if len(shape) == 3 and shape[0] == 1:
+        shape = shape[1:]
+    if len(shape) != 2 or shape[1] != 3 or shape[0] < 0:
+        raise APIError(422, f"invalid request: {name}: shape must be [N, 3] or [1, N, 3], got {list(tensor.shape)}")
+    n = shape[0]
+    if n > max_points or _rows_before_conversion(tensor.data) > max_points:
+        raise too_many_points(name, max(n, _rows_before_conversion(tensor.data)), max_points)
+    try:
+        array = np.asarray(tensor.data)
+    except ValueError:
+        raise APIError(422, f"invalid request: {name}: data is ragged (rows of different lengths)") from None
+    if array.dtype.kind not in "fiu":
+        raise APIError(422, f"invalid request: {name}: data must be numbers only")
+    if array.size != 3 * n:
+        raise APIError(
+            422, f"invalid request: {name}: data has {array.size} values; shape {tensor.shape} needs {3 * n}"
+        )
+    with np.errstate(over="ignore"):
+        array = array.reshape(n, 3).astype(np.float32)  # FP32 is the declared datatype
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        first = int(np.argmin(finite))
+        raise APIError(422, f"invalid request: {name}: data contains NaN or infinite values (first at row {first})")
+    return array.astype(np.float64)
+
+
+@dataclass
+class InferCall:
+    request_id: str | None
+    pair: Pair
+    outputs: list[str]
+
+
+def infer_call_from_json(body: bytes, max_points: int) -> InferCall:
+    obj = _require_object(load_json(body))
+    try:
+        req = InferRequest.model_validate(obj)
+        params = InferParameters.model_validate(req.parameters or {})
+    except ValidationError as exc:
+        raise from_pydantic(exc) from None
+    by_name = {}
+    for tensor in req.inputs:
+        if tensor.name not in OIP_INPUTS:
+            raise APIError(422, f"invalid request: inputs: unknown input {tensor.name!r}; expected SOURCE and TARGET")
+        if tensor.name in by_name:
+            raise APIError(422, f"invalid request: inputs: {tensor.name} given more than once")
+        by_name[tensor.name] = tensor
+    missing = [name for name in OIP_INPUTS if name not in by_name]
+    if missing:
+        raise APIError(422, f"invalid request: inputs: missing {', '.join(missing)}")
+    outputs = [o.name for o in req.outputs] if req.outputs else list(OIP_OUTPUTS)
+    unknown = [name for name in outputs if name not in OIP_OUTPUTS]
+    if unknown:
+        raise APIError(422, f"invalid request: outputs: unknown output(s) {unknown}; expected some of {OIP_OUTPUTS}")
+    source, target = (_decode_tensor(by_name[name], max_points) for name in OIP_INPUTS)
+    options = RegisterOptions(
+        iterations=params.iterations, keypoints=params.keypoints, refine=params.refine, return_correspondences=True
+    )
+    return InferCall(req.id, Pair(options, source, target), outputs)

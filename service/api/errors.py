@@ -1,0 +1,130 @@
+"""Every error is JSON ``{"error": "<what is wrong>"}`` (sometimes with ``detail``) and the right status.
+
+Routes raise :class:`APIError` (or a subclass); the handlers below turn it, validation errors,
+pipeline ``InputError`` and unknown routes into JSON. Bodies never carry tracebacks, file paths or
+the submitted points.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from service.api.schemas import ErrorResponse
+from service.core.logging import APP_LOGGER
+from service.registrar import InputError
+
+log = logging.getLogger(APP_LOGGER)
+
+MAX_LISTED_ERRORS = 5  # in the "error" sentence
+MAX_DETAIL_ERRORS = 20  # in "detail"
+
+
+class APIError(Exception):
+    """An expected failure with its HTTP status and a message safe to show to the client."""
+
+    def __init__(self, status: int, message: str, headers: dict[str, str] | None = None, **extra: Any):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.headers = headers or {}
+        self.extra = extra
+
+
+class BodyTooLargeError(APIError):
+    def __init__(self, limit: int):
+        super().__init__(413, f"request body is larger than the limit of {limit} bytes (max_body_bytes)")
+
+
+def error_response(status: int, message: str, headers: dict[str, str] | None = None, **extra: Any) -> JSONResponse:
+    return JSONResponse({"error": message, **extra}, status_code=status, headers=headers)
+
+
+def format_loc(loc: Sequence[Any]) -> str:
+    """``("body", "source", 5, 1)`` -> ``"source[5][1]"``."""
+    out = ""
+    for part in loc:
+        if part == "body" and not out:
+            continue
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "body"
+
+
+def validation_error(errors: Sequence[dict], prefix: str = "") -> APIError:
+    """Pydantic errors -> 422 naming each field and its problem (inputs are never echoed)."""
+    items = [
+        {"loc": (prefix + "." if prefix else "") + format_loc(e.get("loc", ())), "msg": e.get("msg", "invalid")}
+        for e in errors
+    ]
+    listed = "; ".join(f"{i['loc']}: {i['msg']}" for i in items[:MAX_LISTED_ERRORS])
+    more = f" (and {len(items) - MAX_LISTED_ERRORS} more)" if len(items) > MAX_LISTED_ERRORS else ""
+    return APIError(422, f"invalid request: {listed}{more}", detail=items[:MAX_DETAIL_ERRORS])
+
+
+def from_pydantic(exc: ValidationError, prefix: str = "") -> APIError:
+    return validation_error(exc.errors(include_url=False, include_input=False, include_context=False), prefix)
+
+
+async def _api_error(request: Request, exc: APIError) -> JSONResponse:
+    return error_response(exc.status, exc.message, exc.headers, **exc.extra)
+
+
+async def _input_error(request: Request, exc: InputError) -> JSONResponse:
+    return error_response(422, str(exc))
+
+
+async def _request_validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+    err = validation_error(list(exc.errors()))
+    return error_response(err.status, err.message, **err.extra)
+
+
+async def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    if exc.status_code == 404:
+        message = f"not found: {request.method} {request.url.path}"
+    elif exc.status_code == 405:
+        message = f"method {request.method} not allowed on {request.url.path}"
+    else:
+        message = str(exc.detail)
+    return error_response(exc.status_code, message, dict(exc.headers or {}))
+
+
+async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
+    """Last resort: the traceback goes to the server log, the client gets a generic message."""
+    request_id = getattr(request.state, "request_id", None)
+    log.error("unhandled error", exc_info=exc, extra={"request_id": request_id, "route": request.url.path})
+    return error_response(500, "internal server error", request_id=request_id)
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(APIError, _api_error)
+    app.add_exception_handler(InputError, _input_error)
+    app.add_exception_handler(RequestValidationError, _request_validation)
+    app.add_exception_handler(StarletteHTTPException, _http_exception)
+    app.add_exception_handler(Exception, _unexpected)
+
+
+def _doc(description: str) -> dict:
+    return {"model": ErrorResponse, "description": description}
+
+
+ERROR_DOCS: dict[int, dict] = {
+    400: _doc("Malformed body (JSON syntax, multipart, file that is not a readable .npy)."),
+    401: _doc("Missing or wrong API key (only when MFGNET_API_KEY is set)."),
+    404: _doc("Unknown model or route."),
+    413: _doc("Body larger than max_body_bytes, a cloud with more than max_points points, or too many pairs."),
+    415: _doc("Content type is neither application/json nor multipart/form-data."),
+    422: _doc("Validation failed: the message names the field and the problem (shape, dtype, NaN, range)."),
+    503: _doc("Not ready yet (models loading) or overloaded; see the Retry-After header."),
+    504: _doc("The registration did not finish within timeout_s."),
+}
+
+
+def error_docs(*statuses: int) -> dict[int | str, dict]:
+    return {status: ERROR_DOCS[status] for status in statuses}

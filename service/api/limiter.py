@@ -1,0 +1,128 @@
+"""Bounded concurrency for the CPU-heavy work: ``max_concurrency`` worker threads, at most
+``max_queue`` requests waiting for one (beyond that: 503 at once), and a deadline (504).
+
+A request takes a :class:`Slot` before its body is read, so an overloaded server refuses quickly.
+A job that outlives its deadline cannot be interrupted (ONNX Runtime has no cancel); its slot stays
+taken until the worker finishes, so abandoned work still counts against the limits.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TypeVar
+
+from service.api.errors import APIError
+
+T = TypeVar("T")
+
+RETRY_AFTER_OVERLOADED_S = 1
+
+
+class OverloadedError(APIError):
+    def __init__(self, capacity: int):
+        super().__init__(
+            503,
+            f"server is busy ({capacity} registrations running or waiting); retry later",
+            headers={"Retry-After": str(RETRY_AFTER_OVERLOADED_S)},
+        )
+
+
+class DeadlineExceededError(APIError):
+    def __init__(self, timeout_s: float):
+        super().__init__(504, f"registration did not finish within {timeout_s:g} s (timeout_s)")
+
+
+class InferenceLimiter:
+    """One thread pool shared by all requests (the ONNX sessions are thread-safe and shared too)."""
+
+    def __init__(self, max_concurrency: int, max_queue: int, timeout_s: float):
+        self.max_concurrency = max_concurrency
+        self.capacity = max_concurrency + max_queue
+        self.timeout_s = timeout_s
+        self._executor = ThreadPoolExecutor(max_workers=max_concurrency, thread_name_prefix="mfgnet-infer")
+        self._lock = threading.Lock()
+        self._taken = 0
+        self._running = 0
+
+    @property
+    def taken(self) -> int:
+        """Slots held: requests being read, waiting or running, plus abandoned jobs still running."""
+        return self._taken
+
+    @property
+    def running(self) -> int:
+        return self._running
+
+    def admit(self) -> Slot:
+        """A slot, or :class:`OverloadedError` when ``max_concurrency + max_queue`` are taken."""
+        with self._lock:
+            if self._taken >= self.capacity:
+                raise OverloadedError(self.capacity)
+            self._taken += 1
+        return Slot(self)
+
+    def _release(self) -> None:
+        with self._lock:
+            self._taken -= 1
+
+    def _submit(self, fn: Callable[[], T]) -> Future:
+        def job() -> T:
+            with self._lock:
+                self._running += 1
+            try:
+                return fn()
+            finally:
+                with self._lock:
+                    self._running -= 1
+
+        return self._executor.submit(job)
+
+    def shutdown(self) -> None:
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+class Slot:
+    """A place in the limiter; ``release()`` it exactly once (``with slot:`` does)."""
+
+    def __init__(self, limiter: InferenceLimiter):
+        self._limiter = limiter
+        self._future: Future | None = None
+        self._released = False
+
+    def __enter__(self) -> Slot:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    async def run(self, fn: Callable[[], T]) -> tuple[T, float]:
+        """``(fn(), ms waited for a worker)``, run in the pool within ``timeout_s``."""
+        if self._future is not None:
+            raise RuntimeError("a slot runs one job")
+        submitted = time.perf_counter()
+        started: list[float] = []
+
+        def timed() -> T:
+            started.append(time.perf_counter())
+            return fn()
+
+        self._future = self._limiter._submit(timed)
+        try:
+            result = await asyncio.wait_for(asyncio.wrap_future(self._future), timeout=self._limiter.timeout_s)
+        except TimeoutError:
+            self._future.cancel()  # dequeues it if it has not started; a running job finishes in the background
+            raise DeadlineExceededError(self._limiter.timeout_s) from None
+        return result, 1000 * (started[0] - submitted)
+
+    def release(self) -> None:
+        if self._released:
+            return
+        self._released = True
+        if self._future is None:
+            self._limiter._release()
+        else:  # runs now if the job is done, else when the worker finishes it
+            self._future.add_done_callback(lambda _: self._limiter._release())

@@ -1,0 +1,41 @@
+"""Prometheus metrics, in a registry of their own per app (several apps can live in one process)."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "mfgnet_http_requests", "HTTP requests by route template, method and status.",
+            ["route", "method", "status"], registry=self.registry,
+        )
+        self.latency = Histogram(
+            "mfgnet_http_request_duration_seconds", "HTTP request latency by route template.",
+            ["route"], buckets=LATENCY_BUCKETS, registry=self.registry,
+        )
+        self.in_flight = Gauge("mfgnet_http_requests_in_flight", "HTTP requests being handled.", registry=self.registry)
+        self.stage = Histogram(
+            "mfgnet_pipeline_stage_seconds", "Registration pipeline stages (timing_ms of each result).",
+            ["model", "stage"], buckets=LATENCY_BUCKETS, registry=self.registry,
+        )
+        self.slots = Gauge(
+            "mfgnet_inference_slots_taken", "Registrations being read, waiting or running.", registry=self.registry
+        )
+        self.running = Gauge("mfgnet_inference_running", "Registrations running in a worker.", registry=self.registry)
+        self.model_load = Gauge(
+            "mfgnet_model_load_seconds", "Time to verify, load and warm up each model.", ["model"],
+            registry=self.registry,
+        )
+        self.model_ready = Gauge(
+            "mfgnet_model_ready", "1 when the model is served, 0 while loading or failed.", ["model"],
+            registry=self.registry,
+        )
+
+    def observe_timing(self, model: str, timing_ms: dict[str, float]) -> None:
+        for stage, ms in timing_ms.items():
+            self.stage.labels(model=model, stage=stage).observe(ms / 1000)

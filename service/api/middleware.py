@@ -1,0 +1,119 @@
+"""The outermost layer of every request: request id, body-size limit, metrics, one JSON log line,
+and the last-resort JSON 500 (with the traceback in the server log only)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import time
+import uuid
+
+from starlette.requests import ClientDisconnect
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.api.errors import BodyTooLargeError
+from service.api.metrics import Metrics
+from service.core.logging import ACCESS_LOGGER, APP_LOGGER
+
+access_log = logging.getLogger(ACCESS_LOGGER)
+app_log = logging.getLogger(APP_LOGGER)
+
+REQUEST_ID_HEADER = "x-request-id"
+_SAFE_ID = re.compile(r"^[A-Za-z0-9._:\-]{1,128}$")
+UNMATCHED_ROUTE = "<unmatched>"
+
+
+def _request_id(scope: Scope) -> str:
+    for key, value in scope.get("headers", []):
+        if key == b"x-request-id":
+            text = value.decode("latin-1").strip()
+            if _SAFE_ID.match(text):
+                return text
+    return uuid.uuid4().hex
+
+
+def _content_length(scope: Scope) -> int | None:
+    for key, value in scope.get("headers", []):
+        if key == b"content-length":
+            try:
+                return int(value)
+            except ValueError:
+                return None
+    return None
+
+
+class RequestContextMiddleware:
+    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int):
+        self.app = app
+        self.metrics = metrics
+        self.max_body_bytes = max_body_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        request_id = _request_id(scope)
+        scope.setdefault("state", {})["request_id"] = request_id
+        state = {"status": 0, "started": False, "received": 0}
+
+        async def send_with_id(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                state["status"], state["started"] = message["status"], True
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+            await send(message)
+
+        async def receive_limited() -> Message:
+            message = await receive()
+            if message["type"] == "http.request":
+                state["received"] += len(message.get("body", b""))
+                if state["received"] > self.max_body_bytes:
+                    raise BodyTooLargeError(self.max_body_bytes)  # turned into a JSON 413 by the error handlers
+            return message
+
+        self.metrics.in_flight.inc()
+        try:
+            length = _content_length(scope)
+            if length is not None and length > self.max_body_bytes:  # refuse before reading anything
+                too_large = BodyTooLargeError(self.max_body_bytes)
+                await self._send_error(send_with_id, too_large.status, too_large.message)
+            else:
+                await self.app(scope, receive_limited, send_with_id)
+        except ClientDisconnect:
+            state["status"] = state["status"] or 499  # the client went away; nothing to answer
+        except Exception:
+            app_log.exception("unhandled error", extra={"request_id": request_id, "path": scope.get("path")})
+            if not state["started"]:
+                await self._send_error(send_with_id, 500, "internal server error", request_id=request_id)
+            else:
+                state["status"] = 500
+        finally:
+            self.metrics.in_flight.dec()
+            elapsed = time.perf_counter() - started
+            route = getattr(scope.get("route"), "path", None) or UNMATCHED_ROUTE
+            self.metrics.requests.labels(route=route, method=scope["method"], status=str(state["status"])).inc()
+            self.metrics.latency.labels(route=route).observe(elapsed)
+            access_log.info(
+                "request",
+                extra={
+                    "request_id": request_id,
+                    "method": scope["method"],
+                    "route": route,
+                    "path": scope.get("path"),
+                    "status": state["status"],
+                    "ms": round(1000 * elapsed, 2),
+                    "bytes_in": state["received"],
+                    "client": (scope.get("client") or ("", 0))[0],
+                },
+            )
+
+    @staticmethod
+    async def _send_error(send: Send, status: int, message: str, **extra) -> None:
+        body = json.dumps({"error": message, **extra}).encode()
+        await send({
+            "type": "http.response.start",
+            "status": status,
+            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+        })
+        await send({"type": "http.response.body", "body": body})

@@ -1,0 +1,131 @@
+"""Every discovered model folder, loaded into a :class:`Registrar` by a background thread.
+
+Liveness answers at once; readiness waits until each model has been verified (sha256), loaded and
+warmed up. A model that fails (missing or tampered files, bad manifest) is not served and keeps the
+reason. Names are only ever looked up in the registry's dict, so a request naming
+``../../etc/passwd`` is a 404 and never a file access.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from service.api.errors import APIError
+from service.core.logging import APP_LOGGER
+from service.manifest import ModelIntegrityError, bundled_models_dir, discover_model_dirs
+from service.registrar import Registrar
+
+log = logging.getLogger(APP_LOGGER)
+
+RETRY_AFTER_LOADING_S = 2
+
+
+@dataclass
+class ModelEntry:
+    name: str
+    directory: Path  # never shown to clients
+    status: str = "loading"  # loading | ready | failed
+    error: str | None = None
+    registrar: Registrar | None = None
+    load_seconds: float | None = None
+
+
+class ModelRegistry:
+    """Model name -> :class:`ModelEntry`; ``start()`` loads them all in a daemon thread."""
+
+    def __init__(
+        self,
+        directories: list[Path],
+        threads: int | None = None,
+        strict: bool = True,
+        loader: Callable[..., Registrar] = Registrar,
+        on_loaded: Callable[[ModelEntry], None] | None = None,
+    ):
+        self.threads = threads
+        self.strict = strict
+        self.loader = loader
+        self.on_loaded = on_loaded
+        self.entries: dict[str, ModelEntry] = {}
+        self.duplicates: list[str] = []
+        for directory in directories:
+            if directory.name in self.entries:
+                self.duplicates.append(directory.name)
+                log.warning("duplicate model name; keeping the first folder", extra={"model": directory.name})
+                continue
+            self.entries[directory.name] = ModelEntry(directory.name, directory)
+        self.finished = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @classmethod
+    def discover(cls, extra_dirs: list[str], bundled: bool = True, **kwargs) -> ModelRegistry:
+        found = discover_model_dirs(extra_dirs)
+        if not bundled:
+            root = bundled_models_dir().resolve()
+            found = [d for d in found if d.resolve().parent != root]
+        return cls(found, **kwargs)
+
+    # -- loading ---------------------------------------------------------------------------------
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self.load_all, name="mfgnet-model-loader", daemon=True)
+        self._thread.start()
+
+    def load_all(self) -> None:
+        try:
+            for entry in self.entries.values():
+                self._load(entry)
+        finally:
+            self.finished.set()
+
+    def _load(self, entry: ModelEntry) -> None:
+        started = time.perf_counter()
+        try:
+            registrar = self.loader(entry.directory, threads=self.threads, warmup=True)
+        except ModelIntegrityError as exc:
+            entry.status, entry.error = "failed", str(exc)
+        except Exception as exc:  # ORT refusing a graph, a crash in warm-up, ...: the reason stays server-side
+            entry.status, entry.error = "failed", f"could not load the model ({type(exc).__name__}); see the log"
+            log.exception("model failed to load", extra={"model": entry.name})
+        else:
+            entry.registrar, entry.load_seconds, entry.status = registrar, time.perf_counter() - started, "ready"
+            log.info("model ready", extra={"model": entry.name, "load_seconds": round(entry.load_seconds, 3)})
+            if self.on_loaded is not None:
+                self.on_loaded(entry)
+            return
+        log.error("model not served", extra={"model": entry.name, "reason": entry.error})
+
+    # -- queries ---------------------------------------------------------------------------------
+    def statuses(self) -> dict[str, str]:
+        return {name: entry.status for name, entry in self.entries.items()}
+
+    def readiness(self) -> tuple[bool, str]:
+        """``(ready, reason)``: ready once loading finished, a model is served and (strict) none failed."""
+        statuses = self.statuses()
+        served = sum(s == "ready" for s in statuses.values())
+        failed = sorted(n for n, s in statuses.items() if s == "failed")
+        if not self.entries:
+            return False, "no model found (bundled service/models or MFGNET_MODEL_DIRS)"
+        if any(s == "loading" for s in statuses.values()):
+            return False, f"loading models: {served} of {len(statuses)} ready"
+        if not served:
+            return False, f"no model could be loaded (failed: {', '.join(failed)})"
+        if self.strict and failed:
+            return False, f"models failed to load: {', '.join(failed)} (strict readiness)"
+        return True, "ready"
+
+    def get(self, name: str) -> ModelEntry:
+        """The served model ``name``: 404 if unknown, 503 if still loading or failed."""
+        entry = self.entries.get(name)  # a dict lookup only: never a path
+        if entry is None:
+            raise APIError(404, f"unknown model {name!r}; see GET /v1/models")
+        if entry.status == "loading":
+            raise APIError(
+                503, f"model {name!r} is still loading", headers={"Retry-After": str(RETRY_AFTER_LOADING_S)}
+            )
+        if entry.status == "failed":
+            raise APIError(503, f"model {name!r} is not served: {entry.error}")
+        return entry

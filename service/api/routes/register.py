@@ -1,0 +1,98 @@
+"""``POST /v1/register`` (JSON or multipart ``.npy`` uploads) and ``POST /v1/register/batch``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request
+
+from service.api import bodies
+from service.api.deps import get_runner, get_settings, require_api_key
+from service.api.errors import error_docs
+from service.api.runner import register_response
+from service.api.schemas import BatchResponse, RegisterResponse
+from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
+
+router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
+
+_MULTIPART_SCHEMA = {
+    "type": "object",
+    "required": ["source", "target"],
+    "properties": {
+        "source": {"type": "string", "format": "binary", "description": ".npy float32/float64 [N, 3]"},
+        "target": {"type": "string", "format": "binary", "description": ".npy float32/float64 [M, 3]"},
+        "model": {"type": "string"},
+        "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
+        "keypoints": {"type": "integer", "minimum": KEYPOINT_RANGE[0], "maximum": KEYPOINT_RANGE[1]},
+        "refine": {"type": "string", "enum": ["none", "icp"], "default": "none"},
+        "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
+        "return_correspondences": {"type": "boolean", "default": True},
+        "return_iterations": {"type": "boolean", "default": False},
+        "rotation_search": {"type": "boolean", "default": False},
+    },
+}
+
+
+def _request_body(schema_name: str, multipart: bool) -> dict:
+    content = {"application/json": {"schema": {"$ref": f"#/components/schemas/{schema_name}"}}}
+    if multipart:
+        content["multipart/form-data"] = {"schema": _MULTIPART_SCHEMA}
+    return {"requestBody": {"required": True, "content": content}}
+
+
+@router.post(
+    "/register",
+    response_model=RegisterResponse,
+    response_model_exclude_none=True,
+    summary="Register source onto target",
+    description="The rigid pose src_to_tgt. Send JSON (RegisterRequest) or multipart/form-data with two "
+    ".npy files `source` and `target` and the options as form fields.",
+    openapi_extra=_request_body("RegisterRequest", multipart=True),
+    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+)
+async def register(request: Request) -> dict:
+    settings, runner = get_settings(request), get_runner(request)
+    kind = bodies.require_media_type(request, bodies.JSON, bodies.MULTIPART)
+    with runner.admit() as slot:
+        if kind == bodies.JSON:
+            body = await request.body()
+
+            def decode() -> bodies.Pair:
+                return bodies.register_pair_from_json(body, settings.max_points)
+        else:
+            form = await bodies.read_register_form(request)
+
+            def decode() -> bodies.Pair:
+                return bodies.register_pair_from_form(form, settings.max_points)
+
+        def work():
+            pair = decode()
+            entry, result = runner.register_one(pair)
+            return entry, pair, result
+
+        (entry, pair, result), queue_ms = await runner.run(slot, work)
+    runner.observe(entry, result, queue_ms)
+    return register_response(entry, pair, result, queue_ms)
+
+
+@router.post(
+    "/register/batch",
+    response_model=BatchResponse,
+    response_model_exclude_none=True,
+    summary="Register several pairs",
+    description="Each pair is checked before any runs; the results equal single /v1/register calls.",
+    openapi_extra=_request_body("BatchRequest", multipart=False),
+    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+)
+async def register_batch(request: Request) -> dict:
+    settings, runner = get_settings(request), get_runner(request)
+    bodies.require_media_type(request, bodies.JSON)
+    with runner.admit() as slot:
+        body = await request.body()
+
+        def work():
+            pairs = bodies.batch_pairs_from_json(body, settings.max_points, settings.max_batch)
+            return pairs, runner.register_batch(pairs)
+
+        (pairs, done), queue_ms = await runner.run(slot, work)
+    for entry, result in done:
+        runner.observe(entry, result, queue_ms)
+    return {"results": [register_response(e, p, r, queue_ms) for p, (e, r) in zip(pairs, done, strict=True)]}

@@ -1,0 +1,173 @@
+"""Runs registrations for the routes: model lookup, option checks, the pipeline in a bounded worker,
+and the shaping of results into response dicts. One :class:`Registrar` per model is shared by every
+request; its ONNX sessions are thread-safe, so concurrent results equal sequential ones."""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from functools import cache
+from typing import Any, TypeVar
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.api.bodies import Pair
+from service.api.errors import APIError
+from service.api.limiter import InferenceLimiter, Slot
+from service.api.metrics import Metrics
+from service.api.registry import ModelEntry, ModelRegistry
+from service.registrar import (
+    DEFAULT_WORKING_SIZE,
+    InputError,
+    Registrar,
+    RegistrationResult,
+    check_cloud,
+    check_transform,
+)
+
+T = TypeVar("T")
+
+
+@cache
+def supports_option(registrar_type: type, option: str) -> bool:
+    """Whether ``registrar_type.register`` takes ``option`` (e.g. ``rotation_search``)."""
+    return option in inspect.signature(registrar_type.register).parameters
+
+
+class Runner:
+    def __init__(self, registry: ModelRegistry, limiter: InferenceLimiter, metrics: Metrics, default_model: str):
+        self.registry = registry
+        self.limiter = limiter
+        self.metrics = metrics
+        self.default_model = default_model
+
+    # -- scheduling --------------------------------------------------------------------------------
+    def admit(self) -> Slot:
+        return self.limiter.admit()
+
+    async def run(self, slot: Slot, work: Callable[[], T]) -> tuple[T, float]:
+        """``work()`` in a worker within the deadline -> ``(result, ms spent waiting for a worker)``."""
+        return await slot.run(work)
+
+    # -- the pipeline (worker threads) -------------------------------------------------------------
+    def resolve(self, name: str | None) -> ModelEntry:
+        return self.registry.get(name or self.default_model)
+
+    def prepare(self, pair: Pair, model: str | None = None, prefix: str = "") -> tuple[ModelEntry, dict[str, Any]]:
+        """Model entry and ``register`` keyword arguments; every check that can fail runs here (422/404/503)."""
+        entry = self.resolve(model or pair.options.model)
+        registrar = entry.registrar
+        assert registrar is not None
+        o = pair.options
+        kwargs: dict[str, Any] = {
+            "iterations": o.iterations,
+            "keypoints": o.keypoints,
+            "refine": o.refine,
+            "initial_transform": o.initial_transform,
+            "return_iterations": o.return_iterations,
+        }
+        if o.rotation_search:
+            if not supports_option(type(registrar), "rotation_search"):
+                raise APIError(422, f"invalid request: {prefix}rotation_search: not supported by this server")
+            kwargs["rotation_search"] = True
+        try:
+            check_cloud(pair.source, "source")
+            check_cloud(pair.target, "target")
+            registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, o.refine)
+            if o.initial_transform is not None:
+                check_transform(o.initial_transform)
+        except InputError as exc:
+            raise APIError(422, f"invalid request: {prefix}{exc}") from None
+        return entry, kwargs
+
+    def register(self, entry: ModelEntry, pair: Pair, kwargs: dict[str, Any]) -> RegistrationResult:
+        assert entry.registrar is not None
+        result = entry.registrar.register(pair.source, pair.target, **kwargs)
+        pose = np.concatenate([result.rotation.ravel(), result.translation])
+        if not np.isfinite(pose).all():  # e.g. a degenerate cloud the checks let through
+            raise APIError(422, "registration failed: the pose is not finite (degenerate input?)")
+        return result
+
+    def register_one(self, pair: Pair, model: str | None = None) -> tuple[ModelEntry, RegistrationResult]:
+        entry, kwargs = self.prepare(pair, model)
+        return entry, self.register(entry, pair, kwargs)
+
+    def register_batch(self, pairs: list[Pair]) -> list[tuple[ModelEntry, RegistrationResult]]:
+        """All pairs are checked before the first one runs, so a bad pair costs no computation."""
+        prepared = [self.prepare(pair, prefix=f"pairs[{i}].") for i, pair in enumerate(pairs)]
+        done = []
+        for pair, (entry, kwargs) in zip(pairs, prepared, strict=True):
+            done.append((entry, self.register(entry, pair, kwargs)))
+        return done
+
+    def observe(self, entry: ModelEntry, result: RegistrationResult, queue_ms: float) -> None:
+        self.metrics.observe_timing(entry.name, {"queue": queue_ms, **result.timing_ms})
+
+
+# -- results -> response bodies ----------------------------------------------------------------------
+def model_ref(entry: ModelEntry) -> dict[str, str]:
+    registrar: Registrar = entry.registrar  # type: ignore[assignment]
+    return {"name": entry.name, "version": registrar.manifest.version, "sha256": registrar.manifest.sha256}
+
+
+def register_response(entry: ModelEntry, pair: Pair, result: RegistrationResult, queue_ms: float) -> dict[str, Any]:
+    """The ``RegisterResponse`` body (plain floats: JSON keeps every float64 bit)."""
+    R, t = result.rotation, result.translation
+    body: dict[str, Any] = {
+        "rotation": R.tolist(),
+        "translation": t.tolist(),
+        "transform": result.transform.tolist(),
+        "euler_zyx_deg": Rotation.from_matrix(R).as_euler("zyx", degrees=True).tolist(),
+        "quality": {
+            "inlier_ratio": float(result.inlier_ratio),
+            "residual_rms": float(result.residual_rms),
+            "reliable": bool(result.reliable),
+        },
+        "warnings": list(result.warnings),
+        "model": model_ref(entry),
+        "iterations": int(result.iterations),
+        "timing_ms": {"queue": queue_ms, **{k: float(v) for k, v in result.timing_ms.items()}},
+    }
+    if pair.options.return_correspondences:
+        body["correspondences"] = [
+            {"source_index": s, "target_index": g, "credibility": c, "weight": w}
+            for s, g, c, w in zip(
+                result.source_index.tolist(),
+                result.target_index.tolist(),
+                result.credibility.tolist(),
+                result.weight.tolist(),
+                strict=True,
+            )
+        ]
+    if pair.options.return_iterations:
+        body["iteration_poses"] = [
+            {"rotation": p.rotation.tolist(), "translation": p.translation.tolist()} for p in result.iteration_poses
+        ]
+    return body
+
+
+def infer_outputs(result: RegistrationResult, names: list[str]) -> list[dict[str, Any]]:
+    """OIP v2 output tensors (flat row-major ``data``)."""
+    k = len(result.source_index)
+    tensors = {
+        "TRANSFORM": ([4, 4], "FP32", lambda: result.transform.astype(np.float32).ravel().tolist()),
+        "SOURCE_INDEX": ([k], "INT64", lambda: result.source_index.astype(np.int64).tolist()),
+        "TARGET_INDEX": ([k], "INT64", lambda: result.target_index.astype(np.int64).tolist()),
+        "CREDIBILITY": ([k], "FP32", lambda: result.credibility.astype(np.float32).tolist()),
+    }
+    return [
+        {"name": name, "shape": tensors[name][0], "datatype": tensors[name][1], "data": tensors[name][2]()}
+        for name in names
+    ]
+
+
+def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
+    return {
+        "iterations": int(result.iterations),
+        "inlier_ratio": float(result.inlier_ratio),
+        "residual_rms": float(result.residual_rms),
+        "reliable": bool(result.reliable),
+        "warnings": "; ".join(result.warnings),
+        "total_ms": float(result.timing_ms["total"]),
+    }

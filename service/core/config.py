@@ -1,0 +1,72 @@
+"""Service settings from ``MFGNET_*`` environment variables (pydantic-settings).
+
+Example::
+
+    MFGNET_MODEL_DIRS=/models/a:/models/b MFGNET_API_KEY=s3cret MFGNET_PORT=9000 mfgnet serve
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from typing import Annotated
+
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+MiB = 1024 * 1024
+
+
+def _split(value: object, separators: str) -> object:
+    """``"a,b"`` -> ``["a", "b"]`` (a JSON list string or a list passes through)."""
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("["):
+            return json.loads(text)
+        return [part.strip() for part in re.split(separators, text) if part.strip()]
+    return value
+
+
+class Settings(BaseSettings):
+    """Everything an operator can set; each field ``foo`` is read from ``MFGNET_FOO``."""
+
+    model_config = SettingsConfigDict(env_prefix="MFGNET_", extra="ignore")
+
+    model_dirs: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Extra model folders (a model folder, or a folder of model folders); comma or colon separated.",
+    )
+    bundled_models: bool = Field(True, description="Also serve the models shipped in service/models.")
+    default_model: str = Field("clean", description="Model used when a request names none.")
+    strict_readiness: bool = Field(
+        True, description="Ready only if every discovered model loaded (Triton's --strict-readiness)."
+    )
+    host: str = "127.0.0.1"
+    port: int = Field(8080, ge=0, le=65535)
+    threads: int = Field(2, ge=1, le=64, description="ONNX Runtime intra-op threads per session.")
+    max_points: int = Field(200_000, ge=32, description="Most points per cloud; more is answered with 413.")
+    max_body_bytes: int = Field(64 * MiB, ge=1024, description="Largest request body; more is answered with 413.")
+    max_batch: int = Field(16, ge=1, description="Most pairs in one /v1/register/batch request.")
+    max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
+    max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")
+    timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read; then 504.")
+    api_key: SecretStr | None = Field(None, description="If set, inference routes need 'Authorization: Bearer <key>'.")
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="Allowed CORS origins, comma separated; empty = CORS off."
+    )
+    log_level: str = "info"
+
+    @field_validator("model_dirs", mode="before")
+    @classmethod
+    def _split_paths(cls, value: object) -> object:
+        return _split(value, r"[,:]")
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _split_origins(cls, value: object) -> object:
+        return _split(value, r"[,\s]+")
+
+    @field_validator("api_key", mode="before")
+    @classmethod
+    def _empty_key_is_none(cls, value: object) -> object:
+        return None if isinstance(value, str) and not value.strip() else value

@@ -1,0 +1,56 @@
+"""Specification of ``service.core.config.Settings``: ``MFGNET_*`` variables, defaults, list parsing."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+from pydantic import ValidationError
+
+from service.core.config import Settings
+
+
+@pytest.fixture(autouse=True)
+def clean_env(monkeypatch):
+    for key in list(os.environ):
+        if key.startswith("MFGNET_"):
+            monkeypatch.delenv(key)
+
+
+def test_defaults_are_safe():
+    s = Settings()
+    assert s.model_dirs == [] and s.default_model == "clean"
+    assert (s.host, s.port, s.threads) == ("127.0.0.1", 8080, 2)
+    assert (s.max_points, s.max_body_bytes) == (200_000, 64 * 1024 * 1024)
+    assert (s.max_concurrency, s.max_queue, s.timeout_s) == (2, 16, 30)
+    assert s.api_key is None and s.cors_origins == []
+
+
+@pytest.mark.parametrize("value", ["/a/models,/b", "/a/models:/b", " /a/models , /b ", '["/a/models", "/b"]'])
+def test_model_dirs_are_comma_or_colon_separated(monkeypatch, value):
+    monkeypatch.setenv("MFGNET_MODEL_DIRS", value)
+    assert Settings().model_dirs == ["/a/models", "/b"]
+
+
+def test_environment_sets_every_field(monkeypatch):
+    monkeypatch.setenv("MFGNET_PORT", "9000")
+    monkeypatch.setenv("MFGNET_MAX_QUEUE", "0")
+    monkeypatch.setenv("MFGNET_API_KEY", "s3cret")
+    monkeypatch.setenv("MFGNET_CORS_ORIGINS", "https://a.example, https://b.example:8443")
+    s = Settings()
+    assert s.port == 9000 and s.max_queue == 0
+    assert s.api_key.get_secret_value() == "s3cret" and "s3cret" not in repr(s)
+    assert s.cors_origins == ["https://a.example", "https://b.example:8443"]
+
+
+def test_empty_api_key_means_no_key(monkeypatch):
+    monkeypatch.setenv("MFGNET_API_KEY", "  ")
+    assert Settings().api_key is None
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("port", 70000), ("threads", 0), ("max_concurrency", 0), ("timeout_s", 0)]
+)
+def test_out_of_range_settings_are_refused(field, value):
+    with pytest.raises(ValidationError, match=field):
+        Settings(**{field: value})

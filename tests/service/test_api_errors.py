@@ -1,0 +1,225 @@
+"""Every bad request gets a JSON ``{"error": ...}`` with the right status (never 500, never a traceback
+or a server path), and the server still answers a valid request correctly afterwards."""
+
+from __future__ import annotations
+
+import io
+import json
+import pickle
+
+import numpy as np
+import pytest
+from api_server import MODEL, assert_error, main_server, modelnet_pair, pair_json
+
+SEED = 3
+
+
+@pytest.fixture(scope="session")
+def server():
+    return main_server()
+
+
+@pytest.fixture(scope="session")
+def client(server):
+    with server.client() as c:
+        yield c
+
+
+CHEAP = {"iterations": 1, "keypoints": 16}  # a quick valid request for the after-check
+
+
+@pytest.fixture(scope="session")
+def reference(client):
+    response = client.post("/v1/register", json=pair_json(modelnet_pair(SEED), **CHEAP))
+    assert response.status_code == 200
+    return response.json()["transform"]
+
+
+@pytest.fixture
+def still_serves(client, reference):
+    """After the test's bad request, a valid request still gets the same answer as before."""
+    yield
+    response = client.post("/v1/register", json=pair_json(modelnet_pair(SEED), **CHEAP))
+    assert response.status_code == 200, response.text
+    assert response.json()["transform"] == reference
+
+
+def valid(**changes) -> dict:
+    return {**pair_json(modelnet_pair(SEED)), **changes}
+
+
+def with_row(row, index: int = 5) -> dict:
+    body = valid()
+    body["source"][index] = row
+    return body
+
+
+def raw_json(obj) -> bytes:
+    return json.dumps(obj).encode()  # allows NaN / Infinity literals, as many clients send them
+
+
+def npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=True)
+    return buf.getvalue()
+
+
+JSON_CASES = {
+    "iterations_zero": (valid(iterations=0), 422, ["iterations", "greater than or equal to 1"]),
+    "iterations_nine": (valid(iterations=9), 422, ["iterations", "less than or equal to 8"]),
+    "iterations_text": (valid(iterations="many"), 422, ["iterations", "integer"]),
+    "keypoints_too_few": (valid(keypoints=8), 422, ["keypoints"]),
+    "keypoints_too_many": (valid(keypoints=1024), 422, ["keypoints"]),
+    "refine_unknown": (valid(refine="magic"), 422, ["refine"]),
+    "unknown_field": (valid(iteration=4), 422, ["iteration", "extra"]),
+    "nan_coordinate": (with_row([0.1, float("nan"), 0.2]), 422, ["source[5][1]", "finite"]),
+    "infinite_coordinate": (with_row([0.1, float("inf"), 0.2]), 422, ["source[5][1]", "finite"]),
+    "two_column_row": (with_row([0.1, 0.2]), 422, ["source[5]", "at least 3"]),
+    "four_column_row": (with_row([0.1, 0.2, 0.3, 0.4]), 422, ["source[5]", "at most 3"]),
+    "text_coordinate": (with_row([0.1, "x", 0.3]), 422, ["source[5][1]"]),
+    "flat_cloud": ({**valid(), "target": [0.1, 0.2, 0.3] * 40}, 422, ["target[0]", "list"]),
+    "too_few_points": ({**valid(), "source": [[0.0, 0.0, 0.1 * i] for i in range(10)]}, 422, ["source", "32"]),
+    "missing_target": ({"source": valid()["source"]}, 422, ["target", "required"]),
+    "not_an_object": ([1, 2, 3], 422, ["object"]),
+    "transform_3x3": (valid(initial_transform=np.eye(3).tolist()), 422, ["initial_transform"]),
+    "transform_not_rigid": (valid(initial_transform=(2 * np.eye(4)).tolist()), 422, ["initial_transform", "rigid"]),
+    "unknown_model": (valid(model="no-such-model"), 404, ["unknown model"]),
+    "path_as_model": (valid(model="../../etc/passwd"), 404, ["unknown model"]),
+}
+
+
+@pytest.mark.parametrize("case", list(JSON_CASES))
+def test_rejects_bad_json_request(client, still_serves, case):
+    body, status, words = JSON_CASES[case]
+    response = client.post("/v1/register", content=raw_json(body), headers={"content-type": "application/json"})
+    assert_error(response, status, *words)
+
+
+@pytest.mark.parametrize(
+    ("content", "content_type", "status", "words"),
+    [
+        (b'{"source": [[1, 2, 3]', "application/json", 400, ["malformed JSON"]),
+        (b"", "application/json", 400, ["empty"]),
+        (b"\xff\xfe\x00", "application/json", 400, ["malformed JSON"]),
+        (b"source=1", "application/x-www-form-urlencoded", 415, ["content type"]),
+        (b"hello", "text/plain", 415, ["content type", "application/json"]),
+        (b"{}", "", 415, ["content type"]),
+        (b"--x--", "multipart/form-data; boundary=x", 422, ["source", "missing"]),
+    ],
+)
+def test_rejects_malformed_body_or_wrong_content_type(client, still_serves, content, content_type, status, words):
+    headers = {"content-type": content_type} if content_type else {}
+    assert_error(client.post("/v1/register", content=content, headers=headers), status, *words)
+
+
+def test_batch_rejects_bad_pair_naming_it(client, still_serves):
+    pairs = [valid(), valid(iterations=9)]
+    assert_error(client.post("/v1/register/batch", json={"pairs": pairs}), 422, "pairs[1].iterations")
+    assert_error(client.post("/v1/register/batch", json={"pairs": []}), 422, "pairs")
+    assert_error(client.post("/v1/register/batch", content=b"x", headers={"content-type": "text/csv"}), 415)
+
+
+def test_batch_checks_every_pair_before_running_any(client, still_serves):
+    few = {**valid(), "target": [[0.0, 0.0, 0.1 * i] for i in range(40)]}  # collinear is allowed, unknown model not
+    response = client.post("/v1/register/batch", json={"pairs": [few, valid(model="nope")]})
+    assert_error(response, 404, "nope")
+
+
+def multipart(source: bytes, target: bytes | None = None, **fields) -> dict:
+    files = {"source": ("source.npy", source)}
+    if target is not None:
+        files["target"] = ("target.npy", target)
+    return {"files": files, "data": fields}
+
+
+PAIR = modelnet_pair(SEED)
+MULTIPART_CASES = {
+    "pickled_object_array": (multipart(npy(np.array([{"x": 1}] * 40, dtype=object)), npy(PAIR.target)), 422,
+                             ["source", "object"]),
+    "pickle_not_npy": (multipart(pickle.dumps(PAIR.source.tolist()), npy(PAIR.target)), 400, ["source", ".npy"]),
+    "two_columns": (multipart(npy(PAIR.source[:, :2]), npy(PAIR.target)), 422, ["source", "[N, 3]"]),
+    "integer_dtype": (multipart(npy(PAIR.source.astype(np.int64)), npy(PAIR.target)), 422, ["source", "float"]),
+    "nan_points": (multipart(npy(np.where(np.arange(len(PAIR.source))[:, None] == 7, np.nan, PAIR.source)),
+                             npy(PAIR.target)), 422, ["source", "nan"]),
+    "truncated": (multipart(npy(PAIR.source)[:200], npy(PAIR.target)), 400, ["source"]),
+    "missing_target": (multipart(npy(PAIR.source)), 422, ["target", "missing"]),
+    "bad_option": (multipart(npy(PAIR.source), npy(PAIR.target), iterations="9"), 422, ["iterations"]),
+    "unknown_option": (multipart(npy(PAIR.source), npy(PAIR.target), speed="fast"), 422, ["speed"]),
+    "bad_transform": (multipart(npy(PAIR.source), npy(PAIR.target), initial_transform="[[1"), 422,
+                      ["initial_transform"]),
+    "unknown_model": (multipart(npy(PAIR.source), npy(PAIR.target), model="../../etc/passwd"), 404,
+                      ["unknown model"]),
+}
+
+
+@pytest.mark.parametrize("case", list(MULTIPART_CASES))
+def test_rejects_bad_multipart_upload(client, still_serves, case):
+    kwargs, status, words = MULTIPART_CASES[case]
+    assert_error(client.post("/v1/register", **kwargs), status, *words)
+
+
+def oip(source=None, target=None, **request) -> dict:
+    def tensor(name, points, **overrides):
+        points = np.asarray(points)
+        return {"name": name, "shape": list(points.shape), "datatype": "FP32", "data": points.ravel().tolist(),
+                **overrides}
+
+    return {"inputs": [tensor("SOURCE", PAIR.source if source is None else source), tensor("TARGET", PAIR.target)],
+            **request}
+
+
+def _retyped(**overrides) -> dict:
+    body = oip()
+    body["inputs"][0].update(overrides)
+    return body
+
+
+OIP_CASES = {
+    "fp64_datatype": (_retyped(datatype="FP64"), 422, ["SOURCE", "FP32"]),
+    "wrong_shape": (_retyped(shape=[len(PAIR.source), 2]), 422, ["SOURCE", "shape"]),
+    "shape_mismatch": (_retyped(shape=[10, 3]), 422, ["SOURCE", "values"]),
+    "ragged": (_retyped(data=[[1.0, 2.0, 3.0], [1.0, 2.0]]), 422, ["SOURCE", "ragged"]),
+    "text_data": (_retyped(data=["a"] * (3 * len(PAIR.source))), 422, ["SOURCE", "numbers"]),
+    "nan_data": (raw_json(_retyped(data=[float("nan")] * (3 * len(PAIR.source)))), 422, ["SOURCE", "nan"]),
+    "missing_target": ({"inputs": oip()["inputs"][:1]}, 422, ["TARGET", "missing"]),
+    "unknown_input": ({"inputs": [*oip()["inputs"], {**oip()["inputs"][0], "name": "NORMALS"}]}, 422, ["NORMALS"]),
+    "unknown_output": (oip(outputs=[{"name": "SCORES"}]), 422, ["SCORES"]),
+    "bad_iterations": (oip(parameters={"iterations": 0}), 422, ["iterations"]),
+    "bad_refine": (oip(parameters={"refine": "magic"}), 422, ["refine"]),
+    "no_inputs": ({"inputs": []}, 422, ["inputs"]),
+}
+
+
+@pytest.mark.parametrize("case", list(OIP_CASES))
+def test_rejects_bad_oip_infer_request(client, still_serves, case):
+    body, status, words = OIP_CASES[case]
+    content = body if isinstance(body, bytes) else raw_json(body)
+    response = client.post(f"/v2/models/{MODEL}/infer", content=content, headers={"content-type": "application/json"})
+    assert_error(response, status, *words)
+
+
+@pytest.mark.parametrize(
+    ("method", "path", "status"),
+    [
+        ("GET", "/v2/models/no-such-model", 404),
+        ("GET", "/v2/models/no-such-model/ready", 404),
+        ("POST", "/v2/models/no-such-model/infer", 404),
+        ("GET", "/v2/models/..%2F..%2Fetc%2Fpasswd", 404),
+        ("GET", "/v2/models/%2E%2E/ready", 404),
+        ("GET", "/no/such/route", 404),
+        ("GET", "/v1/register", 405),
+        ("DELETE", "/v1/models", 405),
+    ],
+)
+def test_unknown_models_and_routes_are_json_errors(client, still_serves, method, path, status):
+    assert_error(client.request(method, path, json=oip() if method == "POST" else None), status)
+
+
+def test_degenerate_clouds_get_an_answer_with_warnings(client, still_serves):
+    same = [[0.5, 0.5, 0.5]] * 64
+    line = [[0.01 * i, 0.02 * i, 0.03 * i] for i in range(64)]
+    for cloud in (same, line):
+        response = client.post("/v1/register", json={"source": cloud, "target": cloud})
+        assert response.status_code == 200, response.text
+        body = response.json()
+        assert body["quality"]["reliable"] is False and body["warnings"]

@@ -1,0 +1,173 @@
+"""Specification of the limits and protections: request size (413), API key (401), overload (503 with
+Retry-After, never 500), deadline (504), and readiness when a model is tampered with."""
+
+from __future__ import annotations
+
+import io
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from api_server import (
+    LIMITED,
+    MODEL,
+    assert_error,
+    isolated_settings,
+    limited_server,
+    model_root,
+    modelnet_pair,
+    start_thread_server,
+    tampered_root,
+    wait_until_loaded,
+)
+
+KEY = LIMITED["api_key"]
+AUTH = {"Authorization": f"Bearer {KEY}"}
+CORS_ORIGIN = "https://viewer.example"
+SMALL = 300  # points per cloud: under the limited server's max_points
+
+
+@pytest.fixture(scope="session")
+def server():
+    return limited_server()
+
+
+@pytest.fixture(scope="session")
+def client(server):
+    with server.client(headers=AUTH) as c:
+        yield c
+
+
+def small_pair(**options) -> dict:
+    pair = modelnet_pair(1)
+    return {"source": pair.source[:SMALL].tolist(), "target": pair.target[:SMALL].tolist(), **options}
+
+
+def npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array)
+    return buf.getvalue()
+
+
+def test_small_request_passes(client):
+    assert client.post("/v1/register", json=small_pair(iterations=1)).status_code == 200
+
+
+def test_too_many_points_is_413_for_json_multipart_and_oip(client):
+    big = np.random.default_rng(0).normal(size=(LIMITED["max_points"] + 1, 3)).astype(np.float32)
+    small = np.asarray(small_pair()["source"], dtype=np.float32)
+    body = {"source": big.tolist(), "target": small.tolist()}
+    assert_error(client.post("/v1/register", json=body), 413, "source", str(LIMITED["max_points"]))
+    files = {"source": ("s.npy", npy(small)), "target": ("t.npy", npy(big))}
+    assert_error(client.post("/v1/register", files=files), 413, "target")
+    infer = {"inputs": [
+        {"name": "SOURCE", "shape": list(big.shape), "datatype": "FP32", "data": big.ravel().tolist()},
+        {"name": "TARGET", "shape": list(small.shape), "datatype": "FP32", "data": small.ravel().tolist()},
+    ]}
+    assert_error(client.post(f"/v2/models/{MODEL}/infer", json=infer), 413, "SOURCE")
+    assert client.post("/v1/register", json=small_pair(iterations=1)).status_code == 200
+
+
+def test_body_over_max_body_bytes_is_413_before_reading_it(client):
+    body = b'{"source": [' + b"[0.0, 0.0, 0.0]," * (LIMITED["max_body_bytes"] // 15) + b"]}"
+    response = client.post("/v1/register", content=body, headers={"content-type": "application/json"})
+    assert_error(response, 413, "max_body_bytes")
+
+
+def test_body_over_limit_without_content_length_is_413(client):
+    chunk = b"[0.0, 0.0, 0.0]," * 1000
+
+    def stream():
+        yield b'{"source": ['
+        for _ in range(LIMITED["max_body_bytes"] // len(chunk) + 2):
+            yield chunk
+
+    response = client.post("/v1/register", content=stream(), headers={"content-type": "application/json"})
+    assert_error(response, 413, "max_body_bytes")
+
+
+def test_too_many_batch_pairs_is_413(client):
+    pairs = [small_pair()] * (LIMITED["max_batch"] + 1)
+    assert_error(client.post("/v1/register/batch", json={"pairs": pairs}), 413, "max_batch")
+
+
+@pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": KEY},
+                                     {"Authorization": f"Basic {KEY}"}])
+def test_inference_needs_the_api_key(server, headers):
+    with server.client() as anonymous:
+        for path in ("/v1/register", "/v1/register/batch", f"/v2/models/{MODEL}/infer"):
+            response = anonymous.post(path, json=small_pair(), headers=headers)
+            assert_error(response, 401, "api key")
+            assert response.headers["www-authenticate"] == "Bearer"
+
+
+def test_health_and_metadata_stay_open_with_an_api_key(server):
+    with server.client() as anonymous:
+        for path in ("/v2/health/live", "/v2/health/ready", "/v2", f"/v2/models/{MODEL}",
+                     f"/v2/models/{MODEL}/ready", "/v1/models", "/metrics", "/openapi.json"):
+            assert anonymous.get(path).status_code == 200, path
+
+
+def test_overload_gets_503_with_retry_after_and_never_500(server, client):
+    def post(_):
+        with server.client(headers=AUTH) as c:
+            return c.post("/v1/register", json=small_pair())
+
+    with ThreadPoolExecutor(6) as pool:
+        responses = list(pool.map(post, range(6)))
+    statuses = sorted(r.status_code for r in responses)
+    assert set(statuses) <= {200, 503}, statuses
+    assert 200 in statuses and 503 in statuses, statuses
+    for response in responses:
+        if response.status_code == 503:
+            assert_error(response, 503, "busy")
+            assert int(response.headers["retry-after"]) >= 1
+    assert client.post("/v1/register", json=small_pair(iterations=1)).status_code == 200
+    assert 'status="500"' not in client.get("/metrics").text
+
+
+def test_cors_is_off_by_default(client):
+    response = client.options("/v1/register", headers={"Origin": CORS_ORIGIN, "Access-Control-Request-Method": "POST"})
+    assert "access-control-allow-origin" not in response.headers
+
+
+@pytest.fixture(scope="session")
+def strict_server():
+    """In-process server: a tampered model next to the good one, strict readiness, a tiny deadline."""
+    settings = isolated_settings(
+        model_dirs=[str(model_root()), str(tampered_root())],
+        bundled_models=False,
+        threads=1,
+        timeout_s=0.001,
+        strict_readiness=True,
+        cors_origins=[CORS_ORIGIN],
+    )
+    server = start_thread_server(settings, until_ready=False)
+    wait_until_loaded(server)
+    yield server
+    server.stop()
+
+
+def test_tampered_model_is_not_served_and_keeps_the_reason(strict_server):
+    with strict_server.client() as c:
+        ready = c.get("/v2/health/ready")
+        assert_error(ready, 503, "tampered", "failed")
+        models = {m["name"]: m for m in c.get("/v1/models").json()["models"]}
+        assert models[MODEL]["status"] == "ready"
+        assert models["tampered"]["status"] == "failed" and "sha256" in models["tampered"]["error"]
+        assert_error(c.post("/v1/register", json=small_pair(model="tampered")), 503, "tampered", "sha256")
+        assert_error(c.get("/v2/models/tampered/ready"), 503, "tampered")
+
+
+def test_past_the_deadline_is_504(strict_server):
+    with strict_server.client() as c:
+        assert_error(c.post("/v1/register", json=small_pair()), 504, "timeout_s")
+
+
+def test_cors_allows_only_the_configured_origins(strict_server):
+    with strict_server.client() as c:
+        preflight = {"Access-Control-Request-Method": "POST", "Access-Control-Request-Headers": "content-type"}
+        allowed = c.options("/v1/register", headers={"Origin": CORS_ORIGIN, **preflight})
+        assert allowed.status_code == 200 and allowed.headers["access-control-allow-origin"] == CORS_ORIGIN
+        other = c.options("/v1/register", headers={"Origin": "https://evil.example", **preflight})
+        assert "access-control-allow-origin" not in other.headers

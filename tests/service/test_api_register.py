@@ -1,0 +1,214 @@
+"""Specification of ``POST /v1/register``, ``/v1/register/batch`` and OIP v2 ``infer`` through a real uvicorn
+server: well-formed poses, valid correspondences, and exact agreement between every route and content type."""
+
+from __future__ import annotations
+
+import io
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from api_server import MODEL, assert_error, main_server, modelnet_pair, pair_json
+from scipy.spatial.transform import Rotation
+
+from service.api.runner import supports_option
+from service.registrar import Registrar
+
+CHEAP = {"iterations": 1, "keypoints": 16}
+
+
+@pytest.fixture(scope="session")
+def server():
+    return main_server()
+
+
+@pytest.fixture(scope="session")
+def client(server):
+    with server.client() as c:
+        yield c
+
+
+@pytest.fixture(scope="session")
+def single(client):
+    """``/v1/register`` results of seeded pairs 1..3, computed once (the reference for route agreement)."""
+    results = {}
+    for seed in (1, 2, 3):
+        response = client.post("/v1/register", json=pair_json(modelnet_pair(seed)))
+        assert response.status_code == 200, response.text
+        results[seed] = response.json()
+    return results
+
+
+def npy(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    return buf.getvalue()
+
+
+def rotation_error_deg(R_est: np.ndarray, R_true: np.ndarray) -> float:
+    cos = (np.trace(np.asarray(R_est) @ R_true.T) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+
+
+def test_registers_modelnet_pair_with_bounded_pose_error(single):
+    pair, body = modelnet_pair(1), single[1]
+    R, t, T = np.array(body["rotation"]), np.array(body["translation"]), np.array(body["transform"])
+    assert R.shape == (3, 3) and t.shape == (3,) and T.shape == (4, 4)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_array_equal(T[:3, :3], R)
+    np.testing.assert_array_equal(T[:3, 3], t)
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+    # the bundled model is early in training: a loose bound on a 9 degree pair
+    assert rotation_error_deg(R, pair.rotation) < 30
+    assert np.linalg.norm(t - pair.translation) < 0.5
+    assert body["model"]["name"] == MODEL and len(body["model"]["sha256"]) == 64
+    assert body["iterations"] == 4
+    assert body["timing_ms"]["total"] > 0 and "queue" in body["timing_ms"]
+    assert set(body["quality"]) == {"inlier_ratio", "residual_rms", "reliable"}
+    assert 0 <= body["quality"]["inlier_ratio"] <= 1
+    assert isinstance(body["warnings"], list)
+    assert "iteration_poses" not in body
+
+
+def test_euler_angles_describe_the_rotation(single):
+    body = single[2]
+    expected = Rotation.from_matrix(np.array(body["rotation"])).as_euler("zyx", degrees=True)
+    np.testing.assert_allclose(body["euler_zyx_deg"], expected, atol=1e-9)
+
+
+def test_correspondences_index_the_request_arrays_with_credibility_in_unit_interval(single):
+    for seed, body in single.items():
+        pair = modelnet_pair(seed)
+        corr = body["correspondences"]
+        assert len(corr) == 128  # the model's keypoints
+        src = np.array([c["source_index"] for c in corr])
+        tgt = np.array([c["target_index"] for c in corr])
+        cred = np.array([c["credibility"] for c in corr])
+        weight = np.array([c["weight"] for c in corr])
+        assert src.min() >= 0 and src.max() < len(pair.source)
+        assert tgt.min() >= 0 and tgt.max() < len(pair.target)
+        assert len(set(src.tolist())) == len(src)  # keypoints are distinct source points
+        assert ((cred >= 0) & (cred <= 1)).all()
+        assert (weight >= 0).all() and weight.sum() == pytest.approx(1.0, abs=1e-3)
+
+
+def test_options_change_what_is_returned(client):
+    pair = modelnet_pair(1)
+    body = client.post(
+        "/v1/register",
+        json=pair_json(pair, iterations=2, keypoints=64, return_correspondences=False, return_iterations=True),
+    ).json()
+    assert body["iterations"] == 2
+    assert "correspondences" not in body
+    assert len(body["iteration_poses"]) == 2
+    np.testing.assert_array_equal(body["iteration_poses"][-1]["rotation"], body["rotation"])
+
+
+def test_icp_refinement_and_initial_transform_are_accepted(client):
+    pair = modelnet_pair(1)
+    guess = np.eye(4)
+    guess[:3, :3], guess[:3, 3] = pair.rotation, pair.translation
+    response = client.post("/v1/register", json=pair_json(pair, refine="icp", initial_transform=guess.tolist()))
+    assert response.status_code == 200, response.text
+    assert "refine" in response.json()["timing_ms"]
+
+
+def test_rotation_search_is_passed_through_or_refused_as_unsupported(client):
+    response = client.post("/v1/register", json=pair_json(modelnet_pair(1), rotation_search=True, **CHEAP))
+    if supports_option(Registrar, "rotation_search"):
+        assert response.status_code == 200, response.text
+    else:
+        assert_error(response, 422, "rotation_search", "not supported")
+
+
+def test_multipart_npy_upload_equals_json(client, single):
+    pair = modelnet_pair(1)
+    files = {
+        "source": ("source.npy", npy(pair.source), "application/octet-stream"),
+        "target": ("target.npy", npy(pair.target.astype(np.float64)), "application/octet-stream"),
+    }
+    response = client.post("/v1/register", files=files, data={"return_correspondences": "true"})
+    assert response.status_code == 200, response.text
+    body, reference = response.json(), single[1]
+    for key in ("rotation", "translation", "transform", "correspondences", "quality", "warnings", "model"):
+        assert body[key] == reference[key], key
+
+
+def test_multipart_options_are_form_fields(client):
+    pair = modelnet_pair(1)
+    files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+    body = client.post(
+        "/v1/register", files=files, data={"iterations": "2", "return_correspondences": "false", "model": MODEL}
+    ).json()
+    assert body["iterations"] == 2 and "correspondences" not in body
+
+
+def oip_request(pair, nested: bool = False, **parameters) -> dict:
+    def tensor(name, points):
+        data = points.tolist() if nested else points.ravel().tolist()
+        return {"name": name, "shape": list(points.shape), "datatype": "FP32", "data": data}
+
+    return {
+        "id": "pair-1",
+        "parameters": parameters,
+        "inputs": [tensor("SOURCE", pair.source), tensor("TARGET", pair.target)],
+    }
+
+
+@pytest.mark.parametrize("nested", [False, True])
+def test_oip_infer_transform_equals_v1_register(client, single, nested):
+    pair, reference = modelnet_pair(1), single[1]
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, nested=nested))
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["model_name"] == MODEL and body["id"] == "pair-1"
+    outputs = {o["name"]: o for o in body["outputs"]}
+    assert set(outputs) == {"TRANSFORM", "SOURCE_INDEX", "TARGET_INDEX", "CREDIBILITY"}
+    transform = outputs["TRANSFORM"]
+    assert transform["datatype"] == "FP32" and transform["shape"] == [4, 4]
+    np.testing.assert_array_equal(
+        np.array(transform["data"], dtype=np.float32).reshape(4, 4), np.array(reference["transform"], np.float32)
+    )
+    corr = reference["correspondences"]
+    assert outputs["SOURCE_INDEX"]["datatype"] == "INT64" and outputs["SOURCE_INDEX"]["shape"] == [len(corr)]
+    assert outputs["SOURCE_INDEX"]["data"] == [c["source_index"] for c in corr]
+    assert outputs["TARGET_INDEX"]["data"] == [c["target_index"] for c in corr]
+    np.testing.assert_array_equal(
+        np.array(outputs["CREDIBILITY"]["data"], np.float32), np.array([c["credibility"] for c in corr], np.float32)
+    )
+
+
+def test_oip_infer_takes_options_as_parameters_and_selects_outputs(client):
+    request = oip_request(modelnet_pair(1), iterations=2, keypoints=32)
+    request["inputs"][0]["shape"] = [1, *request["inputs"][0]["shape"]]  # [1, N, 3] is accepted too
+    request["outputs"] = [{"name": "TRANSFORM"}, {"name": "SOURCE_INDEX"}]
+    body = client.post(f"/v2/models/{MODEL}/infer", json=request).json()
+    assert body["parameters"]["iterations"] == 2
+    assert [o["name"] for o in body["outputs"]] == ["TRANSFORM", "SOURCE_INDEX"]
+    assert body["outputs"][1]["shape"] == [32]
+
+
+def test_batch_equals_single_calls(client, single):
+    seeds = [1, 2, 3]
+    response = client.post("/v1/register/batch", json={"pairs": [pair_json(modelnet_pair(s)) for s in seeds]})
+    assert response.status_code == 200, response.text
+    results = response.json()["results"]
+    assert len(results) == len(seeds)
+    for seed, body in zip(seeds, results, strict=True):
+        for key in ("rotation", "translation", "transform", "correspondences", "quality", "warnings"):
+            assert body[key] == single[seed][key], (seed, key)
+
+
+def test_concurrent_requests_equal_sequential_ones(server, single):
+    seeds = [1, 2, 3, 1, 2, 3]
+
+    def post(seed):
+        with server.client() as c:
+            return c.post("/v1/register", json=pair_json(modelnet_pair(seed))).json()
+
+    with ThreadPoolExecutor(len(seeds)) as pool:
+        results = list(pool.map(post, seeds))
+    for seed, body in zip(seeds, results, strict=True):
+        assert body["transform"] == single[seed]["transform"], seed
+        assert body["correspondences"] == single[seed]["correspondences"], seed
