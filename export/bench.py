@@ -89,7 +89,17 @@ def bench_torch(model, pairs: dict, repeats: int, iterations: int | None = None)
     return {"total": percentiles(time_calls(call, repeats))}
 
 
-def run_bench(model_name: str, checkpoint: str, repeats: int, setting: str, seed: int, threads: int) -> dict:
+def run_bench(
+    model_name: str,
+    checkpoint: str,
+    repeats: int,
+    setting: str,
+    seed: int,
+    threads: int,
+    accuracy_settings: tuple[str, ...] = (),
+    accuracy_count: int = 30,
+    classical: bool = True,
+) -> dict:
     import torch
 
     from model.checkpoint import load_model
@@ -125,6 +135,9 @@ def run_bench(model_name: str, checkpoint: str, repeats: int, setting: str, seed
         resized = {k: [resize_cloud(p, size, rng) for p in pairs[k][:4]] for k in ("source", "target")}
         sized[str(size)] = bench_pipeline(registrar, resized, max(5, repeats // 2), working_size=size)["total"]
     report["working_size"] = sized
+    report["accuracy"] = [
+        compare_methods(registrar, model, s, accuracy_count, seed, classical) for s in accuracy_settings
+    ]
     return report
 
 
@@ -134,6 +147,42 @@ def resize_cloud(points: np.ndarray, size: int, rng: np.random.Generator) -> np.
         return points[rng.choice(len(points), size, replace=False)]
     extra = points[rng.integers(0, len(points), size - len(points))] + rng.normal(0, 0.005, (size - len(points), 3))
     return np.concatenate([points, extra.astype(points.dtype)])
+
+
+def compare_methods(registrar, model, setting: str, count: int, seed: int, classical: bool = True) -> dict:
+    """Accuracy (the paper's metrics) and ms per pair of every method on the same seeded pairs."""
+    import torch
+
+    from model.data import make_test_pairs
+    from model.metrics import registration_metrics
+
+    pairs = make_test_pairs(setting, "test", count=count, seed=seed)
+
+    def pipeline(refine: str):
+        def method(src, tgt):
+            res = registrar.register(src, tgt, refine=refine)
+            return res.rotation, res.translation
+
+        return method
+
+    @torch.no_grad()
+    def eager(src, tgt):
+        out = model(torch.from_numpy(src[None]), torch.from_numpy(tgt[None]))
+        return out.rotation[0].double().numpy(), out.translation[0].double().numpy()
+
+    methods = {"torch_eager": eager, "onnx_pipeline": pipeline("none"), "onnx_pipeline_icp": pipeline("icp")}
+    if classical:
+        from export.baselines import fgr, fpfh_ransac_icp
+
+        methods["fpfh_ransac_icp"] = fpfh_ransac_icp
+        methods["fgr"] = fgr
+    from export.baselines import run_method
+
+    results = {}
+    for name, method in methods.items():
+        R, t, seconds = run_method(method, pairs)
+        results[name] = registration_metrics(R, t, pairs["rotation"], pairs["translation"], seconds)
+    return {"setting": setting, "count": count, "seed": seed, "methods": results}
 
 
 def flatten(d: dict, prefix: str = "") -> dict[str, float]:
@@ -156,9 +205,15 @@ def bench(
     threads: int = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the report here")] = None,
     compare: Annotated[Path | None, typer.Option(help="baseline report: print the change per figure")] = None,
+    accuracy_setting: Annotated[list[str] | None, typer.Option(help="settings for the side-by-side accuracy")] = None,
+    accuracy_count: int = 30,
+    classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR")] = True,
 ) -> None:
-    """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager."""
-    report = run_bench(model, checkpoint, repeats, setting, seed, threads)
+    """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager, and accuracy and
+    time side by side with Open3D FPFH + RANSAC + ICP and FGR on the same seeded pairs."""
+    report = run_bench(
+        model, checkpoint, repeats, setting, seed, threads, tuple(accuracy_setting or ()), accuracy_count, classical
+    )
     text = json.dumps(report, indent=2)
     if json_out:
         json_out.write_text(text + "\n")

@@ -1,0 +1,94 @@
+"""Classical registration that users would otherwise pick (Open3D; the ``bench`` extra only).
+
+FPFH + RANSAC + ICP and FGR, with parameters scaled by a voxel size (0.05 for unit-sphere shapes,
+the scale of the paper's protocol).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+DEFAULT_VOXEL = 0.05
+
+
+def _o3d():
+    try:
+        import open3d as o3d
+    except ImportError as exc:  # pragma: no cover - depends on the extra
+        raise ImportError("classical baselines need Open3D: pip install 'mfgnet[bench]'") from exc
+    return o3d
+
+
+def _prepare(points: np.ndarray, voxel: float):
+    """Open3D cloud with normals and FPFH features (no down-sampling below ~1k points)."""
+    o3d = _o3d()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if len(points) > 2000:
+        pcd = pcd.voxel_down_sample(voxel)
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
+    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+    )
+    return pcd, fpfh
+
+
+def fpfh_ransac_icp(
+    src: np.ndarray, tgt: np.ndarray, voxel: float = DEFAULT_VOXEL, icp: bool = True, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """``src_to_tgt`` pose by FPFH features, RANSAC (100k iterations, 0.999) and point-to-point ICP."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(seed)
+    (ps, fs), (pt, ft) = _prepare(src, voxel), _prepare(tgt, voxel)
+    distance = 1.5 * voxel
+    result = reg.registration_ransac_based_on_feature_matching(
+        ps,
+        pt,
+        fs,
+        ft,
+        True,
+        distance,
+        reg.TransformationEstimationPointToPoint(False),
+        3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
+        reg.RANSACConvergenceCriteria(100000, 0.999),
+    )
+    T = result.transformation
+    if icp:
+        full_s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(src, np.float64)))
+        full_t = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(tgt, np.float64)))
+        T = reg.registration_icp(
+            full_s,
+            full_t,
+            2 * voxel,
+            T,
+            reg.TransformationEstimationPointToPoint(),
+            reg.ICPConvergenceCriteria(max_iteration=30),
+        ).transformation
+    T = np.asarray(T)
+    return T[:3, :3], T[:3, 3]
+
+
+def fgr(src: np.ndarray, tgt: np.ndarray, voxel: float = DEFAULT_VOXEL) -> tuple[np.ndarray, np.ndarray]:
+    """``src_to_tgt`` pose by Fast Global Registration on FPFH features."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    (ps, fs), (pt, ft) = _prepare(src, voxel), _prepare(tgt, voxel)
+    result = reg.registration_fgr_based_on_feature_matching(
+        ps, pt, fs, ft, reg.FastGlobalRegistrationOption(maximum_correspondence_distance=0.5 * voxel)
+    )
+    T = np.asarray(result.transformation)
+    return T[:3, :3], T[:3, 3]
+
+
+def run_method(method, pairs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float]:
+    """Poses ``[M, 3, 3]``, ``[M, 3]`` of ``method(src, tgt)`` over the pairs and the seconds spent."""
+    Rs, ts = [], []
+    begin = time.perf_counter()
+    for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
+        R, t = method(src, tgt)
+        Rs.append(R)
+        ts.append(t)
+    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin
