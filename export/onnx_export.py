@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import onnx
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from model.network import BNReLULinear, MFGNet
+from model.network import NORM_EPS, BNReLULinear, IterationMatcher, MFGNet, PairMLP, pair_distance
 
 OPSET = 17
 ENCODER_FILE = "encoder.onnx"
@@ -59,15 +60,66 @@ class EncoderGraph(nn.Module):
         return self.model.embed(points)
 
 
+def _const(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().clone()
+
+
+class LeanPairMLP(nn.Module):
+    """Export form of a folded ``PairMLP``: the same arithmetic, with the pair tensor flattened to
+    ``[B*K*L, C]`` so every hidden layer is one ``Gemm`` (bias = folded BatchNorm shift) that ONNX
+    Runtime fuses with its ``Relu``."""
+
+    def __init__(self, mlp: PairMLP):
+        super().__init__()
+        d = mlp.diff_dims
+        W = mlp.first.linear.weight
+        self.register_buffer("w_norm", _const(W[:, 0]))  # [C]
+        self.register_buffer("W_diff", _const(W[:, 1 : 1 + d]))  # [C, d]
+        self.register_buffer("W_extra", _const(W[:, 1 + d :]))  # [C, e]
+        self.register_buffer("shift", _const(mlp.first.bn.shift))  # [C]
+        self.hidden = nn.ModuleList()
+        for layer in mlp.hidden:
+            lin = nn.Linear(layer.linear.in_features, layer.linear.out_features)
+            lin.weight.data, lin.bias.data = _const(layer.linear.weight), _const(layer.bn.shift)
+            self.hidden.append(lin)
+        self.out = copy.deepcopy(mlp.out)
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor, extra_a: torch.Tensor | None = None) -> torch.Tensor:
+        B, K, L = a.shape[0], a.shape[1], b.shape[1]
+        dist = pair_distance(a, b)  # [B, K, L]
+        inv = 1.0 / (dist + NORM_EPS)
+        pa, pb = F.linear(a, self.W_diff), F.linear(b, self.W_diff)  # [B, K, C], [B, L, C]
+        per_a = self.shift if extra_a is None else F.linear(extra_a, self.W_extra) + self.shift  # [(B, K,) C]
+        z = (pa[:, :, None] - pb[:, None]) * inv[..., None] + dist[..., None] * self.w_norm  # [B, K, L, C]
+        z = F.relu(z + (per_a[:, :, None] if extra_a is not None else per_a))
+        z = z.reshape(-1, z.shape[-1])  # [B*K*L, C]
+        for layer in self.hidden:
+            z = F.relu(layer(z))
+        return self.out(z).reshape(B, K, L)
+
+
 class MatcherGraph(nn.Module):
     """One iteration: keypoints + embeddings -> ``scores [B, K, L]``, ``cred_logit [B, K]``."""
 
     def __init__(self, model: MFGNet, index: int):
         super().__init__()
-        self.matcher = model.matchers[index]
+        matcher: IterationMatcher = model.matchers[index]
+        self.feature, self.coord = LeanPairMLP(matcher.feature), LeanPairMLP(matcher.coord)
+        self.sign, self.clamp = matcher.feature_sign, matcher.clamp
+        cred = matcher.credibility
+        self.register_buffer("pre_weight_t", _const(cred.pre.weight.t()))  # [2, C]
+        self.register_buffer("pre_bias", _const(cred.pre.bias))
+        post = nn.Linear(cred.post[0].linear.in_features, cred.post[0].linear.out_features)
+        post.weight.data, post.bias.data = _const(cred.post[0].linear.weight), _const(cred.post[0].bn.shift)
+        self.post, self.logit = post, copy.deepcopy(cred.post[1])
 
     def forward(self, src_xyz, tgt_xyz, src_emb, tgt_emb):
-        return self.matcher(src_xyz, tgt_xyz, src_emb, tgt_emb)
+        F_mat = self.feature(self.sign * src_emb, self.sign * tgt_emb)  # [B, K, L]
+        S_mat = self.coord(src_xyz, tgt_xyz, src_xyz)  # [B, K, L]
+        scores = (F_mat + S_mat).clamp(-self.clamp, self.clamp)
+        h = torch.stack([F_mat, S_mat], dim=-1) @ self.pre_weight_t  # [B, K, L, C]
+        h = h.amax(dim=2) + self.pre_bias  # [B, K, C]
+        return scores, self.logit(F.relu(self.post(h))).squeeze(-1)
 
 
 def _export(module: nn.Module, args: tuple, path: Path, inputs: list[str], outputs: list[str],
