@@ -57,6 +57,7 @@ def file_sha256(path: str | os.PathLike) -> str:
 def bundle_checkpoint(run_dir: str | os.PathLike, name: str, which: str = "best.pt") -> Path:
     """Copy a run's weights (no optimizer state), config and log into ``model/checkpoints/<name>.*``."""
     import json
+    import math
     import shutil
 
     run_dir = Path(run_dir)
@@ -65,8 +66,10 @@ def bundle_checkpoint(run_dir: str | os.PathLike, name: str, which: str = "best.
     BUNDLED_DIR.mkdir(parents=True, exist_ok=True)
     target = BUNDLED_DIR / f"{name}.pt"
     torch.save(keep, target)
+    state = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+             for k, v in (data.get("state") or {}).items()}  # strict JSON: no Infinity
     (BUNDLED_DIR / f"{name}.json").write_text(
-        json.dumps({"config": data["config"], "from": f"{run_dir.name}/{which}", "state": data.get("state"),
+        json.dumps({"config": data["config"], "from": f"{run_dir.name}/{which}", "state": state,
                     "val": data.get("val")}, indent=2) + "\n")
     if (run_dir / "log.jsonl").exists():
         shutil.copyfile(run_dir / "log.jsonl", BUNDLED_DIR / f"{name}.log.jsonl")
