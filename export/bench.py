@@ -16,7 +16,8 @@ from typing import Annotated
 import numpy as np
 import typer
 
-SIZES = (512, 1024, 2048, 4096)
+SIZES = (512, 1024, 2048, 4096)  # network working sizes
+LARGE_INPUTS = (20_000, 100_000)  # input sizes resampled to the default working size
 ITERATIONS = (1, 2, 3, 4, 5, 6)
 
 
@@ -99,6 +100,7 @@ def run_bench(
     accuracy_settings: tuple[str, ...] = (),
     accuracy_count: int = 30,
     classical: bool = True,
+    http_requests: int = 0,
 ) -> dict:
     import torch
 
@@ -135,6 +137,18 @@ def run_bench(
         resized = {k: [resize_cloud(p, size, rng) for p in pairs[k][:4]] for k in ("source", "target")}
         sized[str(size)] = bench_pipeline(registrar, resized, max(5, repeats // 2), working_size=size)["total"]
     report["working_size"] = sized
+    rng = np.random.default_rng(0)
+    inputs = {
+        str(n): (resize_cloud(pairs["source"][0], n, rng), resize_cloud(pairs["target"][0], n, rng))
+        for n in LARGE_INPUTS
+    }
+    report["input_size_working_768"] = {
+        n: bench_pipeline(registrar, {"source": [s], "target": [t]}, 5)["total"] for n, (s, t) in inputs.items()
+    }
+    if http_requests:
+        from export.bench_http import bench_http
+
+        report["http"] = bench_http(pairs, http_requests, inputs, threads)
     report["accuracy"] = [
         compare_methods(registrar, model, s, accuracy_count, seed, classical) for s in accuracy_settings
     ]
@@ -208,11 +222,21 @@ def bench(
     accuracy_setting: Annotated[list[str] | None, typer.Option(help="settings for the side-by-side accuracy")] = None,
     accuracy_count: int = 30,
     classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR")] = True,
+    http_requests: Annotated[int, typer.Option(help="requests per concurrency level over HTTP (0: skip)")] = 100,
 ) -> None:
     """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager, and accuracy and
     time side by side with Open3D FPFH + RANSAC + ICP and FGR on the same seeded pairs."""
     report = run_bench(
-        model, checkpoint, repeats, setting, seed, threads, tuple(accuracy_setting or ()), accuracy_count, classical
+        model,
+        checkpoint,
+        repeats,
+        setting,
+        seed,
+        threads,
+        tuple(accuracy_setting or ()),
+        accuracy_count,
+        classical,
+        http_requests,
     )
     text = json.dumps(report, indent=2)
     if json_out:
