@@ -13,7 +13,7 @@ import torch
 
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
-from model.data import TrainPairStream, load_shapes, make_pairs, protocol_for
+from model.data import PairProtocol, TrainPairStream, load_shapes, make_pairs, protocol_for
 from model.inference import predict_poses
 from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
@@ -42,6 +42,17 @@ class TrainOptions:
     data: str | None = None
     threads: int | None = None
     config: dict = field(default_factory=dict)  # MFGNetConfig overrides
+    # pair-protocol overrides of the setting (model.data.protocol_for); None keeps the setting's value
+    source_points: int | None = None
+    target_points: int | None = None
+    overlap: float | None = None
+    noise: float | None = None
+    max_angle: float | None = None
+
+    def pair_protocol(self) -> PairProtocol:
+        """The training / validation pair protocol: the setting's, with these overrides."""
+        return protocol_for(self.setting, source_points=self.source_points, target_points=self.target_points,
+                            overlap=self.overlap, noise=self.noise, max_angle=self.max_angle)
 
 
 def pick_device(name: str) -> torch.device:
@@ -71,9 +82,9 @@ def train(opts: TrainOptions) -> Path:
     device = pick_device(opts.device)
     torch.manual_seed(opts.seed)
 
+    protocol = opts.pair_protocol()
     shapes, _ = load_shapes("train", opts.setting, opts.data)
     train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
-    protocol = protocol_for(opts.setting)
     stream = TrainPairStream(shapes[train_idx], protocol, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
     val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))

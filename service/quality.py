@@ -67,6 +67,20 @@ def degeneracy_warnings(points: np.ndarray) -> list[str]:
     return []
 
 
+def inlier_statistics(distances: np.ndarray, inlier_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Inlier ratio and inlier RMS residual of nearest-neighbour ``distances (..., N)``.
+
+    A distance at most ``inlier_distance`` is an inlier (``inf``, a missed query, never is).
+    Returns ``(...)`` ratios and ``(...)`` RMS residuals over the inliers (0 where there is none).
+    """
+    distances = np.asarray(distances, dtype=np.float64)
+    inlier = distances <= inlier_distance  # [..., N]
+    count = inlier.sum(axis=-1)  # [...]
+    sq_sum = np.where(inlier, distances, 0.0) ** 2
+    rms = np.sqrt(sq_sum.sum(axis=-1) / np.maximum(count, 1))
+    return count / max(distances.shape[-1], 1), np.where(count > 0, rms, 0.0)
+
+
 def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float) -> Quality:
     """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
 
@@ -91,9 +105,8 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     if src.shape[0] and tgt.shape[0]:
         src_in_tgt = src @ R.T + t  # [N, 3]
         dist, _ = cKDTree(tgt).query(src_in_tgt, k=1)  # [N]
-        inlier_dist = dist[dist <= inlier_distance]
-        inlier_ratio = float(inlier_dist.size / src.shape[0])
-        residual_rms = float(np.sqrt(np.mean(inlier_dist**2))) if inlier_dist.size else 0.0
+        ratio, rms = inlier_statistics(dist, inlier_distance)
+        inlier_ratio, residual_rms = float(ratio), float(rms)
     if inlier_ratio < RELIABLE_INLIER_RATIO:
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}")
     reliable = not degenerate and inlier_ratio >= RELIABLE_INLIER_RATIO

@@ -11,16 +11,19 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from service.icp import icp
 from service.manifest import Manifest, load_manifest
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
-from service.quality import assess, degeneracy_warnings
+from service.quality import assess, degeneracy_warnings, inlier_statistics
 from service.sampling import resample_indices
 
 MIN_POINTS = 32
@@ -30,6 +33,11 @@ DEFAULT_WORKING_SIZE = 768
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
 ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
 REFINE_MODES = ("none", "icp")
+SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahedral) / icosahedral group
+# refine="icp" with the rotation search: each hypothesis first gets a short, wide-basin ICP (plain
+# point-to-point, no mutual check, normalised distance cap) so that the ranking compares basins
+SEARCH_ICP_DISTANCE = 0.3  # normalised units (3x ICP_DISTANCE)
+SEARCH_ICP_ITERATIONS = 20
 
 
 class InputError(ValueError):
@@ -60,9 +68,9 @@ def check_cloud(points, name: str) -> np.ndarray:
 
 
 def lower_median_weights(credibility: np.ndarray) -> np.ndarray:
-    """Credibilities at or above the lower median, others zeroed (``[K] -> [K]``)."""
-    k = (len(credibility) - 1) // 2
-    median = np.partition(credibility, k)[k]
+    """Credibilities at or above the lower median of their row, others zeroed (``[..., K] -> [..., K]``)."""
+    k = (credibility.shape[-1] - 1) // 2
+    median = np.partition(credibility, k, axis=-1)[..., k : k + 1]  # [..., 1]
     return credibility * (credibility >= median)
 
 
@@ -70,6 +78,40 @@ def top_k(scores: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` highest ``scores [N]``, highest first (ties: lower index first)."""
     idx = np.argpartition(-scores, k - 1)[:k] if k < len(scores) else np.arange(len(scores))
     return idx[np.lexsort((idx, -scores[idx]))]
+
+
+def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``values [B, N, C]`` at ``idx [B, K]`` -> ``[B, K, C]``."""
+    return np.take_along_axis(values, idx[..., None], axis=1)
+
+
+@cache
+def search_rotations_for(count: int) -> np.ndarray:
+    """The ``count`` initial rotations ``[H, 3, 3]`` of the rotation search (read-only).
+
+    A finite rotation group covering SO(3) evenly, deterministic on every machine: 24 = the
+    rotation group of the cube (every rotation is within 62.8 degrees of one of them), 60 = the
+    icosahedral group (within 44.5 degrees).
+    """
+    if count not in SEARCH_GROUPS:
+        raise InputError(f"search_rotations must be one of {sorted(SEARCH_GROUPS)}, got {count}")
+    rotations = Rotation.create_group(SEARCH_GROUPS[count]).as_matrix()  # [H, 3, 3]
+    rotations.setflags(write=False)
+    return rotations
+
+
+def rank_hypotheses(
+    src_n: np.ndarray, tgt_n: np.ndarray, rotations: np.ndarray, translations: np.ndarray, inlier_distance: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Order of the poses ``rotations [H, 3, 3]``, ``translations [H, 3]`` of ``src_n [N, 3]`` onto ``tgt_n``.
+
+    Best first: highest inlier ratio at ``inlier_distance``, ties by the lower inlier RMS residual,
+    then by index. Returns the order ``[H]``, inlier ratios ``[H]`` and residuals ``[H]``.
+    """
+    moved = src_n.astype(np.float64) @ rotations.transpose(0, 2, 1) + translations[:, None]  # [H, N, 3]
+    dist, _ = cKDTree(tgt_n).query(moved.reshape(-1, 3), k=1, distance_upper_bound=2 * inlier_distance)
+    ratio, rms = inlier_statistics(dist.reshape(moved.shape[:2]), inlier_distance)  # [H], [H]
+    return np.lexsort((np.arange(len(ratio)), rms, -ratio)), ratio, rms
 
 
 @dataclass
@@ -174,44 +216,68 @@ class Registrar:
         iterations: int,
         keypoints: int,
         timing: dict[str, float] | None = None,
-    ) -> NetworkOutput:
-        """The network loop on normalised working clouds ``[N, 3]``, ``[M, 3]`` (float32)."""
+    ) -> NetworkOutput | list[NetworkOutput]:
+        """The network loop on normalised working clouds (float32), for one pair or a batch of B.
+
+        ``src_n`` is ``[N, 3]`` (one pair: returns a :class:`NetworkOutput`) or ``[B, N, 3]`` (B
+        hypotheses: returns a list of B); ``tgt_n`` is ``[M, 3]`` (shared by every source, embedded
+        once) or ``[B, M, 3]``. One encoder call when ``N == M`` (else one per side), one matcher call
+        of batch B per iteration; keypoints are chosen per cloud (embeddings change with rotation).
+        """
         timing = {} if timing is None else timing
+        single = src_n.ndim == 2
+        src_b = src_n[None] if single else src_n  # [B, N, 3]
+        tgt_b = tgt_n[None] if tgt_n.ndim == 2 else tgt_n  # [1 or B, M, 3]
+        B, N, M = src_b.shape[0], src_b.shape[1], tgt_b.shape[1]
+        if src_b.ndim != 3 or tgt_b.ndim != 3 or len(tgt_b) not in (1, B):
+            raise ValueError(f"run_network: source {src_n.shape} and target {tgt_n.shape} do not batch")
         t1 = time.perf_counter()
-        if len(src_n) == len(tgt_n):
-            emb, score = self.embed(np.stack([src_n, tgt_n]))  # one batched encoder call
-            emb_s, emb_t, score_s, score_t = emb[0], emb[1], score[0], score[1]
+        if N == M:
+            emb, score = self.embed(np.concatenate([src_b, tgt_b]))  # one batched encoder call
+            emb_s, score_s, emb_t, score_t = emb[:B], score[:B], emb[B:], score[B:]
         else:
-            (emb_s, score_s), (emb_t, score_t) = (tuple(a[0] for a in self.embed(c[None])) for c in (src_n, tgt_n))
+            (emb_s, score_s), (emb_t, score_t) = self.embed(src_b), self.embed(tgt_b)
         t2 = time.perf_counter()
         timing["encoder"] = 1000 * (t2 - t1)
 
-        kp_s = top_k(score_s, min(keypoints, len(src_n)))  # [K]
-        kp_t = top_k(score_t, min(keypoints, len(tgt_n)))  # [L]
-        ps, pt = src_n[kp_s].astype(np.float64), tgt_n[kp_t]  # [K, 3], [L, 3]
-        fs, ft = emb_s[kp_s][None], emb_t[kp_t][None]  # [1, K, D], [1, L, D]
-        R_tot, t_tot = np.eye(3), np.zeros(3)
-        svd_ms, cumulative, min_gap, median_gap = 0.0, [], np.inf, np.inf
+        kp_s = np.stack([top_k(s, min(keypoints, N)) for s in score_s])  # [B, K]
+        kp_t = np.stack([top_k(s, min(keypoints, M)) for s in score_t])  # [1 or B, L]
+        L = kp_t.shape[1]
+        ps = _gather(src_b, kp_s).astype(np.float64)  # [B, K, 3]
+        pt = np.ascontiguousarray(np.broadcast_to(_gather(tgt_b, kp_t), (B, L, 3)))  # [B, L, 3]
+        fs = _gather(emb_s, kp_s)  # [B, K, D]
+        ft = np.ascontiguousarray(np.broadcast_to(_gather(emb_t, kp_t), (B, L, emb_t.shape[-1])))  # [B, L, D]
+        R_tot, t_tot = np.broadcast_to(np.eye(3), (B, 3, 3)), np.zeros((B, 3))
+        svd_ms, cumulative = 0.0, []
+        min_gap, median_gap = np.full(B, np.inf), np.full(B, np.inf)
         for it in range(iterations):
-            scores, logit = self.match(it, ps[None], pt[None], fs, ft)
+            scores, logit = self.match(it, ps, pt, fs, ft)  # [B, K, L], [B, K]
             tic = time.perf_counter()
-            matched = scores[0].argmax(axis=1)  # [K]
-            if scores.shape[2] > 1:
-                top2 = np.partition(scores[0], -2, axis=1)[:, -2:]  # [K, 2]
-                min_gap = min(min_gap, float((top2[:, 1] - top2[:, 0]).min()))
-            credibility = 1.0 / (1.0 + np.exp(-logit[0].astype(np.float64)))  # [K]
-            weights = lower_median_weights(credibility)
-            below = credibility[weights == 0]
-            if below.size:
-                median_gap = min(median_gap, float(credibility[weights > 0].min() - below.max()))
-            R, t = weighted_procrustes(ps, pt[matched].astype(np.float64), weights, self.centroid)
-            ps = ps @ R.T + t
+            matched = scores.argmax(axis=2)  # [B, K]
+            if L > 1:
+                top2 = np.partition(scores, -2, axis=2)[..., -2:]  # [B, K, 2]
+                min_gap = np.minimum(min_gap, (top2[..., 1] - top2[..., 0]).min(axis=1))
+            credibility = 1.0 / (1.0 + np.exp(-logit.astype(np.float64)))  # [B, K]
+            weights = lower_median_weights(credibility)  # [B, K]
+            kept = weights > 0
+            has_below = (~kept).any(axis=1)  # [B]
+            gap = np.where(kept, credibility, np.inf).min(1) - np.where(kept, -np.inf, credibility).max(1)
+            median_gap = np.where(has_below, np.minimum(median_gap, gap), median_gap)
+            R, t = weighted_procrustes(ps, _gather(pt, matched).astype(np.float64), weights, self.centroid)
+            ps = ps @ R.transpose(0, 2, 1) + t[:, None]  # [B, K, 3]
             R_tot, t_tot = compose(R, t, R_tot, t_tot)
             cumulative.append((R_tot, t_tot))
             svd_ms += 1000 * (time.perf_counter() - tic)
         timing["iterations"] = 1000 * (time.perf_counter() - t2) - svd_ms
         timing["svd"] = svd_ms
-        return NetworkOutput(R_tot, t_tot, kp_s, kp_t, matched, credibility, weights, cumulative, min_gap, median_gap)
+        outputs = [
+            NetworkOutput(
+                R_tot[b], t_tot[b], kp_s[b], kp_t[b if len(kp_t) > 1 else 0], matched[b], credibility[b],
+                weights[b], [(R_c[b], t_c[b]) for R_c, t_c in cumulative], float(min_gap[b]), float(median_gap[b]),
+            )
+            for b in range(B)
+        ]
+        return outputs[0] if single else outputs
 
     # -- the pipeline ----------------------------------------------------------------------------
     def check_options(
@@ -243,13 +309,28 @@ class Registrar:
         return_iterations: bool = False,
         icp_max_distance: float | None = None,
         icp_max_iterations: int = 30,
+        rotation_search: bool = False,
+        search_rotations: int = 24,
     ) -> RegistrationResult:
-        """Pose ``src_to_tgt`` of ``source [N, 3]`` onto ``target [M, 3]`` (caller's units)."""
+        """Pose ``src_to_tgt`` of ``source [N, 3]`` onto ``target [M, 3]`` (caller's units).
+
+        ``rotation_search`` starts the network from ``search_rotations`` initial rotations of the
+        source about its centroid (:func:`search_rotations_for`: 24 or 60), all in one batched
+        encoder call and one matcher call per iteration, keeps the hypothesis whose pose has the
+        highest inlier ratio on the working clouds (ties: lower residual), then refines it. With
+        ``refine="icp"`` every hypothesis first gets a short wide-basin ICP (``SEARCH_ICP_*``) and
+        the ranking uses those poses (with an early-training network the raw poses rarely land
+        close enough to rank the right basin first; ``docs/ROTATION_SEARCH.md``); the winner then
+        gets the usual ICP (mutual nearest neighbours, ``icp_max_distance``) to convergence.
+        ``timing_ms["search"]`` is the whole search (network, short ICPs, ranking) and
+        ``timing_ms["search_per_hypothesis"]`` that divided by the number of hypotheses.
+        """
         t0 = time.perf_counter()
         timing: dict[str, float] = {}
         src = check_cloud(source, "source")
         tgt = check_cloud(target, "target")
         n_iter, k = self.check_options(iterations, keypoints, working_size, refine)
+        hypotheses = search_rotations_for(int(search_rotations)) if rotation_search else None
         R_init, t_init = np.eye(3), np.zeros(3)
         if initial_transform is not None:
             R_init, t_init = check_transform(initial_transform)
@@ -265,13 +346,31 @@ class Registrar:
         t1 = time.perf_counter()
         timing["preprocess"] = 1000 * (t1 - t0)
 
-        net = self.run_network(src_n, tgt_n, n_iter, k, timing)
+        if hypotheses is None:
+            net = self.run_network(src_n, tgt_n, n_iter, k, timing)
+            R_start, R_net, t_net = np.eye(3), net.rotation, net.translation
+        else:
+            src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
+            nets = self.run_network(src_h, tgt_n, n_iter, k, timing)
+            R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
+            t_h = np.stack([n.translation for n in nets])  # [H, 3]
+            if (refine or "none") == "icp":  # rank refined poses: the basin matters, not the raw pose
+                short = [
+                    icp(src_n, tgt_n, R, t, max_distance=SEARCH_ICP_DISTANCE, max_iterations=SEARCH_ICP_ITERATIONS,
+                        reciprocal=False)
+                    for R, t in zip(R_h, t_h, strict=True)
+                ]
+                R_h, t_h = np.stack([r.rotation for r in short]), np.stack([r.translation for r in short])
+            best = rank_hypotheses(src_n, tgt_n, R_h, t_h, INLIER_DISTANCE)[0][0]
+            net, R_start, R_net, t_net = nets[best], hypotheses[best], R_h[best], t_h[best]
+            timing["search"] = 1000 * (time.perf_counter() - t1)
+            timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
         t3 = time.perf_counter()
         poses = [
-            IterationPose(*self._to_caller(norm, R, t, R_init, t_init))
+            IterationPose(*self._to_caller(norm, R @ R_start, t, R_init, t_init))
             for R, t in (net.cumulative if return_iterations else [])
         ]
-        R_final, t_final = self._to_caller(norm, net.rotation, net.translation, R_init, t_init)
+        R_final, t_final = self._to_caller(norm, R_net, t_net, R_init, t_init)
         scale = norm.scale
         if (refine or "none") == "icp":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale

@@ -1,0 +1,348 @@
+"""The settings beyond the paper (``resampled``, ``dense``) and the protocol options of every setting."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from model.data import (
+    DENSE_FILE,
+    DENSE_TO_MAIN_AXES,
+    SETTINGS,
+    PairProtocol,
+    TrainPairStream,
+    data_dir,
+    load_pairs,
+    load_shapes,
+    make_pairs,
+    make_test_pairs,
+    protocol_for,
+)
+from model.train import TrainOptions, train
+from service.cli import app
+
+EXACT = 1e-5  # float32 round-off of R p + t for |p| <= 1.5
+
+needs_modelnet = pytest.mark.skipif(
+    not (data_dir() / "modelnet40_test.npz").exists(),
+    reason=f"ModelNet40 not found at {data_dir()} (set $MFGNET_DATA)",
+)
+needs_dense = pytest.mark.skipif(
+    not (data_dir() / DENSE_FILE).exists() or not (data_dir() / "modelnet40_test.npz").exists(),
+    reason=f"{DENSE_FILE} or modelnet40_test.npz not found at {data_dir()} (set $MFGNET_DATA)",
+)
+
+
+def sphere_shapes(count: int, points: int = 1024, seed: int = 0) -> np.ndarray:
+    """Points uniform on the unit sphere, ``float32 [count, points, 3]``."""
+    p = np.random.default_rng(seed).normal(size=(count, points, 3))
+    return (p / np.linalg.norm(p, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def moved(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return points.astype(np.float64) @ R.astype(np.float64).T + t.astype(np.float64)
+
+
+def check_indices(shapes: np.ndarray, pairs: dict, disjoint: bool) -> None:
+    """Each source point is its shape row (unmoved, no noise), each target point R row + t; the source
+    and target rows are disjoint (or, for the paper's settings, shared)."""
+    for b in range(len(pairs["source"])):
+        src_idx, tgt_idx = pairs["source_index"][b], pairs["target_index"][b]
+        assert len(np.unique(src_idx)) == len(src_idx) and len(np.unique(tgt_idx)) == len(tgt_idx)
+        np.testing.assert_array_equal(pairs["source"][b], shapes[b][src_idx])
+        target = moved(shapes[b][tgt_idx], pairs["rotation"][b], pairs["translation"][b])
+        assert np.abs(pairs["target"][b] - target).max() < EXACT
+        shared = np.intersect1d(src_idx, tgt_idx).size
+        assert shared == 0 if disjoint else shared > 0.5 * len(src_idx)
+
+
+# --- the settings' protocols ----------------------------------------------------------------------
+
+
+def test_every_setting_has_a_protocol_and_the_paper_settings_are_unchanged() -> None:
+    assert set(SETTINGS) == {"clean", "noise", "unseen", "resampled", "dense"}
+    assert protocol_for("clean") == protocol_for("unseen") == PairProtocol()
+    assert protocol_for("resampled") == PairProtocol(points=512, keep=384, sampling="disjoint")
+    assert protocol_for("dense") == PairProtocol(points=1024, keep=768, sampling="disjoint")
+    assert protocol_for("resampled").overlap == protocol_for("dense").overlap == 0.75
+    assert protocol_for("clean", max_angle=45, overlap=0.75) == PairProtocol()  # the paper's values
+
+
+def test_default_options_draw_exactly_the_paper_pairs() -> None:
+    shapes = sphere_shapes(4)
+    for setting in ("clean", "noise"):
+        a = make_pairs(shapes, protocol_for(setting), np.random.default_rng(3))
+        b = make_pairs(shapes, protocol_for(setting, noise=0.01 if setting == "noise" else 0.0, max_angle=45.0,
+                                             overlap=0.75, source_points=768, target_points=768),
+                       np.random.default_rng(3))
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key])
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [({"overlap": 0.4}, "overlap"), ({"overlap": 1.01}, "overlap"), ({"max_angle": 181}, "max_angle"),
+     ({"noise": -0.1}, "noise"), ({"source_points": 385}, "source_points"), ({"target_points": 0}, "target_points")],
+)
+def test_out_of_range_options_are_rejected(options: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        protocol_for("resampled", **options)
+
+
+def test_shapes_too_small_for_disjoint_samples_are_rejected() -> None:
+    with pytest.raises(ValueError, match="disjoint"):
+        make_pairs(sphere_shapes(1, 1000), protocol_for("dense"), np.random.default_rng(0))
+
+
+# --- geometry -------------------------------------------------------------------------------------
+
+
+def test_resampled_pairs_come_from_disjoint_halves_with_384_points_each() -> None:
+    shapes = sphere_shapes(6)
+    pairs = make_pairs(shapes, protocol_for("resampled"), np.random.default_rng(0), return_indices=True)
+    assert pairs["source"].shape == pairs["target"].shape == (6, 384, 3)
+    assert pairs["source_index"].max() < 1024
+    check_indices(shapes, pairs, disjoint=True)
+
+
+def test_the_paper_settings_share_their_points() -> None:
+    shapes = sphere_shapes(3)
+    pairs = make_pairs(shapes, protocol_for("clean"), np.random.default_rng(0), return_indices=True)
+    assert pairs["source_index"].max() < 1024
+    check_indices(shapes, pairs, disjoint=False)
+
+
+def test_dense_pairs_are_two_disjoint_1024_point_samples_cropped_to_768() -> None:
+    shapes = sphere_shapes(3, 4096)
+    pairs = make_pairs(shapes, protocol_for("dense"), np.random.default_rng(1), return_indices=True)
+    assert pairs["source"].shape == pairs["target"].shape == (3, 768, 3)
+    check_indices(shapes, pairs, disjoint=True)
+
+
+def test_full_overlap_keeps_each_whole_half_and_the_halves_partition_the_shape() -> None:
+    shapes = sphere_shapes(3)
+    pairs = make_pairs(shapes, protocol_for("resampled", overlap=1.0), np.random.default_rng(2), return_indices=True)
+    assert pairs["source"].shape == pairs["target"].shape == (3, 512, 3)
+    for src_idx, tgt_idx in zip(pairs["source_index"], pairs["target_index"], strict=True):
+        np.testing.assert_array_equal(np.sort(np.concatenate([src_idx, tgt_idx])), np.arange(1024))
+
+
+@pytest.mark.parametrize(("setting", "overlap", "count"), [("resampled", 0.5, 256), ("dense", 0.6, 614)])
+def test_overlap_sets_the_fraction_kept_by_the_crop_a_half_space_cut(setting: str, overlap: float, count: int) -> None:
+    shapes = sphere_shapes(4, 4096 if setting == "dense" else 1024)
+    protocol = protocol_for(setting, overlap=overlap)
+    assert protocol.keep == count
+    pairs = make_pairs(shapes, protocol, np.random.default_rng(3), return_indices=True)
+    assert pairs["source"].shape[1] == pairs["target"].shape[1] == count
+    check_indices(shapes, pairs, disjoint=True)
+    # the same seed with overlap 1.0 makes the same draws up to the crop: it shows each uncropped sample
+    whole = make_pairs(shapes, protocol_for(setting, overlap=1.0), np.random.default_rng(3), return_indices=True)
+    for b in range(4):
+        sample, kept = whole["source_index"][b], pairs["source_index"][b]
+        assert set(kept) <= set(sample)
+        inside = np.isin(sample, kept)
+        proj = shapes[b][sample] @ np.ones(3)  # along the direction of the far anchor, (1, 1, 1) s
+        side = np.sign(proj[inside].mean() - proj.mean())
+        assert (side * proj)[inside].min() > (side * proj)[~inside].max() - 0.01  # a half-space cut
+
+
+def test_source_and_target_points_thin_the_crop_for_a_density_mismatch() -> None:
+    shapes = sphere_shapes(4)
+    full = make_pairs(shapes, protocol_for("resampled"), np.random.default_rng(4), return_indices=True)
+    thin = make_pairs(shapes, protocol_for("resampled", source_points=192, target_points=384),
+                      np.random.default_rng(4), return_indices=True)
+    assert thin["source"].shape == (4, 192, 3) and thin["target"].shape == (4, 384, 3)
+    check_indices(shapes, thin, disjoint=True)
+    for b in range(4):  # the same crop (same draws before it), thinned: a subset of the region, not a smaller cut
+        assert set(thin["source_index"][b]) < set(full["source_index"][b])
+        np.testing.assert_array_equal(np.sort(thin["target_index"][b]), np.sort(full["target_index"][b]))
+    dense = make_pairs(sphere_shapes(2, 4096), protocol_for("dense", source_points=384), np.random.default_rng(5))
+    assert dense["source"].shape == (2, 384, 3) and dense["target"].shape == (2, 768, 3)
+
+
+def euler_xyz_in_range(R: np.ndarray, max_deg: float) -> np.ndarray:
+    """Whether each ``R [M, 3, 3]`` is ``Rx(a) Ry(b) Rz(c)`` with a, b, c in ``[0, max_deg]`` (either of the
+    two Euler solutions, since ``b`` may exceed 90 degrees)."""
+    e1 = Rotation.from_matrix(R.astype(np.float64)).as_euler("XYZ", degrees=True)  # b in [-90, 90]
+    e2 = np.stack([e1[:, 0] + 180, 180 - e1[:, 1], e1[:, 2] + 180], 1)
+    e2 = (e2 + 180) % 360 - 180
+
+    def ok(e):
+        e = np.where(e < -1e-3, e + 360, e)  # angles just below 0 wrap, angles near 180 may read -180
+        return ((e >= -1e-3) & (e <= max_deg + 1e-3)).all(1)
+
+    return ok(e1) | ok(e2)
+
+
+@pytest.mark.parametrize("max_angle", [90.0, 180.0])
+def test_max_angle_draws_each_euler_angle_uniformly_up_to_the_limit(max_angle: float) -> None:
+    protocol = protocol_for("resampled", max_angle=max_angle)
+    pairs = make_pairs(sphere_shapes(3000, 2), PairProtocol(points=1, keep=1, max_angle_deg=protocol.max_angle_deg),
+                       np.random.default_rng(6))
+    R = pairs["rotation"]
+    assert euler_xyz_in_range(R, max_angle).all()
+    assert not euler_xyz_in_range(R, max_angle - 20).all()  # the whole range is used
+    total = np.degrees(Rotation.from_matrix(R.astype(np.float64)).magnitude())
+    assert total.max() > (0.9 * max_angle if max_angle < 180 else 170.0)
+
+
+def test_max_angle_45_keeps_every_angle_in_the_papers_range() -> None:
+    R = make_pairs(sphere_shapes(2000, 2), PairProtocol(points=1, keep=1), np.random.default_rng(7))["rotation"]
+    assert euler_xyz_in_range(R, 45.0).all()
+
+
+def test_noise_option_has_sigma_and_is_clipped_at_five_sigma() -> None:
+    protocol = protocol_for("resampled", noise=0.02, overlap=1.0)
+    assert protocol.noise_sigma == 0.02 and protocol.noise_clip == pytest.approx(0.1)
+    shapes = sphere_shapes(8)
+    pairs = make_pairs(shapes, protocol, np.random.default_rng(8), return_indices=True)
+    noise = pairs["source"].astype(np.float64) - np.take_along_axis(shapes, pairs["source_index"][..., None], 1)
+    assert noise.std() == pytest.approx(0.02, rel=0.05)
+    assert np.abs(noise).max() <= 0.1 + 1e-6
+    tight = PairProtocol(points=512, keep=512, sampling="disjoint", noise_sigma=0.02, noise_clip=0.02)
+    clipped = make_pairs(shapes, tight, np.random.default_rng(8), return_indices=True)  # the clip acts
+    noise = clipped["source"].astype(np.float64) - np.take_along_axis(shapes, clipped["source_index"][..., None], 1)
+    assert np.abs(noise).max() <= 0.02 + 1e-6 and (np.abs(noise) > 0.02 - 1e-6).mean() > 0.25
+
+
+@pytest.mark.parametrize("setting", ["resampled", "dense"])
+def test_same_seed_gives_identical_pairs_and_another_seed_different_ones(setting: str) -> None:
+    shapes = sphere_shapes(3, 4096 if setting == "dense" else 1024)
+    protocol = protocol_for(setting, noise=0.01, max_angle=90)
+    a, b, c = (make_pairs(shapes, protocol, np.random.default_rng(s), return_indices=True) for s in (9, 9, 10))
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+        assert not np.array_equal(a[key], c[key])
+
+
+def test_target_order_does_not_leak_the_correspondence() -> None:
+    shapes = sphere_shapes(2)
+    pairs = make_pairs(shapes, protocol_for("resampled"), np.random.default_rng(11))
+    for src, tgt, R, t in zip(pairs["source"], pairs["target"], pairs["rotation"], pairs["translation"], strict=True):
+        dist, nearest = cKDTree(tgt).query(moved(src, R, t))
+        close = dist < 0.1
+        assert (nearest[close] == np.flatnonzero(close)).mean() < 0.05
+
+
+# --- training -------------------------------------------------------------------------------------
+
+
+def test_the_training_stream_draws_fresh_disjoint_halves_every_epoch() -> None:
+    shapes = sphere_shapes(4)
+    stream = TrainPairStream(shapes, protocol_for("resampled"), seed=0)
+
+    def halves(epoch: int) -> dict[int, np.ndarray]:
+        """Shape row -> source rows, recovered by exact match (the source is not moved)."""
+        out = {}
+        for batch in stream.epoch(epoch, 2):
+            for src in batch["source"]:
+                row = next(r for r in range(4) if (cKDTree(shapes[r]).query(src)[0] == 0).all())
+                out[row] = np.sort(cKDTree(shapes[row]).query(src)[1])
+        return out
+
+    first, second = halves(0), halves(1)
+    assert set(first) == set(second) == set(range(4))
+    assert all(not np.array_equal(first[r], second[r]) for r in range(4))
+    assert all(v.shape == (384,) for v in first.values())
+
+
+def test_train_runs_with_the_resampled_setting_and_saves_its_protocol(tmp_path) -> None:
+    from model.checkpoint import read_checkpoint
+
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
+             labels=np.arange(30) % 20)
+    tiny = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
+            "knn": 8, "train_positives": 16, "train_negatives": 16}
+    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=str(folder), epochs=1, batch_size=2,
+                        max_batches_per_epoch=1, val_pairs=2, device="cpu", config=tiny, source_points=192,
+                        max_angle=90.0)
+    assert opts.pair_protocol() == protocol_for("resampled", source_points=192, max_angle=90.0)
+    train(opts)
+    saved = read_checkpoint(tmp_path / "run" / "last.pt")
+    assert saved["setting"] == "resampled"
+    assert saved["protocol"]["sampling"] == "disjoint" and saved["protocol"]["source_points"] == 192
+    assert saved["protocol"]["max_angle_deg"] == 90.0
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["source_points"] == 192
+
+
+def test_dense_has_no_training_split(tmp_path) -> None:
+    with pytest.raises(ValueError, match="test split only"):
+        load_shapes("train", "dense", tmp_path)
+
+
+# --- the dense file's axis frame ------------------------------------------------------------------
+
+
+def test_dense_shapes_are_loaded_with_y_and_z_swapped(tmp_path) -> None:
+    points = np.random.default_rng(0).normal(size=(2, 4096, 3)).astype(np.float16)
+    np.savez(tmp_path / DENSE_FILE, points=points, labels=np.array([0, 1]))
+    loaded, labels = load_shapes("test", "dense", tmp_path)
+    assert DENSE_TO_MAIN_AXES == [0, 2, 1]
+    np.testing.assert_array_equal(loaded, points.astype(np.float32)[..., [0, 2, 1]])
+    np.testing.assert_array_equal(labels, [0, 1])
+
+
+@needs_dense
+def test_dense_shapes_match_the_same_ids_of_the_main_test_file_after_the_swap() -> None:
+    dense, _ = load_shapes("test", "dense")
+    with np.load(data_dir() / DENSE_FILE) as d:
+        names = list(d["names"])
+    with np.load(data_dir() / "modelnet40_test.npz") as m:
+        main_names = list(m["names"])
+        main = m["points"].astype(np.float32)
+
+    def chamfer(a: np.ndarray, b: np.ndarray) -> float:
+        return float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+
+    swapped, unswapped = [], []
+    for i in range(0, len(names), 17):  # airplane, bathtub and bench ids
+        j = main_names.index(names[i])
+        swapped.append(chamfer(dense[i], main[j]))
+        unswapped.append(chamfer(dense[i][..., [0, 2, 1]], main[j]))  # back in the file's own frame
+    assert np.median(swapped) < 0.08 < 0.3 < np.median(unswapped)
+
+
+@needs_dense
+def test_dense_test_pairs_are_seeded_disjoint_samples_of_the_dense_shapes() -> None:
+    pairs = make_test_pairs("dense", count=4, seed=0, return_indices=True)
+    again = make_test_pairs("dense", count=4, seed=0)
+    assert pairs["source"].shape == pairs["target"].shape == (4, 768, 3)
+    assert set(np.unique(pairs["label"])) <= {0, 1, 3}  # airplane, bathtub, bench
+    dense, _ = load_shapes("test", "dense")
+    check_indices(dense[pairs["shape_index"]], pairs, disjoint=True)
+    for key in again:
+        np.testing.assert_array_equal(pairs[key], again[key])
+
+
+# --- the commands ---------------------------------------------------------------------------------
+
+runner = CliRunner()
+
+
+@needs_modelnet
+def test_make_pairs_writes_resampled_pairs_with_the_requested_options(tmp_path) -> None:
+    out = tmp_path / "r.npz"
+    args = ["make-pairs", "--setting", "resampled", "--count", "3", "--seed", "2", "--out", str(out),
+            "--source-points", "192", "--overlap", "0.6", "--noise", "0.01", "--max-angle", "180"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    pairs = load_pairs(out)
+    assert pairs["source"].shape == (3, 192, 3) and pairs["target"].shape == (3, 307, 3)
+    protocol = protocol_for("resampled", source_points=192, overlap=0.6, noise=0.01, max_angle=180)
+    expected = make_test_pairs("resampled", count=3, seed=2, protocol=protocol)
+    for key in ("source", "target", "rotation", "translation", "label"):
+        np.testing.assert_array_equal(pairs[key], expected[key])
+
+
+def test_make_pairs_rejects_an_out_of_range_option(tmp_path) -> None:
+    result = runner.invoke(app, ["make-pairs", "--setting", "resampled", "--overlap", "0.3",
+                                 "--out", str(tmp_path / "x.npz")])
+    assert result.exit_code != 0
+    assert "overlap" in result.output

@@ -1,0 +1,134 @@
+"""Rotation search: initial rotations covering SO(3), batched network loop, hypothesis selection, results."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.manifest import bundled_models_dir
+from service.registrar import InputError, Registrar, search_rotations_for
+
+BUNDLED = bundled_models_dir() / "clean"
+needs_model = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'clean' absent")
+
+
+def angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Rotation angle of ``R_a^T R_b`` in degrees."""
+    return float(np.degrees(Rotation.from_matrix(R_a.T @ R_b).magnitude()))
+
+
+def asymmetric_shape(n: int, seed: int = 0) -> np.ndarray:
+    """A smooth closed surface with four arms of different lengths in skew directions: no rotational
+    symmetry, so exactly one rotation aligns it with itself (no dataset needed)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)  # [n, 3] directions
+    arms = np.array([[1, 0.2, 0.1], [-0.3, 1, 0.2], [-0.4, -0.5, 1], [-0.6, -0.7, -0.6]])
+    arms /= np.linalg.norm(arms, axis=1, keepdims=True)  # [4, 3]
+    length = np.array([0.9, 0.6, 0.4, 0.25])
+    radius = 0.6 + (length * np.clip(d @ arms.T, 0, None) ** 4).sum(1)  # [n]
+    return d * radius[:, None]
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    if not (BUNDLED / "manifest.json").exists():
+        pytest.skip("bundled model 'clean' absent")
+    return Registrar(BUNDLED, threads=2)
+
+
+# --- the initial rotations ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("count", "covering_deg"), [(24, 62.8), (60, 44.5)])
+def test_search_rotations_are_a_finite_rotation_group_covering_so3(count: int, covering_deg: float) -> None:
+    H = search_rotations_for(count)
+    assert H.shape == (count, 3, 3)
+    np.testing.assert_allclose(H @ H.transpose(0, 2, 1), np.broadcast_to(np.eye(3), H.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(H), 1.0, atol=1e-12)
+    assert any(np.allclose(h, np.eye(3)) for h in H)
+    products = (H[:, None] @ H[None]).reshape(-1, 9)  # closed under composition: a group
+    assert all(np.abs(H.reshape(-1, 9) - p).max(axis=1).min() < 1e-9 for p in products)
+    samples = Rotation.random(20_000, random_state=0).as_matrix()  # every rotation is near one of them
+    cos = (np.einsum("hij,sij->sh", H, samples) - 1) / 2  # [S, H] cosine of the angle between them
+    nearest = np.degrees(np.arccos(np.clip(cos, -1, 1))).min(axis=1)  # [S]
+    assert nearest.max() <= covering_deg
+    np.testing.assert_array_equal(search_rotations_for(count), H)  # deterministic (and cached)
+
+
+def test_unsupported_search_size_is_an_input_error() -> None:
+    with pytest.raises(InputError, match="search_rotations"):
+        search_rotations_for(12)
+
+
+# --- the batched network loop ---------------------------------------------------------------------
+
+
+@needs_model
+def test_batched_run_network_matches_one_pair_at_a_time(registrar) -> None:
+    cloud = asymmetric_shape(256, 1).astype(np.float32)
+    target = asymmetric_shape(256, 2).astype(np.float32)
+    batch = (cloud @ search_rotations_for(24)[:3].transpose(0, 2, 1)).astype(np.float32)  # [3, 256, 3]
+    timing: dict[str, float] = {}
+    outputs = registrar.run_network(batch, target, 2, 64, timing)
+    assert len(outputs) == 3 and {"encoder", "iterations", "svd"} <= set(timing)
+    for source, out in zip(batch, outputs, strict=True):
+        one = registrar.run_network(source, target, 2, 64)
+        np.testing.assert_array_equal(out.src_kp, one.src_kp)
+        np.testing.assert_array_equal(out.tgt_kp, one.tgt_kp)
+        np.testing.assert_array_equal(out.matched, one.matched)
+        np.testing.assert_allclose(out.rotation, one.rotation, atol=1e-5)
+        np.testing.assert_allclose(out.translation, one.translation, atol=1e-5)
+    different = registrar.run_network(batch[:2], target[:200], 1, 64)  # N != M: one encoder call per side
+    assert len(different) == 2 and different[0].tgt_kp.max() < 200
+
+
+# --- registration ---------------------------------------------------------------------------------
+
+
+@needs_model
+def test_rotation_search_recovers_a_150_degree_rotation_that_plain_registration_misses(registrar) -> None:
+    source = asymmetric_shape(1024, 1)
+    axis = np.array([0.48, 0.85, -0.21])
+    R = Rotation.from_rotvec(np.radians(150) * axis / np.linalg.norm(axis)).as_matrix()
+    t = np.array([0.2, -0.1, 0.3])
+    subset = np.random.default_rng(5).permutation(1024)[:800]  # the target: 800 of the points, moved
+    target = source[subset] @ R.T + t
+
+    plain = registrar.register(source, target, refine="icp")
+    assert angle_deg(plain.rotation, R) > 30.0  # without the search: far off (the network knows <= 45 degrees)
+
+    found = registrar.register(source, target, refine="icp", rotation_search=True)
+    assert angle_deg(found.rotation, R) < 2.0
+    assert np.abs(found.translation - t).max() < 0.05
+    assert found.reliable and found.inlier_ratio > 0.9
+    assert {"search", "search_per_hypothesis", "encoder", "refine", "total"} <= set(found.timing_ms)
+    assert found.timing_ms["search_per_hypothesis"] == pytest.approx(found.timing_ms["search"] / 24)
+
+
+@needs_model
+def test_rotation_search_returns_indices_into_the_callers_arrays(registrar) -> None:
+    R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
+    source, target = asymmetric_shape(900, 3), asymmetric_shape(700, 4) @ R.T
+    options = {"rotation_search": True, "working_size": 256, "keypoints": 64, "iterations": 2,
+               "return_iterations": True}
+    base = registrar.register(source, target, **options)
+    assert ((base.source_index >= 0) & (base.source_index < 900)).all()
+    assert ((base.target_index >= 0) & (base.target_index < 700)).all()
+    assert base.source_index.dtype == base.target_index.dtype == np.int64
+    assert len(base.source_index) == len(base.target_index) == len(base.credibility) == 64
+    assert np.allclose(base.iteration_poses[-1].rotation, base.rotation)  # poses include the start rotation
+    rng = np.random.default_rng(0)
+    p, q = rng.permutation(900), rng.permutation(700)
+    permuted = registrar.register(source[p], target[q], **options)
+    np.testing.assert_array_equal(p[permuted.source_index], base.source_index)
+    np.testing.assert_array_equal(q[permuted.target_index], base.target_index)
+    np.testing.assert_allclose(permuted.transform, base.transform, atol=1e-5)
+
+
+@needs_model
+def test_rotation_search_rejects_an_unsupported_size(registrar) -> None:
+    cloud = asymmetric_shape(100)
+    with pytest.raises(InputError, match="search_rotations"):
+        registrar.register(cloud, cloud, rotation_search=True, search_rotations=7)
