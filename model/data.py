@@ -18,11 +18,12 @@ Settings (:data:`SETTINGS`, :func:`protocol_for`):
   ``modelnet40_dense_test.npz`` (test split only: airplane, bathtub, bench), each cropped to 768:
   independent samples at the training density. That file is in the ``modelnet40_normal_resampled``
   axis frame; :func:`load_shapes` maps it to the main files' frame with ``(x, y, z) -> (x, z, y)``
-  (:data:`DENSE_TO_MAIN_AXES`). Measured against the same ids of ``modelnet40_test.npz`` (all 170
-  shapes, symmetric Chamfer of the 4096 points vs the 1024): median 0.041 airplane / 0.069 bathtub
-  / 0.054 bench after the swap, 0.49 (all) without; two disjoint 1024-point samples of one dense
-  shape already give 0.041. ``(-x, z, y)`` (a proper rotation) fits almost as well (these classes
-  are left-right symmetric) but worse on 63% / 74% / 55% of the shapes, so the plain swap is used.
+  (:data:`DENSE_TO_MAIN_AXES`). Measured against the same ids of ``modelnet40_test.npz``
+  (symmetric Chamfer of the 4096 points vs the 1024, all 170 shapes): median 0.041 airplane /
+  0.069 bathtub / 0.054 bench after the swap, 0.49 without (every 7th shape); two disjoint
+  1024-point samples of one dense airplane already differ by 0.041. ``(-x, z, y)`` (a proper
+  rotation) fits almost as well (these classes are left-right symmetric) but worse on 63% / 74% /
+  55% of the shapes, so the plain swap (a reflection) is used.
 
 Options of every setting (:func:`protocol_for` keywords; ``mfgnet make-pairs`` / ``evaluate`` /
 ``train`` flags):
