@@ -240,6 +240,7 @@ def bench(
     )
     text = json.dumps(report, indent=2)
     if json_out:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(text + "\n")
     typer.echo(text)
     if compare:
