@@ -124,4 +124,5 @@ def run_server(settings: Settings | None = None) -> None:
         log_config=None,  # keep the JSON handlers configure_logging installed
         server_header=False,
         timeout_graceful_shutdown=5,
+        timeout_keep_alive=settings.keep_alive_s,
     )

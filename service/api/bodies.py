@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import json
 from dataclasses import dataclass
+from itertools import chain
 from typing import Any
 
 import numpy as np
@@ -74,6 +75,8 @@ def load_json(body: bytes) -> Any:
         raise APIError(400, f"malformed JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
     except RecursionError:
         raise APIError(400, "malformed JSON: nested too deeply") from None
+    except ValueError:  # e.g. an integer literal longer than Python's int conversion limit (4300 digits)
+        raise APIError(400, "malformed JSON: a number has too many digits") from None
 
 
 def _require_object(obj: Any, what: str = "the body") -> dict:
@@ -98,7 +101,7 @@ def register_pair_from_json(body: bytes, max_points: int) -> Pair:
     obj = _require_object(load_json(body))
     _count_clouds(obj, max_points)
     try:
-        req = RegisterRequest.model_validate(obj)
+        req = RegisterRequest.model_validate(obj, strict=True)  # JSON has types: no "1.5" or true for numbers
     except ValidationError as exc:
         raise from_pydantic(exc) from None
     return _pair_from_request(req)
@@ -114,7 +117,7 @@ def batch_pairs_from_json(body: bytes, max_points: int, max_batch: int) -> list[
             if isinstance(pair, dict):
                 _count_clouds(pair, max_points, prefix=f"pairs[{i}].")
     try:
-        batch = BatchRequest.model_validate(obj)
+        batch = BatchRequest.model_validate(obj, strict=True)
     except ValidationError as exc:
         raise from_pydantic(exc) from None
     return [_pair_from_request(req) for req in batch.pairs]
@@ -187,7 +190,7 @@ def register_pair_from_form(form: RegisterForm, max_points: int) -> Pair:
     if "initial_transform" in fields:
         try:
             fields["initial_transform"] = json.loads(fields["initial_transform"])
-        except json.JSONDecodeError:
+        except ValueError:  # JSONDecodeError, or an integer literal too long to convert
             raise APIError(422, "invalid request: initial_transform: expected a JSON 4x4 array") from None
     try:
         options = RegisterOptions.model_validate(fields)
@@ -207,6 +210,20 @@ def _rows_before_conversion(data: list) -> int:
     return len(data) // 3
 
 
+def _scalar_types(data: list, depth: int = 3) -> set[type]:
+    """Types of the non-list values in flat, nested or batched ``data`` (down to ``depth`` levels of lists)."""
+    types: set[type] = set()
+    level = data
+    for _ in range(depth):
+        kinds = set(map(type, level))
+        types |= kinds - {list}
+        if list not in kinds:
+            return types
+        rows = level if kinds == {list} else [x for x in level if type(x) is list]
+        level = list(chain.from_iterable(rows))
+    return types | (set(map(type, level)) - {list})
+
+
 def _decode_tensor(tensor, max_points: int) -> np.ndarray:
     name = tensor.name
     if tensor.datatype != "FP32":
@@ -219,6 +236,9 @@ def _decode_tensor(tensor, max_points: int) -> np.ndarray:
     n = shape[0]
     if n > max_points or _rows_before_conversion(tensor.data) > max_points:
         raise too_many_points(name, max(n, _rows_before_conversion(tensor.data)), max_points)
+    odd = sorted(t.__name__ for t in _scalar_types(tensor.data) - {int, float})
+    if odd:  # checked before numpy, which would quietly turn true into 1.0
+        raise APIError(422, f"invalid request: {name}: data must be numbers only, got {', '.join(odd)}")
     try:
         array = np.asarray(tensor.data)
     except ValueError:
@@ -249,7 +269,7 @@ def infer_call_from_json(body: bytes, max_points: int) -> InferCall:
     obj = _require_object(load_json(body))
     try:
         req = InferRequest.model_validate(obj)
-        params = InferParameters.model_validate(req.parameters or {})
+        params = InferParameters.model_validate(req.parameters or {}, strict=True)
     except ValidationError as exc:
         raise from_pydantic(exc) from None
     by_name = {}

@@ -111,11 +111,16 @@ class ModelRegistry:
             return False, "no model found (bundled service/models or MFGNET_MODEL_DIRS)"
         if any(s == "loading" for s in statuses.values()):
             return False, f"loading models: {served} of {len(statuses)} ready"
+        reasons = "; ".join(f"{name}: {self.entries[name].error}" for name in failed)
         if not served:
-            return False, f"no model could be loaded (failed: {', '.join(failed)})"
+            return False, f"no model could be loaded (failed: {reasons})"
         if self.strict and failed:
-            return False, f"models failed to load: {', '.join(failed)} (strict readiness)"
+            return False, f"models failed to load: {reasons} (strict readiness)"
         return True, "ready"
+
+    def errors(self) -> dict[str, str]:
+        """Model name -> why it is not served, for every failed model."""
+        return {name: e.error or "failed" for name, e in self.entries.items() if e.status == "failed"}
 
     def get(self, name: str) -> ModelEntry:
         """The served model ``name``: 404 if unknown, 503 if still loading or failed."""

@@ -27,6 +27,7 @@ from service.registrar import (
 )
 
 T = TypeVar("T")
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @cache
@@ -76,14 +77,20 @@ class Runner:
             check_cloud(pair.target, "target")
             registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, o.refine)
             if o.initial_transform is not None:
-                check_transform(o.initial_transform)
+                _, translation = check_transform(o.initial_transform)
+                reach = float(np.abs(translation).max()) + float(np.abs(pair.source).max())
+                if not reach <= FLOAT32_MAX:  # the moved source would overflow the pipeline's sums
+                    raise InputError("initial_transform: moves the source beyond the float32 range")
         except InputError as exc:
             raise APIError(422, f"invalid request: {prefix}{exc}") from None
         return entry, kwargs
 
     def register(self, entry: ModelEntry, pair: Pair, kwargs: dict[str, Any]) -> RegistrationResult:
         assert entry.registrar is not None
-        result = entry.registrar.register(pair.source, pair.target, **kwargs)
+        try:
+            result = entry.registrar.register(pair.source, pair.target, **kwargs)
+        except np.linalg.LinAlgError:  # an SVD that does not converge: extreme or degenerate coordinates
+            raise APIError(422, "registration failed: the numerics did not converge (extreme coordinates?)") from None
         pose = np.concatenate([result.rotation.ravel(), result.translation])
         if not np.isfinite(pose).all():  # e.g. a degenerate cloud the checks let through
             raise APIError(422, "registration failed: the pose is not finite (degenerate input?)")

@@ -11,7 +11,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS, MIN_POINTS
 
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]  # strict: no "1.5" or true for a number
 Point = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
 Cloud = Annotated[
     list[Point],
@@ -170,6 +170,7 @@ class LiveResponse(BaseModel):
 class ReadyResponse(BaseModel):
     ready: bool
     models: dict[str, str] = Field(description="Model name -> loading | ready | failed.")
+    errors: dict[str, str] | None = Field(None, description="Failed model -> why it is not served (if any).")
 
 
 # -- Open Inference Protocol v2 ---------------------------------------------------------------------

@@ -50,6 +50,10 @@ class Settings(BaseSettings):
     max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
     max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")
     timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read; then 504.")
+    keep_alive_s: int = Field(
+        75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
+        "(often 60 s), so the server never closes a connection that a client is about to reuse.",
+    )
     api_key: SecretStr | None = Field(None, description="If set, inference routes need 'Authorization: Bearer <key>'.")
     cors_origins: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="Allowed CORS origins, comma separated; empty = CORS off."

@@ -199,7 +199,7 @@ def start_subprocess_server(name: str, **env: str) -> Server:
     except RuntimeError:
         stop()
         raise RuntimeError(f"{name} server failed to start; log:\n{log_path.read_text()[-3000:]}") from None
-    return Server(url, log_path, first, stop)
+    return Server(url, log_path, first, stop, extra={"proc": proc})  # proc: for signals and exit codes
 
 
 def isolated_settings(**values):

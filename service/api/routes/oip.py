@@ -59,17 +59,22 @@ async def live() -> dict:
     return {"live": True}
 
 
-@router.get("/health/ready", response_model=ReadyResponse, responses=_NOT_READY, summary="Readiness")
+@router.get(
+    "/health/ready", response_model=ReadyResponse, response_model_exclude_none=True, responses=_NOT_READY,
+    summary="Readiness",
+)
 async def ready(request: Request):
     registry = get_registry(request)
     is_ready, reason = registry.readiness()
+    errors = registry.errors()  # failed model -> reason (missing file, sha256 mismatch, ...)
     if not is_ready:
+        body = {"error": f"not ready: {reason}", "ready": False, "models": registry.statuses()}
         return JSONResponse(
-            {"error": f"not ready: {reason}", "ready": False, "models": registry.statuses()},
+            {**body, "errors": errors} if errors else body,
             status_code=503,
             headers={"Retry-After": str(RETRY_AFTER_LOADING_S)},
         )
-    return {"ready": True, "models": registry.statuses()}
+    return {"ready": True, "models": registry.statuses(), **({"errors": errors} if errors else {})}
 
 
 @router.get("/models/{name}", response_model=ModelMetadata, responses=error_docs(404, 503), summary="Model metadata")

@@ -1,0 +1,300 @@
+"""Overload and faults through real servers: a bounded queue (503 + Retry-After, fast), deadlines (504),
+flat memory, broken model files (never served, readiness says why) and graceful shutdown on SIGTERM.
+
+Concurrent results equal sequential ones: ``test_api_register.py::test_concurrent_requests_equal_sequential_ones``
+(threads) and the load test (``test_reliability_load.py``: every 200 of a run has the same transform).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import shutil
+import signal
+import time
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from api_server import (
+    _TMP,
+    MODEL,
+    Server,
+    assert_error,
+    isolated_settings,
+    main_server,
+    model_root,
+    modelnet_pair,
+    pair_json,
+    start_subprocess_server,
+    tampered_root,
+)
+
+from service.api.app import create_app
+from service.api.registry import ModelRegistry
+
+CHEAP = {"iterations": 1, "keypoints": 16}
+SLOW = {"iterations": 8, "keypoints": 256}  # about 1 s on one core: long enough to hold a slot
+DEADLINE_S = 0.5
+
+
+def metric(server: Server, name: str) -> float:
+    with server.client() as c:
+        match = re.search(rf"^{name} (\S+)$", c.get("/metrics").text, re.MULTILINE)
+    return float(match.group(1)) if match else 0.0
+
+
+def wait_for(predicate, timeout: float = 30.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def post(server: Server, body: dict, path: str = "/v1/register") -> httpx.Response:
+    """One request on a connection of its own (as separate clients would; plain HTTP, so no TLS context)."""
+    with server.client(verify=False) as c:
+        return c.post(path, json=body)
+
+
+def rss_kib(pid: int) -> int:
+    return int(re.search(r"^VmRSS:\s+(\d+) kB", Path(f"/proc/{pid}/status").read_text(), re.MULTILINE).group(1))
+
+
+# -- overload: one worker, one place in the queue ---------------------------------------------------
+@pytest.fixture(scope="module")
+def overload():
+    """max_concurrency=1, max_queue=1: a third simultaneous registration is refused. Stopped by the SIGTERM test."""
+    server = start_subprocess_server("overload", MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="1")
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def reference(overload):
+    response = post(overload, pair_json(modelnet_pair(1), **SLOW))
+    assert response.status_code == 200, response.text
+    return response.json()["transform"]
+
+
+def test_beyond_the_queue_is_503_with_retry_after_at_once_and_admitted_requests_finish(overload, reference):
+    body = pair_json(modelnet_pair(1), **SLOW)
+    with ThreadPoolExecutor(2) as pool:
+        admitted = [pool.submit(post, overload, body) for _ in range(2)]  # one running, one waiting
+        wait_for(lambda: metric(overload, "mfgnet_inference_slots_taken") == 2, what="both slots taken")
+        started = time.perf_counter()
+        refused = post(overload, body)
+        refused_s = time.perf_counter() - started
+        results = [f.result() for f in admitted]
+    assert_error(refused, 503, "busy", "retry")
+    assert int(refused.headers["retry-after"]) >= 1
+    assert refused_s < 1.0, refused_s
+    for response in results:  # nothing admitted is lost, and the answers are the sequential one
+        assert response.status_code == 200, response.text
+        assert response.json()["transform"] == reference
+
+
+# -- memory ---------------------------------------------------------------------------------------
+def test_memory_stays_flat_over_100_requests():
+    """RSS of the server process before and after 100 requests: registrations and rejected bodies of each kind."""
+    server = main_server()
+    pid = server.extra["proc"].pid
+    good = pair_json(modelnet_pair(2), **CHEAP)
+    nan = {**good, "source": [[float("nan"), 0.0, 0.0], *good["source"][1:]]}
+    mix = [json.dumps(good).encode(), json.dumps(nan).encode(), json.dumps({**good, "iterations": 9}).encode(),
+           json.dumps(good).encode()[:-100]]  # 200, 422, 422, 400
+
+    client = server.client()  # thread-safe; it keeps up to 4 connections open
+
+    def send(i: int) -> int:
+        return client.post("/v1/register", content=mix[i % 4], headers={"content-type": "application/json"}).status_code
+
+    with client, ThreadPoolExecutor(4) as pool:
+        assert sorted(set(pool.map(send, range(12)))) == [200, 400, 422]  # warm-up: allocator arenas, ORT buffers
+        before = rss_kib(pid)
+        statuses = list(pool.map(send, range(52)))
+        middle = rss_kib(pid)
+        statuses += list(pool.map(send, range(52, 100)))
+        after = rss_kib(pid)
+    assert statuses.count(200) == 25 and statuses.count(422) == 50 and statuses.count(400) == 25
+    rss = f"RSS {before} -> {middle} -> {after} KiB over 100 requests"
+    print(rss)
+    # ONNX Runtime's arenas may still grow for concurrent runs at first; then RSS must stay flat.
+    assert after - before < 48 * 1024 and after - middle < 8 * 1024, rss
+
+
+def test_keep_alive_outlasts_client_and_load_balancer_idle_timeouts(monkeypatch):
+    """A server that closes idle connections before its clients do races them: a request sent on a connection
+    being closed is lost (seen as one ReadError in 6,000 requests of the load test with uvicorn's default 5 s,
+    equal to httpx's keep-alive expiry). The server keeps idle connections longer than httpx (5 s) and
+    typical load balancers (60 s)."""
+    import uvicorn
+
+    from service.api import app as app_module
+
+    seen = {}
+    monkeypatch.setattr(uvicorn, "run", lambda app, **kwargs: seen.update(kwargs))
+    monkeypatch.setattr(app_module, "configure_logging", lambda level: None)  # keep pytest's log capture
+    app_module.run_server(isolated_settings(bundled_models=False, model_dirs=[]))
+    assert seen["timeout_keep_alive"] > 60 and seen["timeout_graceful_shutdown"] > 0
+
+
+# -- broken model files ---------------------------------------------------------------------------
+def _copy_model(root: Path, name: str) -> Path:
+    target = root / name
+    shutil.copytree(model_root() / MODEL, target)
+    manifest = json.loads((target / "manifest.json").read_text())
+    manifest["name"] = name
+    (target / "manifest.json").write_text(json.dumps(manifest))
+    return target
+
+
+def _edit_manifest(folder: Path, change) -> None:
+    manifest = json.loads((folder / "manifest.json").read_text())
+    change(manifest)
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+
+
+# model name -> words its reason must contain
+BROKEN = {
+    "missing_encoder": ("encoder.onnx", "missing"),
+    "missing_matcher": ("matcher_2.onnx", "missing"),
+    "no_manifest": ("manifest.json", "missing"),
+    "malformed_manifest": ("malformed", "manifest.json"),
+    "manifest_hash_changed": ("sha256", "encoder.onnx", "does not match"),
+    "manifest_points_outside": ("passwd", "missing"),
+    "tampered": ("sha256", "encoder.onnx", "does not match"),
+}
+
+
+@cache
+def broken_root() -> Path:
+    """One folder per way a model can be broken (plus ``tampered`` from the API tests' helpers)."""
+    root = _TMP / "broken"
+    (_copy_model(root, "missing_encoder") / "encoder.onnx").unlink()
+    (_copy_model(root, "missing_matcher") / "matcher_2.onnx").unlink()
+    (_copy_model(root, "no_manifest") / "manifest.json").unlink()
+    (_copy_model(root, "malformed_manifest") / "manifest.json").write_text('{"name": "malformed_manifest", ')
+    _edit_manifest(_copy_model(root, "manifest_hash_changed"),
+                   lambda m: m["graphs"]["encoder"].update(sha256="0" * 64))
+    _edit_manifest(_copy_model(root, "manifest_points_outside"),
+                   lambda m: m["graphs"]["encoder"].update(file="../../../../etc/passwd"))
+    shutil.copytree(tampered_root() / "tampered", root / "tampered")
+    return root
+
+
+@pytest.fixture(scope="module")
+def lenient():
+    """The good model beside every broken one, strict readiness off (ready once one is served), a 0.5 s deadline."""
+    server = start_subprocess_server(
+        "lenient", MFGNET_MODEL_DIRS=f"{model_root()},{broken_root()}", MFGNET_STRICT_READINESS="false",
+        MFGNET_TIMEOUT_S=str(DEADLINE_S),
+    )
+    yield server
+    server.stop()
+
+
+def test_broken_models_are_not_served_and_readiness_names_each_with_its_reason(lenient):
+    with lenient.client() as c:
+        ready = c.get("/v2/health/ready")
+        assert ready.status_code == 200  # lenient: the good model is served
+        body = ready.json()
+        assert body["models"] == {MODEL: "ready", **{name: "failed" for name in BROKEN}}
+        assert set(body["errors"]) == set(BROKEN)
+        for name, words in BROKEN.items():
+            for word in words:
+                assert word in body["errors"][name], (name, body["errors"][name])
+        assert "/" not in json.dumps(body["errors"]).replace("../", "")  # no folder paths
+        listed = {m["name"]: m for m in c.get("/v1/models").json()["models"]}
+        assert all(listed[name]["status"] == "failed" and listed[name]["error"] for name in BROKEN)
+
+
+@pytest.mark.parametrize("name", ["tampered", "manifest_hash_changed", "missing_encoder", "no_manifest"])
+def test_a_broken_model_is_refused_on_every_route_while_the_good_one_serves(lenient, name):
+    pair = pair_json(modelnet_pair(1), **CHEAP)
+    words = [name, *BROKEN[name][:1]]
+    with lenient.client() as c:
+        assert_error(c.post("/v1/register", json={**pair, "model": name}), 503, *words)
+        assert_error(c.post("/v1/register/batch", json={"pairs": [{**pair, "model": name}]}), 503, *words)
+        infer = {"inputs": [
+            {"name": "SOURCE", "shape": [700, 3], "datatype": "FP32", "data": pair["source"]},
+            {"name": "TARGET", "shape": [700, 3], "datatype": "FP32", "data": pair["target"]},
+        ]}
+        assert_error(c.post(f"/v2/models/{name}/infer", json=infer), 503, name)
+        assert_error(c.get(f"/v2/models/{name}"), 503, name)
+        assert_error(c.get(f"/v2/models/{name}/ready"), 503, name)
+        assert c.post("/v1/register", json=pair).status_code == 200
+
+
+def test_strict_readiness_is_503_and_the_body_names_each_broken_model_and_why():
+    """Strict readiness over the broken folders only (they fail verification, so nothing is loaded into ORT)."""
+    app = create_app(isolated_settings(model_dirs=[str(broken_root())], bundled_models=False, strict_readiness=True))
+    registry: ModelRegistry = app.state.registry
+    registry.load_all()
+
+    async def ask() -> httpx.Response:
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as client:
+            return await client.get("/v2/health/ready")
+
+    response = asyncio.run(ask())
+    body = assert_error(response, 503, "not ready", *BROKEN)
+    assert response.headers["retry-after"].isdigit()
+    for name, words in BROKEN.items():
+        assert all(word in body["errors"][name] for word in words), body["errors"][name]
+
+
+# -- deadline (on the lenient server, after its model tests: the abandoned job keeps a worker busy) -------
+def test_a_request_past_its_deadline_is_504_and_the_server_carries_on(lenient):
+    rng = np.random.default_rng(0)
+    big = {"source": rng.normal(size=(20_000, 3)).tolist(), "target": rng.normal(size=(20_000, 3)).tolist(),
+           "iterations": 8, "keypoints": 512}  # seconds of work
+    started = time.perf_counter()
+    response = post(lenient, big)
+    elapsed = time.perf_counter() - started
+    assert_error(response, 504, "timeout_s", f"{DEADLINE_S:g} s")
+    assert elapsed < DEADLINE_S + 3, elapsed  # the answer comes at the deadline, not when the work ends
+    # ONNX Runtime cannot be interrupted: the abandoned job still holds its slot (and one of the two workers) ...
+    assert metric(lenient, "mfgnet_inference_slots_taken") >= 1
+    # ... while the other worker answers a quick request within the deadline.
+    with lenient.client() as c:
+        assert c.get("/v2/health/ready").status_code == 200
+        assert c.post("/v1/register", json=pair_json(modelnet_pair(1), **CHEAP)).status_code == 200
+
+
+# -- graceful shutdown (last: it stops the overload server) ----------------------------------------
+def test_sigterm_finishes_in_flight_requests_refuses_new_connections_and_exits_cleanly(overload, reference):
+    proc = overload.extra["proc"]
+    body = pair_json(modelnet_pair(1), **SLOW)
+    with ThreadPoolExecutor(2) as pool:
+        in_flight = [pool.submit(post, overload, body) for _ in range(2)]  # one running, one queued
+        wait_for(lambda: metric(overload, "mfgnet_inference_slots_taken") == 2, what="both requests in flight")
+        proc.send_signal(signal.SIGTERM)
+        signalled = time.monotonic()
+
+        def refused() -> bool:
+            try:
+                httpx.get(f"{overload.url}/v2/health/live", timeout=1)
+            except httpx.ConnectError:
+                return True
+            return False
+
+        wait_for(refused, timeout=3, what="new connections refused")
+        results = [f.result() for f in in_flight]
+    for response in results:
+        assert response.status_code == 200, response.text
+        assert response.json()["transform"] == reference
+    code = proc.wait(timeout=20)
+    assert time.monotonic() - signalled < 20
+    # uvicorn shuts down gracefully, then re-raises the signal it caught: "terminated by SIGTERM" (143 in a shell).
+    assert code in (0, -signal.SIGTERM), code
+    log = overload.log_path.read_text()
+    for line in ("Shutting down", "Waiting for application shutdown", "Application shutdown complete",
+                 "Finished server process"):
+        assert line in log, log[-2000:]
+    assert "Traceback" not in log and '"level": "error"' not in log
