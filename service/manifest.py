@@ -39,10 +39,24 @@ class Manifest:
     accuracy: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict)
 
+    def graph_bytes(self, role: str) -> bytes:
+        """The graph's bytes, read ONCE and checked against the manifest hash: the runtime builds its
+        session from these bytes, so a file swapped after ``load_manifest`` can never be served."""
+        data = self.graphs[role].read_bytes()
+        if hashlib.sha256(data).hexdigest() != self.raw["graphs"][role]["sha256"]:
+            raise ModelIntegrityError(
+                f"model {self.name!r}: sha256 of {self.graphs[role].name} does not match the manifest"
+            )
+        return data
+
+    @property
+    def matcher_roles(self) -> list[str]:
+        count = sum(1 for role in self.graphs if role.startswith("matcher_"))
+        return [f"matcher_{i}" for i in range(count)]
+
     @property
     def matcher_files(self) -> list[Path]:
-        count = sum(1 for role in self.graphs if role.startswith("matcher_"))
-        return [self.graphs[f"matcher_{i}"] for i in range(count)]
+        return [self.graphs[role] for role in self.matcher_roles]
 
 
 def load_manifest(directory: str | Path) -> Manifest:
@@ -74,8 +88,9 @@ def load_manifest(directory: str | Path) -> Manifest:
         verified[role] = file
     if "encoder" not in verified or "matcher_0" not in verified:
         raise ModelIntegrityError(f"model {name!r}: manifest needs an encoder and at least one matcher")
-    return Manifest(directory, name, version, sha256_file(path), config, verified, normalization,
-                    raw.get("accuracy", {}), raw)
+    return Manifest(
+        directory, name, version, sha256_file(path), config, verified, normalization, raw.get("accuracy", {}), raw
+    )
 
 
 def bundled_models_dir() -> Path:

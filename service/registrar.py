@@ -173,9 +173,10 @@ class Registrar:
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         providers = ["CPUExecutionProvider"]
         started = time.perf_counter()
-        self.encoder = ort.InferenceSession(str(self.manifest.graphs["encoder"]), options, providers=providers)
+        self.encoder = ort.InferenceSession(self.manifest.graph_bytes("encoder"), options, providers=providers)
         self.matchers = [
-            ort.InferenceSession(str(f), options, providers=providers) for f in self.manifest.matcher_files
+            ort.InferenceSession(self.manifest.graph_bytes(role), options, providers=providers)
+            for role in self.manifest.matcher_roles
         ]
         self.default_iterations = int(self.config.get("iterations", len(self.matchers)))
         self.default_keypoints = int(self.config.get("keypoints", 128))
