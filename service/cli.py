@@ -248,17 +248,10 @@ def _register_remote(server: str, api_key: str | None, src, tgt, model: str | No
 def pose_record(rotation, translation, quality: dict | None, warnings: list | None, model: dict | None,
                 iterations: int | None, timing_ms: dict | None) -> dict:
     """The JSON record of ``mfgnet register`` (the service's response without correspondences)."""
-    from scipy.spatial.transform import Rotation
+    from service.pose_json import pose_fields
 
-    R = np.asarray(rotation, dtype=np.float64)  # [3, 3]
-    t = np.asarray(translation, dtype=np.float64)  # [3]
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, t
     return {
-        "rotation": R.tolist(),
-        "translation": t.tolist(),
-        "transform": T.tolist(),
-        "euler_zyx_deg": Rotation.from_matrix(R).as_euler("zyx", degrees=True).tolist(),
+        **pose_fields(rotation, translation),
         "quality": quality or {},
         "warnings": list(warnings or []),
         "model": model or {},

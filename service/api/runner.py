@@ -10,13 +10,13 @@ from functools import cache
 from typing import Any, TypeVar
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from service.api.bodies import Pair
 from service.api.errors import APIError
 from service.api.limiter import InferenceLimiter, Slot
 from service.api.metrics import Metrics
 from service.api.registry import ModelEntry, ModelRegistry
+from service.pose_json import pose_fields
 from service.registrar import (
     DEFAULT_WORKING_SIZE,
     InputError,
@@ -120,12 +120,8 @@ def model_ref(entry: ModelEntry) -> dict[str, str]:
 
 def register_response(entry: ModelEntry, pair: Pair, result: RegistrationResult, queue_ms: float) -> dict[str, Any]:
     """The ``RegisterResponse`` body (plain floats: JSON keeps every float64 bit)."""
-    R, t = result.rotation, result.translation
     body: dict[str, Any] = {
-        "rotation": R.tolist(),
-        "translation": t.tolist(),
-        "transform": result.transform.tolist(),
-        "euler_zyx_deg": Rotation.from_matrix(R).as_euler("zyx", degrees=True).tolist(),
+        **pose_fields(result.rotation, result.translation),
         "quality": {
             "inlier_ratio": float(result.inlier_ratio),
             "residual_rms": float(result.residual_rms),
