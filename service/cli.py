@@ -105,6 +105,9 @@ def register_command(
     ] = None,
     api_key: Annotated[str | None, typer.Option(envvar="MFGNET_API_KEY", help="API key for --server")] = None,
     binary: Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files, not JSON")] = False,
+    rotation_search: Annotated[
+        bool, typer.Option(help="start from 24 rotations covering SO(3) (any relative orientation; ~10x slower)")
+    ] = False,
     threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")] = False,
 ) -> None:
@@ -132,7 +135,8 @@ def register_command(
             _fail(f"cannot read {path}: {exc.strerror or exc}")
     src, tgt = clouds
     init = _read_transform(initial_transform) if initial_transform is not None else None
-    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine.value, "initial_transform": init}
+    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine.value, "initial_transform": init,
+               "rotation_search": rotation_search}
     if server:
         record = _register_remote(server, api_key, src, tgt, model, options, binary)
     else:

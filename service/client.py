@@ -73,6 +73,7 @@ class MfgnetClient:
         return_correspondences: bool = True,
         return_iterations: bool = False,
         binary: bool = False,
+        rotation_search: bool = False,
     ) -> dict:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
@@ -95,6 +96,7 @@ class MfgnetClient:
             "initial_transform": None if initial_transform is None else np.asarray(initial_transform).tolist(),
             "return_correspondences": return_correspondences,
             "return_iterations": return_iterations,
+            "rotation_search": rotation_search or None,  # sent only when asked
         }
         options = {key: value for key, value in options.items() if value is not None}
         if binary:
