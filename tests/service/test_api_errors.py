@@ -9,20 +9,9 @@ import pickle
 
 import numpy as np
 import pytest
-from api_server import MODEL, assert_error, main_server, modelnet_pair, pair_json
+from api_server import MODEL, assert_error, modelnet_pair, pair_json
 
 SEED = 3
-
-
-@pytest.fixture(scope="session")
-def server():
-    return main_server()
-
-
-@pytest.fixture(scope="session")
-def client(server):
-    with server.client() as c:
-        yield c
 
 
 CHEAP = {"iterations": 1, "keypoints": 16}  # a quick valid request for the after-check

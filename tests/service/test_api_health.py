@@ -6,19 +6,7 @@ from __future__ import annotations
 import re
 import uuid
 
-import pytest
-from api_server import MODEL, main_server, modelnet_pair, pair_json
-
-
-@pytest.fixture(scope="session")
-def server():
-    return main_server()
-
-
-@pytest.fixture(scope="session")
-def client(server):
-    with server.client() as c:
-        yield c
+from api_server import MODEL, modelnet_pair, pair_json
 
 
 def test_readiness_is_503_until_models_are_warm_then_200(server, client):

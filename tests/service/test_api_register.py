@@ -8,24 +8,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from api_server import MODEL, assert_error, main_server, modelnet_pair, pair_json
+from api_server import MODEL, assert_error, modelnet_pair, pair_json
 from scipy.spatial.transform import Rotation
 
 from service.api.runner import supports_option
 from service.registrar import Registrar
 
 CHEAP = {"iterations": 1, "keypoints": 16}
-
-
-@pytest.fixture(scope="session")
-def server():
-    return main_server()
-
-
-@pytest.fixture(scope="session")
-def client(server):
-    with server.client() as c:
-        yield c
 
 
 @pytest.fixture(scope="session")
