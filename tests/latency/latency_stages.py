@@ -22,7 +22,7 @@ import numpy as np
 
 REPEATS = 15
 REFERENCE_SIZE = 192  # the reference: a float32 192x192 matrix product, repeated
-REFERENCE_LOOPS = 20
+REFERENCE_LOOPS = 60  # ~15 ms: long enough to time stably
 
 
 def best_of(fn: Callable[[], object], repeats: int = REPEATS) -> float:

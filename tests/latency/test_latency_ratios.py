@@ -12,7 +12,7 @@ from latency_stages import measure  # beside this file (pytest puts the folder o
 from service.manifest import bundled_models_dir
 
 BASELINE = Path(__file__).with_name("baseline.json")
-MARGIN = 1.5  # a stage fails when its ratio exceeds 1.5x the committed baseline
+MARGIN = 2.0  # fail past 2x the baseline: two quiet runs on the 2-vCPU VM differed by up to 1.5x
 
 pytestmark = [
     pytest.mark.latency,
