@@ -106,23 +106,51 @@ def evaluate(
     overlap: Overlap = None,
     noise: Noise = None,
     max_angle: MaxAngle = None,
+    model: Annotated[
+        str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
+    ] = None,
+    refine: Annotated[str, typer.Option(help="with --model: none or icp")] = "none",
 ) -> None:
     """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
     from model.checkpoint import load_model
     from model.inference import predict_poses
     from model.metrics import registration_metrics
 
-    if checkpoint is None:
-        raise typer.BadParameter("give --checkpoint")
+    if (checkpoint is None) == (model is None):
+        raise typer.BadParameter("give exactly one of --checkpoint (PyTorch) or --model (ONNX runtime)")
     if pairs:
         data_pairs = load_pairs(pairs)
     else:
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
-    model = load_model(checkpoint)
-    R, t, secs = predict_poses(model, data_pairs, batch_size, iterations, keypoints, progress=True)
+    if model is not None:
+        R, t, secs = _runtime_poses(model, data_pairs, iterations, keypoints, refine)
+    else:
+        R, t, secs = predict_poses(load_model(checkpoint), data_pairs, batch_size, iterations, keypoints,
+                                   progress=True)
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
     text = json.dumps(metrics, indent=2)
     typer.echo(text)
     if json_out:
         json_out.write_text(text + "\n")
+
+
+def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str):
+    """Poses of every pair through the service's own pipeline (``Registrar.register``)."""
+    import time
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from service.manifest import bundled_models_dir
+    from service.registrar import Registrar
+
+    folder = Path(model) if Path(model).is_dir() else bundled_models_dir() / model
+    registrar = Registrar(folder)
+    Rs, ts = [], []
+    begin = time.perf_counter()
+    for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):
+        res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine)
+        Rs.append(res.rotation)
+        ts.append(res.translation)
+    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin
