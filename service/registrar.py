@@ -23,7 +23,7 @@ from service.icp import icp
 from service.manifest import Manifest, load_manifest
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
-from service.quality import assess, degeneracy_warnings, inlier_statistics
+from service.quality import assess, inlier_statistics
 from service.sampling import resample_indices
 
 MIN_POINTS = 32
@@ -345,8 +345,6 @@ class Registrar:
         src_w, tgt_w = src_moved[idx_s], tgt[idx_t]
         norm = Normalization.fit(src_w, tgt_w, self.reference_radius)
         src_n, tgt_n = norm.apply_src(src_w).astype(np.float32), norm.apply_tgt(tgt_w).astype(np.float32)
-        warnings = [f"source {w}" if not w.startswith("source") else w for w in degeneracy_warnings(src_w)]
-        warnings += [f"target {w}" if not w.startswith("target") else w for w in degeneracy_warnings(tgt_w)]
         t1 = time.perf_counter()
         timing["preprocess"] = 1000 * (t1 - t0)
 
@@ -383,7 +381,6 @@ class Registrar:
             timing["refine"] = 1000 * (time.perf_counter() - t3)
         t4 = time.perf_counter()
         quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale)
-        warnings = list(dict.fromkeys(warnings + quality.warnings))
         weights = net.weights
         w_sum = weights.sum()
         result = RegistrationResult(
@@ -397,8 +394,8 @@ class Registrar:
             ),
             inlier_ratio=quality.inlier_ratio,
             residual_rms=quality.residual_rms,
-            reliable=bool(quality.reliable and not any(_is_degenerate(w) for w in warnings)),
-            warnings=warnings,
+            reliable=bool(quality.reliable),  # assess() already refuses degenerate clouds
+            warnings=list(quality.warnings),
             iterations=n_iter,
             timing_ms=timing,
             iteration_poses=poses,
@@ -412,10 +409,6 @@ class Registrar:
         """Pose between normalised clouds -> caller's ``src_to_tgt``, composed after the initial guess."""
         R_c, t_c = norm.unnormalize_pose(R, t)
         return compose(R_c, t_c, R_init, t_init)
-
-
-def _is_degenerate(warning: str) -> bool:
-    return any(word in warning for word in ("identical", "collinear", "empty"))
 
 
 def check_transform(matrix) -> tuple[np.ndarray, np.ndarray]:
