@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from model.data import SETTINGS, load_pairs, make_test_pairs, protocol_for, save_pairs
+from model.recipes import RECIPES
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
 SourcePoints = Annotated[int | None, typer.Option(help="source points kept after the crop (default: the crop size)")]
@@ -73,18 +74,30 @@ def train(
     overlap: Overlap = None,
     noise: Noise = None,
     max_angle: MaxAngle = None,
+    batches_per_epoch: Annotated[
+        int | None, typer.Option(help="cap on batches per epoch (short epochs: validate and checkpoint more often)")
+    ] = None,
+    lr_drop_at: Annotated[float, typer.Option(help="fraction of the epochs after which lr is divided by 10")] = 0.8,
+    recipe: Annotated[
+        str | None,
+        typer.Option(help="per-batch random training pairs: 'general' (independent sampling, noise, overlap, "
+                     "density mismatch; --max-angle sets its rotation range); validation keeps --setting"),
+    ] = None,
 ) -> None:
     """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
     from model.train import TrainOptions
     from model.train import train as run
 
     setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)  # fail before loading data
+    if recipe is not None and recipe not in RECIPES:
+        raise typer.BadParameter(f"unknown recipe {recipe!r}; expected one of {', '.join(RECIPES)}")
     opts = TrainOptions(
         setting=setting, out=str(out), epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
         seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,
         checkpoint_minutes=checkpoint_minutes, device=device, data=data, threads=threads,
         config={"iterations": iterations, "share_weights": share_weights}, source_points=source_points,
         target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle,
+        max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe,
     )
     best = run(opts)
     typer.echo(f"best checkpoint: {best}")

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -79,7 +80,8 @@ class PairProtocol:
     noise_sigma: float = 0.0
     noise_clip: float = 0.05
     far_distance: float = 500.0
-    sampling: Literal["shared", "disjoint"] = "shared"  # disjoint: source and target from disjoint points
+    # shared: the same points; disjoint: disjoint random subsets; independent: two random subsets (may overlap)
+    sampling: Literal["shared", "disjoint", "independent"] = "shared"
     source_points: int | None = None  # points per source after the crop (None: keep)
     target_points: int | None = None  # points per target after the crop (None: keep)
 
@@ -103,8 +105,8 @@ class PairProtocol:
         for name, count in (("source_points", self.source_count), ("target_points", self.target_count)):
             if not 1 <= count <= self.keep:
                 raise ValueError(f"{name} must be in 1..{self.keep} (the points kept by the crop), got {count}")
-        if self.sampling not in ("shared", "disjoint"):
-            raise ValueError(f"sampling must be 'shared' or 'disjoint', got {self.sampling!r}")
+        if self.sampling not in SAMPLINGS:
+            raise ValueError(f"sampling must be one of {SAMPLINGS}, got {self.sampling!r}")
         if shape_points is not None:
             needed = self.points * (2 if self.sampling == "disjoint" else 1)
             if shape_points < needed:
@@ -113,6 +115,8 @@ class PairProtocol:
                     f"got {shape_points}"
                 )
 
+
+SAMPLINGS = ("shared", "disjoint", "independent")
 
 SETTING_PROTOCOLS = {
     "clean": PairProtocol(),
@@ -230,6 +234,9 @@ def make_pairs(
     if protocol.sampling == "disjoint":
         halves = random_subsets(rng, B, P, 2 * N)  # [B, 2N]
         src_idx, tgt_idx = np.sort(halves[:, :N], axis=1), np.sort(halves[:, N:], axis=1)  # [B, N] each
+    elif protocol.sampling == "independent":
+        src_idx = np.sort(random_subsets(rng, B, P, N), axis=1)  # [B, N]
+        tgt_idx = np.sort(random_subsets(rng, B, P, N), axis=1)  # [B, N], drawn independently
     else:
         src_idx = tgt_idx = np.broadcast_to(np.arange(N), (B, N))  # the same N points
     src = np.take_along_axis(shapes, src_idx[..., None], axis=1).astype(np.float64)  # [B, N, 3]
@@ -318,10 +325,16 @@ def load_pairs(path: str | os.PathLike) -> dict[str, np.ndarray]:
     return pairs
 
 
-class TrainPairStream:
-    """Endless random training pairs from a shape array, one fresh pair per shape per epoch."""
+ProtocolDraw = Callable[[np.random.Generator], PairProtocol]
 
-    def __init__(self, shapes: np.ndarray, protocol: PairProtocol, seed: int):
+
+class TrainPairStream:
+    """Endless random training pairs from a shape array, one fresh pair per shape per epoch.
+
+    ``protocol`` is fixed, or a function drawing one protocol per batch (e.g. :func:`model.recipes.general_draw`).
+    """
+
+    def __init__(self, shapes: np.ndarray, protocol: PairProtocol | ProtocolDraw, seed: int):
         self.shapes, self.protocol, self.seed = shapes, protocol, seed
 
     def epoch(self, epoch: int, batch_size: int):
@@ -329,4 +342,5 @@ class TrainPairStream:
         rng = np.random.default_rng([self.seed, epoch])
         order = rng.permutation(len(self.shapes))
         for start in range(0, len(order) - batch_size + 1, batch_size):
-            yield make_pairs(self.shapes[order[start : start + batch_size]], self.protocol, rng)
+            protocol = self.protocol if isinstance(self.protocol, PairProtocol) else self.protocol(rng)
+            yield make_pairs(self.shapes[order[start : start + batch_size]], protocol, rng)

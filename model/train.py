@@ -18,6 +18,7 @@ from model.inference import predict_poses
 from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
 from model.network import MFGNet
+from model.recipes import recipe_draw
 
 
 @dataclass
@@ -48,6 +49,7 @@ class TrainOptions:
     overlap: float | None = None
     noise: float | None = None
     max_angle: float | None = None
+    recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
 
     def pair_protocol(self) -> PairProtocol:
         """The training / validation pair protocol: the setting's, with these overrides."""
@@ -85,7 +87,8 @@ def train(opts: TrainOptions) -> Path:
     protocol = opts.pair_protocol()
     shapes, _ = load_shapes("train", opts.setting, opts.data)
     train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
-    stream = TrainPairStream(shapes[train_idx], protocol, opts.seed)
+    draw = recipe_draw(opts.recipe, opts.max_angle) if opts.recipe else protocol
+    stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
     val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
 

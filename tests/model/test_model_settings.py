@@ -23,6 +23,7 @@ from model.data import (
     make_test_pairs,
     protocol_for,
 )
+from model.recipes import GeneralRecipe, recipe_draw
 from model.train import TrainOptions, train
 from service.cli import app
 
@@ -346,3 +347,75 @@ def test_make_pairs_rejects_an_out_of_range_option(tmp_path) -> None:
                                  "--out", str(tmp_path / "x.npz")])
     assert result.exit_code != 0
     assert "overlap" in result.output
+
+
+# --- independent sampling and the ``general`` training recipe ---------------------------------------
+
+
+def test_independent_sampling_draws_two_separate_random_subsets() -> None:
+    shapes = sphere_shapes(6)
+    protocol = PairProtocol(points=768, keep=600, sampling="independent")
+    pairs = make_pairs(shapes, protocol, np.random.default_rng(4), return_indices=True)
+    assert pairs["source"].shape == (6, 600, 3) and pairs["target"].shape == (6, 600, 3)
+    for b in range(6):
+        src_idx, tgt_idx = pairs["source_index"][b], pairs["target_index"][b]
+        np.testing.assert_array_equal(pairs["source"][b], shapes[b][src_idx])
+        target = moved(shapes[b][tgt_idx], pairs["rotation"][b], pairs["translation"][b])
+        assert np.abs(pairs["target"][b] - target).max() < EXACT
+        shared = np.intersect1d(src_idx, tgt_idx).size
+        assert 0 < shared < len(src_idx)  # overlapping but different subsets (expected share ~0.56 here)
+
+
+def test_general_recipe_draws_protocols_within_its_ranges() -> None:
+    recipe = GeneralRecipe()
+    rng = np.random.default_rng(0)
+    drawn = [recipe.draw(rng) for _ in range(400)]
+    assert {p.sampling for p in drawn} == {"disjoint", "independent"}
+    for p in drawn:
+        assert p.points == (512 if p.sampling == "disjoint" else 768)
+        assert recipe.overlap[0] - 1e-3 <= p.overlap <= recipe.overlap[1]
+        noise = recipe.disjoint_noise if p.sampling == "disjoint" else recipe.subset_noise
+        assert noise[0] <= p.noise_sigma <= noise[1] and p.noise_clip == pytest.approx(5 * p.noise_sigma)
+        assert p.max_angle_deg == recipe.max_angle_deg
+        assert p.source_points is None or p.target_points is None  # at most one sparser cloud
+        sparse = p.source_points or p.target_points
+        if sparse is not None:
+            assert 0.5 * p.keep - 1 <= sparse <= 0.9 * p.keep + 1
+    mismatched = sum((p.source_points or p.target_points) is not None for p in drawn) / len(drawn)
+    assert 0.2 < mismatched < 0.4
+    again = [recipe.draw(np.random.default_rng(0)) for _ in range(1)]
+    assert again[0] == drawn[0]  # seeded
+
+
+def test_recipe_draw_takes_the_rotation_range_and_rejects_unknown_names() -> None:
+    assert recipe_draw("general", 90.0)(np.random.default_rng(1)).max_angle_deg == 90.0
+    with pytest.raises(ValueError, match="unknown recipe"):
+        recipe_draw("paper")
+
+
+def test_the_training_stream_draws_one_protocol_per_batch() -> None:
+    stream = TrainPairStream(sphere_shapes(16), recipe_draw("general"), seed=0)
+    sizes = {(b["source"].shape, b["target"].shape) for b in stream.epoch(0, 2)}
+    assert len(sizes) > 3  # different crops and densities across the epoch's batches
+    first = [b["source"] for b in stream.epoch(0, 2)]
+    assert all(np.array_equal(a, b) for a, b in zip(first, [b["source"] for b in stream.epoch(0, 2)], strict=True))
+
+
+def test_train_runs_with_the_general_recipe_and_records_it(tmp_path) -> None:
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
+             labels=np.arange(30) % 20)
+    tiny = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
+            "knn": 8, "train_positives": 16, "train_negatives": 16}
+    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=str(folder), epochs=1, batch_size=2,
+                        max_batches_per_epoch=3, val_pairs=2, device="cpu", config=tiny, recipe="general")
+    train(opts)
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert log[0]["batches"] == 3 and np.isfinite(log[0]["train_total"])
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["recipe"] == "general"
+
+
+def test_train_command_rejects_an_unknown_recipe(tmp_path) -> None:
+    result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), "--recipe", "paper"])
+    assert result.exit_code != 0 and "unknown recipe" in result.output

@@ -1,0 +1,60 @@
+"""Training recipes: per-batch random pair protocols for models meant for real scans.
+
+The paper's settings draw every pair with one fixed protocol in which source and target are the
+same points. ``general`` instead draws, for every batch, a protocol in which the two clouds are
+sampled independently (disjoint halves, or two random subsets with noise so that no point has an
+exact partner), with a random overlap, noise level and density mismatch, so that the network
+learns to match surfaces rather than identical points.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from model.data import NOISE_CLIP_SIGMAS, PairProtocol
+
+RECIPES = ("general",)
+
+
+@dataclass(frozen=True)
+class GeneralRecipe:
+    """Ranges of the ``general`` recipe (each batch draws one protocol from them)."""
+
+    max_angle_deg: float = 60.0
+    overlap: tuple[float, float] = (0.6, 1.0)  # fraction of each cloud kept by the crop
+    disjoint_share: float = 0.5  # batches from disjoint 512-point halves; the rest two random 768-point subsets
+    disjoint_noise: tuple[float, float] = (0.0, 0.01)  # sigma range for disjoint halves
+    subset_noise: tuple[float, float] = (0.004, 0.012)  # sigma range for subsets (always > 0: no exact partners)
+    mismatch_share: float = 0.3  # batches where one cloud keeps only part of its crop
+    mismatch_keep: tuple[float, float] = (0.5, 0.9)  # fraction kept by the sparser cloud
+
+    def draw(self, rng: np.random.Generator) -> PairProtocol:
+        """One batch's protocol."""
+        disjoint = rng.random() < self.disjoint_share
+        points = 512 if disjoint else 768
+        keep = round(rng.uniform(*self.overlap) * points)
+        sigma = rng.uniform(*(self.disjoint_noise if disjoint else self.subset_noise))
+        counts: dict[str, int] = {}
+        if rng.random() < self.mismatch_share:
+            sparse = "source_points" if rng.random() < 0.5 else "target_points"
+            counts[sparse] = max(32, round(rng.uniform(*self.mismatch_keep) * keep))
+        protocol = PairProtocol(
+            points=points, keep=keep, max_angle_deg=self.max_angle_deg, noise_sigma=float(sigma),
+            noise_clip=NOISE_CLIP_SIGMAS * float(sigma), sampling="disjoint" if disjoint else "independent",
+            **counts,
+        )
+        protocol.check()
+        return protocol
+
+
+def recipe_draw(name: str, max_angle_deg: float | None = None):
+    """The per-batch protocol draw of a named recipe (``max_angle_deg`` overrides its rotation range)."""
+    if name != "general":
+        raise ValueError(f"unknown recipe {name!r}; expected one of {RECIPES}")
+    recipe = GeneralRecipe()
+    if max_angle_deg is not None:
+        recipe = dataclasses.replace(recipe, max_angle_deg=float(max_angle_deg))
+    return recipe.draw
