@@ -83,11 +83,22 @@ def fgr(src: np.ndarray, tgt: np.ndarray, voxel: float = DEFAULT_VOXEL) -> tuple
     return T[:3, :3], T[:3, 3]
 
 
-def run_method(method, pairs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float]:
+def fpfh_ransac(src: np.ndarray, tgt: np.ndarray, voxel: float = DEFAULT_VOXEL) -> tuple[np.ndarray, np.ndarray]:
+    """FPFH + RANSAC without the final ICP."""
+    return fpfh_ransac_icp(src, tgt, voxel, icp=False)
+
+
+METHODS = {"fpfh-ransac-icp": fpfh_ransac_icp, "fpfh-ransac": fpfh_ransac, "fgr": fgr}
+
+
+def run_method(method, pairs: dict[str, np.ndarray], progress: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """Poses ``[M, 3, 3]``, ``[M, 3]`` of ``method(src, tgt)`` over the pairs and the seconds spent."""
+    from tqdm import tqdm
+
     Rs, ts = [], []
     begin = time.perf_counter()
-    for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
+    items = zip(pairs["source"], pairs["target"], strict=True)
+    for src, tgt in tqdm(items, total=len(pairs["source"]), desc="evaluate", unit="pair", disable=not progress):
         R, t = method(src, tgt)
         Rs.append(R)
         ts.append(t)

@@ -8,6 +8,7 @@ from typing import Annotated
 
 import typer
 
+from export.baselines import METHODS as BASELINES  # Open3D is imported only when one runs (the bench extra)
 from model.data import SETTINGS, load_pairs, make_test_pairs, protocol_for, save_pairs
 from model.recipes import RECIPES
 
@@ -123,22 +124,34 @@ def evaluate(
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
     refine: Annotated[str, typer.Option(help="with --model: none or icp")] = "none",
+    rotation_search: Annotated[bool, typer.Option(help="with --model: start from rotations covering SO(3)")] = False,
+    baseline: Annotated[
+        str | None, typer.Option(help=f"classical method instead of a network: {', '.join(BASELINES)} (bench extra)")
+    ] = None,
 ) -> None:
     """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
-    from model.checkpoint import load_model
-    from model.inference import predict_poses
     from model.metrics import registration_metrics
 
-    if (checkpoint is None) == (model is None):
-        raise typer.BadParameter("give exactly one of --checkpoint (PyTorch) or --model (ONNX runtime)")
+    if sum(x is not None for x in (checkpoint, model, baseline)) != 1:
+        raise typer.BadParameter(
+            "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)")
+    if baseline is not None and baseline not in BASELINES:
+        raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
     if pairs:
         data_pairs = load_pairs(pairs)
     else:
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
     if model is not None:
-        R, t, secs = _runtime_poses(model, data_pairs, iterations, keypoints, refine)
+        R, t, secs = _runtime_poses(model, data_pairs, iterations, keypoints, refine, rotation_search)
+    elif baseline is not None:
+        from export.baselines import run_method
+
+        R, t, secs = run_method(BASELINES[baseline], data_pairs, progress=True)
     else:
+        from model.checkpoint import load_model
+        from model.inference import predict_poses
+
         R, t, secs = predict_poses(load_model(checkpoint), data_pairs, batch_size, iterations, keypoints,
                                    progress=True)
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
@@ -148,7 +161,8 @@ def evaluate(
         json_out.write_text(text + "\n")
 
 
-def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str):
+def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str,
+                   rotation_search: bool = False):
     """Poses of every pair through the service's own pipeline (``Registrar.register``)."""
     import time
 
@@ -163,7 +177,8 @@ def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: i
     Rs, ts = [], []
     begin = time.perf_counter()
     for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):
-        res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine)
+        res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine,
+                                 rotation_search=rotation_search)
         Rs.append(res.rotation)
         ts.append(res.translation)
     return np.stack(Rs), np.stack(ts), time.perf_counter() - begin

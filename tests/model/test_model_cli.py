@@ -70,6 +70,27 @@ def test_evaluate_without_a_checkpoint_is_a_usage_error(synthetic_pairs) -> None
     assert "checkpoint" in result.output
 
 
+def test_evaluate_takes_exactly_one_method(tiny_checkpoint, synthetic_pairs) -> None:
+    both = ["evaluate", "--pairs", str(synthetic_pairs), "--checkpoint", str(tiny_checkpoint), "--baseline", "fgr"]
+    result = runner.invoke(app, both)
+    assert result.exit_code != 0 and "exactly one" in result.output
+    result = runner.invoke(app, ["evaluate", "--pairs", str(synthetic_pairs), "--baseline", "icp-only"])
+    assert result.exit_code != 0 and "unknown baseline" in result.output
+
+
+def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
+    pytest.importorskip("open3d", reason="the classical baselines need the bench extra (open3d-cpu)")
+    shapes = np.random.default_rng(1).normal(size=(2, 2048, 3)) * [1.0, 0.6, 0.3]  # anisotropic blobs
+    pairs_path, out = tmp_path / "pairs.npz", tmp_path / "fpfh.json"
+    save_pairs(pairs_path, make_pairs(shapes.astype(np.float32), PairProtocol(points=2048, keep=1800),
+                                      np.random.default_rng(2)))
+    args = ["evaluate", "--baseline", "fpfh-ransac-icp", "--pairs", str(pairs_path), "--json", str(out)]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(out.read_text())
+    assert set(metrics) == METRIC_KEYS and metrics["n"] == 2 and metrics["ms_per_pair"] > 0
+
+
 @needs_modelnet
 def test_make_pairs_writes_a_loadable_seeded_pairs_file(tmp_path, tiny_checkpoint) -> None:
     out = tmp_path / "X.npz"
