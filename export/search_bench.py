@@ -51,14 +51,15 @@ def working_clouds(registrar, src: np.ndarray, tgt: np.ndarray, working_size: in
 def starts_icp(registrar, src_w, tgt_w, norm) -> tuple[np.ndarray, np.ndarray]:
     """The search without the network: short ICP from every start rotation, rank, refine (caller's units)."""
     from service import registrar as reg
+    from service import rotation_search as search
     from service.icp import icp
 
     src_n, tgt_n = norm.apply_src(src_w), norm.apply_tgt(tgt_w)
-    starts = reg.search_rotations_for(24)
-    short = [icp(src_n, tgt_n, R, np.zeros(3), max_distance=reg.SEARCH_ICP_DISTANCE,
-                 max_iterations=reg.SEARCH_ICP_ITERATIONS, reciprocal=False) for R in starts]
+    starts = search.search_rotations_for(24)
+    short = [icp(src_n, tgt_n, R, np.zeros(3), max_distance=search.SEARCH_ICP_DISTANCE,
+                 max_iterations=search.SEARCH_ICP_ITERATIONS, reciprocal=False) for R in starts]
     R_h, t_h = np.stack([s.rotation for s in short]), np.stack([s.translation for s in short])
-    best = reg.rank_hypotheses(src_n, tgt_n, R_h, t_h, reg.INLIER_DISTANCE)[0][0]
+    best = search.rank_hypotheses(src_n, tgt_n, R_h, t_h, reg.INLIER_DISTANCE)[0][0]
     R, t = norm.unnormalize_pose(R_h[best], t_h[best])
     refined = icp(src_w, tgt_w, R, t, max_distance=reg.ICP_DISTANCE * norm.scale)
     return refined.rotation, refined.translation

@@ -11,19 +11,18 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
-from functools import cache
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
+from service.errors import InputError
 from service.icp import icp
 from service.manifest import Manifest, load_manifest
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
-from service.quality import assess, inlier_statistics
+from service.quality import assess
+from service.rotation_search import search_hypotheses, search_rotations_for
 from service.sampling import resample_indices
 
 MIN_POINTS = 32
@@ -33,15 +32,6 @@ DEFAULT_WORKING_SIZE = 768
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
 ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
 REFINE_MODES = ("none", "icp")
-SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahedral) / icosahedral group
-# refine="icp" with the rotation search: each hypothesis first gets a short, wide-basin ICP (plain
-# point-to-point, no mutual check, normalised distance cap) so that the ranking compares basins
-SEARCH_ICP_DISTANCE = 0.3  # normalised units (3x ICP_DISTANCE)
-SEARCH_ICP_ITERATIONS = 20
-
-
-class InputError(ValueError):
-    """A request the pipeline cannot run (bad shape, non-finite values, out-of-range option)."""
 
 
 def default_threads() -> int:
@@ -83,35 +73,6 @@ def top_k(scores: np.ndarray, k: int) -> np.ndarray:
 def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """``values [B, N, C]`` at ``idx [B, K]`` -> ``[B, K, C]``."""
     return np.take_along_axis(values, idx[..., None], axis=1)
-
-
-@cache
-def search_rotations_for(count: int) -> np.ndarray:
-    """The ``count`` initial rotations ``[H, 3, 3]`` of the rotation search (read-only).
-
-    A finite rotation group covering SO(3) evenly, deterministic on every machine: 24 = the
-    rotation group of the cube (every rotation is within 62.8 degrees of one of them), 60 = the
-    icosahedral group (within 44.5 degrees).
-    """
-    if count not in SEARCH_GROUPS:
-        raise InputError(f"search_rotations must be one of {sorted(SEARCH_GROUPS)}, got {count}")
-    rotations = Rotation.create_group(SEARCH_GROUPS[count]).as_matrix()  # [H, 3, 3]
-    rotations.setflags(write=False)
-    return rotations
-
-
-def rank_hypotheses(
-    src_n: np.ndarray, tgt_n: np.ndarray, rotations: np.ndarray, translations: np.ndarray, inlier_distance: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Order of the poses ``rotations [H, 3, 3]``, ``translations [H, 3]`` of ``src_n [N, 3]`` onto ``tgt_n``.
-
-    Best first: highest inlier ratio at ``inlier_distance``, ties by the lower inlier RMS residual,
-    then by index. Returns the order ``[H]``, inlier ratios ``[H]`` and residuals ``[H]``.
-    """
-    moved = src_n.astype(np.float64) @ rotations.transpose(0, 2, 1) + translations[:, None]  # [H, N, 3]
-    dist, _ = cKDTree(tgt_n).query(moved.reshape(-1, 3), k=1, distance_upper_bound=2 * inlier_distance)
-    ratio, rms = inlier_statistics(dist.reshape(moved.shape[:2]), inlier_distance)  # [H], [H]
-    return np.lexsort((np.arange(len(ratio)), rms, -ratio)), ratio, rms
 
 
 @dataclass
@@ -319,7 +280,7 @@ class Registrar:
         """Pose ``src_to_tgt`` of ``source [N, 3]`` onto ``target [M, 3]`` (caller's units).
 
         ``rotation_search`` starts the network from ``search_rotations`` initial rotations of the
-        source about its centroid (:func:`search_rotations_for`: 24 or 60), all in one batched
+        source about its centroid (:mod:`service.rotation_search`: 24 or 60), all in one batched
         encoder call and one matcher call per iteration, keeps the hypothesis whose pose has the
         highest inlier ratio on the working clouds (ties: lower residual), then refines it. With
         ``refine="icp"`` every hypothesis first gets a short wide-basin ICP (``SEARCH_ICP_*``) and
@@ -352,21 +313,10 @@ class Registrar:
             net = self.run_network(src_n, tgt_n, n_iter, k, timing)
             R_start, R_net, t_net = np.eye(3), net.rotation, net.translation
         else:
-            src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
-            nets = self.run_network(src_h, tgt_n, n_iter, k, timing)
-            R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
-            t_h = np.stack([n.translation for n in nets])  # [H, 3]
-            if (refine or "none") == "icp":  # rank refined poses: the basin matters, not the raw pose
-                short = [
-                    icp(src_n, tgt_n, R, t, max_distance=SEARCH_ICP_DISTANCE, max_iterations=SEARCH_ICP_ITERATIONS,
-                        reciprocal=False)
-                    for R, t in zip(R_h, t_h, strict=True)
-                ]
-                R_h, t_h = np.stack([r.rotation for r in short]), np.stack([r.translation for r in short])
-            best = rank_hypotheses(src_n, tgt_n, R_h, t_h, INLIER_DISTANCE)[0][0]
-            net, R_start, R_net, t_net = nets[best], hypotheses[best], R_h[best], t_h[best]
-            timing["search"] = 1000 * (time.perf_counter() - t1)
-            timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
+            short_icp = (refine or "none") == "icp"
+            net, R_start, R_net, t_net = search_hypotheses(
+                self.run_network, src_n, tgt_n, hypotheses, n_iter, k, short_icp, INLIER_DISTANCE, timing
+            )
         t3 = time.perf_counter()
         poses = [
             IterationPose(*self._to_caller(norm, R @ R_start, t, R_init, t_init))

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shapes import bumpy_sphere
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCKERFILE = ROOT / "Dockerfile"
@@ -255,12 +256,7 @@ def synthetic_pair(n: int = 1024, angle_deg: float = 15.0, seed: int = SEED):
     Returns ``(source [n, 3], target [n, 3], R [3, 3], t [3])`` with ``target = source @ R.T + t``.
     """
     rng = np.random.default_rng(seed)
-    directions = rng.normal(size=(n, 3))
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    theta = np.arccos(directions[:, 2])
-    phi = np.arctan2(directions[:, 1], directions[:, 0])
-    radius = 1.0 + 0.25 * np.sin(3 * theta) * np.cos(2 * phi) + 0.1 * np.cos(5 * theta)
-    source = directions * radius[:, None] * np.array([1.0, 0.7, 0.5])
+    source = bumpy_sphere(rng, n)
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     a = np.deg2rad(angle_deg)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from shapes import ellipsoid_surface
 
 from export.onnx_export import export_graphs, fold_batchnorm, write_manifest
 from export.parity import check_parity
@@ -20,11 +21,7 @@ from service.registrar import Registrar
 def synthetic_pairs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
     """Pairs of smooth random shapes (no dataset needed) through the paper's protocol."""
     rng = np.random.default_rng(seed)
-    u = rng.uniform(0, 2 * np.pi, (count, 1024))
-    v = rng.uniform(-1, 1, (count, 1024))
-    radii = rng.uniform(0.4, 1.0, (count, 1, 3))
-    shapes = np.stack([np.sqrt(1 - v**2) * np.cos(u), np.sqrt(1 - v**2) * np.sin(u), v], -1) * radii
-    shapes += 0.1 * np.sin(3 * shapes[..., [1, 2, 0]])
+    shapes = ellipsoid_surface(rng, (count, 1024), bump=0.1, random_axes=(0.4, 1.0))
     return make_pairs(shapes.astype(np.float32), PairProtocol(), rng)
 
 

@@ -20,6 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "helpers"))  # run as a script, too
+from shapes import bumpy_ellipsoid
+
 REPEATS = 15
 REFERENCE_SIZE = 192  # the reference: a float32 192x192 matrix product, repeated
 REFERENCE_LOOPS = 60  # ~15 ms: long enough to time stably
@@ -46,13 +49,6 @@ def reference_seconds() -> float:
         return x
 
     return best_of(work)
-
-
-def shape(n: int, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    u, v = rng.uniform(0, 2 * np.pi, n), rng.uniform(-1, 1, n)
-    pts = np.stack([np.sqrt(1 - v**2) * np.cos(u), 0.6 * np.sqrt(1 - v**2) * np.sin(u), 0.8 * v], -1)
-    return (pts + 0.15 * np.sin(3 * pts[:, [1, 2, 0]])).astype(np.float32)
 
 
 def free_port() -> int:
@@ -99,8 +95,8 @@ def measure(include_http: bool = True) -> dict[str, float]:
     from service.sampling import resample_indices
 
     registrar = Registrar(bundled_models_dir() / "clean", threads=1)
-    src, tgt = shape(768, 0), shape(768, 1) + 0.1
-    big = shape(5000, 2)
+    src, tgt = bumpy_ellipsoid(768, 0, np.float32), bumpy_ellipsoid(768, 1, np.float32) + 0.1
+    big = bumpy_ellipsoid(5000, 2, np.float32)
     both = np.stack([src, tgt])
     emb, _ = registrar.embed(both)
     kp = np.arange(128)

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from shapes import sphere_shapes
 from typer.testing import CliRunner
 
 from model.checkpoint import save_checkpoint
@@ -37,10 +38,8 @@ def tiny_checkpoint(tmp_path):
 
 @pytest.fixture
 def synthetic_pairs(tmp_path):
-    p = np.random.default_rng(0).normal(size=(3, 256, 3))
-    shapes = (p / np.linalg.norm(p, axis=-1, keepdims=True)).astype(np.float32)
     path = tmp_path / "pairs.npz"
-    save_pairs(path, make_pairs(shapes, PairProtocol(points=256, keep=192), np.random.default_rng(0)))
+    save_pairs(path, make_pairs(sphere_shapes(3, 256), PairProtocol(points=256, keep=192), np.random.default_rng(0)))
     return path
 
 

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from shapes import ellipsoid_surface
 from typer.testing import CliRunner
 
 from model.data import PairProtocol, make_pairs, save_pairs
@@ -18,8 +19,7 @@ pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "clean" / "manifest.
 
 def test_evaluate_model_through_the_runtime_writes_the_metrics(tmp_path):
     rng = np.random.default_rng(0)
-    u, v = rng.uniform(0, 2 * np.pi, (3, 1024)), rng.uniform(-1, 1, (3, 1024))
-    shapes = np.stack([np.sqrt(1 - v**2) * np.cos(u), 0.6 * np.sqrt(1 - v**2) * np.sin(u), 0.8 * v], -1)
+    shapes = ellipsoid_surface(rng, (3, 1024), bump=0.0)
     save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
     out = tmp_path / "m.json"
     result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp", "--pairs",

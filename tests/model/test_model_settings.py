@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+from shapes import sphere_shapes
 from typer.testing import CliRunner
 
 from model.data import (
@@ -37,12 +38,6 @@ needs_dense = pytest.mark.skipif(
     not (data_dir() / DENSE_FILE).exists() or not (data_dir() / "modelnet40_test.npz").exists(),
     reason=f"{DENSE_FILE} or modelnet40_test.npz not found at {data_dir()} (set $MFGNET_DATA)",
 )
-
-
-def sphere_shapes(count: int, points: int = 1024, seed: int = 0) -> np.ndarray:
-    """Points uniform on the unit sphere, ``float32 [count, points, 3]``."""
-    p = np.random.default_rng(seed).normal(size=(count, points, 3))
-    return (p / np.linalg.norm(p, axis=-1, keepdims=True)).astype(np.float32)
 
 
 def moved(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:

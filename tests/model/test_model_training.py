@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from shapes import sphere_shapes
 
 from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
@@ -18,11 +19,6 @@ from model.train import TrainOptions, train
 
 TINY = {"iterations": 2, "keypoints": 32, "emb_dims": 16, "encoder_blocks": 2, "matcher_channels": 8,
         "knn": 8, "train_positives": 16, "train_negatives": 16}
-
-
-def sphere_shapes(count: int, points: int = 1024, seed: int = 0) -> np.ndarray:
-    p = np.random.default_rng(seed).normal(size=(count, points, 3))
-    return (p / np.linalg.norm(p, axis=-1, keepdims=True)).astype(np.float32)
 
 
 def training_batch(seed: int = 0) -> tuple[torch.Tensor, ...]:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from shapes import smooth_blob
 
 import service
 from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
@@ -43,18 +44,9 @@ def snapshot_model(dest: Path, name: str = "clean", attempts: int = 5) -> Path:
     pytest.skip(f"no verified model {name!r} in {source} (not exported yet? set MFGNET_TEST_MODELS)")
 
 
-def smooth_shape(n: int = 600, seed: int = 0) -> np.ndarray:
-    """``(n, 3)`` float32 points on a smooth, non-symmetric blob of radius ~1."""
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    radius = 1 + 0.3 * d[:, :1] ** 2 + 0.2 * d[:, 1:2] * d[:, 2:3] + 0.1 * d[:, 2:3]
-    return (d * radius).astype(np.float32)
-
-
 def synthetic_pair(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``source (600, 3)`` and ``target = R source + t`` (float32) with a known small rotation."""
-    source = smooth_shape(seed=seed)
+    source = smooth_blob(seed=seed)
     R = Rotation.from_euler("zyx", [12.0, -6.0, 4.0], degrees=True).as_matrix()
     return source, (source @ R.T + np.array([0.05, -0.03, 0.02])).astype(np.float32)
 

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from shapes import bumpy_ellipsoid
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -17,15 +18,8 @@ pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "clean" / "manifest.
                                 reason="bundled model 'clean' absent")
 
 
-def bumpy_ellipsoid(n: int = 800, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    u, v = rng.uniform(0, 2 * np.pi, n), rng.uniform(-1, 1, n)
-    pts = np.stack([np.sqrt(1 - v**2) * np.cos(u), 0.6 * np.sqrt(1 - v**2) * np.sin(u), 0.8 * v], -1)
-    return pts + 0.15 * np.sin(3 * pts[:, [1, 2, 0]])
-
-
 def test_register_with_rotation_search_recovers_150_degrees(tmp_path):
-    src = bumpy_ellipsoid()
+    src = bumpy_ellipsoid(800)
     R_true = Rotation.from_euler("z", 150, degrees=True).as_matrix()
     write_points(tmp_path / "a.npy", src)
     write_points(tmp_path / "b.npy", src @ R_true.T + [0.2, 0.0, -0.1])

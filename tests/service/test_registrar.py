@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from shapes import bumpy_ellipsoid
 
 from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
 from service.registrar import InputError, Registrar
@@ -18,23 +19,15 @@ BUNDLED = bundled_models_dir() / "clean"
 pytestmark = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'clean' absent")
 
 
-def shape(n: int, seed: int = 0) -> np.ndarray:
-    """A smooth closed surface sampled with ``n`` points (no dataset needed)."""
-    rng = np.random.default_rng(seed)
-    u, v = rng.uniform(0, 2 * np.pi, n), rng.uniform(-1, 1, n)
-    pts = np.stack([np.sqrt(1 - v**2) * np.cos(u), 0.6 * np.sqrt(1 - v**2) * np.sin(u), 0.8 * v], -1)
-    return pts + 0.15 * np.sin(3 * pts[:, [1, 2, 0]])
-
-
 @pytest.fixture(scope="module")
 def registrar() -> Registrar:
     return Registrar(BUNDLED, threads=1)
 
 
 def test_result_is_a_proper_rigid_transform_with_valid_correspondences(registrar):
-    src = shape(900)
+    src = bumpy_ellipsoid(900)
     R = Rotation.from_euler("zyx", [20, 10, -15], degrees=True).as_matrix()
-    tgt = shape(700, seed=1) @ R.T + [0.1, -0.2, 0.3]
+    tgt = bumpy_ellipsoid(700, seed=1) @ R.T + [0.1, -0.2, 0.3]
     res = registrar.register(src, tgt, return_iterations=True)
     assert np.allclose(res.rotation @ res.rotation.T, np.eye(3), atol=1e-6) and np.linalg.det(res.rotation) > 0
     assert res.transform.shape == (4, 4) and np.allclose(res.transform[3], [0, 0, 0, 1])
@@ -48,13 +41,14 @@ def test_result_is_a_proper_rigid_transform_with_valid_correspondences(registrar
 
 @pytest.mark.parametrize("n", [32, 768, 5000, 100_000])
 def test_accepts_clouds_from_32_to_100k_points(registrar, n):
-    src = shape(n, seed=2)
+    src = bumpy_ellipsoid(n, seed=2)
     res = registrar.register(src, src[::-1] + 0.05)
     assert np.isfinite(res.transform).all()
 
 
 def test_scaling_and_offsetting_both_inputs_maps_the_pose(registrar):
-    src, tgt = shape(768, 3), shape(768, 4) @ Rotation.from_euler("z", 25, degrees=True).as_matrix().T
+    R = Rotation.from_euler("z", 25, degrees=True).as_matrix()
+    src, tgt = bumpy_ellipsoid(768, 3), bumpy_ellipsoid(768, 4) @ R.T
     base = registrar.register(src, tgt)
     a, offset = 1000.0, np.array([5e3, -2e3, 7e2])
     scaled = registrar.register(a * src + offset, a * tgt + offset)
@@ -64,7 +58,7 @@ def test_scaling_and_offsetting_both_inputs_maps_the_pose(registrar):
 
 
 def test_permuting_input_points_does_not_change_the_pose(registrar):
-    src, tgt = shape(3000, 5), shape(2500, 6) + 0.2
+    src, tgt = bumpy_ellipsoid(3000, 5), bumpy_ellipsoid(2500, 6) + 0.2
     rng = np.random.default_rng(0)
     p, q = rng.permutation(3000), rng.permutation(2500)
     base, perm = registrar.register(src, tgt), registrar.register(src[p], tgt[q])
@@ -73,7 +67,7 @@ def test_permuting_input_points_does_not_change_the_pose(registrar):
 
 
 def test_initial_transform_is_composed(registrar):
-    src = shape(768, 7)
+    src = bumpy_ellipsoid(768, 7)
     guess = np.eye(4)
     guess[:3, 3] = [1.0, 0, 0]
     res = registrar.register(src, src + np.array([1.0, 0, 0]), initial_transform=guess)
@@ -89,7 +83,7 @@ def test_initial_transform_is_composed(registrar):
 )
 def test_rejects_out_of_range_options(registrar, kwargs, message):
     with pytest.raises(InputError, match=message):
-        registrar.register(shape(100), shape(100), **kwargs)
+        registrar.register(bumpy_ellipsoid(100), bumpy_ellipsoid(100), **kwargs)
 
 
 @pytest.mark.parametrize(
@@ -99,7 +93,7 @@ def test_rejects_out_of_range_options(registrar, kwargs, message):
 )
 def test_rejects_bad_clouds_with_a_clear_message(registrar, cloud, message):
     with pytest.raises(InputError, match=message):
-        registrar.register(cloud, shape(100))
+        registrar.register(cloud, bumpy_ellipsoid(100))
 
 
 def test_degenerate_geometry_is_flagged_unreliable(registrar):
@@ -109,7 +103,7 @@ def test_degenerate_geometry_is_flagged_unreliable(registrar):
 
 
 def test_icp_refinement_runs_and_reports_quality(registrar):
-    src = shape(768, 8)
+    src = bumpy_ellipsoid(768, 8)
     tgt = src @ Rotation.from_euler("x", 3, degrees=True).as_matrix().T
     res = registrar.register(src, tgt, refine="icp")
     assert "refine" in res.timing_ms and 0 <= res.inlier_ratio <= 1 and res.residual_rms >= 0

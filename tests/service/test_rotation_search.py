@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from shapes import asymmetric_blob
 
 from service.manifest import bundled_models_dir
-from service.registrar import InputError, Registrar, search_rotations_for
+from service.registrar import InputError, Registrar
+from service.rotation_search import search_rotations_for
 
 BUNDLED = bundled_models_dir() / "clean"
 needs_model = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'clean' absent")
@@ -16,19 +18,6 @@ needs_model = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reaso
 def angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Rotation angle of ``R_a^T R_b`` in degrees."""
     return float(np.degrees(Rotation.from_matrix(R_a.T @ R_b).magnitude()))
-
-
-def asymmetric_shape(n: int, seed: int = 0) -> np.ndarray:
-    """A smooth closed surface with four arms of different lengths in skew directions: no rotational
-    symmetry, so exactly one rotation aligns it with itself (no dataset needed)."""
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)  # [n, 3] directions
-    arms = np.array([[1, 0.2, 0.1], [-0.3, 1, 0.2], [-0.4, -0.5, 1], [-0.6, -0.7, -0.6]])
-    arms /= np.linalg.norm(arms, axis=1, keepdims=True)  # [4, 3]
-    length = np.array([0.9, 0.6, 0.4, 0.25])
-    radius = 0.6 + (length * np.clip(d @ arms.T, 0, None) ** 4).sum(1)  # [n]
-    return d * radius[:, None]
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +56,8 @@ def test_unsupported_search_size_is_an_input_error() -> None:
 
 @needs_model
 def test_batched_run_network_matches_one_pair_at_a_time(registrar) -> None:
-    cloud = asymmetric_shape(256, 1).astype(np.float32)
-    target = asymmetric_shape(256, 2).astype(np.float32)
+    cloud = asymmetric_blob(256, 1).astype(np.float32)
+    target = asymmetric_blob(256, 2).astype(np.float32)
     batch = (cloud @ search_rotations_for(24)[:3].transpose(0, 2, 1)).astype(np.float32)  # [3, 256, 3]
     timing: dict[str, float] = {}
     outputs = registrar.run_network(batch, target, 2, 64, timing)
@@ -89,7 +78,7 @@ def test_batched_run_network_matches_one_pair_at_a_time(registrar) -> None:
 
 @needs_model
 def test_rotation_search_recovers_a_150_degree_rotation_that_plain_registration_misses(registrar) -> None:
-    source = asymmetric_shape(1024, 1)
+    source = asymmetric_blob(1024, 1)
     axis = np.array([0.48, 0.85, -0.21])
     R = Rotation.from_rotvec(np.radians(150) * axis / np.linalg.norm(axis)).as_matrix()
     t = np.array([0.2, -0.1, 0.3])
@@ -110,7 +99,7 @@ def test_rotation_search_recovers_a_150_degree_rotation_that_plain_registration_
 @needs_model
 def test_rotation_search_returns_indices_into_the_callers_arrays(registrar) -> None:
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
-    source, target = asymmetric_shape(900, 3), asymmetric_shape(700, 4) @ R.T
+    source, target = asymmetric_blob(900, 3), asymmetric_blob(700, 4) @ R.T
     options = {"rotation_search": True, "working_size": 256, "keypoints": 64, "iterations": 2,
                "return_iterations": True}
     base = registrar.register(source, target, **options)
@@ -129,6 +118,6 @@ def test_rotation_search_returns_indices_into_the_callers_arrays(registrar) -> N
 
 @needs_model
 def test_rotation_search_rejects_an_unsupported_size(registrar) -> None:
-    cloud = asymmetric_shape(100)
+    cloud = asymmetric_blob(100)
     with pytest.raises(InputError, match="search_rotations"):
         registrar.register(cloud, cloud, rotation_search=True, search_rotations=7)

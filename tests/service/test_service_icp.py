@@ -9,20 +9,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
+from shapes import ellipsoid_and_box
 
 from service.icp import icp
 
 
 def smooth_shape(n: int, seed: int) -> np.ndarray:
     """``(n, 3)`` points on an ellipsoid surface and on the surface of a box touching it."""
-    rng = np.random.default_rng(seed)
-    half = n // 2
-    directions = rng.normal(size=(half, 3))
-    ellipsoid = directions / np.linalg.norm(directions, axis=1, keepdims=True) * [1.0, 0.6, 0.4]
-    box = rng.uniform(-0.4, 0.4, size=(n - half, 3))
-    face = rng.integers(0, 3, size=n - half)
-    box[np.arange(n - half), face] = np.sign(rng.normal(size=n - half)) * 0.4
-    return np.concatenate([ellipsoid, box * [1.0, 0.8, 0.6] + [1.2, 0.2, 0.0]])
+    return ellipsoid_and_box(n, seed, half=0.4, box_scale=(1.0, 0.8, 0.6), offset=(1.2, 0.2, 0.0))
 
 
 def partial_pair(seed: int, n: int = 1000) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

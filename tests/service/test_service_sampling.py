@@ -7,25 +7,14 @@ import time
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from shapes import ellipsoid_and_box
 
 from service.sampling import DEFAULT_SIZE, resample_indices
 
 
-def sphere_and_box(n: int, seed: int) -> np.ndarray:
-    """``(n, 3)`` points: half on an ellipsoid surface, half on the surface of a box beside it."""
-    rng = np.random.default_rng(seed)
-    half = n // 2
-    directions = rng.normal(size=(half, 3))
-    ellipsoid = directions / np.linalg.norm(directions, axis=1, keepdims=True) * [1.0, 0.6, 0.4]
-    box = rng.uniform(-0.5, 0.5, size=(n - half, 3))
-    face = rng.integers(0, 3, size=n - half)
-    box[np.arange(n - half), face] = np.sign(rng.normal(size=n - half)) * 0.5
-    return np.concatenate([ellipsoid, box + np.array([1.5, 0.0, 0.0])])
-
-
 @pytest.mark.parametrize("n", [32, 768, 5000, 200_000])
 def test_selection_does_not_depend_on_input_order(n: int) -> None:
-    points = sphere_and_box(n, seed=n)
+    points = ellipsoid_and_box(n, seed=n)
     permutation = np.random.default_rng(1).permutation(n)
     indices = resample_indices(points, DEFAULT_SIZE)
     indices_permuted = resample_indices(points[permutation], DEFAULT_SIZE)
@@ -34,7 +23,7 @@ def test_selection_does_not_depend_on_input_order(n: int) -> None:
 
 @pytest.mark.parametrize("n", [32, 768, 5000, 200_000])
 def test_returns_min_n_size_distinct_valid_int64_indices(n: int) -> None:
-    indices = resample_indices(sphere_and_box(n, seed=0), DEFAULT_SIZE)
+    indices = resample_indices(ellipsoid_and_box(n, seed=0), DEFAULT_SIZE)
     assert indices.dtype == np.int64
     assert indices.shape == (min(n, DEFAULT_SIZE),)
     assert indices.min() >= 0 and indices.max() < n
@@ -42,7 +31,7 @@ def test_returns_min_n_size_distinct_valid_int64_indices(n: int) -> None:
 
 
 def test_small_cloud_returns_every_point_sorted_by_coordinates() -> None:
-    points = sphere_and_box(32, seed=3)
+    points = ellipsoid_and_box(32, seed=3)
     indices = resample_indices(points, 768)
     assert sorted(indices.tolist()) == list(range(32))
     chosen = points[indices]
@@ -55,7 +44,7 @@ def test_small_cloud_duplicates_are_ordered_by_index() -> None:
 
 
 def test_farthest_point_sampling_starts_farthest_from_the_centroid() -> None:
-    points = sphere_and_box(2000, seed=4)
+    points = ellipsoid_and_box(2000, seed=4)
     first = resample_indices(points, 300)[0]  # N <= 8 * size: FPS on every point
     distance = np.linalg.norm(points - points.mean(axis=0), axis=1)
     assert distance[first] == distance.max()
@@ -63,7 +52,7 @@ def test_farthest_point_sampling_starts_farthest_from_the_centroid() -> None:
 
 @pytest.mark.parametrize("n", [5000, 200_000])
 def test_samples_cover_the_cloud_better_than_random_ones(n: int) -> None:
-    points = sphere_and_box(n, seed=5)
+    points = ellipsoid_and_box(n, seed=5)
     indices = resample_indices(points, 256)
     random_indices = np.random.default_rng(0).choice(n, 256, replace=False)
 
@@ -74,7 +63,7 @@ def test_samples_cover_the_cloud_better_than_random_ones(n: int) -> None:
 
 
 def test_heavily_duplicated_cloud_still_gives_distinct_indices() -> None:
-    distinct = sphere_and_box(100, seed=6)
+    distinct = ellipsoid_and_box(100, seed=6)
     points = np.repeat(distinct, 70, axis=0)  # 7000 points, only 100 places: fewer than `size`
     permutation = np.random.default_rng(2).permutation(points.shape[0])
     indices = resample_indices(points, 768)
@@ -91,14 +80,14 @@ def test_identical_points_give_the_requested_number_of_indices() -> None:
 
 
 def test_float32_and_float64_inputs_select_the_same_points() -> None:
-    points = sphere_and_box(3000, seed=7).astype(np.float32)
+    points = ellipsoid_and_box(3000, seed=7).astype(np.float32)
     np.testing.assert_array_equal(
         resample_indices(points, 300), resample_indices(points.astype(np.float64), 300)
     )
 
 
 def test_200k_points_take_well_under_a_second() -> None:
-    points = sphere_and_box(200_000, seed=8)
+    points = ellipsoid_and_box(200_000, seed=8)
     resample_indices(points[:20_000], DEFAULT_SIZE)  # warm-up
     start = time.perf_counter()
     resample_indices(points, DEFAULT_SIZE)

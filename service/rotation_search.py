@@ -1,0 +1,96 @@
+"""Rotation search: registration at any relative rotation, not only within the network's trained range.
+
+The normalised working source starts from every rotation of a finite group covering SO(3) evenly
+(:func:`search_rotations_for`); :func:`search_hypotheses` runs them through the registrar's network loop as
+one batch, optionally gives each pose a short wide-basin ICP, and keeps the best by :func:`rank_hypotheses`
+(inlier ratio, then residual). ``Registrar.register(rotation_search=True)`` calls it; figures and the reason
+for the short ICPs: ``docs/ROTATION_SEARCH.md``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from functools import cache
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from service.errors import InputError
+from service.icp import icp
+from service.quality import inlier_statistics
+
+if TYPE_CHECKING:
+    from service.registrar import NetworkOutput
+
+SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahedral) / icosahedral group
+# refine="icp" with the rotation search: each hypothesis first gets a short, wide-basin ICP (plain
+# point-to-point, no mutual check, normalised distance cap) so that the ranking compares basins
+SEARCH_ICP_DISTANCE = 0.3  # normalised units (3x registrar.ICP_DISTANCE)
+SEARCH_ICP_ITERATIONS = 20
+
+
+@cache
+def search_rotations_for(count: int) -> np.ndarray:
+    """The ``count`` initial rotations ``[H, 3, 3]`` of the rotation search (read-only).
+
+    A finite rotation group covering SO(3) evenly, deterministic on every machine: 24 = the
+    rotation group of the cube (every rotation is within 62.8 degrees of one of them), 60 = the
+    icosahedral group (within 44.5 degrees).
+    """
+    if count not in SEARCH_GROUPS:
+        raise InputError(f"search_rotations must be one of {sorted(SEARCH_GROUPS)}, got {count}")
+    rotations = Rotation.create_group(SEARCH_GROUPS[count]).as_matrix()  # [H, 3, 3]
+    rotations.setflags(write=False)
+    return rotations
+
+
+def rank_hypotheses(
+    src_n: np.ndarray, tgt_n: np.ndarray, rotations: np.ndarray, translations: np.ndarray, inlier_distance: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Order of the poses ``rotations [H, 3, 3]``, ``translations [H, 3]`` of ``src_n [N, 3]`` onto ``tgt_n``.
+
+    Best first: highest inlier ratio at ``inlier_distance``, ties by the lower inlier RMS residual,
+    then by index. Returns the order ``[H]``, inlier ratios ``[H]`` and residuals ``[H]``.
+    """
+    moved = src_n.astype(np.float64) @ rotations.transpose(0, 2, 1) + translations[:, None]  # [H, N, 3]
+    dist, _ = cKDTree(tgt_n).query(moved.reshape(-1, 3), k=1, distance_upper_bound=2 * inlier_distance)
+    ratio, rms = inlier_statistics(dist.reshape(moved.shape[:2]), inlier_distance)  # [H], [H]
+    return np.lexsort((np.arange(len(ratio)), rms, -ratio)), ratio, rms
+
+
+def search_hypotheses(
+    run_network: Callable[..., list[NetworkOutput]],
+    src_n: np.ndarray,
+    tgt_n: np.ndarray,
+    hypotheses: np.ndarray,
+    iterations: int,
+    keypoints: int,
+    short_icp: bool,
+    inlier_distance: float,
+    timing: dict[str, float],
+) -> tuple[NetworkOutput, np.ndarray, np.ndarray, np.ndarray]:
+    """The best start of ``src_n [N, 3]`` (float32, normalised) rotated by each of ``hypotheses [H, 3, 3]``.
+
+    ``run_network`` (``Registrar.run_network``) runs the ``H`` rotated sources against ``tgt_n`` as one
+    batch; each hypothesis's pose is its network pose composed after its start rotation. ``short_icp``:
+    every pose first gets a short wide-basin ICP (``SEARCH_ICP_*``) and the ranking uses those poses.
+    Returns the winner's network output, start rotation ``[3, 3]`` and pose ``R [3, 3]``, ``t [3]`` of
+    ``src_n`` onto ``tgt_n``; records ``timing["search"]`` (the whole search) and
+    ``timing["search_per_hypothesis"]``.
+    """
+    started = time.perf_counter()
+    src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
+    nets = run_network(src_h, tgt_n, iterations, keypoints, timing)
+    R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
+    t_h = np.stack([n.translation for n in nets])  # [H, 3]
+    if short_icp:  # rank refined poses: the basin matters, not the raw pose
+        wide = {"max_distance": SEARCH_ICP_DISTANCE, "max_iterations": SEARCH_ICP_ITERATIONS, "reciprocal": False}
+        short = [icp(src_n, tgt_n, R, t, **wide) for R, t in zip(R_h, t_h, strict=True)]
+        R_h, t_h = np.stack([r.rotation for r in short]), np.stack([r.translation for r in short])
+    best = rank_hypotheses(src_n, tgt_n, R_h, t_h, inlier_distance)[0][0]
+    timing["search"] = 1000 * (time.perf_counter() - started)
+    timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
+    return nets[best], hypotheses[best], R_h[best], t_h[best]
