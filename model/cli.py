@@ -123,7 +123,7 @@ def evaluate(
     model: Annotated[
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
-    refine: Annotated[str, typer.Option(help="with --model: none or icp")] = "none",
+    refine: Annotated[str, typer.Option(help="with --model: none, icp or icp-plane")] = "none",
     rotation_search: Annotated[bool, typer.Option(help="with --model: start from rotations covering SO(3)")] = False,
     baseline: Annotated[
         str | None, typer.Option(help=f"classical method instead of a network: {', '.join(BASELINES)} (bench extra)")
@@ -137,6 +137,11 @@ def evaluate(
             "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)")
     if baseline is not None and baseline not in BASELINES:
         raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
+    if model is not None:
+        from service.registrar import REFINE_MODES
+
+        if refine not in REFINE_MODES:
+            raise typer.BadParameter(f"unknown --refine {refine!r}; expected one of {', '.join(REFINE_MODES)}")
     if pairs:
         data_pairs = load_pairs(pairs)
     else:

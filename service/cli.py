@@ -75,6 +75,7 @@ def serve_command(
 class Refine(str, Enum):
     none = "none"
     icp = "icp"
+    icp_plane = "icp-plane"
 
 
 @app.command("register")
@@ -91,7 +92,11 @@ def register_command(
     model_dir: ModelDirs = None,
     iterations: Annotated[int | None, typer.Option(help="network iterations (default: the model's)")] = None,
     keypoints: Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")] = None,
-    refine: Annotated[Refine, typer.Option(help="refine the network's pose with point-to-point ICP")] = Refine.none,
+    refine: Annotated[
+        Refine,
+        typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = point-to-plane ICP "
+                          "(target normals; best for two independently sampled scans)"),
+    ] = Refine.none,
     initial_transform: Annotated[
         Path | None,
         typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4"),

@@ -80,7 +80,7 @@ class MfgnetClient:
         Args:
             source: ``(N, 3)`` points (array or nested lists).
             target: ``(M, 3)`` points.
-            model, iterations, keypoints, refine (``"none"`` | ``"icp"``), initial_transform (4x4):
+            model, iterations, keypoints, refine (``"none"`` | ``"icp"`` | ``"icp-plane"``), initial_transform (4x4):
                 left out of the request when ``None`` (the server's defaults apply).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds).

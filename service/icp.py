@@ -12,6 +12,13 @@ on 768-point partial views).  ``reciprocal=True`` (the default) keeps only mutua
 neighbours, which removes those pairs: two views sharing their points in the overlap then align
 exactly.  It costs one more nearest-neighbour query per iteration, and the monotone-cost guarantee
 above only holds for ``reciprocal=False`` (plain point-to-point ICP).
+
+:func:`icp_plane` is point-to-plane ICP: it minimises the distances of the moved source points to the
+tangent planes of their nearest target points (normals by PCA of each target point's neighbourhood).
+Between two independent samplings of one surface no point has an exact partner, and point-to-point
+ICP converges to a pose biased by the sampling (a few degrees on sparse clouds); sliding along the
+tangent plane costs nothing in the point-to-plane objective, so it converges much closer
+(``docs/DESIGN.md``, "Refinement").
 """
 
 from __future__ import annotations
@@ -20,10 +27,17 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from service.procrustes import compose, weighted_procrustes
 
 MIN_INLIERS = 3  # fewer pairs than this cannot fix a rigid pose: the pose is left as it is
+PLANE_MIN_INLIERS = 6  # point-to-plane: one equation per pair, six unknowns
+NORMAL_NEIGHBOURS = 12  # target points (itself included) whose PCA gives a target point's normal
+NORMAL_MIN_SPREAD = 1e-2  # a neighbourhood whose 2nd principal variance is below this fraction of the 1st
+# is (nearly) a line: its normal is undefined and the point takes no part in point-to-plane ICP
+PLANE_MIN_EIGEN_RATIO = 1e-4  # smallest / largest eigenvalue of the scaled 6x6 normal equations below this:
+# some motion (sliding on a plane, turning about an axis of symmetry) is not observed, no update is made
 
 
 @dataclass(frozen=True)
@@ -35,6 +49,8 @@ class IcpResult:
     iterations: int  # Procrustes updates applied
     inlier_ratio: float  # fraction of source points with a target point closer than max_distance
     residual_rms: float  # RMS distance of those pairs (0 when there is none)
+    converged: bool = True  # False: the refinement stopped on a degenerate system (see ``warnings``)
+    warnings: tuple[str, ...] = ()  # why the refinement stopped early, for the caller's warnings
 
 
 def icp(
@@ -70,6 +86,124 @@ def icp(
     Raises:
         ValueError: on wrongly shaped inputs or a non-positive ``max_distance``.
     """
+    src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
+    tree = cKDTree(tgt)
+    src_tree = cKDTree(src) if reciprocal else None
+    translation_tolerance = tolerance * _rms_radius(tgt)
+    iterations = 0
+    for _ in range(max_iterations):
+        src_in_tgt = src @ R.T + t  # [N, 3]
+        inlier, nearest = _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance)  # [N], [N]
+        if np.count_nonzero(inlier) < MIN_INLIERS:
+            break
+        R_step, t_step = weighted_procrustes(src_in_tgt[inlier], tgt[nearest[inlier]], None, "weighted")
+        R, t = compose(R_step, t_step, R, t)
+        iterations += 1
+        angle = np.linalg.norm(R_step - np.eye(3)) / np.sqrt(2.0)  # ~ rotation angle when small
+        if angle < tolerance and np.linalg.norm(t_step) < translation_tolerance:
+            break
+    return _result(tree, src, R, t, iterations, max_distance)
+
+
+def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: cKDTree | None = None):
+    """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
+
+    Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
+    False where the neighbourhood is (nearly) a line or a single point, so that no plane is defined.
+    """
+    k = min(int(neighbours), tgt.shape[0])
+    if k < 3:
+        return np.zeros_like(tgt), np.zeros(tgt.shape[0], dtype=bool)
+    tree = cKDTree(tgt) if tree is None else tree
+    _, idx = tree.query(tgt, k=k)  # [M, k]
+    hood = tgt[idx]  # [M, k, 3]
+    centred = hood - hood.mean(axis=1, keepdims=True)  # [M, k, 3]
+    cov = np.einsum("mki,mkj->mij", centred, centred) / k  # [M, 3, 3]
+    variance, axes = np.linalg.eigh(cov)  # [M, 3] ascending, [M, 3, 3] eigenvectors in columns
+    defined = variance[:, 1] > NORMAL_MIN_SPREAD**2 * variance[:, 2]  # [M]; 0 > 0 is False too
+    return axes[:, :, 0], defined
+
+
+def icp_plane(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    *,
+    max_distance: float,
+    max_iterations: int = 30,
+    tolerance: float = 1e-6,
+    reciprocal: bool = True,
+    normal_neighbours: int = NORMAL_NEIGHBOURS,
+) -> IcpResult:
+    """Refine ``(R0, t0)`` with point-to-plane ICP: minimise ``sum_i (n_i . (R src_i + t - tgt_j(i)))^2``.
+
+    Target normals come from :func:`target_normals` (once per call).  Each iteration pairs every moved
+    source point with its nearest target point, keeps pairs closer than ``max_distance`` (mutual
+    nearest neighbours when ``reciprocal``) whose target normal is defined, and solves the
+    linearised 6-DoF least squares (small rotation ``w`` about the pairs' centroid, translation)
+    through its 6x6 normal equations, scaled by the target's RMS radius so the test below does not
+    depend on units; the update applies the exact rotation of ``w`` (Rodrigues).
+
+    Args:
+        src, tgt, R0, t0, max_distance, max_iterations, tolerance, reciprocal: as :func:`icp`.
+        normal_neighbours: neighbourhood size of the target normals.
+
+    Returns:
+        :class:`IcpResult`.  With fewer than ``PLANE_MIN_INLIERS`` usable pairs, or normal equations
+        whose smallest eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (a planar,
+        linear or symmetric target leaves some motion unobserved), the pose of the last good
+        iteration is kept, ``converged`` is False and ``warnings`` says why.  ``inlier_ratio`` and
+        ``residual_rms`` are point-to-point distances, as for :func:`icp`.
+
+    Raises:
+        ValueError: on wrongly shaped inputs or a non-positive ``max_distance``.
+    """
+    src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
+    tree = cKDTree(tgt)
+    src_tree = cKDTree(src) if reciprocal else None
+    normals, defined = target_normals(tgt, normal_neighbours, tree)  # [M, 3], [M]
+    scale = _rms_radius(tgt)
+    iterations, warnings = 0, []
+    for _ in range(max_iterations):
+        src_in_tgt = src @ R.T + t  # [N, 3]
+        inlier, nearest = _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance)  # [N], [N]
+        inlier[inlier] = defined[nearest[inlier]]
+        count = int(np.count_nonzero(inlier))
+        if count < PLANE_MIN_INLIERS:
+            warnings.append(
+                f"refinement: point-to-plane ICP found {count} pairs closer than {max_distance:.3g} with a "
+                f"defined target normal (needs {PLANE_MIN_INLIERS}); kept the pose after {iterations} updates"
+            )
+            break
+        p, q, n = src_in_tgt[inlier], tgt[nearest[inlier]], normals[nearest[inlier]]  # [K, 3] each
+        centre = p.mean(axis=0)  # [3]
+        arm = (p - centre) / scale  # [K, 3], unitless
+        J = np.concatenate([np.cross(arm, n), n], axis=1)  # [K, 6]: d residual / d (w, tau / scale)
+        b = -np.einsum("kc,kc->k", n, p - q) / scale  # [K] minus the scaled residuals
+        H, g = J.T @ J, J.T @ b  # [6, 6], [6]
+        eigenvalues, eigenvectors = np.linalg.eigh(H)  # ascending
+        if not eigenvalues[0] > PLANE_MIN_EIGEN_RATIO * eigenvalues[-1]:
+            warnings.append(
+                "refinement: point-to-plane ICP stopped on a degenerate system (the target's normals leave a "
+                f"motion unobserved: eigenvalue ratio {max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300):.1e}"
+                f" < {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or symmetric surface); kept the pose after "
+                f"{iterations} updates (point-to-point ICP can still use a planar target's outline)"
+            )
+            break
+        x = eigenvectors @ ((eigenvectors.T @ g) / eigenvalues)  # [6] = H^-1 g
+        w, tau = x[:3], x[3:] * scale  # rotation vector about ``centre``, translation of ``centre``
+        R_step = Rotation.from_rotvec(w).as_matrix()  # exact rotation of the solved axis-angle
+        t_step = centre + tau - R_step @ centre  # p -> centre + R_step (p - centre) + tau
+        R, t = compose(R_step, t_step, R, t)
+        iterations += 1
+        if np.linalg.norm(w) < tolerance and np.linalg.norm(tau) < tolerance * scale:
+            break
+    return _result(tree, src, R, t, iterations, max_distance, tuple(warnings))
+
+
+def _checked(src, tgt, R0, t0, max_distance: float, max_iterations: int):
+    """The inputs as float64 arrays, or ``ValueError``."""
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
     R = np.asarray(R0, dtype=np.float64)
@@ -83,32 +217,34 @@ def icp(
         raise ValueError(f"max_distance must be positive, got {max_distance}")
     if max_iterations < 0:
         raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
+    return src, tgt, R, t
 
-    tree = cKDTree(tgt)
-    src_tree = cKDTree(src) if reciprocal else None
-    tgt_radius = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(axis=0)) ** 2, axis=1))))
-    translation_tolerance = tolerance * max(tgt_radius, np.finfo(np.float64).tiny)
-    iterations = 0
-    for _ in range(max_iterations):
-        src_in_tgt = src @ R.T + t  # [N, 3]
-        dist, nearest = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
-        inlier = dist < max_distance  # [N]; misses come back as inf
-        if src_tree is not None:
-            tgt_in_src = (tgt - t) @ R  # [M, 3] = R^T (tgt - t)
-            nearest_src = src_tree.query(tgt_in_src, k=1)[1]  # [M]
-            candidates = np.flatnonzero(inlier)
-            inlier[candidates] = nearest_src[nearest[candidates]] == candidates
-        if np.count_nonzero(inlier) < MIN_INLIERS:
-            break
-        R_step, t_step = weighted_procrustes(src_in_tgt[inlier], tgt[nearest[inlier]], None, "weighted")
-        R, t = compose(R_step, t_step, R, t)
-        iterations += 1
-        angle = np.linalg.norm(R_step - np.eye(3)) / np.sqrt(2.0)  # ~ rotation angle when small
-        if angle < tolerance and np.linalg.norm(t_step) < translation_tolerance:
-            break
 
-    src_in_tgt = src @ R.T + t  # [N, 3]
-    dist, _ = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N]
+def _rms_radius(points: np.ndarray) -> float:
+    """RMS distance of ``points (M, 3)`` from their centroid (at least the smallest positive float)."""
+    radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+    return max(radius, np.finfo(np.float64).tiny)
+
+
+def _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Kept pairs ``inlier (N,)`` and nearest target index ``(N,)`` of the moved source ``src_in_tgt (N, 3)``.
+
+    A pair is kept when it is closer than ``max_distance`` and, with ``src_tree`` (the unmoved
+    source's tree), when the source point is also the target point's nearest source point.
+    """
+    dist, nearest = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
+    inlier = dist < max_distance  # [N]; misses come back as inf
+    if src_tree is not None:
+        tgt_in_src = (tgt - t) @ R  # [M, 3] = R^T (tgt - t)
+        nearest_src = src_tree.query(tgt_in_src, k=1)[1]  # [M]
+        candidates = np.flatnonzero(inlier)
+        inlier[candidates] = nearest_src[nearest[candidates]] == candidates
+    return inlier, nearest
+
+
+def _result(tree, src, R, t, iterations: int, max_distance: float, warnings: tuple[str, ...] = ()) -> IcpResult:
+    """:class:`IcpResult` of the pose ``(R, t)``: point-to-point statistics at ``max_distance``."""
+    dist, _ = tree.query(src @ R.T + t, k=1, distance_upper_bound=max_distance)  # [N]
     inlier_dist = dist[dist < max_distance]
     residual_rms = float(np.sqrt(np.mean(inlier_dist**2))) if inlier_dist.size else 0.0
     return IcpResult(
@@ -117,4 +253,6 @@ def icp(
         iterations=iterations,
         inlier_ratio=float(inlier_dist.size / src.shape[0]),
         residual_rms=residual_rms,
+        converged=not warnings,
+        warnings=warnings,
     )

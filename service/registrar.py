@@ -2,7 +2,7 @@
 
 ``Registrar.register`` = validate -> resample to the working size -> similarity normalisation ->
 encoder -> top-K keypoints -> n x (matcher -> argmax -> credibility weights -> weighted SVD ->
-compose) -> back to the caller's units -> optional ICP -> quality record.
+compose) -> back to the caller's units -> optional ICP (point-to-point or point-to-plane) -> quality record.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.errors import InputError
-from service.icp import icp
+from service.icp import icp, icp_plane
 from service.manifest import Manifest, load_manifest
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
@@ -31,7 +31,7 @@ KEYPOINT_RANGE = (16, 512)
 DEFAULT_WORKING_SIZE = 768
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
 ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
-REFINE_MODES = ("none", "icp")
+REFINE_MODES = ("none", "icp", "icp-plane")  # icp: point-to-point, mutual nearest neighbours; icp-plane: point-to-plane
 
 
 def default_threads() -> int:
@@ -287,6 +287,13 @@ class Registrar:
         the ranking uses those poses (with an early-training network the raw poses rarely land
         close enough to rank the right basin first; ``docs/ROTATION_SEARCH.md``); the winner then
         gets the usual ICP (mutual nearest neighbours, ``icp_max_distance``) to convergence.
+        ``refine="icp-plane"`` refines with point-to-plane ICP instead (:func:`service.icp.icp_plane`,
+        target normals; the same ``icp_max_distance`` / ``icp_max_iterations``): much closer than
+        point-to-point between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
+        rotation search the per-hypothesis short ICPs stay point-to-point; only the winner's final
+        refinement is point-to-plane. When it stops on a degenerate system (too few pairs, a planar
+        or linear target) it keeps the pose it had and adds a warning; ``reliable`` still comes
+        from :func:`service.quality.assess` alone.
         ``timing_ms["search"]`` is the whole search (network, short ICPs, ranking) and
         ``timing_ms["search_per_hypothesis"]`` that divided by the number of hypotheses.
         """
@@ -313,7 +320,7 @@ class Registrar:
             net = self.run_network(src_n, tgt_n, n_iter, k, timing)
             R_start, R_net, t_net = np.eye(3), net.rotation, net.translation
         else:
-            short_icp = (refine or "none") == "icp"
+            short_icp = (refine or "none") != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
             net, R_start, R_net, t_net = search_hypotheses(
                 self.run_network, src_n, tgt_n, hypotheses, n_iter, k, short_icp, INLIER_DISTANCE, timing
             )
@@ -324,10 +331,14 @@ class Registrar:
         ]
         R_final, t_final = self._to_caller(norm, R_net, t_net, R_init, t_init)
         scale = norm.scale
-        if (refine or "none") == "icp":
+        refine_warnings: tuple[str, ...] = ()
+        if (refine or "none") != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
-            refined = icp(src[idx_s], tgt_w, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations)
-            R_final, t_final = refined.rotation, refined.translation
+            method = icp_plane if refine == "icp-plane" else icp
+            refined = method(
+                src[idx_s], tgt_w, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
+            )
+            R_final, t_final, refine_warnings = refined.rotation, refined.translation, refined.warnings
             timing["refine"] = 1000 * (time.perf_counter() - t3)
         t4 = time.perf_counter()
         quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale)
@@ -345,7 +356,7 @@ class Registrar:
             inlier_ratio=quality.inlier_ratio,
             residual_rms=quality.residual_rms,
             reliable=bool(quality.reliable),  # assess() already refuses degenerate clouds
-            warnings=list(quality.warnings),
+            warnings=[*quality.warnings, *refine_warnings],
             iterations=n_iter,
             timing_ms=timing,
             iteration_poses=poses,

@@ -21,6 +21,11 @@ Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
+Refine = Literal["none", "icp", "icp-plane"]  # = service.registrar.REFINE_MODES (a test keeps them equal)
+REFINE_DESCRIPTION = (
+    "Optional refinement after the network: 'icp' = point-to-point ICP (mutual nearest neighbours), "
+    "'icp-plane' = point-to-plane ICP with target normals (closer for two independently sampled scans)."
+)
 
 _EXAMPLE_SOURCE = [[0.1 * i, 0.05 * (i % 7), 0.02 * (i % 5)] for i in range(MIN_POINTS)]
 _EXAMPLE_TARGET = [[x + 0.1, y, z] for x, y, z in _EXAMPLE_SOURCE]
@@ -48,7 +53,7 @@ class RegisterOptions(BaseModel):
     keypoints: int | None = Field(
         None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1], description="Keypoints per cloud; default: the model's."
     )
-    refine: Literal["none", "icp"] = Field("none", description="Optional ICP refinement after the network.")
+    refine: Refine = Field("none", description=REFINE_DESCRIPTION)
     initial_transform: Matrix4 | None = Field(
         None, description="Rigid 4x4 src_to_tgt guess; the network starts from the source moved by it."
     )
@@ -244,7 +249,7 @@ class InferParameters(BaseModel):
 
     iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
     keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
-    refine: Literal["none", "icp"] = "none"
+    refine: Refine = Field("none", description=REFINE_DESCRIPTION)
 
 
 class InferOutputTensor(BaseModel):

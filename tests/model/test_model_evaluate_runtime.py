@@ -17,16 +17,44 @@ pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "clean" / "manifest.
                                 reason="bundled model 'clean' absent")
 
 
-def test_evaluate_model_through_the_runtime_writes_the_metrics(tmp_path):
+@pytest.mark.parametrize("refine", ["icp", "icp-plane"])
+def test_evaluate_model_through_the_runtime_writes_the_metrics(tmp_path, refine):
     rng = np.random.default_rng(0)
     shapes = ellipsoid_surface(rng, (3, 1024), bump=0.0)
     save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
     out = tmp_path / "m.json"
-    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp", "--pairs",
+    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", refine, "--pairs",
                                       str(tmp_path / "p.npz"), "--json", str(out)])
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
     assert metrics["n"] == 3 and metrics["ms_per_pair"] > 0 and np.isfinite(metrics["mae_r"])
+
+
+def test_evaluate_passes_icp_plane_to_the_runtime(tmp_path, monkeypatch):
+    import service.registrar
+
+    seen = []
+    real = service.registrar.Registrar.register
+
+    def spy(self, *args, **kwargs):
+        if "refine" in kwargs:  # not the warm-up call
+            seen.append(kwargs["refine"])
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(service.registrar.Registrar, "register", spy)
+    rng = np.random.default_rng(1)
+    shapes = ellipsoid_surface(rng, (2, 1024))
+    save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
+    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp-plane", "--iterations", "1",
+                                      "--pairs", str(tmp_path / "p.npz")])
+    assert result.exit_code == 0, result.output
+    assert seen == ["icp-plane", "icp-plane"]
+
+
+def test_evaluate_rejects_an_unknown_refine_mode(tmp_path):
+    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "plane", "--pairs",
+                                      str(tmp_path / "missing.npz")])
+    assert result.exit_code != 0 and "icp-plane" in result.output
 
 
 def test_evaluate_needs_exactly_one_of_checkpoint_or_model():

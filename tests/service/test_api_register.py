@@ -12,7 +12,8 @@ from api_server import MODEL, assert_error, modelnet_pair, pair_json
 from scipy.spatial.transform import Rotation
 
 from service.api.runner import supports_option
-from service.registrar import Registrar
+from service.api.schemas import InferParameters
+from service.registrar import REFINE_MODES, Registrar
 
 CHEAP = {"iterations": 1, "keypoints": 16}
 
@@ -107,6 +108,53 @@ def test_icp_refinement_and_initial_transform_are_accepted(client):
     response = client.post("/v1/register", json=pair_json(pair, refine="icp", initial_transform=guess.tolist()))
     assert response.status_code == 200, response.text
     assert "refine" in response.json()["timing_ms"]
+
+
+@pytest.fixture(scope="session")
+def plane_refined(client) -> dict:
+    """``/v1/register`` of seeded pair 1 with ``refine="icp-plane"`` (the reference for the other routes)."""
+    response = client.post("/v1/register", json=pair_json(modelnet_pair(1), refine="icp-plane"))
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def test_point_to_plane_refinement_goes_through_json(plane_refined, single):
+    pair, body = modelnet_pair(1), plane_refined
+    assert "refine" in body["timing_ms"] and "refine" not in single[1]["timing_ms"]
+    assert body["rotation"] != single[1]["rotation"]  # the refinement ran and moved the pose
+    assert rotation_error_deg(np.array(body["rotation"]), pair.rotation) < 0.01  # measured 1e-7 deg (network: 0.03)
+    assert np.linalg.norm(np.array(body["translation"]) - pair.translation) < 1e-4  # measured 4e-10
+    assert body["quality"]["reliable"] and not any(w.startswith("refinement") for w in body["warnings"])
+
+
+@pytest.mark.parametrize("route", ["batch", "multipart", "oip"])
+def test_point_to_plane_refinement_goes_through_every_route(client, plane_refined, route):
+    pair = modelnet_pair(1)
+    if route == "batch":
+        response = client.post("/v1/register/batch", json={"pairs": [pair_json(pair, refine="icp-plane")]})
+        assert response.status_code == 200, response.text
+        assert response.json()["results"][0]["transform"] == plane_refined["transform"]
+    elif route == "multipart":
+        files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+        response = client.post("/v1/register", files=files, data={"refine": "icp-plane"})
+        assert response.status_code == 200, response.text
+        assert response.json()["transform"] == plane_refined["transform"]
+    else:
+        response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, refine="icp-plane"))
+        assert response.status_code == 200, response.text
+        transform = next(o for o in response.json()["outputs"] if o["name"] == "TRANSFORM")
+        np.testing.assert_array_equal(
+            np.array(transform["data"], np.float32).reshape(4, 4), np.array(plane_refined["transform"], np.float32)
+        )
+
+
+def test_openapi_lists_every_refine_mode(client):
+    doc = client.get("/openapi.json").json()
+    schema = doc["components"]["schemas"]["RegisterRequest"]["properties"]["refine"]
+    assert schema["enum"] == list(REFINE_MODES) and "icp-plane" in schema["description"]
+    form = doc["paths"]["/v1/register"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]
+    assert form["properties"]["refine"]["enum"] == list(REFINE_MODES)
+    assert InferParameters.model_validate({"refine": "icp-plane"}).refine == "icp-plane"  # OIP parameters
 
 
 def test_rotation_search_is_passed_through_or_refused_as_unsupported(client):

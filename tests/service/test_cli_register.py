@@ -226,6 +226,28 @@ def test_icp_refinement_reports_its_time(tmp_path, model_dir) -> None:
     assert record["iterations"] == 2 and "refine" in record["timing_ms"]
 
 
+def test_point_to_plane_refinement_gives_the_in_process_pose(tmp_path, model_dir) -> None:
+    import service.registrar
+
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--refine", "icp-plane", "--json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.stdout)
+    assert_proper_pose_record(record)
+    assert "refine" in record["timing_ms"]
+    registrar = service.registrar.Registrar(model_dir, threads=None, warmup=False)  # the module's shared one
+    expected = registrar.register(SOURCE, TARGET, iterations=1, keypoints=32, refine="icp-plane")
+    np.testing.assert_allclose(record["transform"], expected.transform, rtol=0, atol=1e-12)
+    other = registrar.register(SOURCE, TARGET, iterations=1, keypoints=32, refine="icp")
+    assert not np.allclose(record["transform"], other.transform, rtol=0, atol=1e-12)  # not point-to-point
+
+
+def test_rejects_an_unknown_refine_mode(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--refine", "plane", model_dir=model_dir)
+    assert result.exit_code == 2 and "icp-plane" in result.output
+
+
 # ------------------------------------------------------------------------------------- bad input
 
 

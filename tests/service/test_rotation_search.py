@@ -121,3 +121,28 @@ def test_rotation_search_rejects_an_unsupported_size(registrar) -> None:
     cloud = asymmetric_blob(100)
     with pytest.raises(InputError, match="search_rotations"):
         registrar.register(cloud, cloud, rotation_search=True, search_rotations=7)
+
+
+@needs_model
+def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(registrar, monkeypatch) -> None:
+    import service.registrar as registrar_module
+    import service.rotation_search as search_module
+
+    calls: dict[str, int] = {"short": 0, "final_point": 0, "final_plane": 0}
+
+    def counted(name, function):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return function(*args, **kwargs)
+
+        return wrapper
+
+    monkeypatch.setattr(search_module, "icp", counted("short", search_module.icp))
+    monkeypatch.setattr(registrar_module, "icp", counted("final_point", registrar_module.icp))
+    monkeypatch.setattr(registrar_module, "icp_plane", counted("final_plane", registrar_module.icp_plane))
+    R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
+    source, target = asymmetric_blob(600, 3), asymmetric_blob(500, 4) @ R.T
+    found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
+                               keypoints=64, iterations=2)
+    assert calls == {"short": 24, "final_point": 0, "final_plane": 1}  # short ICPs stay point-to-point
+    assert "refine" in found.timing_ms and np.isfinite(found.transform).all()

@@ -22,7 +22,7 @@ _MULTIPART_SCHEMA = {
         "model": {"type": "string"},
         "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
         "keypoints": {"type": "integer", "minimum": KEYPOINT_RANGE[0], "maximum": KEYPOINT_RANGE[1]},
-        "refine": {"type": "string", "enum": ["none", "icp"], "default": "none"},
+        "refine": {"type": "string", "enum": ["none", "icp", "icp-plane"], "default": "none"},
         "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
         "return_correspondences": {"type": "boolean", "default": True},
         "return_iterations": {"type": "boolean", "default": False},
