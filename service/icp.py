@@ -23,6 +23,7 @@ tangent plane costs nothing in the point-to-plane objective, so it converges muc
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -153,8 +154,9 @@ def icp_plane(
         :class:`IcpResult`.  With fewer than ``PLANE_MIN_INLIERS`` usable pairs, or normal equations
         whose smallest eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (a planar,
         linear or symmetric target leaves some motion unobserved), the pose of the last good
-        iteration is kept, ``converged`` is False and ``warnings`` says why.  ``inlier_ratio`` and
-        ``residual_rms`` are point-to-point distances, as for :func:`icp`.
+        iteration is kept, ``converged`` is False and ``warnings`` says why -- except for a degenerate
+        system, where point-to-point :func:`icp` continues from that pose (``converged`` is then its own).
+        ``inlier_ratio`` and ``residual_rms`` are point-to-point distances, as for :func:`icp`.
 
     Raises:
         ValueError: on wrongly shaped inputs or a non-positive ``max_distance``.
@@ -187,10 +189,12 @@ def icp_plane(
             warnings.append(
                 "refinement: point-to-plane ICP stopped on a degenerate system (the target's normals leave a "
                 f"motion unobserved: eigenvalue ratio {max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300):.1e}"
-                f" < {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or symmetric surface); kept the pose after "
-                f"{iterations} updates (point-to-point ICP can still use a planar target's outline)"
+                f" < {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or symmetric surface) after {iterations} updates; "
+                "continued with point-to-point ICP, which can still use a planar target's outline"
             )
-            break
+            fallback = icp(src, tgt, R, t, max_distance=max_distance, max_iterations=max_iterations - iterations,
+                           tolerance=tolerance, reciprocal=reciprocal)
+            return dataclasses.replace(fallback, iterations=iterations + fallback.iterations, warnings=tuple(warnings))
         x = eigenvectors @ ((eigenvectors.T @ g) / eigenvalues)  # [6] = H^-1 g
         w, tau = x[:3], x[3:] * scale  # rotation vector about ``centre``, translation of ``centre``
         R_step = Rotation.from_rotvec(w).as_matrix()  # exact rotation of the solved axis-angle

@@ -213,16 +213,28 @@ def degenerate_target(kind: str) -> np.ndarray:
     return rng.uniform(-1, 1, (400, 1)) * [1.0, 2.0, 3.0]  # a line
 
 
-@pytest.mark.parametrize(("kind", "reason"), [("planar", "degenerate system"), ("collinear", "defined target normal")])
-def test_plane_icp_keeps_the_pose_and_warns_on_a_degenerate_target(kind: str, reason: str) -> None:
-    tgt = degenerate_target(kind)
-    src = degenerate_target(kind)[::2] + 0.01  # another sampling, slightly shifted
+def test_plane_icp_keeps_the_pose_and_warns_on_a_collinear_target() -> None:
+    tgt = degenerate_target("collinear")
+    src = degenerate_target("collinear")[::2] + 0.01  # another sampling, slightly shifted
     R0, t0 = Rotation.from_rotvec([0.0, 0.0, 0.02]).as_matrix(), np.array([0.01, 0.0, 0.0])
     result = icp_plane(src, tgt, R0, t0, max_distance=0.2)
     assert not result.converged and result.iterations == 0
-    assert len(result.warnings) == 1 and reason in result.warnings[0]
+    assert len(result.warnings) == 1 and "defined target normal" in result.warnings[0]
     np.testing.assert_array_equal(result.rotation, R0)
     np.testing.assert_array_equal(result.translation, t0)
+
+
+def test_plane_icp_continues_with_point_to_point_on_a_planar_target() -> None:
+    tgt = degenerate_target("planar")
+    src = degenerate_target("planar")[::2] + 0.01
+    R0, t0 = Rotation.from_rotvec([0.0, 0.0, 0.02]).as_matrix(), np.array([0.01, 0.0, 0.0])
+    result = icp_plane(src, tgt, R0, t0, max_distance=0.2)
+    point = icp(src, tgt, R0, t0, max_distance=0.2)
+    assert len(result.warnings) == 1 and "degenerate system" in result.warnings[0]
+    assert "continued with point-to-point" in result.warnings[0]
+    assert result.iterations == point.iterations > 0 and result.converged
+    np.testing.assert_array_equal(result.rotation, point.rotation)
+    np.testing.assert_array_equal(result.translation, point.translation)
 
 
 def test_plane_icp_keeps_the_initial_pose_and_warns_without_pairs() -> None:
