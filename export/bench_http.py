@@ -1,4 +1,18 @@
-"""End-to-end HTTP latency and throughput against a real server on 127.0.0.1 (used by ``mfgnet bench``)."""
+"""End-to-end HTTP latency and throughput against a real server on 127.0.0.1 (used by ``mfgnet bench``).
+
+Run alone, it measures what HTTP adds to the in-process pipeline (docs/BENCHMARKS.md, "HTTP overhead")::
+
+    python -m export.bench_http --requests 40 --big-requests 3 --json overhead.json
+    python -m export.bench_http --compare-root /tmp/old-checkout   # and a server from another checkout
+
+The same seeded 768-point ModelNet40 pairs go through ``Registrar.register`` in this process and
+through ``POST /v1/register`` (JSON, one client thread), then 20k/100k-point pairs; each server's
+RSS is read from ``/proc`` after each phase. ``json`` rows include the client's own JSON encoding
+(httpx ``json=``, as ``mfgnet bench`` does); ``bytes`` rows send bodies encoded beforehand (server
+and transport only). ``beyond_pipeline`` is, per request, the client's time minus the server's own
+``timing_ms`` (pipeline total and queue), so it holds up when the machine's load drifts between the
+in-process and the HTTP calls. With ``--compare-root`` the servers run side by side and take turns.
+"""
 
 from __future__ import annotations
 
@@ -33,13 +47,18 @@ def rss_mb(pid: int, field: str = "VmRSS") -> float:
 class Server:
     """``mfgnet``'s HTTP app in a subprocess on a free loopback port (one uvicorn process)."""
 
-    def __init__(self, threads: int = 2, max_concurrency: int = 2, max_queue: int = 64):
+    def __init__(self, threads: int = 2, max_concurrency: int = 2, max_queue: int = 64, cwd: str | None = None,
+                 model_dirs: str | None = None):
         self.port = free_port()
         env = {**os.environ, "MFGNET_HOST": "127.0.0.1", "MFGNET_PORT": str(self.port),
                "MFGNET_THREADS": str(threads), "MFGNET_MAX_CONCURRENCY": str(max_concurrency),
                "MFGNET_MAX_QUEUE": str(max_queue), "MFGNET_LOG_LEVEL": "warning"}
+        if model_dirs:  # serve exactly these models (not the bundled ones of the checkout that runs)
+            env.update(MFGNET_MODEL_DIRS=model_dirs, MFGNET_BUNDLED_MODELS="false")
+        if cwd:  # "-c" puts the working directory first on sys.path: that checkout's service package runs
+            env["PYTHONPATH"] = cwd
         self.proc = subprocess.Popen([sys.executable, "-c", "from service.api.app import run_server; run_server()"],
-                                     env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                     env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.url = f"http://127.0.0.1:{self.port}"
 
     def __enter__(self) -> Server:
@@ -100,3 +119,130 @@ def bench_http(pairs: dict[str, np.ndarray], requests: int, sized: dict[str, tup
         report["rss_mb_end"] = rss_mb(server.proc.pid)
         report["rss_mb_peak"] = rss_mb(server.proc.pid, "VmHWM")
     return report
+
+
+# -- python -m export.bench_http: what HTTP adds to the in-process pipeline --------------------------
+def _p50(samples: list[float]) -> float:
+    return float(np.percentile(samples, 50))
+
+
+def bench_overhead(requests: int = 40, big_requests: int = 3, threads: int = 2,
+                   server_roots: tuple[str | None, ...] = (None,), seed: int = 0) -> dict:
+    """In-process vs HTTP p50 on 768-point pairs, 20k/100k-point JSON requests, and each server's RSS.
+
+    Several servers (``server_roots``: checkouts, ``None`` = this one) run side by side and every
+    round sends the same request to each in turn, after one in-process call: a busy machine slows
+    all of them alike, so their differences stay fair.
+    """
+    import json
+    import shutil
+    import tempfile
+    from contextlib import ExitStack
+    from pathlib import Path
+
+    from export.bench import LARGE_INPUTS, resize_cloud
+    from model.data import make_test_pairs
+    from service.manifest import bundled_models_dir
+    from service.registrar import Registrar
+
+    models = Path(tempfile.mkdtemp(prefix="mfgnet-bench-http-"))
+    shutil.copytree(bundled_models_dir() / "clean", models / "clean")  # one model for every side
+    try:
+        pairs = make_test_pairs("clean", "test", count=16, seed=seed)
+        sources, targets = list(pairs["source"]), list(pairs["target"])
+        registrar = Registrar(models / "clean", threads=threads)
+        bodies = [{"source": s.tolist(), "target": t.tolist()} for s, t in zip(sources, targets, strict=True)]
+        encoded = [json.dumps(b).encode() for b in bodies]
+        rng = np.random.default_rng(0)
+        big = {n: {"source": resize_cloud(sources[0], n, rng).tolist(),
+                   "target": resize_cloud(targets[0], n, rng).tolist()} for n in LARGE_INPUTS}
+        headers = {"content-type": "application/json"}
+        with ExitStack() as stack:
+            servers = [stack.enter_context(Server(threads=threads, cwd=root, model_dirs=str(models)))
+                       for root in server_roots]
+            clients = [stack.enter_context(httpx.Client(base_url=s.url, timeout=120)) for s in servers]
+            reports: list[dict] = [{"server_root": root or "(this checkout)",
+                                    "rss_mb_after_start": rss_mb(s.proc.pid)} for root, s in
+                                   zip(server_roots, servers, strict=True)]
+
+            def timed(client: httpx.Client, **kwargs) -> tuple[float, float]:
+                """Client-side ms of one request, and that minus the server's own pipeline ms (``timing_ms``)."""
+                tic = time.perf_counter()
+                response = client.post("/v1/register", **kwargs)
+                elapsed = 1000 * (time.perf_counter() - tic)
+                if response.status_code != 200:
+                    raise RuntimeError(f"{response.status_code}: {response.text[:300]}")
+                timing = response.json()["timing_ms"]
+                return elapsed, elapsed - timing["total"] - timing["queue"]
+
+            def rounds(count: int, kinds: dict, warmup: int = 1) -> dict[str, list[list[tuple[float, float]]]]:
+                """``kinds``: name -> (i -> request kwargs); each round times every kind on every server."""
+                times: dict = {kind: [[] for _ in servers] for kind in kinds}
+                for i in range(-warmup, count):
+                    for kind, make in kinds.items():
+                        for k, client in enumerate(clients):
+                            measured = timed(client, **make(i))
+                            if i >= 0:
+                                times[kind][k].append(measured)
+                return times
+
+            in_process: list[float] = []
+            registrar.register(sources[0], targets[0])
+            for i in range(requests):
+                tic = time.perf_counter()
+                registrar.register(sources[i % len(sources)], targets[i % len(targets)])
+                in_process.append(1000 * (time.perf_counter() - tic))
+                rounds(1, {"json": lambda _, i=i: {"json": bodies[i % len(bodies)]}}, warmup=0)  # interleave
+            small = rounds(requests, {
+                "json": lambda i: {"json": bodies[i % len(bodies)]},
+                "bytes": lambda i: {"content": encoded[i % len(encoded)], "headers": headers},
+            })
+            report: dict = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "threads": threads,
+                            "in_process_768_p50_ms": _p50(in_process)}
+            for k, server in enumerate(servers):
+                r = reports[k]
+                for kind in ("json", "bytes"):
+                    r[f"http_768_{kind}_p50_ms"] = _p50([t for t, _ in small[kind][k]])
+                    r[f"overhead_768_{kind}_ms"] = r[f"http_768_{kind}_p50_ms"] - report["in_process_768_p50_ms"]
+                    r[f"beyond_pipeline_768_{kind}_p50_ms"] = _p50([extra for _, extra in small[kind][k]])
+                r["rss_mb_after_768"] = rss_mb(server.proc.pid)
+            for n, body in big.items():
+                raw = json.dumps(body).encode()
+                sized = rounds(big_requests, {"json": lambda _, body=body: {"json": body},
+                                              "bytes": lambda _, raw=raw: {"content": raw, "headers": headers}})
+                for k, server in enumerate(servers):
+                    for kind in ("json", "bytes"):
+                        reports[k][f"http_{n}_{kind}_p50_ms"] = _p50([t for t, _ in sized[kind][k]])
+                        reports[k][f"beyond_pipeline_{n}_{kind}_p50_ms"] = _p50([extra for _, extra in sized[kind][k]])
+                    reports[k][f"rss_mb_after_{n}"] = rss_mb(server.proc.pid)
+                report[f"body_{n}_mib"] = len(raw) / 2**20
+            for k, server in enumerate(servers):
+                reports[k]["rss_mb_peak"] = rss_mb(server.proc.pid, "VmHWM")
+            report["servers"] = reports
+    finally:
+        shutil.rmtree(models, ignore_errors=True)
+    return report
+
+
+def main() -> None:
+    import argparse
+    import json
+
+    parser = argparse.ArgumentParser(description="What HTTP adds to the in-process pipeline (see module docstring).")
+    parser.add_argument("--requests", type=int, default=40, help="timed 768-point rounds")
+    parser.add_argument("--big-requests", type=int, default=3, help="timed rounds per 20k/100k size")
+    parser.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (in process and servers)")
+    parser.add_argument("--compare-root", action="append", default=[],
+                        help="also serve from this checkout, side by side (repeatable)")
+    parser.add_argument("--json", help="also write the report here")
+    args = parser.parse_args()
+    report = bench_overhead(args.requests, args.big_requests, args.threads, (None, *args.compare_root))
+    text = json.dumps(report, indent=1)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as f:
+            f.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

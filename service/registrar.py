@@ -135,6 +135,10 @@ class Registrar:
         # One thread pool per session: idle pools must not spin, or the encoder's and each matcher's
         # threads fight for the same cores between consecutive calls (measured: 4x slower loop).
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        # No memory pattern: after the first run ORT planned one extra block per session for the
+        # shapes it saw, on top of its arena (+80 MB RSS from the second call on, same latency;
+        # docs/BENCHMARKS.md, "HTTP overhead").
+        options.enable_mem_pattern = False
         providers = ["CPUExecutionProvider"]
         started = time.perf_counter()
         self.encoder = ort.InferenceSession(self.manifest.graph_bytes("encoder"), options, providers=providers)

@@ -16,6 +16,7 @@ from service.api.errors import APIError
 from service.api.limiter import InferenceLimiter, Slot
 from service.api.metrics import Metrics
 from service.api.registry import ModelEntry, ModelRegistry
+from service.api.schemas import RegisterOptions
 from service.pose_json import pose_fields
 from service.registrar import (
     DEFAULT_WORKING_SIZE,
@@ -119,19 +120,15 @@ def model_ref(entry: ModelEntry) -> dict[str, str]:
 
 
 def register_response(entry: ModelEntry, pair: Pair, result: RegistrationResult, queue_ms: float) -> dict[str, Any]:
-    """The ``RegisterResponse`` body (plain floats: JSON keeps every float64 bit)."""
-    body: dict[str, Any] = {
-        **pose_fields(result.rotation, result.translation),
-        "quality": {
-            "inlier_ratio": float(result.inlier_ratio),
-            "residual_rms": float(result.residual_rms),
-            "reliable": bool(result.reliable),
-        },
-        "warnings": list(result.warnings),
-        "model": model_ref(entry),
-        "iterations": int(result.iterations),
-        "timing_ms": {"queue": queue_ms, **{k: float(v) for k, v in result.timing_ms.items()}},
-    }
+    """The ``RegisterResponse`` body (plain floats: JSON keeps every float64 bit), keys in the model's
+    field order and no ``None`` values, as ``response_model_exclude_none=True`` rendered it.
+
+    ``ValueError`` (a 500) if a number breaks the response schema: NaN or infinity (JSON has none),
+    credibility outside [0, 1] or a negative weight. FastAPI's response validation and
+    ``json.dumps(allow_nan=False)`` refused such bodies before the routes rendered with orjson.
+    """
+    _check_response_numbers(result, queue_ms, pair.options)
+    body: dict[str, Any] = pose_fields(result.rotation, result.translation)
     if pair.options.return_correspondences:
         body["correspondences"] = [
             {"source_index": s, "target_index": g, "credibility": c, "weight": w}
@@ -143,11 +140,36 @@ def register_response(entry: ModelEntry, pair: Pair, result: RegistrationResult,
                 strict=True,
             )
         ]
+    body.update({
+        "quality": {
+            "inlier_ratio": float(result.inlier_ratio),
+            "residual_rms": float(result.residual_rms),
+            "reliable": bool(result.reliable),
+        },
+        "warnings": list(result.warnings),
+        "model": model_ref(entry),
+        "iterations": int(result.iterations),
+        "timing_ms": {"queue": float(queue_ms), **{k: float(v) for k, v in result.timing_ms.items()}},
+    })
     if pair.options.return_iterations:
         body["iteration_poses"] = [
             {"rotation": p.rotation.tolist(), "translation": p.translation.tolist()} for p in result.iteration_poses
         ]
     return body
+
+
+def _check_response_numbers(result: RegistrationResult, queue_ms: float, options: RegisterOptions) -> None:
+    scalars = [result.inlier_ratio, result.residual_rms, queue_ms, *result.timing_ms.values()]
+    arrays = [result.rotation, result.translation, np.asarray(scalars, dtype=np.float64)]
+    ok = True
+    if options.return_correspondences:
+        credibility, weight = result.credibility, result.weight
+        arrays += [credibility, weight]
+        ok = bool(((credibility >= 0) & (credibility <= 1)).all() and (weight >= 0).all())
+    if options.return_iterations:
+        arrays += [a for pose in result.iteration_poses for a in (pose.rotation, pose.translation)]
+    if not (ok and all(np.isfinite(a).all() for a in arrays)):
+        raise ValueError("the registration result has numbers the response schema does not allow")
 
 
 def infer_outputs(result: RegistrationResult, names: list[str]) -> list[dict[str, Any]]:

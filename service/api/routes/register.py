@@ -7,6 +7,7 @@ from fastapi import APIRouter, Depends, Request
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
 from service.api.errors import error_docs
+from service.api.responses import RenderedJSON
 from service.api.runner import register_response
 from service.api.schemas import BatchResponse, RegisterResponse
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
@@ -48,15 +49,15 @@ def _request_body(schema_name: str, multipart: bool) -> dict:
     openapi_extra=_request_body("RegisterRequest", multipart=True),
     responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
 )
-async def register(request: Request) -> dict:
+async def register(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
     kind = bodies.require_media_type(request, bodies.JSON, bodies.MULTIPART)
     with runner.admit() as slot:
         if kind == bodies.JSON:
-            body = await request.body()
+            received = [await bodies.read_body(request)]
 
-            def decode() -> bodies.Pair:
-                return bodies.register_pair_from_json(body, settings.max_points)
+            def decode() -> bodies.Pair:  # pops the body: it is freed once parsed, before the pipeline runs
+                return bodies.register_pair_from_json(received.pop(), settings.max_points)
         else:
             form = await bodies.read_register_form(request)
 
@@ -70,7 +71,7 @@ async def register(request: Request) -> dict:
 
         (entry, pair, result), queue_ms = await runner.run(slot, work)
     runner.observe(entry, result, queue_ms)
-    return register_response(entry, pair, result, queue_ms)
+    return RenderedJSON(register_response(entry, pair, result, queue_ms))  # response_model: for the docs only
 
 
 @router.post(
@@ -82,17 +83,18 @@ async def register(request: Request) -> dict:
     openapi_extra=_request_body("BatchRequest", multipart=False),
     responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
 )
-async def register_batch(request: Request) -> dict:
+async def register_batch(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
     bodies.require_media_type(request, bodies.JSON)
     with runner.admit() as slot:
-        body = await request.body()
+        received = [await bodies.read_body(request)]
 
         def work():
-            pairs = bodies.batch_pairs_from_json(body, settings.max_points, settings.max_batch)
+            pairs = bodies.batch_pairs_from_json(received.pop(), settings.max_points, settings.max_batch)
             return pairs, runner.register_batch(pairs)
 
         (pairs, done), queue_ms = await runner.run(slot, work)
     for entry, result in done:
         runner.observe(entry, result, queue_ms)
-    return {"results": [register_response(e, p, r, queue_ms) for p, (e, r) in zip(pairs, done, strict=True)]}
+    results = [register_response(e, p, r, queue_ms) for p, (e, r) in zip(pairs, done, strict=True)]
+    return RenderedJSON({"results": results})
