@@ -172,9 +172,9 @@ def compare_methods(registrar, model, setting: str, count: int, seed: int, class
 
     pairs = make_test_pairs(setting, "test", count=count, seed=seed)
 
-    def pipeline(refine: str):
+    def pipeline(refine: str, rotation_search: bool = False):
         def method(src, tgt):
-            res = registrar.register(src, tgt, refine=refine)
+            res = registrar.register(src, tgt, refine=refine, rotation_search=rotation_search)
             return res.rotation, res.translation
 
         return method
@@ -184,7 +184,13 @@ def compare_methods(registrar, model, setting: str, count: int, seed: int, class
         out = model(torch.from_numpy(src[None]), torch.from_numpy(tgt[None]))
         return out.rotation[0].double().numpy(), out.translation[0].double().numpy()
 
-    methods = {"torch_eager": eager, "onnx_pipeline": pipeline("none"), "onnx_pipeline_icp": pipeline("icp")}
+    methods = {
+        "torch_eager": eager,
+        "onnx_pipeline": pipeline("none"),
+        "onnx_pipeline_icp": pipeline("icp"),
+        "onnx_pipeline_icp_plane": pipeline("icp-plane"),
+        "onnx_search_icp_plane": pipeline("icp-plane", rotation_search=True),
+    }
     if classical:
         from export.baselines import fgr, fpfh_ransac_icp
 
