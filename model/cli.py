@@ -11,6 +11,7 @@ import typer
 from export.baselines import METHODS as BASELINES  # Open3D is imported only when one runs (the bench extra)
 from model.data import SETTINGS, load_pairs, make_test_pairs, protocol_for, save_pairs
 from model.recipes import RECIPES
+from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
 SourcePoints = Annotated[int | None, typer.Option(help="source points kept after the crop (default: the crop size)")]
@@ -124,7 +125,14 @@ def evaluate(
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
     refine: Annotated[str, typer.Option(help="with --model: none, icp or icp-plane")] = "none",
-    rotation_search: Annotated[bool, typer.Option(help="with --model: start from rotations covering SO(3)")] = False,
+    rotation_search: Annotated[
+        bool | None, typer.Option(help="with --model: always start from rotations covering SO(3) (= mode on)")
+    ] = None,
+    rotation_search_mode: Annotated[
+        RotationSearchMode | None,
+        typer.Option(help="with --model: off, on (= --rotation-search) or auto (search only where the plain "
+                          "result looks wrong; reports the share of pairs searched) [default: off]"),
+    ] = None,
     baseline: Annotated[
         str | None, typer.Option(help=f"classical method instead of a network: {', '.join(BASELINES)} (bench extra)")
     ] = None,
@@ -142,13 +150,17 @@ def evaluate(
 
         if refine not in REFINE_MODES:
             raise typer.BadParameter(f"unknown --refine {refine!r}; expected one of {', '.join(REFINE_MODES)}")
+    try:
+        search = rotation_search_from_options(rotation_search, rotation_search_mode)
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from err
     if pairs:
         data_pairs = load_pairs(pairs)
     else:
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
     if model is not None:
-        R, t, secs = _runtime_poses(model, data_pairs, iterations, keypoints, refine, rotation_search)
+        R, t, secs, searched = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search)
     elif baseline is not None:
         from export.baselines import run_method
 
@@ -160,6 +172,8 @@ def evaluate(
         R, t, secs = predict_poses(load_model(checkpoint), data_pairs, batch_size, iterations, keypoints,
                                    progress=True)
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
+    if model is not None and search == "auto":
+        metrics["rotation_search_share"] = searched / len(R)  # pairs on which "auto" ran the search
     text = json.dumps(metrics, indent=2)
     typer.echo(text)
     if json_out:
@@ -167,8 +181,9 @@ def evaluate(
 
 
 def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str,
-                   rotation_search: bool = False):
-    """Poses of every pair through the service's own pipeline (``Registrar.register``)."""
+                   rotation_search: bool | str = False):
+    """Poses of every pair through the service's own pipeline (``Registrar.register``), the seconds they took
+    and on how many pairs the rotation search ran (``timing_ms["search"]``)."""
     import time
 
     import numpy as np
@@ -179,11 +194,12 @@ def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: i
 
     folder = Path(model) if Path(model).is_dir() else bundled_models_dir() / model
     registrar = Registrar(folder)
-    Rs, ts = [], []
+    Rs, ts, searched = [], [], 0
     begin = time.perf_counter()
     for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):
         res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine,
                                  rotation_search=rotation_search)
         Rs.append(res.rotation)
         ts.append(res.translation)
-    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin
+        searched += "search" in res.timing_ms
+    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin, searched

@@ -18,6 +18,8 @@ from typing import Annotated, NoReturn
 import numpy as np
 import typer
 
+from service.search_mode import RotationSearchMode, rotation_search_from_options
+
 app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False)
 
 TRAIN_EXTRA_HINT = "this command needs the training side: pip install 'mfgnet[train]'"
@@ -111,8 +113,16 @@ def register_command(
     api_key: Annotated[str | None, typer.Option(envvar="MFGNET_API_KEY", help="API key for --server")] = None,
     binary: Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files, not JSON")] = False,
     rotation_search: Annotated[
-        bool, typer.Option(help="start from 24 rotations covering SO(3) (any relative orientation; ~10x slower)")
-    ] = False,
+        bool | None,
+        typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; 10-20x slower); "
+                          "= --rotation-search-mode on"),
+    ] = None,
+    rotation_search_mode: Annotated[
+        RotationSearchMode | None,
+        typer.Option(help="off: never search; on: always (= --rotation-search); auto: register plainly first and "
+                          "search only when that result looks wrong (unreliable or low inlier ratio), keeping the "
+                          "better of both; timing_ms then has a 'search' key [default: off]"),
+    ] = None,
     threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")] = False,
 ) -> None:
@@ -130,6 +140,10 @@ def register_command(
         _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
     if server and model_dir:
         _fail("--model-dir only applies in-process; a server uses its own model folders")
+    try:
+        search = rotation_search_from_options(rotation_search, rotation_search_mode)
+    except ValueError as exc:
+        _fail(str(exc))
     clouds = []
     for path in (source, target):
         try:
@@ -141,7 +155,7 @@ def register_command(
     src, tgt = clouds
     init = _read_transform(initial_transform) if initial_transform is not None else None
     options = {"iterations": iterations, "keypoints": keypoints, "refine": refine.value, "initial_transform": init,
-               "rotation_search": rotation_search}
+               "rotation_search": search}
     if server:
         record = _register_remote(server, api_key, src, tgt, model, options, binary)
     else:

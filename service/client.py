@@ -15,7 +15,7 @@ from __future__ import annotations
 import io
 import json
 import time
-from typing import Any
+from typing import Any, Literal
 
 import httpx
 import numpy as np
@@ -73,7 +73,7 @@ class MfgnetClient:
         return_correspondences: bool = True,
         return_iterations: bool = False,
         binary: bool = False,
-        rotation_search: bool = False,
+        rotation_search: bool | Literal["auto"] = False,
     ) -> dict:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
@@ -82,6 +82,9 @@ class MfgnetClient:
             target: ``(M, 3)`` points.
             model, iterations, keypoints, refine (``"none"`` | ``"icp"`` | ``"icp-plane"``), initial_transform (4x4):
                 left out of the request when ``None`` (the server's defaults apply).
+            rotation_search: ``True`` = search over initial rotations covering SO(3) (any relative
+                orientation, much slower); ``"auto"`` = only when the plain result looks wrong (the
+                response's ``timing_ms`` then has a ``search`` key); ``False`` (default) = never.
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds).
 

@@ -3,8 +3,9 @@
 The normalised working source starts from every rotation of a finite group covering SO(3) evenly
 (:func:`search_rotations_for`); :func:`search_hypotheses` runs them through the registrar's network loop as
 one batch, optionally gives each pose a short wide-basin ICP, and keeps the best by :func:`rank_hypotheses`
-(inlier ratio, then residual). ``Registrar.register(rotation_search=True)`` calls it; figures and the reason
-for the short ICPs: ``docs/ROTATION_SEARCH.md``.
+(inlier ratio, then residual). ``Registrar.register(rotation_search=True)`` calls it, and
+``rotation_search="auto"`` when the plain result looks wrong; figures and the reason for the short ICPs:
+``docs/ROTATION_SEARCH.md``.
 """
 
 from __future__ import annotations

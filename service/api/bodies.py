@@ -394,6 +394,7 @@ def infer_call_from_json(body: bytes, max_points: int) -> InferCall:
         raise APIError(422, f"invalid request: outputs: unknown output(s) {unknown}; expected some of {OIP_OUTPUTS}")
     source, target = (_decode_tensor(by_name[name], max_points) for name in OIP_INPUTS)
     options = RegisterOptions(
-        iterations=params.iterations, keypoints=params.keypoints, refine=params.refine, return_correspondences=True
+        iterations=params.iterations, keypoints=params.keypoints, refine=params.refine,
+        rotation_search=params.rotation_search, return_correspondences=True,
     )
     return InferCall(req.id, Pair(options, source, target), outputs)

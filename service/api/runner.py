@@ -72,7 +72,7 @@ class Runner:
         if o.rotation_search:
             if not supports_option(type(registrar), "rotation_search"):
                 raise APIError(422, f"invalid request: {prefix}rotation_search: not supported by this server")
-            kwargs["rotation_search"] = True
+            kwargs["rotation_search"] = o.rotation_search  # True or "auto"
         try:
             check_cloud(pair.source, "source")
             check_cloud(pair.target, "target")
@@ -188,7 +188,8 @@ def infer_outputs(result: RegistrationResult, names: list[str]) -> list[dict[str
 
 
 def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
-    return {
+    """The OIP response ``parameters``; ``search_ms`` only when the rotation search ran (``timing_ms["search"]``)."""
+    parameters = {
         "iterations": int(result.iterations),
         "inlier_ratio": float(result.inlier_ratio),
         "residual_rms": float(result.residual_rms),
@@ -196,3 +197,6 @@ def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
         "warnings": "; ".join(result.warnings),
         "total_ms": float(result.timing_ms["total"]),
     }
+    if "search" in result.timing_ms:
+        parameters["search_ms"] = float(result.timing_ms["search"])
+    return parameters

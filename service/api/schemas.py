@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, WrapValidator
+from pydantic_core import PydanticCustomError
 
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS, MIN_POINTS
 
@@ -26,6 +27,24 @@ REFINE_DESCRIPTION = (
     "Optional refinement after the network: 'icp' = point-to-point ICP (mutual nearest neighbours), "
     "'icp-plane' = point-to-plane ICP with target normals (closer for two independently sampled scans)."
 )
+
+ROTATION_SEARCH_DESCRIPTION = (
+    "Search over initial rotations covering SO(3), for any relative orientation (10-20x the time): true = always; "
+    "'auto' = only when the plain result looks wrong (not reliable, or inlier ratio below the documented "
+    "threshold), then the better of both is returned and timing_ms has a 'search' key; false = never. "
+    "422 when the loaded pipeline does not support it."
+)
+
+
+def _one_rotation_search_error(value: Any, handler: Any) -> Any:
+    """One clear message instead of one per member of the union."""
+    try:
+        return handler(value)
+    except ValidationError:
+        raise PydanticCustomError("rotation_search", "Input should be true, false or 'auto'") from None
+
+
+RotationSearch = Annotated[bool | Literal["auto"], WrapValidator(_one_rotation_search_error)]
 
 _EXAMPLE_SOURCE = [[0.1 * i, 0.05 * (i % 7), 0.02 * (i % 5)] for i in range(MIN_POINTS)]
 _EXAMPLE_TARGET = [[x + 0.1, y, z] for x, y, z in _EXAMPLE_SOURCE]
@@ -59,9 +78,7 @@ class RegisterOptions(BaseModel):
     )
     return_correspondences: bool = Field(True, description="Include the keypoint correspondences.")
     return_iterations: bool = Field(False, description="Include the cumulative pose after each iteration.")
-    rotation_search: bool = Field(
-        False, description="Search over initial rotations; 422 when the loaded pipeline does not support it."
-    )
+    rotation_search: RotationSearch = Field(False, description=ROTATION_SEARCH_DESCRIPTION)
 
 
 class RegisterRequest(RegisterOptions):
@@ -221,7 +238,7 @@ class InferRequestedOutput(BaseModel):
 
 
 class InferRequest(BaseModel):
-    """OIP v2 inference request; options go into ``parameters``: iterations, keypoints, refine."""
+    """OIP v2 inference request; options go into ``parameters``: iterations, keypoints, refine, rotation_search."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -250,6 +267,7 @@ class InferParameters(BaseModel):
     iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
     keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
     refine: Refine = Field("none", description=REFINE_DESCRIPTION)
+    rotation_search: RotationSearch = Field(False, description=ROTATION_SEARCH_DESCRIPTION)
 
 
 class InferOutputTensor(BaseModel):

@@ -60,3 +60,32 @@ def test_evaluate_rejects_an_unknown_refine_mode(tmp_path):
 def test_evaluate_needs_exactly_one_of_checkpoint_or_model():
     result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--checkpoint", "clean"])
     assert result.exit_code != 0 and "exactly one" in result.output
+
+
+def test_evaluate_rotation_search_mode_auto_reports_the_share_of_pairs_searched(tmp_path, monkeypatch):
+    import service.registrar
+
+    seen = []
+    real = service.registrar.Registrar.register
+
+    def spy(self, *args, **kwargs):
+        if "refine" in kwargs:  # not the warm-up call
+            seen.append(kwargs["rotation_search"])
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(service.registrar.Registrar, "register", spy)
+    rng = np.random.default_rng(2)
+    shapes = ellipsoid_surface(rng, (2, 1024))
+    save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
+    out = tmp_path / "m.json"
+    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp", "--rotation-search-mode",
+                                      "auto", "--pairs", str(tmp_path / "p.npz"), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert seen == ["auto", "auto"]
+    assert json.loads(out.read_text())["rotation_search_share"] in (0.0, 0.5, 1.0)
+
+
+def test_evaluate_rejects_contradicting_rotation_search_options(tmp_path):
+    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--rotation-search", "--rotation-search-mode",
+                                      "off", "--pairs", str(tmp_path / "missing.npz")])
+    assert result.exit_code == 2 and "contradicts" in result.output

@@ -165,6 +165,68 @@ def test_rotation_search_is_passed_through_or_refused_as_unsupported(client):
         assert_error(response, 422, "rotation_search", "not supported")
 
 
+def oip_transform(response) -> np.ndarray:
+    """The ``TRANSFORM`` output of an OIP ``infer`` response as float32 ``[4, 4]``."""
+    transform = next(o for o in response.json()["outputs"] if o["name"] == "TRANSFORM")
+    return np.array(transform["data"], np.float32).reshape(4, 4)
+
+
+def test_rotation_search_auto_keeps_a_good_plain_result_on_every_route(client, single):
+    """Pair 1 registers well plainly (inlier ratio 0.90): "auto" returns that result and runs no search."""
+    pair, reference = modelnet_pair(1), single[1]
+    body = client.post("/v1/register", json=pair_json(pair, rotation_search="auto")).json()
+    assert "search" not in body["timing_ms"], body
+    for key in ("transform", "correspondences", "quality", "warnings"):
+        assert body[key] == reference[key], key
+    files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+    form = client.post("/v1/register", files=files, data={"rotation_search": "auto"}).json()
+    assert form["transform"] == reference["transform"] and "search" not in form["timing_ms"]
+    batch = client.post("/v1/register/batch", json={"pairs": [pair_json(pair, rotation_search="auto")]}).json()
+    assert batch["results"][0]["transform"] == reference["transform"]
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, rotation_search="auto"))
+    assert response.status_code == 200, response.text
+    np.testing.assert_array_equal(oip_transform(response), np.array(reference["transform"], np.float32))
+    assert "search_ms" not in response.json()["parameters"]
+
+
+def test_rotation_search_auto_searches_after_a_poor_plain_result(client):
+    """With one iteration and 16 keypoints pair 1's plain result is unreliable (inlier ratio 0.21): "auto" searches."""
+    pair = modelnet_pair(1)
+    body = client.post("/v1/register", json=pair_json(pair, rotation_search="auto", **CHEAP)).json()
+    assert body["timing_ms"]["search"] > 0 and "search_per_hypothesis" in body["timing_ms"], body
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, rotation_search="auto", **CHEAP))
+    assert response.status_code == 200, response.text
+    parameters = response.json()["parameters"]
+    assert parameters["search_ms"] > 0 and parameters["inlier_ratio"] == body["quality"]["inlier_ratio"]
+    np.testing.assert_array_equal(oip_transform(response), np.array(body["transform"], np.float32))
+
+
+@pytest.mark.parametrize("value", ["maybe", "AUTO", 1, None])
+def test_rotation_search_refuses_values_other_than_true_false_or_auto(client, value):
+    pair = modelnet_pair(1)
+    response = client.post("/v1/register", json=pair_json(pair, rotation_search=value))
+    assert_error(response, 422, "rotation_search", "true, false or 'auto'")
+    response = client.post("/v1/register/batch", json={"pairs": [pair_json(pair, rotation_search=value)]})
+    assert_error(response, 422, "pairs[0].rotation_search", "'auto'")
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, rotation_search=value))
+    assert_error(response, 422, "rotation_search", "'auto'")
+    if isinstance(value, str):
+        files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+        response = client.post("/v1/register", files=files, data={"rotation_search": value})
+        assert_error(response, 422, "rotation_search", "'auto'")
+
+
+def test_openapi_documents_rotation_search_auto(client):
+    doc = client.get("/openapi.json").json()
+    schema = doc["components"]["schemas"]["RegisterRequest"]["properties"]["rotation_search"]
+    assert {"type": "boolean"} in schema["anyOf"] and any(s.get("const") == "auto" for s in schema["anyOf"])
+    assert "'auto'" in schema["description"] and schema["default"] is False
+    form = doc["paths"]["/v1/register"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]
+    assert {"type": "string", "enum": ["auto"]} in form["properties"]["rotation_search"]["anyOf"]
+    assert "rotation_search" in doc["paths"]["/v2/models/{name}/infer"]["post"]["description"]
+    assert InferParameters.model_validate({"rotation_search": "auto"}).rotation_search == "auto"  # OIP parameters
+
+
 def test_multipart_npy_upload_equals_json(client, single):
     pair = modelnet_pair(1)
     files = {

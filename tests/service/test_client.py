@@ -90,6 +90,19 @@ def test_binary_register_sends_float32_npy_files_and_form_fields() -> None:
     assert "model" not in parts
 
 
+@pytest.mark.parametrize(("value", "json_value", "form_value"), [(True, True, b"true"), ("auto", "auto", b"auto")])
+def test_rotation_search_is_sent_when_asked(value, json_value, form_value) -> None:
+    recorder = Recorder()
+    client = client_for(recorder)
+    client.register(cloud(), cloud(seed=1), rotation_search=value)
+    client.register(cloud(), cloud(seed=1), rotation_search=value, binary=True)
+    client.register(cloud(), cloud(seed=1))
+    json_request, form_request, default_request = recorder.requests
+    assert json.loads(json_request.content)["rotation_search"] == json_value
+    assert multipart_parts(form_request)["rotation_search"] == form_value
+    assert "rotation_search" not in json.loads(default_request.content)  # off: left to the server's default
+
+
 def test_api_key_is_sent_as_a_bearer_token() -> None:
     recorder = Recorder(body={"models": []})
     client_for(recorder, api_key="s3cret").models()

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob
 
 from service.manifest import bundled_models_dir
-from service.registrar import InputError, Registrar
+from service.registrar import AUTO_SEARCH_INLIER_RATIO, InputError, Registrar, needs_search
 from service.rotation_search import search_rotations_for
 
 BUNDLED = bundled_models_dir() / "clean"
@@ -146,3 +146,120 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
                                keypoints=64, iterations=2)
     assert calls == {"short": 24, "final_point": 0, "final_plane": 1}  # short ICPs stay point-to-point
     assert "refine" in found.timing_ms and np.isfinite(found.transform).all()
+
+
+# --- rotation_search="auto" -----------------------------------------------------------------------
+
+
+def blob_pair(degrees: float, axis=(0.48, 0.85, -0.21)) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Source, target (800 of its 1024 points, rotated by ``degrees`` about ``axis`` and moved), R and t."""
+    source = asymmetric_blob(1024, 1)
+    axis = np.asarray(axis) / np.linalg.norm(axis)
+    R = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
+    t = np.array([0.2, -0.1, 0.3])
+    subset = np.random.default_rng(5).permutation(1024)[:800]
+    return source, source[subset] @ R.T + t, R, t
+
+
+def spy_on_search(monkeypatch) -> list[int]:
+    """Count the calls of the rotation search made by ``Registrar.register``."""
+    import service.registrar as registrar_module
+
+    calls: list[int] = []
+    real = registrar_module.search_hypotheses
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(registrar_module, "search_hypotheses", spy)
+    return calls
+
+
+@needs_model
+@pytest.mark.parametrize("refine", ["icp", "icp-plane"])
+def test_auto_keeps_a_good_plain_result_without_searching(registrar, monkeypatch, refine) -> None:
+    source, target, R, _ = blob_pair(20.0)
+    plain = registrar.register(source, target, refine=refine, return_iterations=True)
+    assert plain.reliable and plain.inlier_ratio >= AUTO_SEARCH_INLIER_RATIO  # measured 0.94, 0.03 deg
+    calls = spy_on_search(monkeypatch)
+    auto = registrar.register(source, target, refine=refine, return_iterations=True, rotation_search="auto")
+    assert calls == [] and "search" not in auto.timing_ms and "search_per_hypothesis" not in auto.timing_ms
+    np.testing.assert_array_equal(auto.transform, plain.transform)
+    for name in ("source_index", "target_index", "credibility", "weight"):
+        np.testing.assert_array_equal(getattr(auto, name), getattr(plain, name))
+    assert (auto.inlier_ratio, auto.residual_rms, auto.reliable, auto.warnings) == (
+        plain.inlier_ratio, plain.residual_rms, plain.reliable, plain.warnings)
+    np.testing.assert_array_equal(auto.iteration_poses[-1].rotation, plain.iteration_poses[-1].rotation)
+    assert angle_deg(auto.rotation, R) < 1.0
+
+
+@needs_model
+@pytest.mark.parametrize("refine", ["icp", "icp-plane"])
+def test_auto_searches_when_the_plain_result_looks_wrong_and_recovers_150_degrees(registrar, refine) -> None:
+    source, target, R, t = blob_pair(150.0)  # the shape of the 150-degree test above
+    plain = registrar.register(source, target, refine=refine)
+    assert angle_deg(plain.rotation, R) > 30.0 and needs_search(plain)  # measured: 100-120 deg, inliers 0.32-0.39
+
+    auto = registrar.register(source, target, refine=refine, rotation_search="auto")
+    assert angle_deg(auto.rotation, R) < 2.0  # measured 0.03 (icp) / 0.008 (icp-plane) deg
+    assert np.abs(auto.translation - t).max() < 0.05
+    assert auto.reliable and auto.inlier_ratio > 0.9
+    assert {"search", "search_per_hypothesis", "encoder", "refine", "total"} <= set(auto.timing_ms)
+    assert auto.timing_ms["search_per_hypothesis"] == pytest.approx(auto.timing_ms["search"] / 24)
+    assert auto.timing_ms["total"] >= auto.timing_ms["search"]
+    searched = registrar.register(source, target, refine=refine, rotation_search=True)
+    np.testing.assert_array_equal(auto.transform, searched.transform)  # the search's winner, unchanged
+
+
+@needs_model
+def test_auto_keeps_the_plain_result_when_it_ranks_before_the_searched_one(registrar, monkeypatch) -> None:
+    import service.registrar as registrar_module
+
+    real = registrar_module.search_hypotheses
+
+    def wrong_winner(*args, **kwargs):  # the search "finds" a pose 90 degrees off the plain one
+        net, start, R, t = real(*args, **kwargs)
+        return net, start, Rotation.from_euler("x", 90, degrees=True).as_matrix() @ R, t
+
+    monkeypatch.setattr(registrar_module, "needs_search", lambda result: True)  # search even a good result
+    monkeypatch.setattr(registrar_module, "search_hypotheses", wrong_winner)
+    source, target, _, _ = blob_pair(20.0)
+    options = {"working_size": 256, "keypoints": 64, "iterations": 2}
+    plain = registrar.register(source, target, **options)
+    auto = registrar.register(source, target, rotation_search="auto", **options)
+    assert "search" in auto.timing_ms
+    np.testing.assert_array_equal(auto.transform, plain.transform)
+    assert auto.inlier_ratio == plain.inlier_ratio
+
+
+@needs_model
+def test_auto_returns_the_better_of_both_by_the_search_ranking(registrar, monkeypatch) -> None:
+    import service.registrar as registrar_module
+
+    monkeypatch.setattr(registrar_module, "needs_search", lambda result: True)  # search even a good result
+    source, target, _, _ = blob_pair(20.0)
+    options = {"working_size": 256, "keypoints": 64, "iterations": 2, "refine": "icp"}
+    plain = registrar.register(source, target, **options)
+    searched = registrar.register(source, target, rotation_search=True, **options)
+    auto = registrar.register(source, target, rotation_search="auto", **options)
+    best = min((plain, searched), key=lambda r: (-r.inlier_ratio, r.residual_rms))  # plain first on a tie
+    np.testing.assert_array_equal(auto.transform, best.transform)
+    assert "search" in auto.timing_ms
+
+
+def test_needs_search_follows_reliability_and_the_documented_threshold() -> None:
+    from types import SimpleNamespace
+
+    assert 0.6 < AUTO_SEARCH_INLIER_RATIO < 0.74  # inside the calibration's gap (service/registrar.py)
+    assert not needs_search(SimpleNamespace(reliable=True, inlier_ratio=AUTO_SEARCH_INLIER_RATIO))
+    assert needs_search(SimpleNamespace(reliable=True, inlier_ratio=AUTO_SEARCH_INLIER_RATIO - 1e-9))
+    assert needs_search(SimpleNamespace(reliable=False, inlier_ratio=1.0))
+
+
+@needs_model
+@pytest.mark.parametrize("value", ["yes", "on", "AUTO", 1, 0.5])
+def test_rotation_search_rejects_values_other_than_true_false_or_auto(registrar, value) -> None:
+    cloud = asymmetric_blob(100)
+    with pytest.raises(InputError, match="rotation_search must be true, false or 'auto'"):
+        registrar.register(cloud, cloud, rotation_search=value)

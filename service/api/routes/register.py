@@ -9,7 +9,7 @@ from service.api.deps import get_runner, get_settings, require_api_key
 from service.api.errors import error_docs
 from service.api.responses import RenderedJSON
 from service.api.runner import register_response
-from service.api.schemas import BatchResponse, RegisterResponse
+from service.api.schemas import ROTATION_SEARCH_DESCRIPTION, BatchResponse, RegisterResponse
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
 
 router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
@@ -27,7 +27,11 @@ _MULTIPART_SCHEMA = {
         "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
         "return_correspondences": {"type": "boolean", "default": True},
         "return_iterations": {"type": "boolean", "default": False},
-        "rotation_search": {"type": "boolean", "default": False},
+        "rotation_search": {
+            "anyOf": [{"type": "boolean"}, {"type": "string", "enum": ["auto"]}],
+            "default": False,
+            "description": ROTATION_SEARCH_DESCRIPTION,
+        },
     },
 }
 
