@@ -24,7 +24,7 @@ app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, 
 
 TRAIN_EXTRA_HINT = "this command needs the training side: pip install 'mfgnet[train]'"
 SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
-DEFAULT_MODEL = "clean"
+DEFAULT_MODEL = "general"  # trained for independently sampled scans; clean/unseen reproduce the paper
 ACCURACY_KEYS = ("rmse_r", "mae_r", "rmse_t", "mae_t", "recall_r5_t005")  # shown first by `mfgnet models`
 
 

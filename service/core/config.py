@@ -37,7 +37,9 @@ class Settings(BaseSettings):
         description="Extra model folders (a model folder, or a folder of model folders); comma or colon separated.",
     )
     bundled_models: bool = Field(True, description="Also serve the models shipped in service/models.")
-    default_model: str = Field("clean", description="Model used when a request names none.")
+    default_model: str = Field(
+        "general", description="Model used when a request names none (general: trained on independently sampled pairs)."
+    )
     strict_readiness: bool = Field(
         True, description="Ready only if every discovered model loaded (Triton's --strict-readiness)."
     )

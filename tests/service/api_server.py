@@ -178,6 +178,7 @@ def start_subprocess_server(name: str, **env: str) -> Server:
         "MFGNET_THREADS": "1",
         "MFGNET_BUNDLED_MODELS": "false",
         "MFGNET_MODEL_DIRS": str(model_root()),
+        "MFGNET_DEFAULT_MODEL": MODEL,  # the test servers load only this model
         **env,
     }
     code = "from service.api.app import run_server; run_server()"
@@ -207,6 +208,7 @@ def isolated_settings(**values):
     from service.core.config import Settings
 
     saved = {k: os.environ.pop(k) for k in list(os.environ) if k.startswith("MFGNET_")}
+    values.setdefault("default_model", MODEL)  # the test servers load only this model
     try:
         return Settings(**values)
     finally:

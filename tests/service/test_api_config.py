@@ -19,7 +19,7 @@ def clean_env(monkeypatch):
 
 def test_defaults_are_safe():
     s = Settings()
-    assert s.model_dirs == [] and s.default_model == "clean"
+    assert s.model_dirs == [] and s.default_model == "general"
     assert (s.host, s.port, s.threads) == ("127.0.0.1", 8080, 2)
     assert (s.max_points, s.max_body_bytes) == (200_000, 64 * 1024 * 1024)
     assert (s.max_concurrency, s.max_queue, s.timeout_s) == (2, 16, 30)
