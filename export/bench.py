@@ -172,7 +172,7 @@ def compare_methods(registrar, model, setting: str, count: int, seed: int, class
 
     pairs = make_test_pairs(setting, "test", count=count, seed=seed)
 
-    def pipeline(refine: str, rotation_search: bool = False):
+    def pipeline(refine: str, rotation_search: bool | str = False):
         def method(src, tgt):
             res = registrar.register(src, tgt, refine=refine, rotation_search=rotation_search)
             return res.rotation, res.translation
@@ -189,6 +189,7 @@ def compare_methods(registrar, model, setting: str, count: int, seed: int, class
         "onnx_pipeline": pipeline("none"),
         "onnx_pipeline_icp": pipeline("icp"),
         "onnx_pipeline_icp_plane": pipeline("icp-plane"),
+        "onnx_auto_search_icp_plane": pipeline("icp-plane", rotation_search="auto"),
         "onnx_search_icp_plane": pipeline("icp-plane", rotation_search=True),
     }
     if classical:
