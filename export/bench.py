@@ -125,18 +125,33 @@ def run_bench(
         "checkpoint": checkpoint,
         "pairs": f"{setting} test pairs, seed {seed}, 768 points per cloud",
     }
+    from tqdm import tqdm
+
+    stages = tqdm(total=7 + len(accuracy_settings), desc="bench", unit="stage")
+    stages.set_postfix_str("pipeline")
     report["pipeline_768"] = bench_pipeline(registrar, pairs, repeats)
+    stages.update()
+    stages.set_postfix_str("torch eager")
     report["torch_eager_768"] = bench_torch(model, pairs, repeats)
     report["speedup_vs_torch"] = report["torch_eager_768"]["total"]["p50"] / report["pipeline_768"]["total"]["p50"]
+    stages.update()
+    stages.set_postfix_str("iterations 1-6")
     report["iterations"] = {
         str(n): bench_pipeline(registrar, pairs, max(5, repeats // 2), iterations=n)["total"] for n in ITERATIONS
     }
+    stages.update()
+    stages.set_postfix_str("accuracy at 1-6 iterations")
+    report["iteration_accuracy"] = iteration_accuracy(registrar, setting, accuracy_count, seed)
+    stages.update()
+    stages.set_postfix_str("working sizes")
     sized = {}
     for size in SIZES:
         rng = np.random.default_rng(size)
         resized = {k: [resize_cloud(p, size, rng) for p in pairs[k][:4]] for k in ("source", "target")}
         sized[str(size)] = bench_pipeline(registrar, resized, max(5, repeats // 2), working_size=size)["total"]
     report["working_size"] = sized
+    stages.update()
+    stages.set_postfix_str("large inputs")
     rng = np.random.default_rng(0)
     inputs = {
         str(n): (resize_cloud(pairs["source"][0], n, rng), resize_cloud(pairs["target"][0], n, rng))
@@ -145,14 +160,42 @@ def run_bench(
     report["input_size_working_768"] = {
         n: bench_pipeline(registrar, {"source": [s], "target": [t]}, 5)["total"] for n, (s, t) in inputs.items()
     }
+    stages.update()
+    stages.set_postfix_str("HTTP")
     if http_requests:
         from export.bench_http import bench_http
 
         report["http"] = bench_http(pairs, http_requests, inputs, threads)
-    report["accuracy"] = [
-        compare_methods(registrar, model, s, accuracy_count, seed, classical) for s in accuracy_settings
-    ]
+    stages.update()
+    report["accuracy"] = []
+    for s in accuracy_settings:
+        stages.set_postfix_str(f"side by side: {s}")
+        report["accuracy"].append(compare_methods(registrar, model, s, accuracy_count, seed, classical))
+        stages.update()
+    stages.close()
     return report
+
+
+def iteration_accuracy(registrar, setting: str, count: int, seed: int) -> dict:
+    """The paper's ablation: accuracy of the pipeline (no refinement) at 1-6 iterations on the same seeded pairs."""
+    from export.baselines import run_method
+    from model.data import make_test_pairs
+    from model.metrics import registration_metrics
+
+    pairs = make_test_pairs(setting, "test", count=count, seed=seed)
+
+    def with_iterations(n: int):
+        def method(src, tgt):
+            res = registrar.register(src, tgt, iterations=n)
+            return res.rotation, res.translation
+
+        return method
+
+    out = {"setting": setting, "count": count, "seed": seed}
+    for n in ITERATIONS:
+        R, t, seconds = run_method(with_iterations(n), pairs)
+        out[str(n)] = registration_metrics(R, t, pairs["rotation"], pairs["translation"], seconds)
+    return out
 
 
 def resize_cloud(points: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
