@@ -30,12 +30,21 @@ from service.core.logging import configure_logging
 REQUEST_SCHEMAS = (RegisterRequest, BatchRequest, InferRequest)
 
 
+def effective_default_model(settings: Settings, registry: ModelRegistry) -> str:
+    """``MFGNET_DEFAULT_MODEL``, or the only served model when that one is not served (e.g. a server
+    started on a single ``--model-dir`` model with the bundled models off)."""
+    if settings.default_model not in registry.entries and len(registry.entries) == 1:
+        return next(iter(registry.entries))
+    return settings.default_model
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     metrics = Metrics()
     registry = ModelRegistry.discover(
         settings.model_dirs,
         bundled=settings.bundled_models,
+        only=settings.models,
         threads=settings.threads,
         strict=settings.strict_readiness,
         on_loaded=lambda entry: _record_load(metrics, entry),
@@ -64,7 +73,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
     app.state.registry = registry
     app.state.limiter = limiter
-    app.state.runner = Runner(registry, limiter, metrics, settings.default_model)
+    app.state.runner = Runner(registry, limiter, metrics, effective_default_model(settings, registry))
 
     install_error_handlers(app)
     for router in (register.router, models.router, oip.router, metrics_routes.router):

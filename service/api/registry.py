@@ -62,11 +62,23 @@ class ModelRegistry:
         self._thread: threading.Thread | None = None
 
     @classmethod
-    def discover(cls, extra_dirs: list[str], bundled: bool = True, **kwargs) -> ModelRegistry:
+    def discover(
+        cls, extra_dirs: list[str], bundled: bool = True, only: list[str] | None = None, **kwargs
+    ) -> ModelRegistry:
+        """Model folders under ``extra_dirs`` (and the bundled ones); ``only``: keep these names.
+
+        Raises:
+            ValueError: when ``only`` names a model that was not found.
+        """
         found = discover_model_dirs(extra_dirs)
         if not bundled:
             root = bundled_models_dir().resolve()
             found = [d for d in found if d.resolve().parent != root]
+        if only:
+            missing = sorted(set(only) - {d.name for d in found})
+            if missing:
+                raise ValueError(f"MFGNET_MODELS names models that were not found: {', '.join(missing)}")
+            found = [d for d in found if d.name in only]
         return cls(found, **kwargs)
 
     # -- loading ---------------------------------------------------------------------------------

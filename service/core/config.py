@@ -37,6 +37,11 @@ class Settings(BaseSettings):
         description="Extra model folders (a model folder, or a folder of model folders); comma or colon separated.",
     )
     bundled_models: bool = Field(True, description="Also serve the models shipped in service/models.")
+    models: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Serve only these model names, comma separated (empty: every discovered model). Each "
+        "model holds five ONNX Runtime sessions, so a one-model deployment uses far less memory.",
+    )
     default_model: str = Field(
         "general", description="Model used when a request names none (general: trained on independently sampled pairs)."
     )
@@ -66,6 +71,11 @@ class Settings(BaseSettings):
     @classmethod
     def _split_paths(cls, value: object) -> object:
         return _split(value, r"[,:]")
+
+    @field_validator("models", mode="before")
+    @classmethod
+    def _split_names(cls, value: object) -> object:
+        return _split(value, r"[,\s]+")
 
     @field_validator("cors_origins", mode="before")
     @classmethod

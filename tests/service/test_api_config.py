@@ -54,3 +54,34 @@ def test_empty_api_key_means_no_key(monkeypatch):
 def test_out_of_range_settings_are_refused(field, value):
     with pytest.raises(ValidationError, match=field):
         Settings(**{field: value})
+
+
+def test_models_restricts_the_served_models(monkeypatch):
+    from service.api.registry import ModelRegistry
+    from service.manifest import bundled_models_dir
+
+    if not {"clean", "general"} <= {d.name for d in bundled_models_dir().iterdir()}:
+        pytest.skip("needs the bundled clean and general models")
+    monkeypatch.setenv("MFGNET_MODELS", "general, clean")
+    settings = Settings()
+    assert settings.models == ["general", "clean"]
+    only = ModelRegistry.discover(settings.model_dirs, only=settings.models)
+    assert set(only.entries) == {"general", "clean"}
+    assert set(ModelRegistry.discover([], only=["general"]).entries) == {"general"}
+    assert {"general", "clean"} < set(ModelRegistry.discover([]).entries)  # default: every bundled model
+    with pytest.raises(ValueError, match="not found: nope"):
+        ModelRegistry.discover([], only=["general", "nope"])
+
+
+def test_the_only_served_model_is_the_default_when_the_configured_one_is_not_served():
+    from service.api.app import effective_default_model
+    from service.api.registry import ModelRegistry
+    from service.manifest import bundled_models_dir
+
+    if not {"clean", "general"} <= {d.name for d in bundled_models_dir().iterdir()}:
+        pytest.skip("needs the bundled clean and general models")
+    settings = Settings()
+    assert effective_default_model(settings, ModelRegistry.discover([], only=["clean"])) == "clean"
+    assert effective_default_model(settings, ModelRegistry.discover([], only=["clean", "general"])) == "general"
+    explicit = Settings(default_model="unseen")  # several models and the configured one absent: kept (404s name it)
+    assert effective_default_model(explicit, ModelRegistry.discover([], only=["clean", "general"])) == "unseen"
