@@ -247,17 +247,25 @@ def test_the_training_stream_draws_fresh_disjoint_halves_every_epoch() -> None:
     assert all(v.shape == (384,) for v in first.values())
 
 
-def test_train_runs_with_the_resampled_setting_and_saves_its_protocol(tmp_path) -> None:
-    from model.checkpoint import read_checkpoint
+TINY_MODEL = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
+              "knn": 8, "train_positives": 16, "train_negatives": 16}
 
+
+def tiny_training_data(tmp_path) -> str:
+    """A data folder whose training split is 30 random spheres (labels 0-19)."""
     folder = tmp_path / "data"
     folder.mkdir()
     np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
              labels=np.arange(30) % 20)
-    tiny = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
-            "knn": 8, "train_positives": 16, "train_negatives": 16}
-    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=str(folder), epochs=1, batch_size=2,
-                        max_batches_per_epoch=1, val_pairs=2, device="cpu", config=tiny, source_points=192,
+    return str(folder)
+
+
+def test_train_runs_with_the_resampled_setting_and_saves_its_protocol(tmp_path) -> None:
+    from model.checkpoint import read_checkpoint
+
+    folder = tiny_training_data(tmp_path)
+    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=folder, epochs=1, batch_size=2,
+                        max_batches_per_epoch=1, val_pairs=2, device="cpu", config=TINY_MODEL, source_points=192,
                         max_angle=90.0)
     assert opts.pair_protocol() == protocol_for("resampled", source_points=192, max_angle=90.0)
     train(opts)
@@ -397,14 +405,9 @@ def test_the_training_stream_draws_one_protocol_per_batch() -> None:
 
 
 def test_train_runs_with_the_general_recipe_and_records_it(tmp_path) -> None:
-    folder = tmp_path / "data"
-    folder.mkdir()
-    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
-             labels=np.arange(30) % 20)
-    tiny = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
-            "knn": 8, "train_positives": 16, "train_negatives": 16}
-    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=str(folder), epochs=1, batch_size=2,
-                        max_batches_per_epoch=3, val_pairs=2, device="cpu", config=tiny, recipe="general")
+    folder = tiny_training_data(tmp_path)
+    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=folder, epochs=1, batch_size=2,
+                        max_batches_per_epoch=3, val_pairs=2, device="cpu", config=TINY_MODEL, recipe="general")
     train(opts)
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert log[0]["batches"] == 3 and np.isfinite(log[0]["train_total"])
