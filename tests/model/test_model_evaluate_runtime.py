@@ -30,7 +30,8 @@ def test_evaluate_model_through_the_runtime_writes_the_metrics(tmp_path, refine)
     assert metrics["n"] == 3 and metrics["ms_per_pair"] > 0 and np.isfinite(metrics["mae_r"])
 
 
-def test_evaluate_passes_icp_plane_to_the_runtime(tmp_path, monkeypatch):
+def spy_on_register(monkeypatch, option: str) -> list:
+    """The values of ``option`` that ``Registrar.register`` receives (warm-up calls, which pass none, skipped)."""
     import service.registrar
 
     seen = []
@@ -38,13 +39,24 @@ def test_evaluate_passes_icp_plane_to_the_runtime(tmp_path, monkeypatch):
 
     def spy(self, *args, **kwargs):
         if "refine" in kwargs:  # not the warm-up call
-            seen.append(kwargs["refine"])
+            seen.append(kwargs[option])
         return real(self, *args, **kwargs)
 
     monkeypatch.setattr(service.registrar.Registrar, "register", spy)
-    rng = np.random.default_rng(1)
+    return seen
+
+
+def two_pairs_file(tmp_path, seed: int):
+    """Two seeded ellipsoid pairs written as a pairs file."""
+    rng = np.random.default_rng(seed)
     shapes = ellipsoid_surface(rng, (2, 1024))
     save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
+    return tmp_path / "p.npz"
+
+
+def test_evaluate_passes_icp_plane_to_the_runtime(tmp_path, monkeypatch):
+    seen = spy_on_register(monkeypatch, "refine")
+    two_pairs_file(tmp_path, 1)
     result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp-plane", "--iterations", "1",
                                       "--pairs", str(tmp_path / "p.npz")])
     assert result.exit_code == 0, result.output
@@ -63,20 +75,8 @@ def test_evaluate_needs_exactly_one_of_checkpoint_or_model():
 
 
 def test_evaluate_rotation_search_mode_auto_reports_the_share_of_pairs_searched(tmp_path, monkeypatch):
-    import service.registrar
-
-    seen = []
-    real = service.registrar.Registrar.register
-
-    def spy(self, *args, **kwargs):
-        if "refine" in kwargs:  # not the warm-up call
-            seen.append(kwargs["rotation_search"])
-        return real(self, *args, **kwargs)
-
-    monkeypatch.setattr(service.registrar.Registrar, "register", spy)
-    rng = np.random.default_rng(2)
-    shapes = ellipsoid_surface(rng, (2, 1024))
-    save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
+    seen = spy_on_register(monkeypatch, "rotation_search")
+    two_pairs_file(tmp_path, 2)
     out = tmp_path / "m.json"
     result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp", "--rotation-search-mode",
                                       "auto", "--pairs", str(tmp_path / "p.npz"), "--json", str(out)])
