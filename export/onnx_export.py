@@ -18,11 +18,25 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from model.network import NORM_EPS, BNReLULinear, IterationMatcher, MFGNet, PairMLP, pair_distance
+from model.network import (
+    NORM_EPS,
+    BNReLULinear,
+    EdgeConvBlock,
+    IterationMatcher,
+    MFGNet,
+    PairMLP,
+    gather_points,
+    knn_indices,
+    pair_distance,
+)
 
 OPSET = 17
 ENCODER_FILE = "encoder.onnx"
 MATCHER_FILE = "matcher_{i}.onnx"
+
+
+def _const(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().clone()
 
 
 class AddShift(nn.Module):
@@ -49,25 +63,47 @@ def fold_batchnorm(model: MFGNet) -> MFGNet:
     return folded
 
 
+class LeanEdgeConv(nn.Module):
+    """Export form of a folded ``EdgeConvBlock``: the BatchNorm shift is subtracted from the
+    per-point centre term, ``relu(W x_j - (W x_i - shift))``, so the ``[B, k, N, C]`` edge tensor
+    sees one Sub and one Relu instead of Sub, Add and Relu."""
+
+    def __init__(self, block: EdgeConvBlock):
+        super().__init__()
+        self.linear = copy.deepcopy(block.edge.linear)
+        self.register_buffer("shift", _const(block.edge.bn.shift))  # [C]
+        self.register_buffer("edge_weight", _const(block.edge_out.weight))  # [C, C]
+        self.register_buffer("edge_bias", _const(block.edge_out.bias))  # [C]
+        self.point = copy.deepcopy(block.point)
+
+    def forward(self, x: torch.Tensor, idx_kn: torch.Tensor) -> torch.Tensor:
+        y = self.linear(x)  # [B, N, C]
+        e = F.relu(gather_points(y, idx_kn) - (y - self.shift)[:, None])  # [B, k, N, C]
+        e = F.linear(e, self.edge_weight).amax(dim=1) + self.edge_bias  # [B, N, C]
+        return self.point(e)
+
+
 class EncoderGraph(nn.Module):
     """``points [B, N, 3]`` -> ``embedding [B, N, D]``, ``score [B, N]``."""
 
     def __init__(self, model: MFGNet):
         super().__init__()
-        self.model = model
+        self.blocks = nn.ModuleList(LeanEdgeConv(block) for block in model.encoder.blocks)
+        self.k = model.encoder.k
+        self.significance = copy.deepcopy(model.significance)
 
     def forward(self, points: torch.Tensor):
-        return self.model.embed(points)
-
-
-def _const(t: torch.Tensor) -> torch.Tensor:
-    return t.detach().clone()
+        idx_kn = knn_indices(points, self.k).transpose(1, 2)  # [B, k, N]
+        x = points
+        for block in self.blocks:
+            x = block(x, idx_kn)
+        return x, self.significance(x)  # [B, N, D], [B, N]
 
 
 class LeanPairMLP(nn.Module):
-    """Export form of a folded ``PairMLP``: the same arithmetic, with the pair tensor flattened to
-    ``[B*K*L, C]`` so every hidden layer is one ``Gemm`` (bias = folded BatchNorm shift) that ONNX
-    Runtime fuses with its ``Relu``."""
+    """Export form of a folded ``PairMLP``: the same arithmetic up to float rounding, with the pair
+    tensor flattened to ``[B*K*L, C]`` so every hidden layer is one ``Gemm`` (bias = folded BatchNorm
+    shift) that ONNX Runtime fuses with its ``Relu``."""
 
     def __init__(self, mlp: PairMLP):
         super().__init__()
@@ -89,9 +125,12 @@ class LeanPairMLP(nn.Module):
         dist = pair_distance(a, b)  # [B, K, L]
         inv = 1.0 / (dist + NORM_EPS)
         pa, pb = F.linear(a, self.W_diff), F.linear(b, self.W_diff)  # [B, K, C], [B, L, C]
-        per_a = self.shift if extra_a is None else F.linear(extra_a, self.W_extra) + self.shift  # [(B, K,) C]
-        z = (pa[:, :, None] - pb[:, None]) * inv[..., None] + dist[..., None] * self.w_norm  # [B, K, L, C]
-        z = F.relu(z + (per_a[:, :, None] if extra_a is not None else per_a))
+        per_a = self.shift.expand(B, K, -1) if extra_a is None else F.linear(extra_a, self.W_extra) + self.shift
+        # z = inv (pa_i - pb_j) + dist w_norm + per_a_i: the per-pair terms [inv, dist, 1] times a per-keypoint
+        # [3, C] matrix in one batched MatMul, then the pb_j term: three [B, K, L, C] ops instead of five.
+        coeff = torch.stack([pa, self.w_norm.expand(B, K, -1), per_a], dim=2)  # [B, K, 3, C]
+        pair = torch.stack([inv, dist, torch.ones_like(dist)], dim=-1)  # [B, K, L, 3]
+        z = F.relu(pair @ coeff - inv[..., None] * pb[:, None])  # [B, K, L, C]
         z = z.reshape(-1, z.shape[-1])  # [B*K*L, C]
         for layer in self.hidden:
             z = F.relu(layer(z))

@@ -47,7 +47,8 @@ def pair_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     ``torch.cdist`` (non-matmul mode) in PyTorch; the explicit difference when exporting to ONNX.
     """
     if torch.onnx.is_in_onnx_export():
-        return ((a[:, :, None] - b[:, None]) ** 2).sum(-1).sqrt()
+        diff = a[:, :, None] - b[:, None]  # [B, K, L, d]
+        return (diff * diff).sum(-1).sqrt()  # Mul, not Pow: ONNX Runtime's Pow is ~2x slower
     return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")
 
 
