@@ -84,16 +84,19 @@ class LeanEdgeConv(nn.Module):
 
 
 class EncoderGraph(nn.Module):
-    """``points [B, N, 3]`` -> ``embedding [B, N, D]``, ``score [B, N]``."""
+    """``points [B, N, 3]``, ``neighbours [B, N, k]`` -> ``embedding [B, N, D]``, ``score [B, N]``.
+
+    The k-NN graph is an input: the runtime builds it with a KD-tree (``service.neighbours``), far
+    cheaper than an ``[N, N]`` distance matrix and TopK inside the graph.
+    """
 
     def __init__(self, model: MFGNet):
         super().__init__()
         self.blocks = nn.ModuleList(LeanEdgeConv(block) for block in model.encoder.blocks)
-        self.k = model.encoder.k
         self.significance = copy.deepcopy(model.significance)
 
-    def forward(self, points: torch.Tensor):
-        idx_kn = knn_indices(points, self.k).transpose(1, 2)  # [B, k, N]
+    def forward(self, points: torch.Tensor, neighbours: torch.Tensor):
+        idx_kn = neighbours.transpose(1, 2)  # [B, k, N]
         x = points
         for block in self.blocks:
             x = block(x, idx_kn)
@@ -178,9 +181,11 @@ def export_graphs(model: MFGNet, out_dir: Path) -> dict[str, str]:
     folded = fold_batchnorm(model)
     D = folded.cfg.emb_dims
     files = {"encoder": ENCODER_FILE}
-    _export(EncoderGraph(folded), (torch.rand(1, 64, 3),), out_dir / ENCODER_FILE, ["points"],
-            ["embedding", "score"], {"points": {0: "B", 1: "N"}, "embedding": {0: "B", 1: "N"},
-                                     "score": {0: "B", 1: "N"}})
+    points = torch.rand(1, 64, 3)
+    _export(EncoderGraph(folded), (points, knn_indices(points, folded.cfg.knn)), out_dir / ENCODER_FILE,
+            ["points", "neighbours"], ["embedding", "score"],
+            {"points": {0: "B", 1: "N"}, "neighbours": {0: "B", 1: "N"}, "embedding": {0: "B", 1: "N"},
+             "score": {0: "B", 1: "N"}})
     example = (torch.rand(1, 16, 3), torch.rand(1, 20, 3), torch.randn(1, 16, D), torch.randn(1, 20, D))
     for i in range(len(folded.matchers)):
         name = MATCHER_FILE.format(i=i)

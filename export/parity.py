@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from model.metrics import rotation_angle_deg
-from model.network import MFGNet
+from model.network import MFGNet, knn_indices
 from service.registrar import Registrar
 
 GRAPH_TOL = 1e-4  # absolute, per graph output
@@ -28,6 +28,7 @@ class ParityReport:
     compared: int
     excluded_ties: int
     keypoint_boundary_ties: int  # pairs where the K-th / (K+1)-th significance scores nearly tie
+    knn_ties: int  # pairs whose runtime k-NN graph differs from the model's (distance ties; excluded)
     max_encoder_diff: float
     max_matcher_diff: float
     max_rotation_diff_deg: float
@@ -55,11 +56,17 @@ def check_parity(
     n_iter = iterations or model.cfg.iterations
     K = keypoints or model.cfg.keypoints
     enc_diff = match_diff = rot_diff = trans_diff = 0.0
-    compared = excluded = boundary = 0
+    compared = excluded = boundary = knn_ties = 0
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
         src_t, tgt_t = torch.from_numpy(src[None]), torch.from_numpy(tgt[None])
-        emb_ref, score_ref = model.embed(src_t)
-        emb, score = registrar.embed(src[None])
+        nb_s, nb_t = registrar.neighbours(src[None]), registrar.neighbours(tgt[None])
+        # the runtime's KD-tree and the model's float32 distances can only disagree at distance ties
+        same_graphs = all(
+            _same_graph(nb, knn_indices(cloud, model.cfg.knn).numpy()) for nb, cloud in ((nb_s, src_t), (nb_t, tgt_t))
+        )
+        knn_ties += not same_graphs
+        emb_ref, score_ref = model.embed(src_t, torch.from_numpy(nb_s))  # per graph: the same inputs
+        emb, score = registrar.embed(src[None], nb_s)
         enc_diff = max(
             enc_diff, float(np.abs(emb - emb_ref.numpy()).max()), float(np.abs(score - score_ref.numpy()).max())
         )
@@ -88,14 +95,14 @@ def check_parity(
         match_diff = max(
             match_diff, float(np.abs(scores - s_ref.numpy()).max()), float(np.abs(logit - l_ref.numpy()).max())
         )
-        if out.min_top2_gap < TIE_GAP or out.min_median_gap < SELECTION_GAP:
+        if out.min_top2_gap < TIE_GAP or out.min_median_gap < SELECTION_GAP or not same_graphs:
             excluded += 1
             continue
         compared += 1
         rot_diff = max(rot_diff, float(rotation_angle_deg(out.rotation[None], ref.rotation.double().numpy())[0]))
         trans_diff = max(trans_diff, float(np.abs(out.translation - ref.translation[0].double().numpy()).max()))
     report = ParityReport(
-        len(pairs["source"]), compared, excluded, boundary, enc_diff, match_diff, rot_diff, trans_diff
+        len(pairs["source"]), compared, excluded, boundary, knn_ties, enc_diff, match_diff, rot_diff, trans_diff
     )
     problems = []
     if enc_diff > GRAPH_TOL:
@@ -111,6 +118,11 @@ def check_parity(
     if problems:
         raise ParityError("ONNX parity failed: " + "; ".join(problems) + f" ({report.to_dict()})")
     return report
+
+
+def _same_graph(a: np.ndarray, b: np.ndarray) -> bool:
+    """Two k-NN graphs ``[B, N, k]`` with the same neighbour set per point (order is irrelevant)."""
+    return bool(np.array_equal(np.sort(a, axis=-1), np.sort(b, axis=-1)))
 
 
 def _same_keypoints(ref, out) -> bool:

@@ -102,8 +102,10 @@ class Encoder(nn.Module):
         self.blocks = nn.ModuleList(EdgeConvBlock(a, b) for a, b in itertools.pairwise(chans))
         self.k = cfg.knn
 
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        idx_kn = knn_indices(points, self.k).transpose(1, 2)  # [B, k, N]
+    def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
+        """``neighbours [B, N, k]``: the k-NN graph when the caller has it (else computed here)."""
+        idx_nk = knn_indices(points, self.k) if neighbours is None else neighbours
+        idx_kn = idx_nk.transpose(1, 2)  # [B, k, N]
         x = points
         for block in self.blocks:
             x = block(x, idx_kn)
@@ -237,9 +239,12 @@ class MFGNet(nn.Module):
         """Weight set of an iteration; past the trained sets the last one is reused."""
         return self.matchers[min(iteration, len(self.matchers) - 1)]
 
-    def embed(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``[B, N, 3]`` -> embeddings ``[B, N, D]`` and significance scores ``[B, N]``."""
-        emb = self.encoder(points)
+    def embed(
+        self, points: torch.Tensor, neighbours: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[B, N, 3]`` (and optionally its k-NN graph ``[B, N, k]``) -> embeddings ``[B, N, D]``
+        and significance scores ``[B, N]``."""
+        emb = self.encoder(points, neighbours)
         return emb, self.significance(emb)
 
     def forward(

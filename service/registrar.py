@@ -20,6 +20,7 @@ import onnxruntime as ort
 from service.errors import InputError
 from service.icp import icp, icp_plane
 from service.manifest import Manifest, load_manifest
+from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
 from service.quality import assess
@@ -191,6 +192,8 @@ class Registrar:
             ort.InferenceSession(self.manifest.graph_bytes(role), options, providers=providers)
             for role in self.manifest.matcher_roles
         ]
+        self.encoder_takes_neighbours = any(i.name == "neighbours" for i in self.encoder.get_inputs())
+        self.knn = int(self.config.get("knn", 12))
         self.default_iterations = int(self.config.get("iterations", len(self.matchers)))
         self.default_keypoints = int(self.config.get("keypoints", 128))
         self.ready = threading.Event()
@@ -206,9 +209,20 @@ class Registrar:
         self.ready.set()
 
     # -- network calls ---------------------------------------------------------------------------
-    def embed(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``[B, N, 3]`` float32 -> embeddings ``[B, N, D]``, scores ``[B, N]``."""
-        emb, score = self.encoder.run(None, {"points": points.astype(np.float32, copy=False)})
+    def neighbours(self, points: np.ndarray) -> np.ndarray:
+        """The encoder's k-NN graph ``[B, N, k]`` of ``points [B, N, 3]``."""
+        return knn_graph(points, self.knn)
+
+    def embed(self, points: np.ndarray, neighbours: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``[B, N, 3]`` float32 -> embeddings ``[B, N, D]``, scores ``[B, N]``.
+
+        ``neighbours [B, N, k]``: the k-NN graph when the caller has it (else built here). Graphs
+        exported before the graph became an input compute it themselves and ignore it.
+        """
+        feeds = {"points": points.astype(np.float32, copy=False)}
+        if self.encoder_takes_neighbours:
+            feeds["neighbours"] = self.neighbours(feeds["points"]) if neighbours is None else neighbours
+        emb, score = self.encoder.run(None, feeds)
         return emb, score
 
     def match(self, iteration: int, src_xyz, tgt_xyz, src_emb, tgt_emb) -> tuple[np.ndarray, np.ndarray]:
@@ -230,6 +244,7 @@ class Registrar:
         iterations: int,
         keypoints: int,
         timing: dict[str, float] | None = None,
+        same_source: bool = False,
     ) -> NetworkOutput | list[NetworkOutput]:
         """The network loop on normalised working clouds (float32), for one pair or a batch of B.
 
@@ -237,6 +252,7 @@ class Registrar:
         hypotheses: returns a list of B); ``tgt_n`` is ``[M, 3]`` (shared by every source, embedded
         once) or ``[B, M, 3]``. One encoder call when ``N == M`` (else one per side), one matcher call
         of batch B per iteration; keypoints are chosen per cloud (embeddings change with rotation).
+        ``same_source``: the B sources are rigid copies of one cloud and share its k-NN graph.
         """
         timing = {} if timing is None else timing
         single = src_n.ndim == 2
@@ -246,11 +262,17 @@ class Registrar:
         if src_b.ndim != 3 or tgt_b.ndim != 3 or len(tgt_b) not in (1, B):
             raise ValueError(f"run_network: source {src_n.shape} and target {tgt_n.shape} do not batch")
         t1 = time.perf_counter()
-        if N == M:
-            emb, score = self.embed(np.concatenate([src_b, tgt_b]))  # one batched encoder call
+        nb_s = nb_t = None
+        if self.encoder_takes_neighbours:
+            # rigid copies of one source (the rotation search) share its k-NN graph
+            nb_s = np.repeat(self.neighbours(src_b[:1]), B, axis=0) if same_source else self.neighbours(src_b)
+            nb_t = self.neighbours(tgt_b)
+        if N == M:  # one batched encoder call
+            both = np.concatenate([nb_s, nb_t]) if nb_s is not None else None
+            emb, score = self.embed(np.concatenate([src_b, tgt_b]), both)
             emb_s, score_s, emb_t, score_t = emb[:B], score[:B], emb[B:], score[B:]
         else:
-            (emb_s, score_s), (emb_t, score_t) = self.embed(src_b), self.embed(tgt_b)
+            (emb_s, score_s), (emb_t, score_t) = self.embed(src_b, nb_s), self.embed(tgt_b, nb_t)
         t2 = time.perf_counter()
         timing["encoder"] = 1000 * (t2 - t1)
 

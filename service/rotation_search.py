@@ -84,7 +84,7 @@ def search_hypotheses(
     """
     started = time.perf_counter()
     src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
-    nets = run_network(src_h, tgt_n, iterations, keypoints, timing)
+    nets = run_network(src_h, tgt_n, iterations, keypoints, timing, same_source=True)
     R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
     t_h = np.stack([n.translation for n in nets])  # [H, 3]
     if short_icp:  # rank refined poses: the basin matters, not the raw pose

@@ -1,0 +1,30 @@
+"""k-nearest-neighbour graph of the encoder's input, computed in the runtime (not in the graph).
+
+A KD-tree query costs well under a millisecond per 768-point cloud, where the in-graph version
+(an ``[N, N]`` distance matrix and TopK) cost ~3.5 ms per cloud; the graph is rotation invariant,
+so a batch of rotated copies of one cloud (the rotation search) shares one.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def knn_graph(points: np.ndarray, k: int) -> np.ndarray:
+    """Indices ``[B, N, k]`` (int64) of the k nearest points of each point, itself included.
+
+    ``points`` is ``[B, N, 3]``; each cloud gets its own tree. The order within a row does not
+    matter to the encoder (it takes a maximum over the neighbours); exact distance ties may pick
+    either point.
+    """
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise ValueError(f"points must be [B, N, 3], got {points.shape}")
+    B, N, _ = points.shape
+    if k > N:
+        raise ValueError(f"a cloud needs at least k = {k} points for the neighbour graph, got {N}")
+    out = np.empty((B, N, k), dtype=np.int64)
+    for b in range(B):
+        cloud = points[b].astype(np.float64)
+        out[b] = cKDTree(cloud).query(cloud, k=k)[1]
+    return out
