@@ -239,10 +239,11 @@ def _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance: float) -> tuple[
     dist, nearest = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
     inlier = dist < max_distance  # [N]; misses come back as inf
     if src_tree is not None:
-        tgt_in_src = (tgt - t) @ R  # [M, 3] = R^T (tgt - t)
-        nearest_src = src_tree.query(tgt_in_src, k=1)[1]  # [M]
         candidates = np.flatnonzero(inlier)
-        inlier[candidates] = nearest_src[nearest[candidates]] == candidates
+        partners = nearest[candidates]  # [C] target points some source point picked
+        needed, where = np.unique(partners, return_inverse=True)  # only these need their nearest source
+        nearest_src = src_tree.query((tgt[needed] - t) @ R, k=1)[1]  # R^T (tgt - t): target in the source frame
+        inlier[candidates] = nearest_src[where] == candidates
     return inlier, nearest
 
 
