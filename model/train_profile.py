@@ -1,0 +1,70 @@
+"""Time (and optionally profile) training steps on fixed batches: ``python -m model.train_profile``.
+
+The figure ``mfgnet train`` logs as ``s_per_pair`` includes whatever else the machine runs; this
+measures the step alone (forward, losses, backward, Adam) on pre-drawn batches after two warm-up
+steps, so runs can be compared on a quiet machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from model.config import MFGNetConfig
+from model.data import TrainPairStream, load_shapes, protocol_for
+from model.losses import registration_losses, sample_training_keypoints
+from model.network import MFGNet
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--setting", default="noise")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=4, help="timed steps (after two warm-up steps)")
+    parser.add_argument("--profile", action="store_true", help="print the torch profiler's op table too")
+    parser.add_argument("--data", default=None, help="ModelNet40 folder (default: MFGNET_DATA or ../shared)")
+    args = parser.parse_args(argv)
+
+    torch.set_num_threads(args.threads)
+    shapes, _ = load_shapes("train", args.setting, args.data)
+    stream = TrainPairStream(shapes[:400], protocol_for(args.setting), 0)
+    batches = [batch for _, batch in zip(range(args.steps + 2), stream.epoch(0, args.batch_size), strict=False)]
+    cfg = MFGNetConfig()
+    model = MFGNet(cfg).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4, weight_decay=1e-3)
+    generator = torch.Generator().manual_seed(0)
+
+    def step(batch: dict[str, np.ndarray]) -> None:
+        src, tgt, R, t = (torch.from_numpy(batch[k]) for k in ("source", "target", "rotation", "translation"))
+        src_idx, tgt_idx = sample_training_keypoints(
+            src, tgt, R, t, cfg.train_positives, cfg.train_negatives, cfg.match_threshold, generator
+        )
+        out = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
+        losses = registration_losses(out, src, tgt, R, t, cfg.match_threshold)
+        optimizer.zero_grad(set_to_none=True)
+        losses.total.backward()
+        optimizer.step()
+
+    for batch in batches[:2]:
+        step(batch)
+    ms = []
+    for batch in batches[2:]:
+        tic = time.perf_counter()
+        step(batch)
+        ms.append(1000 * (time.perf_counter() - tic) / args.batch_size)
+    print(f"ms per training pair: {[round(x, 1) for x in ms]}, median {np.median(ms):.1f} "
+          f"({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
+    if args.profile:
+        from torch.profiler import ProfilerActivity, profile
+
+        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+            step(batches[-1])
+        print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=30))
+
+
+if __name__ == "__main__":
+    main()
