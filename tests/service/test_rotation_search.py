@@ -73,6 +73,25 @@ def test_batched_run_network_matches_one_pair_at_a_time(registrar) -> None:
     assert len(different) == 2 and different[0].tgt_kp.max() < 200
 
 
+@needs_model
+def test_rigid_copies_share_the_source_neighbour_graph(registrar, monkeypatch) -> None:
+    cloud = asymmetric_blob(256, 1).astype(np.float32)
+    target = asymmetric_blob(256, 2).astype(np.float32)
+    batch = (cloud @ search_rotations_for(24)[:4].transpose(0, 2, 1)).astype(np.float32)  # [4, 256, 3]
+    built: list[int] = []
+    original = registrar.neighbours
+    monkeypatch.setattr(registrar, "neighbours", lambda points: built.append(len(points)) or original(points))
+    shared = registrar.run_network(batch, target, 2, 64, same_source=True)
+    assert built == [1, 1]  # one graph for the four rotated sources, one for the target
+    built.clear()
+    separate = registrar.run_network(batch, target, 2, 64)
+    assert built == [4, 1]
+    for a, b in zip(shared, separate, strict=True):  # the k-NN graph is rotation invariant
+        np.testing.assert_array_equal(a.src_kp, b.src_kp)
+        np.testing.assert_array_equal(a.matched, b.matched)
+        np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-6)
+
+
 # --- registration ---------------------------------------------------------------------------------
 
 
