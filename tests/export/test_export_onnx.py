@@ -87,3 +87,36 @@ def test_bundled_onnx_model_matches_bundled_checkpoint():
     report = check_parity(model, registrar, synthetic_pairs(16, seed=9), min_compared=8)
     assert report.max_encoder_diff <= 1e-4 and report.max_matcher_diff <= 1e-4
     assert report.max_rotation_diff_deg <= 1e-3 and report.max_translation_diff <= 1e-5
+
+
+def test_runtime_still_runs_encoder_graphs_that_build_their_own_neighbour_graph(exported, tmp_path):
+    """Graphs exported before the k-NN graph became an input (encoder takes ``points`` only) still load."""
+    from model.checkpoint import file_sha256
+
+    model, out = exported
+    legacy = tmp_path / "legacy"
+    legacy.mkdir()
+    for f in out.iterdir():
+        (legacy / f.name).write_bytes(f.read_bytes())
+
+    class InGraphKnnEncoder(torch.nn.Module):
+        def __init__(self, net: MFGNet):
+            super().__init__()
+            self.net = net
+
+        def forward(self, points):
+            return self.net.embed(points)  # k-NN computed inside the graph
+
+    axes = {name: {0: "B", 1: "N"} for name in ("points", "embedding", "score")}
+    torch.onnx.export(InGraphKnnEncoder(fold_batchnorm(model)), (torch.rand(1, 64, 3),), str(legacy / "encoder.onnx"),
+                      input_names=["points"], output_names=["embedding", "score"], opset_version=17, dynamo=False,
+                      dynamic_axes=axes)
+    manifest = json.loads((legacy / "manifest.json").read_text())
+    manifest["name"] = "legacy"
+    manifest["graphs"]["encoder"]["sha256"] = file_sha256(legacy / "encoder.onnx")
+    (legacy / "manifest.json").write_text(json.dumps(manifest))
+    old, new = Registrar(legacy, warmup=False), Registrar(out, warmup=False)
+    assert not old.encoder_takes_neighbours and new.encoder_takes_neighbours
+    points = synthetic_pairs(1, 5)["source"]  # [1, 768, 3]
+    for a, b in zip(old.embed(points), new.embed(points), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-4)
