@@ -123,9 +123,11 @@ class LeanPairMLP(nn.Module):
             self.hidden.append(lin)
         self.out = copy.deepcopy(mlp.out)
 
-    def forward(self, a: torch.Tensor, b: torch.Tensor, extra_a: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, a: torch.Tensor, b: torch.Tensor, extra_a: torch.Tensor | None = None,
+                dist: torch.Tensor | None = None) -> torch.Tensor:
+        """``dist [B, K, L]``: ``||a - b||`` when the caller has it (else computed here)."""
         B, K, L = a.shape[0], a.shape[1], b.shape[1]
-        dist = pair_distance(a, b)  # [B, K, L]
+        dist = pair_distance(a, b) if dist is None else dist  # [B, K, L]
         inv = 1.0 / (dist + NORM_EPS)
         pa, pb = F.linear(a, self.W_diff), F.linear(b, self.W_diff)  # [B, K, C], [B, L, C]
         per_a = self.shift.expand(B, K, -1) if extra_a is None else F.linear(extra_a, self.W_extra) + self.shift
@@ -141,7 +143,12 @@ class LeanPairMLP(nn.Module):
 
 
 class MatcherGraph(nn.Module):
-    """One iteration: keypoints + embeddings -> ``scores [B, K, L]``, ``cred_logit [B, K]``."""
+    """One iteration: keypoints, embeddings and their distances -> ``scores [B, K, L]``, ``cred_logit [B, K]``.
+
+    ``emb_dist [B, K, L]`` (``||src_emb - tgt_emb||``) is an input: it is the same in every iteration,
+    so the runtime computes it once per registration (``service.registrar.embedding_distance``)
+    instead of each matcher call.
+    """
 
     def __init__(self, model: MFGNet, index: int):
         super().__init__()
@@ -155,8 +162,8 @@ class MatcherGraph(nn.Module):
         post.weight.data, post.bias.data = _const(cred.post[0].linear.weight), _const(cred.post[0].bn.shift)
         self.post, self.logit = post, copy.deepcopy(cred.post[1])
 
-    def forward(self, src_xyz, tgt_xyz, src_emb, tgt_emb):
-        F_mat = self.feature(self.sign * src_emb, self.sign * tgt_emb)  # [B, K, L]
+    def forward(self, src_xyz, tgt_xyz, src_emb, tgt_emb, emb_dist):
+        F_mat = self.feature(self.sign * src_emb, self.sign * tgt_emb, dist=emb_dist)  # [B, K, L]
         S_mat = self.coord(src_xyz, tgt_xyz, src_xyz)  # [B, K, L]
         scores = (F_mat + S_mat).clamp(-self.clamp, self.clamp)
         h = torch.stack([F_mat, S_mat], dim=-1) @ self.pre_weight_t  # [B, K, L, C]
@@ -186,13 +193,15 @@ def export_graphs(model: MFGNet, out_dir: Path) -> dict[str, str]:
             ["points", "neighbours"], ["embedding", "score"],
             {"points": {0: "B", 1: "N"}, "neighbours": {0: "B", 1: "N"}, "embedding": {0: "B", 1: "N"},
              "score": {0: "B", 1: "N"}})
-    example = (torch.rand(1, 16, 3), torch.rand(1, 20, 3), torch.randn(1, 16, D), torch.randn(1, 20, D))
+    src_emb, tgt_emb = torch.randn(1, 16, D), torch.randn(1, 20, D)
+    example = (torch.rand(1, 16, 3), torch.rand(1, 20, 3), src_emb, tgt_emb, pair_distance(src_emb, tgt_emb))
     for i in range(len(folded.matchers)):
         name = MATCHER_FILE.format(i=i)
         _export(MatcherGraph(folded, i), example, out_dir / name,
-                ["src_xyz", "tgt_xyz", "src_emb", "tgt_emb"], ["scores", "cred_logit"],
+                ["src_xyz", "tgt_xyz", "src_emb", "tgt_emb", "emb_dist"], ["scores", "cred_logit"],
                 {"src_xyz": {0: "B", 1: "K"}, "tgt_xyz": {0: "B", 1: "L"}, "src_emb": {0: "B", 1: "K"},
-                 "tgt_emb": {0: "B", 1: "L"}, "scores": {0: "B", 1: "K", 2: "L"}, "cred_logit": {0: "B", 1: "K"}})
+                 "tgt_emb": {0: "B", 1: "L"}, "emb_dist": {0: "B", 1: "K", 2: "L"},
+                 "scores": {0: "B", 1: "K", 2: "L"}, "cred_logit": {0: "B", 1: "K"}})
         files[f"matcher_{i}"] = name
     return files
 

@@ -101,6 +101,17 @@ def top_k(scores: np.ndarray, k: int) -> np.ndarray:
     return idx[np.lexsort((idx, -scores[idx]))]
 
 
+def embedding_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``||a_i - b_j||`` ``[B, K, L]`` (float32) of embeddings ``a [B, K, D]``, ``b [B, L, D]``.
+
+    Computed as ``|a|^2 + |b|^2 - 2 a.b`` in float64: the cancellation error (~1e-16 |a|^2) is far
+    below float32 rounding, so the result agrees with an explicit-difference float32 distance.
+    """
+    a64, b64 = a.astype(np.float64), b.astype(np.float64)
+    d2 = (a64 * a64).sum(-1)[:, :, None] + (b64 * b64).sum(-1)[:, None, :] - 2.0 * (a64 @ b64.transpose(0, 2, 1))
+    return np.sqrt(np.maximum(d2, 0.0)).astype(np.float32)
+
+
 def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """``values [B, N, C]`` at ``idx [B, K]`` -> ``[B, K, C]``."""
     return np.take_along_axis(values, idx[..., None], axis=1)
@@ -193,6 +204,7 @@ class Registrar:
             for role in self.manifest.matcher_roles
         ]
         self.encoder_takes_neighbours = any(i.name == "neighbours" for i in self.encoder.get_inputs())
+        self.matcher_takes_distance = any(i.name == "emb_dist" for i in self.matchers[0].get_inputs())
         self.knn = int(self.config.get("knn", 12))
         self.default_iterations = int(self.config.get("iterations", len(self.matchers)))
         self.default_keypoints = int(self.config.get("keypoints", 128))
@@ -225,8 +237,13 @@ class Registrar:
         emb, score = self.encoder.run(None, feeds)
         return emb, score
 
-    def match(self, iteration: int, src_xyz, tgt_xyz, src_emb, tgt_emb) -> tuple[np.ndarray, np.ndarray]:
-        """Matching scores ``[B, K, L]`` and credibility logits ``[B, K]`` of one iteration."""
+    def match(self, iteration: int, src_xyz, tgt_xyz, src_emb, tgt_emb,
+              emb_dist: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Matching scores ``[B, K, L]`` and credibility logits ``[B, K]`` of one iteration.
+
+        ``emb_dist [B, K, L]``: :func:`embedding_distance` of the embeddings when the caller has it
+        (it is the same in every iteration); graphs exported before it became an input ignore it.
+        """
         session = self.matchers[min(iteration, len(self.matchers) - 1)]
         feeds = {
             "src_xyz": src_xyz.astype(np.float32, copy=False),
@@ -234,6 +251,8 @@ class Registrar:
             "src_emb": src_emb,
             "tgt_emb": tgt_emb,
         }
+        if self.matcher_takes_distance:
+            feeds["emb_dist"] = embedding_distance(src_emb, tgt_emb) if emb_dist is None else emb_dist
         scores, logit = session.run(None, feeds)
         return scores, logit
 
@@ -286,8 +305,9 @@ class Registrar:
         R_tot, t_tot = np.broadcast_to(np.eye(3), (B, 3, 3)), np.zeros((B, 3))
         svd_ms, cumulative = 0.0, []
         min_gap, median_gap = np.full(B, np.inf), np.full(B, np.inf)
+        emb_dist = embedding_distance(fs, ft) if self.matcher_takes_distance else None  # [B, K, L], once
         for it in range(iterations):
-            scores, logit = self.match(it, ps, pt, fs, ft)  # [B, K, L], [B, K]
+            scores, logit = self.match(it, ps, pt, fs, ft, emb_dist)  # [B, K, L], [B, K]
             tic = time.perf_counter()
             matched = scores.argmax(axis=2)  # [B, K]
             if L > 1:

@@ -89,8 +89,9 @@ def test_bundled_onnx_model_matches_bundled_checkpoint():
     assert report.max_rotation_diff_deg <= 1e-3 and report.max_translation_diff <= 1e-5
 
 
-def test_runtime_still_runs_encoder_graphs_that_build_their_own_neighbour_graph(exported, tmp_path):
-    """Graphs exported before the k-NN graph became an input (encoder takes ``points`` only) still load."""
+def test_runtime_still_runs_graphs_exported_before_their_precomputed_inputs(exported, tmp_path):
+    """Graphs exported before the k-NN graph and the embedding distance became inputs (encoder takes
+    ``points`` only, matchers no ``emb_dist``) still load and give the same results."""
     from model.checkpoint import file_sha256
 
     model, out = exported
@@ -111,12 +112,28 @@ def test_runtime_still_runs_encoder_graphs_that_build_their_own_neighbour_graph(
     torch.onnx.export(InGraphKnnEncoder(fold_batchnorm(model)), (torch.rand(1, 64, 3),), str(legacy / "encoder.onnx"),
                       input_names=["points"], output_names=["embedding", "score"], opset_version=17, dynamo=False,
                       dynamic_axes=axes)
+    folded = fold_batchnorm(model)
+    matcher_axes = {"src_xyz": {0: "B", 1: "K"}, "tgt_xyz": {0: "B", 1: "L"}, "src_emb": {0: "B", 1: "K"},
+                    "tgt_emb": {0: "B", 1: "L"}, "scores": {0: "B", 1: "K", 2: "L"}, "cred_logit": {0: "B", 1: "K"}}
+    for i, matcher in enumerate(folded.matchers):  # the distance computed inside the graph
+        example = (torch.rand(1, 16, 3), torch.rand(1, 20, 3), torch.randn(1, 16, 64), torch.randn(1, 20, 64))
+        torch.onnx.export(matcher, example, str(legacy / f"matcher_{i}.onnx"), opset_version=17, dynamo=False,
+                          input_names=["src_xyz", "tgt_xyz", "src_emb", "tgt_emb"],
+                          output_names=["scores", "cred_logit"], dynamic_axes=matcher_axes)
     manifest = json.loads((legacy / "manifest.json").read_text())
     manifest["name"] = "legacy"
-    manifest["graphs"]["encoder"]["sha256"] = file_sha256(legacy / "encoder.onnx")
+    for entry in manifest["graphs"].values():
+        entry["sha256"] = file_sha256(legacy / entry["file"])
     (legacy / "manifest.json").write_text(json.dumps(manifest))
     old, new = Registrar(legacy, warmup=False), Registrar(out, warmup=False)
-    assert not old.encoder_takes_neighbours and new.encoder_takes_neighbours
-    points = synthetic_pairs(1, 5)["source"]  # [1, 768, 3]
-    for a, b in zip(old.embed(points), new.embed(points), strict=True):
+    assert not old.encoder_takes_neighbours and not old.matcher_takes_distance
+    assert new.encoder_takes_neighbours and new.matcher_takes_distance
+    pair = synthetic_pairs(1, 5)
+    for a, b in zip(old.embed(pair["source"]), new.embed(pair["source"]), strict=True):
         np.testing.assert_allclose(a, b, atol=1e-4)
+    emb_s, emb_t = new.embed(pair["source"])[0][:, :64], new.embed(pair["target"])[0][:, :64]
+    xyz_s, xyz_t = pair["source"][:, :64], pair["target"][:, :64]
+    for i in range(2):  # random weights: near-tied argmaxes, so compare the graph outputs themselves
+        inputs = (i, xyz_s, xyz_t, emb_s, emb_t)
+        for a, b in zip(old.match(*inputs), new.match(*inputs), strict=True):
+            np.testing.assert_allclose(a, b, atol=1e-4)
