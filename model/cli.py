@@ -136,9 +136,13 @@ def evaluate(
     baseline: Annotated[
         str | None, typer.Option(help=f"classical method instead of a network: {', '.join(BASELINES)} (bench extra)")
     ] = None,
+    per_pair: Annotated[
+        Path | None, typer.Option(help="also write each pair's pose and errors here (.npz: rotation, translation, "
+                                       "rotation_error_deg, translation_error, label when known)")
+    ] = None,
 ) -> None:
     """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
-    from model.metrics import registration_metrics
+    from model.metrics import registration_metrics, save_per_pair
 
     if sum(x is not None for x in (checkpoint, model, baseline)) != 1:
         raise typer.BadParameter(
@@ -178,6 +182,8 @@ def evaluate(
     typer.echo(text)
     if json_out:
         json_out.write_text(text + "\n")
+    if per_pair:
+        save_per_pair(per_pair, R, t, data_pairs)
 
 
 def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str,

@@ -54,3 +54,17 @@ def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = Non
     if seconds is not None:
         out["ms_per_pair"] = 1000.0 * seconds / max(len(R_pred), 1)
     return out
+
+
+def save_per_pair(path, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str, np.ndarray]) -> None:
+    """Each pair's predicted pose ``[M, 3, 3]``, ``[M, 3]`` and its isotropic errors (``rotation_error_deg``,
+    ``translation_error``), plus the pairs' ``label`` when they have one, as an ``.npz`` for failure analysis."""
+    out = {
+        "rotation": R_pred,
+        "translation": t_pred,
+        "rotation_error_deg": rotation_angle_deg(R_pred, pairs["rotation"]),
+        "translation_error": np.linalg.norm(t_pred - pairs["translation"], axis=-1),
+    }
+    if "label" in pairs:
+        out["label"] = pairs["label"]
+    np.savez(path, **out)
