@@ -70,7 +70,7 @@ def check_parity(
         enc_diff = max(
             enc_diff, float(np.abs(emb - emb_ref.numpy()).max()), float(np.abs(score - score_ref.numpy()).max())
         )
-        e_s, (e_t, score_t) = emb, registrar.embed(tgt[None])
+        e_s, (e_t, score_t) = emb, registrar.embed(tgt[None], nb_t)
         out = registrar.run_network(src, tgt, n_iter, K)
         ref = model(src_t, tgt_t, iterations=n_iter, keypoints=K)
         if not _same_keypoints(ref, out):
