@@ -96,8 +96,8 @@ def register_command(
     keypoints: Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")] = None,
     refine: Annotated[
         Refine,
-        typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = point-to-plane ICP "
-                          "(target normals; best for two independently sampled scans)"),
+        typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = wide robust "
+                          "symmetric stage, then point-to-plane ICP (best for two independently sampled scans)"),
     ] = Refine.none,
     initial_transform: Annotated[
         Path | None,

@@ -19,6 +19,14 @@ Between two independent samplings of one surface no point has an exact partner, 
 ICP converges to a pose biased by the sampling (a few degrees on sparse clouds); sliding along the
 tangent plane costs nothing in the point-to-plane objective, so it converges much closer
 (``docs/DESIGN.md``, "Refinement").
+
+:func:`refine_plane` (``refine="icp-plane"``) puts a wide-basin stage in front of it:
+:func:`icp_symmetric` pairs without the mutual check at ``WIDE_DISTANCE_FACTOR`` times the distance,
+measures each residual along the sum of both points' normals (the symmetric point-to-plane objective)
+and weights it with a Geman-McClure kernel, so far-off pairs pull little but still pull. It reaches
+the right basin from starts that plain point-to-plane ICP leaves in a wrong one (sparse independent
+samples: 0.78 -> 0.84 of pairs within 5 deg; ``docs/ACCURACY.md``); the reciprocal point-to-plane
+stage then gives back the precision the wide stage lacks on partial overlaps.
 """
 
 from __future__ import annotations
@@ -37,6 +45,8 @@ PLANE_MIN_INLIERS = 6  # point-to-plane: one equation per pair, six unknowns
 NORMAL_NEIGHBOURS = 12  # target points (itself included) whose PCA gives a target point's normal
 NORMAL_MIN_SPREAD = 1e-2  # a neighbourhood whose 2nd principal variance is below this fraction of the 1st
 # is (nearly) a line: its normal is undefined and the point takes no part in point-to-plane ICP
+WIDE_DISTANCE_FACTOR = 3.0  # refine_plane: the wide stage pairs points up to this many times max_distance
+WIDE_TOLERANCE = 1e-4  # refine_plane: the wide stage stops on updates below this (rad, x RMS radius)
 PLANE_MIN_EIGEN_RATIO = 1e-4  # smallest / largest eigenvalue of the scaled 6x6 normal equations below this:
 # some motion (sliding on a plane, turning about an axis of symmetry) is not observed, no update is made
 
@@ -119,10 +129,110 @@ def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: c
     _, idx = tree.query(tgt, k=k)  # [M, k]
     hood = tgt[idx]  # [M, k, 3]
     centred = hood - hood.mean(axis=1, keepdims=True)  # [M, k, 3]
-    cov = np.einsum("mki,mkj->mij", centred, centred) / k  # [M, 3, 3]
+    cov = centred.transpose(0, 2, 1) @ centred / k  # [M, 3, 3] (batched matmul: 3x faster than einsum here)
     variance, axes = np.linalg.eigh(cov)  # [M, 3] ascending, [M, 3, 3] eigenvectors in columns
     defined = variance[:, 1] > NORMAL_MIN_SPREAD**2 * variance[:, 2]  # [M]; 0 > 0 is False too
     return axes[:, :, 0], defined
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A cloud's KD-tree and PCA normals (:func:`target_normals`), built once and shared by both
+    stages of :func:`refine_plane`."""
+
+    tree: cKDTree
+    normals: np.ndarray  # [M, 3] unit, sign arbitrary
+    defined: np.ndarray  # [M] bool
+
+    @classmethod
+    def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> Surface:
+        tree = cKDTree(points)
+        return cls(tree, *target_normals(points, neighbours, tree))
+
+
+def icp_symmetric(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    *,
+    max_distance: float,
+    max_iterations: int = 30,
+    tolerance: float = WIDE_TOLERANCE,
+    normal_neighbours: int = NORMAL_NEIGHBOURS,
+    target_surface: Surface | None = None,
+) -> IcpResult:
+    """Robust symmetric point-to-plane ICP: a wide basin for a start some way off the answer.
+
+    Each iteration pairs every moved source point with its nearest target point closer than
+    ``max_distance`` (no mutual check), takes the residual along ``n = n_t + R n_s`` (both points'
+    normals, signs aligned; the target's alone where the source's is undefined) and solves the same
+    linearised 6-DoF step as :func:`icp_plane` with Geman-McClure weights ``(s^2 / (s^2 + r^2))^2``,
+    ``s = max_distance / 3``. Pairs need a defined target normal. ``target_surface``: ``Surface.of(tgt)``
+    when the caller has it.
+
+    Returns:
+        :class:`IcpResult` (statistics at ``max_distance``, as :func:`icp`). With fewer than
+        ``PLANE_MIN_INLIERS`` pairs or a degenerate system it stops, keeps the last pose and says why in
+        ``warnings``.
+    """
+    src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
+    surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
+    tree, tgt_normals, tgt_defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
+    src_normals, src_defined = target_normals(src, normal_neighbours)  # [N, 3], [N] in the source frame
+    scale, sigma2 = _rms_radius(tgt), (max_distance / 3.0) ** 2
+    iterations, warnings = 0, []
+    for _ in range(max_iterations):
+        src_in_tgt = src @ R.T + t  # [N, 3]
+        dist, nearest = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
+        pair = dist < max_distance
+        pair[pair] = tgt_defined[nearest[pair]]
+        if np.count_nonzero(pair) < PLANE_MIN_INLIERS:
+            warnings.append(f"refinement: wide-basin ICP found {np.count_nonzero(pair)} pairs closer than "
+                            f"{max_distance:.3g}; kept the pose after {iterations} updates")
+            break
+        p, q, n_t = src_in_tgt[pair], tgt[nearest[pair]], tgt_normals[nearest[pair]]  # [P, 3] each
+        n_s = src_normals[pair] @ R.T  # [P, 3] source normals in the target frame
+        n_s *= np.where(np.einsum("pc,pc->p", n_s, n_t) < 0, -1.0, 1.0)[:, None]
+        n = np.where(src_defined[pair, None], n_s + n_t, n_t)  # [P, 3]
+        n /= np.linalg.norm(n, axis=1, keepdims=True)  # |n_s + n_t| >= sqrt(2) after the sign flip
+        r = np.einsum("pc,pc->p", n, p - q)  # [P] signed residuals
+        w = (sigma2 / (sigma2 + r * r)) ** 2  # [P] Geman-McClure weights
+        step = _plane_step(p, n, r, w, scale)
+        if step is None:
+            warnings.append(f"refinement: wide-basin ICP stopped on a degenerate system after {iterations} updates")
+            break
+        R_step, t_step, rotated, moved = step
+        R, t = compose(R_step, t_step, R, t)
+        iterations += 1
+        if rotated < tolerance and moved < tolerance * scale:
+            break
+    return _result(tree, src, R, t, iterations, max_distance, tuple(warnings))
+
+
+def refine_plane(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    *,
+    max_distance: float,
+    max_iterations: int = 30,
+    tolerance: float = 1e-6,
+) -> IcpResult:
+    """``refine="icp-plane"``: :func:`icp_symmetric` at ``WIDE_DISTANCE_FACTOR * max_distance`` (to reach
+    the right basin), then reciprocal :func:`icp_plane` at ``max_distance`` (precision); each stage runs
+    at most ``max_iterations`` updates.
+
+    Returns the second stage's :class:`IcpResult` with ``iterations`` counting both stages (the wide
+    stage's own warnings are dropped: the precise stage meets the same geometry and reports it).
+    """
+    surface = Surface.of(np.asarray(tgt, dtype=np.float64))
+    wide = icp_symmetric(src, tgt, R0, t0, max_distance=WIDE_DISTANCE_FACTOR * max_distance,
+                         max_iterations=max_iterations, target_surface=surface)
+    precise = icp_plane(src, tgt, wide.rotation, wide.translation, max_distance=max_distance,
+                        max_iterations=max_iterations, tolerance=tolerance, target_surface=surface)
+    return dataclasses.replace(precise, iterations=wide.iterations + precise.iterations)
 
 
 def icp_plane(
@@ -136,6 +246,7 @@ def icp_plane(
     tolerance: float = 1e-6,
     reciprocal: bool = True,
     normal_neighbours: int = NORMAL_NEIGHBOURS,
+    target_surface: Surface | None = None,
 ) -> IcpResult:
     """Refine ``(R0, t0)`` with point-to-plane ICP: minimise ``sum_i (n_i . (R src_i + t - tgt_j(i)))^2``.
 
@@ -149,6 +260,7 @@ def icp_plane(
     Args:
         src, tgt, R0, t0, max_distance, max_iterations, tolerance, reciprocal: as :func:`icp`.
         normal_neighbours: neighbourhood size of the target normals.
+        target_surface: ``Surface.of(tgt, normal_neighbours)`` when the caller has it.
 
     Returns:
         :class:`IcpResult`.  With fewer than ``PLANE_MIN_INLIERS`` usable pairs, or normal equations
@@ -162,9 +274,9 @@ def icp_plane(
         ValueError: on wrongly shaped inputs or a non-positive ``max_distance``.
     """
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
-    tree = cKDTree(tgt)
+    surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
+    tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
     src_tree = cKDTree(src) if reciprocal else None
-    normals, defined = target_normals(tgt, normal_neighbours, tree)  # [M, 3], [M]
     scale = _rms_radius(tgt)
     iterations, warnings = 0, []
     for _ in range(max_iterations):
@@ -179,31 +291,47 @@ def icp_plane(
             )
             break
         p, q, n = src_in_tgt[inlier], tgt[nearest[inlier]], normals[nearest[inlier]]  # [K, 3] each
-        centre = p.mean(axis=0)  # [3]
-        arm = (p - centre) / scale  # [K, 3], unitless
-        J = np.concatenate([np.cross(arm, n), n], axis=1)  # [K, 6]: d residual / d (w, tau / scale)
-        b = -np.einsum("kc,kc->k", n, p - q) / scale  # [K] minus the scaled residuals
-        H, g = J.T @ J, J.T @ b  # [6, 6], [6]
-        eigenvalues, eigenvectors = np.linalg.eigh(H)  # ascending
-        if not eigenvalues[0] > PLANE_MIN_EIGEN_RATIO * eigenvalues[-1]:
+        step = _plane_step(p, n, np.einsum("kc,kc->k", n, p - q), None, scale)
+        if step is None:
             warnings.append(
                 "refinement: point-to-plane ICP stopped on a degenerate system (the target's normals leave a "
-                f"motion unobserved: eigenvalue ratio {max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300):.1e}"
-                f" < {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or symmetric surface) after {iterations} updates; "
+                f"motion unobserved: eigenvalue ratio below {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or "
+                f"symmetric surface) after {iterations} updates; "
                 "continued with point-to-point ICP, which can still use a planar target's outline"
             )
             fallback = icp(src, tgt, R, t, max_distance=max_distance, max_iterations=max_iterations - iterations,
                            tolerance=tolerance, reciprocal=reciprocal)
             return dataclasses.replace(fallback, iterations=iterations + fallback.iterations, warnings=tuple(warnings))
-        x = eigenvectors @ ((eigenvectors.T @ g) / eigenvalues)  # [6] = H^-1 g
-        w, tau = x[:3], x[3:] * scale  # rotation vector about ``centre``, translation of ``centre``
-        R_step = Rotation.from_rotvec(w).as_matrix()  # exact rotation of the solved axis-angle
-        t_step = centre + tau - R_step @ centre  # p -> centre + R_step (p - centre) + tau
+        R_step, t_step, rotated, moved = step
         R, t = compose(R_step, t_step, R, t)
         iterations += 1
-        if np.linalg.norm(w) < tolerance and np.linalg.norm(tau) < tolerance * scale:
+        if rotated < tolerance and moved < tolerance * scale:
             break
     return _result(tree, src, R, t, iterations, max_distance, tuple(warnings))
+
+
+def _plane_step(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray | None, scale: float):
+    """The (weighted) least-squares rigid step that moves ``p [P, 3]`` along normals ``n [P, 3]`` to cancel the
+    residuals ``r = n . (p - q) [P]`` (linearised about the pairs' centroid; the exact rotation of the solved
+    axis-angle), with the 6x6 normal equations scaled by ``scale`` so the degeneracy test is unitless.
+
+    Returns ``(R_step [3, 3], t_step [3], rotation angle, translation length)``, or ``None`` when the smallest
+    eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (some motion is not observed).
+    """
+    w = np.ones(len(p)) if w is None else w  # [P]
+    centre = (w[:, None] * p).sum(axis=0) / w.sum()  # [3]
+    arm = (p - centre) / scale  # [P, 3], unitless
+    J = np.concatenate([np.cross(arm, n), n], axis=1)  # [P, 6]: d residual / d (w, tau / scale)
+    Jw = J * w[:, None]  # [P, 6]
+    H, g = Jw.T @ J, -(Jw.T @ r) / scale  # [6, 6], [6]
+    eigenvalues, eigenvectors = np.linalg.eigh(H)  # ascending
+    if not eigenvalues[0] > PLANE_MIN_EIGEN_RATIO * eigenvalues[-1]:
+        return None
+    x = eigenvectors @ ((eigenvectors.T @ g) / eigenvalues)  # [6] = H^-1 g
+    rotvec, tau = x[:3], x[3:] * scale  # rotation vector about ``centre``, translation of ``centre``
+    R_step = Rotation.from_rotvec(rotvec).as_matrix()
+    t_step = centre + tau - R_step @ centre  # p -> centre + R_step (p - centre) + tau
+    return R_step, t_step, float(np.linalg.norm(rotvec)), float(np.linalg.norm(tau))
 
 
 def _checked(src, tgt, R0, t0, max_distance: float, max_iterations: int):

@@ -18,7 +18,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.errors import InputError
-from service.icp import icp, icp_plane
+from service.icp import icp, refine_plane
 from service.manifest import Manifest, load_manifest
 from service.neighbours import knn_graph
 from service.normalization import Normalization
@@ -378,9 +378,10 @@ class Registrar:
         the ranking uses those poses (with an early-training network the raw poses rarely land
         close enough to rank the right basin first; ``docs/ROTATION_SEARCH.md``); the winner then
         gets the usual ICP (mutual nearest neighbours, ``icp_max_distance``) to convergence.
-        ``refine="icp-plane"`` refines with point-to-plane ICP instead (:func:`service.icp.icp_plane`,
-        target normals; the same ``icp_max_distance`` / ``icp_max_iterations``): much closer than
-        point-to-point between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
+        ``refine="icp-plane"`` refines with point-to-plane ICP instead (:func:`service.icp.refine_plane`: a
+        wide-basin robust symmetric stage at 3x the distance, then reciprocal point-to-plane at
+        ``icp_max_distance``; each stage at most ``icp_max_iterations``): much closer than point-to-point
+        between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
         rotation search the per-hypothesis short ICPs stay point-to-point; only the winner's final
         refinement is point-to-plane. When it stops on a degenerate system (too few pairs, a planar
         or linear target) it keeps the pose it had and adds a warning; ``reliable`` still comes
@@ -469,7 +470,7 @@ class Registrar:
         refine_warnings: tuple[str, ...] = ()
         if refine != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
-            method = icp_plane if refine == "icp-plane" else icp
+            method = refine_plane if refine == "icp-plane" else icp
             refined = method(
                 src[idx_s], tgt_w, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
             )

@@ -25,7 +25,8 @@ Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
 Refine = Literal["none", "icp", "icp-plane"]  # = service.registrar.REFINE_MODES (a test keeps them equal)
 REFINE_DESCRIPTION = (
     "Optional refinement after the network: 'icp' = point-to-point ICP (mutual nearest neighbours), "
-    "'icp-plane' = point-to-plane ICP with target normals (closer for two independently sampled scans)."
+    "'icp-plane' = a wide robust symmetric point-to-plane stage, then point-to-plane ICP with target normals "
+    "(closer and more often right for two independently sampled scans)."
 )
 
 ROTATION_SEARCH_DESCRIPTION = (

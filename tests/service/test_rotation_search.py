@@ -158,7 +158,7 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
 
     monkeypatch.setattr(search_module, "icp", counted("short", search_module.icp))
     monkeypatch.setattr(registrar_module, "icp", counted("final_point", registrar_module.icp))
-    monkeypatch.setattr(registrar_module, "icp_plane", counted("final_plane", registrar_module.icp_plane))
+    monkeypatch.setattr(registrar_module, "refine_plane", counted("final_plane", registrar_module.refine_plane))
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(600, 3), asymmetric_blob(500, 4) @ R.T
     found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
