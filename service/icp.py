@@ -218,11 +218,12 @@ def refine_plane(
     *,
     max_distance: float,
     max_iterations: int = 30,
-    tolerance: float = 1e-6,
+    tolerance: float = 1e-5,
 ) -> IcpResult:
     """``refine="icp-plane"``: :func:`icp_symmetric` at ``WIDE_DISTANCE_FACTOR * max_distance`` (to reach
     the right basin), then reciprocal :func:`icp_plane` at ``max_distance`` (precision); each stage runs
-    at most ``max_iterations`` updates.
+    at most ``max_iterations`` updates; ``tolerance`` is the precise stage's (1e-5 rad: 1e-6 moved no pose of the
+    170 dense test pairs by more than 1e-5 deg).
 
     Returns the second stage's :class:`IcpResult` with ``iterations`` counting both stages (the wide
     stage's own warnings are dropped: the precise stage meets the same geometry and reports it).
