@@ -30,10 +30,12 @@ class JsonFormatter(logging.Formatter):
 
 
 def configure_logging(level: str = "info") -> None:
-    """Send ``mfgnet.*`` and uvicorn's own loggers to stderr as JSON lines."""
+    """Send ``mfgnet.*``, uvicorn's own loggers and Python warnings (``py.warnings``: a numerical warning
+    would otherwise print a plain-text line among the JSON ones) to stderr as JSON lines."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
-    for name in ("mfgnet", "uvicorn", "uvicorn.error"):
+    logging.captureWarnings(True)
+    for name in ("mfgnet", "uvicorn", "uvicorn.error", "py.warnings"):
         logger = logging.getLogger(name)
         logger.handlers[:] = [handler]
         logger.setLevel(level.upper())
