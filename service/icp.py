@@ -25,7 +25,7 @@ tangent plane costs nothing in the point-to-plane objective, so it converges muc
 measures each residual along the sum of both points' normals (the symmetric point-to-plane objective)
 and weights it with a Geman-McClure kernel, so far-off pairs pull little but still pull. It reaches
 the right basin from starts that plain point-to-plane ICP leaves in a wrong one (sparse independent
-samples: 0.78 -> 0.84 of pairs within 5 deg; ``docs/ACCURACY.md``); the reciprocal point-to-plane
+samples: 0.78 -> 0.85 of pairs within 5 deg; ``docs/ACCURACY.md``); the reciprocal point-to-plane
 stage then gives back the precision the wide stage lacks on partial overlaps.
 """
 
