@@ -228,7 +228,8 @@ def refine_plane(
     Returns the second stage's :class:`IcpResult` with ``iterations`` counting both stages (the wide
     stage's own warnings are dropped: the precise stage meets the same geometry and reports it).
     """
-    surface = Surface.of(np.asarray(tgt, dtype=np.float64))
+    src, tgt, R0, t0 = _checked(src, tgt, R0, t0, max_distance, max_iterations)  # before building the tree
+    surface = Surface.of(tgt)
     wide = icp_symmetric(src, tgt, R0, t0, max_distance=WIDE_DISTANCE_FACTOR * max_distance,
                          max_iterations=max_iterations, target_surface=surface)
     precise = icp_plane(src, tgt, wide.rotation, wide.translation, max_distance=max_distance,
