@@ -199,8 +199,9 @@ def icp_symmetric(
         r = np.einsum("pc,pc->p", n, p - q)  # [P] signed residuals
         w = (sigma2 / (sigma2 + r * r)) ** 2  # [P] Geman-McClure weights
         step = _plane_step(p, n, r, w, scale)
-        if step is None:
-            warnings.append(f"refinement: wide-basin ICP stopped on a degenerate system after {iterations} updates")
+        if isinstance(step, float):
+            warnings.append(f"refinement: wide-basin ICP stopped on a degenerate system (eigenvalue ratio {step:.1e}) "
+                            f"after {iterations} updates")
             break
         R_step, t_step, rotated, moved = step
         R, t = compose(R_step, t_step, R, t)
@@ -294,10 +295,10 @@ def icp_plane(
             break
         p, q, n = src_in_tgt[inlier], tgt[nearest[inlier]], normals[nearest[inlier]]  # [K, 3] each
         step = _plane_step(p, n, np.einsum("kc,kc->k", n, p - q), None, scale)
-        if step is None:
+        if isinstance(step, float):
             warnings.append(
                 "refinement: point-to-plane ICP stopped on a degenerate system (the target's normals leave a "
-                f"motion unobserved: eigenvalue ratio below {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or "
+                f"motion unobserved: eigenvalue ratio {step:.1e} < {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or "
                 f"symmetric surface) after {iterations} updates; "
                 "continued with point-to-point ICP, which can still use a planar target's outline"
             )
@@ -317,8 +318,9 @@ def _plane_step(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray | Non
     residuals ``r = n . (p - q) [P]`` (linearised about the pairs' centroid; the exact rotation of the solved
     axis-angle), with the 6x6 normal equations scaled by ``scale`` so the degeneracy test is unitless.
 
-    Returns ``(R_step [3, 3], t_step [3], rotation angle, translation length)``, or ``None`` when the smallest
-    eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (some motion is not observed).
+    Returns ``(R_step [3, 3], t_step [3], rotation angle, translation length)``, or the eigenvalue ratio (a
+    float) when the smallest eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (some motion is not
+    observed).
     """
     w = np.ones(len(p)) if w is None else w  # [P]
     centre = (w[:, None] * p).sum(axis=0) / w.sum()  # [3]
@@ -328,7 +330,7 @@ def _plane_step(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray | Non
     H, g = Jw.T @ J, -(Jw.T @ r) / scale  # [6, 6], [6]
     eigenvalues, eigenvectors = np.linalg.eigh(H)  # ascending
     if not eigenvalues[0] > PLANE_MIN_EIGEN_RATIO * eigenvalues[-1]:
-        return None
+        return max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300)
     x = eigenvectors @ ((eigenvectors.T @ g) / eigenvalues)  # [6] = H^-1 g
     rotvec, tau = x[:3], x[3:] * scale  # rotation vector about ``centre``, translation of ``centre``
     R_step = Rotation.from_rotvec(rotvec).as_matrix()
