@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from service.procrustes import compose, weighted_procrustes
 
@@ -281,11 +280,13 @@ def icp_plane(
     tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
     src_tree = cKDTree(src) if reciprocal else None
     scale = _rms_radius(tgt)
-    iterations, warnings = 0, []
+    iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
         inlier, nearest = _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance)  # [N], [N]
         inlier[inlier] = defined[nearest[inlier]]
+        if history.recurred(inlier, nearest):
+            break  # a limit cycle: further updates only alternate between the same poses
         count = int(np.count_nonzero(inlier))
         if count < PLANE_MIN_INLIERS:
             warnings.append(
@@ -322,20 +323,55 @@ def _plane_step(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray | Non
     float) when the smallest eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (some motion is not
     observed).
     """
-    w = np.ones(len(p)) if w is None else w  # [P]
-    centre = (w[:, None] * p).sum(axis=0) / w.sum()  # [3]
+    centre = p.mean(axis=0) if w is None else (w @ p) / w.sum()  # [3]
     arm = (p - centre) / scale  # [P, 3], unitless
-    J = np.concatenate([np.cross(arm, n), n], axis=1)  # [P, 6]: d residual / d (w, tau / scale)
-    Jw = J * w[:, None]  # [P, 6]
+    J = np.empty((len(p), 6))  # [P, 6]: d residual / d (w, tau / scale) = [arm x n, n]
+    J[:, 0] = arm[:, 1] * n[:, 2] - arm[:, 2] * n[:, 1]
+    J[:, 1] = arm[:, 2] * n[:, 0] - arm[:, 0] * n[:, 2]
+    J[:, 2] = arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]
+    J[:, 3:] = n
+    Jw = J if w is None else J * w[:, None]  # [P, 6]
     H, g = Jw.T @ J, -(Jw.T @ r) / scale  # [6, 6], [6]
     eigenvalues, eigenvectors = np.linalg.eigh(H)  # ascending
     if not eigenvalues[0] > PLANE_MIN_EIGEN_RATIO * eigenvalues[-1]:
         return max(eigenvalues[0], 0.0) / max(eigenvalues[-1], 1e-300)
     x = eigenvectors @ ((eigenvectors.T @ g) / eigenvalues)  # [6] = H^-1 g
     rotvec, tau = x[:3], x[3:] * scale  # rotation vector about ``centre``, translation of ``centre``
-    R_step = Rotation.from_rotvec(rotvec).as_matrix()
+    angle = float(np.sqrt(rotvec @ rotvec))
+    R_step = rotation_of(rotvec, angle)
     t_step = centre + tau - R_step @ centre  # p -> centre + R_step (p - centre) + tau
-    return R_step, t_step, float(np.linalg.norm(rotvec)), float(np.linalg.norm(tau))
+    return R_step, t_step, angle, float(np.sqrt(tau @ tau))
+
+
+def rotation_of(rotvec: np.ndarray, angle: float) -> np.ndarray:
+    """The rotation matrix ``[3, 3]`` of the axis-angle vector ``rotvec [3]`` of norm ``angle`` (Rodrigues;
+    second-order series below 1e-8 rad, where the closed form loses digits)."""
+    x, y, z = rotvec
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])  # [3, 3] cross-product matrix
+    if angle < 1e-8:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return np.eye(3) + (np.sin(angle) / angle) * K + ((1.0 - np.cos(angle)) / angle**2) * (K @ K)
+
+
+class PairingHistory:
+    """Spots an ICP limit cycle: the pairs of an earlier update come back after different ones.
+
+    With the same pairs the solve lands on the same pose again, so from then on the pose only
+    alternates between the minima of the recurring pairings (steps of 1e-5 to 6e-4 rad on the dense
+    test pairs, until the update cap); the loop can stop at once.
+    """
+
+    def __init__(self) -> None:
+        self.seen: set[int] = set()
+        self.last: int | None = None
+
+    def recurred(self, inlier: np.ndarray, nearest: np.ndarray) -> bool:
+        """Record this update's pairs (``inlier [N]`` bool, ``nearest [N]``); True if they close a cycle."""
+        key = hash((inlier.tobytes(), nearest[inlier].tobytes()))
+        cycle = key != self.last and key in self.seen
+        self.seen.add(key)
+        self.last = key
+        return cycle
 
 
 def _checked(src, tgt, R0, t0, max_distance: float, max_iterations: int):

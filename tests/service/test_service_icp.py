@@ -12,7 +12,16 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from shapes import ellipsoid_and_box, ellipsoid_surface, unit_directions
 
-from service.icp import Surface, icp, icp_plane, icp_symmetric, refine_plane, target_normals
+from service.icp import (
+    PairingHistory,
+    Surface,
+    icp,
+    icp_plane,
+    icp_symmetric,
+    refine_plane,
+    rotation_of,
+    target_normals,
+)
 
 
 def smooth_shape(n: int, seed: int) -> np.ndarray:
@@ -307,3 +316,40 @@ def test_refine_plane_on_a_planar_target_reports_the_precise_stage_fallback() ->
     result = refine_plane(src, tgt, R0, t0, max_distance=0.2)
     assert len(result.warnings) == 1 and "continued with point-to-point" in result.warnings[0]
     assert np.isfinite(result.rotation).all() and abs(np.linalg.det(result.rotation) - 1) < 1e-9
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rotation_of_an_axis_angle_matches_scipy_down_to_tiny_angles(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    for angle in (3.0, 0.5, 1e-3, 1e-7, 1e-9, 0.0):
+        axis = rng.normal(size=3)
+        rotvec = angle * axis / np.linalg.norm(axis)
+        expected = Rotation.from_rotvec(rotvec).as_matrix()
+        np.testing.assert_allclose(rotation_of(rotvec, float(np.linalg.norm(rotvec))), expected, rtol=0, atol=1e-15)
+
+
+def test_pairing_history_reports_a_recurring_pairing_but_not_a_repeated_one() -> None:
+    a = (np.array([True, True, False]), np.array([0, 1, 2]))
+    b = (np.array([True, True, False]), np.array([1, 1, 2]))
+    a_other_miss = (np.array([True, True, False]), np.array([0, 1, 0]))  # differs only where no pair is kept
+    history = PairingHistory()
+    assert not history.recurred(*a)
+    assert not history.recurred(*a_other_miss)  # the same kept pairs as before: converging, not a cycle
+    assert not history.recurred(*b)
+    assert history.recurred(*a)  # a, b, a: the pose now alternates
+
+
+def test_plane_icp_stops_when_its_pairing_cycles(monkeypatch) -> None:
+    """A limit cycle (the pairs of an earlier update return) ends the loop early with a sound pose.
+
+    ``tolerance=0``: only the update cap or a cycle can stop the loop.
+    """
+    src, tgt, R, t = resampled_pair(1, noise=0.01)  # cycles after 11 updates at 0.1
+    full = icp_plane(src, tgt, np.eye(3), np.zeros(3), max_distance=0.1, max_iterations=30, tolerance=0.0)
+    monkeypatch.setattr(PairingHistory, "recurred", lambda self, inlier, nearest: False)
+    capped = icp_plane(src, tgt, np.eye(3), np.zeros(3), max_distance=0.1, max_iterations=30, tolerance=0.0)
+    assert capped.iterations == 30 and full.iterations < 30  # the cycle cut the updates short
+    assert np.degrees(rotation_error_rad(full.rotation, capped.rotation)) < 0.05
+    # measured: 0.569 deg off the truth, the capped run 0.580; 0.033 deg apart (noise 0.01 on 500 points)
+    assert rotation_error_rad(full.rotation, R) < np.deg2rad(1.0) and np.linalg.norm(full.translation - t) < 0.01
+    assert full.converged and not full.warnings
