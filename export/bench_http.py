@@ -27,6 +27,8 @@ import httpx
 import numpy as np
 
 CONCURRENCY = (1, 2, 4, 8)
+# The network pipeline alone, as the in-process figures it is compared with (the server's default adds icp-plane).
+NETWORK_ONLY = {"refine": "none"}
 
 
 def free_port() -> int:
@@ -107,13 +109,13 @@ def run_load(url: str, bodies: list[dict], concurrency: int, requests: int) -> d
 def bench_http(pairs: dict[str, np.ndarray], requests: int, sized: dict[str, tuple[np.ndarray, np.ndarray]],
                threads: int = 2) -> dict:
     """Latency at concurrency 1/2/4/8 on 768-point pairs, single requests of other sizes, server RSS."""
-    bodies = [{"source": s.tolist(), "target": t.tolist()} for s, t in zip(pairs["source"], pairs["target"],
-                                                                            strict=True)]
+    bodies = [{"source": s.tolist(), "target": t.tolist(), **NETWORK_ONLY}
+              for s, t in zip(pairs["source"], pairs["target"], strict=True)]
     with Server(threads=threads) as server:
         rss_before = rss_mb(server.proc.pid)
         report = {"rss_mb_after_start": rss_before,
                   "load_768": [run_load(server.url, bodies, c, requests) for c in CONCURRENCY]}
-        report["sizes"] = {name: run_load(server.url, [{"source": s.tolist(), "target": t.tolist()}], 1,
+        report["sizes"] = {name: run_load(server.url, [{"source": s.tolist(), "target": t.tolist(), **NETWORK_ONLY}], 1,
                                           max(3, requests // 10))
                            for name, (s, t) in sized.items()}
         report["rss_mb_end"] = rss_mb(server.proc.pid)
@@ -151,11 +153,12 @@ def bench_overhead(requests: int = 40, big_requests: int = 3, threads: int = 2,
         pairs = make_test_pairs("clean", "test", count=16, seed=seed)
         sources, targets = list(pairs["source"]), list(pairs["target"])
         registrar = Registrar(models / "clean", threads=threads)
-        bodies = [{"source": s.tolist(), "target": t.tolist()} for s, t in zip(sources, targets, strict=True)]
+        bodies = [{"source": s.tolist(), "target": t.tolist(), **NETWORK_ONLY}
+                  for s, t in zip(sources, targets, strict=True)]
         encoded = [json.dumps(b).encode() for b in bodies]
         rng = np.random.default_rng(0)
         big = {n: {"source": resize_cloud(sources[0], n, rng).tolist(),
-                   "target": resize_cloud(targets[0], n, rng).tolist()} for n in LARGE_INPUTS}
+                   "target": resize_cloud(targets[0], n, rng).tolist(), **NETWORK_ONLY} for n in LARGE_INPUTS}
         headers = {"content-type": "application/json"}
         with ExitStack() as stack:
             servers = [stack.enter_context(Server(threads=threads, cwd=root, model_dirs=str(models)))

@@ -150,7 +150,7 @@ def evaluate(
     if baseline is not None and baseline not in BASELINES:
         raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
     if model is not None:
-        from service.registrar import REFINE_MODES
+        from service.refine_modes import REFINE_MODES
 
         if refine not in REFINE_MODES:
             raise typer.BadParameter(f"unknown --refine {refine!r}; expected one of {', '.join(REFINE_MODES)}")

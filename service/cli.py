@@ -9,7 +9,6 @@ so ``mfgnet --help`` stays fast and works with the base install.
 from __future__ import annotations
 
 import json
-from enum import Enum
 from importlib.metadata import entry_points
 from importlib.util import find_spec
 from pathlib import Path
@@ -18,6 +17,7 @@ from typing import Annotated, NoReturn
 import numpy as np
 import typer
 
+from service.refine_modes import SERVICE_DEFAULT_REFINE, Refine
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False)
@@ -74,12 +74,6 @@ def serve_command(
 # -------------------------------------------------------------------------------------- register
 
 
-class Refine(str, Enum):
-    none = "none"
-    icp = "icp"
-    icp_plane = "icp-plane"
-
-
 @app.command("register")
 def register_command(
     source: Annotated[
@@ -95,10 +89,12 @@ def register_command(
     iterations: Annotated[int | None, typer.Option(help="network iterations (default: the model's)")] = None,
     keypoints: Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")] = None,
     refine: Annotated[
-        Refine,
+        Refine | None,
         typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = wide robust "
-                          "symmetric stage, then point-to-plane ICP (best for two independently sampled scans)"),
-    ] = Refine.none,
+                          "symmetric stage, then point-to-plane ICP (best for two independently sampled scans), "
+                          f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
+                          "server's MFGNET_DEFAULT_REFINE with --server]"),
+    ] = None,
     initial_transform: Annotated[
         Path | None,
         typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4"),
@@ -154,7 +150,8 @@ def register_command(
             _fail(f"cannot read {path}: {exc.strerror or exc}")
     src, tgt = clouds
     init = _read_transform(initial_transform) if initial_transform is not None else None
-    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine.value, "initial_transform": init,
+    refine_mode = refine.value if refine is not None else None if server else SERVICE_DEFAULT_REFINE
+    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine_mode, "initial_transform": init,
                "rotation_search": search}
     if server:
         record = _register_remote(server, api_key, src, tgt, model, options, binary)

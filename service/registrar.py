@@ -24,6 +24,7 @@ from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
 from service.quality import assess
+from service.refine_modes import REFINE_MODES
 from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
 from service.sampling import resample_indices
 
@@ -33,7 +34,6 @@ KEYPOINT_RANGE = (16, 512)
 DEFAULT_WORKING_SIZE = 768
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
 ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
-REFINE_MODES = ("none", "icp", "icp-plane")  # icp: point-to-point, mutual nearest neighbours; icp-plane: point-to-plane
 SearchMode = bool | Literal["auto"]  # Registrar.register(rotation_search=...): False, True or "auto"
 # rotation_search="auto": the plain result is kept when it is reliable and at least this share of the working
 # source lies within the quality inlier distance of the target (quality.assess), else the rotation search runs.

@@ -73,7 +73,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.metrics = metrics
     app.state.registry = registry
     app.state.limiter = limiter
-    app.state.runner = Runner(registry, limiter, metrics, effective_default_model(settings, registry))
+    app.state.runner = Runner(
+        registry, limiter, metrics, effective_default_model(settings, registry), settings.default_refine
+    )
 
     install_error_handlers(app)
     for router in (register.router, models.router, oip.router, metrics_routes.router):

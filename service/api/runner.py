@@ -18,6 +18,7 @@ from service.api.metrics import Metrics
 from service.api.registry import ModelEntry, ModelRegistry
 from service.api.schemas import RegisterOptions
 from service.pose_json import pose_fields
+from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import (
     DEFAULT_WORKING_SIZE,
     InputError,
@@ -38,11 +39,19 @@ def supports_option(registrar_type: type, option: str) -> bool:
 
 
 class Runner:
-    def __init__(self, registry: ModelRegistry, limiter: InferenceLimiter, metrics: Metrics, default_model: str):
+    def __init__(
+        self,
+        registry: ModelRegistry,
+        limiter: InferenceLimiter,
+        metrics: Metrics,
+        default_model: str,
+        default_refine: str = SERVICE_DEFAULT_REFINE,
+    ):
         self.registry = registry
         self.limiter = limiter
         self.metrics = metrics
         self.default_model = default_model
+        self.default_refine = default_refine  # applied when a request names no refinement
 
     # -- scheduling --------------------------------------------------------------------------------
     def admit(self) -> Slot:
@@ -62,10 +71,11 @@ class Runner:
         registrar = entry.registrar
         assert registrar is not None
         o = pair.options
+        refine = o.refine or self.default_refine
         kwargs: dict[str, Any] = {
             "iterations": o.iterations,
             "keypoints": o.keypoints,
-            "refine": o.refine,
+            "refine": refine,
             "initial_transform": o.initial_transform,
             "return_iterations": o.return_iterations,
         }
@@ -76,7 +86,7 @@ class Runner:
         try:
             check_cloud(pair.source, "source")
             check_cloud(pair.target, "target")
-            registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, o.refine)
+            registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, refine)
             if o.initial_transform is not None:
                 _, translation = check_transform(o.initial_transform)
                 reach = float(np.abs(translation).max()) + float(np.abs(pair.source).max())

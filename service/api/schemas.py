@@ -22,11 +22,12 @@ Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
-Refine = Literal["none", "icp", "icp-plane"]  # = service.registrar.REFINE_MODES (a test keeps them equal)
+Refine = Literal["none", "icp", "icp-plane"]  # = service.refine_modes.REFINE_MODES (a test keeps them equal)
 REFINE_DESCRIPTION = (
     "Optional refinement after the network: 'icp' = point-to-point ICP (mutual nearest neighbours), "
     "'icp-plane' = a wide robust symmetric point-to-plane stage, then point-to-plane ICP with target normals "
-    "(closer and more often right for two independently sampled scans)."
+    "(closer and more often right for two independently sampled scans). Default: the server's "
+    "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
 )
 
 ROTATION_SEARCH_DESCRIPTION = (
@@ -73,7 +74,7 @@ class RegisterOptions(BaseModel):
     keypoints: int | None = Field(
         None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1], description="Keypoints per cloud; default: the model's."
     )
-    refine: Refine = Field("none", description=REFINE_DESCRIPTION)
+    refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
     initial_transform: Matrix4 | None = Field(
         None, description="Rigid 4x4 src_to_tgt guess; the network starts from the source moved by it."
     )
@@ -267,7 +268,7 @@ class InferParameters(BaseModel):
 
     iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
     keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
-    refine: Refine = Field("none", description=REFINE_DESCRIPTION)
+    refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
     rotation_search: RotationSearch = Field(False, description=ROTATION_SEARCH_DESCRIPTION)
 
 

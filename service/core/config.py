@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import json
 import re
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from service.refine_modes import SERVICE_DEFAULT_REFINE
 
 MiB = 1024 * 1024
 
@@ -44,6 +46,11 @@ class Settings(BaseSettings):
     )
     default_model: str = Field(
         "general", description="Model used when a request names none (general: trained on independently sampled pairs)."
+    )
+    default_refine: Literal["none", "icp", "icp-plane"] = Field(
+        SERVICE_DEFAULT_REFINE,
+        description="Refinement applied when a request names none: icp-plane (robust point-to-plane ICP, right for "
+        "independently sampled scans); none = the network's pose alone (lowest latency, the paper's pipeline).",
     )
     strict_readiness: bool = Field(
         True, description="Ready only if every discovered model loaded (Triton's --strict-readiness)."

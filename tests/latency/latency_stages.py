@@ -79,7 +79,7 @@ def http_seconds(src: np.ndarray, tgt: np.ndarray) -> float:
                 time.sleep(0.2)
             else:
                 raise RuntimeError("server did not become ready")
-            body = {"source": src.tolist(), "target": tgt.tolist()}
+            body = {"source": src.tolist(), "target": tgt.tolist(), "refine": "none"}  # = register_in_process
             return best_of(lambda: client.post("/v1/register", json=body).raise_for_status())
     finally:
         proc.terminate()

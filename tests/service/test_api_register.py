@@ -8,12 +8,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from api_server import MODEL, assert_error, modelnet_pair, pair_json
+from api_server import MODEL, assert_error, isolated_settings, modelnet_pair, pair_json, start_thread_server
+from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from service.api.runner import supports_option
 from service.api.schemas import InferParameters
-from service.registrar import REFINE_MODES, Registrar
+from service.refine_modes import REFINE_MODES
+from service.registrar import Registrar
 
 CHEAP = {"iterations": 1, "keypoints": 16}
 
@@ -93,7 +95,9 @@ def test_options_change_what_is_returned(client):
     pair = modelnet_pair(1)
     body = client.post(
         "/v1/register",
-        json=pair_json(pair, iterations=2, keypoints=64, return_correspondences=False, return_iterations=True),
+        json=pair_json(
+            pair, iterations=2, keypoints=64, refine="none", return_correspondences=False, return_iterations=True
+        ),
     ).json()
     assert body["iterations"] == 2
     assert "correspondences" not in body
@@ -118,13 +122,42 @@ def plane_refined(client) -> dict:
     return response.json()
 
 
-def test_point_to_plane_refinement_goes_through_json(plane_refined, single):
+def test_point_to_plane_refinement_goes_through_json(client, plane_refined):
     pair, body = modelnet_pair(1), plane_refined
-    assert "refine" in body["timing_ms"] and "refine" not in single[1]["timing_ms"]
-    assert body["rotation"] != single[1]["rotation"]  # the refinement ran and moved the pose
+    network_only = client.post("/v1/register", json=pair_json(pair, refine="none")).json()
+    assert "refine" in body["timing_ms"] and "refine" not in network_only["timing_ms"]
+    assert body["rotation"] != network_only["rotation"]  # the refinement ran and moved the pose
     assert rotation_error_deg(np.array(body["rotation"]), pair.rotation) < 0.01  # measured 1e-7 deg (network: 0.03)
     assert np.linalg.norm(np.array(body["translation"]) - pair.translation) < 1e-4  # measured 4e-10
     assert body["quality"]["reliable"] and not any(w.startswith("refinement") for w in body["warnings"])
+
+
+def test_a_request_naming_no_refinement_gets_the_servers_default_icp_plane(client, plane_refined, single):
+    """The server's default (MFGNET_DEFAULT_REFINE, icp-plane) applies on every route that names none."""
+    assert single[1]["transform"] == plane_refined["transform"] and "refine" in single[1]["timing_ms"]
+    pair = modelnet_pair(1)
+    batch = client.post("/v1/register/batch", json={"pairs": [pair_json(pair)]}).json()
+    assert batch["results"][0]["transform"] == plane_refined["transform"]
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair))
+    np.testing.assert_array_equal(oip_transform(response), np.array(plane_refined["transform"], np.float32))
+
+
+def test_the_operator_can_make_the_network_pose_alone_the_default():
+    server = start_thread_server(isolated_settings(models=[MODEL], default_refine="none"))
+    try:
+        pair = modelnet_pair(1)
+        with server.client() as client:
+            default = client.post("/v1/register", json=pair_json(pair)).json()
+            plane = client.post("/v1/register", json=pair_json(pair, refine="icp-plane")).json()
+        assert "refine" not in default["timing_ms"] and "refine" in plane["timing_ms"]
+        assert default["transform"] != plane["transform"]
+    finally:
+        server.stop()
+
+
+def test_an_unknown_default_refinement_is_refused_at_start():
+    with pytest.raises(ValidationError, match="default_refine"):
+        isolated_settings(default_refine="plane")
 
 
 @pytest.mark.parametrize("route", ["batch", "multipart", "oip"])
@@ -151,7 +184,8 @@ def test_point_to_plane_refinement_goes_through_every_route(client, plane_refine
 def test_openapi_lists_every_refine_mode(client):
     doc = client.get("/openapi.json").json()
     schema = doc["components"]["schemas"]["RegisterRequest"]["properties"]["refine"]
-    assert schema["enum"] == list(REFINE_MODES) and "icp-plane" in schema["description"]
+    assert {"enum": list(REFINE_MODES), "type": "string"} in schema["anyOf"] and schema["default"] is None
+    assert "icp-plane" in schema["description"] and "MFGNET_DEFAULT_REFINE" in schema["description"]
     form = doc["paths"]["/v1/register"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]
     assert form["properties"]["refine"]["enum"] == list(REFINE_MODES)
     assert InferParameters.model_validate({"refine": "icp-plane"}).refine == "icp-plane"  # OIP parameters
@@ -192,9 +226,11 @@ def test_rotation_search_auto_keeps_a_good_plain_result_on_every_route(client, s
 def test_rotation_search_auto_searches_after_a_poor_plain_result(client):
     """With one iteration and 16 keypoints pair 1's plain result is unreliable (inlier ratio 0.21): "auto" searches."""
     pair = modelnet_pair(1)
-    body = client.post("/v1/register", json=pair_json(pair, rotation_search="auto", **CHEAP)).json()
+    body = client.post("/v1/register", json=pair_json(pair, rotation_search="auto", refine="none", **CHEAP)).json()
     assert body["timing_ms"]["search"] > 0 and "search_per_hypothesis" in body["timing_ms"], body
-    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, rotation_search="auto", **CHEAP))
+    response = client.post(
+        f"/v2/models/{MODEL}/infer", json=oip_request(pair, rotation_search="auto", refine="none", **CHEAP)
+    )
     assert response.status_code == 200, response.text
     parameters = response.json()["parameters"]
     assert parameters["search_ms"] > 0 and parameters["inlier_ratio"] == body["quality"]["inlier_ratio"]

@@ -242,6 +242,18 @@ def test_point_to_plane_refinement_gives_the_in_process_pose(tmp_path, model_dir
     assert not np.allclose(record["transform"], other.transform, rtol=0, atol=1e-12)  # not point-to-point
 
 
+def test_no_refine_option_means_icp_plane_and_refine_none_the_network_alone(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    records = {}
+    for name, extra in (("default", ()), ("plane", ("--refine", "icp-plane")), ("none", ("--refine", "none"))):
+        result = register(src, tgt, *extra, "--json", model_dir=model_dir)
+        assert result.exit_code == 0, result.output
+        records[name] = json.loads(result.stdout)
+    assert records["default"]["transform"] == records["plane"]["transform"]
+    assert "refine" in records["default"]["timing_ms"] and "refine" not in records["none"]["timing_ms"]
+    assert records["none"]["transform"] != records["plane"]["transform"]
+
+
 def test_rejects_an_unknown_refine_mode(tmp_path, model_dir) -> None:
     src, tgt = write_pair(tmp_path, "npy")
     result = register(src, tgt, "--refine", "plane", model_dir=model_dir)

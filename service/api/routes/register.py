@@ -9,7 +9,7 @@ from service.api.deps import get_runner, get_settings, require_api_key
 from service.api.errors import error_docs
 from service.api.responses import RenderedJSON
 from service.api.runner import register_response
-from service.api.schemas import ROTATION_SEARCH_DESCRIPTION, BatchResponse, RegisterResponse
+from service.api.schemas import REFINE_DESCRIPTION, ROTATION_SEARCH_DESCRIPTION, BatchResponse, RegisterResponse
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
 
 router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
@@ -23,7 +23,7 @@ _MULTIPART_SCHEMA = {
         "model": {"type": "string"},
         "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
         "keypoints": {"type": "integer", "minimum": KEYPOINT_RANGE[0], "maximum": KEYPOINT_RANGE[1]},
-        "refine": {"type": "string", "enum": ["none", "icp", "icp-plane"], "default": "none"},
+        "refine": {"type": "string", "enum": ["none", "icp", "icp-plane"], "description": REFINE_DESCRIPTION},
         "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
         "return_correspondences": {"type": "boolean", "default": True},
         "return_iterations": {"type": "boolean", "default": False},

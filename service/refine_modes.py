@@ -1,0 +1,25 @@
+"""Refinement modes of ``Registrar.register(refine=...)`` and what the service applies by default.
+
+Standard library only, so that ``mfgnet --help`` and the settings can use it without loading the
+pipeline.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+# icp: point-to-point, mutual nearest neighbours; icp-plane: wide robust symmetric stage + point-to-plane
+REFINE_MODES = ("none", "icp", "icp-plane")
+
+# What the HTTP API and `mfgnet register` apply when a request names no refinement (the server's
+# MFGNET_DEFAULT_REFINE): two independently sampled scans need it (docs/DESIGN.md, "Default
+# refinement"). `Registrar.register` itself keeps refine=None = the network's pose alone (the paper).
+SERVICE_DEFAULT_REFINE = "icp-plane"
+
+
+class Refine(str, Enum):
+    """Command-line spelling of ``refine``."""
+
+    none = "none"
+    icp = "icp"
+    icp_plane = "icp-plane"
