@@ -1,4 +1,4 @@
-"""Point-to-point ICP refinement of a ``src_to_tgt`` pose (numpy + a KD-tree, :mod:`service.point_tree`).
+"""Point-to-point ICP refinement of a ``src_to_tgt`` pose (numpy + scipy's cKDTree).
 
 Each iteration moves the source with the current pose, pairs every moved point with its nearest
 target point, keeps the pairs closer than ``max_distance`` and solves the increment with the
@@ -35,8 +35,8 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from service.point_tree import PointTree
 from service.procrustes import compose, weighted_procrustes
 
 MIN_INLIERS = 3  # fewer pairs than this cannot fix a rigid pose: the pose is left as it is
@@ -97,8 +97,8 @@ def icp(
         ValueError: on wrongly shaped inputs or a non-positive ``max_distance``.
     """
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
-    tree = PointTree(tgt)
-    src_tree = PointTree(src) if reciprocal else None
+    tree = cKDTree(tgt)
+    src_tree = cKDTree(src) if reciprocal else None
     translation_tolerance = tolerance * _rms_radius(tgt)
     iterations = 0
     for _ in range(max_iterations):
@@ -115,7 +115,7 @@ def icp(
     return _result(tree, src, R, t, iterations, max_distance)
 
 
-def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: PointTree | None = None):
+def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: cKDTree | None = None):
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
@@ -124,7 +124,7 @@ def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: P
     k = min(int(neighbours), tgt.shape[0])
     if k < 3:
         return np.zeros_like(tgt), np.zeros(tgt.shape[0], dtype=bool)
-    tree = PointTree(tgt) if tree is None else tree
+    tree = cKDTree(tgt) if tree is None else tree
     _, idx = tree.query(tgt, k=k)  # [M, k]
     hood = tgt[idx]  # [M, k, 3]
     centred = hood - hood.mean(axis=1, keepdims=True)  # [M, k, 3]
@@ -139,13 +139,13 @@ class Surface:
     """A cloud's KD-tree and PCA normals (:func:`target_normals`), built once and shared by both
     stages of :func:`refine_plane`."""
 
-    tree: PointTree
+    tree: cKDTree
     normals: np.ndarray  # [M, 3] unit, sign arbitrary
     defined: np.ndarray  # [M] bool
 
     @classmethod
     def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> Surface:
-        tree = PointTree(points)
+        tree = cKDTree(points)
         return cls(tree, *target_normals(points, neighbours, tree))
 
 
@@ -278,7 +278,7 @@ def icp_plane(
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
-    src_tree = PointTree(src) if reciprocal else None
+    src_tree = cKDTree(src) if reciprocal else None
     scale = _rms_radius(tgt)
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):

@@ -12,8 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from service.point_tree import PointTree
+from scipy.spatial import cKDTree
 
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
@@ -105,7 +104,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     inlier_ratio, residual_rms = 0.0, 0.0
     if src.shape[0] and tgt.shape[0]:
         src_in_tgt = src @ R.T + t  # [N, 3]
-        dist, _ = PointTree(tgt).query(src_in_tgt, k=1)  # [N]
+        dist, _ = cKDTree(tgt).query(src_in_tgt, k=1)  # [N]
         ratio, rms = inlier_statistics(dist, inlier_distance)
         inlier_ratio, residual_rms = float(ratio), float(rms)
     if inlier_ratio < RELIABLE_INLIER_RATIO:
