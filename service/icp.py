@@ -115,6 +115,49 @@ def icp(
     return _result(tree, src, R, t, iterations, max_distance)
 
 
+def icp_many(
+    src: np.ndarray,
+    tgt: np.ndarray,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    *,
+    max_distance: float,
+    max_iterations: int = 30,
+    tolerance: float = 1e-6,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Plain point-to-point :func:`icp` (``reciprocal=False``) of one source from ``H`` starts at once.
+
+    ``R0 [H, 3, 3]``, ``t0 [H, 3]`` -> refined ``R [H, 3, 3]``, ``t [H, 3]``. Each start takes the updates
+    :func:`icp` would give it (equal to rounding): per iteration one KD-tree query for the moved
+    source of every start still running and one batched Procrustes whose weights are the pairs'
+    masks; a start stops on its own when its update is below ``tolerance`` or it has fewer than
+    ``MIN_INLIERS`` pairs. The rotation search refines its 24 or 60 hypotheses with it.
+    """
+    R0, t0 = np.asarray(R0, dtype=np.float64), np.asarray(t0, dtype=np.float64)
+    if R0.ndim != 3 or R0.shape[1:] != (3, 3) or t0.shape != (len(R0), 3):
+        raise ValueError(f"R0 must be (H, 3, 3) and t0 (H, 3), got {R0.shape} and {t0.shape}")
+    src, tgt, _, _ = _checked(src, tgt, np.eye(3), np.zeros(3), max_distance, max_iterations)
+    tree = cKDTree(tgt)
+    translation_tolerance = tolerance * _rms_radius(tgt)
+    R, t = R0.copy(), t0.copy()
+    running = np.arange(len(R))  # starts still updating
+    for _ in range(max_iterations):
+        if running.size == 0:
+            break
+        moved = src @ R[running].transpose(0, 2, 1) + t[running, None]  # [A, N, 3]
+        dist, nearest = tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=max_distance)
+        inlier = (dist < max_distance).reshape(moved.shape[:2])  # [A, N]
+        enough = np.count_nonzero(inlier, axis=1) >= MIN_INLIERS  # [A]
+        partner = tgt[np.minimum(nearest, len(tgt) - 1)].reshape(moved.shape)  # [A, N, 3]; misses weigh 0
+        R_step, t_step = weighted_procrustes(moved[enough], partner[enough], inlier[enough].astype(np.float64))
+        updated = running[enough]
+        R[updated], t[updated] = compose(R_step, t_step, R[updated], t[updated])
+        angle = np.linalg.norm(R_step - np.eye(3), axis=(1, 2)) / np.sqrt(2.0)  # [U]
+        still = (angle >= tolerance) | (np.linalg.norm(t_step, axis=1) >= translation_tolerance)
+        running = updated[still]
+    return R, t
+
+
 def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: cKDTree | None = None):
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from service.errors import InputError
-from service.icp import icp
+from service.icp import icp_many
 from service.quality import inlier_statistics
 
 if TYPE_CHECKING:
@@ -88,9 +88,9 @@ def search_hypotheses(
     R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
     t_h = np.stack([n.translation for n in nets])  # [H, 3]
     if short_icp:  # rank refined poses: the basin matters, not the raw pose
-        wide = {"max_distance": SEARCH_ICP_DISTANCE, "max_iterations": SEARCH_ICP_ITERATIONS, "reciprocal": False}
-        short = [icp(src_n, tgt_n, R, t, **wide) for R, t in zip(R_h, t_h, strict=True)]
-        R_h, t_h = np.stack([r.rotation for r in short]), np.stack([r.translation for r in short])
+        R_h, t_h = icp_many(
+            src_n, tgt_n, R_h, t_h, max_distance=SEARCH_ICP_DISTANCE, max_iterations=SEARCH_ICP_ITERATIONS
+        )
     best = rank_hypotheses(src_n, tgt_n, R_h, t_h, inlier_distance)[0][0]
     timing["search"] = 1000 * (time.perf_counter() - started)
     timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)

@@ -147,7 +147,7 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
     import service.registrar as registrar_module
     import service.rotation_search as search_module
 
-    calls: dict[str, int] = {"short": 0, "final_point": 0, "final_plane": 0}
+    calls: dict[str, int] = {"final_point": 0, "final_plane": 0}
 
     def counted(name, function):
         def wrapper(*args, **kwargs):
@@ -156,14 +156,21 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
 
         return wrapper
 
-    monkeypatch.setattr(search_module, "icp", counted("short", search_module.icp))
+    starts: list[int] = []
+
+    def short_icps(src, tgt, R0, t0, **kwargs):
+        starts.append(len(R0))
+        return original_many(src, tgt, R0, t0, **kwargs)
+
+    original_many = search_module.icp_many
+    monkeypatch.setattr(search_module, "icp_many", short_icps)
     monkeypatch.setattr(registrar_module, "icp", counted("final_point", registrar_module.icp))
     monkeypatch.setattr(registrar_module, "refine_plane", counted("final_plane", registrar_module.refine_plane))
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(600, 3), asymmetric_blob(500, 4) @ R.T
     found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
                                keypoints=64, iterations=2)
-    assert calls == {"short": 24, "final_point": 0, "final_plane": 1}  # short ICPs stay point-to-point
+    assert starts == [24] and calls == {"final_point": 0, "final_plane": 1}  # short ICPs stay point-to-point
     assert "refine" in found.timing_ms and np.isfinite(found.transform).all()
 
 

@@ -16,6 +16,7 @@ from service.icp import (
     PairingHistory,
     Surface,
     icp,
+    icp_many,
     icp_plane,
     icp_symmetric,
     refine_plane,
@@ -353,3 +354,26 @@ def test_plane_icp_stops_when_its_pairing_cycles(monkeypatch) -> None:
     # measured: 0.569 deg off the truth, the capped run 0.580; 0.033 deg apart (noise 0.01 on 500 points)
     assert rotation_error_rad(full.rotation, R) < np.deg2rad(1.0) and np.linalg.norm(full.translation - t) < 0.01
     assert full.converged and not full.warnings
+
+
+def test_icp_many_gives_every_start_the_poses_of_plain_icp() -> None:
+    """Batched starts (the rotation search's short ICPs) = one plain ``icp`` per start, including a start
+    too far away to find pairs (kept) and starts that converge at different iterations."""
+    src, tgt, R, t = partial_pair(3)
+    starts = [perturbed(R, t, degrees, shift) for degrees, shift in ((2.0, 0.01), (8.0, 0.05), (25.0, 0.1))]
+    starts.append((np.eye(3), np.array([50.0, 0.0, 0.0])))  # no target point within reach
+    R0, t0 = np.stack([s[0] for s in starts]), np.stack([s[1] for s in starts])
+    R_many, t_many = icp_many(src, tgt, R0, t0, max_distance=0.3, max_iterations=20)
+    for k, (R_k, t_k) in enumerate(starts):
+        one = icp(src, tgt, R_k, t_k, max_distance=0.3, max_iterations=20, reciprocal=False)
+        np.testing.assert_allclose(R_many[k], one.rotation, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(t_many[k], one.translation, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(t_many[3], t0[3])
+    for k in range(3):  # every reachable start ends closer than it began
+        assert rotation_error_rad(R_many[k], R) < rotation_error_rad(R0[k], R)
+
+
+def test_icp_many_rejects_misshapen_starts() -> None:
+    src, tgt, _, _ = partial_pair(0)
+    with pytest.raises(ValueError, match="R0"):
+        icp_many(src, tgt, np.eye(3), np.zeros(3), max_distance=0.3)
