@@ -1,0 +1,94 @@
+"""HTTP latency of a request that names no refinement (the server's default) against ``"refine": "none"``.
+
+``python -m export.bench_refine_http --pairs dense.npz --pairs resampled.npz [--count 20] [--json out.json]``
+starts ``mfgnet serve`` with one model on 127.0.0.1, sends each pair's JSON body twice per round
+in alternating order (default, then none, or the reverse), and prints the client's p50 / p95 and the
+server's own ``timing_ms.total`` p50 per file and request kind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from export.bench_http import free_port
+
+
+def wait_ready(client: httpx.Client, timeout_s: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if client.get("/v2/health/ready").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError("the server did not become ready")
+
+
+def measure(client: httpx.Client, pairs: dict, count: int, rounds: int) -> dict:
+    """Client ms and server ``timing_ms.total`` per request kind, alternating kinds pair by pair."""
+    sources, targets = pairs["source"][:count], pairs["target"][:count]
+    bodies = [{"source": s.tolist(), "target": t.tolist()} for s, t in zip(sources, targets, strict=True)]
+    client_ms: dict[str, list[float]] = {"default": [], "none": []}
+    server_ms: dict[str, list[float]] = {"default": [], "none": []}
+    for _ in range(rounds):
+        for i, body in enumerate(bodies):
+            for kind in ("default", "none") if i % 2 == 0 else ("none", "default"):
+                sent = body if kind == "default" else {**body, "refine": "none"}
+                tic = time.perf_counter()
+                response = client.post("/v1/register", json=sent)
+                client_ms[kind].append(1000 * (time.perf_counter() - tic))
+                response.raise_for_status()
+                server_ms[kind].append(response.json()["timing_ms"]["total"])
+    return {
+        kind: {
+            "http_p50_ms": float(np.median(client_ms[kind])),
+            "http_p95_ms": float(np.percentile(client_ms[kind], 95)),
+            "server_total_p50_ms": float(np.median(server_ms[kind])),
+            "requests": len(client_ms[kind]),
+        }
+        for kind in client_ms
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=Path, action="append", required=True, help="pairs file (mfgnet make-pairs)")
+    parser.add_argument("--model", default="general")
+    parser.add_argument("--count", type=int, default=20, help="pairs per file")
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--json", type=Path, default=None, help="write the report here")
+    args = parser.parse_args(argv)
+
+    port = free_port()
+    env = {**os.environ, "MFGNET_MODELS": args.model, "MFGNET_DEFAULT_MODEL": args.model, "MFGNET_PORT": str(port)}
+    server = subprocess.Popen(["mfgnet", "serve"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
+            wait_ready(client)
+            report = {
+                "date": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+                "model": args.model,
+                "results": {
+                    path.stem: measure(client, dict(np.load(path)), args.count, args.rounds) for path in args.pairs
+                },
+            }
+    finally:
+        server.terminate()
+        server.wait(30)
+    text = json.dumps(report, indent=2)
+    if args.json:
+        args.json.write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
