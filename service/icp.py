@@ -399,9 +399,9 @@ def rotation_of(rotvec: np.ndarray, angle: float) -> np.ndarray:
 class PairingHistory:
     """Spots an ICP limit cycle: the pairs of an earlier update come back after different ones.
 
-    With the same pairs the solve lands on the same pose again, so from then on the pose only
-    alternates between the minima of the recurring pairings (steps of 1e-5 to 6e-4 rad on the dense
-    test pairs, until the update cap); the loop can stop at once.
+    With the same pairs the solve lands (to within the linearisation) on the same pose again, so the
+    pose only alternates between the minima of the recurring pairings (steps of 1e-5 to 6e-4 rad on
+    the dense test pairs, until the update cap); the loop can stop at once.
     """
 
     def __init__(self) -> None:
