@@ -23,7 +23,7 @@ from service.manifest import Manifest, load_manifest
 from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
-from service.quality import assess
+from service.quality import assess, attainable_inlier_ratio
 from service.refine_modes import REFINE_MODES
 from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
 from service.sampling import resample_indices
@@ -37,15 +37,13 @@ ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
 SearchMode = bool | Literal["auto"]  # Registrar.register(rotation_search=...): False, True or "auto"
 # rotation_search="auto": the plain result is kept when it is reliable and at least this share of the working
 # source lies within the quality inlier distance of the target (quality.assess), else the rotation search runs.
-# Calibrated on 85 seeded `dense` ModelNet40 pairs (two independent 768-point samples of a shape, <= 45 deg
-# per axis), bundled `clean` model, refine="icp-plane": the 79 pairs that ended < 5 deg had inlier ratios
-# 0.74-1.00 (5th percentile 0.77, median 0.91), the 6 failures 0.23-0.60 (median 0.44). 0.7 lies in that gap,
-# nearer the good side on purpose: a needless search mostly costs time (the better-fitting result is kept),
-# a missed failure costs the pose. It separates only clouds that sample the same full surface densely: on
-# sparser `resampled` pairs (384 points) good and bad ratios overlap (medians 0.59 / 0.55), 79% of the
-# pairs fall below 0.7, and partial overlap caps the ratio itself, so there "auto" costs about as much as
-# rotation_search=True (docs/ROTATION_SEARCH.md, "Adaptive search (auto)").
-AUTO_SEARCH_INLIER_RATIO = 0.7
+# rotation_search="auto" searches when the plain result's inlier ratio is below this share of the ratio a
+# right pose can reach at the target's density (service.quality.attainable_inlier_ratio). Chosen on the
+# bundled `general` model with refine="icp-plane" (docs/ROTATION_SEARCH.md, "Adaptive search: the trigger"):
+# right poses reach 0.93-0.98 of it on dense and sparse pairs alike; at 0.8 "auto" matched the former fixed
+# threshold (inlier ratio 0.7) on dense pairs at 45/90/180 deg and on sparse pairs searched 5% instead of 77%
+# of 300 pairs within 45 deg (recall at 5 deg 0.860 vs 0.870), with equal or better recall at 90 and 180 deg.
+AUTO_SEARCH_RELATIVE_RATIO = 0.8
 
 
 def search_mode(rotation_search) -> Literal["off", "on", "auto"]:
@@ -60,9 +58,11 @@ def search_mode(rotation_search) -> Literal["off", "on", "auto"]:
     raise InputError(f"rotation_search must be true, false or 'auto', got {rotation_search!r}")
 
 
-def needs_search(result: RegistrationResult) -> bool:
-    """Whether ``rotation_search="auto"`` searches after the plain ``result`` (``AUTO_SEARCH_INLIER_RATIO``)."""
-    return not result.reliable or result.inlier_ratio < AUTO_SEARCH_INLIER_RATIO
+def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:
+    """Whether ``rotation_search="auto"`` searches after the plain ``result``: it is not ``reliable``, or its
+    inlier ratio is below ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio``
+    (:func:`service.quality.attainable_inlier_ratio` of the working target)."""
+    return not result.reliable or result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
 
 
 def default_threads() -> int:
@@ -391,8 +391,9 @@ class Registrar:
 
         ``rotation_search="auto"`` runs the plain registration (with ``refine``) first and returns it
         unchanged unless it looks wrong (:func:`needs_search`: not ``reliable``, or an inlier ratio below
-        ``AUTO_SEARCH_INLIER_RATIO``); then it runs the rotation search as above on the same working
-        clouds and returns whichever of the two final poses :func:`service.rotation_search.rank_hypotheses`
+        ``AUTO_SEARCH_RELATIVE_RATIO`` of what the target's density allows); then it runs the rotation
+        search as above on the same working clouds and returns whichever of the two final poses
+        :func:`service.rotation_search.rank_hypotheses`
         ranks first (inlier ratio, then residual; the plain one on a tie). The stage keys of ``timing_ms``
         are the plain pass's; ``"search"`` (the whole second pass: hypotheses, short ICPs, ranking, the
         winner's refinement and quality, the final comparison) and ``"search_per_hypothesis"`` are present
@@ -422,7 +423,7 @@ class Registrar:
                    "icp_max_iterations": icp_max_iterations}
 
         result = self._solve(work, hypotheses if mode == "on" else None, timing, **options)
-        if mode == "auto" and needs_search(result):
+        if mode == "auto" and needs_search(result, attainable_inlier_ratio(work.tgt_w, INLIER_DISTANCE * norm.scale)):
             assert hypotheses is not None
             started = time.perf_counter()
             searched = self._solve(work, hypotheses, {}, **options)

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, WrapValidator
 from pydantic_core import PydanticCustomError
 
-from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS, MIN_POINTS
+from service.registrar import AUTO_SEARCH_RELATIVE_RATIO, KEYPOINT_RANGE, MAX_ITERATIONS, MIN_POINTS
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]  # strict: no "1.5" or true for a number
 Point = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
@@ -32,8 +32,9 @@ REFINE_DESCRIPTION = (
 
 ROTATION_SEARCH_DESCRIPTION = (
     "Search over initial rotations covering SO(3), for any relative orientation (10-20x the time): true = always; "
-    "'auto' = only when the plain result looks wrong (not reliable, or inlier ratio below the documented "
-    "threshold), then the better of both is returned and timing_ms has a 'search' key; false = never. "
+    "'auto' = only when the plain result looks wrong (not reliable, or inlier ratio below "
+    f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows), then the better of both is returned "
+    "and timing_ms has a 'search' key; false = never. "
     "422 when the loaded pipeline does not support it."
 )
 

@@ -1,0 +1,119 @@
+"""Calibration of ``rotation_search="auto"``'s trigger: which plain results should be searched.
+
+``python -m export.auto_trigger collect --pairs dense90.npz ... --out trigger.json`` registers every
+pair twice with the bundled model and ``refine="icp-plane"``: plainly (its inlier ratio, reliability,
+errors, time) and with ``"auto"`` forced to search (the better of the plain and the searched pose, as
+``auto`` returns it). ``python -m export.auto_trigger report trigger.json --pairs ...`` then replays any
+trigger on those results: the fixed inlier-ratio threshold and thresholds relative to
+:func:`service.quality.attainable_inlier_ratio`, with recall at (5 deg, 5 cm), the share searched and
+the mean time per pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+FIXED = (0.7,)
+RELATIVE = (0.7, 0.75, 0.8, 0.85)
+
+
+def pose_errors(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndarray) -> tuple[float, float]:
+    cos = np.clip((np.trace(R.T @ R_true) - 1) / 2, -1, 1)
+    return float(np.degrees(np.arccos(cos))), float(np.linalg.norm(t - t_true))
+
+
+def collect(pair_files: list[Path], model: str) -> dict:
+    import service.registrar as registrar_module
+    from service.manifest import bundled_models_dir
+
+    registrar = registrar_module.Registrar(bundled_models_dir() / model)
+    always = registrar_module.needs_search
+    out = {}
+    for path in pair_files:
+        pairs, rows = np.load(path), []
+        for src, tgt, R, t in zip(pairs["source"], pairs["target"], pairs["rotation"], pairs["translation"],
+                                  strict=True):
+            plain = registrar.register(src, tgt, refine="icp-plane")
+            registrar_module.needs_search = lambda *_: True  # "auto" with the search always run
+            try:
+                both = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto")
+            finally:
+                registrar_module.needs_search = always
+            rows.append({
+                "ratio": plain.inlier_ratio, "reliable": plain.reliable,
+                "plain": pose_errors(plain.rotation, plain.translation, R, t),
+                "auto_always": pose_errors(both.rotation, both.translation, R, t),
+                "ms_plain": plain.timing_ms["total"], "ms_both": both.timing_ms["total"],
+            })
+        out[path.stem] = rows
+    return out
+
+
+def attainable_ratios(path: Path, reference_radius: float) -> np.ndarray:
+    """:func:`attainable_inlier_ratio` of each pair's target at the quality distance (the registrar's scale)."""
+    from service.quality import attainable_inlier_ratio
+    from service.registrar import INLIER_DISTANCE
+
+    pairs = np.load(path)
+    ratios = []
+    for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
+        src = src.astype(np.float64)
+        scale = np.sqrt(((src - src.mean(axis=0)) ** 2).sum(axis=1).mean()) / reference_radius
+        ratios.append(attainable_inlier_ratio(tgt, INLIER_DISTANCE * scale))
+    return np.array(ratios)
+
+
+def report(results: dict, pair_files: list[Path], model: str) -> dict:
+    from service.manifest import bundled_models_dir, load_manifest
+
+    reference = float(load_manifest(bundled_models_dir() / model).normalization["reference_radius"])
+    table = {}
+    for path in pair_files:
+        rows = results[path.stem]
+        ratio = np.array([r["ratio"] for r in rows])
+        reliable = np.array([r["reliable"] for r in rows])
+        plain_ok = np.array([r["plain"][0] < 5 and r["plain"][1] < 0.05 for r in rows])
+        both_ok = np.array([r["auto_always"][0] < 5 and r["auto_always"][1] < 0.05 for r in rows])
+        ms_plain, ms_both = np.array([r["ms_plain"] for r in rows]), np.array([r["ms_both"] for r in rows])
+        attainable = attainable_ratios(path, reference)
+        triggers = {f"fixed {f}": ratio < f for f in FIXED}
+        triggers |= {f"relative {a}": ratio < a * attainable for a in RELATIVE}
+        table[path.stem] = {"pairs": len(rows), "plain": float(plain_ok.mean()), "always": float(both_ok.mean()),
+                            "attainable_median": float(np.median(attainable))}
+        for name, low in triggers.items():
+            searched = ~reliable | low
+            table[path.stem][name] = {
+                "recall_r5_t005": float(np.where(searched, both_ok, plain_ok).mean()),
+                "searched": float(searched.mean()),
+                "ms_per_pair": float(np.where(searched, ms_both, ms_plain).mean()),
+            }
+    return table
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("step", choices=("collect", "report"))
+    parser.add_argument("results", type=Path, nargs="?", help="report: the collected JSON")
+    parser.add_argument("--pairs", type=Path, action="append", required=True)
+    parser.add_argument("--model", default="general")
+    parser.add_argument("--out", type=Path, default=None, help="collect: where to write the per-pair JSON")
+    args = parser.parse_args(argv)
+    if args.step == "collect":
+        data = collect(args.pairs, args.model)
+        text = json.dumps(data)
+        if args.out:
+            args.out.write_text(text)
+        else:
+            print(text)
+        return
+    if args.results is None:
+        parser.error("report needs the collected JSON")
+    print(json.dumps(report(json.loads(args.results.read_text()), args.pairs, args.model), indent=1))
+
+
+if __name__ == "__main__":
+    main()
