@@ -55,14 +55,14 @@ def collect(pair_files: list[Path], model: str) -> dict:
 
 def attainable_ratios(path: Path, reference_radius: float) -> np.ndarray:
     """:func:`attainable_inlier_ratio` of each pair's target at the quality distance (the registrar's scale)."""
+    from service.normalization import Normalization
     from service.quality import attainable_inlier_ratio
     from service.registrar import INLIER_DISTANCE
 
     pairs = np.load(path)
     ratios = []
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
-        src = src.astype(np.float64)
-        scale = np.sqrt(((src - src.mean(axis=0)) ** 2).sum(axis=1).mean()) / reference_radius
+        scale = Normalization.fit(src, tgt, reference_radius).scale
         ratios.append(attainable_inlier_ratio(tgt, INLIER_DISTANCE * scale))
     return np.array(ratios)
 

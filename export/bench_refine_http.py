@@ -1,7 +1,8 @@
 """HTTP latency of a request that names no refinement (the server's default) against ``"refine": "none"``.
 
 ``python -m export.bench_refine_http --pairs dense.npz --pairs resampled.npz [--count 20] [--json out.json]``
-starts ``mfgnet serve`` with one model on 127.0.0.1, sends each pair's JSON body twice per round
+starts the service (``export.bench_http.Server``) on 127.0.0.1, sends each pair's JSON body (naming the
+model) twice per round
 in alternating order (default, then none, or the reverse), and prints the client's p50 / p95 and the
 server's own ``timing_ms.total`` p50 per file and request kind.
 """
@@ -10,33 +11,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import time
 from pathlib import Path
 
 import httpx
 import numpy as np
 
-from export.bench_http import free_port
+from export.bench_http import Server
 
 
-def wait_ready(client: httpx.Client, timeout_s: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            if client.get("/v2/health/ready").status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise RuntimeError("the server did not become ready")
-
-
-def measure(client: httpx.Client, pairs: dict, count: int, rounds: int) -> dict:
+def measure(client: httpx.Client, pairs: dict, model: str, count: int, rounds: int) -> dict:
     """Client ms and server ``timing_ms.total`` per request kind, alternating kinds pair by pair."""
     sources, targets = pairs["source"][:count], pairs["target"][:count]
-    bodies = [{"source": s.tolist(), "target": t.tolist()} for s, t in zip(sources, targets, strict=True)]
+    bodies = [{"source": s.tolist(), "target": t.tolist(), "model": model}
+              for s, t in zip(sources, targets, strict=True)]
     client_ms: dict[str, list[float]] = {"default": [], "none": []}
     server_ms: dict[str, list[float]] = {"default": [], "none": []}
     for _ in range(rounds):
@@ -68,22 +56,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", type=Path, default=None, help="write the report here")
     args = parser.parse_args(argv)
 
-    port = free_port()
-    env = {**os.environ, "MFGNET_MODELS": args.model, "MFGNET_DEFAULT_MODEL": args.model, "MFGNET_PORT": str(port)}
-    server = subprocess.Popen(["mfgnet", "serve"], env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
-            wait_ready(client)
-            report = {
-                "date": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
-                "model": args.model,
-                "results": {
-                    path.stem: measure(client, dict(np.load(path)), args.count, args.rounds) for path in args.pairs
-                },
-            }
-    finally:
-        server.terminate()
-        server.wait(30)
+    with Server(threads=2) as server, httpx.Client(base_url=server.url, timeout=120) as client:
+        report = {
+            "date": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
+            "model": args.model,
+            "results": {
+                path.stem: measure(client, dict(np.load(path)), args.model, args.count, args.rounds)
+                for path in args.pairs
+            },
+        }
     text = json.dumps(report, indent=2)
     if args.json:
         args.json.write_text(text + "\n")
