@@ -155,7 +155,7 @@ def evaluate(
         if refine not in REFINE_MODES:
             raise typer.BadParameter(f"unknown --refine {refine!r}; expected one of {', '.join(REFINE_MODES)}")
     try:
-        search = rotation_search_from_options(rotation_search, rotation_search_mode)
+        search = rotation_search_from_options(rotation_search, rotation_search_mode) or False  # evaluate: off
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
     if pairs:

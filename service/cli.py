@@ -18,7 +18,7 @@ import numpy as np
 import typer
 
 from service.refine_modes import SERVICE_DEFAULT_REFINE, Refine
-from service.search_mode import RotationSearchMode, rotation_search_from_options
+from service.search_mode import RotationSearchMode, rotation_search_from_options, service_rotation_search
 
 app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False)
 
@@ -116,8 +116,9 @@ def register_command(
     rotation_search_mode: Annotated[
         RotationSearchMode | None,
         typer.Option(help="off: never search; on: always (= --rotation-search); auto: register plainly first and "
-                          "search only when that result looks wrong (unreliable or low inlier ratio), keeping the "
-                          "better of both; timing_ms then has a 'search' key [default: off]"),
+                          "search only when that result looks wrong (low inlier ratio for the target's density), "
+                          "keeping the better of both; timing_ms then has a 'search' key [default: auto when the "
+                          "result is refined, else off; with --server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
     ] = None,
     threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")] = False,
@@ -151,6 +152,8 @@ def register_command(
     src, tgt = clouds
     init = _read_transform(initial_transform) if initial_transform is not None else None
     refine_mode = refine.value if refine is not None else None if server else SERVICE_DEFAULT_REFINE
+    if not server:  # in-process: the service's defaults (with --server the server applies its own)
+        search = service_rotation_search(search, refine_mode)
     options = {"iterations": iterations, "keypoints": keypoints, "refine": refine_mode, "initial_transform": init,
                "rotation_search": search}
     if server:

@@ -73,7 +73,7 @@ class MfgnetClient:
         return_correspondences: bool = True,
         return_iterations: bool = False,
         binary: bool = False,
-        rotation_search: bool | Literal["auto"] = False,
+        rotation_search: bool | Literal["auto"] | None = None,
     ) -> dict:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
@@ -84,7 +84,8 @@ class MfgnetClient:
                 left out of the request when ``None`` (the server's defaults apply).
             rotation_search: ``True`` = search over initial rotations covering SO(3) (any relative
                 orientation, much slower); ``"auto"`` = only when the plain result looks wrong (the
-                response's ``timing_ms`` then has a ``search`` key); ``False`` (default) = never.
+                response's ``timing_ms`` then has a ``search`` key); ``False`` = never; ``None`` (default) =
+                the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``, ``auto`` for refined requests).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds).
 
@@ -99,7 +100,7 @@ class MfgnetClient:
             "initial_transform": None if initial_transform is None else np.asarray(initial_transform).tolist(),
             "return_correspondences": return_correspondences,
             "return_iterations": return_iterations,
-            "rotation_search": rotation_search or None,  # sent only when asked
+            "rotation_search": rotation_search,
         }
         options = {key: value for key, value in options.items() if value is not None}
         if binary:

@@ -67,6 +67,12 @@ def degeneracy_warnings(points: np.ndarray) -> list[str]:
     return []
 
 
+def degenerate(points: np.ndarray) -> bool:
+    """Whether ``points (N, 3)`` leave a pose undetermined: empty, identical or collinear (see
+    :func:`degeneracy_warnings`; coplanar clouds are not degenerate)."""
+    return any(w.startswith(_DEGENERATE) for w in degeneracy_warnings(points))
+
+
 def inlier_statistics(distances: np.ndarray, inlier_distance: float) -> tuple[np.ndarray, np.ndarray]:
     """Inlier ratio and inlier RMS residual of nearest-neighbour ``distances (..., N)``.
 

@@ -23,7 +23,7 @@ from service.manifest import Manifest, load_manifest
 from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
-from service.quality import assess, attainable_inlier_ratio
+from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES
 from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
 from service.sampling import resample_indices
@@ -35,14 +35,14 @@ DEFAULT_WORKING_SIZE = 768
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
 ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
 SearchMode = bool | Literal["auto"]  # Registrar.register(rotation_search=...): False, True or "auto"
-# rotation_search="auto": the plain result is kept when it is reliable and at least this share of the working
-# source lies within the quality inlier distance of the target (quality.assess), else the rotation search runs.
 # rotation_search="auto" searches when the plain result's inlier ratio is below this share of the ratio a
 # right pose can reach at the target's density (service.quality.attainable_inlier_ratio). Chosen on the
 # bundled `general` model with refine="icp-plane" (docs/ROTATION_SEARCH.md, "The trigger"):
 # right poses reach 0.93-0.98 of it on dense and sparse pairs alike; at 0.8 "auto" matched the former fixed
 # threshold (inlier ratio 0.7) on dense pairs at 45/90/180 deg and on sparse pairs searched 5% instead of 77%
 # of 300 pairs within 45 deg (recall at 5 deg 0.860 vs 0.870), with equal or better recall at 90 and 180 deg.
+# Only the relative rule decides (since 2026-11-26, 07:25 UTC): the former extra "or not reliable" searched
+# 3 more of those 300 pairs (targets too sparse to reach the reliable ratio at all) and made one worse.
 AUTO_SEARCH_RELATIVE_RATIO = 0.8
 
 
@@ -59,10 +59,10 @@ def search_mode(rotation_search) -> Literal["off", "on", "auto"]:
 
 
 def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:
-    """Whether ``rotation_search="auto"`` searches after the plain ``result``: it is not ``reliable``, or its
-    inlier ratio is below ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio``
-    (:func:`service.quality.attainable_inlier_ratio` of the working target)."""
-    return not result.reliable or result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
+    """Whether ``rotation_search="auto"`` searches after the plain ``result``: its inlier ratio is below
+    ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio`` (:func:`service.quality.attainable_inlier_ratio`
+    of the working target). The registrar never searches degenerate clouds (:func:`service.quality.degenerate`)."""
+    return result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
 
 
 def default_threads() -> int:
@@ -390,9 +390,10 @@ class Registrar:
         ``timing_ms["search_per_hypothesis"]`` that divided by the number of hypotheses.
 
         ``rotation_search="auto"`` runs the plain registration (with ``refine``) first and returns it
-        unchanged unless it looks wrong (:func:`needs_search`: not ``reliable``, or an inlier ratio below
-        ``AUTO_SEARCH_RELATIVE_RATIO`` of what the target's density allows); then it runs the rotation
-        search as above on the same working clouds and returns whichever of the two final poses
+        unchanged unless it looks wrong (:func:`needs_search`: an inlier ratio below
+        ``AUTO_SEARCH_RELATIVE_RATIO`` of what the target's density allows) and neither working cloud is
+        degenerate (identical or collinear points: no start rotation can fix what they leave open); then it
+        runs the rotation search as above on the same working clouds and returns whichever of the two final poses
         :func:`service.rotation_search.rank_hypotheses`
         ranks first (inlier ratio, then residual; the plain one on a tie). The stage keys of ``timing_ms``
         are the plain pass's; ``"search"`` (the whole second pass: hypotheses, short ICPs, ranking, the
@@ -423,7 +424,8 @@ class Registrar:
                    "icp_max_iterations": icp_max_iterations}
 
         result = self._solve(work, hypotheses if mode == "on" else None, timing, **options)
-        if mode == "auto" and needs_search(result, attainable_inlier_ratio(work.tgt_w, INLIER_DISTANCE * norm.scale)):
+        if (mode == "auto" and not degenerate(src_w) and not degenerate(tgt_w)
+                and needs_search(result, attainable_inlier_ratio(tgt_w, INLIER_DISTANCE * norm.scale))):
             assert hypotheses is not None
             started = time.perf_counter()
             searched = self._solve(work, hypotheses, {}, **options)

@@ -8,6 +8,14 @@ from __future__ import annotations
 
 from enum import Enum
 
+# What the HTTP API and `mfgnet register` run when a request names no rotation search (the server's
+# MFGNET_DEFAULT_ROTATION_SEARCH), and only when the request is refined: "auto" costs nothing on a result
+# that fits (0-5% of the test pairs within 45 deg searched) and is what registers clouds at any relative
+# orientation (docs/ROTATION_SEARCH.md). Unrefined network poses of independent scans never fit tightly,
+# so with refine="none" it would search every request. `Registrar.register` itself keeps False.
+SERVICE_DEFAULT_ROTATION_SEARCH = "auto"
+MODE_VALUES: dict[str, bool | str] = {"off": False, "on": True, "auto": "auto"}
+
 
 class RotationSearchMode(str, Enum):
     """Command-line spelling of ``Registrar.register(rotation_search=...)`` (``--rotation-search-mode``)."""
@@ -17,19 +25,29 @@ class RotationSearchMode(str, Enum):
     auto = "auto"  # "auto": only when the plain result looks wrong
 
 
-def rotation_search_from_options(flag: bool | None, mode: str | None) -> bool | str:
+def rotation_search_from_options(flag: bool | None, mode: str | None) -> bool | str | None:
     """``rotation_search`` for ``Registrar.register`` from the command line's ``--rotation-search`` /
     ``--no-rotation-search`` flag (``None``: not given) and ``--rotation-search-mode off|on|auto``.
 
-    Either alone decides (neither: off); both must agree, else ``ValueError``.
+    Either alone decides; neither gives ``None`` (the caller's default); both must agree, else ``ValueError``.
     """
-    values = {"off": False, "on": True, "auto": "auto"}
     if mode is None:
-        return bool(flag)
+        return flag
     key = mode.value if isinstance(mode, RotationSearchMode) else str(mode)
-    if key not in values:
-        raise ValueError(f"--rotation-search-mode must be one of {', '.join(values)}, got {key!r}")
-    if flag is not None and values[key] is not flag:
+    if key not in MODE_VALUES:
+        raise ValueError(f"--rotation-search-mode must be one of {', '.join(MODE_VALUES)}, got {key!r}")
+    if flag is not None and MODE_VALUES[key] is not flag:
         given = "--rotation-search" if flag else "--no-rotation-search"
         raise ValueError(f"{given} contradicts --rotation-search-mode {key}; give one of them")
-    return values[key]
+    return MODE_VALUES[key]
+
+
+def service_rotation_search(
+    requested: bool | str | None, refine: str, default: str = SERVICE_DEFAULT_ROTATION_SEARCH
+) -> bool | str:
+    """The rotation search the service runs: the request's own choice when it made one; otherwise the
+    server's ``default`` (``"off"``, ``"on"`` or ``"auto"``) for a refined request and ``False`` for
+    ``refine="none"`` (see ``SERVICE_DEFAULT_ROTATION_SEARCH``)."""
+    if requested is not None:
+        return requested
+    return False if refine == "none" else MODE_VALUES[default]

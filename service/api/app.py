@@ -74,7 +74,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.registry = registry
     app.state.limiter = limiter
     app.state.runner = Runner(
-        registry, limiter, metrics, effective_default_model(settings, registry), settings.default_refine
+        registry, limiter, metrics, effective_default_model(settings, registry), settings.default_refine,
+        settings.default_rotation_search,
     )
 
     install_error_handlers(app)

@@ -27,6 +27,7 @@ from service.registrar import (
     check_cloud,
     check_transform,
 )
+from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotation_search
 
 T = TypeVar("T")
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -46,12 +47,14 @@ class Runner:
         metrics: Metrics,
         default_model: str,
         default_refine: str = SERVICE_DEFAULT_REFINE,
+        default_rotation_search: str = SERVICE_DEFAULT_ROTATION_SEARCH,
     ):
         self.registry = registry
         self.limiter = limiter
         self.metrics = metrics
         self.default_model = default_model
         self.default_refine = default_refine  # applied when a request names no refinement
+        self.default_rotation_search = default_rotation_search  # "off" | "on" | "auto", for refined requests
 
     # -- scheduling --------------------------------------------------------------------------------
     def admit(self) -> Slot:
@@ -79,10 +82,11 @@ class Runner:
             "initial_transform": o.initial_transform,
             "return_iterations": o.return_iterations,
         }
-        if o.rotation_search:
-            if not supports_option(type(registrar), "rotation_search"):
-                raise APIError(422, f"invalid request: {prefix}rotation_search: not supported by this server")
-            kwargs["rotation_search"] = o.rotation_search  # True or "auto"
+        search = service_rotation_search(o.rotation_search, refine, self.default_rotation_search)
+        if search and supports_option(type(registrar), "rotation_search"):
+            kwargs["rotation_search"] = search  # True or "auto"
+        elif search and o.rotation_search:  # asked for explicitly; a server default is simply not applied
+            raise APIError(422, f"invalid request: {prefix}rotation_search: not supported by this server")
         try:
             check_cloud(pair.source, "source")
             check_cloud(pair.target, "target")

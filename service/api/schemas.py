@@ -32,10 +32,11 @@ REFINE_DESCRIPTION = (
 
 ROTATION_SEARCH_DESCRIPTION = (
     "Search over initial rotations covering SO(3), for any relative orientation (10-20x the time): true = always; "
-    "'auto' = only when the plain result looks wrong (not reliable, or inlier ratio below "
-    f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows), then the better of both is returned "
-    "and timing_ms has a 'search' key; false = never. "
-    "422 when the loaded pipeline does not support it."
+    "'auto' = only when the plain result looks wrong (inlier ratio below "
+    f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows; never on degenerate clouds), then "
+    "the better of both is returned and timing_ms has a 'search' key; false = never. Default (null): the "
+    "server's (MFGNET_DEFAULT_ROTATION_SEARCH; 'auto' unless the operator changed it) when the request is "
+    "refined, false with refine 'none'. 422 when the loaded pipeline does not support it."
 )
 
 
@@ -81,7 +82,7 @@ class RegisterOptions(BaseModel):
     )
     return_correspondences: bool = Field(True, description="Include the keypoint correspondences.")
     return_iterations: bool = Field(False, description="Include the cumulative pose after each iteration.")
-    rotation_search: RotationSearch = Field(False, description=ROTATION_SEARCH_DESCRIPTION)
+    rotation_search: RotationSearch | None = Field(None, description=ROTATION_SEARCH_DESCRIPTION)
 
 
 class RegisterRequest(RegisterOptions):
@@ -270,7 +271,7 @@ class InferParameters(BaseModel):
     iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
     keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
-    rotation_search: RotationSearch = Field(False, description=ROTATION_SEARCH_DESCRIPTION)
+    rotation_search: RotationSearch | None = Field(None, description=ROTATION_SEARCH_DESCRIPTION)
 
 
 class InferOutputTensor(BaseModel):

@@ -15,6 +15,7 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from service.refine_modes import SERVICE_DEFAULT_REFINE
+from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 
 MiB = 1024 * 1024
 
@@ -51,6 +52,13 @@ class Settings(BaseSettings):
         SERVICE_DEFAULT_REFINE,
         description="Refinement applied when a request names none: icp-plane (robust point-to-plane ICP, right for "
         "independently sampled scans); none = the network's pose alone (lowest latency, the paper's pipeline).",
+    )
+    default_rotation_search: Literal["off", "auto", "on"] = Field(
+        SERVICE_DEFAULT_ROTATION_SEARCH,
+        description="Rotation search for a request that names none, applied only when the request is refined: auto "
+        "(search over 24 start rotations only when the plain result fits worse than the target's density allows: "
+        "clouds at any relative orientation, 0.5-1.2 s for the requests that search); off = never (the lowest "
+        "latency, for clouds within ~45 deg of each other or with an initial_transform); on = always.",
     )
     strict_readiness: bool = Field(
         True, description="Ready only if every discovered model loaded (Triton's --strict-readiness)."

@@ -26,8 +26,10 @@ def test_replay_searches_the_flagged_pairs_and_takes_their_searched_result(tmp_p
     table = report({"three": rows}, [path], "general")["three"]
     assert table["pairs"] == 3 and table["plain"] == pytest.approx(1 / 3) and table["always"] == pytest.approx(2 / 3)
     assert table["attainable_median"] > 0.95
-    fixed = table["fixed 0.7"]  # searches only the unreliable pair
+    fixed = table["fixed 0.7 or unreliable"]  # searches only the unreliable pair
     assert fixed["searched"] == pytest.approx(1 / 3) and fixed["recall_r5_t005"] == pytest.approx(1 / 3)
     assert fixed["ms_per_pair"] == pytest.approx(40)
-    relative = table["relative 0.8"]  # 0.72 < 0.8 x attainable: the second pair is searched and fixed
+    relative = table["relative 0.8"]  # 0.72 and 0.5 < 0.8 x attainable: the second pair is searched and fixed
     assert relative["searched"] == pytest.approx(2 / 3) and relative["recall_r5_t005"] == pytest.approx(2 / 3)
+    assert table["relative 0.8 or unreliable"] == relative  # the unreliable pair is below the ratio anyway
+    assert table["relative 0.7"]["searched"] == pytest.approx(1 / 3)  # 0.72 >= 0.7 x attainable: not searched

@@ -78,8 +78,22 @@ def test_rotation_search_mode_usage_errors_exit_2(tmp_path, options, words):
 def test_rotation_search_options_map_to_the_registrar_argument():
     from service.search_mode import RotationSearchMode, rotation_search_from_options
 
-    assert rotation_search_from_options(None, None) is False
+    assert rotation_search_from_options(None, None) is None  # not given: the caller's default
     assert rotation_search_from_options(True, None) is True and rotation_search_from_options(False, None) is False
     assert rotation_search_from_options(None, RotationSearchMode.auto) == "auto"
     assert rotation_search_from_options(True, RotationSearchMode.on) is True
     assert rotation_search_from_options(False, "off") is False
+
+
+def test_the_service_searches_by_default_only_refined_requests():
+    from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotation_search
+
+    assert SERVICE_DEFAULT_ROTATION_SEARCH == "auto"
+    assert service_rotation_search(None, "icp-plane") == "auto"
+    assert service_rotation_search(None, "icp") == "auto"
+    assert service_rotation_search(None, "none") is False  # unrefined poses never fit tightly: no search
+    assert service_rotation_search(None, "icp-plane", "off") is False
+    assert service_rotation_search(None, "icp-plane", "on") is True
+    for requested in (False, True, "auto"):  # the request's own choice wins, refined or not
+        assert service_rotation_search(requested, "none") == requested
+        assert service_rotation_search(requested, "icp-plane", "off") == requested

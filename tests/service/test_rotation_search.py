@@ -239,6 +239,19 @@ def test_auto_searches_when_the_plain_result_looks_wrong_and_recovers_150_degree
 
 
 @needs_model
+def test_auto_never_searches_degenerate_clouds(registrar, monkeypatch) -> None:
+    """Collinear points leave the rotation about their line open: no start rotation can fix that."""
+    import service.registrar as registrar_module
+
+    line = np.linspace(0.0, 1.0, 200)[:, None] * np.array([1.0, 2.0, 0.5])  # [200, 3]
+    calls = spy_on_search(monkeypatch)
+    monkeypatch.setattr(registrar_module, "needs_search", lambda *_: True)  # however the result looks
+    result = registrar.register(line, line + 0.1, refine="icp-plane", rotation_search="auto")
+    assert calls == [] and "search" not in result.timing_ms
+    assert not result.reliable and any("collinear" in w for w in result.warnings)
+
+
+@needs_model
 def test_auto_keeps_the_plain_result_when_it_ranks_before_the_searched_one(registrar, monkeypatch) -> None:
     import service.registrar as registrar_module
 
