@@ -31,6 +31,9 @@ SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahed
 # point-to-point, no mutual check, normalised distance cap) so that the ranking compares basins
 SEARCH_ICP_DISTANCE = 0.3  # normalised units (3x registrar.ICP_DISTANCE)
 SEARCH_ICP_ITERATIONS = 20
+# The short ICPs move every SEARCH_ICP_STRIDE-th working source point (a spread subsample: the working cloud is
+# in farthest-point or coordinate order), 3x cheaper; the ranking then scores each hypothesis on all points.
+SEARCH_ICP_STRIDE = 3
 
 
 @cache
@@ -89,7 +92,8 @@ def search_hypotheses(
     t_h = np.stack([n.translation for n in nets])  # [H, 3]
     if short_icp:  # rank refined poses: the basin matters, not the raw pose
         R_h, t_h = icp_many(
-            src_n, tgt_n, R_h, t_h, max_distance=SEARCH_ICP_DISTANCE, max_iterations=SEARCH_ICP_ITERATIONS
+            src_n[::SEARCH_ICP_STRIDE], tgt_n, R_h, t_h, max_distance=SEARCH_ICP_DISTANCE,
+            max_iterations=SEARCH_ICP_ITERATIONS,
         )
     best = rank_hypotheses(src_n, tgt_n, R_h, t_h, inlier_distance)[0][0]
     timing["search"] = 1000 * (time.perf_counter() - started)

@@ -21,6 +21,7 @@ from service.icp import (
     icp_symmetric,
     refine_plane,
     rotation_of,
+    smallest_eigenvectors,
     target_normals,
 )
 
@@ -225,6 +226,30 @@ def degenerate_target(kind: str) -> np.ndarray:
     if kind == "planar":
         return np.column_stack([rng.uniform(-1, 1, (400, 2)), np.zeros(400)])  # the plane z = 0
     return rng.uniform(-1, 1, (400, 1)) * [1.0, 2.0, 3.0]  # a line
+
+
+def test_closed_form_eigenpairs_equal_lapacks_on_covariances_of_any_shape() -> None:
+    rng = np.random.default_rng(0)
+    axes = Rotation.random(400, random_state=1).as_matrix()  # [400, 3, 3]
+    spreads = np.sort(rng.uniform(0, 1, size=(400, 3)) ** 6, axis=1)  # flat, thin and round neighbourhoods
+    spreads[:50, 0] = 0.0  # exactly planar
+    covs = axes @ (spreads[:, :, None] * axes.transpose(0, 2, 1)) * 1e6 + 0.0  # caller's units: large values
+    covs = (covs + covs.transpose(0, 2, 1)) / 2
+    values, vectors = smallest_eigenvectors(covs)
+    expected_values, expected_axes = np.linalg.eigh(covs)
+    np.testing.assert_allclose(values, expected_values, atol=1e-6 * covs.max())
+    clear = (expected_values[:, 1] - expected_values[:, 0]) > 1e-3 * expected_values[:, 2]  # a unique eigenvector
+    dots = np.abs(np.einsum("mc,mc->m", vectors, expected_axes[:, :, 0]))
+    np.testing.assert_allclose(dots[clear], 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0, atol=1e-12)
+
+
+def test_closed_form_eigenpairs_fall_back_where_the_smallest_is_repeated() -> None:
+    covs = np.stack([np.zeros((3, 3)), np.eye(3), np.diag([4.0, 0.0, 0.0]), np.diag([1.0, 1.0, 0.0])])
+    values, vectors = smallest_eigenvectors(covs)
+    np.testing.assert_allclose(values, np.linalg.eigh(covs)[0], atol=1e-8)
+    np.testing.assert_allclose(np.linalg.norm(vectors, axis=1), 1.0)  # a unit vector even when any would do
+    np.testing.assert_allclose(np.abs(vectors[3]), [0.0, 0.0, 1.0], atol=1e-12)  # the plane's normal
 
 
 def test_plane_icp_keeps_the_pose_and_warns_on_a_collinear_target() -> None:
