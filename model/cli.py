@@ -19,13 +19,17 @@ TargetPoints = Annotated[int | None, typer.Option(help="target points kept after
 Overlap = Annotated[float | None, typer.Option(help="fraction of each cloud kept by the crop, 0.5-1.0")]
 Noise = Annotated[float | None, typer.Option(help="Gaussian noise sigma, clipped at +-5 sigma")]
 MaxAngle = Annotated[float | None, typer.Option(help="largest Euler angle per axis in degrees, up to 180")]
+Points = Annotated[
+    int | None,
+    typer.Option(help="points per cloud before the crop (default: the setting's; dense shapes allow up to 2048)"),
+]
 
 
-def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle):
+def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points=None):
     """The setting's pair protocol with the command-line overrides, or a usage error."""
     try:
         return protocol_for(setting, source_points=source_points, target_points=target_points, overlap=overlap,
-                            noise=noise, max_angle=max_angle)
+                            noise=noise, max_angle=max_angle, points=points)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
 
@@ -42,9 +46,10 @@ def make_pairs(
     overlap: Overlap = None,
     noise: Noise = None,
     max_angle: MaxAngle = None,
+    points: Points = None,
 ) -> None:
     """Write seeded registration pairs (source, target, rotation, translation, label) to an npz."""
-    protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)
+    protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points)
     try:
         pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
@@ -125,6 +130,9 @@ def evaluate(
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
     refine: Annotated[str, typer.Option(help="with --model: none, icp or icp-plane")] = "none",
+    refine_points: Annotated[
+        int | None, typer.Option(help="with --model: points per cloud the refinement uses [default: working clouds]")
+    ] = None,
     rotation_search: Annotated[
         bool | None, typer.Option(help="with --model: always start from rotations covering SO(3) (= mode on)")
     ] = None,
@@ -164,7 +172,7 @@ def evaluate(
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
     if model is not None:
-        R, t, secs, searched = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search)
+        R, t, secs, searched = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)
     elif baseline is not None:
         from export.baselines import run_method
 
@@ -187,7 +195,7 @@ def evaluate(
 
 
 def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str,
-                   rotation_search: bool | str = False):
+                   rotation_search: bool | str = False, refine_points: int | None = None):
     """Poses of every pair through the service's own pipeline (``Registrar.register``), the seconds they took
     and on how many pairs the rotation search ran (``timing_ms["search"]``)."""
     import time
@@ -204,7 +212,7 @@ def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: i
     begin = time.perf_counter()
     for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):
         res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine,
-                                 rotation_search=rotation_search)
+                                 rotation_search=rotation_search, refine_points=refine_points)
         Rs.append(res.rotation)
         ts.append(res.translation)
         searched += "search" in res.timing_ms

@@ -135,20 +135,27 @@ def protocol_for(
     overlap: float | None = None,
     noise: float | None = None,
     max_angle: float | None = None,
+    points: int | None = None,
 ) -> PairProtocol:
     """The protocol of a setting, with optional overrides (``None`` keeps the setting's value).
 
-    ``overlap`` sets ``keep = round(overlap * points)``; ``noise`` sets sigma and a clip of
-    ``5 sigma``; ``max_angle`` is in degrees.
+    ``points`` sets the points per cloud before the crop (the crop keeps the same fraction unless ``overlap``
+    is given; ``dense`` shapes have 4096 points, enough for two disjoint clouds of up to 2048);
+    ``overlap`` sets ``keep = round(overlap * points)``; ``noise`` sets sigma and a clip of ``5 sigma``;
+    ``max_angle`` is in degrees.
     """
     if setting not in SETTINGS:
         raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
     protocol = SETTING_PROTOCOLS[setting]
     changes: dict = {}
+    if points is not None:
+        if not points >= 1:
+            raise ValueError(f"points must be >= 1, got {points}")
+        changes["points"], changes["keep"] = int(points), round(protocol.overlap * int(points))
     if overlap is not None:
         if not OVERLAP_RANGE[0] <= overlap <= OVERLAP_RANGE[1]:
             raise ValueError(f"overlap must be in {OVERLAP_RANGE[0]}..{OVERLAP_RANGE[1]}, got {overlap}")
-        changes["keep"] = round(overlap * protocol.points)
+        changes["keep"] = round(overlap * changes.get("points", protocol.points))
     if noise is not None:
         if not noise >= 0:
             raise ValueError(f"noise must be >= 0, got {noise}")

@@ -17,7 +17,7 @@ from typing import Annotated, NoReturn
 import numpy as np
 import typer
 
-from service.refine_modes import SERVICE_DEFAULT_REFINE, Refine
+from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
 from service.search_mode import RotationSearchMode, rotation_search_from_options, service_rotation_search
 
 app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False)
@@ -95,6 +95,12 @@ def register_command(
                           f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
                           "server's MFGNET_DEFAULT_REFINE with --server]"),
     ] = None,
+    refine_points: Annotated[
+        int | None,
+        typer.Option(min=REFINE_POINTS_RANGE[0], max=REFINE_POINTS_RANGE[1],
+                     help="points per cloud the refinement uses (more: a more precise pose on dense scans, slower) "
+                          "[default: the network's working clouds, 768]"),
+    ] = None,
     initial_transform: Annotated[
         Path | None,
         typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4"),
@@ -155,7 +161,7 @@ def register_command(
     if not server:  # in-process: the service's defaults (with --server the server applies its own)
         search = service_rotation_search(search, refine_mode)
     options = {"iterations": iterations, "keypoints": keypoints, "refine": refine_mode, "initial_transform": init,
-               "rotation_search": search}
+               "rotation_search": search, "refine_points": refine_points}
     if server:
         record = _register_remote(server, api_key, src, tgt, model, options, binary)
     else:

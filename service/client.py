@@ -74,6 +74,7 @@ class MfgnetClient:
         return_iterations: bool = False,
         binary: bool = False,
         rotation_search: bool | Literal["auto"] | None = None,
+        refine_points: int | None = None,
     ) -> dict:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
@@ -86,6 +87,7 @@ class MfgnetClient:
                 orientation, much slower); ``"auto"`` = only when the plain result looks wrong (the
                 response's ``timing_ms`` then has a ``search`` key); ``False`` = never; ``None`` (default) =
                 the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``, ``auto`` for refined requests).
+            refine_points: points per cloud the refinement uses (``None``: the network's working clouds).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds).
 
@@ -101,6 +103,7 @@ class MfgnetClient:
             "return_correspondences": return_correspondences,
             "return_iterations": return_iterations,
             "rotation_search": rotation_search,
+            "refine_points": refine_points,
         }
         options = {key: value for key, value in options.items() if value is not None}
         if binary:

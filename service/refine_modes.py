@@ -16,6 +16,10 @@ REFINE_MODES = ("none", "icp", "icp-plane")
 # refinement"). `Registrar.register` itself keeps refine=None = the network's pose alone (the paper).
 SERVICE_DEFAULT_REFINE = "icp-plane"
 
+# refine_points: how many points per cloud the refinement may use instead of the network's working clouds
+# (its cost grows with them; the smallest cloud the service takes has 32 points)
+REFINE_POINTS_RANGE = (32, 8192)
+
 
 class Refine(str, Enum):
     """Command-line spelling of ``refine``."""

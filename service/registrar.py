@@ -24,7 +24,7 @@ from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
 from service.quality import assess, attainable_inlier_ratio, degenerate
-from service.refine_modes import REFINE_MODES
+from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
 from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
 from service.sampling import resample_indices
 
@@ -169,6 +169,8 @@ class _Working:
     idx_s: np.ndarray  # [Ns] working source rows
     idx_t: np.ndarray  # [Nt] working target rows
     tgt_w: np.ndarray  # [Nt, 3] working target, caller's units
+    src_r: np.ndarray  # [Nr, 3] the source points the refinement moves, caller's units
+    tgt_r: np.ndarray  # [Mr, 3] the target points it aligns them with
     norm: Normalization
     src_n: np.ndarray  # [Ns, 3] float32, normalised (after the initial guess)
     tgt_n: np.ndarray  # [Nt, 3] float32, normalised
@@ -337,7 +339,12 @@ class Registrar:
 
     # -- the pipeline ----------------------------------------------------------------------------
     def check_options(
-        self, iterations: int | None, keypoints: int | None, working_size: int, refine: str | None
+        self,
+        iterations: int | None,
+        keypoints: int | None,
+        working_size: int,
+        refine: str | None,
+        refine_points: int | None = None,
     ) -> tuple[int, int]:
         n_iter = self.default_iterations if iterations is None else int(iterations)
         if not 1 <= n_iter <= MAX_ITERATIONS:
@@ -351,6 +358,9 @@ class Registrar:
             raise InputError(f"keypoints ({k}) cannot exceed the working size ({working_size})")
         if (refine or "none") not in REFINE_MODES:
             raise InputError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
+        low, high = REFINE_POINTS_RANGE
+        if refine_points is not None and not low <= int(refine_points) <= high:
+            raise InputError(f"refine_points must be in {low}..{high}, got {refine_points}")
         return n_iter, k
 
     def register(
@@ -367,6 +377,7 @@ class Registrar:
         icp_max_iterations: int = 30,
         rotation_search: SearchMode = False,
         search_rotations: int = 24,
+        refine_points: int | None = None,
     ) -> RegistrationResult:
         """Pose ``src_to_tgt`` of ``source [N, 3]`` onto ``target [M, 3]`` (caller's units).
 
@@ -386,6 +397,11 @@ class Registrar:
         refinement is point-to-plane. When it stops on a degenerate system (too few pairs, a planar
         or linear target) it keeps the pose it had and adds a warning; ``reliable`` still comes
         from :func:`service.quality.assess` alone.
+        ``refine_points``: the refinement moves up to this many points of the caller's source onto up to this
+        many target points (chosen like the working clouds: every point up to that many, else farthest-point
+        sampling) instead of the working clouds; more points give a more precise pose on dense scans at a
+        higher cost (``docs/ACCURACY.md``, "Refinement on more points"). ``quality`` stays measured on the
+        working clouds. Ignored without refinement.
         ``timing_ms["search"]`` is the whole search (network, short ICPs, ranking) and
         ``timing_ms["search_per_hypothesis"]`` that divided by the number of hypotheses.
 
@@ -404,7 +420,7 @@ class Registrar:
         timing: dict[str, float] = {}
         src = check_cloud(source, "source")
         tgt = check_cloud(target, "target")
-        n_iter, k = self.check_options(iterations, keypoints, working_size, refine)
+        n_iter, k = self.check_options(iterations, keypoints, working_size, refine, refine_points)
         mode = search_mode(rotation_search)
         hypotheses = search_rotations_for(int(search_rotations)) if mode != "off" else None
         R_init, t_init = np.eye(3), np.zeros(3)
@@ -415,9 +431,13 @@ class Registrar:
         idx_s = resample_indices(src_moved, working_size)  # [Ns] into the caller's source
         idx_t = resample_indices(tgt, working_size)  # [Nt]
         src_w, tgt_w = src_moved[idx_s], tgt[idx_t]
+        src_r, tgt_r = src[idx_s], tgt_w  # the refinement's clouds: the working ones unless refine_points
+        if refine_points is not None and (refine or "none") != "none":
+            src_r = src[resample_indices(src_moved, int(refine_points))]  # [Nr, 3], chosen as the working ones
+            tgt_r = tgt[resample_indices(tgt, int(refine_points))]  # [Mr, 3]
         norm = Normalization.fit(src_w, tgt_w, self.reference_radius)
         src_n, tgt_n = norm.apply_src(src_w).astype(np.float32), norm.apply_tgt(tgt_w).astype(np.float32)
-        work = _Working(src, idx_s, idx_t, tgt_w, norm, src_n, tgt_n, R_init, t_init)
+        work = _Working(src, idx_s, idx_t, tgt_w, src_r, tgt_r, norm, src_n, tgt_n, R_init, t_init)
         timing["preprocess"] = 1000 * (time.perf_counter() - t0)
         options = {"iterations": n_iter, "keypoints": k, "refine": refine or "none",
                    "return_iterations": return_iterations, "icp_max_distance": icp_max_distance,
@@ -475,7 +495,7 @@ class Registrar:
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
             method = refine_plane if refine == "icp-plane" else icp
             refined = method(
-                src[idx_s], tgt_w, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
+                work.src_r, work.tgt_r, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
             )
             R_final, t_final, refine_warnings = refined.rotation, refined.translation, refined.warnings
             timing["refine"] = 1000 * (time.perf_counter() - t3)

@@ -82,6 +82,10 @@ class Runner:
             "initial_transform": o.initial_transform,
             "return_iterations": o.return_iterations,
         }
+        if o.refine_points is not None:
+            if not supports_option(type(registrar), "refine_points"):
+                raise APIError(422, f"invalid request: {prefix}refine_points: not supported by this server")
+            kwargs["refine_points"] = o.refine_points
         search = service_rotation_search(o.rotation_search, refine, self.default_rotation_search)
         if search and supports_option(type(registrar), "rotation_search"):
             kwargs["rotation_search"] = search  # True or "auto"
@@ -90,7 +94,7 @@ class Runner:
         try:
             check_cloud(pair.source, "source")
             check_cloud(pair.target, "target")
-            registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, refine)
+            registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, refine)  # schema: refine_points
             if o.initial_transform is not None:
                 _, translation = check_transform(o.initial_transform)
                 reach = float(np.abs(translation).max()) + float(np.abs(pair.source).max())

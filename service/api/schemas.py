@@ -10,7 +10,13 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, WrapValidator
 from pydantic_core import PydanticCustomError
 
-from service.registrar import AUTO_SEARCH_RELATIVE_RATIO, KEYPOINT_RANGE, MAX_ITERATIONS, MIN_POINTS
+from service.refine_modes import REFINE_POINTS_RANGE
+from service.registrar import (
+    AUTO_SEARCH_RELATIVE_RATIO,
+    KEYPOINT_RANGE,
+    MAX_ITERATIONS,
+    MIN_POINTS,
+)
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]  # strict: no "1.5" or true for a number
 Point = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
@@ -28,6 +34,13 @@ REFINE_DESCRIPTION = (
     "'icp-plane' = a wide robust symmetric point-to-plane stage, then point-to-plane ICP with target normals "
     "(closer and more often right for two independently sampled scans). Default: the server's "
     "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
+)
+
+RefinePoints = Annotated[int, Field(ge=REFINE_POINTS_RANGE[0], le=REFINE_POINTS_RANGE[1])]
+REFINE_POINTS_DESCRIPTION = (
+    "Points per cloud the refinement uses (farthest-point sample of your clouds; all of them when fewer); default: "
+    "the network's working clouds (768). More points give a more precise pose on dense scans at a higher cost: "
+    "1536 independent points per cloud, median rotation error 0.165 -> 0.113 deg, +25 ms. Ignored with refine 'none'."
 )
 
 ROTATION_SEARCH_DESCRIPTION = (
@@ -77,6 +90,7 @@ class RegisterOptions(BaseModel):
         None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1], description="Keypoints per cloud; default: the model's."
     )
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
+    refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
     initial_transform: Matrix4 | None = Field(
         None, description="Rigid 4x4 src_to_tgt guess; the network starts from the source moved by it."
     )
@@ -242,7 +256,8 @@ class InferRequestedOutput(BaseModel):
 
 
 class InferRequest(BaseModel):
-    """OIP v2 inference request; options go into ``parameters``: iterations, keypoints, refine, rotation_search."""
+    """OIP v2 inference request; options go into ``parameters``: iterations, keypoints, refine, refine_points,
+    rotation_search."""
 
     model_config = ConfigDict(
         json_schema_extra={
@@ -271,6 +286,7 @@ class InferParameters(BaseModel):
     iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
     keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
+    refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
     rotation_search: RotationSearch | None = Field(None, description=ROTATION_SEARCH_DESCRIPTION)
 
 

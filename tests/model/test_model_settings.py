@@ -69,6 +69,18 @@ def test_every_setting_has_a_protocol_and_the_paper_settings_are_unchanged() -> 
     assert protocol_for("clean", max_angle=45, overlap=0.75) == PairProtocol()  # the paper's values
 
 
+def test_points_sets_the_cloud_size_before_the_crop_and_keeps_the_overlap() -> None:
+    assert protocol_for("dense", points=2048) == PairProtocol(points=2048, keep=1536, sampling="disjoint")
+    assert protocol_for("dense", points=2048, overlap=0.5).keep == 1024
+    assert protocol_for("clean", points=1024) == PairProtocol()
+    pairs = make_pairs(sphere_shapes(2, 4096), protocol_for("dense", points=2048), np.random.default_rng(0))
+    assert pairs["source"].shape == pairs["target"].shape == (2, 1536, 3)
+    with pytest.raises(ValueError, match="disjoint"):  # two disjoint clouds of 2049 need 4098 points per shape
+        make_pairs(sphere_shapes(1, 4096), protocol_for("dense", points=2049), np.random.default_rng(0))
+    with pytest.raises(ValueError, match="points"):
+        protocol_for("dense", points=0)
+
+
 def test_default_options_draw_exactly_the_paper_pairs() -> None:
     shapes = sphere_shapes(4)
     for setting in ("clean", "noise"):

@@ -181,6 +181,27 @@ def test_point_to_plane_refinement_goes_through_every_route(client, plane_refine
         )
 
 
+def test_refine_points_goes_through_every_route_and_is_range_checked(client):
+    """1000-point clouds: the default refines the 768-point working clouds, ``refine_points`` all 1000."""
+    pair = modelnet_pair(4, keep=1000)
+    default = client.post("/v1/register", json=pair_json(pair, rotation_search=False)).json()
+    body = client.post("/v1/register", json=pair_json(pair, refine_points=1000, rotation_search=False)).json()
+    assert "refine" in body["timing_ms"] and body["transform"] != default["transform"]
+    assert rotation_error_deg(np.array(body["rotation"]), pair.rotation) < 1.0
+    files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+    form = client.post("/v1/register", files=files, data={"refine_points": "1000", "rotation_search": "false"}).json()
+    assert form["transform"] == body["transform"]
+    response = client.post(
+        f"/v2/models/{MODEL}/infer", json=oip_request(pair, refine_points=1000, rotation_search=False)
+    )
+    assert response.status_code == 200, response.text
+    np.testing.assert_array_equal(oip_transform(response), np.array(body["transform"], np.float32))
+    for value in (16, 9000, "many"):
+        assert_error(client.post("/v1/register", json=pair_json(pair, refine_points=value)), 422, "refine_points")
+        response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, refine_points=value))
+        assert_error(response, 422, "refine_points")
+
+
 def test_openapi_lists_every_refine_mode(client):
     doc = client.get("/openapi.json").json()
     schema = doc["components"]["schemas"]["RegisterRequest"]["properties"]["refine"]
@@ -188,6 +209,9 @@ def test_openapi_lists_every_refine_mode(client):
     assert "icp-plane" in schema["description"] and "MFGNET_DEFAULT_REFINE" in schema["description"]
     form = doc["paths"]["/v1/register"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]
     assert form["properties"]["refine"]["enum"] == list(REFINE_MODES)
+    points = doc["components"]["schemas"]["RegisterRequest"]["properties"]["refine_points"]
+    assert {"type": "integer", "minimum": 32, "maximum": 8192} in points["anyOf"] and points["default"] is None
+    assert form["properties"]["refine_points"]["maximum"] == 8192
     assert InferParameters.model_validate({"refine": "icp-plane"}).refine == "icp-plane"  # OIP parameters
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from cli_support import snapshot_model, synthetic_pair
 from scipy.spatial.transform import Rotation
+from shapes import smooth_blob
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -252,6 +253,30 @@ def test_no_refine_option_means_icp_plane_and_refine_none_the_network_alone(tmp_
     assert records["default"]["transform"] == records["plane"]["transform"]
     assert "refine" in records["default"]["timing_ms"] and "refine" not in records["none"]["timing_ms"]
     assert records["none"]["transform"] != records["plane"]["transform"]
+
+
+def test_refine_points_option_sets_the_refinement_clouds(tmp_path, model_dir, monkeypatch) -> None:
+    import service.registrar
+
+    sizes, real = [], service.registrar.refine_plane
+
+    def spy(src_r, tgt_r, *args, **kwargs):
+        sizes.append((len(src_r), len(tgt_r)))
+        return real(src_r, tgt_r, *args, **kwargs)
+
+    monkeypatch.setattr(service.registrar, "refine_plane", spy)
+    source = smooth_blob(1200, seed=3)
+    R = Rotation.from_euler("zyx", [8.0, -4.0, 3.0], degrees=True).as_matrix()
+    np.save(tmp_path / "s.npy", source)
+    np.save(tmp_path / "t.npy", (smooth_blob(1200, seed=4) @ R.T).astype(np.float32))  # another sampling
+    for extra in ((), ("--refine-points", "1200")):
+        result = register(tmp_path / "s.npy", tmp_path / "t.npy", *extra, "--rotation-search-mode", "off", "--json",
+                          model_dir=model_dir)
+        assert result.exit_code == 0, result.output
+    assert sizes == [(768, 768), (1200, 1200)]
+    for value in ("16", "9000"):
+        result = register(tmp_path / "s.npy", tmp_path / "t.npy", "--refine-points", value, model_dir=model_dir)
+        assert result.exit_code == 2 and "refine-points" in result.output
 
 
 def test_rejects_an_unknown_refine_mode(tmp_path, model_dir) -> None:

@@ -9,7 +9,14 @@ from service.api.deps import get_runner, get_settings, require_api_key
 from service.api.errors import error_docs
 from service.api.responses import RenderedJSON
 from service.api.runner import register_response
-from service.api.schemas import REFINE_DESCRIPTION, ROTATION_SEARCH_DESCRIPTION, BatchResponse, RegisterResponse
+from service.api.schemas import (
+    REFINE_DESCRIPTION,
+    REFINE_POINTS_DESCRIPTION,
+    ROTATION_SEARCH_DESCRIPTION,
+    BatchResponse,
+    RegisterResponse,
+)
+from service.refine_modes import REFINE_POINTS_RANGE
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
 
 router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
@@ -24,12 +31,15 @@ _MULTIPART_SCHEMA = {
         "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
         "keypoints": {"type": "integer", "minimum": KEYPOINT_RANGE[0], "maximum": KEYPOINT_RANGE[1]},
         "refine": {"type": "string", "enum": ["none", "icp", "icp-plane"], "description": REFINE_DESCRIPTION},
+        "refine_points": {
+            "type": "integer", "minimum": REFINE_POINTS_RANGE[0], "maximum": REFINE_POINTS_RANGE[1],
+            "description": REFINE_POINTS_DESCRIPTION,
+        },
         "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
         "return_correspondences": {"type": "boolean", "default": True},
         "return_iterations": {"type": "boolean", "default": False},
         "rotation_search": {
             "anyOf": [{"type": "boolean"}, {"type": "string", "enum": ["auto"]}],
-            "default": False,
             "description": ROTATION_SEARCH_DESCRIPTION,
         },
     },
