@@ -44,7 +44,7 @@ def working_clouds(registrar, src: np.ndarray, tgt: np.ndarray, working_size: in
     from service.normalization import Normalization
     from service.sampling import resample_indices
 
-    src_w, tgt_w = src[resample_indices(src, working_size)], tgt[resample_indices(tgt, working_size)]
+    src_w, tgt_w = src[resample_indices(src, working_size, True)], tgt[resample_indices(tgt, working_size, True)]
     return src_w, tgt_w, Normalization.fit(src_w, tgt_w, registrar.reference_radius)
 
 

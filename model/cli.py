@@ -19,17 +19,21 @@ TargetPoints = Annotated[int | None, typer.Option(help="target points kept after
 Overlap = Annotated[float | None, typer.Option(help="fraction of each cloud kept by the crop, 0.5-1.0")]
 Noise = Annotated[float | None, typer.Option(help="Gaussian noise sigma, clipped at +-5 sigma")]
 MaxAngle = Annotated[float | None, typer.Option(help="largest Euler angle per axis in degrees, up to 180")]
+Outliers = Annotated[
+    float | None,
+    typer.Option(help="share of each cloud's points replaced by uniform points in its bounding box, 0-0.5"),
+]
 Points = Annotated[
     int | None,
     typer.Option(help="points per cloud before the crop (default: the setting's; dense shapes allow up to 2048)"),
 ]
 
 
-def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points=None):
+def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points=None, outliers=None):
     """The setting's pair protocol with the command-line overrides, or a usage error."""
     try:
         return protocol_for(setting, source_points=source_points, target_points=target_points, overlap=overlap,
-                            noise=noise, max_angle=max_angle, points=points)
+                            noise=noise, max_angle=max_angle, points=points, outliers=outliers)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
 
@@ -47,9 +51,10 @@ def make_pairs(
     noise: Noise = None,
     max_angle: MaxAngle = None,
     points: Points = None,
+    outliers: Outliers = None,
 ) -> None:
     """Write seeded registration pairs (source, target, rotation, translation, label) to an npz."""
-    protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points)
+    protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers)
     try:
         pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
@@ -126,6 +131,8 @@ def evaluate(
     overlap: Overlap = None,
     noise: Noise = None,
     max_angle: MaxAngle = None,
+    points: Points = None,
+    outliers: Outliers = None,
     model: Annotated[
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
@@ -169,7 +176,7 @@ def evaluate(
     if pairs:
         data_pairs = load_pairs(pairs)
     else:
-        protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)
+        protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
     if model is not None:
         R, t, secs, searched = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)

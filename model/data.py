@@ -60,6 +60,7 @@ UNSEEN_SPLIT_LABEL = 20  # "unseen": train on labels 0-19, test on 20-39
 DENSE_FILE = "modelnet40_dense_test.npz"
 DENSE_TO_MAIN_AXES = [0, 2, 1]  # (x, y, z) of the dense file -> (x, z, y): the main files' frame
 OVERLAP_RANGE = (0.5, 1.0)
+OUTLIER_RANGE = (0.0, 0.5)
 MAX_ANGLE_LIMIT = 180.0
 NOISE_CLIP_SIGMAS = 5.0  # noise is clipped at +-5 sigma (the paper's 0.05 for sigma 0.01)
 
@@ -84,6 +85,7 @@ class PairProtocol:
     sampling: Literal["shared", "disjoint", "independent"] = "shared"
     source_points: int | None = None  # points per source after the crop (None: keep)
     target_points: int | None = None  # points per target after the crop (None: keep)
+    outliers: float = 0.0  # share of each cloud's points replaced by uniform points in the cloud's bounding box
 
     @property
     def overlap(self) -> float:
@@ -107,6 +109,8 @@ class PairProtocol:
                 raise ValueError(f"{name} must be in 1..{self.keep} (the points kept by the crop), got {count}")
         if self.sampling not in SAMPLINGS:
             raise ValueError(f"sampling must be one of {SAMPLINGS}, got {self.sampling!r}")
+        if not OUTLIER_RANGE[0] <= self.outliers <= OUTLIER_RANGE[1]:
+            raise ValueError(f"outliers must be in {OUTLIER_RANGE[0]}..{OUTLIER_RANGE[1]}, got {self.outliers}")
         if shape_points is not None:
             needed = self.points * (2 if self.sampling == "disjoint" else 1)
             if shape_points < needed:
@@ -136,13 +140,15 @@ def protocol_for(
     noise: float | None = None,
     max_angle: float | None = None,
     points: int | None = None,
+    outliers: float | None = None,
 ) -> PairProtocol:
     """The protocol of a setting, with optional overrides (``None`` keeps the setting's value).
 
     ``points`` sets the points per cloud before the crop (the crop keeps the same fraction unless ``overlap``
     is given; ``dense`` shapes have 4096 points, enough for two disjoint clouds of up to 2048);
     ``overlap`` sets ``keep = round(overlap * points)``; ``noise`` sets sigma and a clip of ``5 sigma``;
-    ``max_angle`` is in degrees.
+    ``max_angle`` is in degrees; ``outliers`` replaces that share of each cloud's points (after the crop) by
+    points drawn uniformly in the cloud's bounding box (clutter, flying pixels).
     """
     if setting not in SETTINGS:
         raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
@@ -168,6 +174,8 @@ def protocol_for(
         changes["source_points"] = int(source_points)
     if target_points is not None:
         changes["target_points"] = int(target_points)
+    if outliers is not None:
+        changes["outliers"] = float(outliers)
     protocol = dataclasses.replace(protocol, **changes)
     protocol.check()
     return protocol
@@ -275,7 +283,24 @@ def make_pairs(
     if return_indices:
         pairs["source_index"] = np.take_along_axis(src_idx, kept_s, axis=1).astype(np.int64)
         pairs["target_index"] = np.take_along_axis(tgt_idx, kept_t, axis=1).astype(np.int64)
+    if protocol.outliers > 0:  # drawn last, so pairs without outliers stay bit-identical
+        for name in ("source", "target"):
+            replaced = add_outliers(pairs[name], protocol.outliers, rng)  # [B, n_out]
+            if return_indices:
+                np.put_along_axis(pairs[f"{name}_index"], replaced, -1, axis=1)  # no shape point
     return pairs
+
+
+def add_outliers(clouds: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """Replace ``round(share * N)`` random points of each cloud of ``clouds [B, N, 3]`` (in place) by points
+    drawn uniformly in that cloud's axis-aligned bounding box; returns their positions ``[B, n_out]``."""
+    B, N = clouds.shape[:2]
+    count = round(share * N)
+    positions = random_subsets(rng, B, N, count)  # [B, count]
+    low, high = clouds.min(axis=1, keepdims=True), clouds.max(axis=1, keepdims=True)  # [B, 1, 3] each
+    uniform = low + (high - low) * rng.uniform(0.0, 1.0, size=(B, count, 3))  # [B, count, 3]
+    np.put_along_axis(clouds, positions[..., None], uniform.astype(clouds.dtype), axis=1)
+    return positions
 
 
 def make_test_pairs(

@@ -101,6 +101,10 @@ def register_command(
                      help="points per cloud the refinement uses (more: a more precise pose on dense scans, slower) "
                           "[default: the network's working clouds, 768]"),
     ] = None,
+    drop_isolated: Annotated[
+        bool,
+        typer.Option(help="leave out isolated points (flying pixels, sparse clutter) before sampling the clouds"),
+    ] = True,
     initial_transform: Annotated[
         Path | None,
         typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4"),
@@ -162,6 +166,8 @@ def register_command(
         search = service_rotation_search(search, refine_mode)
     options = {"iterations": iterations, "keypoints": keypoints, "refine": refine_mode, "initial_transform": init,
                "rotation_search": search, "refine_points": refine_points}
+    if not drop_isolated:  # sent only when it departs from the default
+        options["drop_isolated"] = False
     if server:
         record = _register_remote(server, api_key, src, tgt, model, options, binary)
     else:

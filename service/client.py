@@ -75,6 +75,7 @@ class MfgnetClient:
         binary: bool = False,
         rotation_search: bool | Literal["auto"] | None = None,
         refine_points: int | None = None,
+        drop_isolated: bool | None = None,
     ) -> dict:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
@@ -88,6 +89,7 @@ class MfgnetClient:
                 response's ``timing_ms`` then has a ``search`` key); ``False`` = never; ``None`` (default) =
                 the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``, ``auto`` for refined requests).
             refine_points: points per cloud the refinement uses (``None``: the network's working clouds).
+            drop_isolated: ``False`` keeps isolated points as sampling candidates (``None``: the server's, true).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds).
 
@@ -104,6 +106,7 @@ class MfgnetClient:
             "return_iterations": return_iterations,
             "rotation_search": rotation_search,
             "refine_points": refine_points,
+            "drop_isolated": drop_isolated,
         }
         options = {key: value for key, value in options.items() if value is not None}
         if binary:

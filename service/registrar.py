@@ -378,6 +378,7 @@ class Registrar:
         rotation_search: SearchMode = False,
         search_rotations: int = 24,
         refine_points: int | None = None,
+        drop_isolated: bool = True,
     ) -> RegistrationResult:
         """Pose ``src_to_tgt`` of ``source [N, 3]`` onto ``target [M, 3]`` (caller's units).
 
@@ -397,6 +398,10 @@ class Registrar:
         refinement is point-to-plane. When it stops on a degenerate system (too few pairs, a planar
         or linear target) it keeps the pose it had and adds a warning; ``reliable`` still comes
         from :func:`service.quality.assess` alone.
+        ``drop_isolated`` (default): isolated points -- flying pixels, sparse clutter; a mean distance to their
+        8 nearest others above 3x the cloud's median (:func:`service.sampling.isolated_points`) -- are left
+        out of the working and refinement clouds, so the network and the refinement see the surfaces
+        (``docs/ACCURACY.md``, "Outliers"); returned indices never point at them.
         ``refine_points``: the refinement moves up to this many points of the caller's source onto up to this
         many target points (chosen like the working clouds: every point up to that many, else farthest-point
         sampling) instead of the working clouds; more points give a more precise pose on dense scans at a
@@ -428,13 +433,13 @@ class Registrar:
             R_init, t_init = check_transform(initial_transform)
         src_moved = src @ R_init.T + t_init  # [N, 3] source in the initial guess's frame
 
-        idx_s = resample_indices(src_moved, working_size)  # [Ns] into the caller's source
-        idx_t = resample_indices(tgt, working_size)  # [Nt]
+        idx_s = resample_indices(src_moved, working_size, drop_isolated)  # [Ns] into the caller's source
+        idx_t = resample_indices(tgt, working_size, drop_isolated)  # [Nt]
         src_w, tgt_w = src_moved[idx_s], tgt[idx_t]
         src_r, tgt_r = src[idx_s], tgt_w  # the refinement's clouds: the working ones unless refine_points
         if refine_points is not None and (refine or "none") != "none":
-            src_r = src[resample_indices(src_moved, int(refine_points))]  # [Nr, 3], chosen as the working ones
-            tgt_r = tgt[resample_indices(tgt, int(refine_points))]  # [Mr, 3]
+            src_r = src[resample_indices(src_moved, int(refine_points), drop_isolated)]  # [Nr, 3], as the working ones
+            tgt_r = tgt[resample_indices(tgt, int(refine_points), drop_isolated)]  # [Mr, 3]
         norm = Normalization.fit(src_w, tgt_w, self.reference_radius)
         src_n, tgt_n = norm.apply_src(src_w).astype(np.float32), norm.apply_tgt(tgt_w).astype(np.float32)
         work = _Working(src, idx_s, idx_t, tgt_w, src_r, tgt_r, norm, src_n, tgt_n, R_init, t_init)

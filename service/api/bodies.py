@@ -395,6 +395,7 @@ def infer_call_from_json(body: bytes, max_points: int) -> InferCall:
     source, target = (_decode_tensor(by_name[name], max_points) for name in OIP_INPUTS)
     options = RegisterOptions(
         iterations=params.iterations, keypoints=params.keypoints, refine=params.refine,
-        refine_points=params.refine_points, rotation_search=params.rotation_search, return_correspondences=True,
+        refine_points=params.refine_points, drop_isolated=params.drop_isolated, rotation_search=params.rotation_search,
+        return_correspondences=True,
     )
     return InferCall(req.id, Pair(options, source, target), outputs)

@@ -82,6 +82,10 @@ class Runner:
             "initial_transform": o.initial_transform,
             "return_iterations": o.return_iterations,
         }
+        if not o.drop_isolated:
+            if not supports_option(type(registrar), "drop_isolated"):
+                raise APIError(422, f"invalid request: {prefix}drop_isolated: not supported by this server")
+            kwargs["drop_isolated"] = False
         if o.refine_points is not None:
             if not supports_option(type(registrar), "refine_points"):
                 raise APIError(422, f"invalid request: {prefix}refine_points: not supported by this server")

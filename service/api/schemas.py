@@ -36,6 +36,10 @@ REFINE_DESCRIPTION = (
     "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
 )
 
+DROP_ISOLATED_DESCRIPTION = (
+    "Leave out isolated points (flying pixels, sparse clutter: mean distance to their 8 nearest others above 3x "
+    "the cloud's median) before sampling the working clouds; false keeps every point a candidate."
+)
 RefinePoints = Annotated[int, Field(ge=REFINE_POINTS_RANGE[0], le=REFINE_POINTS_RANGE[1])]
 REFINE_POINTS_DESCRIPTION = (
     "Points per cloud the refinement uses (farthest-point sample of your clouds; all of them when fewer); default: "
@@ -91,6 +95,7 @@ class RegisterOptions(BaseModel):
     )
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
     refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
+    drop_isolated: bool = Field(True, description=DROP_ISOLATED_DESCRIPTION)
     initial_transform: Matrix4 | None = Field(
         None, description="Rigid 4x4 src_to_tgt guess; the network starts from the source moved by it."
     )
@@ -287,6 +292,7 @@ class InferParameters(BaseModel):
     keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
     refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
+    drop_isolated: bool = Field(True, description=DROP_ISOLATED_DESCRIPTION)
     rotation_search: RotationSearch | None = Field(None, description=ROTATION_SEARCH_DESCRIPTION)
 
 

@@ -69,6 +69,27 @@ def test_every_setting_has_a_protocol_and_the_paper_settings_are_unchanged() -> 
     assert protocol_for("clean", max_angle=45, overlap=0.75) == PairProtocol()  # the paper's values
 
 
+def test_outliers_replace_a_share_of_each_cloud_inside_its_bounding_box() -> None:
+    shapes = sphere_shapes(3, 2048)
+    plain = make_pairs(shapes, protocol_for("dense"), np.random.default_rng(5), return_indices=True)
+    noisy = make_pairs(shapes, protocol_for("dense", outliers=0.2), np.random.default_rng(5), return_indices=True)
+    for name in ("rotation", "translation"):
+        np.testing.assert_array_equal(noisy[name], plain[name])  # drawn last: the same pairs underneath
+    for name in ("source", "target"):
+        changed = (noisy[name] != plain[name]).any(axis=2)  # [B, N]
+        assert (changed.sum(axis=1) == round(0.2 * 768)).all()
+        assert ((noisy[f"{name}_index"] == -1) == changed).all()  # outliers have no shape point
+        low, high = plain[name].min(axis=1, keepdims=True), plain[name].max(axis=1, keepdims=True)
+        assert ((noisy[name] >= low) & (noisy[name] <= high)).all()  # inside the cloud's bounding box
+        for cloud, out in zip(noisy[name], changed, strict=True):  # off the surface: far from every inlier
+            tree = cKDTree(cloud[~out])
+            inlier_spacing = tree.query(cloud[~out], k=2)[0][:, 1].mean()
+            assert tree.query(cloud[out])[0].mean() > 3 * inlier_spacing
+    for share in (-0.1, 0.6):
+        with pytest.raises(ValueError, match="outliers"):
+            protocol_for("dense", outliers=share)
+
+
 def test_points_sets_the_cloud_size_before_the_crop_and_keeps_the_overlap() -> None:
     assert protocol_for("dense", points=2048) == PairProtocol(points=2048, keep=1536, sampling="disjoint")
     assert protocol_for("dense", points=2048, overlap=0.5).keep == 1024

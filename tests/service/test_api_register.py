@@ -202,6 +202,27 @@ def test_refine_points_goes_through_every_route_and_is_range_checked(client):
         assert_error(response, 422, "refine_points")
 
 
+def test_drop_isolated_can_be_turned_off_on_every_route(client):
+    """70 points scattered around each cloud: left out by default, sampling candidates with false."""
+    base, rng = modelnet_pair(5), np.random.default_rng(0)
+    source, target = (
+        np.concatenate([c, (c.min(0) + c.max(0)) / 2 + (c.max(0) - c.min(0)) * rng.uniform(-1, 1, (70, 3))])
+        .astype(np.float32) for c in (base.source, base.target)
+    )
+    pair = type(base)(source, target, base.rotation, base.translation)
+    default = client.post("/v1/register", json=pair_json(pair, rotation_search=False)).json()
+    kept = client.post("/v1/register", json=pair_json(pair, rotation_search=False, drop_isolated=False)).json()
+    scattered = len(base.source)  # rows from here on are the scattered points
+    on_scattered = [sum(c["source_index"] >= scattered for c in b["correspondences"]) for b in (default, kept)]
+    assert on_scattered[0] < on_scattered[1], on_scattered
+    files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+    form = client.post("/v1/register", files=files, data={"drop_isolated": "false", "rotation_search": "false"}).json()
+    assert form["transform"] == kept["transform"]
+    request = oip_request(pair, drop_isolated=False, rotation_search=False)
+    response = client.post(f"/v2/models/{MODEL}/infer", json=request)
+    np.testing.assert_array_equal(oip_transform(response), np.array(kept["transform"], np.float32))
+
+
 def test_openapi_lists_every_refine_mode(client):
     doc = client.get("/openapi.json").json()
     schema = doc["components"]["schemas"]["RegisterRequest"]["properties"]["refine"]

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 from shapes import ellipsoid_and_box
 
-from service.sampling import DEFAULT_SIZE, resample_indices
+from service.sampling import DEFAULT_SIZE, isolated_points, resample_indices
 
 
 @pytest.mark.parametrize("n", [32, 768, 5000, 200_000])
@@ -103,3 +103,43 @@ def test_rejects_bad_points(bad: np.ndarray) -> None:
 def test_rejects_non_positive_size() -> None:
     with pytest.raises(ValueError, match="size"):
         resample_indices(np.zeros((5, 3)), 0)
+
+
+def _with_outliers(n_surface: int, n_outliers: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A surface cloud (ellipsoid and box) plus points scattered uniformly in a box of twice its extent
+    (flying pixels in the space around it); and which are the scattered ones."""
+    rng = np.random.default_rng(seed)
+    surface = ellipsoid_and_box(n_surface, seed)
+    centre, half = (surface.min(axis=0) + surface.max(axis=0)) / 2, surface.max(axis=0) - surface.min(axis=0)
+    outliers = centre + half * rng.uniform(-1.0, 1.0, size=(n_outliers, 3))
+    points = np.concatenate([surface, outliers])
+    is_outlier = np.arange(len(points)) >= n_surface
+    order = rng.permutation(len(points))
+    return points[order], is_outlier[order]
+
+
+def test_isolated_points_are_the_scattered_outliers_and_none_of_a_clean_surface() -> None:
+    points, is_outlier = _with_outliers(2000, 400, seed=1)
+    flagged = isolated_points(points)
+    assert flagged[~is_outlier].mean() < 0.01  # surface points stay
+    assert flagged[is_outlier].mean() > 0.6  # measured 0.81: the rest lie close to the surface
+    assert not isolated_points(ellipsoid_and_box(2000, 2)).any()
+    assert not isolated_points(np.zeros((50, 3))).any() and not isolated_points(np.ones((5, 3))).any()
+
+
+@pytest.mark.parametrize(
+    ("n", "share", "most"),  # FPS of all points, then voxel grid first (measured: 0.08, 0.10, 0.12, 0.01)
+    [(1500, 0.2, 0.15), (3000, 0.2, 0.15), (20_000, 0.2, 0.2), (100_000, 0.01, 0.05)],
+)
+def test_dropping_isolated_points_keeps_order_independence_and_spends_the_sample_on_the_surface(
+    n: int, share: float, most: float
+) -> None:
+    points, is_outlier = _with_outliers(n, round(share * n), seed=3)
+    plain = resample_indices(points, DEFAULT_SIZE)
+    kept = resample_indices(points, DEFAULT_SIZE, drop_isolated=True)
+    assert is_outlier[plain].mean() > 0.35  # farthest-point sampling favours them (measured 0.38-0.92)
+    assert is_outlier[kept].mean() < most
+    assert len(np.unique(kept)) == len(kept) <= DEFAULT_SIZE
+    perm = np.random.default_rng(4).permutation(len(points))
+    again = resample_indices(points[perm], DEFAULT_SIZE, drop_isolated=True)
+    np.testing.assert_array_equal(points[perm][again], points[kept])

@@ -10,6 +10,7 @@ from service.api.errors import error_docs
 from service.api.responses import RenderedJSON
 from service.api.runner import register_response
 from service.api.schemas import (
+    DROP_ISOLATED_DESCRIPTION,
     REFINE_DESCRIPTION,
     REFINE_POINTS_DESCRIPTION,
     ROTATION_SEARCH_DESCRIPTION,
@@ -35,6 +36,7 @@ _MULTIPART_SCHEMA = {
             "type": "integer", "minimum": REFINE_POINTS_RANGE[0], "maximum": REFINE_POINTS_RANGE[1],
             "description": REFINE_POINTS_DESCRIPTION,
         },
+        "drop_isolated": {"type": "boolean", "default": True, "description": DROP_ISOLATED_DESCRIPTION},
         "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
         "return_correspondences": {"type": "boolean", "default": True},
         "return_iterations": {"type": "boolean", "default": False},
