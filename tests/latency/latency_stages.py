@@ -105,7 +105,7 @@ def measure(include_http: bool = True) -> dict[str, float]:
     w = np.random.default_rng(0).uniform(size=128)
 
     def preprocess():
-        idx = resample_indices(big, 768)
+        idx = resample_indices(big, 768, drop_isolated=True)  # as Registrar.register does by default
         norm = Normalization.fit(big[idx], big[idx], 0.5)
         return norm.apply_src(big[idx])
 
