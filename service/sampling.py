@@ -75,7 +75,7 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
             candidates = candidates[~sparse_voxels(occupancy)]
     else:
         candidates = np.arange(n)
-    if drop_isolated:
+    if drop_isolated and candidates.shape[0] <= VOXEL_TRIGGER * size:  # bounded cost (else heavy duplication)
         candidates = candidates[~isolated_points(points[candidates])]
     candidates = candidates[canonical_order(points[candidates])]  # ties -> lexicographic order
     if candidates.shape[0] <= size:
@@ -92,16 +92,19 @@ def isolated_points(points: np.ndarray) -> np.ndarray:
     if n <= ISOLATED_NEIGHBOURS:
         return np.zeros(n, dtype=bool)
     spacing = cKDTree(points).query(points, k=ISOLATED_NEIGHBOURS + 1)[0][:, 1:].mean(axis=1)  # [N]
-    return spacing > ISOLATED_FACTOR * np.median(spacing)
+    spread = spacing[spacing > 0]  # stacked duplicates (e.g. a sensor's invalid (0, 0, 0) returns) do not count
+    return spacing > ISOLATED_FACTOR * np.median(spread) if spread.size else np.zeros(n, dtype=bool)
 
 
 def sparse_voxels(occupancy: np.ndarray) -> np.ndarray:
     """``(V,)`` bool: voxels holding fewer than ``1 / ISOLATED_FACTOR**2`` of the points that the voxel of a
-    typical point holds (the median over points, not over voxels: scattered points can occupy most voxels).
-    On a surface a voxel's count grows with the inverse square of the point spacing, so this matches
-    :func:`isolated_points`' spacing rule."""
+    typical point holds (a median over points, not over voxels: scattered points can occupy most voxels;
+    each voxel weighs at most as much as the 90th percentile of the counts, so one stack of duplicates
+    cannot be the typical voxel). On a surface a voxel's count grows with the inverse square of the point
+    spacing, so this matches :func:`isolated_points`' spacing rule."""
     counts = np.sort(occupancy)
-    typical = counts[np.searchsorted(np.cumsum(counts), counts.sum() / 2)]  # the voxel count of the median point
+    weights = np.minimum(counts, np.percentile(counts, 90))  # [V]
+    typical = counts[np.searchsorted(np.cumsum(weights), weights.sum() / 2)]  # the voxel count of a typical point
     return occupancy < typical / ISOLATED_FACTOR**2
 
 

@@ -143,3 +143,11 @@ def test_dropping_isolated_points_keeps_order_independence_and_spends_the_sample
     perm = np.random.default_rng(4).permutation(len(points))
     again = resample_indices(points[perm], DEFAULT_SIZE, drop_isolated=True)
     np.testing.assert_array_equal(points[perm][again], points[kept])
+
+
+@pytest.mark.parametrize(("stacked", "surface"), [(3000, 2000), (60_000, 20_000)])  # all points; voxel grid
+def test_a_stack_of_duplicates_does_not_make_the_surface_look_isolated(stacked: int, surface: int) -> None:
+    """Most points at (0, 0, 0), as a depth sensor returns invalid pixels: the surface must still be sampled."""
+    points = np.concatenate([np.zeros((stacked, 3)), ellipsoid_and_box(surface, 1) + 5.0])
+    kept = resample_indices(points, DEFAULT_SIZE, drop_isolated=True)
+    assert len(kept) == DEFAULT_SIZE and np.count_nonzero(kept < stacked) <= 1
