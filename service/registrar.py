@@ -26,7 +26,7 @@ from service.procrustes import compose, to_matrix, weighted_procrustes
 from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
 from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
-from service.sampling import resample_indices
+from service.sampling import resample_indices, spread_indices
 
 MIN_POINTS = 32
 MAX_ITERATIONS = 8
@@ -403,8 +403,8 @@ class Registrar:
         out of the working and refinement clouds, so the network and the refinement see the surfaces
         (``docs/ACCURACY.md``, "Outliers"); returned indices never point at them.
         ``refine_points``: the refinement moves up to this many points of the caller's source onto up to this
-        many target points (chosen like the working clouds: every point up to that many, else farthest-point
-        sampling) instead of the working clouds; more points give a more precise pose on dense scans at a
+        many target points (every point up to that many, else one per voxel: :func:`service.sampling.spread_indices`)
+        instead of the working clouds; more points give a more precise pose on dense scans at a
         higher cost (``docs/ACCURACY.md``, "Refinement on more points"). ``quality`` stays measured on the
         working clouds. Ignored without refinement.
         ``timing_ms["search"]`` is the whole search (network, short ICPs, ranking) and
@@ -438,8 +438,8 @@ class Registrar:
         src_w, tgt_w = src_moved[idx_s], tgt[idx_t]
         src_r, tgt_r = src[idx_s], tgt_w  # the refinement's clouds: the working ones unless refine_points
         if refine_points is not None and (refine or "none") != "none":
-            src_r = src[resample_indices(src_moved, int(refine_points), drop_isolated)]  # [Nr, 3], as the working ones
-            tgt_r = tgt[resample_indices(tgt, int(refine_points), drop_isolated)]  # [Mr, 3]
+            src_r = src[spread_indices(src_moved, int(refine_points), drop_isolated)]  # [Nr, 3]
+            tgt_r = tgt[spread_indices(tgt, int(refine_points), drop_isolated)]  # [Mr, 3]
         norm = Normalization.fit(src_w, tgt_w, self.reference_radius)
         src_n, tgt_n = norm.apply_src(src_w).astype(np.float32), norm.apply_tgt(tgt_w).astype(np.float32)
         work = _Working(src, idx_s, idx_t, tgt_w, src_r, tgt_r, norm, src_n, tgt_n, R_init, t_init)

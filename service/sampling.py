@@ -84,6 +84,49 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
     return candidates[picks].astype(np.int64)
 
 
+def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -> np.ndarray:
+    """Indices of at most ``size`` well-spread points, in canonical order: a cheaper, less even sample than
+    :func:`resample_indices` for large ``size`` (the refinement's clouds, ``refine_points``).
+
+    Every point when ``N <= size``; else one point per occupied voxel of a grid sized for about ``size`` of
+    them (:func:`_voxel_representatives`), and where that gives more than ``size``, those whose coordinates
+    hash lowest (:func:`coordinate_hash`) -- no farthest-point sampling, whose cost grows with ``size`` times
+    the candidates (8192 of 200,000 points: 0.8 s). Order-independent like :func:`resample_indices`;
+    ``drop_isolated`` as there.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {points.shape}")
+    if size < 1:
+        raise ValueError(f"size must be >= 1, got {size}")
+    points = points.astype(np.float64, copy=False)
+    n = points.shape[0]
+    if n <= size:
+        return resample_indices(points, size, drop_isolated)
+    candidates, occupancy = _voxel_representatives(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
+    if drop_isolated:
+        keep = ~sparse_voxels(occupancy)
+        candidates = candidates[keep]
+        candidates = candidates[~isolated_points(points[candidates])]
+    if candidates.shape[0] > size:
+        candidates = candidates[np.argsort(coordinate_hash(points[candidates]), kind="stable")[:size]]
+    return candidates[canonical_order(points[candidates])].astype(np.int64)
+
+
+def coordinate_hash(points: np.ndarray) -> np.ndarray:
+    """``(N,)`` uint64 hash of each row's float64 bit pattern (splitmix64 steps): a pseudo-random order that
+    depends only on the coordinates, the same on every machine."""
+    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.uint64)  # [N, 3]
+    h = np.zeros(points.shape[0], dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for column in range(3):
+            h = (h ^ bits[:, column]) + np.uint64(0x9E3779B97F4A7C15)
+            h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            h = h ^ (h >> np.uint64(31))
+    return h
+
+
 def isolated_points(points: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: points of ``points (N, 3)`` whose mean distance to their ``ISOLATED_NEIGHBOURS`` nearest
     others is above ``ISOLATED_FACTOR`` times the median of that over the cloud (fewer than half, by the
