@@ -32,6 +32,7 @@ DEFAULT_SIZE = 768  # working size W of the network
 # dense pairs and 0.1% of the sparse ones; 2.5 (more outliers caught) or a MAD rule cost clean pairs.
 ISOLATED_NEIGHBOURS = 8
 ISOLATED_FACTOR = 3.0
+ISOLATED_PASSES = 2  # a second pass on the rest: dense pairs with 40% outliers 0.706 -> 0.765 within 5 deg
 VOXEL_TRIGGER = 8  # reduce with a voxel grid first when N > VOXEL_TRIGGER * size
 VOXEL_TARGET = 3.5  # aim for about this many occupied voxels per requested point ...
 VOXEL_ACCEPT = (3.0, 4.0)  # ... and accept a voxel size whose occupancy / size lies in this range
@@ -129,8 +130,23 @@ def coordinate_hash(points: np.ndarray) -> np.ndarray:
 
 def isolated_points(points: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: points of ``points (N, 3)`` whose mean distance to their ``ISOLATED_NEIGHBOURS`` nearest
-    others is above ``ISOLATED_FACTOR`` times the median of that over the cloud (fewer than half, by the
-    median; none when all points coincide or there are too few to have that many neighbours)."""
+    others is above ``ISOLATED_FACTOR`` times the median of that over the cloud, in ``ISOLATED_PASSES``
+    passes (each on the points the previous ones kept: in a heavily contaminated cloud the scattered points
+    inflate the first median). Fewer than half per pass, by the median; none when all points coincide or
+    there are too few to have that many neighbours; zero spacings (stacked duplicates) stay out of the median.
+    """
+    isolated = np.zeros(points.shape[0], dtype=bool)
+    for _ in range(ISOLATED_PASSES):
+        remaining = np.flatnonzero(~isolated)
+        found = _isolated_once(points[remaining])
+        if not found.any():
+            break
+        isolated[remaining[found]] = True
+    return isolated
+
+
+def _isolated_once(points: np.ndarray) -> np.ndarray:
+    """One pass of :func:`isolated_points`."""
     n = points.shape[0]
     if n <= ISOLATED_NEIGHBOURS:
         return np.zeros(n, dtype=bool)

@@ -118,17 +118,29 @@ def _with_outliers(n_surface: int, n_outliers: int, seed: int) -> tuple[np.ndarr
     return points[order], is_outlier[order]
 
 
+def test_a_second_pass_finds_more_of_a_heavily_scattered_cloud(monkeypatch) -> None:
+    import service.sampling as sampling
+
+    points, is_outlier = _with_outliers(2000, 800, seed=2)  # 40% scattered points inflate the first median
+    monkeypatch.setattr(sampling, "ISOLATED_PASSES", 1)
+    once = isolated_points(points)
+    monkeypatch.setattr(sampling, "ISOLATED_PASSES", 2)
+    twice = isolated_points(points)
+    assert (once <= twice).all() and not twice[~is_outlier].any()
+    assert twice[is_outlier].mean() > once[is_outlier].mean() + 0.05  # measured 0.72 -> 0.82
+
+
 def test_isolated_points_are_the_scattered_outliers_and_none_of_a_clean_surface() -> None:
     points, is_outlier = _with_outliers(2000, 400, seed=1)
     flagged = isolated_points(points)
     assert flagged[~is_outlier].mean() < 0.01  # surface points stay
-    assert flagged[is_outlier].mean() > 0.6  # measured 0.81: the rest lie close to the surface
+    assert flagged[is_outlier].mean() > 0.6  # measured 0.83: the rest lie close to the surface
     assert not isolated_points(ellipsoid_and_box(2000, 2)).any()
     assert not isolated_points(np.zeros((50, 3))).any() and not isolated_points(np.ones((5, 3))).any()
 
 
 @pytest.mark.parametrize(
-    ("n", "share", "most"),  # FPS of all points, then voxel grid first (measured: 0.08, 0.10, 0.12, 0.01)
+    ("n", "share", "most"),  # FPS of all points, then voxel grid first (measured: 0.08, 0.09, 0.12, 0.01)
     [(1500, 0.2, 0.15), (3000, 0.2, 0.15), (20_000, 0.2, 0.2), (100_000, 0.01, 0.05)],
 )
 def test_dropping_isolated_points_keeps_order_independence_and_spends_the_sample_on_the_surface(
