@@ -127,8 +127,8 @@ def register_command(
         RotationSearchMode | None,
         typer.Option(help="off: never search; on: always (= --rotation-search); auto: register plainly first and "
                           "search only when that result looks wrong (low inlier ratio for the target's density), "
-                          "keeping the better of both; timing_ms then has a 'search' key [default: auto when the "
-                          "result is refined, else off; with --server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
+                          "keeping the better of both; timing_ms then has a 'search' key [default: off; with "
+                          "--server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
     ] = None,
     threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")] = None,
     json_output: Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")] = False,

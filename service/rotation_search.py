@@ -34,6 +34,10 @@ SEARCH_ICP_ITERATIONS = 20
 # The short ICPs move every SEARCH_ICP_STRIDE-th working source point (a spread subsample: the working cloud is
 # in farthest-point or coordinate order), 3x cheaper; the ranking then scores each hypothesis on all points.
 SEARCH_ICP_STRIDE = 3
+# The hypotheses go through the network this many at a time: ONNX Runtime keeps each session's arena at the
+# largest batch it has run, and all 24 at once grew the process by ~1.2 GB, 4 at a time by ~180 MB, for ~3%
+# more time (docs/ROTATION_SEARCH.md, "Memory"); each chunk re-embeds the target.
+SEARCH_BATCH = 4
 
 
 @cache
@@ -87,7 +91,12 @@ def search_hypotheses(
     """
     started = time.perf_counter()
     src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
-    nets = run_network(src_h, tgt_n, iterations, keypoints, timing, same_source=True)
+    nets: list[NetworkOutput] = []
+    for start in range(0, len(hypotheses), SEARCH_BATCH):  # bounded ONNX Runtime arenas
+        stages: dict[str, float] = {}
+        nets += run_network(src_h[start : start + SEARCH_BATCH], tgt_n, iterations, keypoints, stages, same_source=True)
+        for stage, ms in stages.items():
+            timing[stage] = timing.get(stage, 0.0) + ms
     R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
     t_h = np.stack([n.translation for n in nets])  # [H, 3]
     if short_icp:  # rank refined poses: the basin matters, not the raw pose

@@ -9,11 +9,13 @@ from __future__ import annotations
 from enum import Enum
 
 # What the HTTP API and `mfgnet register` run when a request names no rotation search (the server's
-# MFGNET_DEFAULT_ROTATION_SEARCH), and only when the request is refined: "auto" costs nothing on a result
-# that fits (0-5% of the test pairs within 45 deg searched) and is what registers clouds at any relative
-# orientation (docs/ROTATION_SEARCH.md). Unrefined network poses of independent scans never fit tightly,
-# so with refine="none" it would search every request. `Registrar.register` itself keeps False.
-SERVICE_DEFAULT_ROTATION_SEARCH = "auto"
+# MFGNET_DEFAULT_ROTATION_SEARCH), applied only to refined requests (unrefined network poses of independent
+# scans never fit tightly, so "auto" would search every one). "off" by default: "auto" registers clouds at
+# any relative orientation and costs nothing where the plain result fits, but two partial views from
+# different viewpoints fit poorly even when right, and it searched 12 of 30 such pairs (~1 s each; it fixed
+# 2) and cut a saturated server's throughput to a quarter (docs/DESIGN.md, "Default rotation search").
+# Operators whose clouds come at any orientation set MFGNET_DEFAULT_ROTATION_SEARCH=auto.
+SERVICE_DEFAULT_ROTATION_SEARCH = "off"
 MODE_VALUES: dict[str, bool | str] = {"off": False, "on": True, "auto": "auto"}
 
 

@@ -52,7 +52,7 @@ ROTATION_SEARCH_DESCRIPTION = (
     "'auto' = only when the plain result looks wrong (inlier ratio below "
     f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows; never on degenerate clouds), then "
     "the better of both is returned and timing_ms has a 'search' key; false = never. Default (null): the "
-    "server's (MFGNET_DEFAULT_ROTATION_SEARCH; 'auto' unless the operator changed it) when the request is "
+    "server's (MFGNET_DEFAULT_ROTATION_SEARCH; false unless the operator set 'auto' or true) when the request is "
     "refined, false with refine 'none'. 422 when the loaded pipeline does not support it."
 )
 

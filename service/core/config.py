@@ -55,10 +55,11 @@ class Settings(BaseSettings):
     )
     default_rotation_search: Literal["off", "auto", "on"] = Field(
         SERVICE_DEFAULT_ROTATION_SEARCH,
-        description="Rotation search for a request that names none, applied only when the request is refined: auto "
-        "(search over 24 start rotations only when the plain result fits worse than the target's density allows: "
-        "clouds at any relative orientation, 0.5-1.2 s for the requests that search); off = never (the lowest "
-        "latency, for clouds within ~45 deg of each other or with an initial_transform); on = always.",
+        description="Rotation search for a request that names none, applied only when the request is refined: off "
+        "(the lowest latency; clouds within ~45 deg of each other or with an initial_transform); auto = search "
+        "over 24 start rotations when the plain result fits worse than the target's density allows (clouds at "
+        "any relative orientation; about 1 s more for the requests that search, which include many partial "
+        "views with little overlap); on = always.",
     )
     strict_readiness: bool = Field(
         True, description="Ready only if every discovered model loaded (Triton's --strict-readiness)."

@@ -85,14 +85,14 @@ def test_rotation_search_options_map_to_the_registrar_argument():
     assert rotation_search_from_options(False, "off") is False
 
 
-def test_the_service_searches_by_default_only_refined_requests():
+def test_the_services_default_search_applies_only_to_refined_requests():
     from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotation_search
 
-    assert SERVICE_DEFAULT_ROTATION_SEARCH == "auto"
-    assert service_rotation_search(None, "icp-plane") == "auto"
-    assert service_rotation_search(None, "icp") == "auto"
-    assert service_rotation_search(None, "none") is False  # unrefined poses never fit tightly: no search
-    assert service_rotation_search(None, "icp-plane", "off") is False
+    assert SERVICE_DEFAULT_ROTATION_SEARCH == "off"
+    assert service_rotation_search(None, "icp-plane") is False
+    assert service_rotation_search(None, "icp-plane", "auto") == "auto"
+    assert service_rotation_search(None, "icp", "auto") == "auto"
+    assert service_rotation_search(None, "none", "auto") is False  # unrefined poses never fit tightly: no search
     assert service_rotation_search(None, "icp-plane", "on") is True
     for requested in (False, True, "auto"):  # the request's own choice wins, refined or not
         assert service_rotation_search(requested, "none") == requested
