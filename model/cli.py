@@ -86,6 +86,7 @@ def train(
     overlap: Overlap = None,
     noise: Noise = None,
     max_angle: MaxAngle = None,
+    outliers: Outliers = None,
     batches_per_epoch: Annotated[
         int | None, typer.Option(help="cap on batches per epoch (short epochs: validate and checkpoint more often)")
     ] = None,
@@ -100,7 +101,7 @@ def train(
     from model.train import TrainOptions
     from model.train import train as run
 
-    setting_protocol(setting, source_points, target_points, overlap, noise, max_angle)  # fail before loading data
+    setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, None, outliers)  # fail early
     if recipe is not None and recipe not in RECIPES:
         raise typer.BadParameter(f"unknown recipe {recipe!r}; expected one of {', '.join(RECIPES)}")
     opts = TrainOptions(
@@ -108,7 +109,7 @@ def train(
         seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,
         checkpoint_minutes=checkpoint_minutes, device=device, data=data, threads=threads,
         config={"iterations": iterations, "share_weights": share_weights}, source_points=source_points,
-        target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle,
+        target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle, outliers=outliers,
         max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe,
     )
     best = run(opts)

@@ -30,6 +30,7 @@ class GeneralRecipe:
     subset_noise: tuple[float, float] = (0.004, 0.012)  # sigma range for subsets (always > 0: no exact partners)
     mismatch_share: float = 0.3  # batches where one cloud keeps only part of its crop
     mismatch_keep: tuple[float, float] = (0.5, 0.9)  # fraction kept by the sparser cloud
+    outliers: float = 0.0  # most share of scattered points per cloud; each batch draws its share in [0, this]
 
     def draw(self, rng: np.random.Generator) -> PairProtocol:
         """One batch's protocol."""
@@ -37,10 +38,12 @@ class GeneralRecipe:
         points = 512 if disjoint else 768
         keep = round(rng.uniform(*self.overlap) * points)
         sigma = rng.uniform(*(self.disjoint_noise if disjoint else self.subset_noise))
-        counts: dict[str, int] = {}
+        counts: dict[str, int | float] = {}
         if rng.random() < self.mismatch_share:
             sparse = "source_points" if rng.random() < 0.5 else "target_points"
             counts[sparse] = max(32, round(rng.uniform(*self.mismatch_keep) * keep))
+        if self.outliers > 0:  # drawn last: without outliers the draws are the ones the bundled model saw
+            counts["outliers"] = float(rng.uniform(0.0, self.outliers))
         protocol = PairProtocol(
             points=points, keep=keep, max_angle_deg=self.max_angle_deg, noise_sigma=float(sigma),
             noise_clip=NOISE_CLIP_SIGMAS * float(sigma), sampling="disjoint" if disjoint else "independent",
@@ -50,11 +53,14 @@ class GeneralRecipe:
         return protocol
 
 
-def recipe_draw(name: str, max_angle_deg: float | None = None):
-    """The per-batch protocol draw of a named recipe (``max_angle_deg`` overrides its rotation range)."""
+def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None):
+    """The per-batch protocol draw of a named recipe (``max_angle_deg`` overrides its rotation range,
+    ``outliers`` its largest share of scattered points)."""
     if name != "general":
         raise ValueError(f"unknown recipe {name!r}; expected one of {RECIPES}")
     recipe = GeneralRecipe()
     if max_angle_deg is not None:
         recipe = dataclasses.replace(recipe, max_angle_deg=float(max_angle_deg))
+    if outliers is not None:
+        recipe = dataclasses.replace(recipe, outliers=float(outliers))
     return recipe.draw

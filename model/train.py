@@ -49,12 +49,13 @@ class TrainOptions:
     overlap: float | None = None
     noise: float | None = None
     max_angle: float | None = None
+    outliers: float | None = None  # share of scattered points per cloud (with a recipe: the largest drawn)
     recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
 
     def pair_protocol(self) -> PairProtocol:
         """The training / validation pair protocol: the setting's, with these overrides."""
         return protocol_for(self.setting, source_points=self.source_points, target_points=self.target_points,
-                            overlap=self.overlap, noise=self.noise, max_angle=self.max_angle)
+                            overlap=self.overlap, noise=self.noise, max_angle=self.max_angle, outliers=self.outliers)
 
 
 def pick_device(name: str) -> torch.device:
@@ -87,7 +88,7 @@ def train(opts: TrainOptions) -> Path:
     protocol = opts.pair_protocol()
     shapes, _ = load_shapes("train", opts.setting, opts.data)
     train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
-    draw = recipe_draw(opts.recipe, opts.max_angle) if opts.recipe else protocol
+    draw = recipe_draw(opts.recipe, opts.max_angle, opts.outliers) if opts.recipe else protocol
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
     val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -427,6 +428,28 @@ def test_recipe_draw_takes_the_rotation_range_and_rejects_unknown_names() -> Non
     assert recipe_draw("general", 90.0)(np.random.default_rng(1)).max_angle_deg == 90.0
     with pytest.raises(ValueError, match="unknown recipe"):
         recipe_draw("paper")
+
+
+def test_recipe_outliers_are_drawn_last_and_within_the_given_share() -> None:
+    plain, scattered = recipe_draw("general"), recipe_draw("general", outliers=0.3)
+    for seed in range(50):
+        p, q = plain(np.random.default_rng(seed)), scattered(np.random.default_rng(seed))
+        assert p.outliers == 0.0 and 0.0 <= q.outliers <= 0.3
+        assert dataclasses.replace(q, outliers=0.0) == p  # the other draws are unchanged
+    opts = TrainOptions(setting="resampled", outliers=0.2)
+    assert opts.pair_protocol() == protocol_for("resampled", outliers=0.2)  # validation: that share exactly
+
+
+def test_train_runs_with_outliers_in_its_pairs(tmp_path) -> None:
+    from model.checkpoint import read_checkpoint
+
+    opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=tiny_training_data(tmp_path), epochs=1,
+                        batch_size=2, max_batches_per_epoch=1, val_pairs=2, device="cpu", config=TINY_MODEL,
+                        recipe="general", outliers=0.3)
+    train(opts)
+    saved = read_checkpoint(tmp_path / "run" / "last.pt")
+    assert saved["protocol"]["outliers"] == 0.3
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["outliers"] == 0.3
 
 
 def test_the_training_stream_draws_one_protocol_per_batch() -> None:
