@@ -87,7 +87,7 @@ class MfgnetClient:
             rotation_search: ``True`` = search over initial rotations covering SO(3) (any relative
                 orientation, much slower); ``"auto"`` = only when the plain result looks wrong (the
                 response's ``timing_ms`` then has a ``search`` key); ``False`` = never; ``None`` (default) =
-                the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``, ``auto`` for refined requests).
+                the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``, off unless the operator set it).
             refine_points: points per cloud the refinement uses (``None``: the network's working clouds).
             drop_isolated: ``False`` keeps isolated points as sampling candidates (``None``: the server's, true).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
