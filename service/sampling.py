@@ -57,14 +57,7 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
     Raises:
         ValueError: ``points`` is not ``(N, 3)``, holds NaN/Inf, or ``size < 1``.
     """
-    points = np.asarray(points)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must be (N, 3), got {points.shape}")
-    if size < 1:
-        raise ValueError(f"size must be >= 1, got {size}")
-    points = points.astype(np.float64, copy=False)
-    if not np.isfinite(points).all():
-        raise ValueError("points contain NaN or Inf")
+    points = _checked(points, size)
     n = points.shape[0]
     if n <= size and not drop_isolated:
         return canonical_order(points)
@@ -95,23 +88,30 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -
     the candidates (8192 of 200,000 points: 0.8 s). Order-independent like :func:`resample_indices`;
     ``drop_isolated`` as there.
     """
+    points = _checked(points, size)
+    n = points.shape[0]
+    if n <= size:
+        return resample_indices(points, size, drop_isolated)
+    candidates, occupancy = _voxel_representatives(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
+    if drop_isolated:
+        candidates = candidates[~sparse_voxels(occupancy)]
+        candidates = candidates[~isolated_points(points[candidates])]
+    if candidates.shape[0] > size:
+        candidates = candidates[np.argsort(coordinate_hash(points[candidates]), kind="stable")[:size]]
+    return candidates[canonical_order(points[candidates])].astype(np.int64)
+
+
+def _checked(points, size: int) -> np.ndarray:
+    """``points`` as a float64 ``(N, 3)`` array, or ``ValueError`` (wrong shape, NaN/Inf, ``size < 1``)."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {points.shape}")
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
     points = points.astype(np.float64, copy=False)
-    n = points.shape[0]
-    if n <= size:
-        return resample_indices(points, size, drop_isolated)
-    candidates, occupancy = _voxel_representatives(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
-    if drop_isolated:
-        keep = ~sparse_voxels(occupancy)
-        candidates = candidates[keep]
-        candidates = candidates[~isolated_points(points[candidates])]
-    if candidates.shape[0] > size:
-        candidates = candidates[np.argsort(coordinate_hash(points[candidates]), kind="stable")[:size]]
-    return candidates[canonical_order(points[candidates])].astype(np.int64)
+    if not np.isfinite(points).all():
+        raise ValueError("points contain NaN or Inf")
+    return points
 
 
 def coordinate_hash(points: np.ndarray) -> np.ndarray:
