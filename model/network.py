@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from model.config import MFGNetConfig
+from model.edge_fused import EdgeGraph, edge_graph, fused_edge_max
 from model.pose import compose, transform_points, weighted_procrustes
 
 NORM_EPS = 1e-8  # the unit difference is d / (||d|| + NORM_EPS)
@@ -82,10 +83,18 @@ class EdgeConvBlock(nn.Module):
         self.edge_out = nn.Linear(out_ch, out_ch)
         self.point = nn.Linear(out_ch, out_ch)
 
-    def forward(self, x: torch.Tensor, idx_kn: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, idx_kn: torch.Tensor, graph: EdgeGraph | None = None) -> torch.Tensor:
         """``x [B, N, C_in]``, neighbour indices ``idx_kn [B, k, N]`` (k-major: the max over
-        neighbours is then an element-wise maximum of contiguous slabs) -> ``[B, N, C]``."""
+        neighbours is then an element-wise maximum of contiguous slabs) -> ``[B, N, C]``.
+
+        ``graph`` (the same k-NN graph over the flattened batch) selects the fused training path
+        (``model.edge_fused``: batch statistics, far less memory traffic).
+        """
         y = self.edge.linear(x)  # [B, N, C] = W x, per point (rewrite 1)
+        if graph is not None:
+            B, N, C = y.shape
+            e = fused_edge_max(y.reshape(B * N, C), graph, self.edge.bn, self.edge_out.weight)  # [B * N, C]
+            return self.point(e.view(B, N, C) + self.edge_out.bias)
         e = gather_points(y, idx_kn) - y[:, None]  # [B, k, N, C] = W x_j - W x_i
         e = self.edge.norm_relu(e)
         # max(e W^T + b) = max(e W^T) + b: the bias is added after the max (exact).
@@ -101,14 +110,20 @@ class Encoder(nn.Module):
         chans = [3] + [cfg.emb_dims] * cfg.encoder_blocks
         self.blocks = nn.ModuleList(EdgeConvBlock(a, b) for a, b in itertools.pairwise(chans))
         self.k = cfg.knn
+        self.fused = True  # CPU training uses model.edge_fused (same results, far less memory traffic)
 
     def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
         """``neighbours [B, N, k]``: the k-NN graph when the caller has it (else computed here)."""
         idx_nk = knn_indices(points, self.k) if neighbours is None else neighbours
         idx_kn = idx_nk.transpose(1, 2)  # [B, k, N]
+        graph = None
+        if self.training and self.fused and points.device.type == "cpu" and torch.is_grad_enabled():
+            B, N, _ = points.shape
+            nbr = (idx_nk + torch.arange(B, device=points.device)[:, None, None] * N).reshape(B * N, -1)
+            graph = edge_graph(nbr, points.dtype)  # [B * N, k]
         x = points
         for block in self.blocks:
-            x = block(x, idx_kn)
+            x = block(x, idx_kn, graph)
         return x  # [B, N, D]
 
 

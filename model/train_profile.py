@@ -26,6 +26,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--steps", type=int, default=4, help="timed steps (after two warm-up steps)")
     parser.add_argument("--profile", action="store_true", help="print the torch profiler's op table too")
+    parser.add_argument(
+        "--compare-eager-encoder",
+        action="store_true",
+        help="alternate steps with the fused training encoder (model.edge_fused) and the eager one",
+    )
     parser.add_argument("--data", default=None, help="ModelNet40 folder (default: MFGNET_DATA or ../shared)")
     args = parser.parse_args(argv)
 
@@ -51,13 +56,19 @@ def main(argv: list[str] | None = None) -> None:
 
     for batch in batches[:2]:
         step(batch)
-    ms = []
+    variants = [True, False] if args.compare_eager_encoder else [True]
+    ms: dict[bool, list[float]] = {fused: [] for fused in variants}
     for batch in batches[2:]:
-        tic = time.perf_counter()
-        step(batch)
-        ms.append(1000 * (time.perf_counter() - tic) / args.batch_size)
-    print(f"ms per training pair: {[round(x, 1) for x in ms]}, median {np.median(ms):.1f} "
-          f"({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
+        for fused in variants:  # alternating, so both see the same machine load
+            model.encoder.fused = fused
+            tic = time.perf_counter()
+            step(batch)
+            ms[fused].append(1000 * (time.perf_counter() - tic) / args.batch_size)
+    for fused, times in ms.items():
+        encoder = "fused" if fused else "eager"
+        print(f"ms per training pair ({encoder} encoder): {[round(x, 1) for x in times]}, median "
+              f"{np.median(times):.1f} ({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
+    model.encoder.fused = True
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
 
