@@ -25,12 +25,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from model.fused_common import chunks, fold_batch_statistics, max_gradient
+
 CHUNK_POINTS = 1024  # points per chunk: 1024 x 12 x 64 floats = 3 MB per intermediate (512-4096 measured)
-
-
-def _chunks(n: int):
-    for start in range(0, n, CHUNK_POINTS):
-        yield slice(start, min(start + CHUNK_POINTS, n))
 
 
 class NeighbourSum(torch.autograd.Function):
@@ -86,7 +83,7 @@ class EdgeReluLinearMax(torch.autograd.Function):
         out = u.new_empty(P, weight.shape[0])
         hidden = u.new_empty(P, k, u.shape[1])  # [P, k, C] relu(u_j - v_i), kept for the backward
         edges_out = u.new_empty(P, k, weight.shape[0])  # [P, k, D] kept: the backward needs where the max was
-        for s in _chunks(P):
+        for s in chunks(P, CHUNK_POINTS):
             h = _edge_hidden(u, v, nbr, s, out=hidden[s])
             o = torch.matmul(h, weight.t(), out=edges_out[s])  # [p, k, D]
             torch.amax(o, dim=1, out=out[s])
@@ -101,12 +98,9 @@ class EdgeReluLinearMax(torch.autograd.Function):
         grad_u = hidden.new_zeros(ctx.rows, C)
         grad_v = hidden.new_empty(nbr.shape[0], C)
         grad_w = torch.zeros_like(weight)
-        for s in _chunks(nbr.shape[0]):
+        for s in chunks(nbr.shape[0], CHUNK_POINTS):
             h = hidden[s]  # [p, k, C]
-            # [p, k, D] 1.0 where the max was taken (a float result: ~4x faster than a bool mask)
-            is_max = torch.eq(edges_out[s], out[s, None], out=torch.empty_like(edges_out[s]))
-            share = grad_m[s] / is_max.sum(1).clamp_min_(1.0)  # [p, D]; >= 1 tie unless the max is NaN
-            grad_o = is_max.mul_(share[:, None])
+            grad_o = max_gradient(edges_out[s], out[s], grad_m[s], out=torch.empty_like(edges_out[s]))  # [p, k, D]
             grad_w.addmm_(grad_o.view(-1, D).t(), h.view(-1, C))
             grad_h = torch.ops.aten.threshold_backward(torch.matmul(grad_o, weight), h, 0.0)  # ReLU
             grad_u.index_add_(0, nbr[s].reshape(-1), grad_h.view(-1, C))
@@ -140,14 +134,6 @@ def fused_edge_max(y: torch.Tensor, graph: EdgeGraph, bn: nn.BatchNorm1d, weight
     """Training-mode ``max_k relu(BN(y_j - y_i)) W^T`` (no bias) with batch statistics; updates ``bn``'s
     running statistics as ``nn.BatchNorm1d`` does. ``y [P, C]`` -> ``[P, D]``."""
     mean, var = edge_statistics(y, graph)
-    scale = bn.weight / torch.sqrt(var + bn.eps)  # [C]
-    shift = bn.bias - scale * mean  # [C]
+    scale, shift = fold_batch_statistics(bn, mean, var, graph.nbr.numel())
     u = y * scale  # BN(y_j - y_i) = u_j - v_i
-    v = u - shift
-    with torch.no_grad():
-        count = graph.nbr.numel()
-        momentum = bn.momentum if bn.momentum is not None else 1.0 / float(bn.num_batches_tracked + 1)
-        bn.running_mean.lerp_(mean.detach(), momentum)
-        bn.running_var.lerp_(var.detach() * count / (count - 1), momentum)
-        bn.num_batches_tracked.add_(1)
-    return EdgeReluLinearMax.apply(u, v, graph.nbr, weight)
+    return EdgeReluLinearMax.apply(u, u - shift, graph.nbr, weight)

@@ -20,6 +20,7 @@ from torch import nn
 
 from model.config import MFGNetConfig
 from model.edge_fused import EdgeGraph, edge_graph, fused_edge_max
+from model.pair_fused import PairMax, fused_pair_mlp
 from model.pose import compose, transform_points, weighted_procrustes
 
 NORM_EPS = 1e-8  # the unit difference is d / (||d|| + NORM_EPS)
@@ -151,6 +152,7 @@ class PairMLP(nn.Module):
         self.first = BNReLULinear(1 + diff_dims + extra_dims, ch)
         self.hidden = nn.Sequential(BNReLULinear(ch, ch), BNReLULinear(ch, ch))
         self.out = nn.Linear(ch, 1)
+        self.fused = True  # CPU training uses model.pair_fused (same results, far fewer passes)
 
     def forward(
         self, a: torch.Tensor, b: torch.Tensor, extra_a: torch.Tensor | None = None
@@ -160,14 +162,14 @@ class PairMLP(nn.Module):
         w_norm, W_d = W[:, 0], W[:, 1 : 1 + self.diff_dims]
         dist = pair_distance(a, b)  # [B, K, L]
         pa, pb = F.linear(a, W_d), F.linear(b, W_d)  # [B, K, C], [B, L, C]
-        if extra_a is not None:
-            pa_extra = F.linear(extra_a, W[:, 1 + self.diff_dims :])  # [B, K, C]
+        pa_extra = F.linear(extra_a, W[:, 1 + self.diff_dims :]) if extra_a is not None else None  # [B, K, C]
         inv = 1.0 / (dist + NORM_EPS)  # [B, K, L]
+        if self.training and self.fused and a.device.type == "cpu" and torch.is_grad_enabled():
+            return fused_pair_mlp(self, pa, pb, pa_extra, w_norm, inv, dist)  # [B, K, L]
         z = (pa[:, :, None] - pb[:, None]) * inv[..., None] + dist[..., None] * w_norm  # [B, K, L, C]
-        if extra_a is not None:
+        if pa_extra is not None:
             z = z + pa_extra[:, :, None]
-        z = self.first.norm_relu(z)
-        z = self.hidden(z)
+        z = self.hidden(self.first.norm_relu(z))
         return self.out(z).squeeze(-1)  # [B, K, L]
 
 
@@ -178,13 +180,16 @@ class CredibilityHead(nn.Module):
         super().__init__()
         self.pre = nn.Linear(2, ch)
         self.post = nn.Sequential(BNReLULinear(ch, ch), nn.Linear(ch, 1))
+        self.fused = True  # CPU training uses model.pair_fused.PairMax (same results, less memory traffic)
 
     def forward(self, F_mat: torch.Tensor, S_mat: torch.Tensor) -> torch.Tensor:
         w = self.pre.weight  # [C, 2]
         # pre([F, S]) then max over b; the bias commutes with the max (exact).
-        h = F_mat[..., None] * w[:, 0] + S_mat[..., None] * w[:, 1]  # [B, K, L, C]
-        h = h.max(dim=2).values + self.pre.bias  # [B, K, C]
-        return self.post(h).squeeze(-1)  # [B, K]
+        if self.training and self.fused and F_mat.device.type == "cpu" and torch.is_grad_enabled():
+            h = PairMax.apply(F_mat, S_mat, w[:, 0], w[:, 1])  # [B, K, C]
+        else:
+            h = (F_mat[..., None] * w[:, 0] + S_mat[..., None] * w[:, 1]).max(dim=2).values  # [B, K, C]
+        return self.post(h + self.pre.bias).squeeze(-1)  # [B, K]
 
 
 class IterationMatcher(nn.Module):
@@ -249,6 +254,12 @@ class MFGNet(nn.Module):
         self.encoder = Encoder(self.cfg)
         self.significance = SignificanceHead(self.cfg)
         self.matchers = nn.ModuleList(IterationMatcher(self.cfg) for _ in range(self.cfg.weight_sets))
+
+    def set_fused_training(self, enabled: bool) -> None:
+        """Use (default) or bypass the fused CPU training layers (``model.edge_fused``, ``model.pair_fused``)."""
+        for module in self.modules():
+            if isinstance(module, Encoder | PairMLP | CredibilityHead):
+                module.fused = enabled
 
     def matcher(self, iteration: int) -> IterationMatcher:
         """Weight set of an iteration; past the trained sets the last one is reused."""

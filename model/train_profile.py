@@ -27,9 +27,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--steps", type=int, default=4, help="timed steps (after two warm-up steps)")
     parser.add_argument("--profile", action="store_true", help="print the torch profiler's op table too")
     parser.add_argument(
-        "--compare-eager-encoder",
+        "--compare-eager",
         action="store_true",
-        help="alternate steps with the fused training encoder (model.edge_fused) and the eager one",
+        help="alternate steps with the fused training layers (model.edge_fused, model.pair_fused) and eager ones",
     )
     parser.add_argument("--data", default=None, help="ModelNet40 folder (default: MFGNET_DATA or ../shared)")
     args = parser.parse_args(argv)
@@ -56,19 +56,19 @@ def main(argv: list[str] | None = None) -> None:
 
     for batch in batches[:2]:
         step(batch)
-    variants = [True, False] if args.compare_eager_encoder else [True]
+    variants = [True, False] if args.compare_eager else [True]
     ms: dict[bool, list[float]] = {fused: [] for fused in variants}
     for batch in batches[2:]:
         for fused in variants:  # alternating, so both see the same machine load
-            model.encoder.fused = fused
+            model.set_fused_training(fused)
             tic = time.perf_counter()
             step(batch)
             ms[fused].append(1000 * (time.perf_counter() - tic) / args.batch_size)
     for fused, times in ms.items():
-        encoder = "fused" if fused else "eager"
-        print(f"ms per training pair ({encoder} encoder): {[round(x, 1) for x in times]}, median "
+        layers = "fused" if fused else "eager"
+        print(f"ms per training pair ({layers} layers): {[round(x, 1) for x in times]}, median "
               f"{np.median(times):.1f} ({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
-    model.encoder.fused = True
+    model.set_fused_training(True)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
 
