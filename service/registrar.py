@@ -11,6 +11,7 @@ import os
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
@@ -161,6 +162,14 @@ class NetworkOutput:
     min_median_gap: float  # smallest gap between the median credibility and the next lower one
 
 
+@dataclass(frozen=True)
+class EmbeddedCloud:
+    """A working cloud's encoder output, reused across network runs (the rotation search's target)."""
+
+    embedding: np.ndarray  # [1, M, D]
+    scores: np.ndarray  # [1, M] keypoint significance
+
+
 @dataclass
 class _Working:
     """One registration's working clouds, shared by the plain pass and the search of ``rotation_search="auto"``."""
@@ -239,6 +248,12 @@ class Registrar:
         emb, score = self.encoder.run(None, feeds)
         return emb, score
 
+    def embed_cloud(self, points: np.ndarray) -> EmbeddedCloud:
+        """The encoder output of one working cloud ``[M, 3]`` (float32), for :meth:`run_network`'s ``target``."""
+        cloud = points[None]  # [1, M, 3]
+        neighbours = self.neighbours(cloud) if self.encoder_takes_neighbours else None
+        return EmbeddedCloud(*self.embed(cloud, neighbours))
+
     def match(self, iteration: int, src_xyz, tgt_xyz, src_emb, tgt_emb,
               emb_dist: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Matching scores ``[B, K, L]`` and credibility logits ``[B, K]`` of one iteration.
@@ -266,6 +281,7 @@ class Registrar:
         keypoints: int,
         timing: dict[str, float] | None = None,
         same_source: bool = False,
+        target: EmbeddedCloud | None = None,
     ) -> NetworkOutput | list[NetworkOutput]:
         """The network loop on normalised working clouds (float32), for one pair or a batch of B.
 
@@ -274,6 +290,8 @@ class Registrar:
         once) or ``[B, M, 3]``. One encoder call when ``N == M`` (else one per side), one matcher call
         of batch B per iteration; keypoints are chosen per cloud (embeddings change with rotation).
         ``same_source``: the B sources are rigid copies of one cloud and share its k-NN graph.
+        ``target``: :meth:`embed_cloud` of ``tgt_n [M, 3]``, when the caller runs it against many
+        sources (only the sources are embedded then).
         """
         timing = {} if timing is None else timing
         single = src_n.ndim == 2
@@ -282,13 +300,17 @@ class Registrar:
         B, N, M = src_b.shape[0], src_b.shape[1], tgt_b.shape[1]
         if src_b.ndim != 3 or tgt_b.ndim != 3 or len(tgt_b) not in (1, B):
             raise ValueError(f"run_network: source {src_n.shape} and target {tgt_n.shape} do not batch")
+        if target is not None and (len(tgt_b) != 1 or target.scores.shape != (1, M)):
+            raise ValueError(f"run_network: target embedding {target.scores.shape} is not of target {tgt_n.shape}")
         t1 = time.perf_counter()
         nb_s = nb_t = None
         if self.encoder_takes_neighbours:
             # rigid copies of one source (the rotation search) share its k-NN graph
             nb_s = np.repeat(self.neighbours(src_b[:1]), B, axis=0) if same_source else self.neighbours(src_b)
-            nb_t = self.neighbours(tgt_b)
-        if N == M:  # one batched encoder call
+            nb_t = self.neighbours(tgt_b) if target is None else None
+        if target is not None:
+            (emb_s, score_s), emb_t, score_t = self.embed(src_b, nb_s), target.embedding, target.scores
+        elif N == M:  # one batched encoder call
             both = np.concatenate([nb_s, nb_t]) if nb_s is not None else None
             emb, score = self.embed(np.concatenate([src_b, tgt_b]), both)
             emb_s, score_s, emb_t, score_t = emb[:B], score[:B], emb[B:], score[B:]
@@ -484,9 +506,12 @@ class Registrar:
             R_start, R_net, t_net = np.eye(3), net.rotation, net.translation
         else:
             short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
+            tic = time.perf_counter()
+            target = self.embed_cloud(work.tgt_n)  # once for every hypothesis
+            timing["encoder"] = 1000 * (time.perf_counter() - tic)
             net, R_start, R_net, t_net = search_hypotheses(
-                self.run_network, work.src_n, work.tgt_n, hypotheses, iterations, keypoints, short_icp,
-                INLIER_DISTANCE, timing,
+                partial(self.run_network, target=target), work.src_n, work.tgt_n, hypotheses, iterations, keypoints,
+                short_icp, INLIER_DISTANCE, timing,
             )
         t3 = time.perf_counter()
         poses = [

@@ -36,7 +36,7 @@ SEARCH_ICP_ITERATIONS = 20
 SEARCH_ICP_STRIDE = 3
 # The hypotheses go through the network this many at a time: ONNX Runtime keeps each session's arena at the
 # largest batch it has run, and all 24 at once grew the process by ~1.2 GB, 4 at a time by ~180 MB, for ~3%
-# more time (docs/ROTATION_SEARCH.md, "Memory"); each chunk re-embeds the target.
+# more time (docs/ROTATION_SEARCH.md, "Memory"). The caller embeds the target once for all of them.
 SEARCH_BATCH = 4
 
 
@@ -82,9 +82,10 @@ def search_hypotheses(
 ) -> tuple[NetworkOutput, np.ndarray, np.ndarray, np.ndarray]:
     """The best start of ``src_n [N, 3]`` (float32, normalised) rotated by each of ``hypotheses [H, 3, 3]``.
 
-    ``run_network`` (``Registrar.run_network``) runs the ``H`` rotated sources against ``tgt_n`` as one
-    batch; each hypothesis's pose is its network pose composed after its start rotation. ``short_icp``:
-    every pose first gets a short wide-basin ICP (``SEARCH_ICP_*``) and the ranking uses those poses.
+    ``run_network`` (``Registrar.run_network``, with the target's embedding bound) runs the ``H`` rotated
+    sources against ``tgt_n`` in batches of ``SEARCH_BATCH``; each hypothesis's pose is its network pose
+    composed after its start rotation. ``short_icp``: every pose first gets a short wide-basin ICP
+    (``SEARCH_ICP_*``) and the ranking uses those poses.
     Returns the winner's network output, start rotation ``[3, 3]`` and pose ``R [3, 3]``, ``t [3]`` of
     ``src_n`` onto ``tgt_n``; records ``timing["search"]`` (the whole search) and
     ``timing["search_per_hypothesis"]``.

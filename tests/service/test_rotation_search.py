@@ -92,6 +92,33 @@ def test_rigid_copies_share_the_source_neighbour_graph(registrar, monkeypatch) -
         np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-6)
 
 
+@needs_model
+def test_a_precomputed_target_embedding_gives_the_same_result(registrar) -> None:
+    cloud = asymmetric_blob(256, 1).astype(np.float32)
+    target = asymmetric_blob(256, 2).astype(np.float32)
+    batch = (cloud @ search_rotations_for(24)[:3].transpose(0, 2, 1)).astype(np.float32)  # [3, 256, 3]
+    embedded = registrar.embed_cloud(target)
+    reused = registrar.run_network(batch, target, 2, 64, target=embedded)
+    fresh = registrar.run_network(batch, target, 2, 64)
+    for a, b in zip(reused, fresh, strict=True):
+        np.testing.assert_array_equal(a.tgt_kp, b.tgt_kp)
+        np.testing.assert_array_equal(a.matched, b.matched)
+        np.testing.assert_allclose(a.rotation, b.rotation, atol=1e-5)
+    with pytest.raises(ValueError, match="target embedding"):
+        registrar.run_network(batch, target[:200], 2, 64, target=embedded)
+
+
+@needs_model
+def test_the_rotation_search_embeds_the_target_once(registrar, monkeypatch) -> None:
+    embedded: list[int] = []
+    original = registrar.embed
+    monkeypatch.setattr(registrar, "embed", lambda pts, nb=None: embedded.append(len(pts)) or original(pts, nb))
+    source, target = asymmetric_blob(300, 1), asymmetric_blob(300, 2)
+    registrar.register(source, target, rotation_search=True, refine="none")
+    assert embedded[0] == 1 and sum(embedded) == 1 + 24  # the target, then the 24 rotated sources in chunks
+    assert max(embedded[1:]) <= 4  # rotation_search.SEARCH_BATCH
+
+
 # --- registration ---------------------------------------------------------------------------------
 
 
