@@ -6,6 +6,12 @@ import torch
 from torch import nn
 
 
+def fused_training(module: nn.Module, x: torch.Tensor) -> bool:
+    """Whether ``module`` (with a ``fused`` switch) takes its fused path for input ``x``: CPU training
+    with gradients. Evaluation, ``no_grad`` and other devices run the eager layers."""
+    return module.training and module.fused and x.device.type == "cpu" and torch.is_grad_enabled()
+
+
 def fold_batch_statistics(
     bn: nn.BatchNorm1d, mean: torch.Tensor, var: torch.Tensor, count: int
 ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -20,6 +20,7 @@ from torch import nn
 
 from model.config import MFGNetConfig
 from model.edge_fused import EdgeGraph, edge_graph, fused_edge_max
+from model.fused_common import fused_training
 from model.pair_fused import PairMax, fused_pair_mlp
 from model.pose import compose, transform_points, weighted_procrustes
 
@@ -118,7 +119,7 @@ class Encoder(nn.Module):
         idx_nk = knn_indices(points, self.k) if neighbours is None else neighbours
         idx_kn = idx_nk.transpose(1, 2)  # [B, k, N]
         graph = None
-        if self.training and self.fused and points.device.type == "cpu" and torch.is_grad_enabled():
+        if fused_training(self, points):
             B, N, _ = points.shape
             nbr = (idx_nk + torch.arange(B, device=points.device)[:, None, None] * N).reshape(B * N, -1)
             graph = edge_graph(nbr, points.dtype)  # [B * N, k]
@@ -164,7 +165,7 @@ class PairMLP(nn.Module):
         pa, pb = F.linear(a, W_d), F.linear(b, W_d)  # [B, K, C], [B, L, C]
         pa_extra = F.linear(extra_a, W[:, 1 + self.diff_dims :]) if extra_a is not None else None  # [B, K, C]
         inv = 1.0 / (dist + NORM_EPS)  # [B, K, L]
-        if self.training and self.fused and a.device.type == "cpu" and torch.is_grad_enabled():
+        if fused_training(self, a):
             return fused_pair_mlp(self, pa, pb, pa_extra, w_norm, inv, dist)  # [B, K, L]
         z = (pa[:, :, None] - pb[:, None]) * inv[..., None] + dist[..., None] * w_norm  # [B, K, L, C]
         if pa_extra is not None:
@@ -185,7 +186,7 @@ class CredibilityHead(nn.Module):
     def forward(self, F_mat: torch.Tensor, S_mat: torch.Tensor) -> torch.Tensor:
         w = self.pre.weight  # [C, 2]
         # pre([F, S]) then max over b; the bias commutes with the max (exact).
-        if self.training and self.fused and F_mat.device.type == "cpu" and torch.is_grad_enabled():
+        if fused_training(self, F_mat):
             h = PairMax.apply(F_mat, S_mat, w[:, 0], w[:, 1])  # [B, K, C]
         else:
             h = (F_mat[..., None] * w[:, 0] + S_mat[..., None] * w[:, 1]).max(dim=2).values  # [B, K, C]
