@@ -82,8 +82,9 @@ class MfgnetClient:
         Args:
             source: ``(N, 3)`` points (array or nested lists).
             target: ``(M, 3)`` points.
-            model, iterations, keypoints, refine (``"none"`` | ``"icp"`` | ``"icp-plane"``), initial_transform (4x4):
-                left out of the request when ``None`` (the server's defaults apply).
+            model, iterations, keypoints, refine (``"none"`` | ``"icp"`` | ``"icp-plane"`` |
+                ``"icp-plane-multistart"``), initial_transform (4x4): left out of the request when ``None``
+                (the server's defaults apply).
             rotation_search: ``True`` = search over initial rotations covering SO(3) (any relative
                 orientation, much slower); ``"auto"`` = only when the plain result looks wrong (the
                 response's ``timing_ms`` then has a ``search`` key); ``False`` = never; ``None`` (default) =

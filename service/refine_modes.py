@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from enum import Enum
 
-# icp: point-to-point, mutual nearest neighbours; icp-plane: wide robust symmetric stage + point-to-plane
-REFINE_MODES = ("none", "icp", "icp-plane")
+# icp: point-to-point, mutual nearest neighbours; icp-plane: wide robust symmetric stage + point-to-plane;
+# icp-plane-multistart: icp-plane, then the best of 13 turned starts (service.multistart)
+REFINE_MODES = ("none", "icp", "icp-plane", "icp-plane-multistart")
 
 # What the HTTP API and `mfgnet register` apply when a request names no refinement (the server's
 # MFGNET_DEFAULT_REFINE): two independently sampled scans need it (docs/DESIGN.md, "Default
@@ -27,3 +28,4 @@ class Refine(str, Enum):
     none = "none"
     icp = "icp"
     icp_plane = "icp-plane"
+    icp_plane_multistart = "icp-plane-multistart"

@@ -19,8 +19,9 @@ import numpy as np
 import onnxruntime as ort
 
 from service.errors import InputError
-from service.icp import icp, refine_plane
+from service.icp import icp, icp_plane, refine_plane
 from service.manifest import Manifest, load_manifest
+from service.multistart import best_turned_pose
 from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.procrustes import compose, to_matrix, weighted_procrustes
@@ -417,9 +418,11 @@ class Registrar:
         ``icp_max_distance``; each stage at most ``icp_max_iterations``): much closer than point-to-point
         between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
         rotation search the per-hypothesis short ICPs stay point-to-point; only the winner's final
-        refinement is point-to-plane. When it stops on a degenerate system (too few pairs, a planar
-        or linear target) it keeps the pose it had and adds a warning; ``reliable`` still comes
-        from :func:`service.quality.assess` alone.
+        refinement is point-to-plane. ``refine="icp-plane-multistart"`` then turns the refined pose by
+        +-15 and +-30 degrees about each axis, moves each turn with a short ICP and keeps the best fit by
+        a two-way point-to-plane score, refined again (:mod:`service.multistart`). When a refinement
+        stops on a degenerate system (too few pairs, a planar or linear target) it keeps the pose it had
+        and adds a warning; ``reliable`` still comes from :func:`service.quality.assess` alone.
         ``drop_isolated`` (default): isolated points -- flying pixels, sparse clutter; a mean distance to their
         8 nearest others above 3x the cloud's median (:func:`service.sampling.isolated_points`) -- are left
         out of the working and refinement clouds, so the network and the refinement see the surfaces
@@ -523,10 +526,18 @@ class Registrar:
         refine_warnings: tuple[str, ...] = ()
         if refine != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
-            method = refine_plane if refine == "icp-plane" else icp
+            method = icp if refine == "icp" else refine_plane
             refined = method(
                 work.src_r, work.tgt_r, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
             )
+            if refine == "icp-plane-multistart":
+                R_turn, t_turn, start = best_turned_pose(
+                    work.src_r, work.tgt_r, refined.rotation, refined.translation, scale
+                )
+                if start:  # a turned start fits better: the precise stage only (the wide one could pull it back)
+                    refined = icp_plane(
+                        work.src_r, work.tgt_r, R_turn, t_turn, max_distance=distance, max_iterations=icp_max_iterations
+                    )
             R_final, t_final, refine_warnings = refined.rotation, refined.translation, refined.warnings
             timing["refine"] = 1000 * (time.perf_counter() - t3)
         t4 = time.perf_counter()

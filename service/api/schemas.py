@@ -28,11 +28,14 @@ Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
 Matrix3 = Annotated[list[Vector3], Field(min_length=3, max_length=3)]
-Refine = Literal["none", "icp", "icp-plane"]  # = service.refine_modes.REFINE_MODES (a test keeps them equal)
+# = service.refine_modes.REFINE_MODES (a test keeps them equal)
+Refine = Literal["none", "icp", "icp-plane", "icp-plane-multistart"]
 REFINE_DESCRIPTION = (
     "Optional refinement after the network: 'icp' = point-to-point ICP (mutual nearest neighbours), "
     "'icp-plane' = a wide robust symmetric point-to-plane stage, then point-to-plane ICP with target normals "
-    "(closer and more often right for two independently sampled scans). Default: the server's "
+    "(closer and more often right for two independently sampled scans); 'icp-plane-multistart' = icp-plane, then "
+    "12 turns of the pose (+-15 and +-30 deg about each axis) refined and compared by a two-way point-to-plane fit "
+    "(more often right on sparse or ambiguous clouds, ~2x the refinement time). Default: the server's "
     "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
 )
 

@@ -48,7 +48,7 @@ class Settings(BaseSettings):
     default_model: str = Field(
         "general", description="Model used when a request names none (general: trained on independently sampled pairs)."
     )
-    default_refine: Literal["none", "icp", "icp-plane"] = Field(
+    default_refine: Literal["none", "icp", "icp-plane", "icp-plane-multistart"] = Field(
         SERVICE_DEFAULT_REFINE,
         description="Refinement applied when a request names none: icp-plane (robust point-to-plane ICP, right for "
         "independently sampled scans); none = the network's pose alone (lowest latency, the paper's pipeline).",

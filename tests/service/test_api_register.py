@@ -132,6 +132,19 @@ def test_point_to_plane_refinement_goes_through_json(client, plane_refined):
     assert body["quality"]["reliable"] and not any(w.startswith("refinement") for w in body["warnings"])
 
 
+def test_multistart_refinement_goes_through_json_multipart_and_oip(client, plane_refined):
+    pair = modelnet_pair(1)
+    body = client.post("/v1/register", json=pair_json(pair, refine="icp-plane-multistart")).json()
+    assert "refine" in body["timing_ms"]
+    assert rotation_error_deg(np.array(body["rotation"]), np.array(plane_refined["rotation"])) < 0.01  # right: kept
+    files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
+    response = client.post("/v1/register", files=files, data={"refine": "icp-plane-multistart"})
+    assert response.status_code == 200, response.text
+    assert response.json()["transform"] == body["transform"]
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, refine="icp-plane-multistart"))
+    assert response.status_code == 200, response.text
+
+
 def test_a_request_naming_no_refinement_gets_the_servers_default_icp_plane(client, plane_refined, single):
     """The server's default (MFGNET_DEFAULT_REFINE, icp-plane) applies on every route that names none."""
     assert single[1]["transform"] == plane_refined["transform"] and "refine" in single[1]["timing_ms"]

@@ -17,7 +17,7 @@ from service.api.schemas import (
     BatchResponse,
     RegisterResponse,
 )
-from service.refine_modes import REFINE_POINTS_RANGE
+from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
 from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
 
 router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
@@ -31,7 +31,7 @@ _MULTIPART_SCHEMA = {
         "model": {"type": "string"},
         "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
         "keypoints": {"type": "integer", "minimum": KEYPOINT_RANGE[0], "maximum": KEYPOINT_RANGE[1]},
-        "refine": {"type": "string", "enum": ["none", "icp", "icp-plane"], "description": REFINE_DESCRIPTION},
+        "refine": {"type": "string", "enum": list(REFINE_MODES), "description": REFINE_DESCRIPTION},
         "refine_points": {
             "type": "integer", "minimum": REFINE_POINTS_RANGE[0], "maximum": REFINE_POINTS_RANGE[1],
             "description": REFINE_POINTS_DESCRIPTION,
