@@ -13,10 +13,16 @@ from service.multistart import best_turned_pose, symmetric_plane_scores, turned_
 from service.registrar import Registrar
 
 BUNDLED = bundled_models_dir() / "general"
-needs_model = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'general' absent")
 
 R_TRUE = Rotation.from_euler("xyz", [20.0, -10.0, 40.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.3, -0.2, 0.1])
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    if not (BUNDLED / "manifest.json").exists():
+        pytest.skip("bundled model 'general' absent")
+    return Registrar(BUNDLED, threads=1, warmup=False)
 
 
 def independent_pair() -> tuple[np.ndarray, np.ndarray]:
@@ -62,12 +68,24 @@ def test_a_pose_turned_30_degrees_is_brought_back(axis: int) -> None:
     assert degrees_between(precise.rotation, R_TRUE) < 1.0 and np.linalg.norm(precise.translation - T_TRUE) < 0.02
 
 
-@needs_model
-def test_register_with_multistart_keeps_a_right_pose() -> None:
-    registrar = Registrar(BUNDLED, threads=1, warmup=False)
+def test_register_with_multistart_keeps_a_right_pose(registrar) -> None:
     src, tgt = independent_pair()
     plane = registrar.register(src, tgt, refine="icp-plane")
     multi = registrar.register(src, tgt, refine="icp-plane-multistart")
     assert degrees_between(plane.rotation, R_TRUE) < 2.0  # the plain result is right here ...
     assert degrees_between(multi.rotation, plane.rotation) < 0.5  # ... and the multi-start keeps it
     assert multi.reliable and "refine" in multi.timing_ms
+
+
+@pytest.mark.parametrize("shape", ["identical", "collinear", "planar", "32 points"])
+def test_multistart_on_degenerate_or_tiny_clouds_returns_a_finite_flagged_pose(registrar, shape: str) -> None:
+    rng = np.random.default_rng(5)
+    src, tgt = {
+        "identical": (np.ones((100, 3)), np.ones((100, 3))),
+        "collinear": (np.linspace(0, 1, 200)[:, None] * [1.0, 2.0, 3.0],) * 2,
+        "planar": (np.c_[rng.uniform(size=(200, 2)), np.zeros(200)], np.c_[rng.uniform(size=(200, 2)), np.zeros(200)]),
+        "32 points": (rng.normal(size=(32, 3)), rng.normal(size=(40, 3))),
+    }[shape]
+    res = registrar.register(src, tgt, refine="icp-plane-multistart")
+    assert np.isfinite(res.transform).all()
+    assert res.warnings and (shape == "planar" or not res.reliable)
