@@ -299,17 +299,19 @@ def refine_plane(
     max_distance: float,
     max_iterations: int = 30,
     tolerance: float = 1e-5,
+    target_surface: Surface | None = None,
 ) -> IcpResult:
     """``refine="icp-plane"``: :func:`icp_symmetric` at ``WIDE_DISTANCE_FACTOR * max_distance`` (to reach
     the right basin), then reciprocal :func:`icp_plane` at ``max_distance`` (precision); each stage runs
     at most ``max_iterations`` updates; ``tolerance`` is the precise stage's (1e-5 rad: 1e-6 moved no pose of the
     170 dense test pairs by more than 1e-5 deg).
 
+    ``target_surface``: ``Surface.of(tgt)`` when the caller has it.
     Returns the second stage's :class:`IcpResult` with ``iterations`` counting both stages (the wide
     stage's own warnings are dropped: the precise stage meets the same geometry and reports it).
     """
     src, tgt, R0, t0 = _checked(src, tgt, R0, t0, max_distance, max_iterations)  # before building the tree
-    surface = Surface.of(tgt)
+    surface = Surface.of(tgt) if target_surface is None else target_surface
     wide = icp_symmetric(src, tgt, R0, t0, max_distance=WIDE_DISTANCE_FACTOR * max_distance,
                          max_iterations=max_iterations, target_surface=surface)
     precise = icp_plane(src, tgt, wide.rotation, wide.translation, max_distance=max_distance,

@@ -24,7 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from service.icp import icp_many, target_normals
+from service.icp import Surface, icp_many, target_normals
 
 MULTISTART_ANGLES = (15.0, 30.0)  # degrees: the turns of the refined pose about x, y and z, both ways
 MULTISTART_ICP_DISTANCE = 0.15  # normalised units: the short ICPs' correspondence cap (x the cloud scale)
@@ -54,11 +54,14 @@ def plane_distances(points: np.ndarray, tree: cKDTree, cloud: np.ndarray, normal
     return dist, np.abs(((points - cloud[idx]) * normals[idx]).sum(1))
 
 
-def symmetric_plane_scores(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, cap: float) -> np.ndarray:
+def symmetric_plane_scores(
+    src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, cap: float, target_surface: Surface | None = None
+) -> np.ndarray:
     """Fit score ``[H]`` (lower is better) of each pose ``R [H, 3, 3]``, ``t [H, 3]`` of ``src`` onto ``tgt``:
-    mean capped point-to-plane distance of ``src`` to ``tgt`` plus that of ``tgt`` to the moved ``src``."""
-    tgt_tree = cKDTree(tgt)
-    tgt_normals, src_normals = target_normals(tgt, tree=tgt_tree)[0], target_normals(src)[0]
+    mean capped point-to-plane distance of ``src`` to ``tgt`` plus that of ``tgt`` to the moved ``src``.
+    ``target_surface``: ``Surface.of(tgt)`` when the caller has it."""
+    surface = Surface.of(tgt) if target_surface is None else target_surface
+    tgt_tree, tgt_normals, src_normals = surface.tree, surface.normals, target_normals(src)[0]
     scores = np.empty(len(R))
     for h, (R_h, t_h) in enumerate(zip(R, t, strict=True)):
         moved = src @ R_h.T + t_h  # [N, 3]
@@ -71,14 +74,17 @@ def symmetric_plane_scores(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: n
     return scores
 
 
-def best_turned_pose(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, scale: float):
+def best_turned_pose(
+    src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, scale: float, target_surface: Surface | None = None
+):
     """The best of ``R, t`` and its turns after short ICPs (the module docstring) -> ``R [3, 3], t [3]`` and
-    the index of the winning start (0: the pose itself). ``scale``: the clouds' size in normalised units."""
+    the index of the winning start (0: the pose itself). ``scale``: the clouds' size in normalised units;
+    ``target_surface``: ``Surface.of(tgt)`` when the caller has it."""
     R_h, t_h = turned_poses(R, t, tgt.mean(axis=0))
     stride = max(1, len(src) // MULTISTART_ICP_POINTS)
     R_h, t_h = icp_many(
         src[::stride], tgt, R_h, t_h, max_distance=MULTISTART_ICP_DISTANCE * scale,
         max_iterations=MULTISTART_ICP_ITERATIONS,
     )
-    best = int(np.argmin(symmetric_plane_scores(src, tgt, R_h, t_h, MULTISTART_CAP * scale)))
+    best = int(np.argmin(symmetric_plane_scores(src, tgt, R_h, t_h, MULTISTART_CAP * scale, target_surface)))
     return (R, t, 0) if best == 0 else (R_h[best], t_h[best], best)  # the pose itself as refined, not re-moved

@@ -19,7 +19,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.errors import InputError
-from service.icp import icp, icp_plane, refine_plane
+from service.icp import Surface, icp, icp_plane, refine_plane
 from service.manifest import Manifest, load_manifest
 from service.multistart import best_turned_pose
 from service.neighbours import knn_graph
@@ -526,18 +526,21 @@ class Registrar:
         refine_warnings: tuple[str, ...] = ()
         if refine != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
-            method = icp if refine == "icp" else refine_plane
-            refined = method(
-                work.src_r, work.tgt_r, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
-            )
+            if refine == "icp":
+                refined = icp(
+                    work.src_r, work.tgt_r, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
+                )
+            else:  # icp-plane, alone or before the multi-start: one target surface (tree, normals) for all of it
+                surface = Surface.of(work.tgt_r)
+                refined = refine_plane(work.src_r, work.tgt_r, R_final, t_final, max_distance=distance,
+                                       max_iterations=icp_max_iterations, target_surface=surface)
             if refine == "icp-plane-multistart":
                 R_turn, t_turn, start = best_turned_pose(
-                    work.src_r, work.tgt_r, refined.rotation, refined.translation, scale
+                    work.src_r, work.tgt_r, refined.rotation, refined.translation, scale, surface
                 )
                 if start:  # a turned start fits better: the precise stage only (the wide one could pull it back)
-                    refined = icp_plane(
-                        work.src_r, work.tgt_r, R_turn, t_turn, max_distance=distance, max_iterations=icp_max_iterations
-                    )
+                    refined = icp_plane(work.src_r, work.tgt_r, R_turn, t_turn, max_distance=distance,
+                                        max_iterations=icp_max_iterations, target_surface=surface)
             R_final, t_final, refine_warnings = refined.rotation, refined.translation, refined.warnings
             timing["refine"] = 1000 * (time.perf_counter() - t3)
         t4 = time.perf_counter()
