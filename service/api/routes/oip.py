@@ -24,6 +24,7 @@ from service.api.schemas import (
     ReadyResponse,
     ServerMetadata,
 )
+from service.refine_modes import REFINE_MODES
 
 router = APIRouter(prefix="/v2", tags=["inference protocol v2"])
 
@@ -100,7 +101,7 @@ async def model_ready(name: str, request: Request) -> dict:
     response_model=InferResponse,
     summary="Register SOURCE onto TARGET (OIP v2)",
     description="Inputs SOURCE and TARGET: FP32, shape [N, 3] or [1, N, 3], flat or nested data. Request "
-    "parameters: iterations, keypoints, refine (none, icp, icp-plane), refine_points, drop_isolated, "
+    f"parameters: iterations, keypoints, refine ({', '.join(REFINE_MODES)}), refine_points, drop_isolated, "
     "rotation_search (true, false or 'auto'). "
     "Outputs: TRANSFORM [4, 4] FP32 (src_to_tgt), "
     "SOURCE_INDEX / TARGET_INDEX [K] INT64, CREDIBILITY [K] FP32.",
