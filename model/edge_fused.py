@@ -88,14 +88,13 @@ class EdgeReluLinearMax(torch.autograd.Function):
             o = torch.matmul(h, weight.t(), out=edges_out[s])  # [p, k, D]
             torch.amax(o, dim=1, out=out[s])
         ctx.save_for_backward(nbr, weight, out, edges_out, hidden)
-        ctx.rows = u.shape[0]
         return out
 
     @staticmethod
     def backward(ctx, grad_m: torch.Tensor):
         nbr, weight, out, edges_out, hidden = ctx.saved_tensors
         C, D = hidden.shape[2], weight.shape[0]
-        grad_u = hidden.new_zeros(ctx.rows, C)
+        grad_u = hidden.new_zeros(nbr.shape[0], C)  # u has a row per point, as nbr
         grad_v = hidden.new_empty(nbr.shape[0], C)
         grad_w = torch.zeros_like(weight)
         for s in chunks(nbr.shape[0], CHUNK_POINTS):
