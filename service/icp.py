@@ -1,4 +1,4 @@
-"""Point-to-point ICP refinement of a ``src_to_tgt`` pose (numpy + scipy's cKDTree).
+"""Point-to-point ICP refinement of a ``src_to_tgt`` pose (numpy + :class:`service.kdtree.KDTree`).
 
 Each iteration moves the source with the current pose, pairs every moved point with its nearest
 target point, keeps the pairs closer than ``max_distance`` and solves the increment with the
@@ -35,8 +35,8 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from service.kdtree import KDTree
 from service.procrustes import compose, weighted_procrustes
 
 MIN_INLIERS = 3  # fewer pairs than this cannot fix a rigid pose: the pose is left as it is
@@ -97,8 +97,8 @@ def icp(
         ValueError: on wrongly shaped inputs or a non-positive ``max_distance``.
     """
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
-    tree = cKDTree(tgt)
-    src_tree = cKDTree(src) if reciprocal else None
+    tree = KDTree(tgt)
+    src_tree = KDTree(src) if reciprocal else None
     translation_tolerance = tolerance * _rms_radius(tgt)
     iterations = 0
     for _ in range(max_iterations):
@@ -137,7 +137,7 @@ def icp_many(
     if R0.ndim != 3 or R0.shape[1:] != (3, 3) or t0.shape != (len(R0), 3):
         raise ValueError(f"R0 must be (H, 3, 3) and t0 (H, 3), got {R0.shape} and {t0.shape}")
     src, tgt, _, _ = _checked(src, tgt, np.eye(3), np.zeros(3), max_distance, max_iterations)
-    tree = cKDTree(tgt)
+    tree = KDTree(tgt)
     translation_tolerance = tolerance * _rms_radius(tgt)
     R, t = R0.copy(), t0.copy()
     running = np.arange(len(R))  # starts still updating
@@ -158,7 +158,7 @@ def icp_many(
     return R, t
 
 
-def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: cKDTree | None = None):
+def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None):
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
@@ -167,7 +167,7 @@ def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: c
     k = min(int(neighbours), tgt.shape[0])
     if k < 3:
         return np.zeros_like(tgt), np.zeros(tgt.shape[0], dtype=bool)
-    tree = cKDTree(tgt) if tree is None else tree
+    tree = KDTree(tgt) if tree is None else tree
     _, idx = tree.query(tgt, k=k)  # [M, k]
     hood = tgt[idx]  # [M, k, 3]
     centred = hood - hood.mean(axis=1, keepdims=True)  # [M, k, 3]
@@ -219,13 +219,13 @@ class Surface:
     """A cloud's KD-tree and PCA normals (:func:`target_normals`), built once and shared by both
     stages of :func:`refine_plane`."""
 
-    tree: cKDTree
+    tree: KDTree
     normals: np.ndarray  # [M, 3] unit, sign arbitrary
     defined: np.ndarray  # [M] bool
 
     @classmethod
     def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> Surface:
-        tree = cKDTree(points)
+        tree = KDTree(points)
         return cls(tree, *target_normals(points, neighbours, tree))
 
 
@@ -360,7 +360,7 @@ def icp_plane(
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
-    src_tree = cKDTree(src) if reciprocal else None
+    src_tree = KDTree(src) if reciprocal else None
     scale = _rms_radius(tgt)
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):

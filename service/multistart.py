@@ -21,10 +21,10 @@ no score can see (``docs/ACCURACY.md``, "Multi-start refinement"; ``python -m ex
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from service.icp import Surface, icp_many, target_normals
+from service.kdtree import KDTree
 
 MULTISTART_ANGLES = (15.0, 30.0)  # degrees: the turns of the refined pose about x, y and z, both ways
 MULTISTART_ICP_DISTANCE = 0.15  # normalised units: the short ICPs' correspondence cap (x the cloud scale)
@@ -48,7 +48,7 @@ def turned_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray, angles_deg=MU
     return D @ R, (D @ (t - centre)[:, None])[..., 0] + centre
 
 
-def plane_distances(points: np.ndarray, tree: cKDTree, cloud: np.ndarray, normals: np.ndarray):
+def plane_distances(points: np.ndarray, tree: KDTree, cloud: np.ndarray, normals: np.ndarray):
     """Nearest-point and point-to-plane distances ``[N]`` of ``points`` to ``cloud`` (with ``normals``)."""
     dist, idx = tree.query(points)
     return dist, np.abs(((points - cloud[idx]) * normals[idx]).sum(1))
@@ -66,7 +66,7 @@ def symmetric_plane_scores(
     for h, (R_h, t_h) in enumerate(zip(R, t, strict=True)):
         moved = src @ R_h.T + t_h  # [N, 3]
         dist, plane = plane_distances(moved, tgt_tree, tgt, tgt_normals)
-        dist_back, plane_back = plane_distances(tgt, cKDTree(moved), moved, src_normals @ R_h.T)
+        dist_back, plane_back = plane_distances(tgt, KDTree(moved), moved, src_normals @ R_h.T)
         scores[h] = (
             np.minimum(np.where(dist < 2 * cap, plane, cap), cap).mean()
             + np.minimum(np.where(dist_back < 2 * cap, plane_back, cap), cap).mean()

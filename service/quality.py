@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from service.kdtree import KDTree
 
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
@@ -99,7 +100,7 @@ def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float) -> float:
     tgt = np.asarray(tgt, dtype=np.float64)
     if len(tgt) < 2:
         return 1.0
-    nearest_other = cKDTree(tgt).query(tgt, k=2)[0][:, 1]  # [M]; [:, 0] is the point itself
+    nearest_other = KDTree(tgt).query(tgt, k=2)[0][:, 1]  # [M]; [:, 0] is the point itself
     return float(np.mean(nearest_other <= inlier_distance))
 
 
@@ -126,7 +127,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     inlier_ratio, residual_rms = 0.0, 0.0
     if src.shape[0] and tgt.shape[0]:
         src_in_tgt = src @ R.T + t  # [N, 3]
-        dist, _ = cKDTree(tgt).query(src_in_tgt, k=1)  # [N]
+        dist, _ = KDTree(tgt).query(src_in_tgt, k=1)  # [N]
         ratio, rms = inlier_statistics(dist, inlier_distance)
         inlier_ratio, residual_rms = float(ratio), float(rms)
     if inlier_ratio < RELIABLE_INLIER_RATIO:

@@ -16,11 +16,11 @@ from functools import cache
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from service.errors import InputError
 from service.icp import icp_many
+from service.kdtree import KDTree
 from service.quality import inlier_statistics
 
 if TYPE_CHECKING:
@@ -64,7 +64,7 @@ def rank_hypotheses(
     then by index. Returns the order ``[H]``, inlier ratios ``[H]`` and residuals ``[H]``.
     """
     moved = src_n.astype(np.float64) @ rotations.transpose(0, 2, 1) + translations[:, None]  # [H, N, 3]
-    dist, _ = cKDTree(tgt_n).query(moved.reshape(-1, 3), k=1, distance_upper_bound=2 * inlier_distance)
+    dist, _ = KDTree(tgt_n).query(moved.reshape(-1, 3), k=1, distance_upper_bound=2 * inlier_distance)
     ratio, rms = inlier_statistics(dist.reshape(moved.shape[:2]), inlier_distance)  # [H], [H]
     return np.lexsort((np.arange(len(ratio)), rms, -ratio)), ratio, rms
 

@@ -23,7 +23,8 @@ canonical order, so every ``argmax`` tie is broken lexicographically by coordina
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from service.kdtree import KDTree
 
 DEFAULT_SIZE = 768  # working size W of the network
 # isolated_points: a point is isolated when its mean distance to its ISOLATED_NEIGHBOURS nearest others exceeds
@@ -150,7 +151,7 @@ def _isolated_once(points: np.ndarray) -> np.ndarray:
     n = points.shape[0]
     if n <= ISOLATED_NEIGHBOURS:
         return np.zeros(n, dtype=bool)
-    spacing = cKDTree(points).query(points, k=ISOLATED_NEIGHBOURS + 1)[0][:, 1:].mean(axis=1)  # [N]
+    spacing = KDTree(points).query(points, k=ISOLATED_NEIGHBOURS + 1)[0][:, 1:].mean(axis=1)  # [N]
     spread = spacing[spacing > 0]  # stacked duplicates (e.g. a sensor's invalid (0, 0, 0) returns) do not count
     return spacing > ISOLATED_FACTOR * np.median(spread) if spread.size else np.zeros(n, dtype=bool)
 
