@@ -48,11 +48,16 @@ class BNReLULinear(nn.Module):
 def pair_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Exact Euclidean distances ``[B, K, L]`` between ``a [B, K, d]`` and ``b [B, L, d]``.
 
-    ``torch.cdist`` (non-matmul mode) in PyTorch; the explicit difference when exporting to ONNX.
+    ``torch.cdist`` (non-matmul mode) in PyTorch; explicit differences when exporting to ONNX, one
+    coordinate at a time: ONNX Runtime broadcasts ``[B, K, 1] - [B, 1, L]`` in spans of ``L``, but
+    ``[B, K, 1, 3] - [B, 1, L, 3]`` in spans of 3 (0.6 ms instead of ~0.05 for 128 x 128 pairs).
     """
     if torch.onnx.is_in_onnx_export():
-        diff = a[:, :, None] - b[:, None]  # [B, K, L, d]
-        return (diff * diff).sum(-1).sqrt()  # Mul, not Pow: ONNX Runtime's Pow is ~2x slower
+        d2 = None
+        for c in range(a.shape[-1]):
+            diff = a[:, :, None, c] - b[:, None, :, c]  # [B, K, L]
+            d2 = diff * diff if d2 is None else d2 + diff * diff  # Mul, not Pow: ONNX Runtime's Pow is ~2x slower
+        return d2.sqrt()
     return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist")
 
 
