@@ -23,8 +23,9 @@ from service.icp import Surface, icp, icp_plane, refine_plane
 from service.manifest import Manifest, load_manifest
 from service.multistart import best_turned_pose
 from service.neighbours import knn_graph
+from service.network_loop import NetworkLoop, NetworkOutput, gather_rows
 from service.normalization import Normalization
-from service.procrustes import compose, to_matrix, weighted_procrustes
+from service.procrustes import compose, to_matrix
 from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
 from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
@@ -90,13 +91,6 @@ def check_cloud(points, name: str) -> np.ndarray:
     return arr
 
 
-def lower_median_weights(credibility: np.ndarray) -> np.ndarray:
-    """Credibilities at or above the lower median of their row, others zeroed (``[..., K] -> [..., K]``)."""
-    k = (credibility.shape[-1] - 1) // 2
-    median = np.partition(credibility, k, axis=-1)[..., k : k + 1]  # [..., 1]
-    return credibility * (credibility >= median)
-
-
 def top_k(scores: np.ndarray, k: int) -> np.ndarray:
     """Indices of the ``k`` highest ``scores [N]``, highest first (ties: lower index first)."""
     idx = np.argpartition(-scores, k - 1)[:k] if k < len(scores) else np.arange(len(scores))
@@ -112,11 +106,6 @@ def embedding_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a64, b64 = a.astype(np.float64), b.astype(np.float64)
     d2 = (a64 * a64).sum(-1)[:, :, None] + (b64 * b64).sum(-1)[:, None, :] - 2.0 * (a64 @ b64.transpose(0, 2, 1))
     return np.sqrt(np.maximum(d2, 0.0)).astype(np.float32)
-
-
-def _gather(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """``values [B, N, C]`` at ``idx [B, K]`` -> ``[B, K, C]``."""
-    return np.take_along_axis(values, idx[..., None], axis=1)
 
 
 @dataclass
@@ -145,22 +134,6 @@ class RegistrationResult:
     def transform(self) -> np.ndarray:
         """``[4, 4]`` homogeneous src_to_tgt."""
         return to_matrix(self.rotation, self.translation)
-
-
-@dataclass
-class NetworkOutput:
-    """What the network loop returns for one pair of normalised working clouds."""
-
-    rotation: np.ndarray  # [3, 3] src_to_tgt (normalised frame)
-    translation: np.ndarray  # [3]
-    src_kp: np.ndarray  # [K] keypoint indices into the working source
-    tgt_kp: np.ndarray  # [L] into the working target
-    matched: np.ndarray  # [K] index into tgt_kp (last iteration)
-    credibility: np.ndarray  # [K] in [0, 1] (last iteration)
-    weights: np.ndarray  # [K] median-thresholded credibilities (last iteration)
-    cumulative: list[tuple[np.ndarray, np.ndarray]]  # pose after each iteration
-    min_top2_gap: float  # smallest gap between a keypoint's two best scores (argmax ties)
-    min_median_gap: float  # smallest gap between the median credibility and the next lower one
 
 
 @dataclass(frozen=True)
@@ -274,29 +247,26 @@ class Registrar:
         scores, logit = session.run(None, feeds)
         return scores, logit
 
-    def run_network(
+    def start_network(
         self,
         src_n: np.ndarray,
         tgt_n: np.ndarray,
-        iterations: int,
         keypoints: int,
         timing: dict[str, float] | None = None,
         same_source: bool = False,
         target: EmbeddedCloud | None = None,
-    ) -> NetworkOutput | list[NetworkOutput]:
-        """The network loop on normalised working clouds (float32), for one pair or a batch of B.
+    ) -> NetworkLoop:
+        """Encoder and keypoints of a batch of pairs of normalised working clouds: the loop before its first
+        iteration (:class:`service.network_loop.NetworkLoop`; :meth:`run_network` runs it to the end).
 
-        ``src_n`` is ``[N, 3]`` (one pair: returns a :class:`NetworkOutput`) or ``[B, N, 3]`` (B
-        hypotheses: returns a list of B); ``tgt_n`` is ``[M, 3]`` (shared by every source, embedded
-        once) or ``[B, M, 3]``. One encoder call when ``N == M`` (else one per side), one matcher call
-        of batch B per iteration; keypoints are chosen per cloud (embeddings change with rotation).
-        ``same_source``: the B sources are rigid copies of one cloud and share its k-NN graph.
-        ``target``: :meth:`embed_cloud` of ``tgt_n [M, 3]``, when the caller runs it against many
-        sources (only the sources are embedded then).
+        ``src_n [B, N, 3]``, ``tgt_n [M, 3]`` (shared by every source, embedded once) or ``[B, M, 3]``. One
+        encoder call when ``N == M`` (else one per side); keypoints are chosen per cloud (embeddings change
+        with rotation). ``same_source``: the B sources are rigid copies of one cloud and share its k-NN graph.
+        ``target``: :meth:`embed_cloud` of ``tgt_n [M, 3]``, when the caller runs it against many sources.
+        Records ``timing["encoder"]``, and the keypoint selection in ``timing["iterations"]``.
         """
         timing = {} if timing is None else timing
-        single = src_n.ndim == 2
-        src_b = src_n[None] if single else src_n  # [B, N, 3]
+        src_b = src_n  # [B, N, 3]
         tgt_b = tgt_n[None] if tgt_n.ndim == 2 else tgt_n  # [1 or B, M, 3]
         B, N, M = src_b.shape[0], src_b.shape[1], tgt_b.shape[1]
         if src_b.ndim != 3 or tgt_b.ndim != 3 or len(tgt_b) not in (1, B):
@@ -318,46 +288,55 @@ class Registrar:
         else:
             (emb_s, score_s), (emb_t, score_t) = self.embed(src_b, nb_s), self.embed(tgt_b, nb_t)
         t2 = time.perf_counter()
-        timing["encoder"] = 1000 * (t2 - t1)
+        timing["encoder"] = timing.get("encoder", 0.0) + 1000 * (t2 - t1)
 
         kp_s = np.stack([top_k(s, min(keypoints, N)) for s in score_s])  # [B, K]
         kp_t = np.stack([top_k(s, min(keypoints, M)) for s in score_t])  # [1 or B, L]
         L = kp_t.shape[1]
-        ps = _gather(src_b, kp_s).astype(np.float64)  # [B, K, 3]
-        pt = np.ascontiguousarray(np.broadcast_to(_gather(tgt_b, kp_t), (B, L, 3)))  # [B, L, 3]
-        fs = _gather(emb_s, kp_s)  # [B, K, D]
-        ft = np.ascontiguousarray(np.broadcast_to(_gather(emb_t, kp_t), (B, L, emb_t.shape[-1])))  # [B, L, D]
-        R_tot, t_tot = np.broadcast_to(np.eye(3), (B, 3, 3)), np.zeros((B, 3))
-        svd_ms, cumulative = 0.0, []
-        min_gap, median_gap = np.full(B, np.inf), np.full(B, np.inf)
-        emb_dist = embedding_distance(fs, ft) if self.matcher_takes_distance else None  # [B, K, L], once
-        for it in range(iterations):
-            scores, logit = self.match(it, ps, pt, fs, ft, emb_dist)  # [B, K, L], [B, K]
-            tic = time.perf_counter()
-            matched = scores.argmax(axis=2)  # [B, K]
-            if L > 1:
-                top2 = np.partition(scores, -2, axis=2)[..., -2:]  # [B, K, 2]
-                min_gap = np.minimum(min_gap, (top2[..., 1] - top2[..., 0]).min(axis=1))
-            credibility = 1.0 / (1.0 + np.exp(-logit.astype(np.float64)))  # [B, K]
-            weights = lower_median_weights(credibility)  # [B, K]
-            kept = weights > 0
-            has_below = (~kept).any(axis=1)  # [B]
-            gap = np.where(kept, credibility, np.inf).min(1) - np.where(kept, -np.inf, credibility).max(1)
-            median_gap = np.where(has_below, np.minimum(median_gap, gap), median_gap)
-            R, t = weighted_procrustes(ps, _gather(pt, matched).astype(np.float64), weights, self.centroid)
-            ps = ps @ R.transpose(0, 2, 1) + t[:, None]  # [B, K, 3]
-            R_tot, t_tot = compose(R, t, R_tot, t_tot)
-            cumulative.append((R_tot, t_tot))
-            svd_ms += 1000 * (time.perf_counter() - tic)
-        timing["iterations"] = 1000 * (time.perf_counter() - t2) - svd_ms
-        timing["svd"] = svd_ms
-        outputs = [
-            NetworkOutput(
-                R_tot[b], t_tot[b], kp_s[b], kp_t[b if len(kp_t) > 1 else 0], matched[b], credibility[b],
-                weights[b], [(R_c[b], t_c[b]) for R_c, t_c in cumulative], float(min_gap[b]), float(median_gap[b]),
-            )
-            for b in range(B)
-        ]
+        fs = gather_rows(emb_s, kp_s)  # [B, K, D]
+        ft = np.ascontiguousarray(np.broadcast_to(gather_rows(emb_t, kp_t), (B, L, emb_t.shape[-1])))  # [B, L, D]
+        loop = NetworkLoop(
+            match=self.match,
+            centroid=self.centroid,
+            src_kp=kp_s,
+            tgt_kp=np.ascontiguousarray(np.broadcast_to(kp_t, (B, L))),
+            ps=gather_rows(src_b, kp_s).astype(np.float64),
+            pt=np.ascontiguousarray(np.broadcast_to(gather_rows(tgt_b, kp_t), (B, L, 3))),
+            fs=fs,
+            ft=ft,
+            emb_dist=embedding_distance(fs, ft) if self.matcher_takes_distance else None,  # [B, K, L], once
+            rotation=np.broadcast_to(np.eye(3), (B, 3, 3)),
+            translation=np.zeros((B, 3)),
+            cumulative=[],
+            min_gap=np.full(B, np.inf),
+            median_gap=np.full(B, np.inf),
+        )
+        timing["iterations"] = timing.get("iterations", 0.0) + 1000 * (time.perf_counter() - t2)
+        return loop
+
+    def run_network(
+        self,
+        src_n: np.ndarray,
+        tgt_n: np.ndarray,
+        iterations: int,
+        keypoints: int,
+        timing: dict[str, float] | None = None,
+        same_source: bool = False,
+        target: EmbeddedCloud | None = None,
+    ) -> NetworkOutput | list[NetworkOutput]:
+        """The network loop on normalised working clouds (float32), for one pair or a batch of B.
+
+        ``src_n`` is ``[N, 3]`` (one pair: returns a :class:`NetworkOutput`) or ``[B, N, 3]`` (B
+        hypotheses: returns a list of B); ``tgt_n``, ``same_source`` and ``target`` as in
+        :meth:`start_network`; one matcher call of batch B per iteration.
+        """
+        timing = {} if timing is None else timing
+        for stage in ("encoder", "iterations", "svd"):  # this call's own figures
+            timing[stage] = 0.0
+        single = src_n.ndim == 2
+        loop = self.start_network(src_n[None] if single else src_n, tgt_n, keypoints, timing, same_source, target)
+        loop.advance(iterations, timing)
+        outputs = loop.outputs()
         return outputs[0] if single else outputs
 
     # -- the pipeline ----------------------------------------------------------------------------
@@ -513,7 +492,7 @@ class Registrar:
             target = self.embed_cloud(work.tgt_n)  # once for every hypothesis
             timing["encoder"] = 1000 * (time.perf_counter() - tic)
             net, R_start, R_net, t_net = search_hypotheses(
-                partial(self.run_network, target=target), work.src_n, work.tgt_n, hypotheses, iterations, keypoints,
+                partial(self.start_network, target=target), work.src_n, work.tgt_n, hypotheses, iterations, keypoints,
                 short_icp, INLIER_DISTANCE, timing,
             )
         t3 = time.perf_counter()

@@ -1,11 +1,11 @@
 """Rotation search: registration at any relative rotation, not only within the network's trained range.
 
 The normalised working source starts from every rotation of a finite group covering SO(3) evenly
-(:func:`search_rotations_for`); :func:`search_hypotheses` runs them through the registrar's network loop as
-one batch, optionally gives each pose a short wide-basin ICP, and keeps the best by :func:`rank_hypotheses`
-(inlier ratio, then residual). ``Registrar.register(rotation_search=True)`` calls it, and
-``rotation_search="auto"`` when the plain result looks wrong; figures and the reason for the short ICPs:
-``docs/ROTATION_SEARCH.md``.
+(:func:`search_rotations_for`); :func:`search_hypotheses` runs them through the registrar's network loop in
+batches, optionally gives each pose a short wide-basin ICP (then only the best few after the first iteration
+run the remaining ones), and keeps the best by :func:`rank_hypotheses` (inlier ratio, then residual).
+``Registrar.register(rotation_search=True)`` calls it, and ``rotation_search="auto"`` when the plain result
+looks wrong; figures and the reason for the short ICPs: ``docs/ROTATION_SEARCH.md``.
 """
 
 from __future__ import annotations
@@ -21,10 +21,11 @@ from scipy.spatial.transform import Rotation
 from service.errors import InputError
 from service.icp import icp_many
 from service.kdtree import KDTree
+from service.network_loop import NetworkLoop
 from service.quality import inlier_statistics
 
 if TYPE_CHECKING:
-    from service.registrar import NetworkOutput
+    from service.network_loop import NetworkOutput
 
 SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahedral) / icosahedral group
 # refine="icp" with the rotation search: each hypothesis first gets a short, wide-basin ICP (plain
@@ -38,6 +39,11 @@ SEARCH_ICP_STRIDE = 3
 # largest batch it has run, and all 24 at once grew the process by ~1.2 GB, 4 at a time by ~180 MB, for ~3%
 # more time (docs/ROTATION_SEARCH.md, "Memory"). The caller embeds the target once for all of them.
 SEARCH_BATCH = 4
+# With the short ICPs, every hypothesis goes through the first SEARCH_PRUNE_ITERATIONS network iterations and its
+# short ICP; only the SEARCH_KEEP best by rank_hypotheses go on through the remaining iterations (each exactly as
+# without pruning) and their own short ICPs (docs/ROTATION_SEARCH.md, "Pruning").
+SEARCH_PRUNE_ITERATIONS = 1
+SEARCH_KEEP = 4
 
 
 @cache
@@ -70,7 +76,7 @@ def rank_hypotheses(
 
 
 def search_hypotheses(
-    run_network: Callable[..., list[NetworkOutput]],
+    start_network: Callable[..., NetworkLoop],
     src_n: np.ndarray,
     tgt_n: np.ndarray,
     hypotheses: np.ndarray,
@@ -82,30 +88,41 @@ def search_hypotheses(
 ) -> tuple[NetworkOutput, np.ndarray, np.ndarray, np.ndarray]:
     """The best start of ``src_n [N, 3]`` (float32, normalised) rotated by each of ``hypotheses [H, 3, 3]``.
 
-    ``run_network`` (``Registrar.run_network``, with the target's embedding bound) runs the ``H`` rotated
-    sources against ``tgt_n`` in batches of ``SEARCH_BATCH``; each hypothesis's pose is its network pose
-    composed after its start rotation. ``short_icp``: every pose first gets a short wide-basin ICP
-    (``SEARCH_ICP_*``) and the ranking uses those poses.
+    ``start_network`` (``Registrar.start_network``, with the target's embedding bound) encodes the ``H`` rotated
+    sources against ``tgt_n`` in batches of ``SEARCH_BATCH``; each hypothesis's pose is its network pose composed
+    after its start rotation. ``short_icp``: every pose first gets a short wide-basin ICP (``SEARCH_ICP_*``) and
+    the ranking uses those poses; then only the ``SEARCH_KEEP`` best after ``SEARCH_PRUNE_ITERATIONS`` network
+    iterations run the remaining ones (without ``short_icp`` every hypothesis runs them all).
     Returns the winner's network output, start rotation ``[3, 3]`` and pose ``R [3, 3]``, ``t [3]`` of
     ``src_n`` onto ``tgt_n``; records ``timing["search"]`` (the whole search) and
     ``timing["search_per_hypothesis"]``.
     """
     started = time.perf_counter()
     src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
-    nets: list[NetworkOutput] = []
+    prune = short_icp and len(hypotheses) > SEARCH_KEEP and iterations > SEARCH_PRUNE_ITERATIONS
+    first = SEARCH_PRUNE_ITERATIONS if prune else iterations
+    batches = []
     for start in range(0, len(hypotheses), SEARCH_BATCH):  # bounded ONNX Runtime arenas
-        stages: dict[str, float] = {}
-        nets += run_network(src_h[start : start + SEARCH_BATCH], tgt_n, iterations, keypoints, stages, same_source=True)
-        for stage, ms in stages.items():
-            timing[stage] = timing.get(stage, 0.0) + ms
-    R_h = np.stack([n.rotation for n in nets]) @ hypotheses  # [H, 3, 3] poses of src_n
-    t_h = np.stack([n.translation for n in nets])  # [H, 3]
-    if short_icp:  # rank refined poses: the basin matters, not the raw pose
-        R_h, t_h = icp_many(
-            src_n[::SEARCH_ICP_STRIDE], tgt_n, R_h, t_h, max_distance=SEARCH_ICP_DISTANCE,
-            max_iterations=SEARCH_ICP_ITERATIONS,
-        )
+        batch = start_network(src_h[start : start + SEARCH_BATCH], tgt_n, keypoints, timing, same_source=True)
+        batch.advance(first, timing)
+        batches.append(batch)
+    loop, starts = NetworkLoop.join(batches), hypotheses
+    if prune:
+        keep = rank_hypotheses(src_n, tgt_n, *_search_poses(loop, starts, src_n, tgt_n), inlier_distance)[0]
+        keep = keep[:SEARCH_KEEP]
+        loop, starts = loop.select(keep), hypotheses[keep]
+        loop.advance(iterations, timing, batch=SEARCH_BATCH)
+    R_h, t_h = _search_poses(loop, starts, src_n, tgt_n) if short_icp else (loop.rotation @ starts, loop.translation)
     best = rank_hypotheses(src_n, tgt_n, R_h, t_h, inlier_distance)[0][0]
     timing["search"] = 1000 * (time.perf_counter() - started)
     timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
-    return nets[best], hypotheses[best], R_h[best], t_h[best]
+    return loop.outputs()[best], starts[best], R_h[best], t_h[best]
+
+
+def _search_poses(loop: NetworkLoop, starts: np.ndarray, src_n: np.ndarray, tgt_n: np.ndarray):
+    """Each hypothesis's pose of ``src_n`` so far (network pose after its start rotation), moved by the short ICP:
+    ``R [H, 3, 3]``, ``t [H, 3]`` (rank refined poses: the basin matters, not the raw pose)."""
+    return icp_many(
+        src_n[::SEARCH_ICP_STRIDE], tgt_n, loop.rotation @ starts, loop.translation,
+        max_distance=SEARCH_ICP_DISTANCE, max_iterations=SEARCH_ICP_ITERATIONS,
+    )

@@ -74,6 +74,36 @@ def test_batched_run_network_matches_one_pair_at_a_time(registrar) -> None:
 
 
 @needs_model
+def test_a_pruned_loop_ends_where_the_full_loop_takes_the_kept_rows(registrar) -> None:
+    """Advancing some rows of a loop (select) and joined batches give each row's result of the whole loop."""
+    from service.network_loop import NetworkLoop
+
+    cloud = asymmetric_blob(256, 1).astype(np.float32)
+    target = asymmetric_blob(256, 2).astype(np.float32)
+    batch = (cloud @ search_rotations_for(24)[:6].transpose(0, 2, 1)).astype(np.float32)  # [6, 256, 3]
+    timing: dict[str, float] = {}
+    full = registrar.start_network(batch, target, 64, timing, same_source=True)
+    full.advance(3, timing, batch=1)
+    parts = [registrar.start_network(batch[r : r + 3], target, 64, timing, same_source=True) for r in (0, 3)]
+    for part in parts:
+        part.advance(1, timing, batch=1)
+    kept = np.array([4, 1])
+    pruned = NetworkLoop.join(parts).select(kept)
+    pruned.advance(3, timing, batch=1)
+    assert pruned.done == 3 and len(pruned.cumulative) == 3
+    for got, want in zip(pruned.outputs(), [full.outputs()[k] for k in kept], strict=True):
+        np.testing.assert_array_equal(got.src_kp, want.src_kp)
+        np.testing.assert_array_equal(got.matched, want.matched)
+        np.testing.assert_allclose(got.rotation, want.rotation, atol=1e-6)
+        np.testing.assert_allclose(got.translation, want.translation, atol=1e-6)
+        for (R_a, t_a), (R_b, t_b) in zip(got.cumulative, want.cumulative, strict=True):
+            np.testing.assert_allclose(R_a, R_b, atol=1e-6)
+            np.testing.assert_allclose(t_a, t_b, atol=1e-6)
+    with pytest.raises(ValueError, match="different iterations"):
+        NetworkLoop.join([pruned, parts[0]])
+
+
+@needs_model
 def test_rigid_copies_share_the_source_neighbour_graph(registrar, monkeypatch) -> None:
     cloud = asymmetric_blob(256, 1).astype(np.float32)
     target = asymmetric_blob(256, 2).astype(np.float32)
@@ -197,7 +227,8 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
     source, target = asymmetric_blob(600, 3), asymmetric_blob(500, 4) @ R.T
     found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
                                keypoints=64, iterations=2)
-    assert starts == [24] and calls == {"final_point": 0, "final_plane": 1}  # short ICPs stay point-to-point
+    # short ICPs stay point-to-point: all 24 starts after the first iteration, the SEARCH_KEEP kept after the last
+    assert starts == [24, search_module.SEARCH_KEEP] and calls == {"final_point": 0, "final_plane": 1}
     assert "refine" in found.timing_ms and np.isfinite(found.transform).all()
 
 
