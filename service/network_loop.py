@@ -111,7 +111,9 @@ class NetworkLoop:
 
     def select(self, rows: np.ndarray) -> NetworkLoop:
         """The loop of the given batch ``rows`` only (same state, fewer pairs)."""
-        take = lambda a: None if a is None else a[rows]  # noqa: E731
+        def take(values: np.ndarray | None) -> np.ndarray | None:
+            return None if values is None else values[rows]
+
         return replace(
             self, src_kp=take(self.src_kp), tgt_kp=take(self.tgt_kp), ps=take(self.ps), pt=take(self.pt),
             fs=take(self.fs), ft=take(self.ft), emb_dist=take(self.emb_dist), rotation=take(self.rotation),
@@ -126,9 +128,11 @@ class NetworkLoop:
         first = loops[0]
         if any(loop.done != first.done for loop in loops):
             raise ValueError("NetworkLoop.join: the loops are at different iterations")
-        cat = lambda name: (  # noqa: E731
-            None if getattr(first, name) is None else np.concatenate([getattr(loop, name) for loop in loops])
-        )
+        def cat(name: str) -> np.ndarray | None:
+            if getattr(first, name) is None:
+                return None
+            return np.concatenate([getattr(loop, name) for loop in loops])
+
         return replace(
             first, **{name: cat(name) for name in (
                 "src_kp", "tgt_kp", "ps", "pt", "fs", "ft", "emb_dist", "rotation", "translation", "min_gap",
