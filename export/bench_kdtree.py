@@ -11,7 +11,6 @@ the two backends' poses (they should agree to float rounding).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import service.kdtree
+from export.report_io import emit_report
 
 
 class ScipyKDTree:
@@ -78,10 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     report = run(args.pairs, args.refine, args.count, args.model)
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit_report(report, args.json)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,6 @@ server's own ``timing_ms.total`` p50 per file and request kind.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import httpx
 import numpy as np
 
 from export.bench_http import Server
+from export.report_io import emit_report
 
 
 def measure(client: httpx.Client, pairs: dict, model: str, count: int, rounds: int) -> dict:
@@ -65,10 +65,7 @@ def main(argv: list[str] | None = None) -> None:
                 for path in args.pairs
             },
         }
-    text = json.dumps(report, indent=2)
-    if args.json:
-        args.json.write_text(text + "\n")
-    print(text)
+    emit_report(report, args.json)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ Distances are in the pairs' units (ModelNet40's unit sphere; the service scales 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from export.auto_trigger import pose_errors
+from export.report_io import emit_report
 
 ICP_DISTANCE = 0.15  # the short ICPs' correspondence cap
 ICP_ITERATIONS = 20
@@ -97,10 +97,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     report = run(args.pairs, args.model, [float(a) for a in args.angles.split(",")])
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text + "\n")
+    emit_report(report, args.json)
 
 
 if __name__ == "__main__":

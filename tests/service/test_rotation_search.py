@@ -54,11 +54,16 @@ def test_unsupported_search_size_is_an_input_error() -> None:
 # --- the batched network loop ---------------------------------------------------------------------
 
 
+def rotated_copies(count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` copies of one cloud under the first search rotations ``[count, 256, 3]`` and a target ``[256, 3]``."""
+    cloud = asymmetric_blob(256, 1).astype(np.float32)
+    batch = (cloud @ search_rotations_for(24)[:count].transpose(0, 2, 1)).astype(np.float32)
+    return batch, asymmetric_blob(256, 2).astype(np.float32)
+
+
 @needs_model
 def test_batched_run_network_matches_one_pair_at_a_time(registrar) -> None:
-    cloud = asymmetric_blob(256, 1).astype(np.float32)
-    target = asymmetric_blob(256, 2).astype(np.float32)
-    batch = (cloud @ search_rotations_for(24)[:3].transpose(0, 2, 1)).astype(np.float32)  # [3, 256, 3]
+    batch, target = rotated_copies(3)  # [3, 256, 3], [256, 3]
     timing: dict[str, float] = {}
     outputs = registrar.run_network(batch, target, 2, 64, timing)
     assert len(outputs) == 3 and {"encoder", "iterations", "svd"} <= set(timing)
@@ -78,9 +83,7 @@ def test_a_pruned_loop_ends_where_the_full_loop_takes_the_kept_rows(registrar) -
     """Advancing some rows of a loop (select) and joined batches give each row's result of the whole loop."""
     from service.network_loop import NetworkLoop
 
-    cloud = asymmetric_blob(256, 1).astype(np.float32)
-    target = asymmetric_blob(256, 2).astype(np.float32)
-    batch = (cloud @ search_rotations_for(24)[:6].transpose(0, 2, 1)).astype(np.float32)  # [6, 256, 3]
+    batch, target = rotated_copies(6)  # [6, 256, 3], [256, 3]
     timing: dict[str, float] = {}
     full = registrar.start_network(batch, target, 64, timing, same_source=True)
     full.advance(3, timing, batch=1)
@@ -105,9 +108,7 @@ def test_a_pruned_loop_ends_where_the_full_loop_takes_the_kept_rows(registrar) -
 
 @needs_model
 def test_rigid_copies_share_the_source_neighbour_graph(registrar, monkeypatch) -> None:
-    cloud = asymmetric_blob(256, 1).astype(np.float32)
-    target = asymmetric_blob(256, 2).astype(np.float32)
-    batch = (cloud @ search_rotations_for(24)[:4].transpose(0, 2, 1)).astype(np.float32)  # [4, 256, 3]
+    batch, target = rotated_copies(4)  # [4, 256, 3], [256, 3]
     built: list[int] = []
     original = registrar.neighbours
     monkeypatch.setattr(registrar, "neighbours", lambda points: built.append(len(points)) or original(points))
@@ -124,9 +125,7 @@ def test_rigid_copies_share_the_source_neighbour_graph(registrar, monkeypatch) -
 
 @needs_model
 def test_a_precomputed_target_embedding_gives_the_same_result(registrar) -> None:
-    cloud = asymmetric_blob(256, 1).astype(np.float32)
-    target = asymmetric_blob(256, 2).astype(np.float32)
-    batch = (cloud @ search_rotations_for(24)[:3].transpose(0, 2, 1)).astype(np.float32)  # [3, 256, 3]
+    batch, target = rotated_copies(3)  # [3, 256, 3], [256, 3]
     embedded = registrar.embed_cloud(target)
     reused = registrar.run_network(batch, target, 2, 64, target=embedded)
     fresh = registrar.run_network(batch, target, 2, 64)
