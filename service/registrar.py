@@ -268,9 +268,9 @@ class Registrar:
         timing = {} if timing is None else timing
         src_b = src_n  # [B, N, 3]
         tgt_b = tgt_n[None] if tgt_n.ndim == 2 else tgt_n  # [1 or B, M, 3]
-        B, N, M = src_b.shape[0], src_b.shape[1], tgt_b.shape[1]
-        if src_b.ndim != 3 or tgt_b.ndim != 3 or len(tgt_b) not in (1, B):
+        if src_b.ndim != 3 or tgt_b.ndim != 3 or len(tgt_b) not in (1, len(src_b)):
             raise ValueError(f"run_network: source {src_n.shape} and target {tgt_n.shape} do not batch")
+        B, N, M = src_b.shape[0], src_b.shape[1], tgt_b.shape[1]
         if target is not None and (len(tgt_b) != 1 or target.scores.shape != (1, M)):
             raise ValueError(f"run_network: target embedding {target.scores.shape} is not of target {tgt_n.shape}")
         t1 = time.perf_counter()
