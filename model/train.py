@@ -51,6 +51,7 @@ class TrainOptions:
     max_angle: float | None = None
     outliers: float | None = None  # share of scattered points per cloud (with a recipe: the largest drawn)
     recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
+    prefetch: bool | None = None  # make batches in a worker process while the model trains; None: on for CUDA
 
     def pair_protocol(self) -> PairProtocol:
         """The training / validation pair protocol: the setting's, with these overrides."""
@@ -70,6 +71,21 @@ def split_validation(n: int, fraction: float, seed: int) -> tuple[np.ndarray, np
     perm = rng.permutation(n)
     n_val = max(1, round(n * fraction))
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def epoch_batches(stream: TrainPairStream, epoch: int, batch_size: int, prefetch: bool):
+    """One epoch's batches, made here or (``prefetch``) in one worker process a few batches ahead.
+
+    One worker runs the same seeded stream, so both ways yield the same batches in the same order.
+    """
+    if not prefetch:
+        return stream.epoch(epoch, batch_size)
+
+    class _Epoch(torch.utils.data.IterableDataset):
+        def __iter__(self):
+            return stream.epoch(epoch, batch_size)
+
+    return torch.utils.data.DataLoader(_Epoch(), batch_size=None, num_workers=1, prefetch_factor=4)
 
 
 def lr_at(opts: TrainOptions, epoch: int) -> float:
@@ -127,6 +143,7 @@ def train(opts: TrainOptions) -> Path:
     begin = time.time()
     last_save = time.time()
     generator = torch.Generator().manual_seed(opts.seed)
+    prefetch = device.type == "cuda" if opts.prefetch is None else opts.prefetch
     from tqdm import tqdm
 
     while state["epoch"] < opts.epochs:
@@ -140,14 +157,14 @@ def train(opts: TrainOptions) -> Path:
         sums = {"keypoint": 0.0, "matching": 0.0, "credibility": 0.0, "total": 0.0}
         seen, epoch_start, compute = 0, time.time(), 0.0
         bar = tqdm(total=n_batches, initial=state["batch"], desc=f"epoch {epoch}", unit="batch", mininterval=5)
-        for b, batch in enumerate(stream.epoch(epoch, opts.batch_size)):
+        for b, batch in enumerate(epoch_batches(stream, epoch, opts.batch_size, prefetch)):
             if b >= n_batches:
                 break
             if b < state["batch"]:
                 continue  # resuming inside an epoch: the stream is reproducible, skip what was done
             tic = time.perf_counter()
             src, tgt, R_gt, t_gt = (
-                torch.from_numpy(batch[k]).to(device) for k in ("source", "target", "rotation", "translation")
+                torch.as_tensor(batch[k]).to(device) for k in ("source", "target", "rotation", "translation")
             )
             src_idx, tgt_idx = sample_training_keypoints(
                 src,

@@ -12,10 +12,11 @@ from shapes import sphere_shapes
 
 from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
-from model.data import PairProtocol, make_pairs
+from model.data import PairProtocol, TrainPairStream, make_pairs
 from model.losses import registration_losses, sample_training_keypoints
 from model.network import MFGNet
-from model.train import TrainOptions, train
+from model.recipes import recipe_draw
+from model.train import TrainOptions, epoch_batches, train
 
 TINY = {"iterations": 2, "keypoints": 32, "emb_dims": 16, "encoder_blocks": 2, "matcher_channels": 8,
         "knn": 8, "train_positives": 16, "train_negatives": 16}
@@ -112,6 +113,26 @@ def test_train_writes_checkpoints_and_log_and_resume_continues(tmp_path, synthet
     changed = [k for k, v in last["model"].items()
                if v.is_floating_point() and not torch.equal(v, first_weights[k])]
     assert changed  # training went on from the saved weights
+
+
+def test_prefetched_batches_are_the_stream_batches_in_order() -> None:
+    stream = TrainPairStream(sphere_shapes(12, seed=4), recipe_draw("general"), seed=5)
+    here = list(epoch_batches(stream, 1, 3, prefetch=False))
+    ahead = list(epoch_batches(stream, 1, 3, prefetch=True))  # made in a worker process
+    assert len(here) == len(ahead) == 4
+    for a, b in zip(here, ahead, strict=True):
+        assert set(a) == set(b)
+        for key in a:
+            assert np.array_equal(a[key], np.asarray(b[key])), key
+
+
+def test_prefetched_training_logs_the_same_losses(tmp_path, synthetic_modelnet) -> None:
+    logs = []
+    for prefetch in (False, True):
+        run = tmp_path / f"run_{prefetch}"
+        train(options(run, synthetic_modelnet, prefetch=prefetch))
+        logs.append(json.loads((run / "log.jsonl").read_text())["train_total"])
+    assert logs[0] == logs[1]
 
 
 def test_train_config_overrides_reach_the_saved_model(tmp_path, synthetic_modelnet) -> None:

@@ -1,0 +1,96 @@
+"""Continue the ``general`` model on a lent GPU machine: lr 1e-4 for A minutes, then 1e-5 for B minutes.
+
+How the 2026-11-26 runs (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCURACY.md) were made:
+
+1. here: ``python scripts/device_train_general.py subset --out /tmp/gpu_data`` writes 7,000 of the
+   9,843 training shapes (seeded), small enough to travel with the working tree (64 MiB limit);
+2. there (``$OUT`` is the folder that comes back): ``python3 scripts/device_train_general.py run
+   --data .gpu/data --init runs/general/last.pt --minutes-a 6 --minutes-b 1.5``.
+
+Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's last weights)
+``$OUT/b/{best.pt, last.pt, log.jsonl}``; both validate every 100 batches on the ``resampled``
+setting at 60 degrees, so their ``best.pt`` are comparable. If a phase fails with the prefetching
+worker it is retried once without it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import time
+import traceback
+from pathlib import Path
+
+
+def write_subset(out: Path, shapes: int, seed: int) -> None:
+    """A seeded subset of the training file (points float16, labels)."""
+    import numpy as np
+
+    from model.data import data_dir
+
+    with np.load(data_dir(None) / "modelnet40_train.npz") as data:
+        points, labels = data["points"], data["labels"]
+    keep = np.sort(np.random.default_rng(seed).permutation(len(labels))[:shapes])
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / "modelnet40_train.npz", points=points[keep], labels=labels[keep])
+    print(f"wrote {len(keep)} of {len(labels)} training shapes to {out}")
+
+
+def run_phases(args: argparse.Namespace) -> None:
+    """Phase A then phase B, each stopped by time; outputs under ``$OUT``."""
+    import torch
+
+    from model.train import TrainOptions, train
+
+    out = Path(os.environ.get("OUT", "/tmp/out"))
+    print("torch", torch.__version__, "cuda", torch.cuda.is_available(), flush=True)
+    common = dict(setting="resampled", recipe="general", max_angle=60.0, epochs=100_000, lr_drop_at=1.0,
+                  batch_size=args.batch_size, max_batches_per_epoch=100, val_pairs=256, checkpoint_minutes=1.0,
+                  patience=100_000, device=args.device, data=args.data)
+
+    def phase(opts: TrainOptions) -> None:
+        try:
+            train(opts)
+        except Exception:  # one retry without the worker process, then let it fail
+            traceback.print_exc()
+            print("retrying without prefetch", flush=True)
+            opts.prefetch = False
+            opts.resume = (Path(opts.out) / "last.pt").exists()
+            train(opts)
+
+    begin = time.time()
+    phase(TrainOptions(out=str(out / "a"), init=args.init, lr=1e-4, max_minutes=args.minutes_a, **common))
+    print(f"phase a done after {(time.time() - begin) / 60:.2f} min", flush=True)
+    handover = Path("/tmp/phase_a_last.pt")
+    shutil.copy(out / "a" / "last.pt", handover)
+    for name in ("last.pt", "config.json"):  # at most 8 files come back from the machine
+        (out / "a" / name).unlink()
+    phase(TrainOptions(out=str(out / "b"), init=str(handover), lr=1e-5, max_minutes=args.minutes_b, **common))
+    (out / "b" / "config.json").unlink()
+    print(f"all done after {(time.time() - begin) / 60:.2f} min", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    subset = sub.add_parser("subset", help="write a seeded subset of the training shapes")
+    subset.add_argument("--out", type=Path, required=True)
+    subset.add_argument("--shapes", type=int, default=7000)
+    subset.add_argument("--seed", type=int, default=0)
+    run = sub.add_parser("run", help="train phase A then phase B")
+    run.add_argument("--data", required=True, help="folder holding modelnet40_train.npz")
+    run.add_argument("--init", required=True, help="initial weights")
+    run.add_argument("--minutes-a", type=float, required=True)
+    run.add_argument("--minutes-b", type=float, required=True)
+    run.add_argument("--device", default="auto")
+    run.add_argument("--batch-size", type=int, default=32)
+    args = parser.parse_args()
+    if args.command == "subset":
+        write_subset(args.out, args.shapes, args.seed)
+    else:
+        run_phases(args)
+
+
+if __name__ == "__main__":
+    main()
