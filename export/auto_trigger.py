@@ -34,7 +34,7 @@ def collect(pair_files: list[Path], model: str) -> dict:
     always = registrar_module.needs_search
     out = {}
     for path in pair_files:
-        pairs, rows = np.load(path), []
+        pairs, rows = dict(np.load(path)), []
         for src, tgt, R, t in zip(pairs["source"], pairs["target"], pairs["rotation"], pairs["translation"],
                                   strict=True):
             plain = registrar.register(src, tgt, refine="icp-plane")
@@ -59,7 +59,7 @@ def attainable_ratios(path: Path, reference_radius: float) -> np.ndarray:
     from service.quality import attainable_inlier_ratio
     from service.registrar import INLIER_DISTANCE
 
-    pairs = np.load(path)
+    pairs = dict(np.load(path))  # read once: an NpzFile decompresses an array on every access
     ratios = []
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
         scale = Normalization.fit(src, tgt, reference_radius).scale

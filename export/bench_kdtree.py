@@ -45,7 +45,7 @@ def run(pairs_path: Path, refine: str, count: int, model: str) -> dict:
     from service.registrar import Registrar
 
     registrar = Registrar(bundled_models_dir() / model)
-    pairs = np.load(pairs_path)
+    pairs = dict(np.load(pairs_path))  # read once: an NpzFile decompresses an array on every access
     backends = {"pykdtree": service.kdtree.KDTree, "scipy": ScipyKDTree}
     timings: dict[str, list[dict[str, float]]] = {name: [] for name in backends}
     rotations: dict[str, list[np.ndarray]] = {name: [] for name in backends}

@@ -29,7 +29,7 @@ def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str) -> d
     from service.registrar import Registrar
 
     registrar = Registrar(bundled_models_dir() / model)
-    pairs = np.load(pairs_path)
+    pairs = dict(np.load(pairs_path))  # read once: an NpzFile decompresses an array on every access
     n = min(count, len(pairs["source"]))
 
     def mfgnet(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -57,7 +57,7 @@ def run(pairs_path: Path, model: str, angles: list[float]) -> dict:
     from service.registrar import Registrar
 
     registrar = Registrar(bundled_models_dir() / model)
-    pairs = np.load(pairs_path)
+    pairs = dict(np.load(pairs_path))  # read once: an NpzFile decompresses an array on every access
 
     def right(R: np.ndarray, t: np.ndarray, i: int) -> bool:  # within (5 deg, 5 cm)
         angle, offset = pose_errors(R, t, pairs["rotation"][i], pairs["translation"][i])

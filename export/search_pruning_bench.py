@@ -30,7 +30,7 @@ def run(pair_files: list[Path], model: str) -> dict:
     report: dict = {"model": model, "variants": VARIANTS, "files": {}}
     try:
         for path in pair_files:
-            pairs = np.load(path)
+            pairs = dict(np.load(path))  # read once: an NpzFile decompresses an array on every access
             right: dict[str, list[bool]] = {name: [] for name in VARIANTS}
             search_ms: dict[str, list[float]] = {name: [] for name in VARIANTS}
             for i in range(len(pairs["source"])):
