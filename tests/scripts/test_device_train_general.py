@@ -1,0 +1,49 @@
+"""``scripts/device_train_general.py``: the seeded data subset and the two time-limited phases (on CPU)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from shapes import sphere_shapes
+
+from model.checkpoint import save_checkpoint
+from model.config import MFGNetConfig
+from model.network import MFGNet
+
+ROOT = Path(__file__).resolve().parents[2]
+SCRIPT = ROOT / "scripts" / "device_train_general.py"
+
+
+def script(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], cwd=ROOT, env={**os.environ, **env},
+                          capture_output=True, text=True, timeout=300, check=True)
+
+
+def test_subset_and_both_phases_leave_the_files_that_come_back(tmp_path) -> None:
+    data = tmp_path / "data"
+    data.mkdir()
+    labels = np.arange(48) % 40
+    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(48, seed=2).astype(np.float16), labels=labels)
+    subset = tmp_path / "subset"
+    script("subset", "--out", str(subset), "--shapes", "30", "--seed", "1", env={"MFGNET_DATA": str(data)})
+    with np.load(subset / "modelnet40_train.npz") as written:
+        keep = np.sort(np.random.default_rng(1).permutation(48)[:30])
+        assert np.array_equal(written["labels"], labels[keep])
+        assert written["points"].shape == (30, 1024, 3) and written["points"].dtype == np.float16
+
+    out = tmp_path / "out"
+    init = tmp_path / "init.pt"
+    torch.manual_seed(0)
+    save_checkpoint(init, MFGNet(MFGNetConfig()))
+    run = script("run", "--data", str(subset), "--init", str(init), "--minutes-a", "0.01", "--minutes-b", "0.01",
+                 "--device", "cpu", "--batch-size", "2", env={"OUT": str(out)})
+    assert "all done" in run.stdout
+    assert not (out / "a" / "last.pt").exists() and not (out / "a" / "config.json").exists()  # handed to phase b
+    assert (out / "b" / "last.pt").exists() and not (out / "b" / "config.json").exists()
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert len(files) <= 8  # what a device run can bring back
