@@ -5,7 +5,9 @@ How the 2026-11-26 runs (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCUR
 1. here: ``python scripts/device_train_general.py subset --out /tmp/gpu_data`` writes 7,000 of the
    9,843 training shapes (seeded), small enough to travel with the working tree (64 MiB limit);
 2. there (``$OUT`` is the folder that comes back): ``python3 scripts/device_train_general.py run
-   --data .gpu/data --init runs/general/last.pt --minutes-a 6 --minutes-b 1.5``.
+   --data .gpu/data --init runs/general/last.pt --minutes-a 6 --minutes-b 1.5`` (run 2: ``--init``
+   run 1's last weights, ``--minutes-a 3.5 --minutes-b 1.2``). The two runs used a first draft of this
+   script with the same options and phases, taking them as positional arguments.
 
 Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's last weights)
 ``$OUT/b/{best.pt, last.pt, log.jsonl}``; both validate every 100 batches on the ``resampled``
