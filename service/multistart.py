@@ -11,11 +11,12 @@ the clouds' independent sampling as point-to-point ones are, and scoring both wa
 fit one cloud into a part of the other. A start other than the pose itself then gets the precise
 point-to-plane stage (``service.icp.icp_plane``; the wide stage of ``refine_plane`` pulled some back).
 
-Measured on 300 sparse ModelNet40 pairs (384 / 384 points, bundled ``general``): recall at (5 deg,
+Measured on 300 sparse ModelNet40 pairs (384 / 384 points, bundled ``general`` 0.1.0): recall at (5 deg,
 5 cm) 0.847 -> 0.867 through the service, at ~2.2x the time of ``icp-plane``; no change on dense pairs
-(at ~2x). Picking among the same starts, this score reached 0.887 where the inlier ratio reached
-0.860-0.867 and an oracle 0.947; most misses left are vases and bottles, whose turn about their own axis
-no score can see (``docs/ACCURACY.md``, "Multi-start refinement"; ``python -m export.local_search_bench``).
+(at ~2x); with ``general`` 0.2.0 0.867 -> 0.877. Picking among the same starts, this score reached
+0.887 where the inlier ratio reached 0.860-0.867 and an oracle 0.947; most misses left are vases and
+bottles, whose turn about their own axis no score can see (``docs/ACCURACY.md``, "Multi-start
+refinement"; ``python -m export.local_search_bench``).
 """
 
 from __future__ import annotations
