@@ -156,6 +156,9 @@ def evaluate(
         Path | None, typer.Option(help="also write each pair's pose and errors here (.npz: rotation, translation, "
                                        "rotation_error_deg, translation_error, label when known)")
     ] = None,
+    by_label: Annotated[
+        bool, typer.Option(help="add 'by_label': the recalls of each class (pairs with labels; ModelNet40 names)")
+    ] = False,
 ) -> None:
     """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
     from model.metrics import registration_metrics, save_per_pair
@@ -194,6 +197,14 @@ def evaluate(
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
     if model is not None and search == "auto":
         metrics["rotation_search_share"] = searched / len(R)  # pairs on which "auto" ran the search
+    if by_label:
+        if "label" not in data_pairs:
+            raise typer.BadParameter("--by-label needs pairs with a 'label' array")
+        from model.data import class_names
+        from model.metrics import recall_by_label
+
+        metrics["by_label"] = recall_by_label(R, t, data_pairs["rotation"], data_pairs["translation"],
+                                              data_pairs["label"], class_names(data))
     text = json.dumps(metrics, indent=2)
     typer.echo(text)
     if json_out:

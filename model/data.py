@@ -70,6 +70,12 @@ def data_dir(path: str | os.PathLike | None = None) -> Path:
     return Path(path or os.environ.get(DATA_ENV) or DEFAULT_DATA_DIR)
 
 
+def class_names(path: str | os.PathLike | None = None) -> list[str] | None:
+    """ModelNet40's 40 class names in label order, or ``None`` where the data directory lacks them."""
+    file = data_dir(path) / "modelnet40_shape_names.txt"
+    return file.read_text().split() if file.exists() else None
+
+
 @dataclass(frozen=True)
 class PairProtocol:
     """Parameters of pair generation (the paper's defaults)."""

@@ -56,6 +56,24 @@ def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = Non
     return out
 
 
+def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None = None) -> dict[str, dict]:
+    """Recall per class: ``{"<label>": {"n", "recall_r1_t001", "recall_r5_t005"[, "name"]}}`` over the pairs
+    ``R [M, 3, 3]``, ``t [M, 3]`` with ``labels [M]`` (``names[label]`` when given): which classes fail."""
+    iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
+    iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
+    labels = np.asarray(labels)
+    out: dict[str, dict] = {}
+    for label in np.unique(labels):
+        mask = labels == label
+        entry: dict = {"n": int(mask.sum())}
+        if names is not None and 0 <= int(label) < len(names):
+            entry["name"] = names[int(label)]
+        for key, (max_r, max_t) in RECALL_THRESHOLDS.items():
+            entry[key] = float(np.mean((iso_r[mask] < max_r) & (iso_t[mask] < max_t)))
+        out[str(int(label))] = entry
+    return out
+
+
 def save_per_pair(path, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str, np.ndarray]) -> None:
     """Each pair's predicted pose ``[M, 3, 3]``, ``[M, 3]`` and its isotropic errors (``rotation_error_deg``,
     ``translation_error``), plus the pairs' ``label`` when they have one, as an ``.npz`` for failure analysis."""

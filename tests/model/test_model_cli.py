@@ -81,6 +81,24 @@ def test_evaluate_writes_per_pair_poses_and_errors(tmp_path, tiny_checkpoint, sy
     assert metrics["iso_r_median"] == pytest.approx(float(np.median(rows["rotation_error_deg"])), abs=1e-3)
 
 
+def test_evaluate_reports_recall_by_label(tmp_path, tiny_checkpoint, synthetic_pairs) -> None:
+    labelled = tmp_path / "labelled.npz"
+    save_pairs(labelled, {**dict(np.load(synthetic_pairs)), "label": np.array([7, 3, 7])})
+    out = tmp_path / "metrics.json"
+    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(labelled), "--json", str(out),
+            "--by-label", "--batch-size", "2"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    by_label = json.loads(out.read_text())["by_label"]
+    assert set(by_label) == {"3", "7"}
+    assert (by_label["3"]["n"], by_label["7"]["n"]) == (1, 2)
+    assert all(0.0 <= v["recall_r5_t005"] <= 1.0 for v in by_label.values())
+
+    unlabelled = runner.invoke(app, [*args[:4], str(synthetic_pairs), "--by-label"])
+    assert unlabelled.exit_code == 2
+    assert "label" in unlabelled.output
+
+
 def test_evaluate_without_a_checkpoint_is_a_usage_error(synthetic_pairs) -> None:
     result = runner.invoke(app, ["evaluate", "--pairs", str(synthetic_pairs)])
     assert result.exit_code != 0

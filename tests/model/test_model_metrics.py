@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from model.metrics import euler_zyx_deg, registration_metrics, rotation_angle_deg
+from model.metrics import euler_zyx_deg, recall_by_label, registration_metrics, rotation_angle_deg
 
 KEYS = {"n", "rmse_r", "mae_r", "rmse_t", "mae_t", "iso_r_mean", "iso_r_median", "iso_t_mean", "iso_t_median",
         "recall_r1_t001", "recall_r5_t005"}
@@ -89,3 +89,19 @@ def test_milliseconds_per_pair_from_seconds() -> None:
     m = registration_metrics(R, np.zeros((2, 3)), R, np.zeros((2, 3)), seconds=0.5)
     assert m["ms_per_pair"] == pytest.approx(250.0)
     assert set(m) == KEYS | {"ms_per_pair"}
+
+
+def test_recall_by_label_counts_each_class_by_hand() -> None:
+    R_gt = np.repeat(np.eye(3)[None], 4, axis=0)  # [4, 3, 3]
+    t_gt = np.zeros((4, 3))
+    R_pred = R_gt.copy()
+    R_pred[1] = zyx((10.0, 0.0, 0.0))  # class 2: 10 deg off -> a miss at both thresholds
+    t_pred = t_gt.copy()
+    t_pred[2] = (0.02, 0.0, 0.0)  # class 5: 2 cm off -> a miss at (1 deg, 1 cm) only
+    names = [f"class{i}" for i in range(6)]
+    by = recall_by_label(R_pred, t_pred, R_gt, t_gt, np.array([2, 2, 5, 5]), names)
+    assert by == {
+        "2": {"n": 2, "name": "class2", "recall_r1_t001": 0.5, "recall_r5_t005": 0.5},
+        "5": {"n": 2, "name": "class5", "recall_r1_t001": 0.5, "recall_r5_t005": 1.0},
+    }
+    assert "name" not in recall_by_label(R_pred, t_pred, R_gt, t_gt, np.array([2, 2, 5, 9]), names)["9"]
