@@ -182,6 +182,8 @@ def evaluate(
     else:
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
+    if by_label and "label" not in data_pairs:
+        raise typer.BadParameter("--by-label needs pairs with a 'label' array")
     if model is not None:
         R, t, secs, searched = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)
     elif baseline is not None:
@@ -198,8 +200,6 @@ def evaluate(
     if model is not None and search == "auto":
         metrics["rotation_search_share"] = searched / len(R)  # pairs on which "auto" ran the search
     if by_label:
-        if "label" not in data_pairs:
-            raise typer.BadParameter("--by-label needs pairs with a 'label' array")
         from model.data import class_names
         from model.metrics import recall_by_label
 

@@ -25,6 +25,11 @@ def rotation_angle_deg(R_pred: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     return np.degrees(2.0 * np.arcsin(np.clip(chord, 0.0, 1.0)))
 
 
+def recall_hits(iso_r: np.ndarray, iso_t: np.ndarray) -> dict[str, np.ndarray]:
+    """Per pair, whether it counts for each recall: ``{key: bool [M]}`` from isotropic errors ``[M]``."""
+    return {key: (iso_r < max_r) & (iso_t < max_t) for key, (max_r, max_t) in RECALL_THRESHOLDS.items()}
+
+
 def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = None) -> dict[str, float]:
     """Metrics over ``M`` pairs: ``R [M, 3, 3]``, ``t [M, 3]``.
 
@@ -49,8 +54,7 @@ def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = Non
         "iso_t_mean": float(iso_t.mean()),
         "iso_t_median": float(np.median(iso_t)),
     }
-    for key, (max_r, max_t) in RECALL_THRESHOLDS.items():
-        out[key] = float(np.mean((iso_r < max_r) & (iso_t < max_t)))
+    out.update({key: float(hits.mean()) for key, hits in recall_hits(iso_r, iso_t).items()})
     if seconds is not None:
         out["ms_per_pair"] = 1000.0 * seconds / max(len(R_pred), 1)
     return out
@@ -61,6 +65,7 @@ def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None 
     ``R [M, 3, 3]``, ``t [M, 3]`` with ``labels [M]`` (``names[label]`` when given): which classes fail."""
     iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
     iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
+    hits = recall_hits(iso_r, iso_t)
     labels = np.asarray(labels)
     out: dict[str, dict] = {}
     for label in np.unique(labels):
@@ -68,8 +73,7 @@ def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None 
         entry: dict = {"n": int(mask.sum())}
         if names is not None and 0 <= int(label) < len(names):
             entry["name"] = names[int(label)]
-        for key, (max_r, max_t) in RECALL_THRESHOLDS.items():
-            entry[key] = float(np.mean((iso_r[mask] < max_r) & (iso_t[mask] < max_t)))
+        entry.update({key: float(h[mask].mean()) for key, h in hits.items()})
         out[str(int(label))] = entry
     return out
 
