@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
+
 FIXED = (0.7,)
 RELATIVE = (0.7, 0.75, 0.8, 0.85)
 
@@ -34,7 +36,7 @@ def collect(pair_files: list[Path], model: str) -> dict:
     always = registrar_module.needs_search
     out = {}
     for path in pair_files:
-        pairs, rows = dict(np.load(path)), []
+        pairs, rows = load_pairs(path), []
         for src, tgt, R, t in zip(pairs["source"], pairs["target"], pairs["rotation"], pairs["translation"],
                                   strict=True):
             plain = registrar.register(src, tgt, refine="icp-plane")
@@ -59,7 +61,7 @@ def attainable_ratios(path: Path, reference_radius: float) -> np.ndarray:
     from service.quality import attainable_inlier_ratio
     from service.registrar import INLIER_DISTANCE
 
-    pairs = dict(np.load(path))  # read once: an NpzFile decompresses an array on every access
+    pairs = dict(np.load(path))  # source / target only (no poses needed); read once
     ratios = []
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
         scale = Normalization.fit(src, tgt, reference_radius).scale

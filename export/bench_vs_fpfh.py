@@ -21,6 +21,7 @@ import numpy as np
 
 from export.baselines import fpfh_ransac_icp
 from export.report_io import emit_report
+from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 from model.metrics import registration_metrics
 
 
@@ -29,7 +30,7 @@ def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str) -> d
     from service.registrar import Registrar
 
     registrar = Registrar(bundled_models_dir() / model)
-    pairs = dict(np.load(pairs_path))  # read once: an NpzFile decompresses an array on every access
+    pairs = load_pairs(pairs_path)
     n = min(count, len(pairs["source"]))
 
     def mfgnet(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 
 from export.auto_trigger import pose_errors
 from export.report_io import emit_report
+from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
 ICP_DISTANCE = 0.15  # the short ICPs' correspondence cap
 ICP_ITERATIONS = 20
@@ -57,7 +58,7 @@ def run(pairs_path: Path, model: str, angles: list[float]) -> dict:
     from service.registrar import Registrar
 
     registrar = Registrar(bundled_models_dir() / model)
-    pairs = dict(np.load(pairs_path))  # read once: an NpzFile decompresses an array on every access
+    pairs = load_pairs(pairs_path)
 
     def right(R: np.ndarray, t: np.ndarray, i: int) -> bool:  # within (5 deg, 5 cm)
         angle, offset = pose_errors(R, t, pairs["rotation"][i], pairs["translation"][i])

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from export.auto_trigger import pose_errors
+from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
 VARIANTS = {"full": (1, 24), "p1k4": (1, 4), "p2k4": (2, 4)}  # (SEARCH_PRUNE_ITERATIONS, SEARCH_KEEP)
 
@@ -30,7 +31,7 @@ def run(pair_files: list[Path], model: str) -> dict:
     report: dict = {"model": model, "variants": VARIANTS, "files": {}}
     try:
         for path in pair_files:
-            pairs = dict(np.load(path))  # read once: an NpzFile decompresses an array on every access
+            pairs = load_pairs(path)
             right: dict[str, list[bool]] = {name: [] for name in VARIANTS}
             search_ms: dict[str, list[float]] = {name: [] for name in VARIANTS}
             for i in range(len(pairs["source"])):
