@@ -1,6 +1,7 @@
 """The service's default registration against Open3D FPFH + RANSAC + ICP, in alternating passes.
 
-``python -m export.bench_vs_fpfh --pairs dense.npz [--count 30] [--rounds 4] [--json out.json]``
+``python -m export.bench_vs_fpfh --pairs dense.npz [--count 30] [--rounds 4] [--rotation-search auto]
+[--json out.json]``
 
 ``mfgnet bench`` times each method in one pass over the pairs, one method after the other, so a drift
 of this shared VM's speed between the passes enters their ratio. Here each round times one pass of
@@ -25,16 +26,19 @@ from model.data import load_pairs  # reads every array once (an NpzFile re-reads
 from model.metrics import registration_metrics
 
 
-def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str) -> dict:
+def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str, rotation_search: str = "off") -> dict:
     from service.manifest import bundled_models_dir
     from service.registrar import Registrar
+    from service.search_mode import rotation_search_from_options
+
+    search = rotation_search_from_options(None, rotation_search)
 
     registrar = Registrar(bundled_models_dir() / model)
     pairs = load_pairs(pairs_path)
     n = min(count, len(pairs["source"]))
 
     def mfgnet(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        result = registrar.register(src, tgt, refine=refine)
+        result = registrar.register(src, tgt, refine=refine, rotation_search=search)
         return result.rotation, result.translation
 
     methods = {"mfgnet": mfgnet, "fpfh_ransac_icp": fpfh_ransac_icp}
@@ -48,7 +52,7 @@ def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str) -> d
             poses[name] = [method(pairs["source"][i], pairs["target"][i]) for i in range(n)]
             pass_ms[name].append(1000 * (time.perf_counter() - begin) / n)
     report: dict = {"pairs": str(pairs_path), "n": n, "rounds": rounds, "refine": refine, "model": model,
-                    "methods": {}}
+                    "rotation_search": rotation_search, "methods": {}}
     for name in methods:
         R = np.stack([p[0] for p in poses[name]])  # [n, 3, 3]
         t = np.stack([p[1] for p in poses[name]])  # [n, 3]
@@ -70,9 +74,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--refine", default="icp-plane")
     parser.add_argument("--model", default="general")
+    parser.add_argument("--rotation-search", choices=["off", "auto", "on"], default="off")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    emit_report(run(args.pairs, args.count, args.rounds, args.refine, args.model), args.json)
+    emit_report(run(args.pairs, args.count, args.rounds, args.refine, args.model, args.rotation_search), args.json)
 
 
 if __name__ == "__main__":

@@ -28,8 +28,14 @@ from service.normalization import Normalization
 from service.procrustes import compose, to_matrix
 from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
-from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
-from service.sampling import resample_indices, spread_indices
+from service.rotation_search import (
+    SEARCH_KEYPOINTS,
+    SEARCH_POINTS,
+    rank_hypotheses,
+    search_hypotheses,
+    search_rotations_for,
+)
+from service.sampling import evenly_spaced_indices, resample_indices, spread_indices
 
 MIN_POINTS = 32
 MAX_ITERATIONS = 8
@@ -397,7 +403,10 @@ class Registrar:
         ``icp_max_distance``; each stage at most ``icp_max_iterations``): much closer than point-to-point
         between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
         rotation search the per-hypothesis short ICPs stay point-to-point; only the winner's final
-        refinement is point-to-plane. ``refine="icp-plane-multistart"`` then turns the refined pose by
+        refinement is point-to-plane. With any refinement the search runs on ``SEARCH_POINTS`` points spread
+        evenly through each working cloud's rows with at most ``SEARCH_KEYPOINTS`` keypoints, and the winner is
+        refined on the full clouds; its correspondences are then those of the subsample (that many).
+        ``refine="icp-plane-multistart"`` then turns the refined pose by
         +-15 and +-30 degrees about each axis, moves each turn with a short ICP and keeps the best fit by
         a two-way point-to-plane score, refined again (:mod:`service.multistart`). When a refinement
         stops on a degenerate system (too few pairs, a planar or linear target) it keeps the pose it had
@@ -483,16 +492,23 @@ class Registrar:
     ) -> RegistrationResult:
         """Network (plain, or the rotation search over ``hypotheses``), refinement and quality on ``work``."""
         norm, src, idx_s, tgt_w = work.norm, work.src, work.idx_s, work.tgt_w
+        net_s, net_t = idx_s, work.idx_t  # the caller's rows of the clouds the network ran on
         if hypotheses is None:
             net = self.run_network(work.src_n, work.tgt_n, iterations, keypoints, timing)
             R_start, R_net, t_net = np.eye(3), net.rotation, net.translation
         else:
             short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
             tic = time.perf_counter()
-            target = self.embed_cloud(work.tgt_n)  # once for every hypothesis
+            sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
+            if short_icp:  # the refinement restores the precision: search a subsample (rotation_search.SEARCH_POINTS)
+                sub_s, sub_t = (evenly_spaced_indices(len(c), SEARCH_POINTS) for c in (work.src_n, work.tgt_n))
+                keypoints = min(keypoints, SEARCH_KEYPOINTS, len(sub_s), len(sub_t))
+            src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
+            net_s, net_t = idx_s[sub_s], work.idx_t[sub_t]
+            target = self.embed_cloud(tgt_n)  # once for every hypothesis
             timing["encoder"] = 1000 * (time.perf_counter() - tic)
             net, R_start, R_net, t_net = search_hypotheses(
-                partial(self.start_network, target=target), work.src_n, work.tgt_n, hypotheses, iterations, keypoints,
+                partial(self.start_network, target=target), src_n, tgt_n, hypotheses, iterations, keypoints,
                 short_icp, INLIER_DISTANCE, timing,
             )
         t3 = time.perf_counter()
@@ -529,8 +545,8 @@ class Registrar:
         result = RegistrationResult(
             rotation=R_final,
             translation=t_final,
-            source_index=idx_s[net.src_kp].astype(np.int64),
-            target_index=work.idx_t[net.tgt_kp[net.matched]].astype(np.int64),
+            source_index=net_s[net.src_kp].astype(np.int64),
+            target_index=net_t[net.tgt_kp[net.matched]].astype(np.int64),
             credibility=net.credibility.astype(np.float32),
             weight=(weights / (w_sum + 1e-8) if w_sum > 0 else np.full_like(weights, 1 / len(weights))).astype(
                 np.float32

@@ -9,7 +9,14 @@ import pytest
 from scipy.spatial import cKDTree
 from shapes import ellipsoid_and_box
 
-from service.sampling import DEFAULT_SIZE, coordinate_hash, isolated_points, resample_indices, spread_indices
+from service.sampling import (
+    DEFAULT_SIZE,
+    coordinate_hash,
+    evenly_spaced_indices,
+    isolated_points,
+    resample_indices,
+    spread_indices,
+)
 
 
 @pytest.mark.parametrize("n", [32, 768, 5000, 200_000])
@@ -60,6 +67,14 @@ def test_samples_cover_the_cloud_better_than_random_ones(n: int) -> None:
         return float(cKDTree(points[chosen]).query(points)[0].max())
 
     assert coverage(indices) < 0.7 * coverage(random_indices)
+
+
+def test_evenly_spaced_indices_are_ascending_distinct_and_keep_small_clouds_whole() -> None:
+    np.testing.assert_array_equal(evenly_spaced_indices(200, 256), np.arange(200))
+    subset = evenly_spaced_indices(768, 256)
+    assert subset.dtype == np.int64 and len(np.unique(subset)) == 256 and (np.diff(subset) > 0).all()
+    assert subset[0] == 0 and subset[-1] == 767 and np.diff(subset).max() <= 4  # no gaps: every region keeps its share
+    assert len(evenly_spaced_indices(257, 256)) == 256
 
 
 def test_heavily_duplicated_cloud_still_gives_distinct_indices() -> None:
