@@ -26,7 +26,7 @@ def export(
     seed: int = 0,
 ) -> None:
     """Export a checkpoint to ONNX (encoder + matcher graphs) with a manifest; fails on parity."""
-    from export.onnx_export import export_graphs, reference_radius, write_manifest
+    from export.onnx_export import export_graphs, reference_radius, search_section, write_manifest
     from export.parity import ParityError, check_parity
     from model.checkpoint import file_sha256, load_model, read_checkpoint, resolve_checkpoint
     from model.data import make_test_pairs
@@ -43,7 +43,8 @@ def export(
     out.mkdir(parents=True, exist_ok=True)
     files = export_graphs(model, out)
     radius = reference_radius(setting)
-    write_manifest(out, out.name, model, files, file_sha256(path), accuracy, radius, version, source=path.name)
+    write_manifest(out, out.name, model, files, file_sha256(path), accuracy, radius, version, source=path.name,
+                   search=search_section(data.get("protocol")))
     registrar = Registrar(out, warmup=False)
     pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed)
     try:

@@ -218,9 +218,20 @@ def reference_radius(setting: str = "clean", count: int = 512, seed: int = 0) ->
     return float(np.median([rms_radius(src) for src in pairs["source"]]))
 
 
+def search_section(protocol: dict | None) -> dict | None:
+    """The manifest's ``search`` section for a checkpoint trained with ``protocol`` (its pair protocol as saved):
+    a subsample for models trained on independently sampled pairs, none (full clouds) for shared points."""
+    from service.rotation_search import SEARCH_KEYPOINTS, SEARCH_POINTS
+
+    if (protocol or {}).get("sampling", "shared") == "shared":
+        return None
+    return {"points": SEARCH_POINTS, "keypoints": SEARCH_KEYPOINTS}
+
+
 def write_manifest(out_dir: Path, name: str, model: MFGNet, files: dict[str, str], checkpoint_sha256: str,
-                   accuracy: dict | None, radius: float, version: str, source: str) -> Path:
-    """``manifest.json``: name, version, config, opset, graph hashes, source hash, accuracy."""
+                   accuracy: dict | None, radius: float, version: str, source: str, search: dict | None = None) -> Path:
+    """``manifest.json``: name, version, config, opset, graph hashes, source hash, accuracy, and the rotation
+    search's subsample (``search``, :func:`search_section`) when there is one."""
     from model.checkpoint import file_sha256
 
     manifest = {
@@ -236,6 +247,8 @@ def write_manifest(out_dir: Path, name: str, model: MFGNet, files: dict[str, str
         "normalization": {"center": "per_cloud_centroid", "scale": "rms_radius", "reference_radius": radius},
         "accuracy": accuracy or {},
     }
+    if search:
+        manifest["search"] = search
     path = out_dir / "manifest.json"
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     return path

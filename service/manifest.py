@@ -38,6 +38,10 @@ class Manifest:
     normalization: dict
     accuracy: dict = field(default_factory=dict)
     raw: dict = field(default_factory=dict)
+    # The rotation search's subsample when a refinement follows: (points per working cloud, keypoints), or None
+    # for the full working clouds. Written by the export for models trained on independently sampled pairs;
+    # models trained on the paper's shared points match exact points and search the full clouds.
+    search_subsample: tuple[int, int] | None = None
 
     def graph_bytes(self, role: str) -> bytes:
         """The graph's bytes, read ONCE and checked against the manifest hash: the runtime builds its
@@ -89,8 +93,25 @@ def load_manifest(directory: str | Path) -> Manifest:
     if "encoder" not in verified or "matcher_0" not in verified:
         raise ModelIntegrityError(f"model {name!r}: manifest needs an encoder and at least one matcher")
     return Manifest(
-        directory, name, version, sha256_file(path), config, verified, normalization, raw.get("accuracy", {}), raw
+        directory, name, version, sha256_file(path), config, verified, normalization, raw.get("accuracy", {}), raw,
+        _search_subsample(name, raw.get("search")),
     )
+
+
+def _search_subsample(name: str, section) -> tuple[int, int] | None:
+    """The manifest's optional ``search`` section ``{"points": P, "keypoints": K}`` -> ``(P, K)``."""
+    if section is None:
+        return None
+    try:
+        points, keypoints = section["points"], section["keypoints"]
+        valid = all(type(v) is int for v in (points, keypoints)) and 16 <= keypoints <= points
+    except (KeyError, TypeError):
+        valid = False
+    if not valid:
+        raise ModelIntegrityError(
+            f"model {name!r}: malformed search section {section!r} (integers points >= keypoints >= 16)"
+        )
+    return points, keypoints
 
 
 def bundled_models_dir() -> Path:

@@ -28,13 +28,7 @@ from service.normalization import Normalization
 from service.procrustes import compose, to_matrix
 from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
-from service.rotation_search import (
-    SEARCH_KEYPOINTS,
-    SEARCH_POINTS,
-    rank_hypotheses,
-    search_hypotheses,
-    search_rotations_for,
-)
+from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
 from service.sampling import evenly_spaced_indices, resample_indices, spread_indices
 
 MIN_POINTS = 32
@@ -403,9 +397,10 @@ class Registrar:
         ``icp_max_distance``; each stage at most ``icp_max_iterations``): much closer than point-to-point
         between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
         rotation search the per-hypothesis short ICPs stay point-to-point; only the winner's final
-        refinement is point-to-plane. With any refinement the search runs on ``SEARCH_POINTS`` points spread
-        evenly through each working cloud's rows with at most ``SEARCH_KEYPOINTS`` keypoints, and the winner is
-        refined on the full clouds; its correspondences are then those of the subsample (that many).
+        refinement is point-to-plane. With any refinement, a model whose manifest has a ``search`` section
+        (those trained on independently sampled pairs) searches on that many points spread evenly through each
+        working cloud's rows with at most that many keypoints, and the winner is refined on the full clouds;
+        its correspondences are then those of the subsample (that many).
         ``refine="icp-plane-multistart"`` then turns the refined pose by
         +-15 and +-30 degrees about each axis, moves each turn with a short ICP and keeps the best fit by
         a two-way point-to-plane score, refined again (:mod:`service.multistart`). When a refinement
@@ -500,9 +495,10 @@ class Registrar:
             short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
             tic = time.perf_counter()
             sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
-            if short_icp:  # the refinement restores the precision: search a subsample (rotation_search.SEARCH_POINTS)
-                sub_s, sub_t = (evenly_spaced_indices(len(c), SEARCH_POINTS) for c in (work.src_n, work.tgt_n))
-                keypoints = min(keypoints, SEARCH_KEYPOINTS, len(sub_s), len(sub_t))
+            subsample = self.manifest.search_subsample
+            if short_icp and subsample:  # the refinement restores the precision: search a subsample
+                sub_s, sub_t = (evenly_spaced_indices(len(c), subsample[0]) for c in (work.src_n, work.tgt_n))
+                keypoints = min(keypoints, subsample[1], len(sub_s), len(sub_t))
             src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
             net_s, net_t = idx_s[sub_s], work.idx_t[sub_t]
             target = self.embed_cloud(tgt_n)  # once for every hypothesis

@@ -44,11 +44,13 @@ SEARCH_BATCH = 4
 # without pruning) and their own short ICPs (docs/ROTATION_SEARCH.md, "Pruning").
 SEARCH_PRUNE_ITERATIONS = 1
 SEARCH_KEEP = 4
-# When a refinement follows (refine != "none"), the search runs on SEARCH_POINTS rows spread evenly through
-# each working cloud (service.sampling.evenly_spaced_indices) with fewer keypoints: it only has to find the
-# basin, and the refinement of the winner on the full clouds restores the precision. On 320 seeded pairs at
-# 90-180 deg the searched pairs cost 2-5x less time at the same or a higher success rate than on the full
-# working clouds with K = 128 (docs/ROTATION_SEARCH.md, "Searching on a subsample").
+# The manifest's "search" section that the export writes for models trained on independently sampled pairs
+# (service.manifest.Manifest.search_subsample): when a refinement follows, the search runs on SEARCH_POINTS rows
+# spread evenly through each working cloud (service.sampling.evenly_spaced_indices) with SEARCH_KEYPOINTS
+# keypoints; it only has to find the basin, and the refinement of the winner on the full clouds restores the
+# precision. With `general` on 320 seeded independent-sample pairs at 90-180 deg the searched pairs cost 2-5x
+# less at the same or a higher success rate; the paper-protocol models (shared points) lost pairs on a
+# subsample and keep the full clouds (docs/ROTATION_SEARCH.md, "Searching on a subsample").
 SEARCH_POINTS = 256
 SEARCH_KEYPOINTS = 32
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 import torch
 from shapes import ellipsoid_surface
 
-from export.onnx_export import export_graphs, fold_batchnorm, write_manifest
+from export.onnx_export import export_graphs, fold_batchnorm, search_section, write_manifest
 from export.parity import check_parity
 from model.config import MFGNetConfig
 from model.data import PairProtocol, make_pairs
@@ -61,6 +62,25 @@ def test_export_writes_one_matcher_graph_per_weight_set(exported):
     assert manifest["config"]["iterations"] == 2 and manifest["opset"] >= 17
     for entry in manifest["graphs"].values():
         assert len(entry["sha256"]) == 64 and (out / entry["file"]).is_file()
+
+
+def test_the_search_section_follows_the_training_sampling(exported, tmp_path):
+    """Models trained on independent samples search a subsample; the paper's shared points the full clouds."""
+    from service.manifest import load_manifest
+    from service.rotation_search import SEARCH_KEYPOINTS, SEARCH_POINTS
+
+    assert search_section(None) is None and search_section({"points": 1024}) is None  # before the field existed
+    assert search_section({"sampling": "shared"}) is None
+    for sampling in ("disjoint", "independent"):
+        assert search_section({"sampling": sampling}) == {"points": SEARCH_POINTS, "keypoints": SEARCH_KEYPOINTS}
+    model, out = exported
+    assert "search" not in json.loads((out / "manifest.json").read_text())
+    copy = tmp_path / "tiny"
+    shutil.copytree(out, copy)
+    files = {"encoder": "encoder.onnx", "matcher_0": "matcher_0.onnx", "matcher_1": "matcher_1.onnx"}
+    write_manifest(copy, "tiny", model, files, "0" * 64, {}, 0.53, "0.0.1", "test",
+                   search=search_section({"sampling": "disjoint"}))
+    assert load_manifest(copy).search_subsample == (SEARCH_POINTS, SEARCH_KEYPOINTS)
 
 
 def test_encoder_graph_accepts_any_number_of_points(exported):

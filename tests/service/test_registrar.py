@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -222,6 +223,34 @@ def test_missing_graph_or_manifest_is_refused(tmp_path):
         load_manifest(model)
     (model / "manifest.json").unlink()
     with pytest.raises(ModelIntegrityError, match=r"manifest\.json is missing"):
+        load_manifest(model)
+
+
+@pytest.mark.parametrize(
+    ("section", "expected"),
+    [(None, None), ({"points": 256, "keypoints": 32}, (256, 32)), ({"points": 16, "keypoints": 16}, (16, 16))],
+)
+def test_the_manifest_search_section_is_optional(tmp_path, section, expected):
+    model = _copy_model(tmp_path)
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest.pop("search", None)
+    if section is not None:
+        manifest["search"] = section
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert load_manifest(model).search_subsample == expected
+
+
+@pytest.mark.parametrize(
+    "section",
+    [{"points": 256}, {"points": 256, "keypoints": 8}, {"points": 16, "keypoints": 32},
+     {"points": 256.0, "keypoints": 32}, {"points": True, "keypoints": 16}, [256, 32], "256"],
+)
+def test_a_malformed_search_section_is_refused(tmp_path, section):
+    model = _copy_model(tmp_path)
+    manifest = json.loads((model / "manifest.json").read_text())
+    manifest["search"] = section
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ModelIntegrityError, match="malformed search section"):
         load_manifest(model)
 
 

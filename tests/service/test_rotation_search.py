@@ -191,31 +191,56 @@ def test_rotation_search_returns_indices_into_the_callers_arrays(registrar) -> N
     np.testing.assert_allclose(permuted.transform, base.transform, atol=1e-5)
 
 
-@needs_model
-def test_with_a_refinement_the_search_runs_on_a_subsample_and_refines_the_full_clouds(registrar, monkeypatch) -> None:
-    import service.registrar as registrar_module
+GENERAL = bundled_models_dir() / "general"
 
+
+def spy_on_embedded_sizes(registrar: Registrar, monkeypatch) -> list[tuple[int, int]]:
+    """``(batch, points)`` of every encoder call of ``registrar``."""
     embedded: list[tuple[int, int]] = []
     original = registrar.embed
     monkeypatch.setattr(registrar, "embed", lambda pts, nb=None: embedded.append(pts.shape[:2]) or original(pts, nb))
+    return embedded
+
+
+@pytest.mark.skipif(not (GENERAL / "manifest.json").exists(), reason="bundled model 'general' absent")
+def test_with_a_refinement_general_searches_a_subsample_and_refines_the_full_clouds(monkeypatch) -> None:
+    import service.registrar as registrar_module
+
+    general = Registrar(GENERAL, threads=2)
+    points, keypoints = general.manifest.search_subsample  # the export writes it for independent sampling
+    assert (points, keypoints) == (SEARCH_POINTS, SEARCH_KEYPOINTS)
+    embedded = spy_on_embedded_sizes(general, monkeypatch)
     refined: list[int] = []
     real_refine = registrar_module.refine_plane
     monkeypatch.setattr(registrar_module, "refine_plane", lambda src, *a, **k: refined.append(len(src)) or real_refine(
         src, *a, **k))
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(900, 3), asymmetric_blob(700, 4) @ R.T
-    found = registrar.register(source, target, rotation_search=True, refine="icp-plane", keypoints=128)
-    assert embedded[0] == (1, SEARCH_POINTS)  # the target's subsample, then the rotated sources' in chunks
-    assert {n for _, n in embedded[1:]} == {SEARCH_POINTS} and sum(b for b, _ in embedded[1:]) == 24
+    found = general.register(source, target, rotation_search=True, refine="icp-plane", keypoints=128)
+    assert embedded[0] == (1, points)  # the target's subsample, then the rotated sources' in chunks
+    assert {n for _, n in embedded[1:]} == {points} and sum(b for b, _ in embedded[1:]) == 24
     assert refined == [768]  # the winner is refined on the full working source
-    assert len(found.source_index) == len(found.target_index) == len(found.weight) == SEARCH_KEYPOINTS
+    assert len(found.source_index) == len(found.target_index) == len(found.weight) == keypoints
     assert ((found.source_index >= 0) & (found.source_index < 900)).all()
     assert ((found.target_index >= 0) & (found.target_index < 700)).all()
     p, q = np.random.default_rng(0).permutation(900), np.random.default_rng(1).permutation(700)
-    permuted = registrar.register(source[p], target[q], rotation_search=True, refine="icp-plane", keypoints=128)
+    permuted = general.register(source[p], target[q], rotation_search=True, refine="icp-plane", keypoints=128)
     np.testing.assert_array_equal(p[permuted.source_index], found.source_index)
     np.testing.assert_array_equal(q[permuted.target_index], found.target_index)
     np.testing.assert_allclose(permuted.transform, found.transform, atol=1e-5)
+    embedded.clear()
+    general.register(source, target, rotation_search=True, refine="none", keypoints=128)
+    assert {n for _, n in embedded} == {700, 768}  # without a refinement: the full working clouds
+
+
+@needs_model
+def test_a_model_trained_on_shared_points_searches_the_full_working_clouds(registrar, monkeypatch) -> None:
+    assert registrar.manifest.search_subsample is None  # `clean`: the paper's shared points
+    embedded = spy_on_embedded_sizes(registrar, monkeypatch)
+    R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
+    found = registrar.register(asymmetric_blob(900, 3), asymmetric_blob(700, 4) @ R.T, rotation_search=True,
+                               refine="icp-plane", keypoints=128)
+    assert {n for _, n in embedded} == {700, 768} and len(found.source_index) == 128
 
 
 @needs_model
