@@ -170,7 +170,10 @@ class RegisterResponse(BaseModel):
     translation: Vector3 = Field(description="[3] translation, caller's units.")
     transform: list[list[float]] = Field(description="[4, 4] homogeneous src_to_tgt.")
     euler_zyx_deg: Vector3 = Field(description="Intrinsic z-y-x Euler angles of the rotation, degrees.")
-    correspondences: list[Correspondence] | None = Field(None, description="Keypoint matches (when asked).")
+    correspondences: list[Correspondence] | None = Field(
+        None, description="Keypoint matches (when asked): one per source keypoint; after a refined rotation search "
+        "with a model that searches a subsample (its manifest's 'search' section), those of the subsample."
+    )
     quality: Quality
     warnings: list[str]
     model: ModelRef
