@@ -1,9 +1,12 @@
 """How far a registration result can be trusted: overlap, residual and degenerate geometry.
 
 ``reliable`` is a deliberately simple rule: neither cloud is degenerate (all points identical or
-on one line — a rotation about that line cannot be observed) and at least
-``RELIABLE_INLIER_RATIO`` of the moved source points have a target point within
-``inlier_distance``.  Coplanar clouds only earn a warning: their pose is usually determined, but it
+on one line — a rotation about that line cannot be observed) and the share of moved source points with a
+target point within ``inlier_distance`` reaches both ``RELIABLE_INLIER_RATIO`` and
+``RELIABLE_RELATIVE_RATIO`` of what the target's own density allows (:func:`attainable_inlier_ratio`): a
+wrong pose that ICP has pulled onto the target's surface often still keeps a third of the points near it,
+but less often 60% of what a right pose reaches (``docs/RELIABILITY.md``, "What `reliable` means").
+Coplanar clouds only earn a warning: their pose is usually determined, but it
 can be ambiguous (sliding within the plane, symmetric outlines).
 """
 
@@ -16,6 +19,10 @@ import numpy as np
 from service.kdtree import KDTree
 
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
+# ... and at least this share of the target's attainable inlier ratio. Measured with `general` + icp-plane on
+# 14 pair sets (2026-11-26, docs/RELIABILITY.md): one of 1,311 right poses fell below it (0.41, a partial view),
+# while the wrong poses called reliable fell from 385 to 287 of 509 (dense pairs at 180 deg: 67 -> 26 of 83).
+RELIABLE_RELATIVE_RATIO = 0.6
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
 IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
 
@@ -88,19 +95,19 @@ def inlier_statistics(distances: np.ndarray, inlier_distance: float) -> tuple[np
     return count / max(distances.shape[-1], 1), np.where(count > 0, rms, 0.0)
 
 
-def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float) -> float:
+def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTree | None = None) -> float:
     """Share of the points of ``tgt (M, 3)`` whose nearest other target point lies within ``inlier_distance``.
 
     About the inlier ratio a right pose reaches when the source samples the same surface independently
     at the target's density: a source point then lies about as far from its nearest target point as
     target points lie from each other. On sparse clouds it is well below 1 (median 0.63 on the 384-point
     test pairs at the quality distance, 0.94 on the 768-point ones), which is why a fixed inlier-ratio
-    threshold cannot judge them. 1.0 for fewer than two points.
+    threshold cannot judge them. 1.0 for fewer than two points. ``tree``: ``KDTree(tgt)`` when the caller has it.
     """
     tgt = np.asarray(tgt, dtype=np.float64)
     if len(tgt) < 2:
         return 1.0
-    nearest_other = KDTree(tgt).query(tgt, k=2)[0][:, 1]  # [M]; [:, 0] is the point itself
+    nearest_other = (KDTree(tgt) if tree is None else tree).query(tgt, k=2)[0][:, 1]  # [M]; [:, 0] is the point
     return float(np.mean(nearest_other <= inlier_distance))
 
 
@@ -124,13 +131,18 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     warnings = [f"source {w}" for w in src_warnings] + [f"target {w}" for w in tgt_warnings]
     degenerate = any(w.startswith(_DEGENERATE) for w in src_warnings + tgt_warnings)
 
-    inlier_ratio, residual_rms = 0.0, 0.0
+    inlier_ratio, residual_rms, attainable = 0.0, 0.0, 1.0
     if src.shape[0] and tgt.shape[0]:
+        tree = KDTree(tgt)
         src_in_tgt = src @ R.T + t  # [N, 3]
-        dist, _ = KDTree(tgt).query(src_in_tgt, k=1)  # [N]
+        dist, _ = tree.query(src_in_tgt, k=1)  # [N]
         ratio, rms = inlier_statistics(dist, inlier_distance)
         inlier_ratio, residual_rms = float(ratio), float(rms)
+        attainable = attainable_inlier_ratio(tgt, inlier_distance, tree)
     if inlier_ratio < RELIABLE_INLIER_RATIO:
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}")
-    reliable = not degenerate and inlier_ratio >= RELIABLE_INLIER_RATIO
+    elif inlier_ratio < RELIABLE_RELATIVE_RATIO * attainable:
+        warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {RELIABLE_RELATIVE_RATIO} of the "
+                        f"{attainable:.2f} the target's density allows")
+    reliable = not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, RELIABLE_RELATIVE_RATIO * attainable)
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

@@ -130,7 +130,10 @@ class Correspondence(BaseModel):
 class Quality(BaseModel):
     inlier_ratio: float = Field(description="Share of source points within the inlier distance after alignment.")
     residual_rms: float = Field(description="RMS distance of those inliers, caller's units.")
-    reliable: bool = Field(description="False when the quality checks or degeneracy warnings flag the result.")
+    reliable: bool = Field(
+        description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
+        "0.3 or below 0.6 of what the target's point density allows, or identical / collinear points."
+    )
 
 
 class ModelRef(BaseModel):

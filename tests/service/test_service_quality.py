@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from service.quality import RELIABLE_INLIER_RATIO, assess, degeneracy_warnings
+from service.quality import (
+    RELIABLE_INLIER_RATIO,
+    RELIABLE_RELATIVE_RATIO,
+    assess,
+    attainable_inlier_ratio,
+    degeneracy_warnings,
+)
 
 
 def blob(n: int = 300, seed: int = 0) -> np.ndarray:
@@ -90,6 +96,28 @@ def test_reliability_threshold_on_the_inlier_ratio(inliers: int, reliable: bool)
     src = tgt.copy()
     src[inliers:] += 1000.0  # the others are far away
     assert assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1).reliable is reliable
+
+
+@pytest.mark.parametrize(("inliers", "reliable"), [(60, True), (59, False), (40, False)])
+def test_reliability_also_needs_a_share_of_what_the_target_density_allows(inliers: int, reliable: bool) -> None:
+    assert RELIABLE_RELATIVE_RATIO == 0.6
+    grid = np.stack(np.meshgrid(*[np.arange(5) * 0.05] * 2, np.arange(4) * 0.05), -1).reshape(-1, 3)  # [100, 3]
+    tgt = grid + np.random.default_rng(0).normal(scale=1e-3, size=grid.shape)
+    assert attainable_inlier_ratio(tgt, 0.1) == 1.0  # every target point has a neighbour within 0.1
+    src = tgt.copy()
+    src[inliers:] = np.random.default_rng(1).normal(scale=1000.0, size=(100 - inliers, 3))  # far, in 3D
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert quality.inlier_ratio == pytest.approx(inliers / 100) and quality.reliable is reliable
+    assert any(w.startswith("poor fit") for w in quality.warnings) is (not reliable)  # 0.3 <= ratio < 0.6
+
+
+def test_a_target_too_sparse_for_the_inlier_distance_falls_back_to_the_fixed_ratio() -> None:
+    tgt = blob(100, seed=6) * 10  # nearest neighbours far beyond 0.1: attainable ratio ~0
+    assert attainable_inlier_ratio(tgt, 0.1) < 0.5
+    src = tgt.copy()
+    src[35:] += 1000.0
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert quality.reliable and not any(w.startswith(("poor fit", "low overlap")) for w in quality.warnings)
 
 
 def test_collinear_source_is_never_reliable() -> None:
