@@ -185,7 +185,8 @@ def evaluate(
     if by_label and "label" not in data_pairs:
         raise typer.BadParameter("--by-label needs pairs with a 'label' array")
     if model is not None:
-        R, t, secs, searched = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)
+        R, t, secs, searched, reliable = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search,
+                                                        refine_points)
     elif baseline is not None:
         from export.baselines import run_method
 
@@ -197,8 +198,12 @@ def evaluate(
         R, t, secs = predict_poses(load_model(checkpoint), data_pairs, batch_size, iterations, keypoints,
                                    progress=True)
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
-    if model is not None and search == "auto":
-        metrics["rotation_search_share"] = searched / len(R)  # pairs on which "auto" ran the search
+    if model is not None:
+        from model.metrics import reliability_metrics
+
+        metrics.update(reliability_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], reliable))
+        if search == "auto":
+            metrics["rotation_search_share"] = searched / len(R)  # pairs on which "auto" ran the search
     if by_label:
         from model.data import class_names
         from model.metrics import recall_by_label
@@ -215,8 +220,8 @@ def evaluate(
 
 def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str,
                    rotation_search: bool | str = False, refine_points: int | None = None):
-    """Poses of every pair through the service's own pipeline (``Registrar.register``), the seconds they took
-    and on how many pairs the rotation search ran (``timing_ms["search"]``)."""
+    """Poses of every pair through the service's own pipeline (``Registrar.register``), the seconds they took,
+    on how many pairs the rotation search ran (``timing_ms["search"]``) and each result's ``reliable`` flag."""
     import time
 
     import numpy as np
@@ -227,7 +232,7 @@ def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: i
 
     folder = Path(model) if Path(model).is_dir() else bundled_models_dir() / model
     registrar = Registrar(folder)
-    Rs, ts, searched = [], [], 0
+    Rs, ts, searched, reliable = [], [], 0, []
     begin = time.perf_counter()
     for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):
         res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine,
@@ -235,4 +240,5 @@ def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: i
         Rs.append(res.rotation)
         ts.append(res.translation)
         searched += "search" in res.timing_ms
-    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin, searched
+        reliable.append(res.reliable)
+    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin, searched, np.array(reliable, dtype=bool)

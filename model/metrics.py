@@ -60,6 +60,21 @@ def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = Non
     return out
 
 
+def reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) -> dict[str, float]:
+    """How well the runtime's ``quality.reliable`` flags ``reliable [M]`` separate right from wrong poses (right =
+    within (5 deg, 5 cm), as ``recall_r5_t005``): the share flagged reliable, the share flagged reliable but
+    wrong (the errors a caller trusting the flag would take) and the share right but flagged unreliable."""
+    iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
+    iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
+    right = recall_hits(iso_r, iso_t)["recall_r5_t005"]  # [M]
+    reliable = np.asarray(reliable, dtype=bool)
+    return {
+        "reliable_share": float(reliable.mean()),
+        "reliable_wrong_share": float((reliable & ~right).mean()),
+        "unreliable_right_share": float((~reliable & right).mean()),
+    }
+
+
 def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None = None) -> dict[str, dict]:
     """Recall per class: ``{"<label>": {"n", "recall_r1_t001", "recall_r5_t005"[, "name"]}}`` over the pairs
     ``R [M, 3, 3]``, ``t [M, 3]`` with ``labels [M]`` (``names[label]`` when given): which classes fail."""

@@ -82,7 +82,11 @@ def test_evaluate_rotation_search_mode_auto_reports_the_share_of_pairs_searched(
                                       "auto", "--pairs", str(tmp_path / "p.npz"), "--json", str(out)])
     assert result.exit_code == 0, result.output
     assert seen == ["auto", "auto"]
-    assert json.loads(out.read_text())["rotation_search_share"] in (0.0, 0.5, 1.0)
+    metrics = json.loads(out.read_text())
+    assert metrics["rotation_search_share"] in (0.0, 0.5, 1.0)
+    assert metrics["reliable_share"] in (0.0, 0.5, 1.0)  # each result's quality.reliable, counted
+    assert metrics["reliable_wrong_share"] <= metrics["reliable_share"]
+    assert metrics["reliable_wrong_share"] + metrics["unreliable_right_share"] <= 1.0
 
 
 def test_evaluate_rejects_contradicting_rotation_search_options(tmp_path):

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from model.metrics import euler_zyx_deg, recall_by_label, registration_metrics, rotation_angle_deg
+from model.metrics import (
+    euler_zyx_deg,
+    recall_by_label,
+    registration_metrics,
+    reliability_metrics,
+    rotation_angle_deg,
+)
 
 KEYS = {"n", "rmse_r", "mae_r", "rmse_t", "mae_t", "iso_r_mean", "iso_r_median", "iso_t_mean", "iso_t_median",
         "recall_r1_t001", "recall_r5_t005"}
@@ -105,3 +111,17 @@ def test_recall_by_label_counts_each_class_by_hand() -> None:
         "5": {"n": 2, "name": "class5", "recall_r1_t001": 0.5, "recall_r5_t005": 1.0},
     }
     assert "name" not in recall_by_label(R_pred, t_pred, R_gt, t_gt, np.array([2, 2, 5, 9]), names)["9"]
+
+
+def test_reliability_metrics_count_trusted_misses_and_doubted_hits_by_hand() -> None:
+    R_gt = np.repeat(np.eye(3)[None], 4, axis=0)  # [4, 3, 3]
+    t_gt = np.zeros((4, 3))
+    R_pred = R_gt.copy()
+    R_pred[1] = zyx((10.0, 0.0, 0.0))  # wrong
+    R_pred[3] = zyx((0.0, 0.0, 30.0))  # wrong
+    t_pred = t_gt.copy()
+    t_pred[2] = (0.02, 0.0, 0.0)  # right at (5 deg, 5 cm)
+    reliable = np.array([True, True, False, False])  # pair 1 trusted but wrong, pair 2 right but doubted
+    assert reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) == {
+        "reliable_share": 0.5, "reliable_wrong_share": 0.25, "unreliable_right_share": 0.25,
+    }
