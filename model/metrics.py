@@ -25,6 +25,12 @@ def rotation_angle_deg(R_pred: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     return np.degrees(2.0 * np.arcsin(np.clip(chord, 0.0, 1.0)))
 
 
+def isotropic_errors(R_pred, t_pred, R_gt, t_gt) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair, the rotation error in degrees ``[M]`` (:func:`rotation_angle_deg`) and the translation error."""
+    iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
+    return rotation_angle_deg(R_pred, R_gt), iso_t
+
+
 def recall_hits(iso_r: np.ndarray, iso_t: np.ndarray) -> dict[str, np.ndarray]:
     """Per pair, whether it counts for each recall: ``{key: bool [M]}`` from isotropic errors ``[M]``."""
     return {key: (iso_r < max_r) & (iso_t < max_t) for key, (max_r, max_t) in RECALL_THRESHOLDS.items()}
@@ -64,8 +70,7 @@ def reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) -> dict[str, float
     """How well the runtime's ``quality.reliable`` flags ``reliable [M]`` separate right from wrong poses (right =
     within (5 deg, 5 cm), as ``recall_r5_t005``): the share flagged reliable, the share flagged reliable but
     wrong (the errors a caller trusting the flag would take) and the share right but flagged unreliable."""
-    iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
-    iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
+    iso_r, iso_t = isotropic_errors(R_pred, t_pred, R_gt, t_gt)  # [M], [M]
     right = recall_hits(iso_r, iso_t)["recall_r5_t005"]  # [M]
     reliable = np.asarray(reliable, dtype=bool)
     return {
@@ -78,8 +83,7 @@ def reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) -> dict[str, float
 def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None = None) -> dict[str, dict]:
     """Recall per class: ``{"<label>": {"n", "recall_r1_t001", "recall_r5_t005"[, "name"]}}`` over the pairs
     ``R [M, 3, 3]``, ``t [M, 3]`` with ``labels [M]`` (``names[label]`` when given): which classes fail."""
-    iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
-    iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
+    iso_r, iso_t = isotropic_errors(R_pred, t_pred, R_gt, t_gt)  # [M], [M]
     hits = recall_hits(iso_r, iso_t)
     labels = np.asarray(labels)
     out: dict[str, dict] = {}

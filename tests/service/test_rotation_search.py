@@ -137,13 +137,20 @@ def test_a_precomputed_target_embedding_gives_the_same_result(registrar) -> None
         registrar.run_network(batch, target[:200], 2, 64, target=embedded)
 
 
+def spy_on_embedded_sizes(registrar: Registrar, monkeypatch) -> list[tuple[int, int]]:
+    """``(batch, points)`` of every encoder call of ``registrar``."""
+    embedded: list[tuple[int, int]] = []
+    original = registrar.embed
+    monkeypatch.setattr(registrar, "embed", lambda pts, nb=None: embedded.append(pts.shape[:2]) or original(pts, nb))
+    return embedded
+
+
 @needs_model
 def test_the_rotation_search_embeds_the_target_once(registrar, monkeypatch) -> None:
-    embedded: list[int] = []
-    original = registrar.embed
-    monkeypatch.setattr(registrar, "embed", lambda pts, nb=None: embedded.append(len(pts)) or original(pts, nb))
+    sizes = spy_on_embedded_sizes(registrar, monkeypatch)
     source, target = asymmetric_blob(300, 1), asymmetric_blob(300, 2)
     registrar.register(source, target, rotation_search=True, refine="none")
+    embedded = [batch for batch, _ in sizes]  # clouds per encoder call
     assert embedded[0] == 1 and sum(embedded) == 1 + 24  # the target, then the 24 rotated sources in chunks
     assert max(embedded[1:]) <= 4  # rotation_search.SEARCH_BATCH
 
@@ -192,14 +199,6 @@ def test_rotation_search_returns_indices_into_the_callers_arrays(registrar) -> N
 
 
 GENERAL = bundled_models_dir() / "general"
-
-
-def spy_on_embedded_sizes(registrar: Registrar, monkeypatch) -> list[tuple[int, int]]:
-    """``(batch, points)`` of every encoder call of ``registrar``."""
-    embedded: list[tuple[int, int]] = []
-    original = registrar.embed
-    monkeypatch.setattr(registrar, "embed", lambda pts, nb=None: embedded.append(pts.shape[:2]) or original(pts, nb))
-    return embedded
 
 
 @pytest.mark.skipif(not (GENERAL / "manifest.json").exists(), reason="bundled model 'general' absent")
