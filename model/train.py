@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from model.allocator import keep_freed_memory
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
 from model.data import PairProtocol, TrainPairStream, load_shapes, make_pairs, protocol_for
@@ -99,6 +100,8 @@ def train(opts: TrainOptions) -> Path:
     if opts.threads:
         torch.set_num_threads(opts.threads)
     device = pick_device(opts.device)
+    if device.type == "cpu":
+        keep_freed_memory()  # reuse the step's large buffers instead of re-faulting them (model.allocator)
     torch.manual_seed(opts.seed)
 
     protocol = opts.pair_protocol()

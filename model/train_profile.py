@@ -8,11 +8,13 @@ steps, so runs can be compared on a quiet machine.
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 
 import numpy as np
 import torch
 
+from model.allocator import keep_freed_memory
 from model.config import MFGNetConfig
 from model.data import TrainPairStream, load_shapes, protocol_for
 from model.losses import registration_losses, sample_training_keypoints
@@ -31,10 +33,16 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="alternate steps with the fused training layers (model.edge_fused, model.pair_fused) and eager ones",
     )
+    parser.add_argument(
+        "--default-allocator",
+        action="store_true",
+        help="keep glibc's default mmap / trim thresholds (training raises them: model.allocator)",
+    )
     parser.add_argument("--data", default=None, help="ModelNet40 folder (default: MFGNET_DATA or ../shared)")
     args = parser.parse_args(argv)
 
     torch.set_num_threads(args.threads)
+    allocator = "default" if args.default_allocator or not keep_freed_memory() else "keep freed memory"
     shapes, _ = load_shapes("train", args.setting, args.data)
     stream = TrainPairStream(shapes[:400], protocol_for(args.setting), 0)
     batches = [batch for _, batch in zip(range(args.steps + 2), stream.epoch(0, args.batch_size), strict=False)]
@@ -58,16 +66,19 @@ def main(argv: list[str] | None = None) -> None:
         step(batch)
     variants = [True, False] if args.compare_eager else [True]
     ms: dict[bool, list[float]] = {fused: [] for fused in variants}
+    faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     for batch in batches[2:]:
         for fused in variants:  # alternating, so both see the same machine load
             model.set_fused_training(fused)
             tic = time.perf_counter()
             step(batch)
             ms[fused].append(1000 * (time.perf_counter() - tic) / args.batch_size)
+    faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before) / (args.steps * len(variants))
     for fused, times in ms.items():
         layers = "fused" if fused else "eager"
         print(f"ms per training pair ({layers} layers): {[round(x, 1) for x in times]}, median "
               f"{np.median(times):.1f} ({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
+    print(f"minor page faults per step: {faults:.0f} (allocator: {allocator})")
     model.set_fused_training(True)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
