@@ -16,6 +16,8 @@ from typing import Annotated
 import numpy as np
 import typer
 
+from export.report_io import machine_info
+
 SIZES = (512, 1024, 2048, 4096)  # network working sizes
 LARGE_INPUTS = (20_000, 100_000)  # input sizes resampled to the default working size
 ITERATIONS = (1, 2, 3, 4, 5, 6)
@@ -114,12 +116,7 @@ def run_bench(
     model = load_model(checkpoint)
     pairs = make_test_pairs(setting, "test", count=16, seed=seed)
     report: dict = {
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor(),
-            "python": platform.python_version(),
-            "threads": threads,
-        },
+        "machine": {**machine_info(threads), "python": platform.python_version()},
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
         "model": model_name,
         "checkpoint": checkpoint,
@@ -141,7 +138,8 @@ def run_bench(
     }
     stages.update()
     stages.set_postfix_str("accuracy at 1-6 iterations")
-    report["iteration_accuracy"] = iteration_accuracy(registrar, setting, accuracy_count, seed)
+    if accuracy_count:
+        report["iteration_accuracy"] = iteration_accuracy(registrar, setting, accuracy_count, seed)
     stages.update()
     stages.set_postfix_str("working sizes")
     sized = {}
@@ -168,7 +166,7 @@ def run_bench(
         report["http"] = bench_http(pairs, http_requests, inputs, threads)
     stages.update()
     report["accuracy"] = []
-    for s in accuracy_settings:
+    for s in accuracy_settings if accuracy_count else ():
         stages.set_postfix_str(f"side by side: {s}")
         report["accuracy"].append(compare_methods(registrar, model, s, accuracy_count, seed, classical))
         stages.update()
@@ -270,7 +268,9 @@ def bench(
     json_out: Annotated[Path | None, typer.Option("--json", help="write the report here")] = None,
     compare: Annotated[Path | None, typer.Option(help="baseline report: print the change per figure")] = None,
     accuracy_setting: Annotated[list[str] | None, typer.Option(help="settings for the side-by-side accuracy")] = None,
-    accuracy_count: int = 30,
+    accuracy_count: Annotated[
+        int, typer.Option(min=0, help="pairs per accuracy figure (0: skip the accuracy stages)")
+    ] = 30,
     classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR")] = True,
     http_requests: Annotated[int, typer.Option(help="requests per concurrency level over HTTP (0: skip)")] = 100,
 ) -> None:

@@ -12,3 +12,26 @@ def emit_report(report: dict, json_path: Path | None) -> None:
     print(text)
     if json_path:
         json_path.write_text(text + "\n")
+
+
+VECTOR_EXTENSIONS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile")  # what GEMM speed hangs on
+
+
+def machine_info(threads: int) -> dict:
+    """Where a benchmark ran: platform, CPU model, its vector extensions (the development VM's host
+    changes between sessions, with or without AVX-512), logical CPUs and the threads used."""
+    import os
+    import platform
+
+    info = {"platform": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
+            "threads": threads}
+    try:
+        cpuinfo = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return info
+    fields = dict(line.split(":", 1) for line in cpuinfo.splitlines() if ":" in line)
+    fields = {k.strip(): v.strip() for k, v in fields.items()}
+    flags = set(fields.get("flags", "").split())
+    info["cpu_model"] = fields.get("model name", "")
+    info["vector_extensions"] = [f for f in VECTOR_EXTENSIONS if f in flags]
+    return info

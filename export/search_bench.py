@@ -21,7 +21,6 @@ ground-truth pose's on the same working clouds: wrong by rotation error, but an 
 from __future__ import annotations
 
 import json
-import platform
 import time
 from datetime import date
 from pathlib import Path
@@ -29,6 +28,8 @@ from typing import Annotated
 
 import numpy as np
 import typer
+
+from export.report_io import machine_info
 
 METHODS = ("plain", "search", "search_net_rank", "starts_icp")
 
@@ -156,7 +157,7 @@ def search_bench(
     manifest = load_manifest(model_dir)
     report = {
         "date": date.today().isoformat(),
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "threads": threads},
+        "machine": machine_info(threads),
         "model": {"dir": str(model_dir), "name": manifest.name, "created": manifest.raw.get("created"),
                   "source": manifest.raw.get("source"),
                   "source_checkpoint_sha256": manifest.raw.get("source_checkpoint_sha256"),
