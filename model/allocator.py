@@ -1,10 +1,13 @@
-"""Keep freed memory in the process during CPU training (glibc ``mallopt``), instead of handing it back.
+"""Keep freed memory in the process for CPU torch work (glibc ``mallopt``), instead of handing it back.
 
-A training step allocates and frees the same large buffers (2-40 MB: pair tensors, edge tensors, their
-gradients) every step. glibc's defaults give buffers above a dynamic threshold their own ``mmap`` and
-trim the heap's free top back to the kernel, so every step pays page faults and the kernel's zeroing of
-fresh pages on first touch: about a fifth of a fused CPU step on the development VM
-(``docs/ACCURACY.md``, "Training speed"). With the thresholds raised, freed buffers are reused.
+A training step, and an eager forward pass, allocate and free the same large buffers (2-40 MB: pair
+tensors, edge tensors, their gradients) again and again. glibc's defaults give buffers above a dynamic
+threshold their own ``mmap`` and trim the heap's free top back to the kernel, so every step pays page
+faults and the kernel's zeroing of fresh pages on first touch: about a fifth of a fused CPU training step
+and more than half of an eager evaluation batch on the development VM (``docs/BENCHMARKS.md``, "Keeping
+freed memory"). With the thresholds raised, freed buffers are reused. Training and ``mfgnet evaluate
+--checkpoint`` call it. The runtime does not: ONNX Runtime keeps its own arena, and the pipeline on
+20,000-100,000-point inputs was slower with it (fresh ``mmap`` pages are zero already; heap blocks are not).
 """
 
 from __future__ import annotations
