@@ -122,7 +122,7 @@ def register_command(
     binary: Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files, not JSON")] = False,
     rotation_search: Annotated[
         bool | None,
-        typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; about 2x the "
+        typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; about 2-3x the "
                           "time with a refinement, 10-20x without); "
                           "= --rotation-search-mode on"),
     ] = None,

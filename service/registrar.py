@@ -19,7 +19,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.errors import InputError
-from service.icp import Surface, icp, icp_plane, refine_plane
+from service.icp import IcpResult, Surface, icp, icp_plane, refine_plane
 from service.manifest import Manifest, load_manifest
 from service.multistart import best_turned_pose
 from service.neighbours import knn_graph
@@ -28,7 +28,13 @@ from service.normalization import Normalization
 from service.procrustes import compose, to_matrix
 from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
-from service.rotation_search import rank_hypotheses, search_hypotheses, search_rotations_for
+from service.rotation_search import (
+    SearchCandidate,
+    distinct_candidates,
+    rank_hypotheses,
+    search_hypotheses,
+    search_rotations_for,
+)
 from service.sampling import evenly_spaced_indices, resample_indices, spread_indices
 
 MIN_POINTS = 32
@@ -47,6 +53,12 @@ SearchMode = bool | Literal["auto"]  # Registrar.register(rotation_search=...): 
 # Only the relative rule decides (since 2026-11-26, 07:25 UTC): the former extra "or not reliable" searched
 # 3 more of those 300 pairs (targets too sparse to reach the reliable ratio at all) and made one worse.
 AUTO_SEARCH_RELATIVE_RATIO = 0.8
+# With a refinement, the rotation search's distinct kept candidates (service.rotation_search.SEARCH_KEEP) each get a
+# short refinement -- the refinement's stages with at most CANDIDATE_ITERATIONS updates each -- and are ranked again
+# by their fit on the working clouds; the winner then gets the full refinement. The search's own ranking (short
+# point-to-point ICPs on its subsample) often put a wrong basin first: on 600 seeded pairs at 90 and 180 degrees
+# 359 -> 388 right for ~15 ms more (docs/ROTATION_SEARCH.md, "Ranking the kept candidates again").
+CANDIDATE_ITERATIONS = 3
 
 
 def search_mode(rotation_search) -> Literal["off", "on", "auto"]:
@@ -396,8 +408,10 @@ class Registrar:
         wide-basin robust symmetric stage at 3x the distance, then reciprocal point-to-plane at
         ``icp_max_distance``; each stage at most ``icp_max_iterations``): much closer than point-to-point
         between independently sampled scans (``docs/DESIGN.md``, "Refinement"). With the
-        rotation search the per-hypothesis short ICPs stay point-to-point; only the winner's final
-        refinement is point-to-plane. With any refinement, a model whose manifest has a ``search`` section
+        rotation search the per-hypothesis short ICPs stay point-to-point. With any refinement the search
+        returns its ``SEARCH_KEEP`` best hypotheses; each distinct one gets a short refinement (``refine``'s stages
+        with at most ``CANDIDATE_ITERATIONS`` updates each), they are ranked again on the working clouds, and the
+        winner gets the full refinement. With any refinement, a model whose manifest has a ``search`` section
         (those trained on independently sampled pairs) searches on that many points spread evenly through each
         working cloud's rows with at most that many keypoints, and the winner is refined on the full clouds;
         its correspondences are then those of the subsample (that many).
@@ -490,7 +504,7 @@ class Registrar:
         net_s, net_t = idx_s, work.idx_t  # the caller's rows of the clouds the network ran on
         if hypotheses is None:
             net = self.run_network(work.src_n, work.tgt_n, iterations, keypoints, timing)
-            R_start, R_net, t_net = np.eye(3), net.rotation, net.translation
+            candidates = [SearchCandidate(net, np.eye(3), net.rotation, net.translation)]
         else:
             short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
             tic = time.perf_counter()
@@ -503,28 +517,27 @@ class Registrar:
             net_s, net_t = idx_s[sub_s], work.idx_t[sub_t]
             target = self.embed_cloud(tgt_n)  # once for every hypothesis
             timing["encoder"] = 1000 * (time.perf_counter() - tic)
-            net, R_start, R_net, t_net = search_hypotheses(
+            candidates = search_hypotheses(
                 partial(self.start_network, target=target), src_n, tgt_n, hypotheses, iterations, keypoints,
                 short_icp, INLIER_DISTANCE, timing,
             )
+            # with a refinement every distinct kept candidate is refined and the refined poses ranked again
+            candidates = distinct_candidates(candidates) if short_icp else candidates[:1]
         t3 = time.perf_counter()
-        poses = [
-            IterationPose(*self._to_caller(norm, R @ R_start, t, work.R_init, work.t_init))
-            for R, t in (net.cumulative if return_iterations else [])
-        ]
-        R_final, t_final = self._to_caller(norm, R_net, t_net, work.R_init, work.t_init)
+        starts = [self._to_caller(norm, c.rotation, c.translation, work.R_init, work.t_init) for c in candidates]
         scale = norm.scale
         refine_warnings: tuple[str, ...] = ()
+        pick = 0
+        R_final, t_final = starts[0]
         if refine != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
-            if refine == "icp":
-                refined = icp(
-                    work.src_r, work.tgt_r, R_final, t_final, max_distance=distance, max_iterations=icp_max_iterations
-                )
-            else:  # icp-plane, alone or before the multi-start: one target surface (tree, normals) for all of it
-                surface = Surface.of(work.tgt_r)
-                refined = refine_plane(work.src_r, work.tgt_r, R_final, t_final, max_distance=distance,
-                                       max_iterations=icp_max_iterations, target_surface=surface)
+            surface = Surface.of(work.tgt_r) if refine != "icp" else None  # one target surface for every stage
+            if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
+                basins = [self._basin(work, R0, t0, refine, distance, surface) for R0, t0 in starts]
+                pick = int(rank_hypotheses(src[idx_s], tgt_w, np.stack([b.rotation for b in basins]),
+                                           np.stack([b.translation for b in basins]), INLIER_DISTANCE * scale)[0][0])
+                R_final, t_final = basins[pick].rotation, basins[pick].translation
+            refined = self._refine(work, R_final, t_final, refine, distance, icp_max_iterations, surface)
             if refine == "icp-plane-multistart":
                 R_turn, t_turn, start = best_turned_pose(
                     work.src_r, work.tgt_r, refined.rotation, refined.translation, scale, surface
@@ -534,6 +547,11 @@ class Registrar:
                                         max_iterations=icp_max_iterations, target_surface=surface)
             R_final, t_final, refine_warnings = refined.rotation, refined.translation, refined.warnings
             timing["refine"] = 1000 * (time.perf_counter() - t3)
+        net, R_start = candidates[pick].output, candidates[pick].start
+        poses = [
+            IterationPose(*self._to_caller(norm, R @ R_start, t, work.R_init, work.t_init))
+            for R, t in (net.cumulative if return_iterations else [])
+        ]
         t4 = time.perf_counter()
         quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale)
         weights = net.weights
@@ -557,6 +575,22 @@ class Registrar:
         )
         timing["postprocess"] = 1000 * (time.perf_counter() - t4)
         return result
+
+    @staticmethod
+    def _refine(work: _Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
+                max_iterations: int, surface: Surface | None) -> IcpResult:
+        """``refine`` (``icp`` or the point-to-plane stages of ``icp-plane*``) of the caller's pose ``R0, t0``."""
+        if refine == "icp":
+            return icp(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
+        return refine_plane(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
+                            target_surface=surface)
+
+    @staticmethod
+    def _basin(work: _Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
+               surface: Surface | None) -> IcpResult:
+        """A short refinement of a search candidate's pose ``R0, t0``, enough to rank basins: ``refine``'s stages
+        with at most ``CANDIDATE_ITERATIONS`` updates each."""
+        return Registrar._refine(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface)
 
     @staticmethod
     def _to_caller(norm: Normalization, R: np.ndarray, t: np.ndarray, R_init: np.ndarray, t_init: np.ndarray):

@@ -3,7 +3,8 @@
 The normalised working source starts from every rotation of a finite group covering SO(3) evenly
 (:func:`search_rotations_for`); :func:`search_hypotheses` runs them through the registrar's network loop in
 batches, optionally gives each pose a short wide-basin ICP (then only the best few after the first iteration
-run the remaining ones), and keeps the best by :func:`rank_hypotheses` (inlier ratio, then residual).
+run the remaining ones), and returns the best few by :func:`rank_hypotheses` (inlier ratio, then residual); with
+a refinement the registrar refines each distinct one briefly and ranks them again (:func:`distinct_candidates`).
 ``Registrar.register(rotation_search=True)`` calls it, and ``rotation_search="auto"`` when the plain result
 looks wrong; figures and the reason for the short ICPs: ``docs/ROTATION_SEARCH.md``.
 """
@@ -12,8 +13,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cache
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -21,11 +22,8 @@ from scipy.spatial.transform import Rotation
 from service.errors import InputError
 from service.icp import icp_many
 from service.kdtree import KDTree
-from service.network_loop import NetworkLoop
+from service.network_loop import NetworkLoop, NetworkOutput
 from service.quality import inlier_statistics
-
-if TYPE_CHECKING:
-    from service.network_loop import NetworkOutput
 
 SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahedral) / icosahedral group
 # refine="icp" with the rotation search: each hypothesis first gets a short, wide-basin ICP (plain
@@ -53,6 +51,9 @@ SEARCH_KEEP = 4
 # subsample and keep the full clouds (docs/ROTATION_SEARCH.md, "Searching on a subsample").
 SEARCH_POINTS = 256
 SEARCH_KEYPOINTS = 32
+# Kept candidates whose poses lie this close to a better one are not refined again (the same basin).
+DUPLICATE_DEGREES = 1.0
+DUPLICATE_DISTANCE = 0.01  # normalised units
 
 
 @cache
@@ -84,6 +85,17 @@ def rank_hypotheses(
     return np.lexsort((np.arange(len(ratio)), rms, -ratio)), ratio, rms
 
 
+@dataclass(frozen=True, eq=False)  # compared by identity (array fields)
+class SearchCandidate:
+    """A hypothesis the search kept: its network output, start rotation and pose of the searched (normalised)
+    source onto the target, after its short ICP when the search ran them."""
+
+    output: NetworkOutput
+    start: np.ndarray  # [3, 3] start rotation
+    rotation: np.ndarray  # [3, 3] network pose composed after the start (and the short ICP)
+    translation: np.ndarray  # [3]
+
+
 def search_hypotheses(
     start_network: Callable[..., NetworkLoop],
     src_n: np.ndarray,
@@ -94,17 +106,17 @@ def search_hypotheses(
     short_icp: bool,
     inlier_distance: float,
     timing: dict[str, float],
-) -> tuple[NetworkOutput, np.ndarray, np.ndarray, np.ndarray]:
-    """The best start of ``src_n [N, 3]`` (float32, normalised) rotated by each of ``hypotheses [H, 3, 3]``.
+) -> list[SearchCandidate]:
+    """The best starts of ``src_n [N, 3]`` (float32, normalised) rotated by each of ``hypotheses [H, 3, 3]``.
 
     ``start_network`` (``Registrar.start_network``, with the target's embedding bound) encodes the ``H`` rotated
     sources against ``tgt_n`` in batches of ``SEARCH_BATCH``; each hypothesis's pose is its network pose composed
     after its start rotation. ``short_icp``: every pose first gets a short wide-basin ICP (``SEARCH_ICP_*``) and
     the ranking uses those poses; then only the ``SEARCH_KEEP`` best after ``SEARCH_PRUNE_ITERATIONS`` network
     iterations run the remaining ones (without ``short_icp`` every hypothesis runs them all).
-    Returns the winner's network output, start rotation ``[3, 3]`` and pose ``R [3, 3]``, ``t [3]`` of
-    ``src_n`` onto ``tgt_n``; records ``timing["search"]`` (the whole search) and
-    ``timing["search_per_hypothesis"]``.
+    Returns the ``SEARCH_KEEP`` best candidates by :func:`rank_hypotheses`, best first (the caller refines them and
+    ranks again: the short ICPs on a subsample leave wrong basins ahead of the right one);
+    records ``timing["search"]`` (the whole search) and ``timing["search_per_hypothesis"]``.
     """
     started = time.perf_counter()
     src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
@@ -122,10 +134,27 @@ def search_hypotheses(
         loop, starts = loop.select(keep), hypotheses[keep]
         loop.advance(iterations, timing, batch=SEARCH_BATCH)
     R_h, t_h = _search_poses(loop, starts, src_n, tgt_n) if short_icp else (loop.rotation @ starts, loop.translation)
-    best = rank_hypotheses(src_n, tgt_n, R_h, t_h, inlier_distance)[0][0]
+    order = rank_hypotheses(src_n, tgt_n, R_h, t_h, inlier_distance)[0][:SEARCH_KEEP]
+    outputs = loop.outputs()
     timing["search"] = 1000 * (time.perf_counter() - started)
     timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
-    return loop.outputs()[best], starts[best], R_h[best], t_h[best]
+    return [SearchCandidate(outputs[i], starts[i], R_h[i], t_h[i]) for i in order]
+
+
+def distinct_candidates(candidates: list[SearchCandidate]) -> list[SearchCandidate]:
+    """``candidates`` without those whose pose lies within ``DUPLICATE_DEGREES`` and ``DUPLICATE_DISTANCE``
+    (normalised) of an earlier one: they would refine to the same pose."""
+    kept: list[SearchCandidate] = []
+    for c in candidates:
+        if not any(_same_pose(c, k) for k in kept):
+            kept.append(c)
+    return kept
+
+
+def _same_pose(a: SearchCandidate, b: SearchCandidate) -> bool:
+    cos = np.clip((np.trace(a.rotation.T @ b.rotation) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(np.degrees(np.arccos(cos)) < DUPLICATE_DEGREES
+                and np.linalg.norm(a.translation - b.translation) < DUPLICATE_DISTANCE)
 
 
 def _search_poses(loop: NetworkLoop, starts: np.ndarray, src_n: np.ndarray, tgt_n: np.ndarray):

@@ -51,7 +51,7 @@ REFINE_POINTS_DESCRIPTION = (
 )
 
 ROTATION_SEARCH_DESCRIPTION = (
-    "Search over initial rotations covering SO(3), for any relative orientation (about 2x the time of a refined "
+    "Search over initial rotations covering SO(3), for any relative orientation (about 2-3x the time of a refined "
     "request, 10-20x without a refinement): true = always; "
     "'auto' = only when the plain result looks wrong (inlier ratio below "
     f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows; never on degenerate clouds), then "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -9,7 +11,13 @@ from shapes import asymmetric_blob
 
 from service.manifest import bundled_models_dir
 from service.registrar import InputError, Registrar, needs_search
-from service.rotation_search import SEARCH_KEYPOINTS, SEARCH_POINTS, search_rotations_for
+from service.rotation_search import (
+    SEARCH_KEYPOINTS,
+    SEARCH_POINTS,
+    SearchCandidate,
+    distinct_candidates,
+    search_rotations_for,
+)
 
 BUNDLED = bundled_models_dir() / "clean"
 needs_model = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'clean' absent")
@@ -212,13 +220,13 @@ def test_with_a_refinement_general_searches_a_subsample_and_refines_the_full_clo
     refined: list[int] = []
     real_refine = registrar_module.refine_plane
     monkeypatch.setattr(registrar_module, "refine_plane", lambda src, *a, **k: refined.append(len(src)) or real_refine(
-        src, *a, **k))
+        src, *a, **k))  # the kept candidates' short refinements, then the winner's
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(900, 3), asymmetric_blob(700, 4) @ R.T
     found = general.register(source, target, rotation_search=True, refine="icp-plane", keypoints=128)
     assert embedded[0] == (1, points)  # the target's subsample, then the rotated sources' in chunks
     assert {n for _, n in embedded[1:]} == {points} and sum(b for b, _ in embedded[1:]) == 24
-    assert refined == [768]  # the winner is refined on the full working source
+    assert set(refined) == {768} and len(refined) >= 1  # on the full working source
     assert len(found.source_index) == len(found.target_index) == len(found.weight) == keypoints
     assert ((found.source_index >= 0) & (found.source_index < 900)).all()
     assert ((found.target_index >= 0) & (found.target_index < 700)).all()
@@ -271,15 +279,72 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
 
     original_many = search_module.icp_many
     monkeypatch.setattr(search_module, "icp_many", short_icps)
+    plane_iterations: list[int] = []
+    real_plane = registrar_module.refine_plane
     monkeypatch.setattr(registrar_module, "icp", counted("final_point", registrar_module.icp))
-    monkeypatch.setattr(registrar_module, "refine_plane", counted("final_plane", registrar_module.refine_plane))
+    def plane(*args, **kwargs):
+        plane_iterations.append(kwargs["max_iterations"])
+        return real_plane(*args, **kwargs)
+
+    monkeypatch.setattr(registrar_module, "refine_plane", counted("final_plane", plane))
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(600, 3), asymmetric_blob(500, 4) @ R.T
     found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
                                keypoints=64, iterations=2)
-    # short ICPs stay point-to-point: all 24 starts after the first iteration, the SEARCH_KEEP kept after the last
-    assert starts == [24, search_module.SEARCH_KEEP] and calls == {"final_point": 0, "final_plane": 1}
+    # short ICPs stay point-to-point: all 24 starts after the first iteration, the SEARCH_KEEP kept after the last;
+    # then point-to-plane only: a short refinement of each distinct kept candidate (none if only one), the winner's
+    assert starts == [24, search_module.SEARCH_KEEP] and calls["final_point"] == 0
+    *short, final = plane_iterations
+    assert final == 30 and set(short) <= {registrar_module.CANDIDATE_ITERATIONS}
+    assert len(short) in (0, 2, 3, 4) and calls["final_plane"] == len(short) + 1
     assert "refine" in found.timing_ms and np.isfinite(found.transform).all()
+
+
+def turned(candidate: SearchCandidate, degrees: float) -> SearchCandidate:
+    """``candidate`` with its pose turned by ``degrees`` about x (a wrong basin)."""
+    turn = Rotation.from_euler("x", degrees, degrees=True).as_matrix()
+    return dataclasses.replace(candidate, rotation=turn @ candidate.rotation)
+
+
+def search_returning(monkeypatch, make_candidates) -> None:
+    """Make ``Registrar.register``'s search return ``make_candidates(the real candidates)``."""
+    import service.registrar as registrar_module
+
+    real = registrar_module.search_hypotheses
+    monkeypatch.setattr(registrar_module, "search_hypotheses", lambda *a, **k: make_candidates(real(*a, **k)))
+
+
+@needs_model
+@pytest.mark.parametrize("refine", ["icp", "icp-plane"])
+def test_with_a_refinement_the_search_candidates_are_ranked_again_after_short_refinements(
+    registrar, monkeypatch, refine
+) -> None:
+    source, target, R, t = blob_pair(150.0)
+    search_returning(monkeypatch, lambda found: [turned(found[0], 90.0), *found])  # a wrong basin ranked first
+    result = registrar.register(source, target, refine=refine, rotation_search=True)
+    assert angle_deg(result.rotation, R) < 2.0 and np.abs(result.translation - t).max() < 0.05
+    search_returning(monkeypatch, lambda found: [turned(found[0], 90.0)])  # the same wrong basin alone
+    wrong = registrar.register(source, target, refine=refine, rotation_search=True)
+    assert angle_deg(wrong.rotation, R) > 30.0  # so the ranking above, not the refinement, found the right one
+    assert wrong.inlier_ratio < result.inlier_ratio
+
+
+@needs_model
+def test_without_a_refinement_the_search_returns_its_own_best_candidate(registrar, monkeypatch) -> None:
+    source, target, R, _ = blob_pair(150.0)
+    search_returning(monkeypatch, lambda found: [turned(found[0], 90.0), *found])
+    result = registrar.register(source, target, refine="none", rotation_search=True)
+    assert angle_deg(result.rotation, R) > 30.0  # nothing to rank by: the first candidate is the answer
+
+
+def test_distinct_candidates_drops_poses_in_the_same_basin() -> None:
+    def candidate(degrees: float, shift: float) -> SearchCandidate:
+        R = Rotation.from_euler("z", degrees, degrees=True).as_matrix()
+        return SearchCandidate(None, np.eye(3), R, np.array([shift, 0.0, 0.0]))  # output unused here
+
+    candidates = [candidate(10, 0), candidate(10.5, 0.005), candidate(10, 0.05), candidate(40, 0), candidate(10.2, 0)]
+    kept = distinct_candidates(candidates)
+    assert kept == [candidates[0], candidates[2], candidates[3]]  # best first, order kept
 
 
 # --- rotation_search="auto" -----------------------------------------------------------------------
@@ -366,8 +431,7 @@ def test_auto_keeps_the_plain_result_when_it_ranks_before_the_searched_one(regis
     real = registrar_module.search_hypotheses
 
     def wrong_winner(*args, **kwargs):  # the search "finds" a pose 90 degrees off the plain one
-        net, start, R, t = real(*args, **kwargs)
-        return net, start, Rotation.from_euler("x", 90, degrees=True).as_matrix() @ R, t
+        return [turned(real(*args, **kwargs)[0], 90.0)]
 
     monkeypatch.setattr(registrar_module, "needs_search", lambda *_: True)  # search even a good result
     monkeypatch.setattr(registrar_module, "search_hypotheses", wrong_winner)
