@@ -25,6 +25,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from shapes import asymmetric_blob
 
 from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
 
@@ -104,7 +105,18 @@ def modelnet_pair(seed: int = 0, keep: int = 700, max_angle_deg: float = 30.0) -
     """A seeded partial-to-partial pair with a known rotation (<= ``max_angle_deg``) and translation."""
     rng = np.random.default_rng(seed)
     shapes = _modelnet_points()
-    cloud = shapes[rng.integers(len(shapes))].astype(np.float64)  # [1024, 3]
+    return _partial_pair(shapes[rng.integers(len(shapes))].astype(np.float64), keep, max_angle_deg, rng)
+
+
+@cache
+def synthetic_pair(seed: int = 0, keep: int = 700, max_angle_deg: float = 30.0) -> Pair:
+    """As :func:`modelnet_pair`, from a generated asymmetric shape: for tests that must run without the data."""
+    rng = np.random.default_rng(seed)
+    return _partial_pair(asymmetric_blob(1024, seed), keep, max_angle_deg, rng)
+
+
+def _partial_pair(cloud: np.ndarray, keep: int, max_angle_deg: float, rng: np.random.Generator) -> Pair:
+    """Two partial views of ``cloud [P, 3]``, the target's moved by a random rotation and translation."""
     R = rotation_about(rng.normal(size=3), np.deg2rad(rng.uniform(0, max_angle_deg)))
     t = rng.uniform(-0.5, 0.5, size=3)
     source = crop(cloud, keep, rng)
