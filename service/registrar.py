@@ -30,6 +30,7 @@ from service.quality import assess, attainable_inlier_ratio, degenerate
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
 from service.rotation_search import (
     SearchCandidate,
+    ambiguity_warning,
     distinct_candidates,
     rank_hypotheses,
     search_hypotheses,
@@ -527,15 +528,18 @@ class Registrar:
         starts = [self._to_caller(norm, c.rotation, c.translation, work.R_init, work.t_init) for c in candidates]
         scale = norm.scale
         refine_warnings: tuple[str, ...] = ()
-        pick = 0
+        pick, ambiguity = 0, None
         R_final, t_final = starts[0]
         if refine != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
             surface = Surface.of(work.tgt_r) if refine != "icp" else None  # one target surface for every stage
             if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
                 basins = [self._basin(work, R0, t0, refine, distance, surface) for R0, t0 in starts]
-                pick = int(rank_hypotheses(src[idx_s], tgt_w, np.stack([b.rotation for b in basins]),
-                                           np.stack([b.translation for b in basins]), INLIER_DISTANCE * scale)[0][0])
+                rotations = np.stack([b.rotation for b in basins])  # [C, 3, 3]
+                order, ratios, _ = rank_hypotheses(src[idx_s], tgt_w, rotations,
+                                                   np.stack([b.translation for b in basins]), INLIER_DISTANCE * scale)
+                pick = int(order[0])
+                ambiguity = ambiguity_warning(rotations, ratios, pick)
                 R_final, t_final = basins[pick].rotation, basins[pick].translation
             refined = self._refine(work, R_final, t_final, refine, distance, icp_max_iterations, surface)
             if refine == "icp-plane-multistart":
@@ -567,8 +571,8 @@ class Registrar:
             ),
             inlier_ratio=quality.inlier_ratio,
             residual_rms=quality.residual_rms,
-            reliable=bool(quality.reliable),  # assess() already refuses degenerate clouds
-            warnings=[*quality.warnings, *refine_warnings],
+            reliable=bool(quality.reliable) and ambiguity is None,  # assess() already refuses degenerate clouds
+            warnings=[*quality.warnings, *refine_warnings, *([ambiguity] if ambiguity else [])],
             iterations=iterations,
             timing_ms=timing,
             iteration_poses=poses,

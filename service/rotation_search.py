@@ -54,6 +54,12 @@ SEARCH_KEYPOINTS = 32
 # Kept candidates whose poses lie this close to a better one are not refined again (the same basin).
 DUPLICATE_DEGREES = 1.0
 DUPLICATE_DISTANCE = 0.01  # normalised units
+# After the candidates' short refinements: another candidate more than AMBIGUOUS_DEGREES from the winner whose
+# inlier ratio is within AMBIGUOUS_RATIO_GAP of the winner's makes the result ambiguous (not reliable, a warning).
+# On 400 seeded searched pairs at 90 and 180 deg such results were wrong 36 times of 49; wrong results called
+# reliable 86 -> 59, right ones called unreliable 0 -> 13 of 289 (docs/ROTATION_SEARCH.md, "Ambiguous results").
+AMBIGUOUS_DEGREES = 10.0
+AMBIGUOUS_RATIO_GAP = 0.03
 
 
 @cache
@@ -152,9 +158,26 @@ def distinct_candidates(candidates: list[SearchCandidate]) -> list[SearchCandida
 
 
 def _same_pose(a: SearchCandidate, b: SearchCandidate) -> bool:
-    cos = np.clip((np.trace(a.rotation.T @ b.rotation) - 1.0) / 2.0, -1.0, 1.0)
-    return bool(np.degrees(np.arccos(cos)) < DUPLICATE_DEGREES
+    return bool(rotation_between_deg(a.rotation, b.rotation) < DUPLICATE_DEGREES
                 and np.linalg.norm(a.translation - b.translation) < DUPLICATE_DISTANCE)
+
+
+def rotation_between_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle in degrees of the rotation taking ``R_a [3, 3]`` to ``R_b [3, 3]``."""
+    cos = np.clip((np.trace(R_a.T @ R_b) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)))
+
+
+def ambiguity_warning(rotations: np.ndarray, ratios: np.ndarray, best: int) -> str | None:
+    """A warning when a pose far from the best one fits almost as well: ``rotations [H, 3, 3]`` and inlier
+    ratios ``[H]`` of the ranked candidates, ``best`` the winner's row. Symmetric or near-symmetric shapes
+    leave the pose undetermined; the winner is then wrong more often than right (docs/ROTATION_SEARCH.md)."""
+    for i in np.argsort(-ratios, kind="stable"):
+        angle = rotation_between_deg(rotations[best], rotations[i])
+        if i != best and angle > AMBIGUOUS_DEGREES and ratios[i] >= ratios[best] - AMBIGUOUS_RATIO_GAP:
+            return (f"ambiguous: a pose {angle:.0f} deg away fits almost as well (inlier ratio {ratios[i]:.2f} vs "
+                    f"{ratios[best]:.2f}); the shape may be symmetric")
+    return None
 
 
 def _search_poses(loop: NetworkLoop, starts: np.ndarray, src_n: np.ndarray, tgt_n: np.ndarray):

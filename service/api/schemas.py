@@ -132,7 +132,8 @@ class Quality(BaseModel):
     residual_rms: float = Field(description="RMS distance of those inliers, caller's units.")
     reliable: bool = Field(
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
-        "0.3 or below 0.6 of what the target's point density allows, or identical / collinear points."
+        "0.3 or below 0.6 of what the target's point density allows, identical / collinear points, or (rotation "
+        "search) a pose far from the returned one that fits almost as well (an 'ambiguous' warning)."
     )
 
 

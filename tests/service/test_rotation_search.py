@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from shapes import asymmetric_blob
+from shapes import asymmetric_blob, ellipsoid_surface
 
 from service.manifest import bundled_models_dir
 from service.registrar import InputError, Registrar, needs_search
@@ -15,6 +15,7 @@ from service.rotation_search import (
     SEARCH_KEYPOINTS,
     SEARCH_POINTS,
     SearchCandidate,
+    ambiguity_warning,
     distinct_candidates,
     search_rotations_for,
 )
@@ -345,6 +346,29 @@ def test_distinct_candidates_drops_poses_in_the_same_basin() -> None:
     candidates = [candidate(10, 0), candidate(10.5, 0.005), candidate(10, 0.05), candidate(40, 0), candidate(10.2, 0)]
     kept = distinct_candidates(candidates)
     assert kept == [candidates[0], candidates[2], candidates[3]]  # best first, order kept
+
+
+@needs_model
+def test_a_symmetric_shape_found_by_the_search_is_ambiguous_and_not_reliable(registrar) -> None:
+    """An ellipsoid's 180-degree flips about its axes fit as well as the true pose: the data cannot decide."""
+    axis = np.array([0.48, 0.85, -0.21])
+    R = Rotation.from_rotvec(np.radians(150) * axis / np.linalg.norm(axis)).as_matrix()
+    source = ellipsoid_surface(np.random.default_rng(0), 1024, bump=0.0)
+    target = ellipsoid_surface(np.random.default_rng(100), 1024, bump=0.0) @ R.T + [0.2, -0.1, 0.3]
+    result = registrar.register(source, target, refine="icp-plane", rotation_search=True)
+    assert result.inlier_ratio > 0.8  # it fits: only the ambiguity makes it unreliable
+    assert not result.reliable
+    assert any(w.startswith("ambiguous: a pose 180 deg away") for w in result.warnings)
+    blob_source, blob_target, _, _ = blob_pair(150.0)  # the asymmetric shape: one pose fits
+    clear = registrar.register(blob_source, blob_target, refine="icp-plane", rotation_search=True)
+    assert clear.reliable and not any(w.startswith("ambiguous") for w in clear.warnings)
+
+
+def test_ambiguity_needs_a_distant_pose_that_fits_almost_as_well() -> None:
+    turn = Rotation.from_euler("z", [[0], [90], [5]], degrees=True).as_matrix()  # [3, 3, 3]: the best, far, near
+    assert ambiguity_warning(turn, np.array([0.80, 0.78, 0.80]), 0).startswith("ambiguous: a pose 90 deg away")
+    assert ambiguity_warning(turn, np.array([0.80, 0.70, 0.80]), 0) is None  # the near one does not count
+    assert ambiguity_warning(turn, np.array([0.78, 0.80, 0.70]), 1).startswith("ambiguous: a pose 90 deg away")
 
 
 # --- rotation_search="auto" -----------------------------------------------------------------------
