@@ -534,7 +534,8 @@ class Registrar:
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
             surface = Surface.of(work.tgt_r) if refine != "icp" else None  # one target surface for every stage
             if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
-                basins = [self._basin(work, R0, t0, refine, distance, surface) for R0, t0 in starts]
+                basins = [self._refine(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface)
+                          for R0, t0 in starts]  # short refinements: enough to rank the basins
                 rotations = np.stack([b.rotation for b in basins])  # [C, 3, 3]
                 order, ratios, _ = rank_hypotheses(src[idx_s], tgt_w, rotations,
                                                    np.stack([b.translation for b in basins]), INLIER_DISTANCE * scale)
@@ -588,13 +589,6 @@ class Registrar:
             return icp(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
         return refine_plane(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
                             target_surface=surface)
-
-    @staticmethod
-    def _basin(work: _Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
-               surface: Surface | None) -> IcpResult:
-        """A short refinement of a search candidate's pose ``R0, t0``, enough to rank basins: ``refine``'s stages
-        with at most ``CANDIDATE_ITERATIONS`` updates each."""
-        return Registrar._refine(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface)
 
     @staticmethod
     def _to_caller(norm: Normalization, R: np.ndarray, t: np.ndarray, R_init: np.ndarray, t_init: np.ndarray):
