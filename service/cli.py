@@ -233,7 +233,8 @@ def _register_local(src, tgt, model: str | None, model_dirs: list[Path], threads
     return pose_record(
         result.rotation, result.translation,
         quality={"inlier_ratio": float(result.inlier_ratio), "residual_rms": float(result.residual_rms),
-                 "reliable": bool(result.reliable)},
+                 "reliable": bool(result.reliable),
+                 "stability": None if result.stability is None else float(result.stability)},
         warnings=list(result.warnings),
         model={"name": manifest.name, "version": manifest.version, "sha256": manifest.sha256},
         iterations=int(result.iterations),
@@ -308,7 +309,7 @@ def _summary(record: dict) -> str:
         *("  " + line.strip() for line in matrix.replace("[[", "[").replace("]]", "]").splitlines()),
         f"model        {model.get('name', '?')} {model.get('version', '')}".rstrip(),
         f"inlier ratio {_number(quality.get('inlier_ratio'))}   residual rms {_number(quality.get('residual_rms'))}",
-        f"reliable     {'yes' if quality.get('reliable') else 'no'}",
+        f"reliable     {'yes' if quality.get('reliable') else 'no'}   stability {_number(quality.get('stability'))}",
         f"warnings     {'; '.join(record['warnings']) or 'none'}",
         f"total        {_number(total, '.1f')} ms",
     ]

@@ -99,7 +99,7 @@ def icp(
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     tree = KDTree(tgt)
     src_tree = KDTree(src) if reciprocal else None
-    translation_tolerance = tolerance * _rms_radius(tgt)
+    translation_tolerance = tolerance * rms_radius(tgt)
     iterations = 0
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -138,7 +138,7 @@ def icp_many(
         raise ValueError(f"R0 must be (H, 3, 3) and t0 (H, 3), got {R0.shape} and {t0.shape}")
     src, tgt, _, _ = _checked(src, tgt, np.eye(3), np.zeros(3), max_distance, max_iterations)
     tree = KDTree(tgt)
-    translation_tolerance = tolerance * _rms_radius(tgt)
+    translation_tolerance = tolerance * rms_radius(tgt)
     R, t = R0.copy(), t0.copy()
     running = np.arange(len(R))  # starts still updating
     for _ in range(max_iterations):
@@ -259,7 +259,7 @@ def icp_symmetric(
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, tgt_normals, tgt_defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
     src_normals, src_defined = target_normals(src, normal_neighbours)  # [N, 3], [N] in the source frame
-    scale, sigma2 = _rms_radius(tgt), (max_distance / 3.0) ** 2
+    scale, sigma2 = rms_radius(tgt), (max_distance / 3.0) ** 2
     iterations, warnings = 0, []
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -361,7 +361,7 @@ def icp_plane(
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
     src_tree = KDTree(src) if reciprocal else None
-    scale = _rms_radius(tgt)
+    scale = rms_radius(tgt)
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -406,12 +406,7 @@ def _plane_step(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray | Non
     observed).
     """
     centre = p.mean(axis=0) if w is None else (w @ p) / w.sum()  # [3]
-    arm = (p - centre) / scale  # [P, 3], unitless
-    J = np.empty((len(p), 6))  # [P, 6]: d residual / d (w, tau / scale) = [arm x n, n]
-    J[:, 0] = arm[:, 1] * n[:, 2] - arm[:, 2] * n[:, 1]
-    J[:, 1] = arm[:, 2] * n[:, 0] - arm[:, 0] * n[:, 2]
-    J[:, 2] = arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]
-    J[:, 3:] = n
+    J = plane_jacobian(p, n, centre, scale)  # [P, 6]
     Jw = J if w is None else J * w[:, None]  # [P, 6]
     H, g = Jw.T @ J, -(Jw.T @ r) / scale  # [6, 6], [6]
     eigenvalues, eigenvectors = np.linalg.eigh(H)  # ascending
@@ -423,6 +418,19 @@ def _plane_step(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray | Non
     R_step = rotation_of(rotvec, angle)
     t_step = centre + tau - R_step @ centre  # p -> centre + R_step (p - centre) + tau
     return R_step, t_step, angle, float(np.sqrt(tau @ tau))
+
+
+def plane_jacobian(p: np.ndarray, n: np.ndarray, centre: np.ndarray, scale: float) -> np.ndarray:
+    """``[P, 6]`` derivatives of the point-to-plane residuals ``n . (p - q)`` of points ``p [P, 3]`` with
+    normals ``n [P, 3]`` with respect to a small rotation about ``centre [3]`` and a translation over
+    ``scale``: rows ``[arm x n, n]`` with ``arm = (p - centre) / scale`` (unitless)."""
+    arm = (p - centre) / scale  # [P, 3]
+    J = np.empty((len(p), 6))  # [P, 6]
+    J[:, 0] = arm[:, 1] * n[:, 2] - arm[:, 2] * n[:, 1]
+    J[:, 1] = arm[:, 2] * n[:, 0] - arm[:, 0] * n[:, 2]
+    J[:, 2] = arm[:, 0] * n[:, 1] - arm[:, 1] * n[:, 0]
+    J[:, 3:] = n
+    return J
 
 
 def rotation_of(rotvec: np.ndarray, angle: float) -> np.ndarray:
@@ -474,7 +482,7 @@ def _checked(src, tgt, R0, t0, max_distance: float, max_iterations: int):
     return src, tgt, R, t
 
 
-def _rms_radius(points: np.ndarray) -> float:
+def rms_radius(points: np.ndarray) -> float:
     """RMS distance of ``points (M, 3)`` from their centroid (at least the smallest positive float)."""
     radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
     return max(radius, np.finfo(np.float64).tiny)

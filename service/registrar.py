@@ -37,6 +37,7 @@ from service.rotation_search import (
     search_rotations_for,
 )
 from service.sampling import evenly_spaced_indices, resample_indices, spread_indices
+from service.stability import pose_stability, weak_motion_warning
 
 MIN_POINTS = 32
 MAX_ITERATIONS = 8
@@ -142,6 +143,7 @@ class RegistrationResult:
     iterations: int
     timing_ms: dict[str, float]
     iteration_poses: list[IterationPose] = field(default_factory=list)
+    stability: float | None = None  # service.stability: below WEAK_EIGENVALUE the pose is weakly constrained
 
     @property
     def transform(self) -> np.ndarray:
@@ -530,6 +532,7 @@ class Registrar:
         refine_warnings: tuple[str, ...] = ()
         pick, ambiguity = 0, None
         R_final, t_final = starts[0]
+        surface: Surface | None = None  # the refinement's target surface (icp-plane modes)
         if refine != "none":
             distance = icp_max_distance if icp_max_distance is not None else ICP_DISTANCE * scale
             surface = Surface.of(work.tgt_r) if refine != "icp" else None  # one target surface for every stage
@@ -559,6 +562,9 @@ class Registrar:
         ]
         t4 = time.perf_counter()
         quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale)
+        working_surface = surface if surface is not None and work.tgt_r is tgt_w else Surface.of(tgt_w)
+        stability = pose_stability(src[idx_s] @ R_final.T + t_final, tgt_w, working_surface, ICP_DISTANCE * scale)
+        weak = weak_motion_warning(stability)
         weights = net.weights
         w_sum = weights.sum()
         result = RegistrationResult(
@@ -572,8 +578,9 @@ class Registrar:
             ),
             inlier_ratio=quality.inlier_ratio,
             residual_rms=quality.residual_rms,
-            reliable=bool(quality.reliable) and ambiguity is None,  # assess() already refuses degenerate clouds
-            warnings=[*quality.warnings, *refine_warnings, *([ambiguity] if ambiguity else [])],
+            reliable=bool(quality.reliable) and ambiguity is None and weak is None,  # assess(): degenerate clouds
+            warnings=[*quality.warnings, *refine_warnings, *(w for w in (ambiguity, weak) if w)],
+            stability=None if stability is None else stability.eigenvalue,
             iterations=iterations,
             timing_ms=timing,
             iteration_poses=poses,

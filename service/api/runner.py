@@ -167,6 +167,7 @@ def register_response(entry: ModelEntry, pair: Pair, result: RegistrationResult,
             "inlier_ratio": float(result.inlier_ratio),
             "residual_rms": float(result.residual_rms),
             "reliable": bool(result.reliable),
+            "stability": None if result.stability is None else float(result.stability),
         },
         "warnings": list(result.warnings),
         "model": model_ref(entry),
@@ -182,6 +183,7 @@ def register_response(entry: ModelEntry, pair: Pair, result: RegistrationResult,
 
 def _check_response_numbers(result: RegistrationResult, queue_ms: float, options: RegisterOptions) -> None:
     scalars = [result.inlier_ratio, result.residual_rms, queue_ms, *result.timing_ms.values()]
+    scalars += [] if result.stability is None else [result.stability]
     arrays = [result.rotation, result.translation, np.asarray(scalars, dtype=np.float64)]
     ok = True
     if options.return_correspondences:
@@ -210,7 +212,8 @@ def infer_outputs(result: RegistrationResult, names: list[str]) -> list[dict[str
 
 
 def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
-    """The OIP response ``parameters``; ``search_ms`` only when the rotation search ran (``timing_ms["search"]``)."""
+    """The OIP response ``parameters``; ``stability`` only when there is one, ``search_ms`` only when the rotation
+    search ran (``timing_ms["search"]``)."""
     parameters = {
         "iterations": int(result.iterations),
         "inlier_ratio": float(result.inlier_ratio),
@@ -219,6 +222,8 @@ def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
         "warnings": "; ".join(result.warnings),
         "total_ms": float(result.timing_ms["total"]),
     }
+    if result.stability is not None:  # OIP parameter values cannot be null
+        parameters["stability"] = float(result.stability)
     if "search" in result.timing_ms:
         parameters["search_ms"] = float(result.timing_ms["search"])
     return parameters

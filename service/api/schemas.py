@@ -132,8 +132,16 @@ class Quality(BaseModel):
     residual_rms: float = Field(description="RMS distance of those inliers, caller's units.")
     reliable: bool = Field(
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
-        "0.3 or below 0.6 of what the target's point density allows, identical / collinear points, or (rotation "
-        "search) a pose far from the returned one that fits almost as well (an 'ambiguous' warning)."
+        "0.3 or below 0.6 of what the target's point density allows, identical / collinear points, a weakly "
+        "constrained pose (stability below 0.01: a 'weakly constrained' warning), or (rotation search) a pose far "
+        "from the returned one that fits almost as well (an 'ambiguous' warning)."
+    )
+    stability: float | None = Field(
+        default=None,
+        description="How firmly the geometry pins the pose down: the smallest eigenvalue of the point-to-plane "
+        "information matrix per paired point (unitless: rotation arms in units of the target's RMS radius). "
+        "Below 0.01 some motion -- a turn about an axis of symmetry, a slide along a flat overlap -- hardly "
+        "changes the fit and the pose along it is a guess; null with too few paired points.",
     )
 
 
@@ -160,7 +168,7 @@ class RegisterResponse(BaseModel):
                     "transform": [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
                     "euler_zyx_deg": [0, 0, 0],
                     "correspondences": [{"source_index": 3, "target_index": 3, "credibility": 0.97, "weight": 0.02}],
-                    "quality": {"inlier_ratio": 0.98, "residual_rms": 0.004, "reliable": True},
+                    "quality": {"inlier_ratio": 0.98, "residual_rms": 0.004, "reliable": True, "stability": 0.07},
                     "warnings": [],
                     "model": {"name": "clean", "version": "0.1.0", "sha256": "4752cd1a..."},
                     "iterations": 4,

@@ -11,6 +11,7 @@ import pytest
 from api_server import MODEL, assert_error, isolated_settings, modelnet_pair, pair_json, start_thread_server
 from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
+from shapes import ellipsoid_surface
 
 from service.api.runner import supports_option
 from service.api.schemas import InferParameters
@@ -56,8 +57,9 @@ def test_registers_modelnet_pair_with_bounded_pose_error(single):
     assert body["model"]["name"] == MODEL and len(body["model"]["sha256"]) == 64
     assert body["iterations"] == 4
     assert body["timing_ms"]["total"] > 0 and "queue" in body["timing_ms"]
-    assert set(body["quality"]) == {"inlier_ratio", "residual_rms", "reliable"}
+    assert set(body["quality"]) == {"inlier_ratio", "residual_rms", "reliable", "stability"}
     assert 0 <= body["quality"]["inlier_ratio"] <= 1
+    assert body["quality"]["stability"] > 0.01 and body["quality"]["reliable"]  # a well-constrained pose
     assert isinstance(body["warnings"], list)
     assert "iteration_poses" not in body
 
@@ -279,6 +281,7 @@ def test_rotation_search_auto_keeps_a_good_plain_result_on_every_route(client, s
     assert response.status_code == 200, response.text
     np.testing.assert_array_equal(oip_transform(response), np.array(reference["transform"], np.float32))
     assert "search_ms" not in response.json()["parameters"]
+    assert response.json()["parameters"]["stability"] == reference["quality"]["stability"]
 
 
 def test_rotation_search_auto_searches_after_a_poor_plain_result(client):
@@ -446,3 +449,14 @@ def test_concurrent_requests_equal_sequential_ones(server, single):
     for seed, body in zip(seeds, results, strict=True):
         assert body["transform"] == single[seed]["transform"], seed
         assert body["correspondences"] == single[seed]["correspondences"], seed
+
+
+def test_a_weakly_constrained_pose_is_returned_but_not_reliable(client):
+    """Two samples of a spheroid over HTTP: the pose comes back, flagged, with the free turn named."""
+    source = ellipsoid_surface(np.random.default_rng(0), 800, axes=(0.6, 0.6, 1.0), bump=0.0)
+    target = ellipsoid_surface(np.random.default_rng(1), 800, axes=(0.6, 0.6, 1.0), bump=0.0) + np.array([0.1, 0, 0.2])
+    response = client.post("/v1/register", json={"source": source.tolist(), "target": target.tolist()})
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["quality"]["stability"] < 0.01 and body["quality"]["reliable"] is False
+    assert any(w.startswith("weakly constrained: a turn about the axis") for w in body["warnings"])

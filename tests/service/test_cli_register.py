@@ -95,7 +95,7 @@ def assert_proper_pose_record(record: dict) -> None:
     euler = np.asarray(record["euler_zyx_deg"])
     assert euler.shape == (3,) and np.allclose(Rotation.from_euler("zyx", euler, degrees=True).as_matrix(), R)
     quality = record["quality"]
-    assert set(quality) == {"inlier_ratio", "residual_rms", "reliable"}
+    assert set(quality) == {"inlier_ratio", "residual_rms", "reliable", "stability"}
     assert 0.0 <= quality["inlier_ratio"] <= 1.0 and quality["residual_rms"] >= 0.0
     assert isinstance(quality["reliable"], bool) and isinstance(record["warnings"], list)
     assert record["model"]["name"] == "clean" and len(record["model"]["sha256"]) == 64

@@ -1,0 +1,112 @@
+"""How firmly the geometry pins a pose down: the point-to-plane information matrix at that pose.
+
+At a registered pose, each source point near the target's surface constrains the motions that would move it
+off the tangent plane of its nearest target point. ``H = J^T J / P`` over those pairs (``J``:
+:func:`service.icp.plane_jacobian`, rotations about the pairs' centroid with arms in units of the target's RMS
+radius, so ``H`` is unitless and independent of the clouds' size and density) says how much the fit changes
+for each small motion. Its smallest eigenvalue is the fit's sensitivity to the motion it constrains least
+(its eigenvector): near zero when a shape of revolution can turn about its axis, or a flat or elongated overlap
+can slide, without leaving the surface. Such a pose is a guess along that motion however well it fits, and on
+the sparse test pairs most wrong results that every fit statistic called reliable are of this kind
+(``docs/RELIABILITY.md``, "Weakly constrained poses").
+
+The surface is not the only thing that can pin a motion down: where the two clouds share their sample points
+(synthetic pairs, or one scan registered to a copy of itself) the points themselves fix the turn of a shape of
+revolution. So a low eigenvalue only counts when moving the paired points by one target sample spacing along the
+weak motion leaves their RMS distance to the target within ``PINNED_RATIO`` of what it was: between independent
+samples it stays within 0.85-1.11x; between shared points it grows 1.9x or more.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.icp import PLANE_MIN_INLIERS, Surface, plane_jacobian, rms_radius, rotation_of
+
+# A pose whose smallest eigenvalue is below this is weakly constrained (not reliable). Chosen on 300 sparse and
+# 170 dense seeded test pairs with `general` + icp-plane (2026-11-26, docs/RELIABILITY.md): it flagged 26 of the
+# 40 sparse misses that the fit-based rule called reliable but 8 of 260 right sparse poses and no dense one.
+WEAK_EIGENVALUE = 0.01
+# ... and moving the paired points one target sample spacing along the weak motion raises their RMS distance to the
+# target by less than this factor (the samples do not pin it either). Between independent samples 0.85-1.11x on the
+# sparse and dense test pairs; between the paper protocol's shared points 1.9x and more (same pairs, 2026-11-26).
+PINNED_RATIO = 1.5
+ROTATION_SHARE = 0.7  # a weak motion whose eigenvector is at least this much rotation is named a turn
+TRANSLATION_SHARE = 0.7  # ... at least this much translation a slide; in between, a turn and slide together
+
+
+@dataclass(frozen=True)
+class Stability:
+    """The least constrained motion of a pose (target frame)."""
+
+    eigenvalue: float  # smallest eigenvalue of H (unitless; per pair)
+    motion: np.ndarray  # [6] its unit eigenvector: rotation (axis direction) then translation parts
+    pairs: int  # source points that entered H
+    probe_ratio: float | None = None  # RMS distance after / before a one-spacing move along it (low eigenvalues only)
+
+    @property
+    def weak(self) -> bool:
+        """Weakly constrained: neither the surface nor the sample points pin the least constrained motion down."""
+        return self.eigenvalue < WEAK_EIGENVALUE and (self.probe_ratio is None or self.probe_ratio < PINNED_RATIO)
+
+
+def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, surface: Surface, max_distance: float) -> Stability | None:
+    """:class:`Stability` of the moved source ``src_in_tgt [N, 3]`` on ``tgt [M, 3]`` (``surface``: its tree and
+    normals), over the source points within ``max_distance`` of a target point whose normal is defined.
+
+    None with fewer than ``PLANE_MIN_INLIERS`` such points (no rigid motion is determined by them).
+    """
+    dist, nearest = surface.tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
+    paired = dist < max_distance  # [N]; misses come back as inf
+    paired[paired] = surface.defined[nearest[paired]]
+    if np.count_nonzero(paired) < PLANE_MIN_INLIERS:
+        return None
+    p, n = src_in_tgt[paired], surface.normals[nearest[paired]]  # [P, 3] each
+    centre, scale = p.mean(axis=0), rms_radius(tgt)
+    J = plane_jacobian(p, n, centre, scale)  # [P, 6]
+    eigenvalues, eigenvectors = np.linalg.eigh(J.T @ J / len(p))  # ascending
+    eigenvalue, motion = float(max(eigenvalues[0], 0.0)), eigenvectors[:, 0]
+    probe = None
+    if eigenvalue < WEAK_EIGENVALUE:  # only then does it matter whether the samples pin the motion down
+        probe = _probe_ratio(p, dist[paired], tgt, surface, centre, scale, motion)
+    return Stability(eigenvalue, motion, len(p), probe)
+
+
+def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, surface: Surface, centre: np.ndarray,
+                 scale: float, motion: np.ndarray) -> float:
+    """RMS nearest-target distance of the paired points ``p [P, 3]`` (now ``dist [P]``) after moving them one target
+    sample spacing (RMS displacement) along ``motion [6]`` either way, over their RMS distance now (the smaller)."""
+    spacing = float(np.median(surface.tree.query(tgt, k=2)[0][:, 1]))  # [M] nearest other target point
+    turn, slide = motion[:3], motion[3:] * scale  # rotation vector per unit step; translation per unit step
+    displacement = np.cross(turn, p - centre) + slide  # [P, 3] linearised, per unit step
+    step = spacing / max(float(np.sqrt(np.mean(np.sum(displacement**2, axis=1)))), 1e-300)
+    before = max(float(np.sqrt(np.mean(dist**2))), np.finfo(np.float64).tiny)
+    ratios = []
+    for sign in (1.0, -1.0):
+        rotvec = sign * step * turn
+        moved = (p - centre) @ rotation_of(rotvec, float(np.linalg.norm(rotvec))).T + centre + sign * step * slide
+        after, _ = surface.tree.query(moved, k=1)  # [P]
+        ratios.append(float(np.sqrt(np.mean(after**2))) / before)
+    return min(ratios)
+
+
+def weak_motion_warning(stability: Stability | None) -> str | None:
+    """The warning of a weakly constrained pose, naming its least constrained motion; None otherwise."""
+    if stability is None or not stability.weak:
+        return None
+    turn, slide = stability.motion[:3], stability.motion[3:]
+    turn_share, slide_share = float(np.linalg.norm(turn)), float(np.linalg.norm(slide))  # squares sum to 1
+    axis, direction = turn / max(turn_share, 1e-12), slide / max(slide_share, 1e-12)
+    if turn_share >= ROTATION_SHARE:
+        what = f"a turn about the axis ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"
+        why = "the shape may be symmetric about it"
+    elif slide_share >= TRANSLATION_SHARE:
+        what = f"a slide along ({direction[0]:.2f}, {direction[1]:.2f}, {direction[2]:.2f})"
+        why = "the overlap may be flat or elongated along it"
+    else:
+        what = f"a turn about ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) with a slide"
+        why = "the overlap may be symmetric"
+    return (f"weakly constrained: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
+            f"{WEAK_EIGENVALUE:g}); {why}, and the pose along it is a guess")

@@ -1,0 +1,98 @@
+"""Specification of ``service.stability``: how firmly the geometry pins a registered pose down."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from shapes import asymmetric_blob, ellipsoid_surface
+
+from service.icp import Surface
+from service.registrar import Registrar
+from service.stability import PINNED_RATIO, WEAK_EIGENVALUE, Stability, pose_stability, weak_motion_warning
+
+BUNDLED = Path(__file__).resolve().parents[2] / "service" / "models" / "general"
+SPHEROID_AXES = (0.6, 0.6, 1.0)  # a solid of revolution about z
+
+
+def spheroid(n: int, seed: int) -> np.ndarray:
+    return ellipsoid_surface(np.random.default_rng(seed), n, axes=SPHEROID_AXES, bump=0.0)
+
+
+def stability_of(source: np.ndarray, target: np.ndarray, max_distance: float = 0.1) -> Stability | None:
+    """Stability of ``source`` on ``target`` at the identity pose (two samples of one surface)."""
+    return pose_stability(source, target, Surface.of(target), max_distance)
+
+
+def test_a_shape_of_revolution_turns_freely_about_its_axis() -> None:
+    stability = stability_of(spheroid(800, 0), spheroid(800, 1))
+    assert stability is not None and stability.weak
+    assert abs(stability.motion[2]) > 0.95  # the weak motion is a turn about z
+    warning = weak_motion_warning(stability)
+    assert warning.startswith("weakly constrained: a turn about the axis")
+    assert "symmetric" in warning
+
+
+def test_shared_sample_points_pin_the_turn_of_a_shape_of_revolution() -> None:
+    """The same points on both sides (synthetic pairs): moving them along the surface leaves their partners."""
+    points = spheroid(800, 0)
+    shared = stability_of(points, points)
+    independent = stability_of(points, spheroid(800, 1))
+    assert shared.eigenvalue < WEAK_EIGENVALUE and shared.probe_ratio >= PINNED_RATIO and not shared.weak
+    assert independent.probe_ratio < 1.2 and independent.weak
+    assert weak_motion_warning(shared) is None
+
+
+def test_an_asymmetric_shape_pins_the_pose_down() -> None:
+    stability = stability_of(asymmetric_blob(800, 0), asymmetric_blob(800, 1))
+    assert stability is not None and stability.eigenvalue > 3 * WEAK_EIGENVALUE
+    assert weak_motion_warning(stability) is None
+
+
+def test_a_flat_overlap_can_slide() -> None:
+    rng = np.random.default_rng(0)
+    ridge = lambda p: np.c_[p, 0.2 * np.sin(3 * p[:, :1])]  # noqa: E731  # a surface that varies along x only
+    source, target = ridge(rng.uniform(-1, 1, (800, 2))), ridge(rng.uniform(-1, 1, (800, 2)))
+    stability = stability_of(source, target)
+    assert stability is not None and stability.weak
+    assert abs(stability.motion[4]) > 0.9  # sliding along y leaves every point on the surface
+    assert weak_motion_warning(stability).startswith("weakly constrained: a slide along")
+
+
+def test_the_figure_does_not_depend_on_units_position_or_orientation() -> None:
+    source, target = asymmetric_blob(600, 2), asymmetric_blob(600, 3)
+    R = Rotation.from_euler("zyx", [40, -20, 75], degrees=True).as_matrix()
+    reference = stability_of(source, target)
+    moved = stability_of(1000 * source @ R.T + 5e4, 1000 * target @ R.T + 5e4, max_distance=100.0)
+    assert moved.eigenvalue == pytest.approx(reference.eigenvalue, rel=1e-6)
+    assert moved.pairs == reference.pairs
+
+
+def test_too_few_pairs_give_no_figure_and_no_warning() -> None:
+    target = asymmetric_blob(600, 3)
+    assert stability_of(asymmetric_blob(600, 2) + 10.0, target) is None
+    assert weak_motion_warning(None) is None
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    return Registrar(BUNDLED, threads=2)
+
+
+def test_a_registered_shape_of_revolution_is_not_reliable(registrar) -> None:
+    """Two samples of a spheroid fit at any turn about its axis: the returned pose is a guess along it."""
+    R = Rotation.from_euler("zyx", [20, 10, -15], degrees=True).as_matrix()
+    result = registrar.register(spheroid(1024, 0), spheroid(1024, 1) @ R.T + [0.1, 0.2, -0.1], refine="icp-plane")
+    assert result.inlier_ratio > 0.8  # it fits: only the free turn makes it unreliable
+    assert result.stability < WEAK_EIGENVALUE and not result.reliable
+    assert any(w.startswith("weakly constrained: a turn about the axis") for w in result.warnings)
+
+
+def test_a_registered_asymmetric_shape_stays_reliable(registrar) -> None:
+    R = Rotation.from_euler("zyx", [20, 10, -15], degrees=True).as_matrix()
+    result = registrar.register(asymmetric_blob(1024, 0), asymmetric_blob(1024, 1) @ R.T + [0.1, 0.2, -0.1],
+                                refine="icp-plane")
+    assert result.stability > WEAK_EIGENVALUE and result.reliable
+    assert not any(w.startswith("weakly constrained") for w in result.warnings)
