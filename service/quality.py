@@ -140,7 +140,10 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         inlier_ratio, residual_rms = float(ratio), float(rms)
         attainable = attainable_inlier_ratio(tgt, inlier_distance, tree)
     if inlier_ratio < RELIABLE_INLIER_RATIO:
-        warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}")
+        sparse = attainable < RELIABLE_INLIER_RATIO / RELIABLE_RELATIVE_RATIO  # even a right pose keeps little
+        warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (
+            f" (the target is sparse for the inlier distance: its density allows {attainable:.2f}, so even a right "
+            "pose may not reach it)" if sparse else ""))
     elif inlier_ratio < RELIABLE_RELATIVE_RATIO * attainable:
         warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {RELIABLE_RELATIVE_RATIO} of the "
                         f"{attainable:.2f} the target's density allows")

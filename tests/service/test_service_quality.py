@@ -120,6 +120,16 @@ def test_a_target_too_sparse_for_the_inlier_distance_falls_back_to_the_fixed_rat
     assert quality.reliable and not any(w.startswith(("poor fit", "low overlap")) for w in quality.warnings)
 
 
+def test_low_overlap_on_a_sparse_target_says_that_the_target_is_sparse() -> None:
+    tgt = blob(100, seed=6) * 10  # attainable ratio ~0 at 0.1
+    src = tgt.copy()
+    src[20:] += 1000.0
+    (warning,) = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1).warnings
+    assert warning.startswith("low overlap: inlier ratio 0.20 < 0.3 (the target is sparse for the inlier distance")
+    dense = assess(src * 1e-3, tgt * 1e-3, np.eye(3), np.zeros(3), inlier_distance=0.1)  # now every point has partners
+    assert dense.warnings == ["low overlap: inlier ratio 0.20 < 0.3"]
+
+
 def test_collinear_source_is_never_reliable() -> None:
     line = np.linspace(0, 1, 50)[:, None] * np.array([[1.0, 2.0, 3.0]])
     quality = assess(line, line, np.eye(3), np.zeros(3), inlier_distance=0.1)
