@@ -158,22 +158,25 @@ def icp_many(
     return R, t
 
 
-def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None):
+def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None,
+                   at: np.ndarray | None = None):
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
     False where the neighbourhood is (nearly) a line or a single point, so that no plane is defined.
+    ``at (A,)``: only the normals of ``tgt[at]`` (``(A, 3)`` and ``(A,)``).
     """
+    points = tgt if at is None else tgt[at]  # [A, 3]
     k = min(int(neighbours), tgt.shape[0])
     if k < 3:
-        return np.zeros_like(tgt), np.zeros(tgt.shape[0], dtype=bool)
+        return np.zeros_like(points), np.zeros(points.shape[0], dtype=bool)
     tree = KDTree(tgt) if tree is None else tree
-    _, idx = tree.query(tgt, k=k)  # [M, k]
-    hood = tgt[idx]  # [M, k, 3]
-    centred = hood - hood.mean(axis=1, keepdims=True)  # [M, k, 3]
-    cov = centred.transpose(0, 2, 1) @ centred / k  # [M, 3, 3] (batched matmul: 3x faster than einsum here)
-    variance, normals = smallest_eigenvectors(cov)  # [M, 3] ascending, [M, 3]
-    defined = variance[:, 1] > NORMAL_MIN_SPREAD**2 * variance[:, 2]  # [M]; 0 > 0 is False too
+    _, idx = tree.query(points, k=k)  # [A, k]
+    hood = tgt[idx]  # [A, k, 3]
+    centred = hood - hood.mean(axis=1, keepdims=True)  # [A, k, 3]
+    cov = centred.transpose(0, 2, 1) @ centred / k  # [A, 3, 3] (batched matmul: 3x faster than einsum here)
+    variance, normals = smallest_eigenvectors(cov)  # [A, 3] ascending, [A, 3]
+    defined = variance[:, 1] > NORMAL_MIN_SPREAD**2 * variance[:, 2]  # [A]; 0 > 0 is False too
     return normals, defined
 
 

@@ -111,12 +111,13 @@ def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTre
     return float(np.mean(nearest_other <= inlier_distance))
 
 
-def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float) -> Quality:
+def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
+           tree: KDTree | None = None) -> Quality:
     """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
 
     A moved source point ``R p + t`` is an inlier when its nearest target point is at most
     ``inlier_distance`` away (caller's units).  Warnings name the cloud (``"source ..."``,
-    ``"target ..."``) and flag a low inlier ratio.
+    ``"target ..."``) and flag a low inlier ratio. ``tree``: ``KDTree(tgt)`` when the caller has it.
     """
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
@@ -133,7 +134,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
 
     inlier_ratio, residual_rms, attainable = 0.0, 0.0, 1.0
     if src.shape[0] and tgt.shape[0]:
-        tree = KDTree(tgt)
+        tree = KDTree(tgt) if tree is None else tree
         src_in_tgt = src @ R.T + t  # [N, 3]
         dist, _ = tree.query(src_in_tgt, k=1)  # [N]
         ratio, rms = inlier_statistics(dist, inlier_distance)

@@ -20,6 +20,7 @@ import onnxruntime as ort
 
 from service.errors import InputError
 from service.icp import IcpResult, Surface, icp, icp_plane, refine_plane
+from service.kdtree import KDTree
 from service.manifest import Manifest, load_manifest
 from service.multistart import best_turned_pose
 from service.neighbours import knn_graph
@@ -561,9 +562,10 @@ class Registrar:
             for R, t in (net.cumulative if return_iterations else [])
         ]
         t4 = time.perf_counter()
-        quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale)
-        working_surface = surface if surface is not None and work.tgt_r is tgt_w else Surface.of(tgt_w)
-        stability = pose_stability(src[idx_s] @ R_final.T + t_final, tgt_w, working_surface, ICP_DISTANCE * scale)
+        surface = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
+        tree = KDTree(tgt_w) if surface is None else surface.tree
+        quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale, tree)
+        stability = pose_stability(src[idx_s] @ R_final.T + t_final, tgt_w, tree, ICP_DISTANCE * scale, surface)
         weak = weak_motion_warning(stability)
         weights = net.weights
         w_sum = weights.sum()

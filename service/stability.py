@@ -23,7 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.icp import PLANE_MIN_INLIERS, Surface, plane_jacobian, rms_radius, rotation_of
+from service.icp import PLANE_MIN_INLIERS, Surface, plane_jacobian, rms_radius, rotation_of, target_normals
+from service.kdtree import KDTree
 
 # A pose whose smallest eigenvalue is below this is weakly constrained (not reliable). Chosen on 300 sparse and
 # 170 dense seeded test pairs with `general` + icp-plane (2026-11-26, docs/RELIABILITY.md): it flagged 26 of the
@@ -52,33 +53,42 @@ class Stability:
         return self.eigenvalue < WEAK_EIGENVALUE and (self.probe_ratio is None or self.probe_ratio < PINNED_RATIO)
 
 
-def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, surface: Surface, max_distance: float) -> Stability | None:
-    """:class:`Stability` of the moved source ``src_in_tgt [N, 3]`` on ``tgt [M, 3]`` (``surface``: its tree and
-    normals), over the source points within ``max_distance`` of a target point whose normal is defined.
+def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_distance: float,
+                   surface: Surface | None = None) -> Stability | None:
+    """:class:`Stability` of the moved source ``src_in_tgt [N, 3]`` on ``tgt [M, 3]`` (``tree``: its KD-tree), over
+    the source points within ``max_distance`` of a target point whose normal is defined.
 
-    None with fewer than ``PLANE_MIN_INLIERS`` such points (no rigid motion is determined by them).
+    ``surface``: the target's normals when the caller has them (the refinement's), else only the normals of the
+    target points that are some source point's partner are computed. None with fewer than ``PLANE_MIN_INLIERS``
+    such points (no rigid motion is determined by them).
     """
-    dist, nearest = surface.tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
+    dist, nearest = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
     paired = dist < max_distance  # [N]; misses come back as inf
-    paired[paired] = surface.defined[nearest[paired]]
+    partners = nearest[paired]  # [Q]
+    if surface is not None:
+        normals, defined = surface.normals[partners], surface.defined[partners]  # [Q, 3], [Q]
+    else:
+        needed, where = np.unique(partners, return_inverse=True)
+        normals, defined = (x[where] for x in target_normals(tgt, tree=tree, at=needed))
+    paired[paired] = defined
     if np.count_nonzero(paired) < PLANE_MIN_INLIERS:
         return None
-    p, n = src_in_tgt[paired], surface.normals[nearest[paired]]  # [P, 3] each
+    p, n = src_in_tgt[paired], normals[defined]  # [P, 3] each
     centre, scale = p.mean(axis=0), rms_radius(tgt)
     J = plane_jacobian(p, n, centre, scale)  # [P, 6]
     eigenvalues, eigenvectors = np.linalg.eigh(J.T @ J / len(p))  # ascending
     eigenvalue, motion = float(max(eigenvalues[0], 0.0)), eigenvectors[:, 0]
     probe = None
     if eigenvalue < WEAK_EIGENVALUE:  # only then does it matter whether the samples pin the motion down
-        probe = _probe_ratio(p, dist[paired], tgt, surface, centre, scale, motion)
+        probe = _probe_ratio(p, dist[paired], tgt, tree, centre, scale, motion)
     return Stability(eigenvalue, motion, len(p), probe)
 
 
-def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, surface: Surface, centre: np.ndarray,
+def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree, centre: np.ndarray,
                  scale: float, motion: np.ndarray) -> float:
     """RMS nearest-target distance of the paired points ``p [P, 3]`` (now ``dist [P]``) after moving them one target
     sample spacing (RMS displacement) along ``motion [6]`` either way, over their RMS distance now (the smaller)."""
-    spacing = float(np.median(surface.tree.query(tgt, k=2)[0][:, 1]))  # [M] nearest other target point
+    spacing = float(np.median(tree.query(tgt, k=2)[0][:, 1]))  # [M] nearest other target point
     turn, slide = motion[:3], motion[3:] * scale  # rotation vector per unit step; translation per unit step
     displacement = np.cross(turn, p - centre) + slide  # [P, 3] linearised, per unit step
     step = spacing / max(float(np.sqrt(np.mean(np.sum(displacement**2, axis=1)))), 1e-300)
@@ -87,7 +97,7 @@ def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, surface: Surf
     for sign in (1.0, -1.0):
         rotvec = sign * step * turn
         moved = (p - centre) @ rotation_of(rotvec, float(np.linalg.norm(rotvec))).T + centre + sign * step * slide
-        after, _ = surface.tree.query(moved, k=1)  # [P]
+        after, _ = tree.query(moved, k=1)  # [P]
         ratios.append(float(np.sqrt(np.mean(after**2))) / before)
     return min(ratios)
 

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, ellipsoid_surface
 
 from service.icp import Surface
+from service.kdtree import KDTree
 from service.registrar import Registrar
 from service.stability import PINNED_RATIO, WEAK_EIGENVALUE, Stability, pose_stability, weak_motion_warning
 
@@ -23,7 +24,7 @@ def spheroid(n: int, seed: int) -> np.ndarray:
 
 def stability_of(source: np.ndarray, target: np.ndarray, max_distance: float = 0.1) -> Stability | None:
     """Stability of ``source`` on ``target`` at the identity pose (two samples of one surface)."""
-    return pose_stability(source, target, Surface.of(target), max_distance)
+    return pose_stability(source, target, KDTree(target), max_distance)
 
 
 def test_a_shape_of_revolution_turns_freely_about_its_axis() -> None:
@@ -68,6 +69,16 @@ def test_the_figure_does_not_depend_on_units_position_or_orientation() -> None:
     moved = stability_of(1000 * source @ R.T + 5e4, 1000 * target @ R.T + 5e4, max_distance=100.0)
     assert moved.eigenvalue == pytest.approx(reference.eigenvalue, rel=1e-6)
     assert moved.pairs == reference.pairs
+
+
+def test_the_refinements_normals_give_the_same_figure() -> None:
+    """With the target's normals at hand (``icp-plane``) nothing is computed again, and nothing changes."""
+    source, target = spheroid(600, 2), spheroid(600, 3)
+    surface = Surface.of(target)
+    given = pose_stability(source, target, surface.tree, 0.1, surface)
+    alone = stability_of(source, target)
+    assert given.eigenvalue == pytest.approx(alone.eigenvalue, rel=1e-12) and given.pairs == alone.pairs
+    assert given.probe_ratio == pytest.approx(alone.probe_ratio, rel=1e-12)
 
 
 def test_too_few_pairs_give_no_figure_and_no_warning() -> None:
