@@ -5,6 +5,12 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+# Warning kinds are the text before a warning's colon ("weakly constrained", "target coplanar", ...): a fixed set
+# in this code base; anything else is counted as "other" so that no request can grow the label set.
+WARNING_KINDS = frozenset({
+    "low overlap", "poor fit", "weakly constrained", "ambiguous", "refinement",
+    *(f"{cloud} {kind}" for cloud in ("source", "target") for kind in ("empty", "identical", "collinear", "coplanar")),
+})
 
 
 class Metrics:
@@ -31,6 +37,17 @@ class Metrics:
             "mfgnet_model_load_seconds", "Time to verify, load and warm up each model.", ["model"],
             registry=self.registry,
         )
+        self.results = Counter(
+            "mfgnet_registration_results",
+            "Registrations by model and whether the result is reliable (quality.reliable): a rising unreliable share "
+            "means the clouds changed (sensor, scene, overlap) or the model does not fit them.",
+            ["model", "reliable"], registry=self.registry,
+        )
+        self.warnings = Counter(
+            "mfgnet_registration_warnings", "Warnings of the returned registrations by model and kind (the text before "
+            "the colon: 'weakly constrained', 'low overlap', 'ambiguous', ...; 'other' for any other).",
+            ["model", "kind"], registry=self.registry,
+        )
         self.model_ready = Gauge(
             "mfgnet_model_ready", "1 when the model is served, 0 while loading or failed.", ["model"],
             registry=self.registry,
@@ -39,3 +56,10 @@ class Metrics:
     def observe_timing(self, model: str, timing_ms: dict[str, float]) -> None:
         for stage, ms in timing_ms.items():
             self.stage.labels(model=model, stage=stage).observe(ms / 1000)
+
+    def observe_quality(self, model: str, reliable: bool, warnings: list[str]) -> None:
+        """Count one returned registration and each of its warnings by kind."""
+        self.results.labels(model=model, reliable=str(bool(reliable)).lower()).inc()
+        for warning in warnings:
+            kind = warning.split(":", 1)[0]
+            self.warnings.labels(model=model, kind=kind if kind in WARNING_KINDS else "other").inc()

@@ -133,6 +133,7 @@ class Runner:
 
     def observe(self, entry: ModelEntry, result: RegistrationResult, queue_ms: float) -> None:
         self.metrics.observe_timing(entry.name, {"queue": queue_ms, **result.timing_ms})
+        self.metrics.observe_quality(entry.name, result.reliable, result.warnings)
 
 
 # -- results -> response bodies ----------------------------------------------------------------------

@@ -6,7 +6,9 @@ from __future__ import annotations
 import re
 import uuid
 
+import numpy as np
 from api_server import MODEL, modelnet_pair, pair_json
+from shapes import ellipsoid_surface
 
 
 def test_readiness_is_503_until_models_are_warm_then_200(server, client):
@@ -58,7 +60,7 @@ def metric(text: str, name: str, **labels: str) -> float:
     """The value of the sample ``name{labels}`` in a Prometheus text page (0 if absent)."""
     for line in text.splitlines():
         if line.startswith(name + "{") or line.startswith(name + " "):
-            sample_labels = dict(re.findall(r'(\w+)="([^"]*)"', line.split(" ")[0]))
+            sample_labels = dict(re.findall(r'(\w+)="([^"]*)"', line.rsplit(" ", 1)[0]))  # values may hold spaces
             if all(sample_labels.get(k) == v for k, v in labels.items()):
                 return float(line.rsplit(" ", 1)[1])
     return 0.0
@@ -83,10 +85,29 @@ def test_metrics_count_requests_and_time_pipeline_stages(client):
     assert delta("mfgnet_http_request_duration_seconds_count", route="/v1/register") == 1
     for stage in ("preprocess", "encoder", "iterations", "svd", "total", "queue"):
         assert delta("mfgnet_pipeline_stage_seconds_count", model=MODEL, stage=stage) == 1, stage
+    assert delta("mfgnet_registration_results_total", model=MODEL) == 1
     assert metric(text, "mfgnet_model_load_seconds", model=MODEL) > 0
     assert metric(text, "mfgnet_model_ready", model=MODEL) == 1
     assert metric(text, "mfgnet_http_requests_in_flight") >= 1  # this very request
     assert 'status="500"' not in text
+
+
+def test_metrics_count_unreliable_results_by_warning_kind(client):
+    """A spheroid's turn about its axis is free: one unreliable result, one 'weakly constrained' warning."""
+    before = client.get("/metrics").text
+    source = ellipsoid_surface(np.random.default_rng(0), 800, axes=(0.6, 0.6, 1.0), bump=0.0)
+    target = ellipsoid_surface(np.random.default_rng(1), 800, axes=(0.6, 0.6, 1.0), bump=0.0)
+    body = client.post("/v1/register", json={"source": source.tolist(), "target": target.tolist()}).json()
+    assert body["quality"]["reliable"] is False
+    after = client.get("/metrics").text
+    model = body["model"]["name"]  # the server's default model
+    kinds = {w.split(":")[0] for w in body["warnings"]}
+    assert "weakly constrained" in kinds
+    for kind in kinds:
+        assert metric(after, "mfgnet_registration_warnings_total", model=model, kind=kind) - metric(
+            before, "mfgnet_registration_warnings_total", model=model, kind=kind) == 1, kind
+    assert metric(after, "mfgnet_registration_results_total", model=model, reliable="false") - metric(
+        before, "mfgnet_registration_results_total", model=model, reliable="false") == 1
 
 
 def test_openapi_declares_both_content_types_and_error_responses(client):
@@ -124,3 +145,17 @@ def test_one_json_log_line_per_request_without_point_data(server, client):
     assert line["logger"] == "mfgnet.access" and line["method"] == "POST"
     log_text = server.log_path.read_text()
     assert repr(float(pair.source[0, 0])) not in log_text and str(body["source"][0]) not in log_text
+
+
+def test_unknown_warning_kinds_are_counted_as_other():
+    """The warning label set is fixed: no request can add a label value."""
+    from prometheus_client import generate_latest
+
+    from service.api.metrics import Metrics
+
+    metrics = Metrics()
+    metrics.observe_quality("m", True, ["weakly constrained: a turn ...", "source coplanar: ...", "made up 3: x", "x"])
+    text = generate_latest(metrics.registry).decode()
+    assert metric(text, "mfgnet_registration_results_total", model="m", reliable="true") == 1
+    for kind, count in (("weakly constrained", 1), ("source coplanar", 1), ("other", 2)):
+        assert metric(text, "mfgnet_registration_warnings_total", model="m", kind=kind) == count, kind
