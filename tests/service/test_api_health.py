@@ -85,7 +85,7 @@ def test_metrics_count_requests_and_time_pipeline_stages(client):
     assert delta("mfgnet_http_request_duration_seconds_count", route="/v1/register") == 1
     for stage in ("preprocess", "encoder", "iterations", "svd", "total", "queue"):
         assert delta("mfgnet_pipeline_stage_seconds_count", model=MODEL, stage=stage) == 1, stage
-    assert delta("mfgnet_registration_results_total", model=MODEL) == 1
+    assert sum(delta("mfgnet_registration_results_total", model=MODEL, reliable=r) for r in ("true", "false")) == 1
     assert metric(text, "mfgnet_model_load_seconds", model=MODEL) > 0
     assert metric(text, "mfgnet_model_ready", model=MODEL) == 1
     assert metric(text, "mfgnet_http_requests_in_flight") >= 1  # this very request
