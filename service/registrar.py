@@ -562,10 +562,10 @@ class Registrar:
             for R, t in (net.cumulative if return_iterations else [])
         ]
         t4 = time.perf_counter()
-        surface = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
-        tree = KDTree(tgt_w) if surface is None else surface.tree
+        working = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
+        tree = KDTree(tgt_w) if working is None else working.tree  # shared by the two checks below
         quality = assess(src[idx_s], tgt_w, R_final, t_final, INLIER_DISTANCE * scale, tree)
-        stability = pose_stability(src[idx_s] @ R_final.T + t_final, tgt_w, tree, ICP_DISTANCE * scale, surface)
+        stability = pose_stability(src[idx_s] @ R_final.T + t_final, tgt_w, tree, ICP_DISTANCE * scale, working)
         weak = weak_motion_warning(stability)
         weights = net.weights
         w_sum = weights.sum()
