@@ -28,7 +28,8 @@ from service.kdtree import KDTree
 
 # A pose whose smallest eigenvalue is below this is weakly constrained (not reliable). Chosen on 300 sparse and
 # 170 dense seeded test pairs with `general` + icp-plane (2026-11-26, docs/RELIABILITY.md): it flagged 26 of the
-# 40 sparse misses that the fit-based rule called reliable but 8 of 260 right sparse poses and no dense one.
+# 40 sparse misses, nearly all of which the fit-based rule called reliable, but 8 of 260 right sparse poses and 1 of
+# 169 right dense ones.
 WEAK_EIGENVALUE = 0.01
 # ... and moving the paired points one target sample spacing along the weak motion raises their RMS distance to the
 # target by less than this factor (the samples do not pin it either). Between independent samples 0.85-1.11x on the
