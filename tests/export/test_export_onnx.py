@@ -19,11 +19,11 @@ from model.network import MFGNet
 from service.registrar import Registrar
 
 
-def synthetic_pairs(count: int, seed: int = 0) -> dict[str, np.ndarray]:
-    """Pairs of smooth random shapes (no dataset needed) through the paper's protocol."""
+def synthetic_pairs(count: int, seed: int = 0, noise: float = 0.0) -> dict[str, np.ndarray]:
+    """Pairs of smooth random shapes (no dataset needed) through the paper's protocol (``noise``: its sigma)."""
     rng = np.random.default_rng(seed)
     shapes = ellipsoid_surface(rng, (count, 1024), bump=0.1, random_axes=(0.4, 1.0))
-    return make_pairs(shapes.astype(np.float32), PairProtocol(), rng)
+    return make_pairs(shapes.astype(np.float32), PairProtocol(noise_sigma=noise), rng)
 
 
 def trained_like_model(seed: int = 0, **cfg) -> MFGNet:
@@ -104,7 +104,10 @@ def test_bundled_onnx_model_matches_bundled_checkpoint():
     model = load_model(BUNDLED_CKPT)
     registrar = Registrar(BUNDLED, warmup=False)
     assert manifest["source_checkpoint_sha256"] == file_sha256(BUNDLED_CKPT), "re-export after re-bundling"
-    report = check_parity(model, registrar, synthetic_pairs(16, seed=9), min_compared=8)
+    # Noisy pairs, as `mfgnet export` checks by default: between shared points the aligned pairs sit at ~0 distance,
+    # where the unit-difference feature turns float32 (torch) vs float64 (runtime) rounding of the pose into other
+    # matches -- more often the better trained the model (docs/ACCURACY.md, `clean`).
+    report = check_parity(model, registrar, synthetic_pairs(16, seed=9, noise=0.01), min_compared=8)
     assert report.max_encoder_diff <= 1e-4 and report.max_matcher_diff <= 1e-4
     assert report.max_rotation_diff_deg <= 1e-3 and report.max_translation_diff <= 1e-5
 
