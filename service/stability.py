@@ -23,8 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.icp import PLANE_MIN_INLIERS, Surface, plane_jacobian, rms_radius, rotation_of, target_normals
+from service.icp import PLANE_MIN_INLIERS, Surface, plane_jacobian, rotation_of, target_normals
 from service.kdtree import KDTree
+from service.normalization import rms_radius
 
 # A pose whose smallest eigenvalue is below this is weakly constrained (not reliable). Chosen on 300 sparse and
 # 170 dense seeded test pairs with `general` + icp-plane (2026-11-26, docs/RELIABILITY.md): it flagged 26 of the
