@@ -1,0 +1,157 @@
+"""Where a bundled model's graphs spend their time, per ONNX Runtime op type, and their GEMM floor.
+
+``python -m export.bench_graph_ops --pairs dense.npz [--model general] [--repeats 30] [--json out.json]``
+
+Registers the first pair once with ``Registrar.register`` to capture the encoder's and each matcher's real
+inputs, then runs each graph ``repeats`` times on them in a fresh session with ONNX Runtime's profiler on
+(the registrar's thread count and options otherwise). For each graph it reports the time per call and per
+op type, and for the matrix products (``MatMul``, ``Gemm`` and their fused forms) the multiply-adds from
+the profiled shapes and the rate reached. ``gemm_floor_ms`` adds the products' time over one default
+registration (the encoder once, each matcher once): no rewrite of the elementwise work goes below it in
+float32 on this machine, only fewer multiply-adds (a smaller network) would.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from export.report_io import emit_report, machine_info
+
+PRODUCT_OPS = ("MatMul", "Gemm", "FusedGemm", "FusedMatMul")
+WARM_UP = 3  # untimed calls before the timed ones (their profile events are skipped)
+
+
+class RecordingSession:
+    """An ONNX Runtime session's stand-in that keeps the feeds of its first call."""
+
+    def __init__(self, session: ort.InferenceSession):
+        self.session, self.feeds = session, None
+
+    def run(self, outputs, feeds):
+        if self.feeds is None:
+            self.feeds = {name: np.array(value) for name, value in feeds.items()}
+        return self.session.run(outputs, feeds)
+
+    def __getattr__(self, name: str):
+        return getattr(self.session, name)
+
+
+def multiply_adds(inputs: list[list[int]], output: list[int]) -> int:
+    """Multiply-adds of a matrix product from its profiled input and output shapes (``A [..., M, K]``:
+    the inner size is the first input's last axis, as torch's exports write ``Gemm`` with ``transA=0``)."""
+    return math.prod(output) * inputs[0][-1]
+
+
+def shapes_of(entries: list[dict]) -> list[list[int]]:
+    """``[{"float": [2, 768, 3]}, ...]`` (the profiler's ``input_type_shape``) -> ``[[2, 768, 3], ...]``."""
+    return [next(iter(entry.values())) for entry in entries]
+
+
+def profile_graph(graph: bytes, feeds: dict[str, np.ndarray], threads: int, repeats: int) -> dict:
+    """Time ``graph`` on ``feeds`` (after ``WARM_UP`` calls) with the profiler on: per call and per op type."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.enable_mem_pattern = False
+    with tempfile.TemporaryDirectory() as folder:
+        options.enable_profiling = True
+        options.profile_file_prefix = str(Path(folder) / "ops")
+        session = ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
+        for _ in range(WARM_UP):
+            session.run(None, feeds)
+        wall = []
+        for _ in range(repeats):
+            wall.append(_timed(session, feeds))
+        events = json.loads(Path(session.end_profiling()).read_text())
+    runs: dict[str, int] = defaultdict(int)  # node -> calls profiled
+    per_op: dict[str, float] = defaultdict(float)  # op type -> ms over all calls
+    nodes: dict[str, set[str]] = defaultdict(set)  # op type -> its nodes
+    macs = 0
+    for event in events:
+        if event.get("cat") != "Node" or not event["name"].endswith("_kernel_time"):
+            continue
+        args = event["args"]
+        runs[event["name"]] += 1
+        if runs[event["name"]] <= WARM_UP:
+            continue
+        per_op[args["op_name"]] += event["dur"] / 1000
+        nodes[args["op_name"]].add(event["name"])
+        if args["op_name"] in PRODUCT_OPS:
+            macs += multiply_adds(shapes_of(args["input_type_shape"]), shapes_of(args["output_type_shape"])[0])
+    calls = max(runs.values()) - WARM_UP  # every node ran this often after the warm-up
+    ops = {name: {"ms": round(ms / calls, 4), "nodes": len(nodes[name])}
+           for name, ms in sorted(per_op.items(), key=lambda kv: -kv[1])}
+    product_ms = sum(per_op[name] for name in PRODUCT_OPS if name in per_op) / calls
+    return {
+        "ms_per_call_median": float(np.median(wall)),
+        "ms_in_ops": round(sum(per_op.values()) / calls, 4),
+        "products_ms": round(product_ms, 4),
+        "products_gmac": round(macs / calls / 1e9, 4),
+        "products_gflops": round(2 * macs / calls / 1e9 / (product_ms / 1000), 1) if product_ms else None,
+        "ops": ops,
+    }
+
+
+def _timed(session: ort.InferenceSession, feeds: dict[str, np.ndarray]) -> float:
+    tic = time.perf_counter()
+    session.run(None, feeds)
+    return 1000 * (time.perf_counter() - tic)
+
+
+def run(pairs_path: Path, model: str, repeats: int, threads: int | None) -> dict:
+    from service.manifest import bundled_models_dir
+    from service.registrar import Registrar, default_threads
+
+    threads = threads or default_threads()
+    registrar = Registrar(bundled_models_dir() / model, threads=threads)
+    registrar.encoder = RecordingSession(registrar.encoder)
+    registrar.matchers = [RecordingSession(m) for m in registrar.matchers]
+    pairs = dict(np.load(pairs_path))
+    registrar.register(pairs["source"][0], pairs["target"][0], refine="none")
+    graphs = {"encoder": (registrar.manifest.graph_bytes("encoder"), registrar.encoder.feeds)}
+    for role, matcher in zip(registrar.manifest.matcher_roles, registrar.matchers, strict=True):
+        graphs[role] = (registrar.manifest.graph_bytes(role), matcher.feeds)
+    report = {name: profile_graph(graph, feeds, threads, repeats) for name, (graph, feeds) in graphs.items()}
+    iterations = registrar.default_iterations
+    matchers = [report[role] for role in registrar.manifest.matcher_roles]
+    per_iteration = [matchers[min(i, len(matchers) - 1)] for i in range(iterations)]
+    return {
+        "model": model, "pairs": str(pairs_path), "repeats": repeats, "machine": machine_info(threads),
+        "input_shapes": {
+            name: {key: "x".join(map(str, value.shape)) for key, value in feeds.items()}
+            for name, (_, feeds) in graphs.items()
+        },
+        "graphs": report,
+        "registration": {
+            "iterations": iterations,
+            "graphs_ms": round(report["encoder"]["ms_per_call_median"]
+                               + sum(m["ms_per_call_median"] for m in per_iteration), 3),
+            "gemm_floor_ms": round(report["encoder"]["products_ms"] + sum(m["products_ms"] for m in per_iteration), 3),
+        },
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=Path, required=True)
+    parser.add_argument("--model", default="general")
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument("--threads", type=int, default=None, help="default: the registrar's")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    emit_report(run(args.pairs, args.model, args.repeats, args.threads), args.json)
+
+
+if __name__ == "__main__":
+    main()
