@@ -25,6 +25,8 @@ import numpy as np
 import onnxruntime as ort
 
 from export.report_io import emit_report, machine_info
+from service.manifest import bundled_models_dir
+from service.registrar import Registrar, default_threads, session_options
 
 PRODUCT_OPS = ("MatMul", "Gemm", "FusedGemm", "FusedMatMul")
 WARM_UP = 3  # untimed calls before the timed ones (their profile events are skipped)
@@ -58,12 +60,7 @@ def shapes_of(entries: list[dict]) -> list[list[int]]:
 
 def profile_graph(graph: bytes, feeds: dict[str, np.ndarray], threads: int, repeats: int) -> dict:
     """Time ``graph`` on ``feeds`` (after ``WARM_UP`` calls) with the profiler on: per call and per op type."""
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    options.enable_mem_pattern = False
+    options = session_options(threads)
     with tempfile.TemporaryDirectory() as folder:
         options.enable_profiling = True
         options.profile_file_prefix = str(Path(folder) / "ops")
@@ -110,9 +107,6 @@ def _timed(session: ort.InferenceSession, feeds: dict[str, np.ndarray]) -> float
 
 
 def run(pairs_path: Path, model: str, repeats: int, threads: int | None) -> dict:
-    from service.manifest import bundled_models_dir
-    from service.registrar import Registrar, default_threads
-
     threads = threads or default_threads()
     registrar = Registrar(bundled_models_dir() / model, threads=threads)
     registrar.encoder = RecordingSession(registrar.encoder)

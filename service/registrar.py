@@ -177,6 +177,22 @@ class _Working:
     t_init: np.ndarray  # [3]
 
 
+def session_options(threads: int) -> ort.SessionOptions:
+    """The ONNX Runtime options of every graph session of a :class:`Registrar` (``threads`` intra-op threads)."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # One thread pool per session: idle pools must not spin, or the encoder's and each matcher's
+    # threads fight for the same cores between consecutive calls (measured: 4x slower loop).
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # No memory pattern: after the first run ORT planned one extra block per session for the
+    # shapes it saw, on top of its arena (+80 MB RSS from the second call on, same latency;
+    # docs/BENCHMARKS.md, "HTTP overhead").
+    options.enable_mem_pattern = False
+    return options
+
+
 class Registrar:
     """One loaded, hash-verified model: an ONNX Runtime session per graph, shared by all callers."""
 
@@ -186,17 +202,7 @@ class Registrar:
         self.config = self.manifest.config
         self.reference_radius = float(self.manifest.normalization.get("reference_radius", 1.0))
         self.centroid = self.config.get("centroid", "weighted")
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = threads or default_threads()
-        options.inter_op_num_threads = 1
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        # One thread pool per session: idle pools must not spin, or the encoder's and each matcher's
-        # threads fight for the same cores between consecutive calls (measured: 4x slower loop).
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        # No memory pattern: after the first run ORT planned one extra block per session for the
-        # shapes it saw, on top of its arena (+80 MB RSS from the second call on, same latency;
-        # docs/BENCHMARKS.md, "HTTP overhead").
-        options.enable_mem_pattern = False
+        options = session_options(threads or default_threads())
         providers = ["CPUExecutionProvider"]
         started = time.perf_counter()
         self.encoder = ort.InferenceSession(self.manifest.graph_bytes("encoder"), options, providers=providers)
