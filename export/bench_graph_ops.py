@@ -1,6 +1,6 @@
 """Where a bundled model's graphs spend their time, per ONNX Runtime op type, and their GEMM floor.
 
-``python -m export.bench_graph_ops --pairs dense.npz [--model general] [--repeats 30] [--json out.json]``
+``python -m export.bench_graph_ops --pairs dense.npz [--model general|FOLDER] [--repeats 30] [--json out.json]``
 
 Registers the first pair once with ``Registrar.register`` to capture the encoder's and each matcher's real
 inputs, then runs each graph ``repeats`` times on them in a fresh session with ONNX Runtime's profiler on
@@ -28,7 +28,7 @@ import numpy as np
 import onnxruntime as ort
 
 from export.report_io import emit_report, machine_info
-from service.manifest import bundled_models_dir
+from service.manifest import model_folder
 from service.registrar import Registrar, default_threads, session_options
 
 PRODUCT_OPS = ("MatMul", "Gemm", "FusedGemm", "FusedMatMul")
@@ -122,7 +122,7 @@ def _timed(session: ort.InferenceSession, feeds: dict[str, np.ndarray]) -> float
 
 def run(pairs_path: Path, model: str, repeats: int, threads: int | None) -> dict:
     threads = threads or default_threads()
-    registrar = Registrar(bundled_models_dir() / model, threads=threads)
+    registrar = Registrar(model_folder(model), threads=threads)
     registrar.encoder = RecordingSession(registrar.encoder)
     registrar.matchers = [RecordingSession(m) for m in registrar.matchers]
     pairs = dict(np.load(pairs_path))
@@ -154,7 +154,7 @@ def run(pairs_path: Path, model: str, repeats: int, threads: int | None) -> dict
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, required=True)
-    parser.add_argument("--model", default="general")
+    parser.add_argument("--model", default="general", help="a bundled model's name or a model folder")
     parser.add_argument("--repeats", type=int, default=30)
     parser.add_argument("--threads", type=int, default=None, help="default: the registrar's")
     parser.add_argument("--json", type=Path, default=None)

@@ -147,12 +147,12 @@ def search_bench(
     from tqdm import tqdm
 
     from model.data import make_test_pairs, protocol_for
-    from service.manifest import bundled_models_dir, load_manifest
+    from service.manifest import load_manifest, model_folder
     from service.registrar import Registrar
 
     settings = settings or ["dense", "resampled"]
     angles = angles or [45.0, 90.0, 180.0]
-    model_dir = Path(model) if Path(model).is_dir() else bundled_models_dir() / model
+    model_dir = model_folder(model)
     registrar = Registrar(model_dir, threads=threads)
     manifest = load_manifest(model_dir)
     report = {

@@ -229,11 +229,10 @@ def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: i
     import numpy as np
     from tqdm import tqdm
 
-    from service.manifest import bundled_models_dir
+    from service.manifest import model_folder
     from service.registrar import Registrar
 
-    folder = Path(model) if Path(model).is_dir() else bundled_models_dir() / model
-    registrar = Registrar(folder)
+    registrar = Registrar(model_folder(model))
     Rs, ts, searched, reliable = [], [], 0, []
     begin = time.perf_counter()
     for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):

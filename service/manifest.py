@@ -119,6 +119,11 @@ def bundled_models_dir() -> Path:
     return Path(str(resources.files("service") / "models"))
 
 
+def model_folder(model: str | Path) -> Path:
+    """A model's folder: ``model`` itself when it is a directory, else the bundled model of that name."""
+    return Path(model) if Path(model).is_dir() else bundled_models_dir() / model
+
+
 def discover_model_dirs(extra_dirs: list[str | Path] | None = None) -> list[Path]:
     """Bundled model folders, then every model folder inside (or equal to) each extra directory."""
     found: list[Path] = []
