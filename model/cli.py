@@ -23,17 +23,22 @@ Outliers = Annotated[
     float | None,
     typer.Option(help="share of each cloud's points replaced by uniform points in its bounding box, 0-0.5"),
 ]
+ViewAngle = Annotated[
+    float | None,
+    typer.Option(help="scans: largest angle in degrees between the source's and the target's camera [default: 60]"),
+]
 Points = Annotated[
     int | None,
     typer.Option(help="points per cloud before the crop (default: the setting's; dense shapes allow up to 2048)"),
 ]
 
 
-def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points=None, outliers=None):
+def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points=None, outliers=None,
+                     view_angle=None):
     """The setting's pair protocol with the command-line overrides, or a usage error."""
     try:
         return protocol_for(setting, source_points=source_points, target_points=target_points, overlap=overlap,
-                            noise=noise, max_angle=max_angle, points=points, outliers=outliers)
+                            noise=noise, max_angle=max_angle, points=points, outliers=outliers, view_angle=view_angle)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
 
@@ -52,9 +57,11 @@ def make_pairs(
     max_angle: MaxAngle = None,
     points: Points = None,
     outliers: Outliers = None,
+    view_angle: ViewAngle = None,
 ) -> None:
     """Write seeded registration pairs (source, target, rotation, translation, label) to an npz."""
-    protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers)
+    protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
+                                view_angle)
     try:
         pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
@@ -134,6 +141,7 @@ def evaluate(
     max_angle: MaxAngle = None,
     points: Points = None,
     outliers: Outliers = None,
+    view_angle: ViewAngle = None,
     model: Annotated[
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
@@ -180,7 +188,8 @@ def evaluate(
     if pairs:
         data_pairs = load_pairs(pairs)
     else:
-        protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers)
+        protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
+                                    view_angle)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
     if by_label and "label" not in data_pairs:
         raise typer.BadParameter("--by-label needs pairs with a 'label' array")

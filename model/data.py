@@ -25,6 +25,12 @@ Settings (:data:`SETTINGS`, :func:`protocol_for`):
   rotation) fits almost as well (these classes are left-right symmetric) but worse on 63% / 74% /
   55% of the shapes, so the plain swap (a reflection) is used.
 
+* ``scans`` -- simulated range scans of the dense test shapes: two disjoint 2048-point samples, each seen by
+  its own camera (hidden point removal, :mod:`model.views`: only the surface facing the camera), 512 of the
+  visible points each. The cameras stand three shape radii from the centroid, the source's in a random
+  direction, the target's turned from it by up to ``view_angle`` (60 degrees by default), so the overlap
+  varies from pair to pair and the clouds hold no points behind the visible surface (no ``overlap`` option).
+
 Options of every setting (:func:`protocol_for` keywords; ``mfgnet make-pairs`` / ``evaluate`` /
 ``train`` flags):
 
@@ -55,7 +61,7 @@ import numpy as np
 
 DATA_ENV = "MFGNET_DATA"
 DEFAULT_DATA_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "modelnet40"
-SETTINGS = ("clean", "noise", "unseen", "resampled", "dense")
+SETTINGS = ("clean", "noise", "unseen", "resampled", "dense", "scans")
 UNSEEN_SPLIT_LABEL = 20  # "unseen": train on labels 0-19, test on 20-39
 DENSE_FILE = "modelnet40_dense_test.npz"
 DENSE_TO_MAIN_AXES = [0, 2, 1]  # (x, y, z) of the dense file -> (x, z, y): the main files' frame
@@ -92,6 +98,9 @@ class PairProtocol:
     source_points: int | None = None  # points per source after the crop (None: keep)
     target_points: int | None = None  # points per target after the crop (None: keep)
     outliers: float = 0.0  # share of each cloud's points replaced by uniform points in the cloud's bounding box
+    # far_point: the paper's crop (the keep points nearest one far point); views: what a camera sees (model.views)
+    crop: Literal["far_point", "views"] = "far_point"
+    view_angle_deg: float = 60.0  # views: the target's camera turned from the source's by up to this angle
 
     @property
     def overlap(self) -> float:
@@ -115,6 +124,10 @@ class PairProtocol:
                 raise ValueError(f"{name} must be in 1..{self.keep} (the points kept by the crop), got {count}")
         if self.sampling not in SAMPLINGS:
             raise ValueError(f"sampling must be one of {SAMPLINGS}, got {self.sampling!r}")
+        if self.crop not in CROPS:
+            raise ValueError(f"crop must be one of {CROPS}, got {self.crop!r}")
+        if not 0 <= self.view_angle_deg <= MAX_ANGLE_LIMIT:
+            raise ValueError(f"view_angle must be in 0..{MAX_ANGLE_LIMIT} degrees, got {self.view_angle_deg}")
         if not OUTLIER_RANGE[0] <= self.outliers <= OUTLIER_RANGE[1]:
             raise ValueError(f"outliers must be in {OUTLIER_RANGE[0]}..{OUTLIER_RANGE[1]}, got {self.outliers}")
         if shape_points is not None:
@@ -127,6 +140,7 @@ class PairProtocol:
 
 
 SAMPLINGS = ("shared", "disjoint", "independent")
+CROPS = ("far_point", "views")
 
 SETTING_PROTOCOLS = {
     "clean": PairProtocol(),
@@ -134,7 +148,9 @@ SETTING_PROTOCOLS = {
     "unseen": PairProtocol(),
     "resampled": PairProtocol(points=512, keep=384, sampling="disjoint"),
     "dense": PairProtocol(points=1024, keep=768, sampling="disjoint"),
+    "scans": PairProtocol(points=2048, keep=512, sampling="disjoint", crop="views"),
 }
+DENSE_SETTINGS = ("dense", "scans")  # settings drawn from the 4096-point shapes of DENSE_FILE (test split only)
 
 
 def protocol_for(
@@ -147,6 +163,7 @@ def protocol_for(
     max_angle: float | None = None,
     points: int | None = None,
     outliers: float | None = None,
+    view_angle: float | None = None,
 ) -> PairProtocol:
     """The protocol of a setting, with optional overrides (``None`` keeps the setting's value).
 
@@ -154,7 +171,8 @@ def protocol_for(
     is given; ``dense`` shapes have 4096 points, enough for two disjoint clouds of up to 2048);
     ``overlap`` sets ``keep = round(overlap * points)``; ``noise`` sets sigma and a clip of ``5 sigma``;
     ``max_angle`` is in degrees; ``outliers`` replaces that share of each cloud's points (after the crop) by
-    points drawn uniformly in the cloud's bounding box (clutter, flying pixels).
+    points drawn uniformly in the cloud's bounding box (clutter, flying pixels); ``view_angle`` (``scans``) is the
+    largest angle in degrees between the source's and the target's camera.
     """
     if setting not in SETTINGS:
         raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
@@ -165,6 +183,8 @@ def protocol_for(
             raise ValueError(f"points must be >= 1, got {points}")
         changes["points"], changes["keep"] = int(points), round(protocol.overlap * int(points))
     if overlap is not None:
+        if protocol.crop == "views":
+            raise ValueError(f"setting {setting!r} crops by views: its overlap follows from view_angle")
         if not OVERLAP_RANGE[0] <= overlap <= OVERLAP_RANGE[1]:
             raise ValueError(f"overlap must be in {OVERLAP_RANGE[0]}..{OVERLAP_RANGE[1]}, got {overlap}")
         changes["keep"] = round(overlap * changes.get("points", protocol.points))
@@ -182,6 +202,10 @@ def protocol_for(
         changes["target_points"] = int(target_points)
     if outliers is not None:
         changes["outliers"] = float(outliers)
+    if view_angle is not None:
+        if protocol.crop != "views":
+            raise ValueError(f"view_angle applies to settings that crop by views ('scans'), not {setting!r}")
+        changes["view_angle_deg"] = float(view_angle)
     protocol = dataclasses.replace(protocol, **changes)
     protocol.check()
     return protocol
@@ -197,14 +221,15 @@ def load_shapes(split: str, setting: str = "clean", path=None) -> tuple[np.ndarr
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     if setting not in SETTINGS:
         raise ValueError(f"unknown setting {setting!r}; expected one of {SETTINGS}")
-    if setting == "dense" and split != "test":
-        raise ValueError(f"setting 'dense' has a test split only ({DENSE_FILE}), got split {split!r}")
-    file = data_dir(path) / (DENSE_FILE if setting == "dense" else f"modelnet40_{split}.npz")
+    dense = setting in DENSE_SETTINGS
+    if dense and split != "test":
+        raise ValueError(f"setting {setting!r} has a test split only ({DENSE_FILE}), got split {split!r}")
+    file = data_dir(path) / (DENSE_FILE if dense else f"modelnet40_{split}.npz")
     if not file.exists():
         raise FileNotFoundError(f"ModelNet40 file not found: {file} (set --data or ${DATA_ENV})")
     with np.load(file) as d:
         points, labels = d["points"].astype(np.float32), d["labels"].astype(np.int64)
-    if setting == "dense":
+    if dense:
         points = np.ascontiguousarray(points[..., DENSE_TO_MAIN_AXES])
     if setting == "unseen":
         keep = labels < UNSEEN_SPLIT_LABEL if split == "train" else labels >= UNSEEN_SPLIT_LABEL
@@ -262,6 +287,7 @@ def make_pairs(
         src_idx = tgt_idx = np.broadcast_to(np.arange(N), (B, N))  # the same N points
     src = np.take_along_axis(shapes, src_idx[..., None], axis=1).astype(np.float64)  # [B, N, 3]
     tgt = src if protocol.sampling == "shared" else np.take_along_axis(shapes, tgt_idx[..., None], axis=1)
+    src_in_shape, tgt_in_shape = src, tgt  # [B, N, 3] each, before the move and the noise: what cameras see
     angles = rng.uniform(0.0, np.deg2rad(protocol.max_angle_deg), size=(B, 3))
     R = euler_xyz_to_matrix(angles)  # [B, 3, 3]
     t = rng.uniform(-protocol.max_translation, protocol.max_translation, size=(B, 3))
@@ -270,10 +296,14 @@ def make_pairs(
         clip = protocol.noise_clip
         src = src + np.clip(rng.normal(0, protocol.noise_sigma, src.shape), -clip, clip)
         tgt = tgt + np.clip(rng.normal(0, protocol.noise_sigma, tgt.shape), -clip, clip)
-    sign = rng.choice([-1.0, 1.0], size=(B, 1))
-    anchor = rng.uniform(0.0, 1.0, size=(B, 3)) + protocol.far_distance * sign  # [B, 3]
-    kept_s = crop_nearest_indices(src, anchor, protocol.keep)  # [B, keep] into the N points
-    kept_t = crop_nearest_indices(tgt, anchor, protocol.keep)
+    views = None
+    if protocol.crop == "views":
+        kept_s, kept_t, views = _view_crops(shapes, src_in_shape, tgt_in_shape, protocol, rng)
+    else:
+        sign = rng.choice([-1.0, 1.0], size=(B, 1))
+        anchor = rng.uniform(0.0, 1.0, size=(B, 3)) + protocol.far_distance * sign  # [B, 3]
+        kept_s = crop_nearest_indices(src, anchor, protocol.keep)  # [B, keep] into the N points
+        kept_t = crop_nearest_indices(tgt, anchor, protocol.keep)
     if protocol.source_count < protocol.keep:  # lower density: a random subset of the crop
         kept_s = np.take_along_axis(kept_s, np.sort(random_subsets(rng, B, protocol.keep, protocol.source_count), 1), 1)
     if protocol.target_count < protocol.keep:
@@ -289,12 +319,31 @@ def make_pairs(
     if return_indices:
         pairs["source_index"] = np.take_along_axis(src_idx, kept_s, axis=1).astype(np.int64)
         pairs["target_index"] = np.take_along_axis(tgt_idx, kept_t, axis=1).astype(np.int64)
+        if views is not None:
+            pairs.update(views)
     if protocol.outliers > 0:  # drawn last, so pairs without outliers stay bit-identical
         for name in ("source", "target"):
             replaced = add_outliers(pairs[name], protocol.outliers, rng)  # [B, n_out]
             if return_indices:
                 np.put_along_axis(pairs[f"{name}_index"], replaced, -1, axis=1)  # no shape point
     return pairs
+
+
+def _view_crops(shapes, src, tgt, protocol: PairProtocol, rng: np.random.Generator):
+    """``crop="views"``: what the source's and the target's camera see of ``src`` / ``tgt`` ``[B, N, 3]`` (in the
+    shape's frame, before the move and the noise) -> indices ``[B, keep]`` each and, for ``return_indices``, the
+    cameras' unit directions ``source_view`` / ``target_view`` ``[B, 3]`` (shape frame) and ``source_hidden`` /
+    ``target_hidden`` ``[B]`` (hidden points filled in where a view shows fewer than ``keep``)."""
+    from model.views import view_crop_indices, view_directions  # scipy's convex hull: only this crop needs it
+
+    centres = shapes.mean(axis=1, dtype=np.float64)  # [B, 3]
+    radii = np.linalg.norm(shapes - centres[:, None], axis=2).max(axis=1)  # [B]
+    source_view, target_view = view_directions(rng, len(shapes), protocol.view_angle_deg)  # [B, 3] each
+    kept_s, hidden_s = view_crop_indices(src, centres, radii, source_view, protocol.keep, rng)
+    kept_t, hidden_t = view_crop_indices(tgt, centres, radii, target_view, protocol.keep, rng)
+    views = {"source_view": source_view, "target_view": target_view, "source_hidden": hidden_s,
+             "target_hidden": hidden_t}
+    return kept_s, kept_t, views
 
 
 def add_outliers(clouds: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
