@@ -1,12 +1,14 @@
 """Calibration of ``rotation_search="auto"``'s trigger: which plain results should be searched.
 
 ``python -m export.auto_trigger collect --pairs dense90.npz ... --out trigger.json`` registers every
-pair twice with the bundled model and ``refine="icp-plane"``: plainly (its inlier ratio, reliability,
-errors, time) and with ``"auto"`` forced to search (the better of the plain and the searched pose, as
-``auto`` returns it). ``python -m export.auto_trigger report trigger.json --pairs ...`` then replays any
-trigger on those results: the fixed inlier-ratio threshold and thresholds relative to
-:func:`service.quality.attainable_inlier_ratio`, with recall at (5 deg, 5 cm), the share searched and
-the mean time per pair.
+pair twice with the bundled model and ``refine="icp-plane"``: plainly and with the rotation search on (each
+result's errors, inlier ratio, residual and time; the plain one's reliability). ``auto`` returns the searched
+pose when it fits better (:func:`switches`), which gives ``auto_always``: ``auto`` forced to search.
+``python -m export.auto_trigger report trigger.json --pairs ...`` then replays any trigger on those results:
+the fixed inlier-ratio threshold and thresholds relative to :func:`service.quality.attainable_inlier_ratio`,
+with recall at (5 deg, 5 cm), the share searched and the mean time per pair; and for the registrar's trigger
+the margin by which the searched pose's inlier ratio must exceed the plain one's to replace it
+(``AUTO_SWITCH_MARGINS``). Files collected before the searched pose was recorded replay the triggers only.
 """
 
 from __future__ import annotations
@@ -18,9 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
+from service.registrar import AUTO_SEARCH_RELATIVE_RATIO
 
 FIXED = (0.7,)
 RELATIVE = (0.7, 0.75, 0.8, 0.85)
+AUTO_SWITCH_MARGINS = (0.0, 0.02, 0.05, 0.1, 0.15, 0.2)  # replayed with the registrar's trigger
 
 
 def pose_errors(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndarray) -> tuple[float, float]:
@@ -29,30 +33,37 @@ def pose_errors(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.nda
 
 
 def collect(pair_files: list[Path], model: str) -> dict:
-    import service.registrar as registrar_module
     from service.manifest import bundled_models_dir
+    from service.registrar import Registrar
 
-    registrar = registrar_module.Registrar(bundled_models_dir() / model)
-    always = registrar_module.needs_search
+    registrar = Registrar(bundled_models_dir() / model)
     out = {}
     for path in pair_files:
         pairs, rows = load_pairs(path), []
         for src, tgt, R, t in zip(pairs["source"], pairs["target"], pairs["rotation"], pairs["translation"],
                                   strict=True):
             plain = registrar.register(src, tgt, refine="icp-plane")
-            registrar_module.needs_search = lambda *_: True  # "auto" with the search always run
-            try:
-                both = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto")
-            finally:
-                registrar_module.needs_search = always
-            rows.append({
-                "ratio": plain.inlier_ratio, "reliable": plain.reliable,
-                "plain": pose_errors(plain.rotation, plain.translation, R, t),
-                "auto_always": pose_errors(both.rotation, both.translation, R, t),
-                "ms_plain": plain.timing_ms["total"], "ms_both": both.timing_ms["total"],
-            })
+            searched = registrar.register(src, tgt, refine="icp-plane", rotation_search=True)
+            row = {
+                "ratio": plain.inlier_ratio, "rms": plain.residual_rms, "reliable": plain.reliable,
+                "plain": pose_errors(plain.rotation, plain.translation, R, t), "ms_plain": plain.timing_ms["total"],
+                "searched": pose_errors(searched.rotation, searched.translation, R, t),
+                "searched_ratio": searched.inlier_ratio, "searched_rms": searched.residual_rms,
+            }
+            row["auto_always"] = row["searched"] if switches(row, 0.0) else row["plain"]
+            row["ms_both"] = plain.timing_ms["total"] + searched.timing_ms["total"]
+            rows.append(row)
         out[path.stem] = rows
     return out
+
+
+def switches(row: dict, margin: float) -> bool:
+    """Whether ``auto`` returns the searched pose of a collected ``row``: its inlier ratio exceeds the plain
+    one's by more than ``margin`` (0: the registrar's ``rank_hypotheses`` -- higher ratio, ties by the lower
+    residual, the plain pose on a full tie)."""
+    if margin > 0:
+        return row["searched_ratio"] > row["ratio"] + margin
+    return (row["searched_ratio"], -row["searched_rms"]) > (row["ratio"], -row["rms"])
 
 
 def attainable_ratios(path: Path, reference_radius: float) -> np.ndarray:
@@ -78,8 +89,8 @@ def report(results: dict, pair_files: list[Path], model: str) -> dict:
         rows = results[path.stem]
         ratio = np.array([r["ratio"] for r in rows])
         reliable = np.array([r["reliable"] for r in rows])
-        plain_ok = np.array([r["plain"][0] < 5 and r["plain"][1] < 0.05 for r in rows])
-        both_ok = np.array([r["auto_always"][0] < 5 and r["auto_always"][1] < 0.05 for r in rows])
+        plain_ok = np.array([_right(r["plain"]) for r in rows])
+        both_ok = np.array([_right(r["auto_always"]) for r in rows])
         ms_plain, ms_both = np.array([r["ms_plain"] for r in rows]), np.array([r["ms_both"] for r in rows])
         attainable = attainable_ratios(path, reference)
         # "or unreliable": the rule before 2026-11-26 07:25 UTC also searched every unreliable result
@@ -94,7 +105,22 @@ def report(results: dict, pair_files: list[Path], model: str) -> dict:
                 "searched": float(searched.mean()),
                 "ms_per_pair": float(np.where(searched, ms_both, ms_plain).mean()),
             }
+        if all("searched" in r for r in rows):
+            searched = triggers[f"relative {AUTO_SEARCH_RELATIVE_RATIO}"]
+            for margin in AUTO_SWITCH_MARGINS:
+                switched = searched & np.array([switches(r, margin) for r in rows])
+                errors = [r["searched"] if s else r["plain"] for r, s in zip(rows, switched, strict=True)]
+                table[path.stem][f"relative {AUTO_SEARCH_RELATIVE_RATIO}, switch margin {margin}"] = {
+                    "recall_r5_t005": float(np.mean([_right(e) for e in errors])),
+                    "switched": float(switched.mean()),
+                    "right_to_wrong": int(np.sum(plain_ok & switched & ~np.array([_right(e) for e in errors]))),
+                    "wrong_to_right": int(np.sum(~plain_ok & switched & np.array([_right(e) for e in errors]))),
+                }
     return table
+
+
+def _right(errors) -> bool:
+    return errors[0] < 5 and errors[1] < 0.05
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from export.auto_trigger import report
+from export.auto_trigger import report, switches
 from service.manifest import bundled_models_dir
 
 pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "general").is_dir(), reason="no bundled 'general' model")
@@ -33,3 +33,32 @@ def test_replay_searches_the_flagged_pairs_and_takes_their_searched_result(tmp_p
     assert relative["searched"] == pytest.approx(2 / 3) and relative["recall_r5_t005"] == pytest.approx(2 / 3)
     assert table["relative 0.8 or unreliable"] == relative  # the unreliable pair is below the ratio anyway
     assert table["relative 0.7"]["searched"] == pytest.approx(1 / 3)  # 0.72 >= 0.7 x attainable: not searched
+
+
+def test_switches_follows_the_registrars_ranking_and_a_margin_holds_the_plain_pose() -> None:
+    row = {"ratio": 0.60, "rms": 0.02, "searched_ratio": 0.64, "searched_rms": 0.03}
+    assert switches(row, 0.0) and not switches(row, 0.05)  # higher ratio wins, unless by less than the margin
+    assert switches({**row, "searched_ratio": 0.60, "searched_rms": 0.01}, 0.0)  # a tie goes to the lower residual
+    assert not switches({**row, "searched_ratio": 0.60, "searched_rms": 0.02}, 0.0)  # a full tie keeps the plain pose
+
+
+def test_replay_of_switch_margins_counts_the_poses_they_keep_and_lose(tmp_path) -> None:
+    k = np.arange(4000) + 0.5
+    z, phi = 1 - 2 * k / 4000, np.pi * (1 + 5**0.5) * k
+    sphere = np.stack([np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z], axis=1)
+    path = tmp_path / "two.npz"
+    np.savez(path, source=np.stack([sphere] * 2), target=np.stack([sphere] * 2))
+    right, wrong = (0.5, 0.01), (170.0, 0.02)
+    common = {"reliable": True, "ms_plain": 10, "ms_both": 100, "rms": 0.02, "searched_rms": 0.02}
+    rows = [  # both searched (0.5 < 0.8 x attainable): a right pose flipped by a small gain, a wrong one fixed
+        {**common, "ratio": 0.50, "plain": right, "searched": wrong, "searched_ratio": 0.53, "auto_always": wrong},
+        {**common, "ratio": 0.30, "plain": wrong, "searched": right, "searched_ratio": 0.70, "auto_always": right},
+    ]
+    table = report({"two": rows}, [path], "general")["two"]
+    none = table["relative 0.8, switch margin 0.0"]
+    assert none == {"recall_r5_t005": 0.5, "switched": 1.0, "right_to_wrong": 1, "wrong_to_right": 1}
+    held = table["relative 0.8, switch margin 0.05"]
+    assert held == {"recall_r5_t005": 1.0, "switched": 0.5, "right_to_wrong": 0, "wrong_to_right": 1}
+    assert "relative 0.8, switch margin 0.0" not in report({"two": [
+        {key: value for key, value in row.items() if not key.startswith("searched")} for row in rows]},
+        [path], "general")["two"]  # files collected before the searched pose was recorded: triggers only
