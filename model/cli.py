@@ -103,6 +103,10 @@ def train(
         typer.Option(help="per-batch random training pairs: 'general' (independent sampling, noise, overlap, "
                      "density mismatch; --max-angle sets its rotation range); validation keeps --setting"),
     ] = None,
+    views_share: Annotated[
+        float | None,
+        typer.Option(help="with --recipe: share of batches cut as two camera views (range scans, model.views), 0-1"),
+    ] = None,
 ) -> None:
     """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
     from model.train import TrainOptions
@@ -111,13 +115,15 @@ def train(
     setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, None, outliers)  # fail early
     if recipe is not None and recipe not in RECIPES:
         raise typer.BadParameter(f"unknown recipe {recipe!r}; expected one of {', '.join(RECIPES)}")
+    if views_share is not None and (recipe is None or not 0.0 <= views_share <= 1.0):
+        raise typer.BadParameter("--views-share needs --recipe and a share in 0..1")
     opts = TrainOptions(
         setting=setting, out=str(out), epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
         seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,
         checkpoint_minutes=checkpoint_minutes, device=device, data=data, threads=threads,
         config={"iterations": iterations, "share_weights": share_weights}, source_points=source_points,
         target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle, outliers=outliers,
-        max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe,
+        max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe, views_share=views_share,
     )
     best = run(opts)
     typer.echo(f"best checkpoint: {best}")

@@ -4,7 +4,8 @@ The paper's settings draw every pair with one fixed protocol in which source and
 same points. ``general`` instead draws, for every batch, a protocol in which the two clouds are
 sampled independently (disjoint halves, or two random subsets with noise so that no point has an
 exact partner), with a random overlap, noise level and density mismatch, so that the network
-learns to match surfaces rather than identical points.
+learns to match surfaces rather than identical points. With ``views_share`` some batches are cut as
+two camera views (:mod:`model.views`: only the surface facing each camera), as range scans are.
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ class GeneralRecipe:
     mismatch_share: float = 0.3  # batches where one cloud keeps only part of its crop
     mismatch_keep: tuple[float, float] = (0.5, 0.9)  # fraction kept by the sparser cloud
     outliers: float = 0.0  # most share of scattered points per cloud; each batch draws its share in [0, this]
+    views_share: float = 0.0  # batches cut as camera views (model.views: range scans) instead of the far-point crop
+    view_keep: tuple[float, float] = (0.2, 0.3)  # views: fraction of a cloud's points kept (a view shows ~1/3)
+    view_angle_deg: float = 60.0  # views: the target's camera turned from the source's by up to this angle
 
     def draw(self, rng: np.random.Generator) -> PairProtocol:
         """One batch's protocol."""
@@ -44,23 +48,35 @@ class GeneralRecipe:
             counts[sparse] = max(32, round(rng.uniform(*self.mismatch_keep) * keep))
         if self.outliers > 0:  # drawn last: without outliers the draws are the ones the bundled model saw
             counts["outliers"] = float(rng.uniform(0.0, self.outliers))
+        views: dict = {}
+        if self.views_share > 0 and rng.random() < self.views_share:  # drawn after everything else, as outliers
+            view_keep = round(rng.uniform(*self.view_keep) * points)
+            for name in ("source_points", "target_points"):  # a sparser cloud keeps its share of the view
+                if name in counts:
+                    counts[name] = min(view_keep, max(32, round(counts[name] * view_keep / keep)))
+            keep, views = view_keep, {"crop": "views", "view_angle_deg": self.view_angle_deg}
         protocol = PairProtocol(
             points=points, keep=keep, max_angle_deg=self.max_angle_deg, noise_sigma=float(sigma),
             noise_clip=NOISE_CLIP_SIGMAS * float(sigma), sampling="disjoint" if disjoint else "independent",
-            **counts,
+            **counts, **views,
         )
         protocol.check()
         return protocol
 
 
-def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None):
+def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None,
+                views_share: float | None = None):
     """The per-batch protocol draw of a named recipe (``max_angle_deg`` overrides its rotation range,
-    ``outliers`` its largest share of scattered points)."""
+    ``outliers`` its largest share of scattered points, ``views_share`` its share of camera-view batches)."""
     if name != "general":
         raise ValueError(f"unknown recipe {name!r}; expected one of {RECIPES}")
+    if views_share is not None and not 0.0 <= views_share <= 1.0:
+        raise ValueError(f"views_share must be in 0..1, got {views_share}")
     recipe = GeneralRecipe()
     if max_angle_deg is not None:
         recipe = dataclasses.replace(recipe, max_angle_deg=float(max_angle_deg))
     if outliers is not None:
         recipe = dataclasses.replace(recipe, outliers=float(outliers))
+    if views_share is not None:
+        recipe = dataclasses.replace(recipe, views_share=float(views_share))
     return recipe.draw

@@ -52,6 +52,7 @@ class TrainOptions:
     max_angle: float | None = None
     outliers: float | None = None  # share of scattered points per cloud (with a recipe: the largest drawn)
     recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
+    views_share: float | None = None  # with a recipe: its share of batches cut as camera views (model.views)
     prefetch: bool | None = None  # make batches in a worker process while the model trains; None: on for CUDA
 
     def pair_protocol(self) -> PairProtocol:
@@ -107,7 +108,7 @@ def train(opts: TrainOptions) -> Path:
     protocol = opts.pair_protocol()
     shapes, _ = load_shapes("train", opts.setting, opts.data)
     train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
-    draw = recipe_draw(opts.recipe, opts.max_angle, opts.outliers) if opts.recipe else protocol
+    draw = recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share) if opts.recipe else protocol
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
     val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))

@@ -412,6 +412,27 @@ def test_recipe_outliers_are_drawn_last_and_within_the_given_share() -> None:
     assert opts.pair_protocol() == protocol_for("resampled", outliers=0.2)  # validation: that share exactly
 
 
+def test_recipe_views_are_drawn_last_and_keep_a_cameras_share_of_each_cloud() -> None:
+    plain, viewed = recipe_draw("general"), recipe_draw("general", views_share=0.5)
+    kinds = set()
+    for seed in range(80):
+        p, q = plain(np.random.default_rng(seed)), viewed(np.random.default_rng(seed))
+        kinds.add(q.crop)
+        if q.crop == "far_point":
+            assert q == p  # the batches left as they were draw exactly what the recipe drew before
+            continue
+        assert dataclasses.replace(q, crop="far_point", keep=p.keep, view_angle_deg=60.0, source_points=p.source_points,
+                                   target_points=p.target_points) == p  # every other draw unchanged
+        assert 0.2 * q.points - 1 <= q.keep <= 0.3 * q.points + 1 and q.view_angle_deg == 60.0
+        assert all(n is None or 32 <= n <= q.keep for n in (q.source_points, q.target_points))
+    assert kinds == {"far_point", "views"}
+    with pytest.raises(ValueError, match="views_share"):
+        recipe_draw("general", views_share=1.5)
+    batches = TrainPairStream(sphere_shapes(4), recipe_draw("general", views_share=1.0), seed=0).epoch(0, 2)
+    for batch in batches:  # views of 512 / 768 of a sphere's 1024 points: about a third shows
+        assert batch["source"].shape[1] <= 0.3 * 768 + 1 and np.isfinite(batch["source"]).all()
+
+
 def test_train_runs_with_outliers_in_its_pairs(tmp_path) -> None:
     from model.checkpoint import read_checkpoint
 
@@ -435,13 +456,17 @@ def test_the_training_stream_draws_one_protocol_per_batch() -> None:
 def test_train_runs_with_the_general_recipe_and_records_it(tmp_path) -> None:
     folder = tiny_training_data(tmp_path)
     opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=folder, epochs=1, batch_size=2,
-                        max_batches_per_epoch=3, val_pairs=2, device="cpu", config=TINY_MODEL, recipe="general")
+                        max_batches_per_epoch=3, val_pairs=2, device="cpu", config=TINY_MODEL, recipe="general",
+                        views_share=0.5)
     train(opts)
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert log[0]["batches"] == 3 and np.isfinite(log[0]["train_total"])
-    assert json.loads((tmp_path / "run" / "config.json").read_text())["train"]["recipe"] == "general"
+    recorded = json.loads((tmp_path / "run" / "config.json").read_text())["train"]
+    assert recorded["recipe"] == "general" and recorded["views_share"] == 0.5
 
 
 def test_train_command_rejects_an_unknown_recipe(tmp_path) -> None:
     result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), "--recipe", "paper"])
     assert result.exit_code != 0 and "unknown recipe" in result.output
+    result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), "--views-share", "0.5"])
+    assert result.exit_code != 0 and "--views-share needs --recipe" in result.output
