@@ -29,9 +29,14 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(entry, default=str)
 
 
+LIBRARY_LEVEL = "WARNING"  # other libraries' loggers (through the root logger): warnings and errors only
+
+
 def configure_logging(level: str = "info") -> None:
     """Send ``mfgnet.*``, uvicorn's own loggers and Python warnings (``py.warnings``: a numerical warning
-    would otherwise print a plain-text line among the JSON ones) to stderr as JSON lines."""
+    would otherwise print a plain-text line among the JSON ones) to stderr as JSON lines at ``level``, and every
+    other library's warnings and errors through the root logger the same way (python-multipart warns of a
+    malformed upload; without a root handler Python's last resort printed it as a plain-text line)."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(JsonFormatter())
     logging.captureWarnings(True)
@@ -40,3 +45,6 @@ def configure_logging(level: str = "info") -> None:
         logger.handlers[:] = [handler]
         logger.setLevel(level.upper())
         logger.propagate = False
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(LIBRARY_LEVEL)

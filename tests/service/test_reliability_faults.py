@@ -229,7 +229,18 @@ def test_a_broken_model_is_refused_on_every_route_while_the_good_one_serves(leni
         assert_error(c.post(f"/v2/models/{name}/infer", json=infer), 503, name)
         assert_error(c.get(f"/v2/models/{name}"), 503, name)
         assert_error(c.get(f"/v2/models/{name}/ready"), 503, name)
-        assert c.post("/v1/register", json=pair).status_code == 200
+        assert_serves(c, pair)
+
+
+def assert_serves(client: httpx.Client, pair: dict, tries: int = 3) -> None:
+    """The default model answers ``pair`` with 200. Within the lenient server's 0.5 s deadline a busy machine (a
+    training run beside the tests) can make even this cheap request late: a 504 is retried, anything else fails."""
+    codes = []
+    for _ in range(tries):
+        codes.append(client.post("/v1/register", json=pair).status_code)
+        if codes[-1] != 504:
+            break
+    assert codes[-1] == 200, codes
 
 
 def test_strict_readiness_is_503_and_the_body_names_each_broken_model_and_why():

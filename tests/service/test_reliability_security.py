@@ -16,6 +16,7 @@ import re
 
 import httpx
 import numpy as np
+import pytest
 from api_server import isolated_settings, main_server, modelnet_pair
 
 from service.api import deps
@@ -87,8 +88,12 @@ def test_server_log_is_json_lines_without_any_coordinates():
                            headers={"content-type": "application/json"}).status_code == 400
         client.get("/v2/health/live")
     text = server.log_path.read_text()
-    for line in text.splitlines():
-        assert isinstance(json.loads(line), dict), line[:200]  # every line is one JSON object
+    for line in text.splitlines():  # every line is one JSON object
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError:
+            pytest.fail(f"not a JSON line in the server log: {line[:300]!r}")
+        assert isinstance(record, dict), line[:300]
     for value in (*source[:50].ravel(), *target[:50].ravel()):
         for shown in (repr(float(value)), f"{value:.6f}"):
             assert shown not in text, shown
