@@ -109,12 +109,13 @@ def report(results: dict, pair_files: list[Path], model: str) -> dict:
             searched = triggers[f"relative {AUTO_SEARCH_RELATIVE_RATIO}"]
             for margin in AUTO_SWITCH_MARGINS:
                 switched = searched & np.array([switches(r, margin) for r in rows])
-                errors = [r["searched"] if s else r["plain"] for r, s in zip(rows, switched, strict=True)]
+                right = np.array([_right(r["searched"] if s else r["plain"])
+                                  for r, s in zip(rows, switched, strict=True)])
                 table[path.stem][f"relative {AUTO_SEARCH_RELATIVE_RATIO}, switch margin {margin}"] = {
-                    "recall_r5_t005": float(np.mean([_right(e) for e in errors])),
+                    "recall_r5_t005": float(right.mean()),
                     "switched": float(switched.mean()),
-                    "right_to_wrong": int(np.sum(plain_ok & switched & ~np.array([_right(e) for e in errors]))),
-                    "wrong_to_right": int(np.sum(~plain_ok & switched & np.array([_right(e) for e in errors]))),
+                    "right_to_wrong": int(np.sum(plain_ok & switched & ~right)),
+                    "wrong_to_right": int(np.sum(~plain_ok & switched & right)),
                 }
     return table
 
