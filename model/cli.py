@@ -10,7 +10,7 @@ import typer
 
 from export.baselines import METHODS as BASELINES  # Open3D is imported only when one runs (the bench extra)
 from model.data import SETTINGS, load_pairs, make_test_pairs, protocol_for, save_pairs
-from model.recipes import RECIPES
+from model.recipes import recipe_draw
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
@@ -113,10 +113,13 @@ def train(
     from model.train import train as run
 
     setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, None, outliers)  # fail early
-    if recipe is not None and recipe not in RECIPES:
-        raise typer.BadParameter(f"unknown recipe {recipe!r}; expected one of {', '.join(RECIPES)}")
-    if views_share is not None and (recipe is None or not 0.0 <= views_share <= 1.0):
-        raise typer.BadParameter("--views-share needs --recipe and a share in 0..1")
+    if views_share is not None and recipe is None:
+        raise typer.BadParameter("--views-share needs --recipe")
+    if recipe is not None:
+        try:
+            recipe_draw(recipe, max_angle, outliers, views_share)  # fail early, on the recipe's own checks
+        except ValueError as err:
+            raise typer.BadParameter(str(err)) from err
     opts = TrainOptions(
         setting=setting, out=str(out), epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
         seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,
