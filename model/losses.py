@@ -87,6 +87,10 @@ def sample_training_keypoints(src, tgt, R_gt, t_gt, positives: int, negatives: i
     positives are exactly those partners, so every positive has its match among the keypoints.
     Returns ``src_idx [B, P + Q]``, ``tgt_idx [B, P + Q]``.
     """
+    for name, cloud in (("source", src), ("target", tgt)):
+        if cloud.shape[1] < positives + negatives:
+            raise ValueError(f"the {name} has {cloud.shape[1]} points; training samples {positives} + {negatives} "
+                             "keypoints per cloud")
     src_gt = transform_points(src, R_gt, t_gt)  # [B, N, 3]
     dist = torch.cdist(src_gt, tgt)  # [B, N, M]
     nn_dist, nn_idx = dist.min(dim=-1)  # [B, N]

@@ -18,6 +18,7 @@ import numpy as np
 from model.data import NOISE_CLIP_SIGMAS, PairProtocol
 
 RECIPES = ("general",)
+MIN_CLOUD_POINTS = 128  # training samples 64 keypoints with a partner + 64 without per cloud (model.config)
 
 
 @dataclass(frozen=True)
@@ -45,15 +46,15 @@ class GeneralRecipe:
         counts: dict[str, int | float] = {}
         if rng.random() < self.mismatch_share:
             sparse = "source_points" if rng.random() < 0.5 else "target_points"
-            counts[sparse] = max(32, round(rng.uniform(*self.mismatch_keep) * keep))
+            counts[sparse] = max(MIN_CLOUD_POINTS, round(rng.uniform(*self.mismatch_keep) * keep))
         if self.outliers > 0:  # drawn last: without outliers the draws are the ones the bundled model saw
             counts["outliers"] = float(rng.uniform(0.0, self.outliers))
         views: dict = {}
         if self.views_share > 0 and rng.random() < self.views_share:  # drawn after everything else, as outliers
-            view_keep = round(rng.uniform(*self.view_keep) * points)
+            view_keep = max(MIN_CLOUD_POINTS, round(rng.uniform(*self.view_keep) * points))
             for name in ("source_points", "target_points"):  # a sparser cloud keeps its share of the view
                 if name in counts:
-                    counts[name] = min(view_keep, max(32, round(counts[name] * view_keep / keep)))
+                    counts[name] = min(view_keep, max(MIN_CLOUD_POINTS, round(counts[name] * view_keep / keep)))
             keep, views = view_keep, {"crop": "views", "view_angle_deg": self.view_angle_deg}
         protocol = PairProtocol(
             points=points, keep=keep, max_angle_deg=self.max_angle_deg, noise_sigma=float(sigma),

@@ -173,6 +173,12 @@ def test_training_keypoints_are_64_positives_then_64_negatives_per_cloud() -> No
         assert (dist[b][:, t_neg].min(dim=0).values >= TH).all()
 
 
+def test_training_keypoints_need_positives_plus_negatives_points_per_cloud() -> None:
+    src, tgt, R, t = partial_pair(0)
+    with pytest.raises(ValueError, match="the target has 100 points; training samples 64 \\+ 64"):
+        sample_training_keypoints(src, tgt[:, :100], R, t, 64, 64, TH)
+
+
 def test_training_keypoints_are_seeded_and_random() -> None:
     src, tgt, R, t = partial_pair(1)
     a = sample_training_keypoints(src, tgt, R, t, 64, 64, TH, torch.Generator().manual_seed(5))

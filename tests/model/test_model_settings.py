@@ -26,7 +26,7 @@ from model.data import (
     make_test_pairs,
     protocol_for,
 )
-from model.recipes import GeneralRecipe, recipe_draw
+from model.recipes import MIN_CLOUD_POINTS, GeneralRecipe, recipe_draw
 from model.train import TrainOptions, train
 from service.cli import app
 
@@ -424,8 +424,12 @@ def test_recipe_views_are_drawn_last_and_keep_a_cameras_share_of_each_cloud() ->
         assert dataclasses.replace(q, crop="far_point", keep=p.keep, view_angle_deg=60.0, source_points=p.source_points,
                                    target_points=p.target_points) == p  # every other draw unchanged
         assert 0.2 * q.points - 1 <= q.keep <= 0.3 * q.points + 1 and q.view_angle_deg == 60.0
-        assert all(n is None or 32 <= n <= q.keep for n in (q.source_points, q.target_points))
+        assert all(n is None or MIN_CLOUD_POINTS <= n <= q.keep for n in (q.source_points, q.target_points))
     assert kinds == {"far_point", "views"}
+    every_view = recipe_draw("general", views_share=1.0)
+    for seed in range(300):  # the sparser cloud of a view batch still holds the 64 + 64 training keypoints
+        q = every_view(np.random.default_rng(seed))
+        assert min(q.source_count, q.target_count) >= MIN_CLOUD_POINTS == 128
     with pytest.raises(ValueError, match="views_share"):
         recipe_draw("general", views_share=1.5)
     batches = TrainPairStream(sphere_shapes(4), recipe_draw("general", views_share=1.0), seed=0).epoch(0, 2)
