@@ -6,7 +6,8 @@ How the 2026-11-26 runs (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCUR
    9,843 training shapes (seeded), small enough to travel with the working tree (64 MiB limit);
 2. there (``$OUT`` is the folder that comes back): ``python3 scripts/device_train_general.py run
    --data .gpu/data --init runs/general/last.pt --minutes-a 6 --minutes-b 1.5`` (run 2: ``--init``
-   run 1's last weights, ``--minutes-a 3.5 --minutes-b 1.2``). The two runs used a first draft of this
+   run 1's last weights, ``--minutes-a 3.5 --minutes-b 1.2``; ``--views-share 0.3`` cuts that share of the
+   batches as camera views, ``model.recipes``). The two runs used a first draft of this
    script with the same options and phases, taking them as positional arguments.
 
 Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's last weights)
@@ -49,7 +50,7 @@ def run_phases(args: argparse.Namespace) -> None:
     print("torch", torch.__version__, "cuda", torch.cuda.is_available(), flush=True)
     common = dict(setting="resampled", recipe="general", max_angle=60.0, epochs=100_000, lr_drop_at=1.0,
                   batch_size=args.batch_size, max_batches_per_epoch=100, val_pairs=256, checkpoint_minutes=1.0,
-                  patience=100_000, device=args.device, data=args.data)
+                  patience=100_000, device=args.device, data=args.data, views_share=args.views_share)
 
     def phase(opts: TrainOptions) -> None:
         try:
@@ -87,6 +88,7 @@ def main() -> None:
     run.add_argument("--minutes-b", type=float, required=True)
     run.add_argument("--device", default="auto")
     run.add_argument("--batch-size", type=int, default=32)
+    run.add_argument("--views-share", type=float, default=None, help="share of batches cut as camera views")
     args = parser.parse_args()
     if args.command == "subset":
         write_subset(args.out, args.shapes, args.seed)

@@ -41,7 +41,7 @@ def test_subset_and_both_phases_leave_the_files_that_come_back(tmp_path) -> None
     torch.manual_seed(0)
     save_checkpoint(init, MFGNet(MFGNetConfig()))
     run = script("run", "--data", str(subset), "--init", str(init), "--minutes-a", "0.01", "--minutes-b", "0.01",
-                 "--device", "cpu", "--batch-size", "2", env={"OUT": str(out)})
+                 "--device", "cpu", "--batch-size", "2", "--views-share", "1.0", env={"OUT": str(out)})
     assert "all done" in run.stdout
     assert not (out / "a" / "last.pt").exists() and not (out / "a" / "config.json").exists()  # handed to phase b
     assert (out / "b" / "last.pt").exists() and not (out / "b" / "config.json").exists()
