@@ -15,6 +15,7 @@ from model.allocator import keep_freed_memory
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
 from model.data import PairProtocol, TrainPairStream, load_shapes, make_pairs, protocol_for
+from model.graceful_stop import GracefulStop
 from model.inference import predict_poses
 from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
@@ -150,87 +151,92 @@ def train(opts: TrainOptions) -> Path:
     prefetch = device.type == "cuda" if opts.prefetch is None else opts.prefetch
     from tqdm import tqdm
 
-    while state["epoch"] < opts.epochs:
-        epoch = state["epoch"]
-        for group in optimizer.param_groups:
-            group["lr"] = lr_at(opts, epoch)
-        model.train()
-        n_batches = len(train_idx) // opts.batch_size
-        if opts.max_batches_per_epoch:
-            n_batches = min(n_batches, opts.max_batches_per_epoch)
-        sums = {"keypoint": 0.0, "matching": 0.0, "credibility": 0.0, "total": 0.0}
-        seen, epoch_start, compute = 0, time.time(), 0.0
-        bar = tqdm(total=n_batches, initial=state["batch"], desc=f"epoch {epoch}", unit="batch", mininterval=5)
-        for b, batch in enumerate(epoch_batches(stream, epoch, opts.batch_size, prefetch)):
-            if b >= n_batches:
-                break
-            if b < state["batch"]:
-                continue  # resuming inside an epoch: the stream is reproducible, skip what was done
-            tic = time.perf_counter()
-            src, tgt, R_gt, t_gt = (
-                torch.as_tensor(batch[k]).to(device) for k in ("source", "target", "rotation", "translation")
-            )
-            src_idx, tgt_idx = sample_training_keypoints(
-                src,
-                tgt,
-                R_gt,
-                t_gt,
-                cfg.train_positives,
-                cfg.train_negatives,
-                cfg.match_threshold,
-                generator if device.type == "cpu" else None,
-            )
-            outputs = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
-            losses = registration_losses(outputs, src, tgt, R_gt, t_gt, cfg.match_threshold)
-            optimizer.zero_grad(set_to_none=True)
-            losses.total.backward()
-            optimizer.step()
-            compute += time.perf_counter() - tic
-            for k in ("keypoint", "matching", "credibility", "total"):
-                sums[k] += float(getattr(losses, k).detach())
-            seen += 1
-            state["batch"] = b + 1
-            bar.update(1)
-            bar.set_postfix(
-                loss=f"{sums['total'] / seen:.3f}", ms_pair=f"{1000 * compute / seen / opts.batch_size:.0f}"
-            )
-            if time.time() - last_save > 60 * opts.checkpoint_minutes:
+    with GracefulStop() as stop:  # SIGTERM / SIGINT: finish the step, checkpoint, return
+        while state["epoch"] < opts.epochs:
+            epoch = state["epoch"]
+            for group in optimizer.param_groups:
+                group["lr"] = lr_at(opts, epoch)
+            model.train()
+            n_batches = len(train_idx) // opts.batch_size
+            if opts.max_batches_per_epoch:
+                n_batches = min(n_batches, opts.max_batches_per_epoch)
+            sums = {"keypoint": 0.0, "matching": 0.0, "credibility": 0.0, "total": 0.0}
+            seen, epoch_start, compute = 0, time.time(), 0.0
+            bar = tqdm(total=n_batches, initial=state["batch"], desc=f"epoch {epoch}", unit="batch", mininterval=5)
+            for b, batch in enumerate(epoch_batches(stream, epoch, opts.batch_size, prefetch)):
+                if b >= n_batches:
+                    break
+                if b < state["batch"]:
+                    continue  # resuming inside an epoch: the stream is reproducible, skip what was done
+                tic = time.perf_counter()
+                src, tgt, R_gt, t_gt = (
+                    torch.as_tensor(batch[k]).to(device) for k in ("source", "target", "rotation", "translation")
+                )
+                src_idx, tgt_idx = sample_training_keypoints(
+                    src,
+                    tgt,
+                    R_gt,
+                    t_gt,
+                    cfg.train_positives,
+                    cfg.train_negatives,
+                    cfg.match_threshold,
+                    generator if device.type == "cpu" else None,
+                )
+                outputs = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
+                losses = registration_losses(outputs, src, tgt, R_gt, t_gt, cfg.match_threshold)
+                optimizer.zero_grad(set_to_none=True)
+                losses.total.backward()
+                optimizer.step()
+                compute += time.perf_counter() - tic
+                for k in ("keypoint", "matching", "credibility", "total"):
+                    sums[k] += float(getattr(losses, k).detach())
+                seen += 1
+                state["batch"] = b + 1
+                bar.update(1)
+                bar.set_postfix(
+                    loss=f"{sums['total'] / seen:.3f}", ms_pair=f"{1000 * compute / seen / opts.batch_size:.0f}"
+                )
+                if time.time() - last_save > 60 * opts.checkpoint_minutes:
+                    checkpoint(last_path)
+                    last_save = time.time()
+                if stop.requested or (opts.max_minutes and time.time() - begin > 60 * opts.max_minutes):
+                    break
+            bar.close()
+            if state["batch"] < n_batches:  # stopped by a signal or by max_minutes inside an epoch
                 checkpoint(last_path)
-                last_save = time.time()
+                why = f"on {stop.requested}" if stop.requested else f"after {opts.max_minutes} min"
+                print(f"stopped {why} at epoch {epoch} batch {state['batch']}; --resume continues there")
+                break
+            R, t, secs = predict_poses(model, val_pairs, batch_size=16)
+            val = registration_metrics(R, t, val_pairs["rotation"], val_pairs["translation"], secs)
+            record = {
+                "epoch": epoch,
+                "lr": lr_at(opts, epoch),
+                "batches": seen,
+                **{f"train_{k}": v / max(seen, 1) for k, v in sums.items()},
+                **{f"val_{k}": v for k, v in val.items()},
+                "s_per_pair": compute / max(seen * opts.batch_size, 1),
+                "epoch_minutes": (time.time() - epoch_start) / 60,
+                "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            }
+            with log_path.open("a") as f:
+                f.write(json.dumps(record) + "\n")
+            print(json.dumps(record))
+            state["epoch"], state["batch"] = epoch + 1, 0
+            metric = val["mae_r"]
+            if metric < state["best"]:
+                state["best"], state["best_epoch"], state["stale"] = metric, epoch, 0
+                checkpoint(best_path, val=val)
+            else:
+                state["stale"] += 1
+            checkpoint(last_path)
+            last_save = time.time()
+            if state["stale"] >= opts.patience:
+                print(f"validation plateaued for {opts.patience} epochs; stopping at epoch {epoch}")
+                break
+            if stop.requested:
+                print(f"stopped on {stop.requested} after epoch {epoch}; --resume continues there")
+                break
             if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
                 break
-        bar.close()
-        if state["batch"] < n_batches:  # stopped by max_minutes inside an epoch
-            checkpoint(last_path)
-            print(f"stopped after {opts.max_minutes} min at epoch {epoch} batch {state['batch']}")
-            break
-        R, t, secs = predict_poses(model, val_pairs, batch_size=16)
-        val = registration_metrics(R, t, val_pairs["rotation"], val_pairs["translation"], secs)
-        record = {
-            "epoch": epoch,
-            "lr": lr_at(opts, epoch),
-            "batches": seen,
-            **{f"train_{k}": v / max(seen, 1) for k, v in sums.items()},
-            **{f"val_{k}": v for k, v in val.items()},
-            "s_per_pair": compute / max(seen * opts.batch_size, 1),
-            "epoch_minutes": (time.time() - epoch_start) / 60,
-            "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        }
-        with log_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-        print(json.dumps(record))
-        state["epoch"], state["batch"] = epoch + 1, 0
-        metric = val["mae_r"]
-        if metric < state["best"]:
-            state["best"], state["best_epoch"], state["stale"] = metric, epoch, 0
-            checkpoint(best_path, val=val)
-        else:
-            state["stale"] += 1
-        checkpoint(last_path)
-        last_save = time.time()
-        if state["stale"] >= opts.patience:
-            print(f"validation plateaued for {opts.patience} epochs; stopping at epoch {epoch}")
-            break
-        if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
-            break
     return best_path
