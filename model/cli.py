@@ -107,6 +107,9 @@ def train(
         float | None,
         typer.Option(help="with --recipe: share of batches cut as two camera views (range scans, model.views), 0-1"),
     ] = None,
+    data_workers: Annotated[
+        int, typer.Option(min=1, help="on CUDA: processes making batches ahead of the GPU (views cost the most)")
+    ] = 1,
 ) -> None:
     """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
     from model.train import TrainOptions
@@ -127,6 +130,7 @@ def train(
         config={"iterations": iterations, "share_weights": share_weights}, source_points=source_points,
         target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle, outliers=outliers,
         max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe, views_share=views_share,
+        workers=data_workers,
     )
     best = run(opts)
     typer.echo(f"best checkpoint: {best}")

@@ -424,10 +424,22 @@ class TrainPairStream:
     def __init__(self, shapes: np.ndarray, protocol: PairProtocol | ProtocolDraw, seed: int):
         self.shapes, self.protocol, self.seed = shapes, protocol, seed
 
-    def epoch(self, epoch: int, batch_size: int):
-        """Yield batches (dicts of float32 arrays) of one epoch; reproducible per (seed, epoch)."""
-        rng = np.random.default_rng([self.seed, epoch])
-        order = rng.permutation(len(self.shapes))
-        for start in range(0, len(order) - batch_size + 1, batch_size):
+    def batches_per_epoch(self, batch_size: int) -> int:
+        return len(self.shapes) // batch_size
+
+    def epoch(self, epoch: int, batch_size: int, first: int = 0, shard: tuple[int, int] = (0, 1)):
+        """Yield batches (dicts of float32 arrays) of one epoch from batch ``first`` on.
+
+        Batch ``b`` depends only on (seed, epoch, b): the epoch's shape order comes from (seed, epoch), its
+        protocol and pair draws from (seed, epoch, b). So a resumed epoch starts at its batch without making
+        the ones before, and ``shard = (i, n)`` yields only the batches ``(b - first) % n == i`` (worker ``i`` of
+        ``n``: taking one batch from each worker in turn gives the epoch's order).
+        """
+        order = np.random.default_rng([self.seed, epoch]).permutation(len(self.shapes))
+        index, count = shard
+        for b in range(first, self.batches_per_epoch(batch_size)):
+            if (b - first) % count != index:
+                continue
+            rng = np.random.default_rng([self.seed, epoch, b])
             protocol = self.protocol if isinstance(self.protocol, PairProtocol) else self.protocol(rng)
-            yield make_pairs(self.shapes[order[start : start + batch_size]], protocol, rng)
+            yield make_pairs(self.shapes[order[b * batch_size : (b + 1) * batch_size]], protocol, rng)

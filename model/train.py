@@ -54,7 +54,8 @@ class TrainOptions:
     outliers: float | None = None  # share of scattered points per cloud (with a recipe: the largest drawn)
     recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
     views_share: float | None = None  # with a recipe: its share of batches cut as camera views (model.views)
-    prefetch: bool | None = None  # make batches in a worker process while the model trains; None: on for CUDA
+    prefetch: bool | None = None  # make batches in worker processes while the model trains; None: on for CUDA
+    workers: int = 1  # with prefetch: processes making batches (camera-view batches cost ~5 ms per pair to make)
 
     def pair_protocol(self) -> PairProtocol:
         """The training / validation pair protocol: the setting's, with these overrides."""
@@ -76,19 +77,22 @@ def split_validation(n: int, fraction: float, seed: int) -> tuple[np.ndarray, np
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
 
-def epoch_batches(stream: TrainPairStream, epoch: int, batch_size: int, prefetch: bool):
-    """One epoch's batches, made here or (``prefetch``) in one worker process a few batches ahead.
+def epoch_batches(stream: TrainPairStream, epoch: int, batch_size: int, prefetch: bool, first: int = 0,
+                  workers: int = 1):
+    """One epoch's batches from batch ``first`` on, made here or (``prefetch``) in ``workers`` processes ahead.
 
-    One worker runs the same seeded stream, so both ways yield the same batches in the same order.
+    Worker ``i`` makes every ``workers``-th batch of the same seeded stream, starting with ``first + i``, and the
+    loader takes one from each worker in turn, so every way yields the same batches in the same order.
     """
     if not prefetch:
-        return stream.epoch(epoch, batch_size)
+        return stream.epoch(epoch, batch_size, first)
 
     class _Epoch(torch.utils.data.IterableDataset):
         def __iter__(self):
-            return stream.epoch(epoch, batch_size)
+            info = torch.utils.data.get_worker_info()
+            return stream.epoch(epoch, batch_size, first, (info.id, info.num_workers))
 
-    return torch.utils.data.DataLoader(_Epoch(), batch_size=None, num_workers=1, prefetch_factor=4)
+    return torch.utils.data.DataLoader(_Epoch(), batch_size=None, num_workers=workers, prefetch_factor=4)
 
 
 def lr_at(opts: TrainOptions, epoch: int) -> float:
@@ -157,17 +161,16 @@ def train(opts: TrainOptions) -> Path:
             for group in optimizer.param_groups:
                 group["lr"] = lr_at(opts, epoch)
             model.train()
-            n_batches = len(train_idx) // opts.batch_size
+            n_batches = stream.batches_per_epoch(opts.batch_size)
             if opts.max_batches_per_epoch:
                 n_batches = min(n_batches, opts.max_batches_per_epoch)
             sums = {"keypoint": 0.0, "matching": 0.0, "credibility": 0.0, "total": 0.0}
             seen, epoch_start, compute = 0, time.time(), 0.0
             bar = tqdm(total=n_batches, initial=state["batch"], desc=f"epoch {epoch}", unit="batch", mininterval=5)
-            for b, batch in enumerate(epoch_batches(stream, epoch, opts.batch_size, prefetch)):
+            batches = epoch_batches(stream, epoch, opts.batch_size, prefetch, state["batch"], opts.workers)
+            for b, batch in enumerate(batches, start=state["batch"]):  # resumed inside an epoch: from its batch
                 if b >= n_batches:
                     break
-                if b < state["batch"]:
-                    continue  # resuming inside an epoch: the stream is reproducible, skip what was done
                 tic = time.perf_counter()
                 src, tgt, R_gt, t_gt = (
                     torch.as_tensor(batch[k]).to(device) for k in ("source", "target", "rotation", "translation")

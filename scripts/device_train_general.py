@@ -50,7 +50,8 @@ def run_phases(args: argparse.Namespace) -> None:
     print("torch", torch.__version__, "cuda", torch.cuda.is_available(), flush=True)
     common = dict(setting="resampled", recipe="general", max_angle=60.0, epochs=100_000, lr_drop_at=1.0,
                   batch_size=args.batch_size, max_batches_per_epoch=100, val_pairs=256, checkpoint_minutes=1.0,
-                  patience=100_000, device=args.device, data=args.data, views_share=args.views_share)
+                  patience=100_000, device=args.device, data=args.data, views_share=args.views_share,
+                  workers=args.workers)
 
     def phase(opts: TrainOptions) -> None:
         try:
@@ -89,6 +90,7 @@ def main() -> None:
     run.add_argument("--device", default="auto")
     run.add_argument("--batch-size", type=int, default=32)
     run.add_argument("--views-share", type=float, default=None, help="share of batches cut as camera views")
+    run.add_argument("--workers", type=int, default=4, help="processes making batches ahead of the GPU")
     args = parser.parse_args()
     if args.command == "subset":
         write_subset(args.out, args.shapes, args.seed)

@@ -115,24 +115,33 @@ def test_train_writes_checkpoints_and_log_and_resume_continues(tmp_path, synthet
     assert changed  # training went on from the saved weights
 
 
-def test_prefetched_batches_are_the_stream_batches_in_order() -> None:
-    stream = TrainPairStream(sphere_shapes(12, seed=4), recipe_draw("general"), seed=5)
-    here = list(epoch_batches(stream, 1, 3, prefetch=False))
-    ahead = list(epoch_batches(stream, 1, 3, prefetch=True))  # made in a worker process
-    assert len(here) == len(ahead) == 4
-    for a, b in zip(here, ahead, strict=True):
+def assert_same_batches(here: list[dict], there: list[dict]) -> None:
+    assert len(here) == len(there)
+    for a, b in zip(here, there, strict=True):
         assert set(a) == set(b)
         for key in a:
             assert np.array_equal(a[key], np.asarray(b[key])), key
 
 
+def test_prefetched_batches_are_the_stream_batches_in_order() -> None:
+    stream = TrainPairStream(sphere_shapes(15, seed=4), recipe_draw("general"), seed=5)
+    here = list(epoch_batches(stream, 1, 3, prefetch=False))
+    assert len(here) == 5
+    assert_same_batches(here, list(epoch_batches(stream, 1, 3, prefetch=True)))  # made in a worker process
+    assert_same_batches(here, list(epoch_batches(stream, 1, 3, prefetch=True, workers=3)))  # 3 workers in turn
+    for first in (1, 4):  # a resumed epoch starts at its batch, here or in 2 workers
+        assert_same_batches(here[first:], list(epoch_batches(stream, 1, 3, prefetch=False, first=first)))
+        assert_same_batches(here[first:], list(epoch_batches(stream, 1, 3, prefetch=True, first=first, workers=2)))
+    assert not np.array_equal(here[0]["source"], next(iter(epoch_batches(stream, 2, 3, prefetch=False)))["source"])
+
+
 def test_prefetched_training_logs_the_same_losses(tmp_path, synthetic_modelnet) -> None:
     logs = []
-    for prefetch in (False, True):
-        run = tmp_path / f"run_{prefetch}"
-        train(options(run, synthetic_modelnet, prefetch=prefetch))
+    for prefetch, workers in ((False, 1), (True, 1), (True, 2)):
+        run = tmp_path / f"run_{prefetch}_{workers}"
+        train(options(run, synthetic_modelnet, prefetch=prefetch, workers=workers))
         logs.append(json.loads((run / "log.jsonl").read_text())["train_total"])
-    assert logs[0] == logs[1]
+    assert logs[0] == logs[1] == logs[2]
 
 
 def test_train_config_overrides_reach_the_saved_model(tmp_path, synthetic_modelnet) -> None:
