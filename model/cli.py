@@ -207,7 +207,9 @@ def evaluate(
     if by_label and "label" not in data_pairs:
         raise typer.BadParameter("--by-label needs pairs with a 'label' array")
     if model is not None:
-        R, t, secs, searched, reliable = _runtime_poses(model, data_pairs, iterations, keypoints, refine, search,
+        from model.runtime_eval import runtime_poses
+
+        R, t, secs, searched, reliable = runtime_poses(model, data_pairs, iterations, keypoints, refine, search,
                                                         refine_points)
     elif baseline is not None:
         from export.baselines import run_method
@@ -240,28 +242,3 @@ def evaluate(
         json_out.write_text(text + "\n")
     if per_pair:
         save_per_pair(per_pair, R, t, data_pairs)
-
-
-def _runtime_poses(model: str, pairs: dict, iterations: int | None, keypoints: int | None, refine: str,
-                   rotation_search: bool | str = False, refine_points: int | None = None):
-    """Poses of every pair through the service's own pipeline (``Registrar.register``), the seconds they took,
-    on how many pairs the rotation search ran (``timing_ms["search"]``) and each result's ``reliable`` flag."""
-    import time
-
-    import numpy as np
-    from tqdm import tqdm
-
-    from service.manifest import model_folder
-    from service.registrar import Registrar
-
-    registrar = Registrar(model_folder(model))
-    Rs, ts, searched, reliable = [], [], 0, []
-    begin = time.perf_counter()
-    for src, tgt in tqdm(list(zip(pairs["source"], pairs["target"], strict=True)), desc="evaluate", unit="pair"):
-        res = registrar.register(src, tgt, iterations=iterations, keypoints=keypoints, refine=refine,
-                                 rotation_search=rotation_search, refine_points=refine_points)
-        Rs.append(res.rotation)
-        ts.append(res.translation)
-        searched += "search" in res.timing_ms
-        reliable.append(res.reliable)
-    return np.stack(Rs), np.stack(ts), time.perf_counter() - begin, searched, np.array(reliable, dtype=bool)
