@@ -55,7 +55,7 @@ class TrainOptions:
     recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
     views_share: float | None = None  # with a recipe: its share of batches cut as camera views (model.views)
     prefetch: bool | None = None  # make batches in worker processes while the model trains; None: on for CUDA
-    workers: int = 1  # with prefetch: processes making batches (camera-view batches cost ~5 ms per pair to make)
+    workers: int = 1  # with prefetch: processes making batches (camera-view pairs take ~4 ms each to make)
 
     def pair_protocol(self) -> PairProtocol:
         """The training / validation pair protocol: the setting's, with these overrides."""
