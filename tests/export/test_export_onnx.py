@@ -106,8 +106,10 @@ def test_bundled_onnx_model_matches_bundled_checkpoint():
     assert manifest["source_checkpoint_sha256"] == file_sha256(BUNDLED_CKPT), "re-export after re-bundling"
     # Noisy pairs, as `mfgnet export` checks by default: between shared points the aligned pairs sit at ~0 distance,
     # where the unit-difference feature turns float32 (torch) vs float64 (runtime) rounding of the pose into other
-    # matches -- more often the better trained the model (docs/ACCURACY.md, `clean`).
-    report = check_parity(model, registrar, synthetic_pairs(16, seed=9, noise=0.01), min_compared=8)
+    # matches -- more often the better trained the model (docs/ACCURACY.md, `clean`). A sharper model also saturates
+    # more matching scores at the clamp (argmax near-ties, excluded): `clean` 0.4.0 leaves 3 of 16 of these pairs
+    # comparable and 11 of 40, hence 48.
+    report = check_parity(model, registrar, synthetic_pairs(48, seed=9, noise=0.01), min_compared=8)
     assert report.max_encoder_diff <= 1e-4 and report.max_matcher_diff <= 1e-4
     assert report.max_rotation_diff_deg <= 1e-3 and report.max_translation_diff <= 1e-5
 
