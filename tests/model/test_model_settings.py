@@ -11,6 +11,7 @@ from pair_checks import EXACT, check_indices, moved, needs_dense, needs_modelnet
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from shapes import sphere_shapes
+from tiny_training import TINY_MODEL, tiny_training_data
 from typer.testing import CliRunner
 
 from model.data import (
@@ -251,19 +252,6 @@ def test_the_training_stream_draws_fresh_disjoint_halves_every_epoch() -> None:
     assert set(first) == set(second) == set(range(4))
     assert all(not np.array_equal(first[r], second[r]) for r in range(4))
     assert all(v.shape == (384,) for v in first.values())
-
-
-TINY_MODEL = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
-              "knn": 8, "train_positives": 16, "train_negatives": 16}
-
-
-def tiny_training_data(tmp_path) -> str:
-    """A data folder whose training split is 30 random spheres (labels 0-19)."""
-    folder = tmp_path / "data"
-    folder.mkdir()
-    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
-             labels=np.arange(30) % 20)
-    return str(folder)
 
 
 def test_train_runs_with_the_resampled_setting_and_saves_its_protocol(tmp_path) -> None:

@@ -11,28 +11,25 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
-from shapes import sphere_shapes
+from tiny_training import TINY_MODEL, tiny_training_data
 
 from model.checkpoint import read_checkpoint
 from model.graceful_stop import GracefulStop
 
-TINY = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8, "knn": 8,
-        "train_positives": 16, "train_negatives": 16}
 TRAIN = f"""
 import sys
 from model.train import TrainOptions, train
 opts = TrainOptions(setting="resampled", out=sys.argv[1], data=sys.argv[2], epochs=int(sys.argv[3]), batch_size=2,
-                    val_pairs=2, device="cpu", threads=1, config={TINY}, checkpoint_minutes=60.0,
+                    val_pairs=2, device="cpu", threads=1, config={TINY_MODEL}, checkpoint_minutes=60.0,
                     resume=sys.argv[4] == "resume")
 print("best", train(opts), flush=True)
 """
 
 
-def start_training(run: Path, data: Path, epochs: int, resume: bool) -> subprocess.Popen:
+def start_training(run: Path, data: str, epochs: int, resume: bool) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-c", TRAIN, str(run), str(data), str(epochs), "resume" if resume else "fresh"],
+        [sys.executable, "-c", TRAIN, str(run), data, str(epochs), "resume" if resume else "fresh"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )
 
@@ -58,10 +55,7 @@ def read_until(proc: subprocess.Popen, marker: str, timeout: float) -> str:
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_checkpoints_the_run_and_resume_continues_it(tmp_path, sig) -> None:
-    data = tmp_path / "data"
-    data.mkdir()
-    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
-             labels=np.arange(30) % 20)
+    data = tiny_training_data(tmp_path)
     run = tmp_path / "run"
     proc = start_training(run, data, epochs=1000, resume=False)
     read_until(proc, '"epoch": 1,', timeout=120)  # two epochs logged: the loop is running

@@ -1,0 +1,21 @@
+"""A tiny network and training split for training tests that must run in seconds (no dataset needed).
+
+Import as ``from tiny_training import ...`` (``tests/helpers`` is on ``sys.path``; see ``shapes.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from shapes import sphere_shapes
+
+TINY_MODEL = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
+              "knn": 8, "train_positives": 16, "train_negatives": 16}
+
+
+def tiny_training_data(tmp_path) -> str:
+    """A data folder whose training split is 30 random spheres (labels 0-19)."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
+             labels=np.arange(30) % 20)
+    return str(folder)
