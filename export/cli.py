@@ -26,9 +26,9 @@ def export(
     seed: int = 0,
 ) -> None:
     """Export a checkpoint to ONNX (encoder + matcher graphs) with a manifest; fails on parity."""
-    from export.onnx_export import export_graphs, reference_radius, search_section, write_manifest
+    from export.onnx_export import write_model_folder
     from export.parity import ParityError, check_parity
-    from model.checkpoint import file_sha256, load_model, read_checkpoint, resolve_checkpoint
+    from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint
     from model.data import make_test_pairs
     from service.registrar import Registrar
 
@@ -41,10 +41,7 @@ def export(
     if accuracy_json:
         accuracy = {"metrics": accuracy, "on": str(accuracy_json.name)}
     out.mkdir(parents=True, exist_ok=True)
-    files = export_graphs(model, out)
-    radius = reference_radius(setting)
-    write_manifest(out, out.name, model, files, file_sha256(path), accuracy, radius, version, source=path.name,
-                   search=search_section(data.get("protocol")))
+    write_model_folder(out, path, model, data, setting, version, accuracy)
     registrar = Registrar(out, warmup=False)
     pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed)
     try:

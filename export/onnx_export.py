@@ -228,6 +228,18 @@ def search_section(protocol: dict | None) -> dict | None:
     return {"points": SEARCH_POINTS, "keypoints": SEARCH_KEYPOINTS}
 
 
+def write_model_folder(out_dir: Path, checkpoint_path: Path, model: MFGNet, checkpoint: dict, setting: str,
+                       version: str, accuracy: dict | None) -> None:
+    """A servable model folder from ``model`` (loaded from ``checkpoint_path``, whose contents are ``checkpoint``):
+    the graphs and the manifest, with the reference radius of ``setting``. No parity check."""
+    from model.checkpoint import file_sha256
+
+    files = export_graphs(model, out_dir)
+    write_manifest(out_dir, out_dir.name, model, files, file_sha256(checkpoint_path), accuracy,
+                   reference_radius(setting), version, source=checkpoint_path.name,
+                   search=search_section(checkpoint.get("protocol")))
+
+
 def write_manifest(out_dir: Path, name: str, model: MFGNet, files: dict[str, str], checkpoint_sha256: str,
                    accuracy: dict | None, radius: float, version: str, source: str, search: dict | None = None) -> Path:
     """``manifest.json``: name, version, config, opset, graph hashes, source hash, accuracy, and the rotation

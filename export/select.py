@@ -22,16 +22,12 @@ COLUMNS = ("recall_r5_t005", "recall_r1_t001", "mae_r", "iso_r_median", "reliabl
 
 def export_for_selection(checkpoint: str, out: Path) -> Path:
     """Graphs and manifest of ``checkpoint`` (path or bundled name) in ``out`` (a model folder)."""
-    from export.onnx_export import export_graphs, reference_radius, search_section, write_manifest
-    from model.checkpoint import file_sha256, load_model, read_checkpoint, resolve_checkpoint
+    from export.onnx_export import write_model_folder
+    from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint
 
     path = resolve_checkpoint(checkpoint)
-    model, data = load_model(path), read_checkpoint(path)
-    protocol = data.get("protocol")
-    setting = data.get("setting", "clean")
-    files = export_graphs(model, out)
-    write_manifest(out, out.name, model, files, file_sha256(path), {}, reference_radius(setting), "selection",
-                   source=path.name, search=search_section(protocol))
+    data = read_checkpoint(path)
+    write_model_folder(out, path, load_model(path), data, data.get("setting", "clean"), "selection", {})
     return out
 
 
