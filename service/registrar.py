@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 import onnxruntime as ort
 
+from service.blas_threads import use_one_blas_thread
 from service.errors import InputError
 from service.icp import IcpResult, Surface, icp, icp_plane, refine_plane
 from service.kdtree import KDTree
@@ -194,9 +195,14 @@ def session_options(threads: int) -> ort.SessionOptions:
 
 
 class Registrar:
-    """One loaded, hash-verified model: an ONNX Runtime session per graph, shared by all callers."""
+    """One loaded, hash-verified model: an ONNX Runtime session per graph, shared by all callers.
+
+    Built on the main thread, it also sets numpy's BLAS to one thread for the process
+    (:func:`service.blas_threads.use_one_blas_thread`): ONNX Runtime's threads own the cores.
+    """
 
     def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True):
+        use_one_blas_thread()
         self.manifest: Manifest = load_manifest(model_dir)
         self.name = self.manifest.name
         self.config = self.manifest.config

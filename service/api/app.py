@@ -22,6 +22,7 @@ from service.api.routes import metrics as metrics_routes
 from service.api.routes import models, oip, register
 from service.api.runner import Runner
 from service.api.schemas import BatchRequest, InferRequest, RegisterRequest
+from service.blas_threads import use_one_blas_thread
 from service.core.config import Settings
 from service.core.logging import configure_logging
 
@@ -40,6 +41,7 @@ def effective_default_model(settings: Settings, registry: ModelRegistry) -> str:
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
+    use_one_blas_thread()  # here, on the main thread: the models load in a background thread
     metrics = Metrics()
     registry = ModelRegistry.discover(
         settings.model_dirs,
