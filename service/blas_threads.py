@@ -7,7 +7,7 @@ with concurrent requests: with two registrations at once on the 2-core developme
 29-30 registrations per second; beside a busy process one embedding distance took 15.8 ms instead of
 0.24 (``docs/BENCHMARKS.md``, "BLAS threads").
 
-OpenBLAS takes a new thread count only from the process's main thread (0.3.30 with pthreads ignores the
+OpenBLAS takes a new thread count only from the process's main thread (0.3.30 and 0.3.31 with pthreads ignore the
 call from any other thread), and the count then holds for every thread. So the server sets it once, from
 the thread that builds the app, before the worker threads run registrations. The container sets
 ``OMP_NUM_THREADS=1``, which OpenBLAS reads at load time, to the same effect.
