@@ -39,7 +39,7 @@ def compare_load(pairs: dict[str, np.ndarray], roots: list[str | None], requests
     return rows
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", required=True, help="pairs .npz (mfgnet make-pairs)")
     parser.add_argument("--compare-root", action="append", default=[], help="another checkout to serve beside this one")
@@ -48,7 +48,7 @@ def main() -> None:
     parser.add_argument("--concurrency", type=int, action="append", help="default: 1, 2, 4, 8")
     parser.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads of each server")
     parser.add_argument("--json", help="also write the rows here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     with np.load(args.pairs) as data:
         pairs = {key: data[key] for key in ("source", "target")}
     started = time.strftime("%Y-%m-%d %H:%M:%S")
