@@ -227,8 +227,9 @@ def test_drop_isolated_can_be_turned_off_on_every_route(client):
     pair = type(base)(source, target, base.rotation, base.translation)
     default = client.post("/v1/register", json=pair_json(pair, rotation_search=False)).json()
     kept = client.post("/v1/register", json=pair_json(pair, rotation_search=False, drop_isolated=False)).json()
-    scattered = len(base.source)  # rows from here on are the scattered points
-    on_scattered = [sum(c["source_index"] >= scattered for c in b["correspondences"]) for b in (default, kept)]
+    first_s, first_t = len(base.source), len(base.target)  # rows from here on are the scattered points
+    on_scattered = [sum(c["source_index"] >= first_s or c["target_index"] >= first_t for c in b["correspondences"])
+                    for b in (default, kept)]
     assert on_scattered[0] < on_scattered[1], on_scattered
     files = {"source": ("s.npy", npy(pair.source)), "target": ("t.npy", npy(pair.target))}
     form = client.post("/v1/register", files=files, data={"drop_isolated": "false", "rotation_search": "false"}).json()
