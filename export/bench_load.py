@@ -1,11 +1,14 @@
-"""Throughput and latency under concurrent requests, this checkout's server against another checkout's::
+"""Throughput and latency under concurrent requests: this checkout's server against another checkout's, or
+against itself with other thread settings::
 
     python -m export.bench_load --pairs pairs_dense.npz --compare-root /tmp/old-checkout --json load.json
+    python -m export.bench_load --pairs pairs_dense.npz --settings 2x2 --settings 1x2 --settings 1x4
 
-Both servers (real uvicorn processes on 127.0.0.1, :class:`export.bench_http.Server`) serve their bundled
-models and get the same registrations (the first ``--bodies`` pairs of the file, the service's default
-options) at each concurrency; the servers take turns, and every round reverses their order, so that a drift of
-the machine's speed does not favour one.
+Every server (a real uvicorn process on 127.0.0.1, :class:`export.bench_http.Server`) serves its bundled
+models and gets the same registrations (the first ``--bodies`` pairs of the file, the service's default
+options) at each client concurrency; the servers take turns, and every round reverses their order, so that a
+drift of the machine's speed does not favour one. ``--settings TxC``: ONNX Runtime threads per session x
+registrations at once (``MFGNET_THREADS`` x ``MFGNET_MAX_CONCURRENCY``); other checkouts get the first.
 """
 
 from __future__ import annotations
@@ -14,21 +17,45 @@ import argparse
 import json
 import time
 from contextlib import ExitStack
+from dataclasses import dataclass
 
 import numpy as np
 
 from export.bench_http import CONCURRENCY, Server, run_load
 
 
-def compare_load(pairs: dict[str, np.ndarray], roots: list[str | None], requests: int = 40, rounds: int = 2,
-                 concurrency: tuple[int, ...] = CONCURRENCY, bodies: int = 16, threads: int = 2) -> list[dict]:
-    """One ``run_load`` row per (round, concurrency, server); ``roots``: checkouts (``None``: this one)."""
+@dataclass(frozen=True)
+class ServerSpec:
+    root: str | None = None  # a checkout to serve from (None: this one)
+    threads: int = 2  # MFGNET_THREADS
+    max_concurrency: int = 2  # MFGNET_MAX_CONCURRENCY
+
+    @property
+    def name(self) -> str:
+        return f"{self.root or '(this checkout)'}, {self.threads}x{self.max_concurrency}"
+
+
+def parse_setting(text: str) -> tuple[int, int]:
+    """``"2x2"`` -> ``(threads, max_concurrency)``."""
+    try:
+        threads, concurrency = (int(part) for part in text.lower().split("x"))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"expected THREADSxCONCURRENCY such as 2x2, got {text!r}") from err
+    if threads < 1 or concurrency < 1:
+        raise argparse.ArgumentTypeError(f"threads and concurrency must be >= 1, got {text!r}")
+    return threads, concurrency
+
+
+def compare_load(pairs: dict[str, np.ndarray], specs: list[ServerSpec], requests: int = 40, rounds: int = 2,
+                 concurrency: tuple[int, ...] = CONCURRENCY, bodies: int = 16) -> list[dict]:
+    """One ``run_load`` row per (round, client concurrency, server)."""
     payloads = [{"source": s.tolist(), "target": t.tolist()}
                 for s, t in zip(pairs["source"][:bodies], pairs["target"][:bodies], strict=True)]
     rows = []
     with ExitStack() as stack:
-        servers = [(root or "(this checkout)", stack.enter_context(Server(threads=threads, cwd=root)))
-                   for root in roots]
+        servers = [(spec.name, stack.enter_context(Server(threads=spec.threads, max_concurrency=spec.max_concurrency,
+                                                          cwd=spec.root)))
+                   for spec in specs]
         for round_ in range(rounds):
             for c in concurrency:
                 for name, server in servers if round_ % 2 == 0 else servers[::-1]:
@@ -46,14 +73,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--requests", type=int, default=40, help="requests per concurrency, server and round")
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--concurrency", type=int, action="append", help="default: 1, 2, 4, 8")
-    parser.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads of each server")
+    parser.add_argument("--settings", type=parse_setting, action="append",
+                        help="THREADSxCONCURRENCY of this checkout's server, repeatable (default: 2x2)")
     parser.add_argument("--json", help="also write the rows here")
     args = parser.parse_args(argv)
     with np.load(args.pairs) as data:
         pairs = {key: data[key] for key in ("source", "target")}
+    settings = args.settings or [(2, 2)]
+    specs = [ServerSpec(None, t, c) for t, c in settings]
+    specs += [ServerSpec(root, *settings[0]) for root in args.compare_root]
     started = time.strftime("%Y-%m-%d %H:%M:%S")
-    rows = compare_load(pairs, [None, *args.compare_root], args.requests, args.rounds,
-                        tuple(args.concurrency or CONCURRENCY), threads=args.threads)
+    rows = compare_load(pairs, specs, args.requests, args.rounds, tuple(args.concurrency or CONCURRENCY))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"started": started, "pairs": args.pairs, "rows": rows}, f, indent=1)
