@@ -20,9 +20,14 @@ import threading
 from threadpoolctl import ThreadpoolController
 
 
+def blas_runtimes() -> list:
+    """threadpoolctl's controllers of the BLAS runtimes loaded in this process now."""
+    return ThreadpoolController().select(user_api="blas").lib_controllers
+
+
 def blas_thread_counts() -> list[int]:
     """The thread count of every BLAS runtime loaded in this process."""
-    return [lib.get_num_threads() for lib in ThreadpoolController().select(user_api="blas").lib_controllers]
+    return [lib.get_num_threads() for lib in blas_runtimes()]
 
 
 def use_one_blas_thread() -> bool:
@@ -30,6 +35,6 @@ def use_one_blas_thread() -> bool:
     other thread this does nothing and returns ``False``. Runtimes loaded later keep their own count."""
     if threading.current_thread() is not threading.main_thread():
         return False
-    for lib in ThreadpoolController().select(user_api="blas").lib_controllers:
+    for lib in blas_runtimes():
         lib.set_num_threads(1)
     return True
