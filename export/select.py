@@ -43,9 +43,10 @@ def select(checkpoints: list[str], pairs_files: list[Path], refine: str) -> list
         for i, checkpoint in enumerate(checkpoints):
             folder = export_for_selection(checkpoint, Path(scratch) / f"candidate_{i}")
             for path, data in pairs.items():
-                R, t, secs, _, reliable = runtime_poses(folder, data, refine=refine, progress=False)
-                metrics = registration_metrics(R, t, data["rotation"], data["translation"], secs)
-                metrics.update(reliability_metrics(R, t, data["rotation"], data["translation"], reliable))
+                run = runtime_poses(folder, data, refine=refine, progress=False)
+                R, t = run.rotation, run.translation
+                metrics = registration_metrics(R, t, data["rotation"], data["translation"], run.seconds)
+                metrics.update(reliability_metrics(R, t, data["rotation"], data["translation"], run.reliable))
                 rows.append({"checkpoint": checkpoint, "pairs": str(path), "refine": refine, **metrics})
                 print(table_line(rows[-1]), flush=True)
     return rows

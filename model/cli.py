@@ -175,7 +175,8 @@ def evaluate(
     ] = None,
     per_pair: Annotated[
         Path | None, typer.Option(help="also write each pair's pose and errors here (.npz: rotation, translation, "
-                                       "rotation_error_deg, translation_error, label when known)")
+                                       "rotation_error_deg, translation_error, label when known; with --model "
+                                       "also reliable and stability)")
     ] = None,
     by_label: Annotated[
         bool, typer.Option(help="add 'by_label': the recalls of each class (pairs with labels; ModelNet40 names)")
@@ -209,8 +210,8 @@ def evaluate(
     if model is not None:
         from model.runtime_eval import runtime_poses
 
-        R, t, secs, searched, reliable = runtime_poses(model, data_pairs, iterations, keypoints, refine, search,
-                                                        refine_points)
+        run = runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)
+        R, t, secs = run.rotation, run.translation, run.seconds
     elif baseline is not None:
         from export.baselines import run_method
 
@@ -227,9 +228,9 @@ def evaluate(
     if model is not None:
         from model.metrics import reliability_metrics
 
-        metrics.update(reliability_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], reliable))
+        metrics.update(reliability_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], run.reliable))
         if search == "auto":
-            metrics["rotation_search_share"] = searched / len(R)  # pairs on which "auto" ran the search
+            metrics["rotation_search_share"] = run.searched / len(R)  # pairs on which "auto" ran the search
     if by_label:
         from model.data import class_names
         from model.metrics import recall_by_label
@@ -241,4 +242,5 @@ def evaluate(
     if json_out:
         json_out.write_text(text + "\n")
     if per_pair:
-        save_per_pair(per_pair, R, t, data_pairs)
+        quality = {"reliable": run.reliable, "stability": run.stability} if model is not None else {}
+        save_per_pair(per_pair, R, t, data_pairs, **quality)

@@ -97,9 +97,11 @@ def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None 
     return out
 
 
-def save_per_pair(path, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str, np.ndarray]) -> None:
+def save_per_pair(path, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str, np.ndarray],
+                  reliable: np.ndarray | None = None, stability: np.ndarray | None = None) -> None:
     """Each pair's predicted pose ``[M, 3, 3]``, ``[M, 3]`` and its isotropic errors (``rotation_error_deg``,
-    ``translation_error``), plus the pairs' ``label`` when they have one, as an ``.npz`` for failure analysis."""
+    ``translation_error``), plus the pairs' ``label`` when they have one and the runtime's ``reliable [M]`` and
+    ``stability [M]`` (NaN where none) when given, as an ``.npz`` for failure analysis."""
     out = {
         "rotation": R_pred,
         "translation": t_pred,
@@ -108,4 +110,8 @@ def save_per_pair(path, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str,
     }
     if "label" in pairs:
         out["label"] = pairs["label"]
+    if reliable is not None:
+        out["reliable"] = np.asarray(reliable, dtype=bool)
+    if stability is not None:
+        out["stability"] = np.asarray(stability, dtype=np.float64)
     np.savez(path, **out)

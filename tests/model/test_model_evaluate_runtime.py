@@ -93,3 +93,15 @@ def test_evaluate_rejects_contradicting_rotation_search_options(tmp_path):
     result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--rotation-search", "--rotation-search-mode",
                                       "off", "--pairs", str(tmp_path / "missing.npz")])
     assert result.exit_code == 2 and "contradicts" in result.output
+
+
+def test_evaluate_model_per_pair_has_each_results_reliable_flag_and_stability(tmp_path):
+    pairs = two_pairs_file(tmp_path, 3)
+    out, per_pair = tmp_path / "m.json", tmp_path / "rows.npz"
+    result = CliRunner().invoke(app, ["evaluate", "--model", "clean", "--refine", "icp-plane", "--pairs", str(pairs),
+                                      "--json", str(out), "--per-pair", str(per_pair)])
+    assert result.exit_code == 0, result.output
+    rows, metrics = np.load(per_pair), json.loads(out.read_text())
+    assert rows["reliable"].dtype == bool and rows["reliable"].shape == (2,)
+    assert rows["reliable"].mean() == pytest.approx(metrics["reliable_share"])  # the flags the metrics counted
+    assert rows["stability"].shape == (2,) and np.all(np.isfinite(rows["stability"]) & (rows["stability"] >= 0))
