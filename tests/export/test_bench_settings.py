@@ -1,0 +1,40 @@
+"""``python -m export.bench_settings``: each setting's options reach ``register`` and its figures are its own."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+from shapes import ellipsoid_surface
+
+from export.bench_settings import main, parse_setting
+from model.data import PairProtocol, make_pairs, save_pairs
+from service.manifest import bundled_models_dir
+
+pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "general").is_dir(), reason="no bundled 'general' model")
+
+
+def test_every_setting_gets_its_own_row_with_accuracy_time_and_stages(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    shapes = ellipsoid_surface(rng, (2, 1024))
+    save_pairs(tmp_path / "p.npz", make_pairs(shapes.astype(np.float32), PairProtocol(), rng))
+    out = tmp_path / "settings.json"
+    main(["--pairs", str(tmp_path / "p.npz"), "--setting", "{}", "--setting",
+          '{"keypoints": 16, "iterations": 1, "refine": "none"}', "--json", str(out)])
+    report = json.loads(out.read_text())
+    assert report["n"] == 2 and [row["options"] for row in report["settings"]] == [
+        {"refine": "icp-plane"}, {"refine": "none", "keypoints": 16, "iterations": 1}]
+    default, cheap = report["settings"]
+    assert "refine" in default["stage_ms_median"] and "refine" not in cheap["stage_ms_median"]  # options applied
+    for row in report["settings"]:
+        assert 0 <= row["recall_r1_t001"] <= row["recall_r5_t005"] <= 1
+        assert row["ms_per_pair_median"] >= row["stage_ms_median"]["encoder"] > 0
+
+
+def test_a_setting_must_be_a_json_object() -> None:
+    assert parse_setting('{"keypoints": 64}') == {"keypoints": 64}
+    for bad in ("[1]", "keypoints=64", "64"):
+        with pytest.raises(argparse.ArgumentTypeError, match="JSON object"):
+            parse_setting(bad)
