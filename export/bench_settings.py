@@ -20,9 +20,10 @@ import numpy as np
 
 from export.report_io import emit_report, machine_info
 from model.data import load_pairs
-from model.metrics import isotropic_errors, recall_hits
+from model.metrics import registration_metrics
 
 DEFAULTS = {"refine": "icp-plane"}
+REPORTED = ("iso_r_mean", "iso_r_median", "recall_r1_t001", "recall_r5_t005")  # of registration_metrics
 
 
 def parse_setting(text: str) -> dict:
@@ -58,11 +59,10 @@ def run(pairs_path: Path, settings: list[dict], count: int | None, model: str) -
                 stages[s].setdefault(stage, []).append(ms)
     rows = []
     for s, kwargs in enumerate(options):
-        iso_r, iso_t = isotropic_errors(np.stack(poses[s][0]), np.stack(poses[s][1]),
-                                        pairs["rotation"][:n], pairs["translation"][:n])  # [n], [n]
-        recall = {key: float(hits.mean()) for key, hits in recall_hits(iso_r, iso_t).items()}
+        metrics = registration_metrics(np.stack(poses[s][0]), np.stack(poses[s][1]),
+                                       pairs["rotation"][:n], pairs["translation"][:n])
         rows.append({
-            "options": kwargs, "iso_r_mean": float(iso_r.mean()), "iso_r_median": float(np.median(iso_r)), **recall,
+            "options": kwargs, **{key: metrics[key] for key in REPORTED},
             "ms_per_pair_median": float(np.median(wall[s])),
             "stage_ms_median": {stage: float(np.median(v)) for stage, v in stages[s].items()},
         })
