@@ -1,0 +1,56 @@
+"""Translation search for a known rotation: occupancy cross-correlation by FFT.
+
+On room-sized partial scans the network and the refinement often get the rotation right and leave the
+translation metres off: with a rotation fixed, the working clouds slide along walls and floors into a wrong
+local fit. Voxelising the turned source and the target into occupancy grids and cross-correlating them with
+FFTs scores every translation on the grid at once (the number of cells both clouds occupy); the best few
+peaks are the candidates a short refinement then ranks by their fit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft
+
+GRID_CELLS = 32  # cells along the longer extent of the two clouds: the candidates' spacing
+CANDIDATES = 4  # peaks returned, best first
+SUPPRESS_CELLS = 2  # peaks closer than this many cells to a better one are the same basin
+
+
+def occupancy(points: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int, int]) -> np.ndarray:
+    """Grid ``shape`` of 1.0 where ``points [N, 3]`` fall (cells of size ``cell`` from ``origin``), else 0.0."""
+    index = np.floor((points - origin) / cell).astype(np.int64)  # [N, 3]
+    inside = np.all((index >= 0) & (index < np.asarray(shape)), axis=1)
+    grid = np.zeros(shape, np.float32)
+    grid[tuple(index[inside].T)] = 1.0
+    return grid
+
+
+def translation_candidates(moved_source: np.ndarray, target: np.ndarray, count: int = CANDIDATES,
+                           cells: int = GRID_CELLS) -> np.ndarray:
+    """Translations ``[C, 3]`` (best first) that overlay ``moved_source [N, 3]`` (already turned) on ``target [M, 3]``.
+
+    ``moved_source + t`` for each returned ``t`` maximises, to within one cell, the number of cells both clouds
+    occupy; peaks within ``SUPPRESS_CELLS`` cells of a better one are left out. ``cells`` sets the grid spacing
+    (the longer extent of both clouds over ``cells``).
+    """
+    low = np.minimum(moved_source.min(0), target.min(0))  # [3]
+    high = np.maximum(moved_source.max(0), target.max(0))
+    cell = float((high - low).max()) / cells
+    if not cell > 0:
+        return np.zeros((1, 3))
+    span = np.ceil((high - low) / cell).astype(int) + 1  # [3] cells per axis
+    shape = tuple(fft.next_fast_len(int(2 * n)) for n in span)  # zero padding: no wrap-around overlap
+    fixed, moving = occupancy(target, low, cell, shape), occupancy(moved_source, low, cell, shape)
+    # score[d] = sum_x fixed[x + d] * moving[x]: the cells both occupy after moving the source by d cells
+    score = fft.irfftn(fft.rfftn(fixed) * np.conj(fft.rfftn(moving)), s=shape)
+    order = np.argsort(score.ravel())[::-1][: 50 * count]
+    shifts = np.stack(np.unravel_index(order, shape), axis=1)  # [P, 3] cell offsets, wrapped
+    shifts = np.where(shifts > np.asarray(shape) // 2, shifts - np.asarray(shape), shifts)
+    kept: list[np.ndarray] = []
+    for shift in shifts:
+        if all(np.abs(shift - other).max() > SUPPRESS_CELLS for other in kept):
+            kept.append(shift)
+            if len(kept) == count:
+                break
+    return np.stack(kept).astype(np.float64) * cell
