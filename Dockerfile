@@ -17,8 +17,8 @@ FROM ${PYTHON_IMAGE} AS build
 ENV PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 WORKDIR /src
-# .dockerignore is an allow-list: pyproject + the service/model/export packages, no data,
-# checkpoints, runs, tests, docs, caches or virtual environments.
+# .dockerignore is an allow-list: pyproject + the service/model/export packages, no benchmarks
+# (bench/), results, data, checkpoints, runs, tests, docs, caches or virtual environments.
 COPY . .
 RUN pip wheel --no-deps --wheel-dir /wheels . \
  && printf '%s[serve]\n' /wheels/mfgnet-*.whl > /wheels/requirements-serve.txt \

@@ -1,17 +1,17 @@
-"""Training-side ``mfgnet`` sub-commands (loaded by ``service.cli`` through entry points)."""
+"""Training-side ``mfgnet`` sub-commands (loaded by ``service.cli`` through entry points): train, make-pairs.
+
+``mfgnet evaluate`` lives in ``bench.evaluate``; the pair options below are shared with it.
+"""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from export.baselines import METHODS as BASELINES  # Open3D is imported only when one runs (the bench extra)
-from model.data import SETTINGS, load_pairs, make_test_pairs, protocol_for, save_pairs
+from model.data import SETTINGS, make_test_pairs, protocol_for, save_pairs
 from model.recipes import recipe_draw
-from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
 SourcePoints = Annotated[int | None, typer.Option(help="source points kept after the crop (default: the crop size)")]
@@ -134,113 +134,3 @@ def train(
     )
     best = run(opts)
     typer.echo(f"best checkpoint: {best}")
-
-
-def evaluate(
-    checkpoint: Annotated[str | None, typer.Option(help="checkpoint path or bundled name")] = None,
-    pairs: Annotated[Path | None, typer.Option(help="pairs .npz (else made from --setting)")] = None,
-    setting: Setting = "clean",
-    count: int | None = None,
-    seed: int = 0,
-    iterations: int | None = None,
-    keypoints: int | None = None,
-    batch_size: int = 16,
-    json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
-    data: str | None = None,
-    source_points: SourcePoints = None,
-    target_points: TargetPoints = None,
-    overlap: Overlap = None,
-    noise: Noise = None,
-    max_angle: MaxAngle = None,
-    points: Points = None,
-    outliers: Outliers = None,
-    view_angle: ViewAngle = None,
-    model: Annotated[
-        str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
-    ] = None,
-    refine: Annotated[str, typer.Option(help="with --model: none, icp or icp-plane")] = "none",
-    refine_points: Annotated[
-        int | None, typer.Option(help="with --model: points per cloud the refinement uses [default: working clouds]")
-    ] = None,
-    rotation_search: Annotated[
-        bool | None, typer.Option(help="with --model: always start from rotations covering SO(3) (= mode on)")
-    ] = None,
-    rotation_search_mode: Annotated[
-        RotationSearchMode | None,
-        typer.Option(help="with --model: off, on (= --rotation-search) or auto (search only where the plain "
-                          "result looks wrong; reports the share of pairs searched) [default: off]"),
-    ] = None,
-    baseline: Annotated[
-        str | None, typer.Option(help=f"classical method instead of a network: {', '.join(BASELINES)} (bench extra)")
-    ] = None,
-    per_pair: Annotated[
-        Path | None, typer.Option(help="also write each pair's pose and errors here (.npz: rotation, translation, "
-                                       "rotation_error_deg, translation_error, label when known; with --model "
-                                       "also reliable and stability)")
-    ] = None,
-    by_label: Annotated[
-        bool, typer.Option(help="add 'by_label': the recalls of each class (pairs with labels; ModelNet40 names)")
-    ] = False,
-) -> None:
-    """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
-    from model.metrics import registration_metrics, save_per_pair
-
-    if sum(x is not None for x in (checkpoint, model, baseline)) != 1:
-        raise typer.BadParameter(
-            "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)")
-    if baseline is not None and baseline not in BASELINES:
-        raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
-    if model is not None:
-        from service.refine_modes import REFINE_MODES
-
-        if refine not in REFINE_MODES:
-            raise typer.BadParameter(f"unknown --refine {refine!r}; expected one of {', '.join(REFINE_MODES)}")
-    try:
-        search = rotation_search_from_options(rotation_search, rotation_search_mode) or False  # evaluate: off
-    except ValueError as err:
-        raise typer.BadParameter(str(err)) from err
-    if pairs:
-        data_pairs = load_pairs(pairs)
-    else:
-        protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
-                                    view_angle)
-        data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
-    if by_label and "label" not in data_pairs:
-        raise typer.BadParameter("--by-label needs pairs with a 'label' array")
-    if model is not None:
-        from model.runtime_eval import runtime_poses
-
-        run = runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)
-        R, t, secs = run.rotation, run.translation, run.seconds
-    elif baseline is not None:
-        from export.baselines import run_method
-
-        R, t, secs = run_method(BASELINES[baseline], data_pairs, progress=True)
-    else:
-        from model.allocator import keep_freed_memory
-        from model.checkpoint import load_model
-        from model.inference import predict_poses
-
-        keep_freed_memory()  # eager batches re-fault their freed buffers otherwise: ~2.4x slower (model.allocator)
-        R, t, secs = predict_poses(load_model(checkpoint), data_pairs, batch_size, iterations, keypoints,
-                                   progress=True)
-    metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
-    if model is not None:
-        from model.metrics import reliability_metrics
-
-        metrics.update(reliability_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], run.reliable))
-        if search == "auto":
-            metrics["rotation_search_share"] = run.searched / len(R)  # pairs on which "auto" ran the search
-    if by_label:
-        from model.data import class_names
-        from model.metrics import recall_by_label
-
-        metrics["by_label"] = recall_by_label(R, t, data_pairs["rotation"], data_pairs["translation"],
-                                              data_pairs["label"], class_names(data))
-    text = json.dumps(metrics, indent=2)
-    typer.echo(text)
-    if json_out:
-        json_out.write_text(text + "\n")
-    if per_pair:
-        quality = {"reliable": run.reliable, "stability": run.stability} if model is not None else {}
-        save_per_pair(per_pair, R, t, data_pairs, **quality)

@@ -16,7 +16,7 @@ Measured on 300 sparse ModelNet40 pairs (384 / 384 points, bundled ``general`` 0
 (at ~2x); with ``general`` 0.2.0 0.867 -> 0.877. Picking among the same starts, this score reached
 0.887 where the inlier ratio reached 0.860-0.867 and an oracle 0.947; most misses left are vases and
 bottles, whose turn about their own axis no score can see (``docs/ACCURACY.md``, "Multi-start
-refinement"; ``python -m export.local_search_bench``).
+refinement"; ``python -m bench.local_search``).
 """
 
 from __future__ import annotations

@@ -285,7 +285,7 @@ def test_build_context_is_the_allow_list(image):
     files = image["context_files"]
     assert "pyproject.toml" in files
     assert any(f.startswith("service/") for f in files)
-    leaked = [f for f in files if re.match(r"(\.venv|\.git|runs|tests|docs|data)/|model/checkpoints/", f)
+    leaked = [f for f in files if re.match(r"(\.venv|\.git|runs|tests|docs|data|bench|results)/|model/checkpoints/", f)
               or f.endswith((".pt", ".t7", ".pth", ".pyc"))]
     assert not leaked, f"kept out by .dockerignore, yet in the context: {leaked[:10]}"
 
@@ -298,6 +298,7 @@ def test_wheel_bundles_the_onnx_models_with_their_manifests(image):
         assert f"service/models/{model}/manifest.json" in names
         assert any(n.startswith(f"service/models/{model}/") and n.endswith(".onnx") for n in names)
     assert not [n for n in names if n.endswith((".pt", ".t7"))], "checkpoints must not ship in the wheel"
+    assert not [n for n in names if n.startswith("bench/")], "the benchmarks must not ship in the runtime image"
 
 
 def test_runtime_has_no_torch_and_no_train_or_dev_extras(image):

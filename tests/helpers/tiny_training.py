@@ -19,3 +19,16 @@ def tiny_training_data(tmp_path) -> str:
     np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(30, seed=3).astype(np.float16),
              labels=np.arange(30) % 20)
     return str(folder)
+
+
+def save_tiny_checkpoint(path) -> None:
+    """A seeded, untrained 2-iteration network at ``path`` (for commands that read a checkpoint)."""
+    import torch
+
+    from model.checkpoint import save_checkpoint
+    from model.config import MFGNetConfig
+    from model.network import MFGNet
+
+    torch.manual_seed(0)
+    cfg = MFGNetConfig(iterations=2, keypoints=32, emb_dims=16, encoder_blocks=2, matcher_channels=8, knn=8)
+    save_checkpoint(path, MFGNet(cfg))

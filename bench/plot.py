@@ -1,4 +1,4 @@
-"""Plot a ``mfgnet bench`` JSON report (matplotlib, ``bench`` extra): ``python -m export.bench_plot R.json OUT.png``."""
+"""Plot a ``mfgnet bench`` JSON report (matplotlib, ``bench`` extra): ``python -m bench.plot R.json OUT.png``."""
 
 from __future__ import annotations
 

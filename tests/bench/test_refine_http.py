@@ -1,4 +1,4 @@
-"""``python -m export.bench_refine_http`` end to end: a real server, both request kinds, the report."""
+"""``python -m bench.refine_http`` end to end: a real server, both request kinds, the report."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from export.bench_refine_http import main
+from bench.refine_http import main
 from service.manifest import bundled_models_dir
 
 pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "clean").is_dir(), reason="no bundled 'clean' model")

@@ -1,6 +1,6 @@
 """Where a bundled model's graphs spend their time, per ONNX Runtime op type, and their GEMM floor.
 
-``python -m export.bench_graph_ops --pairs dense.npz [--model general|FOLDER] [--repeats 30] [--json out.json]``
+``python -m bench.graph_ops --pairs dense.npz [--model general|FOLDER] [--repeats 30] [--json out.json]``
 
 Registers the first pair once with ``Registrar.register`` to capture the encoder's and each matcher's real
 inputs, then runs each graph ``repeats`` times on them in a fresh session with ONNX Runtime's profiler on
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from export.report_io import emit_report, machine_info
+from bench.report_io import emit_report, machine_info
 from service.manifest import model_folder
 from service.registrar import Registrar, default_threads, session_options
 

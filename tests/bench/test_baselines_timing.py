@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from export.baselines import run_method
+from bench.baselines import run_method
 
 
 def test_run_method_runs_once_untimed_before_timing_the_pairs() -> None:

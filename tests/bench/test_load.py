@@ -1,4 +1,4 @@
-"""``python -m export.bench_load`` end to end: two real servers taking turns, every row of the report."""
+"""``python -m bench.load`` end to end: two real servers taking turns, every row of the report."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from export.bench_load import main, parse_setting
+from bench.load import main, parse_setting
 from service.manifest import bundled_models_dir
 
 ROOT = Path(__file__).resolve().parents[2]

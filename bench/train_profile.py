@@ -1,4 +1,4 @@
-"""Time (and optionally profile) training steps on fixed batches: ``python -m model.train_profile``.
+"""Time (and optionally profile) training steps on fixed batches: ``python -m bench.train_profile``.
 
 The figure ``mfgnet train`` logs as ``s_per_pair`` includes whatever else the machine runs; this
 measures the step alone (forward, losses, backward, Adam) on pre-drawn batches after two warm-up

@@ -1,10 +1,10 @@
 """Throughput and latency under concurrent requests: this checkout's server against another checkout's, or
 against itself with other thread settings::
 
-    python -m export.bench_load --pairs pairs_dense.npz --compare-root /tmp/old-checkout --json load.json
-    python -m export.bench_load --pairs pairs_dense.npz --settings 2x2 --settings 1x2 --settings 1x4
+    python -m bench.load --pairs pairs_dense.npz --compare-root /tmp/old-checkout --json load.json
+    python -m bench.load --pairs pairs_dense.npz --settings 2x2 --settings 1x2 --settings 1x4
 
-Every server (a real uvicorn process on 127.0.0.1, :class:`export.bench_http.Server`) serves its bundled
+Every server (a real uvicorn process on 127.0.0.1, :class:`bench.http_latency.Server`) serves its bundled
 models and gets the same registrations (the first ``--bodies`` pairs of the file, the service's default
 options) at each client concurrency; the servers take turns, and every round reverses their order, so that a
 drift of the machine's speed does not favour one. ``--settings TxC``: ONNX Runtime threads per session x
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from export.bench_http import CONCURRENCY, Server, run_load
+from bench.http_latency import CONCURRENCY, Server, run_load
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from export.report_io import machine_info
+from bench.report_io import machine_info
 
 SIZES = (512, 1024, 2048, 4096)  # network working sizes
 LARGE_INPUTS = (20_000, 100_000)  # input sizes resampled to the default working size
@@ -161,7 +161,7 @@ def run_bench(
     stages.update()
     stages.set_postfix_str("HTTP")
     if http_requests:
-        from export.bench_http import bench_http
+        from bench.http_latency import bench_http
 
         report["http"] = bench_http(pairs, http_requests, inputs, threads)
     stages.update()
@@ -176,7 +176,7 @@ def run_bench(
 
 def iteration_accuracy(registrar, setting: str, count: int, seed: int) -> dict:
     """The paper's ablation: accuracy of the pipeline (no refinement) at 1-6 iterations on the same seeded pairs."""
-    from export.baselines import run_method
+    from bench.baselines import run_method
     from model.data import make_test_pairs
     from model.metrics import registration_metrics
 
@@ -234,11 +234,11 @@ def compare_methods(registrar, model, setting: str, count: int, seed: int, class
         "onnx_search_icp_plane": pipeline("icp-plane", rotation_search=True),
     }
     if classical:
-        from export.baselines import fgr, fpfh_ransac_icp
+        from bench.baselines import fgr, fpfh_ransac_icp
 
         methods["fpfh_ransac_icp"] = fpfh_ransac_icp
         methods["fgr"] = fgr
-    from export.baselines import run_method
+    from bench.baselines import run_method
 
     results = {}
     for name, method in methods.items():

@@ -1,6 +1,6 @@
 """Rotation search: success rate and cost of ``Registrar.register(rotation_search=True)``.
 
-Run as ``python -m export.search_bench --json docs/rotation_search.json`` (figures of
+Run as ``python -m bench.rotation_search --json rotation_search.json`` (figures of
 ``docs/ROTATION_SEARCH.md``). On seeded ``dense`` / ``resampled`` pairs with ``--max-angle`` 45, 90,
 180 it registers every pair four ways, all through the real ONNX pipeline (``refine="icp"``):
 
@@ -29,7 +29,7 @@ from typing import Annotated
 import numpy as np
 import typer
 
-from export.report_io import machine_info
+from bench.report_io import machine_info
 
 METHODS = ("plain", "search", "search_net_rank", "starts_icp")
 
@@ -162,7 +162,7 @@ def search_bench(
                   "source": manifest.raw.get("source"),
                   "source_checkpoint_sha256": manifest.raw.get("source_checkpoint_sha256"),
                   "graph_sha256": {k: v.get("sha256") for k, v in manifest.raw.get("graphs", {}).items()}},
-        "command": "python -m export.search_bench " + " ".join(
+        "command": "python -m bench.rotation_search " + " ".join(
             [f"--count {count}", f"--seed {seed}", f"--repeats {repeats}", f"--threads {threads}",
              f"--success-threads {success_threads}"]),
         "cost_ms": {} if skip_cost else time_registrations(registrar, make_test_pairs("dense", count=6, seed=seed),

@@ -2,8 +2,8 @@
 
 Run alone, it measures what HTTP adds to the in-process pipeline (docs/BENCHMARKS.md, "HTTP overhead")::
 
-    python -m export.bench_http --requests 40 --big-requests 3 --json overhead.json
-    python -m export.bench_http --compare-root /tmp/old-checkout   # and a server from another checkout
+    python -m bench.http_latency --requests 40 --big-requests 3 --json overhead.json
+    python -m bench.http_latency --compare-root /tmp/old-checkout   # and a server from another checkout
 
 The same seeded 768-point ModelNet40 pairs go through ``Registrar.register`` in this process and
 through ``POST /v1/register`` (JSON, one client thread), then 20k/100k-point pairs; each server's
@@ -123,7 +123,7 @@ def bench_http(pairs: dict[str, np.ndarray], requests: int, sized: dict[str, tup
     return report
 
 
-# -- python -m export.bench_http: what HTTP adds to the in-process pipeline --------------------------
+# -- python -m bench.http_latency: what HTTP adds to the in-process pipeline --------------------------
 def _p50(samples: list[float]) -> float:
     return float(np.percentile(samples, 50))
 
@@ -142,7 +142,7 @@ def bench_overhead(requests: int = 40, big_requests: int = 3, threads: int = 2,
     from contextlib import ExitStack
     from pathlib import Path
 
-    from export.bench import LARGE_INPUTS, resize_cloud
+    from bench.latency import LARGE_INPUTS, resize_cloud
     from model.data import make_test_pairs
     from service.manifest import bundled_models_dir
     from service.registrar import Registrar

@@ -1,11 +1,11 @@
-"""``export.auto_trigger report`` replays search triggers on collected per-pair results."""
+"""``bench.auto_trigger report`` replays search triggers on collected per-pair results."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from export.auto_trigger import report, switches
+from bench.auto_trigger import report, switches
 from service.manifest import bundled_models_dir
 
 pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "general").is_dir(), reason="no bundled 'general' model")

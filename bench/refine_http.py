@@ -1,7 +1,7 @@
 """HTTP latency of a request that names no refinement (the server's default) against ``"refine": "none"``.
 
-``python -m export.bench_refine_http --pairs dense.npz --pairs resampled.npz [--count 20] [--json out.json]``
-starts the service (``export.bench_http.Server``) on 127.0.0.1, sends each pair's JSON body (naming the
+``python -m bench.refine_http --pairs dense.npz --pairs resampled.npz [--count 20] [--json out.json]``
+starts the service (``bench.http_latency.Server``) on 127.0.0.1, sends each pair's JSON body (naming the
 model) twice per round
 in alternating order (default, then none, or the reverse), and prints the client's p50 / p95 and the
 server's own ``timing_ms.total`` p50 per file and request kind.
@@ -16,8 +16,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from export.bench_http import Server
-from export.report_io import emit_report
+from bench.http_latency import Server
+from bench.report_io import emit_report
 
 
 def measure(client: httpx.Client, pairs: dict, model: str, count: int, rounds: int) -> dict:

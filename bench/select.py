@@ -4,7 +4,7 @@ Each checkpoint is exported to ONNX in a scratch folder (graphs and manifest; no
 runs it when the chosen one is bundled) and every pairs file is registered through ``Registrar.register`` with
 the given refinement, as ``mfgnet evaluate --model`` does::
 
-    python -m export.select --checkpoint model/checkpoints/general.pt --checkpoint runs/general_views/best.pt \\
+    python -m bench.select --checkpoint model/checkpoints/general.pt --checkpoint runs/general_views/best.pt \\
         --pairs scans_s7.npz --pairs dense_s7.npz --refine icp-plane --json select.json
 
 Use selection pairs made with a seed other than the reported test pairs' (``mfgnet make-pairs ... --seed 7``).
@@ -33,9 +33,9 @@ def export_for_selection(checkpoint: str, out: Path) -> Path:
 
 def select(checkpoints: list[str], pairs_files: list[Path], refine: str) -> list[dict]:
     """One row per (checkpoint, pairs file): the metrics of ``mfgnet evaluate --model`` on the exported graphs."""
+    from bench.runtime_eval import runtime_poses
     from model.data import load_pairs
     from model.metrics import registration_metrics, reliability_metrics
-    from model.runtime_eval import runtime_poses
 
     pairs = {path: load_pairs(path) for path in pairs_files}
     rows = []

@@ -1,6 +1,6 @@
 """The rotation search with and without pruning, in the same run: success and search time per pairs file.
 
-``python -m export.search_pruning_bench --pairs dense180.npz --pairs resampled180.npz [--json out.json]``
+``python -m bench.search_pruning --pairs dense180.npz --pairs resampled180.npz [--json out.json]``
 
 Registers every pair with ``rotation_search=True``, ``refine="icp-plane"`` (bundled ``general``) once per
 variant -- ``full`` (every hypothesis through every iteration), ``p1k4`` / ``p2k4`` (all hypotheses through 1 / 2
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from export.auto_trigger import pose_errors
+from bench.auto_trigger import pose_errors
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
 VARIANTS = {"full": (1, 24), "p1k4": (1, 4), "p2k4": (2, 4)}  # (SEARCH_PRUNE_ITERATIONS, SEARCH_KEEP)

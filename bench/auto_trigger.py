@@ -1,10 +1,10 @@
 """Calibration of ``rotation_search="auto"``'s trigger: which plain results should be searched.
 
-``python -m export.auto_trigger collect --pairs dense90.npz ... --out trigger.json`` registers every
+``python -m bench.auto_trigger collect --pairs dense90.npz ... --out trigger.json`` registers every
 pair twice with the bundled model and ``refine="icp-plane"``: plainly and with the rotation search on (each
 result's errors, inlier ratio, residual and time; the plain one's reliability). ``auto`` returns the searched
 pose when it fits better (:func:`switches`), which gives ``auto_always``: ``auto`` forced to search.
-``python -m export.auto_trigger report trigger.json --pairs ...`` then replays any trigger on those results:
+``python -m bench.auto_trigger report trigger.json --pairs ...`` then replays any trigger on those results:
 the fixed inlier-ratio threshold and thresholds relative to :func:`service.quality.attainable_inlier_ratio`,
 with recall at (5 deg, 5 cm), the share searched and the mean time per pair; and for the registrar's trigger
 the margin by which the searched pose's inlier ratio must exceed the plain one's to replace it

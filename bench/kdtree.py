@@ -1,6 +1,6 @@
 """The runtime's KD-tree (``service.kdtree``, pykdtree) against scipy's ``cKDTree``, in the same run.
 
-``python -m export.bench_kdtree --pairs dense.npz [--refine icp-plane] [--count 40] [--json out.json]``
+``python -m bench.kdtree --pairs dense.npz [--refine icp-plane] [--count 40] [--json out.json]``
 
 Registers each pair twice with ``Registrar.register`` (bundled ``general``), once with every runtime module's
 ``KDTree`` and once with a scipy-backed class of the same interface, alternating which goes first, and
@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import service.kdtree
-from export.report_io import emit_report
+from bench.report_io import emit_report
 
 
 class ScipyKDTree:

@@ -1,11 +1,11 @@
-"""``python -m export.bench_graph_ops`` on the bundled model: real graphs, real ONNX Runtime profiles."""
+"""``python -m bench.graph_ops`` on the bundled model: real graphs, real ONNX Runtime profiles."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from export.bench_graph_ops import main, multiply_adds, run
+from bench.graph_ops import main, multiply_adds, run
 
 
 def test_multiply_adds_of_a_product_is_output_size_times_inner_size():

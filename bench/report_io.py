@@ -1,4 +1,4 @@
-"""How the ``python -m export.*`` experiments hand back their report: printed, and saved when asked."""
+"""How the ``python -m bench.*`` experiments hand back their report: printed, and saved when asked."""
 
 from __future__ import annotations
 

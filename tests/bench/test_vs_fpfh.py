@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob
 
-from export.bench_vs_fpfh import run
+from bench.vs_fpfh import run
 from service.manifest import bundled_models_dir
 
 

@@ -1,4 +1,4 @@
-"""``python -m export.select``: checkpoints compared through the service's pipeline on the same pairs."""
+"""``python -m bench.select``: checkpoints compared through the service's pipeline on the same pairs."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import pytest
 import torch
 from pair_checks import needs_modelnet
 
-from export.select import main, select
+from bench.runtime_eval import runtime_poses
+from bench.select import main, select
 from model.checkpoint import read_checkpoint, resolve_checkpoint
 from model.data import make_test_pairs, save_pairs
 from model.metrics import registration_metrics
-from model.runtime_eval import runtime_poses
 
 
 @needs_modelnet

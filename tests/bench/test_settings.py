@@ -1,4 +1,4 @@
-"""``python -m export.bench_settings``: each setting's options reach ``register`` and its figures are its own."""
+"""``python -m bench.settings``: each setting's options reach ``register`` and its figures are its own."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from shapes import ellipsoid_surface
 
-from export.bench_settings import main, parse_setting
+from bench.settings import main, parse_setting
 from model.data import PairProtocol, make_pairs, save_pairs
 from service.manifest import bundled_models_dir
 

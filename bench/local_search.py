@@ -1,6 +1,6 @@
 """Which score picks the right pose among turned starts (``service.multistart``)? The experiment behind it.
 
-``python -m export.local_search_bench --pairs sparse.npz [--model general] [--angles 15,30] [--json out.json]``
+``python -m bench.local_search --pairs sparse.npz [--model general] [--angles 15,30] [--json out.json]``
 
 For every pair: the service's pose (``Registrar.register(refine="icp-plane")``); hypotheses = that pose
 turned about the target's centroid by +-a degrees about x, y and z for each angle a (plus the pose
@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from export.auto_trigger import pose_errors
-from export.report_io import emit_report
+from bench.auto_trigger import pose_errors
+from bench.report_io import emit_report
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
 ICP_DISTANCE = 0.15  # the short ICPs' correspondence cap

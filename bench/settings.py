@@ -1,6 +1,6 @@
 """What each set of ``Registrar.register`` options costs and buys, on the same pairs, alternating per pair.
 
-``python -m export.bench_settings --pairs dense.npz --setting '{}' --setting '{"keypoints": 64, "iterations": 1}'
+``python -m bench.settings --pairs dense.npz --setting '{}' --setting '{"keypoints": 64, "iterations": 1}'
 [--count 170] [--model general] [--json out.json]``
 
 Each ``--setting`` is a JSON object of ``register`` keyword options (``refine`` defaults to ``icp-plane``, the
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from export.report_io import emit_report, machine_info
+from bench.report_io import emit_report, machine_info
 from model.data import load_pairs
 from model.metrics import registration_metrics
 

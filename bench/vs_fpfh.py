@@ -1,6 +1,6 @@
 """The service's default registration against Open3D FPFH + RANSAC + ICP, in alternating passes.
 
-``python -m export.bench_vs_fpfh --pairs dense.npz [--count 30] [--rounds 4] [--rotation-search auto]
+``python -m bench.vs_fpfh --pairs dense.npz [--count 30] [--rounds 4] [--rotation-search auto]
 [--json out.json]``
 
 ``mfgnet bench`` times each method in one pass over the pairs, one method after the other, so a drift
@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from export.baselines import fpfh_ransac_icp
-from export.report_io import emit_report
+from bench.baselines import fpfh_ransac_icp
+from bench.report_io import emit_report
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 from model.metrics import registration_metrics
 

@@ -1,0 +1,1 @@
+"""Benchmarks, profiling and selection tools (training side; never part of the runtime image)."""

@@ -1,0 +1,274 @@
+"""Real-scan benchmark: the service as a user calls it, beside FPFH + RANSAC + ICP, in one run.
+
+Every pair of the real-scan set (``$MFGNET_REAL_DATA``, else ``../shared/data/real``) goes to a real server on
+127.0.0.1 as two ``.npy`` uploads with no option, as scanned and with the source turned by a seeded
+Haar-uniform rotation, in metres and again scaled x1000 (millimetres, thresholds scaled). Open3D FPFH + RANSAC +
+ICP (the data README's parameters, seeded; the ``bench`` extra; its import not timed) registers the same
+clouds in the same run::
+
+    python -m bench.real_scans                      # the whole set; a per-pair table and the totals
+    python -m bench.real_scans --json results/general-0.2.0/real_scans.json
+    python -m bench.real_scans --pairs dragon_24_0 --no-fpfh --scales 1
+
+Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
+given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bench.http_latency import Server
+from bench.report_io import emit_report, machine_info
+
+DEFAULT_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
+# Success thresholds per sensor class (rotation deg, translation m), from the data README.
+THRESHOLDS = {"cyberware-range": (5.0, 0.01), "lidar": (5.0, 2.0)}
+INDOOR_THRESHOLDS = (15.0, 0.3)  # kinect-*, xtion-* fused fragments (3DMatch registration recall)
+# FPFH + RANSAC + ICP on the pair normalised jointly to the unit sphere (the data README's reference).
+FPFH_VOXEL, FPFH_NORMAL_RADIUS, FPFH_FEATURE_RADIUS = 0.03, 0.1, 0.25
+RANSAC_DISTANCE, RANSAC_EDGE, RANSAC_ITERATIONS, RANSAC_CONFIDENCE = 0.05, 0.9, 100_000, 0.999
+ICP_VOXEL, ICP_DISTANCE = 0.01, 0.02
+
+
+def data_dir(path: str | None = None) -> Path:
+    """The real-scan set: ``path``, else ``$MFGNET_REAL_DATA``, else ``../shared/data/real`` beside the repo."""
+    return Path(path or os.environ.get("MFGNET_REAL_DATA") or DEFAULT_DIR)
+
+
+@dataclass(frozen=True)
+class Case:
+    """One registration to run: a pair in one variant (as scanned or turned) and one unit."""
+
+    name: str
+    sensor: str
+    variant: str  # "scanned" | "turned"
+    scale: float  # 1: metres, 1000: millimetres
+    source: np.ndarray  # [N, 3] float32
+    target: np.ndarray  # [M, 3] float32
+    src_to_tgt: np.ndarray  # [4, 4] ground truth
+
+
+def thresholds(sensor: str, scale: float = 1.0) -> tuple[float, float]:
+    """Success thresholds (rotation deg, translation in the clouds' unit) of a sensor class."""
+    degrees, metres = THRESHOLDS.get(sensor, INDOOR_THRESHOLDS)
+    return degrees, metres * scale
+
+
+def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The source turned by ``rotation [3, 3]`` about its centroid, and the ground truth of the turned pair."""
+    centre = source.mean(0, dtype=np.float64)  # [3]
+    moved = (source - centre) @ rotation.T + centre  # [N, 3]; original = R^T (moved - c) + c
+    turned_to_src = np.eye(4)
+    turned_to_src[:3, :3], turned_to_src[:3, 3] = rotation.T, centre - rotation.T @ centre
+    return moved.astype(np.float32), src_to_tgt @ turned_to_src
+
+
+def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0),
+               names: list[str] | None = None) -> list[Case]:
+    """Every pair of ``directory`` as scanned and turned (one seeded Haar-uniform rotation per pair), per scale."""
+    files = sorted(directory.glob("*.npz"))
+    if names:
+        files = [f for f in files if f.stem in names]
+    rng = np.random.default_rng(seed)
+    cases = []
+    for file in files:
+        with np.load(file) as data:
+            source, target = data["source"].astype(np.float32), data["target"].astype(np.float32)
+            truth, sensor = data["transform"].astype(np.float64), str(data["sensor"])
+        rotation = Rotation.random(random_state=rng).as_matrix()  # Haar-uniform on SO(3)
+        variants = {"scanned": (source, truth), "turned": turned(source, truth, rotation)}
+        for scale in scales:
+            for variant, (src, T) in variants.items():
+                T_scaled = T.copy()
+                T_scaled[:3, 3] *= scale
+                cases.append(Case(file.stem, sensor, variant, scale, (src * scale).astype(np.float32),
+                                  (target * scale).astype(np.float32), T_scaled))
+    return cases
+
+
+def pose_errors(rotation: np.ndarray, translation: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """Geodesic rotation error (deg) of ``R_pred^T R_true`` and translation error ``||t_pred - t_true||``."""
+    cos = (np.trace(rotation.T @ truth[:3, :3]) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(translation - truth[:3, 3]))
+
+
+def npy_bytes(points: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, points.astype(np.float32, copy=False))
+    return buffer.getvalue()
+
+
+def register_http(client: httpx.Client, url: str, source: np.ndarray, target: np.ndarray) -> dict:
+    """One ``POST /v1/register`` of two ``.npy`` uploads and no option: pose, ``reliable``, client seconds."""
+    began = time.perf_counter()
+    files = {"source": ("source.npy", npy_bytes(source)), "target": ("target.npy", npy_bytes(target))}
+    response = client.post(url + "/v1/register", files=files)
+    seconds = time.perf_counter() - began
+    if response.status_code != 200:
+        return {"status": response.status_code, "error": response.text[:200], "seconds": seconds}
+    body = response.json()
+    return {"rotation": np.asarray(body["rotation"]), "translation": np.asarray(body["translation"]),
+            "reliable": bool(body["quality"]["reliable"]), "warnings": body.get("warnings", []), "seconds": seconds}
+
+
+def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``src_to_tgt`` by Open3D FPFH + RANSAC + point-to-point ICP on the pair normalised to the unit sphere."""
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    o3d.utility.random.seed(seed)
+    both = np.concatenate([source, target]).astype(np.float64)  # [N + M, 3]
+    centre = both.mean(0)
+    radius = float(np.linalg.norm(both - centre, axis=1).max())
+
+    def cloud(points: np.ndarray, voxel: float):
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((points.astype(np.float64) - centre) / radius))
+        return pcd.voxel_down_sample(voxel)
+
+    def features(pcd):
+        pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_NORMAL_RADIUS, max_nn=30))
+        return reg.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_FEATURE_RADIUS,
+                                                                                     max_nn=100))
+
+    src_c, tgt_c = cloud(source, FPFH_VOXEL), cloud(target, FPFH_VOXEL)
+    coarse = reg.registration_ransac_based_on_feature_matching(
+        src_c, tgt_c, features(src_c), features(tgt_c), False, RANSAC_DISTANCE,
+        reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(RANSAC_EDGE),
+         reg.CorrespondenceCheckerBasedOnDistance(RANSAC_DISTANCE)],
+        reg.RANSACConvergenceCriteria(RANSAC_ITERATIONS, RANSAC_CONFIDENCE),
+    ).transformation
+    fine = reg.registration_icp(cloud(source, ICP_VOXEL), cloud(target, ICP_VOXEL), ICP_DISTANCE, coarse,
+                                reg.TransformationEstimationPointToPoint(),
+                                reg.ICPConvergenceCriteria(max_iteration=30)).transformation
+    R_n, t_n = np.asarray(fine)[:3, :3], np.asarray(fine)[:3, 3]
+    return R_n, radius * t_n + centre - R_n @ centre  # back to the caller's units
+
+
+def judged(case: Case, rotation: np.ndarray | None, translation: np.ndarray | None) -> dict:
+    """Errors and success of one pose against the case's ground truth (a failed request is a miss)."""
+    if rotation is None:
+        return {"rotation_error_deg": None, "translation_error": None, "success": False}
+    r_err, t_err = pose_errors(rotation, translation, case.src_to_tgt)
+    max_deg, max_t = thresholds(case.sensor, case.scale)
+    return {"rotation_error_deg": round(r_err, 3), "translation_error": float(f"{t_err:.4g}"),
+            "success": r_err < max_deg and t_err < max_t}
+
+
+def run_service(cases: list[Case], url: str) -> list[dict]:
+    rows = []
+    with httpx.Client(timeout=300) as client:
+        register_http(client, url, cases[0].source, cases[0].target)  # warm-up, untimed
+        for case in cases:
+            out = register_http(client, url, case.source, case.target)
+            row = judged(case, out.get("rotation"), out.get("translation"))
+            row.update(seconds=round(out["seconds"], 4), reliable=out.get("reliable"),
+                       status=out.get("status", 200), warnings=out.get("warnings", []))
+            rows.append(row)
+    return rows
+
+
+def run_fpfh(cases: list[Case], seed: int) -> list[dict]:
+    import open3d  # noqa: F401  -- imported before timing: its import is not the method's cost
+
+    fpfh_ransac_icp(cases[0].source, cases[0].target, seed)  # first call sets Open3D up, untimed
+    rows = []
+    for case in cases:
+        began = time.perf_counter()
+        R, t = fpfh_ransac_icp(case.source, case.target, seed)
+        row = judged(case, R, t)
+        row["seconds"] = round(time.perf_counter() - began, 4)
+        rows.append(row)
+    return rows
+
+
+def summarise(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -> dict:
+    """Totals per scale: successes, summed seconds, the speed ratio and the ``reliable`` flag's record."""
+    totals = {}
+    for scale in sorted({c.scale for c in cases}):
+        pick = [i for i, c in enumerate(cases) if c.scale == scale]
+        svc = [service[i] for i in pick]
+        given = [r for r in svc if r["reliable"]]
+        entry = {
+            "cases": len(pick),
+            "service_successes": sum(r["success"] for r in svc),
+            "service_seconds": round(sum(r["seconds"] for r in svc), 3),
+            "reliable_given": len(given),
+            "reliable_right": sum(r["success"] for r in given),
+            "reliable_precision": round(sum(r["success"] for r in given) / len(given), 4) if given else None,
+            "reliable_coverage": round(len([r for r in given if r["success"]])
+                                       / max(1, sum(r["success"] for r in svc)), 4),
+        }
+        if fpfh is not None:
+            ref = [fpfh[i] for i in pick]
+            entry.update(fpfh_successes=sum(r["success"] for r in ref),
+                         fpfh_seconds=round(sum(r["seconds"] for r in ref), 3))
+            entry["speedup"] = round(entry["fpfh_seconds"] / entry["service_seconds"], 3)
+        totals[f"x{scale:g}"] = entry
+    return totals
+
+
+def print_table(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -> None:
+    head = f"{'pair':22} {'variant':8} {'unit':5} | {'deg':>7} {'err_t':>8} ok rel {'ms':>6}"
+    print(head + (f" | {'deg':>7} {'err_t':>8} ok {'ms':>6}" if fpfh else ""))
+    for i, case in enumerate(cases):
+        s = service[i]
+        line = (f"{case.name:22} {case.variant:8} {'m' if case.scale == 1 else 'mm':5} | "
+                f"{_num(s['rotation_error_deg']):>7} {_num(s['translation_error']):>8} "
+                f"{'Y' if s['success'] else '.':2} {'Y' if s['reliable'] else '.':3} {1000 * s['seconds']:6.0f}")
+        if fpfh:
+            f = fpfh[i]
+            line += (f" | {_num(f['rotation_error_deg']):>7} {_num(f['translation_error']):>8} "
+                     f"{'Y' if f['success'] else '.':2} {1000 * f['seconds']:6.0f}")
+        print(line)
+
+
+def _num(value) -> str:
+    return "-" if value is None else f"{value:.3g}"
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("directory", nargs="?", help="the real-scan set (default: $MFGNET_REAL_DATA or ../shared)")
+    parser.add_argument("--url", help="an already running server (default: start one on 127.0.0.1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the turns and of RANSAC")
+    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
+    parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems)")
+    parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
+    parser.add_argument("--json", type=Path, help="write the report here")
+    args = parser.parse_args(argv)
+    directory = data_dir(args.directory)
+    if not directory.is_dir():
+        parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
+    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs)
+    if args.url:
+        service = run_service(cases, args.url)
+    else:
+        with Server() as server:
+            service = run_service(cases, server.url)
+    fpfh = None if args.no_fpfh else run_fpfh(cases, args.seed)
+    print_table(cases, service, fpfh)
+    rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
+             **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
+    report = {"benchmark": "real_scans", "seed": args.seed, "machine": machine_info(2),
+              "totals": summarise(cases, service, fpfh), "pairs": rows}
+    emit_report({"totals": report["totals"]}, None)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=1) + "\n")
+    return report
+
+
+if __name__ == "__main__":
+    main()

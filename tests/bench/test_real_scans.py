@@ -1,0 +1,60 @@
+"""bench.real_scans: the service half through a real server on one real pair; Open3D's half where installed."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bench import real_scans
+
+DATA = real_scans.data_dir()
+PAIR = "dragon_24_0"  # a small range-image pair that the service registers as scanned
+needs_data = pytest.mark.skipif(not (DATA / f"{PAIR}.npz").exists(),
+                                reason=f"real-scan set absent ({DATA}; set MFGNET_REAL_DATA)")
+
+
+def test_turned_ground_truth_maps_the_turned_source_onto_the_target():
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(50, 3)).astype(np.float32)
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = Rotation.from_euler("z", 30, degrees=True).as_matrix(), [1.0, 2.0, 3.0]
+    target = source @ truth[:3, :3].T + truth[:3, 3]
+    moved, moved_truth = real_scans.turned(source, truth, Rotation.random(random_state=1).as_matrix())
+    assert np.abs(moved - source).max() > 0.1
+    np.testing.assert_allclose(moved @ moved_truth[:3, :3].T + moved_truth[:3, 3], target, atol=1e-5)
+
+
+def test_thresholds_scale_with_the_unit():
+    assert real_scans.thresholds("cyberware-range", 1000.0) == (5.0, 10.0)
+    assert real_scans.thresholds("kinect-fused-2.5cm") == (15.0, 0.3)
+
+
+def test_pose_errors():
+    truth = np.eye(4)
+    R = Rotation.from_euler("x", 10, degrees=True).as_matrix()
+    r_err, t_err = real_scans.pose_errors(R, np.array([0.0, 3.0, 4.0]), truth)
+    assert r_err == pytest.approx(10.0) and t_err == pytest.approx(5.0)
+
+
+@needs_data
+def test_service_half_registers_a_real_pair_over_http(tmp_path):
+    out = tmp_path / "real.json"
+    report = real_scans.main([str(DATA), "--pairs", PAIR, "--no-fpfh", "--scales", "1", "1000",
+                              "--json", str(out)])
+    assert out.exists()
+    rows = report["pairs"]
+    assert [(r["variant"], r["scale"]) for r in rows] == [("scanned", 1.0), ("turned", 1.0),
+                                                          ("scanned", 1000.0), ("turned", 1000.0)]
+    scanned = rows[0]["service"]
+    assert scanned["status"] == 200 and scanned["success"] and scanned["rotation_error_deg"] < 5
+    for scale in ("x1", "x1000"):
+        assert report["totals"][scale]["cases"] == 2 and report["totals"][scale]["service_seconds"] > 0
+    # the same pair in millimetres is judged with thresholds x1000: errors scale, success does not change
+    assert rows[2]["service"]["success"] == scanned["success"]
+
+
+@needs_data
+def test_fpfh_half_registers_the_pair_as_scanned():
+    pytest.importorskip("open3d", reason="FPFH + RANSAC + ICP needs the bench extra (Open3D)")
+    case = next(c for c in real_scans.load_cases(DATA, scales=(1.0,), names=[PAIR]) if c.variant == "scanned")
+    R, t = real_scans.fpfh_ransac_icp(case.source, case.target)
+    assert real_scans.judged(case, R, t)["success"]
