@@ -185,3 +185,14 @@ def test_2m_point_binary_ply_parses_in_under_twice_the_npy_time(client, tmp_path
         seconds[name] = min(seconds.get(name, np.inf), elapsed)
     print(f"2M points upload+parse: npy {seconds['big.npy']:.3f} s, binary PLY {seconds['big.ply']:.3f} s")
     assert seconds["big.ply"] < 2 * seconds["big.npy"]
+
+
+def test_the_python_client_uploads_files_as_they_are(server, clouds) -> None:
+    from service.client import MfgnetClient
+
+    with MfgnetClient(server.url, timeout=120) as client:
+        from_arrays = client.register(grid(SOURCE), grid(TARGET), model=MODEL, rotation_search=False, binary=True)
+        from_files = client.register(*clouds["laz"], model=MODEL, rotation_search=False)
+        from_text = client.register(str(clouds["csv"][0]), str(clouds["csv"][1]), model=MODEL, rotation_search=False)
+    assert_same_pose(from_files, from_arrays, extent(grid(TARGET)))
+    assert_same_pose(from_text, from_arrays, extent(grid(TARGET)))
