@@ -29,16 +29,16 @@ def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
 
 
 def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
-    skip, separator = 0, None
+    skip, separator, first = 0, None, True
     for number, line in enumerate(stream):
         if number >= PROBE_LINES:
             break
         text = line.strip()
         if not text or text.startswith("#"):
             continue
-        separator = "," if "," in text else None
-        if not _numeric(text, separator):
-            skip = number + 1  # a header line: skip it and everything before
+        separator = "," if "," in text else None  # from the first data line
+        if first and not _numeric(text, separator):
+            skip, first = number + 1, False  # one header line: skip it and the comments before it
             continue
         break
     stream.seek(0)
