@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import time
+from pathlib import Path
 from typing import Any, Literal
 
 import httpx
@@ -80,8 +82,10 @@ class MfgnetClient:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
         Args:
-            source: ``(N, 3)`` points (array or nested lists).
-            target: ``(M, 3)`` points.
+            source: ``(N, 3)`` points (array or nested lists), or the path of a point-cloud file (PLY, PCD,
+                LAS/LAZ, NPY/NPZ, XYZ/CSV/TXT), uploaded as it is and read by the server's reader (the CLI's):
+                LAS/UTM coordinates keep their float64 precision, and the pose is in the file's frame.
+            target: ``(M, 3)`` points, or a file path.
             model, iterations, keypoints, refine (``"none"`` | ``"icp"`` | ``"icp-plane"`` |
                 ``"icp-plane-multistart"``), initial_transform (4x4): left out of the request when ``None``
                 (the server's defaults apply).
@@ -110,9 +114,8 @@ class MfgnetClient:
             "drop_isolated": drop_isolated,
         }
         options = {key: value for key, value in options.items() if value is not None}
-        if binary:
-            files = {"source": ("source.npy", _npy_bytes(source), "application/octet-stream"),
-                     "target": ("target.npy", _npy_bytes(target), "application/octet-stream")}
+        if binary or _is_path(source) or _is_path(target):
+            files = {name: _upload(name, cloud) for name, cloud in (("source", source), ("target", target))}
             form = {key: _form_value(value) for key, value in options.items()}
             return self._request("POST", REGISTER_PATH, data=form, files=files)
         body = {"source": _as_list(source), "target": _as_list(target), **options}
@@ -181,6 +184,18 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def _as_list(points) -> list:
     return np.asarray(points).tolist() if isinstance(points, np.ndarray) else points
+
+
+def _is_path(cloud) -> bool:
+    return isinstance(cloud, (str, os.PathLike))
+
+
+def _upload(name: str, cloud) -> tuple[str, bytes, str]:
+    """A multipart file: a path's bytes under its own name, else the points as float32 ``.npy``."""
+    if _is_path(cloud):
+        path = Path(cloud)
+        return path.name, path.read_bytes(), "application/octet-stream"
+    return f"{name}.npy", _npy_bytes(cloud), "application/octet-stream"
 
 
 def _npy_bytes(points) -> bytes:

@@ -1,8 +1,9 @@
-"""Request bodies -> validated :class:`Pair` objects: JSON, multipart ``.npy`` uploads and OIP v2 tensors.
+"""Request bodies -> validated :class:`Pair` objects: JSON, multipart point-cloud file uploads and OIP v2 tensors.
 
-Point counts are checked (413) before any conversion: from the JSON lists' lengths, the ``.npy``
-header, or the OIP tensor ``shape``. Decoding runs in a worker thread (see ``runner.py``), never on
-the event loop.
+Point counts are checked (413) before any conversion: from the JSON lists' lengths, the file's
+header (``service.formats``; text files while reading), or the OIP tensor ``shape``. Files are read
+with the CLI's reader, so a file gives the same array and the same error everywhere. Decoding runs
+in a worker thread (see ``runner.py``), never on the event loop.
 
 JSON bodies take a fast path that only ever accepts what the reference path accepts, with the same
 values: ``/v1/register`` reads its two clouds piece by piece straight into numpy
@@ -15,11 +16,10 @@ the body goes through the reference path: ``json`` plus ``RegisterRequest`` vali
 
 from __future__ import annotations
 
-import io
 import json
 from dataclasses import dataclass
 from itertools import chain
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import orjson
@@ -36,6 +36,7 @@ from service.api.schemas import (
     RegisterOptions,
     RegisterRequest,
 )
+from service.formats import PointCloudFormatError, read_cloud
 from service.registrar import MIN_POINTS
 
 JSON = "application/json"
@@ -229,81 +230,92 @@ def batch_pairs_from_json(body: bytes | bytearray, max_points: int, max_batch: i
     return [_pair_from_request(req) for req in batch.pairs]
 
 
-# -- multipart/form-data with .npy files ------------------------------------------------------------
+# -- multipart/form-data with point-cloud files ----------------------------------------------------
+@dataclass
+class Upload:
+    """One uploaded cloud: the form field, the client's file name, and the spooled file (not yet read)."""
+
+    field: str
+    filename: str
+    file: BinaryIO
+
+    @property
+    def label(self) -> str:
+        return f"{self.field} ({self.filename})" if self.filename else self.field
+
+
 @dataclass
 class RegisterForm:
     fields: dict[str, str]
-    files: dict[str, bytes]  # "source" / "target" -> raw .npy bytes
+    files: dict[str, Upload]  # "source" / "target"; closed by register_pair_from_form
+
+    def close(self) -> None:
+        for upload in self.files.values():
+            upload.file.close()
 
 
 async def read_register_form(request: Request) -> RegisterForm:
-    """Read the upload (bounded by max_body_bytes upstream); decoding happens later, off the loop."""
+    """Read the upload (bounded by max_upload_bytes upstream); the files stay spooled (on disk past 1 MiB)
+    and are decoded later, off the loop, by :func:`register_pair_from_form`, which closes them."""
     form = await request.form(max_files=len(CLOUD_FIELDS), max_fields=32, max_part_size=MAX_FORM_FIELD_BYTES)
+    fields: dict[str, str] = {}
+    files: dict[str, Upload] = {}
     try:
-        fields: dict[str, str] = {}
-        files: dict[str, bytes] = {}
         for key, value in form.multi_items():
             if key in fields or key in files:
                 raise APIError(422, f"invalid request: {key}: given more than once")
             if key in CLOUD_FIELDS:
                 if not isinstance(value, UploadFile):
-                    raise APIError(422, f"invalid request: {key}: expected a .npy file upload, got a text field")
-                files[key] = await value.read()
+                    raise APIError(422, f"invalid request: {key}: expected a point-cloud file upload, got a text field")
+                files[key] = Upload(key, (value.filename or "")[:200], value.file)
             elif isinstance(value, UploadFile):
                 raise APIError(422, f"invalid request: {key}: unexpected file; only source and target are files")
             else:
                 fields[key] = value
         missing = [name for name in CLOUD_FIELDS if name not in files]
         if missing:
-            raise APIError(422, f"invalid request: {', '.join(missing)}: missing .npy file upload")
-        return RegisterForm(fields, files)
-    finally:
+            raise APIError(422, f"invalid request: {', '.join(missing)}: missing point-cloud file upload")
+    except BaseException:
         await form.close()
+        raise
+    return RegisterForm(fields, files)
 
 
-def decode_npy(data: bytes, name: str, max_points: int) -> np.ndarray:
-    """A ``.npy`` upload -> float64 ``[N, 3]``; the header is checked before the array is read."""
-    buf = io.BytesIO(data)
+def decode_upload(upload: Upload, max_points: int) -> np.ndarray:
+    """A point-cloud file (any format of :mod:`service.formats`, found from its content) -> float64 ``[N, 3]``.
+
+    Errors name the field and the file: 400 unreadable, 413 over ``max_points`` (from the header, before the
+    points are read), 415 a reader library not installed, 422 unusable points.
+    """
     try:
-        version = np.lib.format.read_magic(buf)
-        if version == (1, 0):
-            shape, _, dtype = np.lib.format.read_array_header_1_0(buf)
-        elif version == (2, 0):
-            shape, _, dtype = np.lib.format.read_array_header_2_0(buf)
-        else:
-            raise APIError(400, f"{name}: unsupported .npy format version {version}")
-    except (ValueError, EOFError, SyntaxError):
-        raise APIError(400, f"{name}: not a valid .npy file") from None
-    if dtype.hasobject:
-        raise APIError(422, f"invalid request: {name}: object arrays are refused (they would need pickle)")
-    if len(shape) == 3 and shape[0] == 1:
-        shape = shape[1:]
-    if len(shape) != 2 or shape[1] != 3:
-        raise APIError(422, f"invalid request: {name}: expected shape [N, 3], got {list(shape)}")
-    if shape[0] > max_points:
-        raise too_many_points(name, shape[0], max_points)
-    if dtype.kind != "f" or dtype.itemsize not in (2, 4, 8):
-        raise APIError(422, f"invalid request: {name}: expected float32 or float64 values, got {dtype}")
-    try:
-        array = np.load(io.BytesIO(data), allow_pickle=False)
-    except (ValueError, EOFError, OSError):
-        raise APIError(400, f"{name}: truncated or unreadable .npy file") from None
-    return array.reshape(-1, 3).astype(np.float64)
+        upload.file.seek(0)
+        return read_cloud(upload.file, upload.label, max_points)
+    except PointCloudFormatError as exc:
+        message = str(exc)
+        if exc.status == 422:
+            message = f"invalid request: {message}"
+        elif exc.status == 413:
+            message = f"{message} (max_file_points)"
+        raise APIError(exc.status, message) from None
 
 
 def register_pair_from_form(form: RegisterForm, max_points: int) -> Pair:
-    fields: dict[str, Any] = dict(form.fields)
-    if "initial_transform" in fields:
-        try:
-            fields["initial_transform"] = json.loads(fields["initial_transform"])
-        except ValueError:  # JSONDecodeError, or an integer literal too long to convert
-            raise APIError(422, "invalid request: initial_transform: expected a JSON 4x4 array") from None
+    """Options and the two decoded files; ``max_points`` is the per-file limit (max_file_points)."""
     try:
-        options = RegisterOptions.model_validate(fields)
-    except ValidationError as exc:
-        raise from_pydantic(exc) from None
-    source, target = (decode_npy(form.files[name], name, max_points) for name in CLOUD_FIELDS)
-    return Pair(options, source, target)
+        fields: dict[str, Any] = dict(form.fields)
+        if "initial_transform" in fields:
+            try:
+                fields["initial_transform"] = json.loads(fields["initial_transform"])
+            except ValueError:  # JSONDecodeError, or an integer literal too long to convert
+                raise APIError(422, "invalid request: initial_transform: expected a JSON 4x4 array") from None
+        try:
+            options = RegisterOptions.model_validate(fields)
+        except ValidationError as exc:
+            raise from_pydantic(exc) from None
+        source, target = (decode_upload(form.files[name], max_points) for name in CLOUD_FIELDS)
+        return Pair(options, source, target)
+    finally:
+        form.close()
 
 
 # -- Open Inference Protocol v2 ---------------------------------------------------------------------

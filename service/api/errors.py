@@ -39,8 +39,8 @@ class APIError(Exception):
 
 
 class BodyTooLargeError(APIError):
-    def __init__(self, limit: int):
-        super().__init__(413, f"request body is larger than the limit of {limit} bytes (max_body_bytes)")
+    def __init__(self, limit: int, setting: str = "max_body_bytes"):
+        super().__init__(413, f"request body is larger than the limit of {limit} bytes ({setting})")
 
 
 def error_response(status: int, message: str, headers: dict[str, str] | None = None, **extra: Any) -> JSONResponse:

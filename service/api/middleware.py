@@ -44,10 +44,18 @@ def _content_length(scope: Scope) -> int | None:
 
 
 class RequestContextMiddleware:
-    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int):
+    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None):
         self.app = app
         self.metrics = metrics
-        self.max_body_bytes = max_body_bytes
+        self.max_body_bytes = max_body_bytes  # JSON and every other body
+        self.max_upload_bytes = max_body_bytes if max_upload_bytes is None else max_upload_bytes  # multipart files
+
+    def _limit(self, scope: Scope) -> tuple[int, str]:
+        """The body limit for this request's content type, and the setting that holds it."""
+        for key, value in scope.get("headers", ()):
+            if key == b"content-type" and value.split(b";", 1)[0].strip().lower() == b"multipart/form-data":
+                return self.max_upload_bytes, "max_upload_bytes"
+        return self.max_body_bytes, "max_body_bytes"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -57,6 +65,7 @@ class RequestContextMiddleware:
         request_id = _request_id(scope)
         scope.setdefault("state", {})["request_id"] = request_id
         state = {"status": 0, "started": False, "received": 0}
+        limit, setting = self._limit(scope)
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
@@ -68,15 +77,15 @@ class RequestContextMiddleware:
             message = await receive()
             if message["type"] == "http.request":
                 state["received"] += len(message.get("body", b""))
-                if state["received"] > self.max_body_bytes:
-                    raise BodyTooLargeError(self.max_body_bytes)  # turned into a JSON 413 by the error handlers
+                if state["received"] > limit:
+                    raise BodyTooLargeError(limit, setting)  # turned into a JSON 413 by the error handlers
             return message
 
         self.metrics.in_flight.inc()
         try:
             length = _content_length(scope)
-            if length is not None and length > self.max_body_bytes:  # refuse before reading anything
-                too_large = BodyTooLargeError(self.max_body_bytes)
+            if length is not None and length > limit:  # refuse before reading anything
+                too_large = BodyTooLargeError(limit, setting)
                 await self._send_error(send_with_id, too_large.status, too_large.message)
             else:
                 await self.app(scope, receive_limited, send_with_id)

@@ -67,8 +67,23 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: int = Field(8080, ge=0, le=65535)
     threads: int = Field(2, ge=1, le=64, description="ONNX Runtime intra-op threads per session.")
-    max_points: int = Field(200_000, ge=32, description="Most points per cloud; more is answered with 413.")
-    max_body_bytes: int = Field(64 * MiB, ge=1024, description="Largest request body; more is answered with 413.")
+    max_points: int = Field(
+        200_000, ge=32, description="Most points per cloud sent as JSON or OIP tensors; more is answered with 413."
+    )
+    max_file_points: int = Field(
+        2_000_000, ge=32, description="Most points per cloud uploaded as a file (multipart: PLY, PCD, LAS/LAZ, "
+        "NPY/NPZ, XYZ/CSV/TXT); more is answered with 413, known from the file's header before its points are "
+        "read (text files: while reading). The server holds about 24 bytes per point per cloud while decoding.",
+    )
+    max_body_bytes: int = Field(
+        64 * MiB, ge=1024, description="Largest body of a request that is not a multipart upload (JSON, OIP); "
+        "more is answered with 413.",
+    )
+    max_upload_bytes: int = Field(
+        256 * MiB, ge=1024, description="Largest multipart upload body (both files and the options); more is "
+        "answered with 413. The files are spooled to temporary files, not held in memory. 256 MiB holds two "
+        "2,000,000-point clouds as float64 .npy (48 MB each) or as %.9g XYZ text (at most about 80 MB each).",
+    )
     max_batch: int = Field(16, ge=1, description="Most pairs in one /v1/register/batch request.")
     max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
     max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")

@@ -267,7 +267,8 @@ def main_server() -> Server:
     return start_subprocess_server("main")
 
 
-LIMITED = {"max_points": 400, "max_body_bytes": 200_000, "max_batch": 2, "api_key": "test-secret-key"}
+LIMITED = {"max_points": 400, "max_file_points": 400, "max_body_bytes": 200_000, "max_batch": 2,
+           "api_key": "test-secret-key"}
 
 
 @cache
@@ -276,6 +277,8 @@ def limited_server() -> Server:
     return start_subprocess_server(
         "limited",
         MFGNET_MAX_POINTS=str(LIMITED["max_points"]),
+        MFGNET_MAX_FILE_POINTS=str(LIMITED["max_file_points"]),
+        MFGNET_MAX_UPLOAD_BYTES=str(LIMITED["max_body_bytes"]),
         MFGNET_MAX_BODY_BYTES=str(LIMITED["max_body_bytes"]),
         MFGNET_MAX_BATCH=str(LIMITED["max_batch"]),
         MFGNET_API_KEY=LIMITED["api_key"],

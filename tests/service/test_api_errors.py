@@ -128,7 +128,7 @@ MULTIPART_CASES = {
                              ["source", "object"]),
     "pickle_not_npy": (multipart(pickle.dumps(PAIR.source.tolist()), npy(PAIR.target)), 400, ["source", ".npy"]),
     "two_columns": (multipart(npy(PAIR.source[:, :2]), npy(PAIR.target)), 422, ["source", "[N, 3]"]),
-    "integer_dtype": (multipart(npy(PAIR.source.astype(np.int64)), npy(PAIR.target)), 422, ["source", "float"]),
+    "complex_dtype": (multipart(npy(PAIR.source.astype(complex)), npy(PAIR.target)), 422, ["source", "complex"]),
     "nan_points": (multipart(npy(np.where(np.arange(len(PAIR.source))[:, None] == 7, np.nan, PAIR.source)),
                              npy(PAIR.target)), 422, ["source", "nan"]),
     "truncated": (multipart(npy(PAIR.source)[:200], npy(PAIR.target)), 400, ["source"]),

@@ -288,11 +288,14 @@ def test_rejects_an_unknown_refine_mode(tmp_path, model_dir) -> None:
 # ------------------------------------------------------------------------------------- bad input
 
 
-def test_rejects_an_unknown_extension(tmp_path, model_dir) -> None:
+def test_rejects_content_that_is_no_point_cloud(tmp_path, model_dir) -> None:
+    """The content decides, not the extension: an OBJ mesh is text whose rows are not numbers."""
     bad = tmp_path / "cloud.obj"
-    bad.write_text("v 0 0 0\n")
+    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 1\n")  # the first line could be a header; the rest is not numbers
     _, tgt = write_pair(tmp_path, "npy")
-    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "unknown extension")
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "not rows of at least 3 numbers")
+    bad.write_bytes(bytes(range(256)))
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "unrecognised content")
 
 
 def test_rejects_rows_with_too_few_columns(tmp_path, model_dir) -> None:

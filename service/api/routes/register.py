@@ -1,4 +1,4 @@
-"""``POST /v1/register`` (JSON or multipart ``.npy`` uploads) and ``POST /v1/register/batch``."""
+"""``POST /v1/register`` (JSON or multipart point-cloud file uploads) and ``POST /v1/register/batch``."""
 
 from __future__ import annotations
 
@@ -22,11 +22,16 @@ from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
 
 router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
 
+FILE_DESCRIPTION = (
+    "A point-cloud file, its format found from its content: PLY (ascii, binary), PCD (ascii, binary, "
+    "binary_compressed), LAS/LAZ, .npy/.npz (numbers [N, >=3] or fields x, y, z), XYZ/CSV/TXT. The first three "
+    "columns or the x, y, z fields are used (colours, intensity, normals ignored); at most max_file_points points."
+)
 _MULTIPART_SCHEMA = {
     "type": "object",
     "required": ["source", "target"],
     "properties": {
-        "source": {"type": "string", "format": "binary", "description": ".npy float32/float64 [N, 3]"},
+        "source": {"type": "string", "format": "binary", "description": FILE_DESCRIPTION},
         "target": {"type": "string", "format": "binary", "description": ".npy float32/float64 [M, 3]"},
         "model": {"type": "string"},
         "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
@@ -61,7 +66,8 @@ def _request_body(schema_name: str, multipart: bool) -> dict:
     response_model_exclude_none=True,
     summary="Register source onto target",
     description="The rigid pose src_to_tgt. Send JSON (RegisterRequest) or multipart/form-data with two "
-    ".npy files `source` and `target` and the options as form fields.",
+    "point-cloud files `source` and `target` (PLY, PCD, LAS/LAZ, NPY/NPZ, XYZ/CSV/TXT) and the options as form "
+    "fields.",
     openapi_extra=_request_body("RegisterRequest", multipart=True),
     responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
 )
@@ -78,7 +84,7 @@ async def register(request: Request) -> RenderedJSON:
             form = await bodies.read_register_form(request)
 
             def decode() -> bodies.Pair:
-                return bodies.register_pair_from_form(form, settings.max_points)
+                return bodies.register_pair_from_form(form, settings.max_file_points)
 
         def work():
             pair = decode()

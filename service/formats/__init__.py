@@ -1,0 +1,40 @@
+"""Point-cloud files: one content-detected reader for every entry point, and a writer.
+
+=======================  =====================================================  ==================
+format                   read (detected from the content)                       written as
+=======================  =====================================================  ==================
+PLY (``plyfile``)        ascii, binary little/big endian; vertex x, y, z         binary LE float32
+PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z        binary float32
+LAS/LAZ (``laspy``,      scaled x, y, z in float64                               --
+``lazrs``)
+XYZ/CSV/TXT              whitespace or comma separated, first 3 columns,         ``%.9g`` text
+                         ``#`` comments and one header line skipped
+NPY                      numbers ``(N, >=3)`` (first 3 columns, any int/float    float32 ``(N, 3)``
+                         dtype, cast) or fields x, y, z; no pickles
+NPZ                      array ``points``, else the only array                   key ``points``
+=======================  =====================================================  ==================
+
+Colours, intensity, normals and faces are ignored. The PLY, PCD and LAS/LAZ libraries come with the
+``formats`` extra (part of ``serve``); without one, reading that format raises
+:class:`MissingReaderError` (HTTP 415) naming the extra.
+"""
+
+from service.formats.errors import (
+    InvalidPointsError,
+    MissingReaderError,
+    PointCloudFormatError,
+    TooManyPointsError,
+)
+from service.formats.read import READ_SUFFIXES, read_cloud
+from service.formats.write import WRITE_SUFFIXES, write_cloud
+
+__all__ = [
+    "READ_SUFFIXES",
+    "WRITE_SUFFIXES",
+    "InvalidPointsError",
+    "MissingReaderError",
+    "PointCloudFormatError",
+    "TooManyPointsError",
+    "read_cloud",
+    "write_cloud",
+]

@@ -1,0 +1,97 @@
+"""``.npy`` and ``.npz`` files (numpy's own format; pickles are refused)."""
+
+from __future__ import annotations
+
+import zipfile
+from typing import BinaryIO
+
+import numpy as np
+
+from service.formats.checks import check_count, xyz_columns
+from service.formats.errors import InvalidPointsError, PointCloudFormatError
+
+
+def read_npy(f: BinaryIO, max_points: int | None) -> np.ndarray:
+    """``(N, >=3)`` or ``(1, N, >=3)`` numbers (the first three columns), or a structured array with x, y, z."""
+    shape, fortran, dtype = _header(f)
+    rows = _rows(shape, dtype)
+    check_count(rows, max_points)
+    count = int(np.prod(shape))
+    try:
+        array = np.fromfile(f, dtype=dtype, count=count) if _has_fileno(f) else _from_stream(f, dtype, count)
+    except (OSError, ValueError) as exc:
+        raise PointCloudFormatError(f"truncated or unreadable .npy file ({exc})") from None
+    if array.size != count:
+        raise PointCloudFormatError(f"truncated .npy file: {array.size} of {count} values")
+    array = array.reshape(shape, order="F" if fortran else "C")
+    if dtype.names is not None:
+        return xyz_columns([array[axis].reshape(-1) for axis in "xyz"])
+    table = array.reshape(rows, shape[-1])  # [N, C]
+    return xyz_columns([table[:, axis] for axis in range(3)])
+
+
+def read_npz(f: BinaryIO, max_points: int | None) -> np.ndarray:
+    """The array ``points`` of the archive, else its only array (read as :func:`read_npy`)."""
+    try:
+        archive = zipfile.ZipFile(f)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
+    with archive:
+        names = [name for name in archive.namelist() if name.endswith(".npy")]
+        if "points.npy" in names:
+            member = "points.npy"
+        elif len(names) == 1:
+            member = names[0]
+        else:
+            keys = [name[:-4] for name in names]
+            raise PointCloudFormatError(f".npz archive has no 'points' array and not exactly one array: {keys}")
+        try:
+            with archive.open(member) as stream:
+                return read_npy(stream, max_points)
+        except (zipfile.BadZipFile, EOFError, OSError) as exc:  # e.g. a CRC error or a cut-off member
+            raise PointCloudFormatError(f"corrupt .npz archive ({exc})") from None
+
+
+def _header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
+    try:
+        version = np.lib.format.read_magic(f)
+        if version == (1, 0):
+            return np.lib.format.read_array_header_1_0(f)
+        if version == (2, 0):
+            return np.lib.format.read_array_header_2_0(f)
+        raise PointCloudFormatError(f"unsupported .npy format version {version}")
+    except PointCloudFormatError:
+        raise
+    except (ValueError, EOFError, SyntaxError, OSError):
+        raise PointCloudFormatError("not a valid .npy file (unreadable header)") from None
+
+
+def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    if dtype.hasobject:
+        raise InvalidPointsError("object arrays are refused (they would need pickle)")
+    if dtype.names is not None:
+        missing = [axis for axis in "xyz" if axis not in dtype.names]
+        if missing:
+            raise InvalidPointsError(f"structured array lacks fields {missing}")
+        return int(np.prod(shape))
+    if dtype.kind not in "fiu":
+        raise InvalidPointsError(f"coordinates must be real numbers, got dtype {dtype} ({dtype.kind=})")
+    if len(shape) == 3 and shape[0] == 1:
+        shape = shape[1:]
+    if len(shape) != 2 or shape[1] < 3:
+        raise InvalidPointsError(f"expected shape [N, 3] (or [N, >3]: the first three columns), got {list(shape)}")
+    return int(shape[0])
+
+
+def _has_fileno(f: BinaryIO) -> bool:
+    try:
+        f.fileno()
+    except (OSError, AttributeError, ValueError):
+        return False
+    return True
+
+
+def _from_stream(f: BinaryIO, dtype: np.dtype, count: int) -> np.ndarray:
+    data = f.read(count * dtype.itemsize)
+    usable = len(data) - len(data) % dtype.itemsize
+    return np.frombuffer(data, dtype=dtype, count=usable // dtype.itemsize)

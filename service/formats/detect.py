@@ -1,0 +1,52 @@
+"""Which format a file holds, from its first bytes (magic numbers and headers), never from its name."""
+
+from __future__ import annotations
+
+from service.formats.errors import PointCloudFormatError
+
+HEAD_BYTES = 1024  # enough for every magic number and the first lines of a PCD header
+FORMATS = ("ply", "pcd", "las", "npy", "npz", "text")
+_PCD_KEYS = (b"VERSION", b"FIELDS")
+
+
+def detect(head: bytes) -> str:
+    """One of :data:`FORMATS` for a file starting with ``head``, or :class:`PointCloudFormatError`.
+
+    ``las`` covers LAZ (compressed LAS: the same ``LASF`` header). ``text`` is UTF-8 without NUL bytes
+    (XYZ, CSV, TXT); whether its rows are numbers is the text reader's to say.
+    """
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+        return "npz"
+    if head.startswith(b"LASF"):
+        return "las"
+    if head.startswith(b"ply") and head[3:4] in (b"\n", b"\r"):
+        return "ply"
+    if _pcd_header(head):
+        return "pcd"
+    if head and b"\0" not in head and _is_utf8(head):
+        return "text"
+    raise PointCloudFormatError(
+        f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, .npy, .npz or XYZ/CSV/TXT file"
+    )
+
+
+def _pcd_header(head: bytes) -> bool:
+    """The first line that is not a ``#`` comment starts with a PCD header keyword."""
+    for line in head.splitlines():
+        line = line.strip()
+        if line and not line.startswith(b"#"):
+            return line.split()[0].upper() in _PCD_KEYS
+    return False
+
+
+def _is_utf8(head: bytes) -> bool:
+    """UTF-8 text, allowing a multi-byte character cut at the end of ``head``."""
+    for cut in range(4):
+        try:
+            head[: len(head) - cut].decode("utf-8")
+            return True
+        except UnicodeDecodeError:
+            continue
+    return False

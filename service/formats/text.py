@@ -1,0 +1,63 @@
+"""XYZ, CSV and TXT: rows of numbers separated by whitespace or commas (numpy's C text reader).
+
+The first three columns are x, y, z; further columns (intensity, colours, normals) are ignored.
+``#`` comments and blank lines are skipped, and so is one header line (a first row that is not
+numbers, e.g. ``x,y,z``).
+"""
+
+from __future__ import annotations
+
+import io
+from typing import BinaryIO
+
+import numpy as np
+
+from service.formats.checks import checked
+from service.formats.errors import InvalidPointsError, PointCloudFormatError, TooManyPointsError
+
+PROBE_LINES = 64  # lines read to find the header and the separator
+
+
+def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
+    stream = io.TextIOWrapper(f, encoding="utf-8-sig", newline=None)
+    try:
+        return _read(stream, max_points)
+    except UnicodeDecodeError as exc:
+        raise PointCloudFormatError(f"not UTF-8 text ({exc.reason} at byte {exc.start} of a block)") from None
+    finally:
+        stream.detach()  # leave the caller's file open
+
+
+def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
+    skip, separator, first = 0, None, True
+    for number, line in enumerate(stream):
+        if number >= PROBE_LINES:
+            break
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        separator = "," if "," in text else None  # from the first data line
+        if first and not _numeric(text, separator):
+            skip, first = number + 1, False  # one header line: skip it and the comments before it
+            continue
+        break
+    stream.seek(0)
+    try:
+        table = np.loadtxt(
+            stream, dtype=np.float64, comments="#", delimiter=separator, skiprows=skip, usecols=(0, 1, 2),
+            ndmin=2, max_rows=None if max_points is None else max_points + 1,
+        )  # [N, 3]
+    except ValueError as exc:
+        raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}") from None
+    if max_points is not None and len(table) > max_points:
+        raise TooManyPointsError(f"has more than {max_points} points; the limit is {max_points} per cloud",
+                                 len(table), max_points)
+    return checked(table)
+
+
+def _numeric(line: str, separator: str | None) -> bool:
+    try:
+        [float(token) for token in line.split(separator) if token.strip()]
+    except ValueError:
+        return False
+    return True

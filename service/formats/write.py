@@ -1,0 +1,73 @@
+"""Writing ``(N, 3)`` points as float32, in the format named by the file's extension."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import BinaryIO
+
+import numpy as np
+
+from service.formats.checks import checked
+from service.formats.deps import require
+from service.formats.errors import PointCloudFormatError
+
+WRITE_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
+
+
+def write_cloud(path: str | os.PathLike[str], points: np.ndarray) -> None:
+    """Write ``points (N, 3)`` as float32: ``.ply`` binary little endian (plyfile), ``.pcd`` binary (pypcd4),
+    ``.xyz``/``.txt`` space separated ``%.9g`` (``.csv``: commas and an ``x,y,z`` line), ``.npy``, ``.npz``
+    (key ``points``).
+
+    Raises:
+        PointCloudFormatError: unknown extension, wrong shape, no points, NaN/Inf or beyond float32
+            (``MissingReaderError`` when the library for ``.ply`` / ``.pcd`` is not installed).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    writer = _WRITERS.get(suffix)
+    if writer is None:
+        raise PointCloudFormatError(f"{path.name}: unknown extension {path.suffix!r}; expected {WRITE_SUFFIXES}")
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind not in "fiu":
+        raise PointCloudFormatError(f"{path.name}: points must be numbers (N, 3), got {points.dtype} {points.shape}")
+    try:
+        xyz = checked(points.astype(np.float64)).astype(np.float32)  # [N, 3]
+    except PointCloudFormatError as exc:
+        raise PointCloudFormatError(f"{path.name}: {exc}") from None
+    with open(path, "wb") as f:
+        writer(f, xyz, suffix)
+
+
+def _write_ply(f: BinaryIO, xyz: np.ndarray, suffix: str) -> None:
+    plyfile = require("plyfile", "writing PLY files")
+    vertices = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    for axis, name in enumerate("xyz"):
+        vertices[name] = xyz[:, axis]
+    element = plyfile.PlyElement.describe(vertices, "vertex")
+    plyfile.PlyData([element], byte_order="<", comments=["written by mfgnet"]).write(f)
+
+
+def _write_pcd(f: BinaryIO, xyz: np.ndarray, suffix: str) -> None:
+    pypcd4 = require("pypcd4", "writing PCD files")
+    pypcd4.PointCloud.from_xyz_points(xyz).save(f, encoding=pypcd4.Encoding.BINARY)
+
+
+def _write_text(f: BinaryIO, xyz: np.ndarray, suffix: str) -> None:
+    if suffix == ".csv":
+        np.savetxt(f, xyz, fmt="%.9g", delimiter=",", header="x,y,z", comments="")
+    else:
+        np.savetxt(f, xyz, fmt="%.9g", delimiter=" ")
+
+
+def _write_npy(f: BinaryIO, xyz: np.ndarray, suffix: str) -> None:
+    np.save(f, xyz, allow_pickle=False)
+
+
+def _write_npz(f: BinaryIO, xyz: np.ndarray, suffix: str) -> None:
+    np.savez(f, points=xyz)
+
+
+_WRITERS = {".ply": _write_ply, ".pcd": _write_pcd, ".xyz": _write_text, ".txt": _write_text,
+            ".csv": _write_text, ".npy": _write_npy, ".npz": _write_npz}
