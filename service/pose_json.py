@@ -1,4 +1,12 @@
-"""The pose part of every JSON answer (HTTP response, ``mfgnet register --out``): one definition."""
+"""The pose part of every JSON answer (HTTP response, ``mfgnet register --out``): one definition.
+
+Euler angles (as the OpenAPI schema of ``RegisterResponse`` documents them), with Rx, Ry, Rz
+the right-handed rotations about the fixed x, y, z axes acting on column vectors:
+
+* ``euler_zyx_deg = [a, b, c]`` is scipy ``as_euler("zyx")``, lowercase = extrinsic: ``R = Rx(c) Ry(b) Rz(a)``.
+* ``yaw_pitch_roll_deg = [yaw, pitch, roll]`` is scipy ``as_euler("ZYX")``, intrinsic:
+  ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+"""
 
 from __future__ import annotations
 
@@ -9,13 +17,15 @@ from service.procrustes import to_matrix
 
 
 def pose_fields(rotation, translation) -> dict:
-    """``rotation`` (3x3), ``translation`` (3), ``transform`` (4x4, source -> target) and
-    ``euler_zyx_deg`` (scipy ``as_euler("zyx", degrees=True)``), as plain float lists."""
+    """``rotation`` (3x3), ``translation`` (3), ``transform`` (4x4, source -> target), ``euler_zyx_deg`` and
+    ``yaw_pitch_roll_deg`` (degrees; see the module docstring), as plain float lists."""
     R = np.asarray(rotation, dtype=np.float64)  # [3, 3]
     t = np.asarray(translation, dtype=np.float64)  # [3]
+    turn = Rotation.from_matrix(R)
     return {
         "rotation": R.tolist(),
         "translation": t.tolist(),
         "transform": to_matrix(R, t).tolist(),
-        "euler_zyx_deg": Rotation.from_matrix(R).as_euler("zyx", degrees=True).tolist(),
+        "euler_zyx_deg": turn.as_euler("zyx", degrees=True).tolist(),
+        "yaw_pitch_roll_deg": turn.as_euler("ZYX", degrees=True).tolist(),
     }

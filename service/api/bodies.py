@@ -1,4 +1,5 @@
-"""Request bodies -> validated :class:`Pair` objects: JSON, multipart point-cloud file uploads and OIP v2 tensors.
+"""Request bodies -> validated :class:`Pair` objects: JSON and multipart point-cloud file uploads
+(OIP v2 tensors: ``oip_request.py``).
 
 Point counts are checked (413) before any conversion: from the JSON lists' lengths, the file's
 header (``service.formats``; text files while reading), or the OIP tensor ``shape``. Files are read
@@ -18,7 +19,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
-from itertools import chain
 from typing import Any, BinaryIO
 
 import numpy as np
@@ -31,8 +31,6 @@ from service.api.errors import APIError, from_pydantic
 from service.api.json_clouds import rows_array, split_register_body
 from service.api.schemas import (
     BatchRequest,
-    InferParameters,
-    InferRequest,
     RegisterOptions,
     RegisterRequest,
 )
@@ -42,8 +40,6 @@ from service.registrar import MIN_POINTS
 JSON = "application/json"
 MULTIPART = "multipart/form-data"
 CLOUD_FIELDS = ("source", "target")
-OIP_INPUTS = {"SOURCE": "source", "TARGET": "target"}
-OIP_OUTPUTS = ("TRANSFORM", "SOURCE_INDEX", "TARGET_INDEX", "CREDIBILITY")
 MAX_FORM_FIELD_BYTES = 64 * 1024
 EXACT_FLOAT_LIMIT = 2.0**63  # orjson reads integer literals beyond 64 bits as floats; json keeps them ints
 
@@ -317,97 +313,3 @@ def register_pair_from_form(form: RegisterForm, max_points: int) -> Pair:
     finally:
         form.close()
 
-
-# -- Open Inference Protocol v2 ---------------------------------------------------------------------
-def _rows_before_conversion(data: list) -> int:
-    """Rows in flat (``3N``), nested (``N x 3``) or batched (``1 x N x 3``) data, without converting it."""
-    if data and isinstance(data[0], list):
-        if data[0] and isinstance(data[0][0], list):
-            return sum(len(block) if isinstance(block, list) else 1 for block in data)
-        return len(data)
-    return len(data) // 3
-
-
-def _scalar_types(data: list, depth: int = 3) -> set[type]:
-    """Types of the non-list values in flat, nested or batched ``data`` (down to ``depth`` levels of lists)."""
-    types: set[type] = set()
-    level = data
-    for _ in range(depth):
-        kinds = set(map(type, level))
-        types |= kinds - {list}
-        if list not in kinds:
-            return types
-        rows = level if kinds == {list} else [x for x in level if type(x) is list]
-        level = list(chain.from_iterable(rows))
-    return types | (set(map(type, level)) - {list})
-
-
-def _decode_tensor(tensor, max_points: int) -> np.ndarray:
-    name = tensor.name
-    if tensor.datatype != "FP32":
-        raise APIError(422, f"invalid request: {name}: datatype must be FP32, got {tensor.datatype!r}")
-    shape = list(tensor.shape)
-    if len(shape) == 3 and shape[0] == 1:
-        shape = shape[1:]
-    if len(shape) != 2 or shape[1] != 3 or shape[0] < 0:
-        raise APIError(422, f"invalid request: {name}: shape must be [N, 3] or [1, N, 3], got {list(tensor.shape)}")
-    n = shape[0]
-    if n > max_points or _rows_before_conversion(tensor.data) > max_points:
-        raise too_many_points(name, max(n, _rows_before_conversion(tensor.data)), max_points)
-    odd = sorted(t.__name__ for t in _scalar_types(tensor.data) - {int, float})
-    if odd:  # checked before numpy, which would quietly turn true into 1.0
-        raise APIError(422, f"invalid request: {name}: data must be numbers only, got {', '.join(odd)}")
-    try:
-        array = np.asarray(tensor.data)
-    except ValueError:
-        raise APIError(422, f"invalid request: {name}: data is ragged (rows of different lengths)") from None
-    if array.dtype.kind not in "fiu":
-        raise APIError(422, f"invalid request: {name}: data must be numbers only")
-    if array.size != 3 * n:
-        raise APIError(
-            422, f"invalid request: {name}: data has {array.size} values; shape {tensor.shape} needs {3 * n}"
-        )
-    with np.errstate(over="ignore"):
-        array = array.reshape(n, 3).astype(np.float32)  # FP32 is the declared datatype
-    finite = np.isfinite(array).all(axis=1)
-    if not finite.all():
-        first = int(np.argmin(finite))
-        raise APIError(422, f"invalid request: {name}: data contains NaN or infinite values (first at row {first})")
-    return array.astype(np.float64)
-
-
-@dataclass
-class InferCall:
-    request_id: str | None
-    pair: Pair
-    outputs: list[str]
-
-
-def infer_call_from_json(body: bytes, max_points: int) -> InferCall:
-    obj = _require_object(load_json(body))
-    try:
-        req = InferRequest.model_validate(obj)
-        params = InferParameters.model_validate(req.parameters or {}, strict=True)
-    except ValidationError as exc:
-        raise from_pydantic(exc) from None
-    by_name = {}
-    for tensor in req.inputs:
-        if tensor.name not in OIP_INPUTS:
-            raise APIError(422, f"invalid request: inputs: unknown input {tensor.name!r}; expected SOURCE and TARGET")
-        if tensor.name in by_name:
-            raise APIError(422, f"invalid request: inputs: {tensor.name} given more than once")
-        by_name[tensor.name] = tensor
-    missing = [name for name in OIP_INPUTS if name not in by_name]
-    if missing:
-        raise APIError(422, f"invalid request: inputs: missing {', '.join(missing)}")
-    outputs = [o.name for o in req.outputs] if req.outputs else list(OIP_OUTPUTS)
-    unknown = [name for name in outputs if name not in OIP_OUTPUTS]
-    if unknown:
-        raise APIError(422, f"invalid request: outputs: unknown output(s) {unknown}; expected some of {OIP_OUTPUTS}")
-    source, target = (_decode_tensor(by_name[name], max_points) for name in OIP_INPUTS)
-    options = RegisterOptions(
-        iterations=params.iterations, keypoints=params.keypoints, refine=params.refine,
-        refine_points=params.refine_points, drop_isolated=params.drop_isolated, rotation_search=params.rotation_search,
-        return_correspondences=True,
-    )
-    return InferCall(req.id, Pair(options, source, target), outputs)

@@ -196,35 +196,3 @@ def _check_response_numbers(result: RegistrationResult, queue_ms: float, options
     if not (ok and all(np.isfinite(a).all() for a in arrays)):
         raise ValueError("the registration result has numbers the response schema does not allow")
 
-
-def infer_outputs(result: RegistrationResult, names: list[str]) -> list[dict[str, Any]]:
-    """OIP v2 output tensors (flat row-major ``data``)."""
-    k = len(result.source_index)
-    tensors = {
-        "TRANSFORM": ([4, 4], "FP32", lambda: result.transform.astype(np.float32).ravel().tolist()),
-        "SOURCE_INDEX": ([k], "INT64", lambda: result.source_index.astype(np.int64).tolist()),
-        "TARGET_INDEX": ([k], "INT64", lambda: result.target_index.astype(np.int64).tolist()),
-        "CREDIBILITY": ([k], "FP32", lambda: result.credibility.astype(np.float32).tolist()),
-    }
-    return [
-        {"name": name, "shape": tensors[name][0], "datatype": tensors[name][1], "data": tensors[name][2]()}
-        for name in names
-    ]
-
-
-def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
-    """The OIP response ``parameters``; ``stability`` only when there is one, ``search_ms`` only when the rotation
-    search ran (``timing_ms["search"]``)."""
-    parameters = {
-        "iterations": int(result.iterations),
-        "inlier_ratio": float(result.inlier_ratio),
-        "residual_rms": float(result.residual_rms),
-        "reliable": bool(result.reliable),
-        "warnings": "; ".join(result.warnings),
-        "total_ms": float(result.timing_ms["total"]),
-    }
-    if result.stability is not None:  # OIP parameter values cannot be null
-        parameters["stability"] = float(result.stability)
-    if "search" in result.timing_ms:
-        parameters["search_ms"] = float(result.timing_ms["search"])
-    return parameters

@@ -1,6 +1,7 @@
 """Request and response models of the HTTP API (``/v1``) and of the Open Inference Protocol v2 (``/v2``).
 
 Frames: every pose is ``src_to_tgt`` in the caller's units: ``target ~= source @ rotation.T + translation``.
+Every response field says its frame and units in its description (a test walks the OpenAPI document).
 """
 
 from __future__ import annotations
@@ -78,8 +79,13 @@ _EXAMPLE_TARGET = [[x + 0.1, y, z] for x, y, z in _EXAMPLE_SOURCE]
 class ErrorResponse(BaseModel):
     """Every error body: a sentence saying what is wrong (validation errors add ``detail``)."""
 
-    error: str = Field(examples=["invalid request: source[5]: List should have at least 3 items after validation"])
-    detail: list[dict[str, Any]] | None = Field(None, description="Per-field validation problems (loc, msg).")
+    error: str = Field(
+        description="What is wrong, as one sentence naming the field or file and the problem.",
+        examples=["invalid request: source[5]: List should have at least 3 items after validation"],
+    )
+    detail: list[dict[str, Any]] | None = Field(
+        None, description="Per-field validation problems: 'loc' (the field's path) and 'msg' (validation errors only)."
+    )
 
     model_config = ConfigDict(extra="allow")
 
@@ -121,15 +127,29 @@ class RegisterRequest(RegisterOptions):
 
 
 class Correspondence(BaseModel):
-    source_index: int = Field(description="Row of the request's source array.")
-    target_index: int = Field(description="Row of the request's target array (the keypoint it was matched to).")
-    credibility: float = Field(ge=0, le=1, description="Predicted probability that the match is correct.")
-    weight: float = Field(ge=0, description="Weight in the final SVD (weights sum to 1).")
+    """One keypoint match: a row of the source and the row of the target it was matched to."""
+
+    source_index: int = Field(description="Row (0-based) of the request's source array: a source keypoint.")
+    target_index: int = Field(description="Row (0-based) of the request's target array: the point the source "
+                              "keypoint was matched to.")
+    credibility: float = Field(ge=0, le=1, description="Predicted probability that the match is correct, "
+                               "unitless, 0..1.")
+    weight: float = Field(ge=0, description="The match's weight in the network's final weighted SVD, unitless "
+                          "(the weights sum to 1).")
 
 
 class Quality(BaseModel):
-    inlier_ratio: float = Field(description="Share of source points within the inlier distance after alignment.")
-    residual_rms: float = Field(description="RMS distance of those inliers, caller's units.")
+    """How far the returned pose can be trusted, measured on the working clouds after the pose is applied."""
+
+    inlier_ratio: float = Field(
+        description="Share (0..1) of the working source points that, moved by the returned pose, have a target "
+        "point within the inlier distance: 0.05 in the model's normalised units (the source scaled to the model's "
+        "reference RMS radius), i.e. a fixed fraction of the source's size."
+    )
+    residual_rms: float = Field(
+        description="RMS distance from those inlier source points (moved by the pose) to their nearest target "
+        "points, in the caller's units; 0 when there is no inlier."
+    )
     reliable: bool = Field(
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
         "0.3 or below 0.6 of what the target's point density allows, identical / collinear points, a weakly "
@@ -145,15 +165,47 @@ class Quality(BaseModel):
     )
 
 
+_ELEMENTARY = (
+    "Rx(θ), Ry(θ), Rz(θ) are the right-handed rotations by θ about the x, y, z axes, acting on column vectors "
+    "(Rz(θ) = [[cos θ, -sin θ, 0], [sin θ, cos θ, 0], [0, 0, 1]]); R = rotation."
+)
+EULER_ZYX_DESCRIPTION = (
+    "[a, b, c] in degrees: scipy Rotation.as_euler('zyx') (lowercase = extrinsic, fixed axes), i.e. rotate about "
+    "the fixed z axis by a, then about the fixed y axis by b, then about the fixed x axis by c: "
+    "R = Rx(c) @ Ry(b) @ Rz(a) (rebuild: Rotation.from_euler('zyx', [a, b, c], degrees=True)). Equivalently the "
+    "intrinsic x-y'-z'' angles (c, b, a). a, c in [-180, 180], b in [-90, 90]. These are NOT yaw, pitch, roll "
+    "(see yaw_pitch_roll_deg): for R = Rz(30) Ry(-20) Rx(15) this is [34.5, -9.0, 23.2]. " + _ELEMENTARY
+)
+YAW_PITCH_ROLL_DESCRIPTION = (
+    "[yaw, pitch, roll] in degrees: the intrinsic z-y'-x'' (Tait-Bryan) angles, scipy Rotation.as_euler('ZYX'): "
+    "R = Rz(yaw) @ Ry(pitch) @ Rx(roll) (rebuild: Rotation.from_euler('ZYX', [yaw, pitch, roll], degrees=True)). "
+    "yaw, roll in [-180, 180], pitch in [-90, 90]: for R = Rz(30) Ry(-20) Rx(15) this is [30, -20, 15]. " + _ELEMENTARY
+)
+
+
 class ModelRef(BaseModel):
-    name: str
-    version: str
-    sha256: str = Field(description="sha256 of the model's manifest.json.")
+    """The model that computed the result."""
+
+    name: str = Field(description="Model name (as in GET /v1/models).")
+    version: str = Field(description="The model's version (its manifest's 'version').")
+    sha256: str = Field(description="sha256 of the model's manifest.json (hex).")
+
+
+ROTATION_DESCRIPTION = (
+    "[3, 3] rotation matrix R, src_to_tgt, row-major (rows are lists): a source point p (column vector) maps to "
+    "R p + t in the target's frame; for row arrays, target ~= source @ R.T + translation. Unitless, det +1."
+)
+TRANSLATION_DESCRIPTION = (
+    "[3] translation t, src_to_tgt, in the caller's units (the units of the submitted points), applied after "
+    "the rotation: R p + t."
+)
 
 
 class IterationPoseOut(BaseModel):
-    rotation: Matrix3
-    translation: Vector3
+    """The cumulative pose after one network iteration (before any refinement)."""
+
+    rotation: Matrix3 = Field(description=ROTATION_DESCRIPTION)
+    translation: Vector3 = Field(description=TRANSLATION_DESCRIPTION)
 
 
 class RegisterResponse(BaseModel):
@@ -167,6 +219,7 @@ class RegisterResponse(BaseModel):
                     "translation": [0.1, 0, 0],
                     "transform": [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
                     "euler_zyx_deg": [0, 0, 0],
+                    "yaw_pitch_roll_deg": [0, 0, 0],
                     "correspondences": [{"source_index": 3, "target_index": 3, "credibility": 0.97, "weight": 0.02}],
                     "quality": {"inlier_ratio": 0.98, "residual_rms": 0.004, "reliable": True, "stability": 0.07},
                     "warnings": [],
@@ -178,22 +231,36 @@ class RegisterResponse(BaseModel):
         }
     )
 
-    rotation: Matrix3 = Field(description="[3, 3] rotation src_to_tgt.")
-    translation: Vector3 = Field(description="[3] translation, caller's units.")
-    transform: list[list[float]] = Field(description="[4, 4] homogeneous src_to_tgt.")
-    euler_zyx_deg: Vector3 = Field(description="Intrinsic z-y-x Euler angles of the rotation, degrees.")
+    rotation: Matrix3 = Field(description=ROTATION_DESCRIPTION)
+    translation: Vector3 = Field(description=TRANSLATION_DESCRIPTION)
+    transform: list[list[float]] = Field(
+        description="[4, 4] homogeneous rigid transform src_to_tgt, row-major: [[R, t], [0, 0, 0, 1]] with R = "
+        "rotation and t = translation (caller's units); target ~= T @ [p, 1] for a source point p."
+    )
+    euler_zyx_deg: Vector3 = Field(description=EULER_ZYX_DESCRIPTION)
+    yaw_pitch_roll_deg: Vector3 = Field(description=YAW_PITCH_ROLL_DESCRIPTION)
     correspondences: list[Correspondence] | None = Field(
-        None, description="Keypoint matches (when asked): one per source keypoint; after a refined rotation search "
-        "with a model that searches a subsample (its manifest's 'search' section), those of the subsample."
+        None, description="Keypoint matches (when return_correspondences, the default): one per source keypoint, "
+        "indices into the request's arrays; after a refined rotation search with a model that searches a "
+        "subsample (its manifest's 'search' section), those of the subsample."
     )
-    quality: Quality
-    warnings: list[str]
-    model: ModelRef
-    iterations: int
+    quality: Quality = Field(description="How far the pose can be trusted (see its fields).")
+    warnings: list[str] = Field(
+        description="Human-readable warnings, each starting with its kind and a colon (e.g. 'weakly constrained: "
+        "...'); empty when there is nothing to warn about."
+    )
+    model: ModelRef = Field(description="The model that computed the result: name, version, manifest sha256.")
+    iterations: int = Field(description="Network iterations that ran (count).")
     timing_ms: dict[str, float] = Field(
-        description="Pipeline stages in ms; 'total' is the pipeline, 'queue' the wait for a worker."
+        description="Wall-clock time per stage, in milliseconds: 'queue' = wait for a worker slot; 'total' = the "
+        "whole pipeline (excluding 'queue' and the HTTP decoding); stage keys such as 'preprocess', 'encoder', "
+        "'iterations', 'svd', 'refine', 'postprocess', and 'search' / 'search_per_hypothesis' when the rotation search "
+        "ran. Stages may overlap or be absent; only 'queue' and 'total' are always there."
     )
-    iteration_poses: list[IterationPoseOut] | None = Field(None, description="Pose after each iteration (when asked).")
+    iteration_poses: list[IterationPoseOut] | None = Field(
+        None, description="Cumulative network pose src_to_tgt after each iteration (when return_iterations), "
+        "caller's units, before refinement."
+    )
 
 
 class BatchRequest(BaseModel):
@@ -205,34 +272,46 @@ class BatchRequest(BaseModel):
 
 
 class BatchResponse(BaseModel):
+    """The results of a batch."""
+
     results: list[RegisterResponse] = Field(description="One result per pair, in request order.")
 
 
 # -- /v1/models -------------------------------------------------------------------------------------
 class ModelInfo(BaseModel):
-    name: str
-    status: Literal["loading", "ready", "failed"]
+    """One model the server knows of."""
+
+    name: str = Field(description="Model name (the 'model' option, the {name} of the /v2 routes).")
+    status: Literal["loading", "ready", "failed"] = Field(description="Load status.")
     error: str | None = Field(None, description="Why a failed model is not served.")
-    default: bool = False
-    version: str | None = None
-    sha256: str | None = None
-    config: dict[str, Any] | None = None
-    accuracy: dict[str, Any] | None = None
-    load_seconds: float | None = None
+    default: bool = Field(False, description="True for the model used when a request names none.")
+    version: str | None = Field(None, description="The model's version (manifest), once loaded.")
+    sha256: str | None = Field(None, description="sha256 of the model's manifest.json (hex), once loaded.")
+    config: dict[str, Any] | None = Field(
+        None, description="The model's configuration from its manifest (network sizes, keypoints, iterations, ...)."
+    )
+    accuracy: dict[str, Any] | None = Field(
+        None, description="Accuracy recorded in the manifest at export: 'metrics' (rotation errors in degrees, "
+        "translation errors in the evaluation clouds' units, recalls 0..1, ms_per_pair in ms) and 'on' (the "
+        "evaluation pairs)."
+    )
+    load_seconds: float | None = Field(None, description="Time taken to verify, load and warm the model, seconds.")
 
 
 class ModelList(BaseModel):
-    default_model: str
-    models: list[ModelInfo]
+    """The models the server knows of."""
+
+    default_model: str = Field(description="Name of the model used when a request names none.")
+    models: list[ModelInfo] = Field(description="Every configured model, loaded or not.")
 
 
 # -- health -----------------------------------------------------------------------------------------
 class LiveResponse(BaseModel):
-    live: bool = True
+    live: bool = Field(True, description="Always true: the process answers.")
 
 
 class ReadyResponse(BaseModel):
-    ready: bool
+    ready: bool = Field(description="True once every model is verified, loaded and warmed up.")
     models: dict[str, str] = Field(description="Model name -> loading | ready | failed.")
     errors: dict[str, str] | None = Field(None, description="Failed model -> why it is not served (if any).")
 
@@ -242,41 +321,55 @@ Parameters = dict[str, bool | int | float | str]
 
 
 class ServerMetadata(BaseModel):
-    name: str
-    version: str
-    extensions: list[str]
+    name: str = Field(description="Server name ('mfgnet').")
+    version: str = Field(description="Server version (the installed mfgnet package's).")
+    extensions: list[str] = Field(
+        description="Protocol extensions supported: 'binary_tensor_data' (tensors as raw bytes after the JSON)."
+    )
 
 
 class TensorMetadata(BaseModel):
-    name: str
-    datatype: str
-    shape: list[int]
+    name: str = Field(description="Tensor name: inputs SOURCE, TARGET; outputs TRANSFORM, SOURCE_INDEX, "
+                      "TARGET_INDEX, CREDIBILITY.")
+    datatype: str = Field(description="OIP datatype (FP32, INT64).")
+    shape: list[int] = Field(description="Shape; -1 for a size that varies (N points, K matches).")
 
 
 class ModelMetadata(BaseModel):
-    name: str
-    versions: list[str]
-    platform: str
-    inputs: list[TensorMetadata]
-    outputs: list[TensorMetadata]
+    name: str = Field(description="Model name.")
+    versions: list[str] = Field(description="The model's version (one).")
+    platform: str = Field(description="Runtime platform ('mfgnet_onnxruntime').")
+    inputs: list[TensorMetadata] = Field(description="SOURCE and TARGET: FP32 [-1, 3] points, caller's units.")
+    outputs: list[TensorMetadata] = Field(
+        description="TRANSFORM FP32 [4, 4] (src_to_tgt, caller's units), SOURCE_INDEX / TARGET_INDEX INT64 [-1] "
+        "(rows of the inputs), CREDIBILITY FP32 [-1] (probability 0..1)."
+    )
 
 
 class ModelReady(BaseModel):
-    name: str
-    ready: bool
+    name: str = Field(description="Model name.")
+    ready: bool = Field(description="True: the model is loaded and serves requests.")
 
 
 class InferInputTensor(BaseModel):
     name: str = Field(description="SOURCE or TARGET.")
     shape: list[int] = Field(description="[N, 3] or [1, N, 3].")
     datatype: str = Field(description="FP32.")
-    parameters: dict[str, Any] | None = None
-    data: list[Any] = Field(description="Row-major numbers, flat or nested.")
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data_size: the tensor's byte count (N x 3 x 4) when its values follow the JSON as "
+        "binary data (then no 'data')."
+    )
+    data: list[Any] | None = Field(
+        None, description="Row-major numbers, flat or nested; absent when the tensor is sent as binary data."
+    )
 
 
 class InferRequestedOutput(BaseModel):
-    name: str
-    parameters: dict[str, Any] | None = None
+    name: str = Field(description="TRANSFORM, SOURCE_INDEX, TARGET_INDEX or CREDIBILITY.")
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data: true to get this output as binary data after the JSON (overrides the "
+        "request's binary_data_output)."
+    )
 
 
 class InferRequest(BaseModel):
@@ -313,19 +406,38 @@ class InferParameters(BaseModel):
     refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
     drop_isolated: bool = Field(True, description=DROP_ISOLATED_DESCRIPTION)
     rotation_search: RotationSearch | None = Field(None, description=ROTATION_SEARCH_DESCRIPTION)
+    binary_data_output: bool = Field(
+        False, description="true: every output as binary data after the JSON, unless its own binary_data says false."
+    )
 
 
 class InferOutputTensor(BaseModel):
-    name: str
-    shape: list[int]
-    datatype: str
-    parameters: dict[str, Any] | None = None
-    data: list[int | float]
+    """One output: TRANSFORM FP32 [4, 4] src_to_tgt (caller's units), SOURCE_INDEX / TARGET_INDEX INT64 [K] (rows
+    of the SOURCE / TARGET inputs, one per keypoint match), CREDIBILITY FP32 [K] (probability 0..1)."""
+
+    name: str = Field(description="TRANSFORM, SOURCE_INDEX, TARGET_INDEX or CREDIBILITY.")
+    shape: list[int] = Field(description="[4, 4] for TRANSFORM; [K] (K keypoint matches) for the others.")
+    datatype: str = Field(description="FP32 (TRANSFORM, CREDIBILITY) or INT64 (SOURCE_INDEX, TARGET_INDEX).")
+    parameters: dict[str, Any] | None = Field(
+        None, description="binary_data_size: byte count of this output's little-endian bytes after the JSON (binary "
+        "outputs only; then no 'data')."
+    )
+    data: list[int | float] | None = Field(
+        None, description="The values, flat row-major (TRANSFORM: R[0], t[0], R[1], t[1], ... as the 4x4 rows); "
+        "absent for a binary output."
+    )
 
 
 class InferResponse(BaseModel):
-    model_name: str
-    model_version: str | None = None
-    id: str | None = None
-    parameters: Parameters | None = None
-    outputs: list[InferOutputTensor]
+    """OIP v2 inference response (JSON, or the JSON header of a binary response)."""
+
+    model_name: str = Field(description="The model that computed the result.")
+    model_version: str | None = Field(None, description="That model's version.")
+    id: str | None = Field(None, description="The request's id, echoed (absent when the request had none).")
+    parameters: Parameters | None = Field(
+        None, description="iterations (count), inlier_ratio (0..1), residual_rms (caller's units), reliable (bool), "
+        "warnings ('; '-joined text), total_ms (pipeline time, ms), stability (unitless; when defined), search_ms "
+        "(rotation search time, ms; when it ran). Meanings as in RegisterResponse.quality and timing_ms."
+    )
+    outputs: list[InferOutputTensor] = Field(description="The outputs asked for, in request order (default: all "
+                                             "four in the order TRANSFORM, SOURCE_INDEX, TARGET_INDEX, CREDIBILITY).")

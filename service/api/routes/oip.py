@@ -1,4 +1,5 @@
-"""Open Inference Protocol v2 (KServe / Triton): health, metadata and ``infer``.
+"""Open Inference Protocol v2 (KServe / Triton): health, metadata and ``infer``, with the binary tensor data
+extension (``binary_tensor_data``) as ``tritonclient.http`` uses it by default.
 
 Readiness is 503 with a JSON reason until every model is verified, loaded and warmed up.
 """
@@ -9,12 +10,14 @@ from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
+from starlette.responses import Response
 
-from service.api import bodies
+from service.api import oip_request
 from service.api.deps import get_registry, get_runner, get_settings, require_api_key
 from service.api.errors import APIError, error_docs
+from service.api.oip_request import HEADER_LENGTH, OCTET_STREAM
+from service.api.oip_response import infer_response
 from service.api.registry import RETRY_AFTER_LOADING_S
-from service.api.runner import infer_outputs, infer_parameters
 from service.api.schemas import (
     ErrorResponse,
     InferResponse,
@@ -40,6 +43,7 @@ OUTPUTS = [
     {"name": "TARGET_INDEX", "datatype": "INT64", "shape": [-1]},
     {"name": "CREDIBILITY", "datatype": "FP32", "shape": [-1]},
 ]
+EXTENSIONS = ("binary_tensor_data",)
 _NOT_READY = {503: {"model": ErrorResponse, "description": "Not ready; the body says why (Retry-After set)."}}
 
 
@@ -52,7 +56,7 @@ def server_version() -> str:
 
 @router.get("", response_model=ServerMetadata, summary="Server metadata")
 async def server_metadata() -> dict:
-    return {"name": SERVER_NAME, "version": server_version(), "extensions": []}
+    return {"name": SERVER_NAME, "version": server_version(), "extensions": list(EXTENSIONS)}
 
 
 @router.get("/health/live", response_model=LiveResponse, summary="Liveness (answers while models load)")
@@ -96,44 +100,77 @@ async def model_ready(name: str, request: Request) -> dict:
     return {"name": entry.name, "ready": True}
 
 
+INFER_DESCRIPTION = f"""Register SOURCE onto TARGET.
+
+**Inputs** SOURCE and TARGET: FP32, shape [N, 3] or [1, N, 3] (x, y, z rows, any units: the outputs are in the
+same units), each either as JSON `data` (flat or nested, row-major) or as binary tensor data.
+
+**Request parameters** (all optional): iterations, keypoints, refine ({', '.join(REFINE_MODES)}), refine_points,
+drop_isolated, rotation_search (true, false or 'auto'), binary_data_output (true: every output as binary data
+unless the output's own `binary_data` says otherwise). Others are ignored.
+
+**Outputs** (all four when `outputs` is absent, else those named, in that order):
+- TRANSFORM, FP32 [4, 4]: the homogeneous rigid transform src_to_tgt, row-major, in the caller's units
+  (`target ~= source @ R.T + t` with `R = TRANSFORM[:3, :3]`, `t = TRANSFORM[:3, 3]`; last row 0 0 0 1).
+- SOURCE_INDEX, INT64 [K]: per keypoint match, the row of the SOURCE input.
+- TARGET_INDEX, INT64 [K]: the row of the TARGET input it was matched to.
+- CREDIBILITY, FP32 [K]: the predicted probability (0..1) that the match is correct.
+
+K is the number of keypoint matches (the model's keypoints, or the `keypoints` parameter).
+**Response parameters**: iterations, inlier_ratio (0..1), residual_rms (caller's units), reliable, warnings
+('; '-joined), total_ms (pipeline time, ms), stability (when defined), search_ms (when the rotation search ran).
+
+**Binary tensor data** (`binary_tensor_data` in `GET /v2`): a request may put any input's values after the
+JSON object, as little-endian float32 bytes (row-major, no padding): the input gets
+`parameters.binary_data_size` (bytes, = N x 3 x 4) instead of `data`, and the `{HEADER_LENGTH}` header gives the
+JSON object's length in bytes. The binary parts follow in the order of `inputs` and must fill the rest of the
+body exactly. Outputs asked for with `parameters.binary_data: true` (or all, with the request parameter
+`binary_data_output: true`) come back the same way: `parameters.binary_data_size` instead of `data`, their
+bytes after the JSON object in output order (INT64 as little-endian int64), the response's
+`{HEADER_LENGTH}` header giving the JSON length and its Content-Type {OCTET_STREAM}.
+
+The body may be sent without a Content-Type, or as application/json or {OCTET_STREAM}; not compressed.
+"""
+
+
 @router.post(
     "/models/{name}/infer",
     response_model=InferResponse,
     summary="Register SOURCE onto TARGET (OIP v2)",
-    description="Inputs SOURCE and TARGET: FP32, shape [N, 3] or [1, N, 3], flat or nested data. Request "
-    f"parameters: iterations, keypoints, refine ({', '.join(REFINE_MODES)}), refine_points, drop_isolated, "
-    "rotation_search (true, false or 'auto'). "
-    "Outputs: TRANSFORM [4, 4] FP32 (src_to_tgt), "
-    "SOURCE_INDEX / TARGET_INDEX [K] INT64, CREDIBILITY [K] FP32.",
+    description=INFER_DESCRIPTION,
     openapi_extra={
         "requestBody": {
             "required": True,
-            "content": {"application/json": {"schema": {"$ref": "#/components/schemas/InferRequest"}}},
+            "content": {
+                "application/json": {"schema": {"$ref": "#/components/schemas/InferRequest"}},
+                OCTET_STREAM: {
+                    "schema": {"type": "string", "format": "binary"},
+                    "description": f"Binary tensor data: the InferRequest JSON ({HEADER_LENGTH} bytes), then the "
+                    "binary inputs' bytes.",
+                },
+            },
         }
     },
     responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
     dependencies=[Depends(require_api_key)],
 )
-async def infer(name: str, request: Request) -> JSONResponse:
+async def infer(name: str, request: Request) -> Response:
     settings, runner = get_settings(request), get_runner(request)
     if name not in get_registry(request).entries:  # fail fast, before reading the body
         raise APIError(404, f"unknown model {name!r}; see GET /v1/models")
-    bodies.require_media_type(request, bodies.JSON)
+    oip_request.check_media_type(request)
+    length = oip_request.header_length(request)
     with runner.admit() as slot:
         body = await request.body()
 
         def work():
-            call = bodies.infer_call_from_json(body, settings.max_points)
+            call = oip_request.infer_call(body, length, settings.max_points)
             entry, result = runner.register_one(call.pair, model=name)
             return call, entry, result
 
         (call, entry, result), queue_ms = await runner.run(slot, work)
     runner.observe(entry, result, queue_ms)
-    response = {
-        "model_name": entry.name,
-        "model_version": entry.registrar.manifest.version,
-        "id": call.request_id,
-        "parameters": infer_parameters(result),
-        "outputs": infer_outputs(result, call.outputs),
-    }
-    return JSONResponse(response)
+    head = {"model_name": entry.name, "model_version": entry.registrar.manifest.version}
+    if call.request_id is not None:  # OIP: id only when the request had one
+        head["id"] = call.request_id
+    return infer_response(head, result, call.outputs, call.binary_outputs)

@@ -1,0 +1,258 @@
+"""OIP v2 ``infer`` request bodies -> a validated :class:`InferCall`: JSON tensors and the binary tensor data
+extension.
+
+A binary request is a JSON header of ``Inference-Header-Content-Length`` bytes followed by the raw tensor
+bytes (little-endian, row-major, no padding) of every input whose ``parameters`` carry ``binary_data_size``,
+in the order of ``inputs``. Every size is checked before a byte is converted: the header length against the
+body, each ``binary_data_size`` against ``shape`` x the datatype's size, their sum against what follows the
+header (exactly), and the point count against ``max_points``. A binary input is read in place
+(``np.frombuffer``): the body plus one float64 copy per cloud is all the memory a request holds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import chain
+
+import numpy as np
+from pydantic import ValidationError
+from starlette.requests import Request
+
+from service.api.bodies import JSON, Pair, load_json, media_type, too_many_points
+from service.api.errors import APIError, from_pydantic
+from service.api.schemas import InferInputTensor, InferParameters, InferRequest, RegisterOptions
+
+HEADER_LENGTH = "Inference-Header-Content-Length"
+OCTET_STREAM = "application/octet-stream"
+OIP_INPUTS = {"SOURCE": "source", "TARGET": "target"}
+OIP_OUTPUTS = ("TRANSFORM", "SOURCE_INDEX", "TARGET_INDEX", "CREDIBILITY")
+FP32_WIRE = np.dtype("<f4")  # binary FP32: little-endian float32
+MAX_HEADER_DIGITS = 19  # any int64; more digits cannot be a header length
+
+
+@dataclass
+class InferCall:
+    """One ``infer`` request: its id, the pair to register, the outputs asked for and which of them go binary."""
+
+    request_id: str | None
+    pair: Pair
+    outputs: list[str]
+    binary_outputs: set[str]
+
+
+def check_media_type(request: Request) -> None:
+    """415 unless the body is JSON as OIP clients send it: no ``Content-Type`` (``tritonclient.http``),
+    ``application/json`` (or ``+json``), or ``application/octet-stream`` (clients sending binary tensors);
+    and unless it is not compressed (``Content-Encoding``)."""
+    kind = media_type(request)
+    if kind and kind not in (JSON, OCTET_STREAM) and not (kind.startswith("application/") and kind.endswith("+json")):
+        raise APIError(415, f"unsupported content type {kind[:80]!r}; use {JSON}, {OCTET_STREAM} or none")
+    encoding = request.headers.get("content-encoding", "").strip().lower()
+    if encoding not in ("", "identity"):
+        raise APIError(415, f"unsupported Content-Encoding {encoding[:40]!r}; send the body uncompressed")
+
+
+def header_length(request: Request) -> int | None:
+    """The ``Inference-Header-Content-Length`` header as an int, ``None`` when absent, 400 when not a length."""
+    value = request.headers.get(HEADER_LENGTH)
+    if value is None:
+        return None
+    text = value.strip()
+    if not text.isdigit() or not text.isascii() or len(text) > MAX_HEADER_DIGITS:
+        raise APIError(400, f"{HEADER_LENGTH} must be a non-negative integer, got {value[:40]!r}")
+    return int(text)
+
+
+# -- tensors ------------------------------------------------------------------------------------------
+def _rows_before_conversion(data: list) -> int:
+    """Rows in flat (``3N``), nested (``N x 3``) or batched (``1 x N x 3``) data, without converting it."""
+    if data and isinstance(data[0], list):
+        if data[0] and isinstance(data[0][0], list):
+            return sum(len(block) if isinstance(block, list) else 1 for block in data)
+        return len(data)
+    return len(data) // 3
+
+
+def _scalar_types(data: list, depth: int = 3) -> set[type]:
+    """Types of the non-list values in flat, nested or batched ``data`` (down to ``depth`` levels of lists)."""
+    types: set[type] = set()
+    level = data
+    for _ in range(depth):
+        kinds = set(map(type, level))
+        types |= kinds - {list}
+        if list not in kinds:
+            return types
+        rows = level if kinds == {list} else [x for x in level if type(x) is list]
+        level = list(chain.from_iterable(rows))
+    return types | (set(map(type, level)) - {list})
+
+
+def _point_count(tensor: InferInputTensor, max_points: int) -> int:
+    """N of an FP32 ``[N, 3]`` or ``[1, N, 3]`` tensor (422 otherwise, 413 above ``max_points``)."""
+    name = tensor.name
+    if tensor.datatype != "FP32":
+        raise APIError(422, f"invalid request: {name}: datatype must be FP32, got {tensor.datatype!r}")
+    shape = list(tensor.shape)
+    if len(shape) == 3 and shape[0] == 1:
+        shape = shape[1:]
+    if len(shape) != 2 or shape[1] != 3 or shape[0] < 0:
+        raise APIError(422, f"invalid request: {name}: shape must be [N, 3] or [1, N, 3], got {list(tensor.shape)}")
+    if shape[0] > max_points:
+        raise too_many_points(name, shape[0], max_points)
+    return shape[0]
+
+
+def _finite_float64(array: np.ndarray, name: str) -> np.ndarray:
+    """float32 ``[N, 3]`` -> float64 ``[N, 3]``; 422 naming the first row with NaN or infinity."""
+    finite = np.isfinite(array).all(axis=1)  # [N]
+    if not finite.all():
+        first = int(np.argmin(finite))
+        raise APIError(422, f"invalid request: {name}: data contains NaN or infinite values (first at row {first})")
+    return array.astype(np.float64)
+
+
+def _decode_json_tensor(tensor: InferInputTensor, max_points: int) -> np.ndarray:
+    name, n = tensor.name, _point_count(tensor, max_points)
+    data = tensor.data
+    if data is None:
+        raise APIError(422, f"invalid request: {name}: give the values in data or as binary data (binary_data_size)")
+    if _rows_before_conversion(data) > max_points:
+        raise too_many_points(name, _rows_before_conversion(data), max_points)
+    odd = sorted(t.__name__ for t in _scalar_types(data) - {int, float})
+    if odd:  # checked before numpy, which would quietly turn true into 1.0
+        raise APIError(422, f"invalid request: {name}: data must be numbers only, got {', '.join(odd)}")
+    try:
+        array = np.asarray(data)
+    except ValueError:
+        raise APIError(422, f"invalid request: {name}: data is ragged (rows of different lengths)") from None
+    if array.dtype.kind not in "fiu":
+        raise APIError(422, f"invalid request: {name}: data must be numbers only")
+    if array.size != 3 * n:
+        raise APIError(
+            422, f"invalid request: {name}: data has {array.size} values; shape {tensor.shape} needs {3 * n}"
+        )
+    with np.errstate(over="ignore"):
+        array = array.reshape(n, 3).astype(np.float32)  # FP32 is the declared datatype
+    return _finite_float64(array, name)
+
+
+def binary_data_size(tensor: InferInputTensor) -> int | None:
+    """The input's ``parameters.binary_data_size`` (bytes), ``None`` when it has none; 422 when not an int >= 0."""
+    size = (tensor.parameters or {}).get("binary_data_size")
+    if size is None:
+        return None
+    if type(size) is not int or size < 0:
+        raise APIError(422, f"invalid request: {tensor.name}: parameters.binary_data_size must be an integer >= 0")
+    if tensor.data is not None:
+        raise APIError(422, f"invalid request: {tensor.name}: give data or binary_data_size, not both")
+    return size
+
+
+def _decode_binary_tensor(tensor: InferInputTensor, raw: memoryview, max_points: int) -> np.ndarray:
+    name, n = tensor.name, _point_count(tensor, max_points)
+    needed = 3 * n * FP32_WIRE.itemsize
+    if len(raw) != needed:
+        raise APIError(
+            422, f"invalid request: {name}: binary_data_size is {len(raw)} bytes; shape {tensor.shape} of FP32 "
+            f"needs {needed}"
+        )
+    array = np.frombuffer(raw, dtype=FP32_WIRE).reshape(n, 3)  # [N, 3], a view of the body
+    return _finite_float64(array, name)
+
+
+def _binary_parts(inputs: list[InferInputTensor], tail: memoryview | None) -> dict[str, memoryview]:
+    """Each binary input's bytes, cut from ``tail`` (what follows the JSON header; ``None`` without the
+    header) in input order."""
+    parts, at = {}, 0
+    sizes = [(tensor.name, binary_data_size(tensor)) for tensor in inputs]
+    binary = [name for name, size in sizes if size is not None]
+    if tail is None:
+        if binary:
+            raise APIError(400, f"{binary[0]}: binary_data_size needs the {HEADER_LENGTH} header")
+        return parts
+    total = sum(size for _, size in sizes if size is not None)
+    if total != len(tail):
+        raise APIError(
+            400, f"binary data: the inputs' binary_data_size add up to {total} bytes but {len(tail)} bytes follow "
+            f"the JSON header ({HEADER_LENGTH})"
+        )
+    for name, size in sizes:
+        if size is not None:
+            parts[name] = tail[at : at + size]
+            at += size
+    return parts
+
+
+# -- the request --------------------------------------------------------------------------------------
+def _split(body: bytes | bytearray, length: int | None) -> tuple[bytes | bytearray, memoryview | None]:
+    """The JSON header and the binary tail of ``body``; no tail without a header length."""
+    if length is None:
+        return body, None
+    if length > len(body):
+        raise APIError(400, f"{HEADER_LENGTH} is {length} bytes but the body has only {len(body)}")
+    if length == 0:
+        raise APIError(400, f"{HEADER_LENGTH} is 0: the body must start with the JSON inference request")
+    view = memoryview(body)
+    return bytes(view[:length]), view[length:]
+
+
+def _outputs(req: InferRequest, binary_default: bool) -> tuple[list[str], set[str]]:
+    """Names of the outputs to return (all when none are named) and those to send as binary data."""
+    if not req.outputs:
+        names = list(OIP_OUTPUTS)
+        return names, set(names) if binary_default else set()
+    names, binary = [], set()
+    for output in req.outputs:
+        if output.name not in OIP_OUTPUTS:
+            raise APIError(
+                422, f"invalid request: outputs: unknown output {output.name!r}; expected some of {list(OIP_OUTPUTS)}"
+            )
+        if output.name in names:
+            raise APIError(422, f"invalid request: outputs: {output.name} asked for more than once")
+        flag = (output.parameters or {}).get("binary_data", binary_default)
+        if type(flag) is not bool:
+            raise APIError(
+                422, f"invalid request: outputs: {output.name}: parameters.binary_data must be true or false"
+            )
+        names.append(output.name)
+        if flag:
+            binary.add(output.name)
+    return names, binary
+
+
+def infer_call(body: bytes | bytearray, length: int | None, max_points: int) -> InferCall:
+    """Decode an ``infer`` body whose JSON header is ``length`` bytes long (``None``: the whole body)."""
+    head, tail = _split(body, length)
+    obj = load_json(head)
+    if not isinstance(obj, dict):
+        raise APIError(422, f"invalid request: the body must be a JSON object, got {type(obj).__name__}")
+    try:
+        req = InferRequest.model_validate(obj)
+        params = InferParameters.model_validate(req.parameters or {}, strict=True)
+    except ValidationError as exc:
+        raise from_pydantic(exc) from None
+    by_name: dict[str, InferInputTensor] = {}
+    for tensor in req.inputs:
+        if tensor.name not in OIP_INPUTS:
+            raise APIError(422, f"invalid request: inputs: unknown input {tensor.name!r}; expected SOURCE and TARGET")
+        if tensor.name in by_name:
+            raise APIError(422, f"invalid request: inputs: {tensor.name} given more than once")
+        by_name[tensor.name] = tensor
+    missing = [name for name in OIP_INPUTS if name not in by_name]
+    if missing:
+        raise APIError(422, f"invalid request: inputs: missing {', '.join(missing)}")
+    outputs, binary_outputs = _outputs(req, params.binary_data_output)
+    parts = _binary_parts(req.inputs, tail)
+    clouds: list[np.ndarray] = []
+    for name in OIP_INPUTS:
+        tensor = by_name[name]
+        part = parts.get(name)
+        clouds.append(
+            _decode_json_tensor(tensor, max_points) if part is None else _decode_binary_tensor(tensor, part, max_points)
+        )
+    options = RegisterOptions(
+        iterations=params.iterations, keypoints=params.keypoints, refine=params.refine,
+        refine_points=params.refine_points, drop_isolated=params.drop_isolated, rotation_search=params.rotation_search,
+        return_correspondences=True,
+    )
+    return InferCall(req.id, Pair(options, clouds[0], clouds[1]), outputs, binary_outputs)
