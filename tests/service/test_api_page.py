@@ -102,6 +102,7 @@ def test_bad_uploads_are_4xx_naming_the_problem(client, tmp_path):
         ('[["a", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]', ("transform", "numbers")),
         (json.dumps((2 * np.eye(4)).tolist()), ("transform", "rigid")),
         ("not json", ("transform", "json")),
+        ("[" * 30_000 + "]" * 30_000, ("transform", "json")),  # nested deeper than json can read
     ):
         answer = client.post(aligned, files={"source": ("g.ply", good)}, data={"transform": transform})
         assert_error(answer, 422, *words)

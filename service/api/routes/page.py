@@ -109,7 +109,7 @@ def parse_options(fields: dict[str, str]) -> RegisterOptions:
 def _json_field(text: str, name: str) -> Any:
     try:
         return json.loads(text)
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: nested too deep
         raise APIError(422, f"invalid request: {name}: expected a JSON 4x4 array") from None
 
 
