@@ -164,6 +164,11 @@ def test_page_registers_two_ply_files_and_draws_both_clouds(browser, server, ply
     before = canvas.screenshot_as_png
     assert colour_pixels(before, SOURCE_RGB) >= MIN_PIXELS and colour_pixels(before, TARGET_RGB) >= MIN_PIXELS
     assert before != png
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(80, 30).release().perform()
+    browser.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    assert canvas.screenshot_as_png != before  # dragging orbits the camera
     assert external_requests(browser, server.url) == []
 
 
