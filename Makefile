@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8080
 
-.PHONY: serve test test-all lint install-serve install-dev clean
+.PHONY: serve test test-all lint install-serve install-dev install-browser clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -17,13 +17,22 @@ install-serve: $(BIN)/python
 install-dev: $(BIN)/python
 	$(BIN)/pip install -q -e ".[train,dev]"
 
+# Headless Chromium and its driver for the page's browser test (Debian packages; quick when present).
+# Without root or apt the test skips and says why.
+install-browser:
+	@if command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; then :; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+			chromium chromium-driver >/dev/null; \
+	else echo "install-browser: chromium + chromium-driver absent and not root with apt; the browser tests will skip"; fi
+
 serve: install-serve
 	$(BIN)/mfgnet serve --host $(HOST) --port $(PORT)
 
-test: install-dev
+test: install-dev install-browser
 	$(BIN)/python -m pytest -q
 
-test-all: install-dev
+test-all: install-dev install-browser
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
 lint: install-dev

@@ -18,8 +18,8 @@ from service.api.limiter import InferenceLimiter
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContextMiddleware
 from service.api.registry import ModelEntry, ModelRegistry
+from service.api.routes import docs, models, oip, page, register
 from service.api.routes import metrics as metrics_routes
-from service.api.routes import models, oip, register
 from service.api.runner import Runner
 from service.api.schemas import BatchRequest, InferRequest, RegisterRequest
 from service.blas_threads import use_one_blas_thread
@@ -70,6 +70,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=oip.server_version(),
         description="Rigid registration of partial point clouds (MFGNet, ONNX Runtime). Poses are src_to_tgt.",
         lifespan=lifespan,
+        docs_url=None,  # /docs and /redoc come from routes/docs.py, with their assets served locally
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.metrics = metrics
@@ -81,8 +83,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
 
     install_error_handlers(app)
-    for router in (register.router, models.router, oip.router, metrics_routes.router):
+    for router in (register.router, page.router, models.router, oip.router, metrics_routes.router):
         app.include_router(router)
+    page.install(app)
+    docs.install(app)
     if settings.cors_origins:
         app.add_middleware(
             CORSMiddleware,

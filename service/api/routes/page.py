@@ -1,0 +1,244 @@
+"""The browser page: ``GET /`` (static files from ``service/web``), ``POST /v1/register/view`` (a registration
+plus decimated display clouds) and ``POST /v1/register/aligned`` (the source moved by a pose, as binary PLY).
+
+Uploads may be in any format :func:`service.pointcloud_io.parse_points` reads; the file name's extension is
+passed along as its hint. Display clouds are float32 little-endian ``[n, 3]`` rows, base64 in the JSON, at most
+:data:`DISPLAY_CAP` points per cloud (a seeded random subset when a cloud has more).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from dataclasses import dataclass
+from pathlib import Path, PurePath
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, FastAPI, Request
+from fastapi.responses import FileResponse, Response
+from fastapi.staticfiles import StaticFiles
+from pydantic import BaseModel, Field, ValidationError
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
+
+from service.api import bodies
+from service.api.deps import get_runner, get_settings, require_api_key
+from service.api.errors import APIError, error_docs, from_pydantic
+from service.api.responses import RenderedJSON
+from service.api.routes.register import _MULTIPART_SCHEMA
+from service.api.runner import register_response
+from service.api.schemas import RegisterOptions, RegisterResponse
+from service.errors import InputError
+from service.pointcloud_io import PointCloudFormatError, parse_points
+from service.registrar import check_transform
+
+WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
+DISPLAY_CAP = 100_000  # points per cloud sent to the page
+DISPLAY_SEED = 0
+UPLOAD_FIELDS = ("source", "target")
+MAX_FIELD_BYTES = 64 * 1024
+PAGE_POLICY = {"Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:"}  # nothing from elsewhere
+
+page_router = APIRouter(include_in_schema=False)
+router = APIRouter(prefix="/v1", tags=["page"], dependencies=[Depends(require_api_key)])
+
+
+@page_router.get("/")
+async def index() -> FileResponse:
+    """The registration page (offline: every script and style comes from this server)."""
+    return FileResponse(WEB_DIR / "index.html", media_type="text/html", headers=PAGE_POLICY)
+
+
+# -- upload ---------------------------------------------------------------------------------------
+@dataclass
+class Upload:
+    fields: dict[str, str]
+    files: dict[str, tuple[str, bytes]]  # field -> (file name, raw bytes)
+
+
+async def read_upload(request: Request, file_fields: tuple[str, ...]) -> Upload:
+    """The multipart form: ``file_fields`` as file uploads (all required), other fields as short text."""
+    bodies.require_media_type(request, bodies.MULTIPART)
+    form = await request.form(max_files=len(file_fields), max_fields=32, max_part_size=MAX_FIELD_BYTES)
+    try:
+        fields: dict[str, str] = {}
+        files: dict[str, tuple[str, bytes]] = {}
+        for key, value in form.multi_items():
+            if key in fields or key in files:
+                raise APIError(422, f"invalid request: {key}: given more than once")
+            if key in file_fields:
+                if not isinstance(value, UploadFile):
+                    raise APIError(422, f"invalid request: {key}: expected a file upload, got a text field")
+                files[key] = (value.filename or key, await value.read())
+            elif isinstance(value, UploadFile):
+                raise APIError(422, f"invalid request: {key}: unexpected file; only {', '.join(file_fields)}")
+            else:
+                fields[key] = value
+        missing = [name for name in file_fields if name not in files]
+        if missing:
+            raise APIError(422, f"invalid request: {', '.join(missing)}: missing file upload")
+        return Upload(fields, files)
+    finally:
+        await form.close()
+
+
+def decode_cloud(field: str, upload: tuple[str, bytes], max_points: int) -> np.ndarray:
+    """An uploaded point-cloud file -> float64 ``[N, 3]``; 400 naming the file when it cannot be read."""
+    filename, data = upload
+    name = PurePath(filename).name or field
+    try:
+        points = parse_points(data, PurePath(name).suffix, name=f"{field} ({name})")  # [N, 3] float32
+    except PointCloudFormatError as exc:
+        raise APIError(400, str(exc)) from None
+    if len(points) > max_points:
+        raise bodies.too_many_points(field, len(points), max_points)
+    return points.astype(np.float64)
+
+
+def parse_options(fields: dict[str, str]) -> RegisterOptions:
+    values: dict[str, Any] = dict(fields)
+    if "initial_transform" in values:
+        values["initial_transform"] = _json_field(values["initial_transform"], "initial_transform")
+    try:
+        return RegisterOptions.model_validate(values)
+    except ValidationError as exc:
+        raise from_pydantic(exc) from None
+
+
+def _json_field(text: str, name: str) -> Any:
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError):  # RecursionError: nested too deep
+        raise APIError(422, f"invalid request: {name}: expected a JSON 4x4 array") from None
+
+
+# -- display clouds -------------------------------------------------------------------------------
+def decimated(points: np.ndarray, cap: int = DISPLAY_CAP) -> np.ndarray:
+    """At most ``cap`` rows of ``points [N, 3]`` (a seeded random subset, in file order) as float32."""
+    if len(points) > cap:
+        keep = np.sort(np.random.default_rng(DISPLAY_SEED).choice(len(points), cap, replace=False))
+        points = points[keep]
+    return np.ascontiguousarray(points, dtype="<f4")  # [n, 3]
+
+
+def display_cloud(points: np.ndarray) -> dict[str, Any]:
+    shown = decimated(points)
+    return {"points": len(points), "shown": len(shown), "xyz": base64.b64encode(shown.tobytes()).decode("ascii")}
+
+
+class DisplayCloud(BaseModel):
+    points: int = Field(description="Points in the uploaded cloud.")
+    shown: int = Field(description=f"Points sent for display: all, or {DISPLAY_CAP} chosen at random.")
+    xyz: str = Field(description="base64 of float32 little-endian [shown, 3] rows, caller's units and frame.")
+
+
+class Display(BaseModel):
+    cap: int = Field(description="Most points per cloud sent for display.")
+    source: DisplayCloud = Field(description="The source as uploaded (before the pose).")
+    target: DisplayCloud
+
+
+class ViewResponse(BaseModel):
+    result: RegisterResponse = Field(description="Exactly what POST /v1/register answers for the same upload.")
+    display: Display
+
+
+_ALIGNED_SCHEMA = {
+    "type": "object",
+    "required": ["source", "transform"],
+    "properties": {
+        "source": {"type": "string", "format": "binary", "description": "Point-cloud file [N, 3]."},
+        "transform": {"type": "string", "description": "JSON 4x4 rigid src_to_tgt matrix."},
+    },
+}
+
+
+def _multipart(schema: dict) -> dict:
+    return {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": schema}}}}
+
+
+# -- routes ---------------------------------------------------------------------------------------
+@router.post(
+    "/register/view",
+    response_model=ViewResponse,
+    summary="Register two uploaded files and return display clouds (the page's call)",
+    description="Multipart form as POST /v1/register (files `source`, `target` in any supported point-cloud "
+    f"format, options as fields). Answers the registration plus at most {DISPLAY_CAP} points per cloud, "
+    "float32, for drawing; the aligned source is `source @ rotation.T + translation`.",
+    openapi_extra=_multipart(_MULTIPART_SCHEMA),
+    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+)
+async def register_view(request: Request) -> RenderedJSON:
+    settings, runner = get_settings(request), get_runner(request)
+    with runner.admit() as slot:
+        upload = await read_upload(request, UPLOAD_FIELDS)
+
+        def work():
+            options = parse_options(upload.fields)
+            source, target = (decode_cloud(f, upload.files.pop(f), settings.max_points) for f in UPLOAD_FIELDS)
+            pair = bodies.Pair(options, source, target)
+            entry, result = runner.register_one(pair)
+            display = {"cap": DISPLAY_CAP, "source": display_cloud(source), "target": display_cloud(target)}
+            return entry, pair, result, display
+
+        (entry, pair, result, display), queue_ms = await runner.run(slot, work)
+    runner.observe(entry, result, queue_ms)
+    return RenderedJSON({"result": register_response(entry, pair, result, queue_ms), "display": display})
+
+
+@router.post(
+    "/register/aligned",
+    response_class=Response,
+    summary="The source moved by a pose, as binary PLY",
+    description="Multipart form: file `source` (any supported format) and field `transform`, a JSON 4x4 rigid "
+    "src_to_tgt matrix (e.g. a registration's `transform`). Answers binary little-endian float32 PLY of "
+    "`source @ R.T + t`, every point.",
+    openapi_extra=_multipart(_ALIGNED_SCHEMA),
+    responses={200: {"content": {"application/octet-stream": {}}}, **error_docs(400, 401, 413, 415, 422)},
+)
+async def register_aligned(request: Request) -> Response:
+    settings = get_settings(request)
+    upload = await read_upload(request, ("source",))
+    if "transform" not in upload.fields:
+        raise APIError(422, "invalid request: transform: missing (a JSON 4x4 array)")
+    matrix = _json_field(upload.fields["transform"], "transform")
+    try:
+        R, t = check_transform(matrix)
+    except InputError as exc:
+        raise APIError(422, f"invalid request: transform: {str(exc).removeprefix('initial_transform ')}") from None
+    except (ValueError, TypeError, OverflowError):  # not a numeric array
+        raise APIError(422, "invalid request: transform: expected a JSON 4x4 array of numbers") from None
+    def work() -> bytes:
+        source = decode_cloud("source", upload.files["source"], settings.max_points)  # [N, 3]
+        with np.errstate(over="ignore"):
+            aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
+        if not np.isfinite(aligned).all():
+            raise APIError(422, "invalid request: the moved source leaves the float32 range")
+        return ply_bytes(aligned)
+
+    stem = PurePath(upload.files["source"][0]).stem or "source"
+    return Response(
+        await run_in_threadpool(work),
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{_safe(stem)}_aligned.ply"'},
+    )
+
+
+def ply_bytes(xyz: np.ndarray) -> bytes:
+    """Binary little-endian PLY of float32 ``xyz [N, 3]``."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment aligned by mfgnet (src_to_tgt applied)\n"
+        f"element vertex {len(xyz)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    return header.encode("ascii") + np.ascontiguousarray(xyz, dtype="<f4").tobytes()
+
+
+def _safe(stem: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in stem)[:80]
+
+
+def install(app: FastAPI) -> None:
+    """``GET /`` and the page's scripts and styles under ``/page/``."""
+    app.include_router(page_router)
+    app.mount("/page", StaticFiles(directory=WEB_DIR), name="page")

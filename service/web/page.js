@@ -1,0 +1,162 @@
+"use strict";
+// The registration page: two files -> POST v1/register/view -> pose, quality, warnings, timings and
+// the clouds before/after in a PointViewer; the aligned source comes from POST v1/register/aligned.
+(function () {
+  const COLORS = {source: [255, 140, 0], target: [30, 144, 255]}; // = --source, --target in page.css
+  const $ = (id) => document.getElementById(id);
+  const params = new URLSearchParams(location.search);
+  const viewer = new PointViewer($("canvas"), {renderer: params.get("renderer") || "webgl"});
+  let last = null; // {result, files}
+  $("renderer").textContent = viewer.renderer;
+  document.body.dataset.renderer = viewer.renderer;
+
+  for (const name of ["source", "target"]) {
+    const input = $(name), zone = $("drop-" + name);
+    const show = () => { $(name + "-name").textContent = input.files.length ? input.files[0].name : "choose or drop a file"; };
+    input.addEventListener("change", show);
+    zone.addEventListener("dragover", (e) => { e.preventDefault(); zone.classList.add("over"); });
+    zone.addEventListener("dragleave", () => zone.classList.remove("over"));
+    zone.addEventListener("drop", (e) => {
+      e.preventDefault();
+      zone.classList.remove("over");
+      if (e.dataTransfer.files.length) {
+        const one = new DataTransfer();
+        one.items.add(e.dataTransfer.files[0]);
+        input.files = one.files;
+        show();
+      }
+    });
+  }
+
+  function headers() {
+    const key = $("api_key").value.trim();
+    return key ? {Authorization: "Bearer " + key} : {};
+  }
+
+  async function errorText(response) {
+    try {
+      const body = await response.json();
+      return `${response.status}: ${body.error || JSON.stringify(body)}`;
+    } catch (_) {
+      return `${response.status} ${response.statusText}`;
+    }
+  }
+
+  function setStatus(text, isError = false) {
+    $("status").textContent = text;
+    $("status").className = isError ? "error" : "";
+  }
+
+  // base64 of float32 little-endian [n, 3] rows (every browser platform in use is little-endian).
+  function decodePoints(b64) {
+    const text = atob(b64);
+    const bytes = new Uint8Array(text.length);
+    for (let i = 0; i < text.length; i++) bytes[i] = text.charCodeAt(i);
+    return new Float32Array(bytes.buffer);
+  }
+
+  $("form").addEventListener("submit", async (e) => {
+    e.preventDefault();
+    const files = {source: $("source").files[0], target: $("target").files[0]};
+    if (!files.source || !files.target) return setStatus("Choose a source and a target file.", true);
+    const form = new FormData();
+    form.append("source", files.source, files.source.name);
+    form.append("target", files.target, files.target.name);
+    for (const name of ["refine", "rotation_search"]) if ($(name).value) form.append(name, $(name).value);
+    form.append("drop_isolated", $("drop_isolated").checked ? "true" : "false");
+    form.append("return_correspondences", "false");
+    document.body.dataset.state = "running";
+    $("register").disabled = true;
+    setStatus("Uploading and registering…");
+    const started = performance.now();
+    try {
+      const response = await fetch("v1/register/view", {method: "POST", body: form, headers: headers()});
+      if (!response.ok) throw new Error(await errorText(response));
+      const body = await response.json();
+      last = {result: body.result, files};
+      viewer.setClouds([
+        {name: "target", points: decodePoints(body.display.target.xyz), color: COLORS.target},
+        {name: "source", points: decodePoints(body.display.source.xyz), color: COLORS.source},
+      ]);
+      showView(true);
+      showResult(body.result);
+      const d = body.display;
+      $("shown").textContent = `Shown: source ${d.source.shown} of ${d.source.points} points, target ` +
+        `${d.target.shown} of ${d.target.points} (at most ${d.cap} per cloud).`;
+      setStatus(`Done in ${Math.round(performance.now() - started)} ms.`);
+      document.body.dataset.state = "done";
+    } catch (err) {
+      setStatus(String(err.message || err), true);
+      document.body.dataset.state = "error";
+    } finally {
+      $("register").disabled = false;
+    }
+  });
+
+  function showView(after) {
+    viewer.setPose("source", after && last ? last.result.transform : null);
+    $("show-after").classList.toggle("active", after);
+    $("show-before").classList.toggle("active", !after);
+  }
+
+  $("show-before").addEventListener("click", () => showView(false));
+  $("show-after").addEventListener("click", () => showView(true));
+  $("reset-view").addEventListener("click", () => viewer.resetView());
+
+  const fmt = (v, digits = 6) => (typeof v === "number" ? Number(v.toPrecision(digits)).toString() : String(v));
+
+  function fillTable(table, rows) {
+    table.replaceChildren(...rows.map(([key, value]) => {
+      const tr = document.createElement("tr");
+      for (const text of [key, value]) {
+        const td = document.createElement("td");
+        td.textContent = text;
+        tr.append(td);
+      }
+      return tr;
+    }));
+  }
+
+  function showResult(result) {
+    $("result").hidden = false;
+    $("transform").textContent = result.transform.map((row) => row.map((v) => fmt(v, 5).padStart(10)).join(" ")).join("\n");
+    $("euler").textContent = result.euler_zyx_deg.map((v) => fmt(v, 5)).join(", ");
+    const q = result.quality;
+    $("reliable").textContent = q.reliable ? "(reliable)" : "(not reliable)";
+    $("reliable").className = q.reliable ? "yes" : "no";
+    fillTable($("quality"), [
+      ["inlier ratio", fmt(q.inlier_ratio, 4)],
+      ["residual RMS", fmt(q.residual_rms, 4)],
+      ["stability", q.stability == null ? "n/a" : fmt(q.stability, 4)],
+      ["reliable", String(q.reliable)],
+    ]);
+    const warnings = result.warnings.length ? result.warnings : ["none"];
+    $("warnings").replaceChildren(...warnings.map((w) => Object.assign(document.createElement("li"), {textContent: w})));
+    fillTable($("timings"), Object.entries(result.timing_ms).map(([k, v]) => [k, fmt(v, 4)]));
+    $("model").textContent = `${result.model.name} ${result.model.version}`;
+  }
+
+  $("download").addEventListener("click", async () => {
+    if (!last) return;
+    const form = new FormData();
+    form.append("source", last.files.source, last.files.source.name);
+    form.append("transform", JSON.stringify(last.result.transform));
+    setStatus("Preparing the aligned source…");
+    try {
+      const response = await fetch("v1/register/aligned", {method: "POST", body: form, headers: headers()});
+      if (!response.ok) throw new Error(await errorText(response));
+      const blob = await response.blob();
+      const match = /filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "");
+      const link = Object.assign(document.createElement("a"), {
+        href: URL.createObjectURL(blob), download: match ? match[1] : "aligned_source.ply",
+      });
+      document.body.append(link);
+      link.click();
+      link.remove();
+      setTimeout(() => URL.revokeObjectURL(link.href), 10000);
+      setStatus("Aligned source downloaded.");
+    } catch (err) {
+      setStatus(String(err.message || err), true);
+    }
+  });
+})();

@@ -1,0 +1,132 @@
+"""The page's HTTP side against the main uvicorn server: ``GET /``, ``POST /v1/register/view`` and
+``POST /v1/register/aligned`` (the browser itself is driven in ``test_page_browser.py``)."""
+
+from __future__ import annotations
+
+import base64
+import fnmatch
+import io
+import json
+
+import numpy as np
+import pytest
+from api_server import REPO, assert_error, synthetic_pair
+
+from service.api.routes.page import DISPLAY_CAP, WEB_DIR, decimated
+from service.pointcloud_io import parse_points, write_points
+
+
+def file_bytes(tmp_path, name: str, points: np.ndarray) -> bytes:
+    write_points(tmp_path / name, points)
+    return (tmp_path / name).read_bytes()
+
+
+def npy_bytes(points: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, points)
+    return buf.getvalue()
+
+
+def shown(cloud: dict) -> np.ndarray:
+    return np.frombuffer(base64.b64decode(cloud["xyz"]), dtype="<f4").reshape(-1, 3)  # [n, 3]
+
+
+def test_view_answers_what_register_answers_plus_the_display_clouds(client, tmp_path):
+    pair = synthetic_pair(seed=5)
+    files = {
+        "source": ("a.pcd", file_bytes(tmp_path, "a.pcd", pair.source)),
+        "target": ("b.xyz", file_bytes(tmp_path, "b.xyz", pair.target)),
+    }
+    options = {"refine": "icp", "drop_isolated": "false", "return_correspondences": "false"}
+    view = client.post("/v1/register/view", files=files, data=options)
+    assert view.status_code == 200, view.text
+    body = view.json()
+    plain = client.post(
+        "/v1/register",
+        files={"source": ("a.npy", npy_bytes(pair.source)), "target": ("b.npy", npy_bytes(pair.target))},
+        data=options,
+    ).json()
+    for key in ("rotation", "translation", "transform", "euler_zyx_deg", "quality", "warnings", "model"):
+        assert body["result"][key] == plain[key], key
+    assert body["display"]["cap"] == DISPLAY_CAP
+    for name, points in (("source", pair.source), ("target", pair.target)):
+        cloud = body["display"][name]
+        assert cloud["points"] == cloud["shown"] == len(points)
+        np.testing.assert_array_equal(shown(cloud), points)
+
+
+def test_decimated_keeps_at_most_the_cap_rows_of_the_cloud_in_order():
+    points = np.arange(3 * 250, dtype=np.float64).reshape(250, 3)  # row i starts with 3 i
+    kept = decimated(points, cap=100)
+    assert kept.shape == (100, 3) and kept.dtype == np.dtype("<f4")
+    rows = kept[:, 0].astype(int) // 3
+    assert np.all(np.diff(rows) > 0)  # distinct rows, file order
+    np.testing.assert_array_equal(kept, points[rows])
+    np.testing.assert_array_equal(decimated(points, cap=100), kept)  # seeded
+    np.testing.assert_array_equal(decimated(points, cap=250), points)
+
+
+def test_aligned_returns_every_source_point_moved_by_the_transform_as_ply(client, tmp_path):
+    pair = synthetic_pair(seed=6)
+    R, t = pair.rotation, pair.translation
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    response = client.post(
+        "/v1/register/aligned",
+        files={"source": ("scan 1.ply", file_bytes(tmp_path, "s.ply", pair.source))},
+        data={"transform": json.dumps(T.tolist())},
+    )
+    assert response.status_code == 200, response.text
+    assert response.headers["content-disposition"] == 'attachment; filename="scan_1_aligned.ply"'
+    moved = parse_points(response.content, ".ply", "aligned.ply")  # [N, 3]
+    expected = pair.source.astype(np.float64) @ R.T + t
+    assert moved.shape == pair.source.shape
+    assert np.abs(moved - expected).max() <= 1e-6 * np.abs(expected).max()
+
+
+def test_bad_uploads_are_4xx_naming_the_problem(client, tmp_path):
+    good = file_bytes(tmp_path, "g.ply", synthetic_pair(seed=7).source)
+    bad = {"source": ("bad.ply", b"ply\nnot a header"), "target": ("g.ply", good)}
+    assert_error(client.post("/v1/register/view", files=bad), 400, "bad.ply")
+    assert_error(client.post("/v1/register/view", files={"source": ("g.ply", good)}), 422, "target", "missing")
+    assert_error(client.post("/v1/register/view", json={"source": [], "target": []}), 415, "multipart/form-data")
+    assert_error(
+        client.post("/v1/register/view", files={"source": ("g.ply", good), "target": ("g.ply", good)},
+                    data={"refine": "sideways"}),
+        422, "refine",
+    )
+    aligned = "/v1/register/aligned"
+    assert_error(client.post(aligned, files={"source": ("g.ply", good)}), 422, "transform", "missing")
+    for transform, words in (
+        ("[[1, 2]]", ("transform", "4x4")),
+        ('[["a", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]', ("transform", "numbers")),
+        (json.dumps((2 * np.eye(4)).tolist()), ("transform", "rigid")),
+        ("not json", ("transform", "json")),
+        ("[" * 30_000 + "]" * 30_000, ("transform", "json")),  # nested deeper than json can read
+    ):
+        answer = client.post(aligned, files={"source": ("g.ply", good)}, data={"transform": transform})
+        assert_error(answer, 422, *words)
+
+
+def test_index_is_the_page_with_local_assets_only(client):
+    response = client.get("/")
+    assert response.status_code == 200 and response.headers["content-type"].startswith("text/html")
+    assert response.headers["content-security-policy"].startswith("default-src 'self'")
+    html = response.text
+    assert "http://" not in html and "https://" not in html
+    for asset in ("page/page.css", "page/viewer.js", "page/page.js"):
+        assert f'"{asset}"' in html
+        served = client.get("/" + asset)
+        assert served.status_code == 200 and served.content == (WEB_DIR / asset.removeprefix("page/")).read_bytes()
+
+
+def test_the_page_and_docs_assets_ship_in_the_wheel():
+    """Every file of service/web matches the package data globs, and the docs assets come from the serve extra."""
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())
+    globs = config["tool"]["setuptools"]["package-data"]["service"]
+    files = [p.relative_to(WEB_DIR.parent).as_posix() for p in WEB_DIR.rglob("*") if p.is_file()]
+    assert files
+    for name in files:
+        assert any(fnmatch.fnmatch(name, g) for g in globs), name
+    assert any(dep.startswith("fastapi-offline==") for dep in config["project"]["optional-dependencies"]["serve"])

@@ -1,0 +1,209 @@
+"""The page at ``/``, ``/docs`` and ``/redoc`` in a real headless Chromium (Debian's ``chromium`` and
+``chromium-driver``, which ``make test`` installs) against the main uvicorn server on 127.0.0.1.
+
+Skips only when the browser or its driver is not installed. Selenium is given both paths, so Selenium
+Manager never runs (nothing is downloaded).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import shutil
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from api_server import synthetic_pair
+
+from service.pointcloud_io import read_points, write_points
+
+SOURCE_RGB = (255, 140, 0)  # = COLORS in service/web/page.js
+TARGET_RGB = (30, 144, 255)
+MIN_PIXELS = 100  # of each cloud's colour in the view (700 points, 2x2 pixels each)
+WAIT_S = 20
+
+
+def _find(env: str, *names: str) -> str | None:
+    if os.environ.get(env):
+        return os.environ[env]
+    for name in names:
+        path = shutil.which(name) or (name if Path(name).is_file() else None)
+        if path:
+            return path
+    return None
+
+
+CHROMIUM = _find("MFGNET_CHROMIUM", "chromium", "chromium-browser", "google-chrome")
+CHROMEDRIVER = _find("MFGNET_CHROMEDRIVER", "chromedriver", "/usr/lib/chromium/chromedriver")
+
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None or CHROMEDRIVER is None,
+    reason="Chromium or chromedriver not installed (apt-get install chromium chromium-driver; `make test` does it)",
+)
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    downloads = tmp_path_factory.mktemp("downloads")
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for arg in (
+        "--headless=new",
+        "--no-sandbox",  # CI runs as root
+        "--disable-dev-shm-usage",
+        "--window-size=1400,1000",
+        "--use-angle=swiftshader",  # WebGL on the CPU where there is no GPU
+        "--enable-unsafe-swiftshader",
+        "--no-first-run",
+        "--disable-background-networking",
+    ):
+        options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"performance": "ALL"})  # network events: external_requests()
+    options.add_experimental_option("prefs", {"download.default_directory": str(downloads)})
+    driver = webdriver.Chrome(options=options, service=Service(executable_path=CHROMEDRIVER))
+    driver.set_page_load_timeout(WAIT_S)
+    driver.downloads = downloads
+    yield driver
+    driver.quit()
+
+
+def wait_for(driver, script: str, what: str, timeout: float = WAIT_S):
+    """Until the JavaScript expression ``script`` is truthy; its value."""
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    try:
+        return WebDriverWait(driver, timeout, poll_frequency=0.05).until(lambda d: d.execute_script(f"return {script}"))
+    except Exception as exc:
+        status = driver.execute_script("const s = document.getElementById('status'); return s && s.textContent")
+        raise AssertionError(f"timed out waiting for {what}; page status: {status!r}") from exc
+
+
+def colour_pixels(png: bytes, rgb: tuple[int, int, int], tolerance: int = 12) -> int:
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)  # [H, W, 3]
+    return int((np.abs(pixels - np.array(rgb)) <= tolerance).all(axis=-1).sum())
+
+
+def external_requests(driver, server_url: str) -> list[str]:
+    """URLs the browser sent to any host but the server since the last call (from Chrome's network log);
+    requests the page's Content-Security-Policy blocked before they left the browser are not counted."""
+    sent, blocked = {}, set()
+    for entry in driver.get_log("performance"):
+        message = json.loads(entry["message"])["message"]
+        params = message.get("params", {})
+        if message["method"] == "Network.requestWillBeSent":
+            sent[params["requestId"]] = params["request"]["url"]
+        elif message["method"] == "Network.loadingFailed" and params.get("blockedReason"):
+            blocked.add(params["requestId"])
+    return [
+        url for rid, url in sent.items()
+        if rid not in blocked and re.match(r"(https?|wss?)://", url) and not url.startswith(server_url + "/")
+    ]
+
+
+@pytest.fixture(scope="module")
+def ply_files(tmp_path_factory):
+    """A seeded partial-to-partial pair written as binary PLY by the project's writer."""
+    pair = synthetic_pair(seed=3)
+    folder = tmp_path_factory.mktemp("clouds")
+    write_points(folder / "scan_a.ply", pair.source)
+    write_points(folder / "scan_b.ply", pair.target)
+    return pair, folder / "scan_a.ply", folder / "scan_b.ply"
+
+
+@pytest.mark.parametrize("renderer", ["webgl", "2d"])
+def test_page_registers_two_ply_files_and_draws_both_clouds(browser, server, ply_files, renderer, tmp_path):
+    pair, source_file, target_file = ply_files
+    external_requests(browser, server.url)  # drop earlier tests' events
+    browser.get(f"{server.url}/?renderer={renderer}")
+    assert browser.title == "MFGNet registration"
+    shown = browser.execute_script("return document.body.dataset.renderer")
+    if renderer == "2d":
+        assert shown == "2D canvas"
+    else:  # WebGL whenever the browser has it (SwiftShader gives it without a GPU), else the 2D fallback
+        has_webgl = browser.execute_script("return !!document.createElement('canvas').getContext('webgl')")
+        assert shown == ("WebGL" if has_webgl else "2D canvas"), (shown, has_webgl)
+
+    browser.find_element("id", "source").send_keys(str(source_file))
+    browser.find_element("id", "target").send_keys(str(target_file))
+    browser.find_element("id", "register").click()
+    state = wait_for(browser, "['done', 'error'].includes(document.body.dataset.state) && document.body.dataset.state",
+                     "the registration")
+    assert state == "done", browser.find_element("id", "status").text
+
+    result = browser.find_element("id", "result")
+    assert result.is_displayed()
+    text = result.text
+    assert "inlier ratio" in text and "total" in text and "reliable" in text
+    rows = [[float(v) for v in line.split()] for line in browser.find_element("id", "transform").text.splitlines()]
+    T = np.array(rows)  # [4, 4] as shown (5 significant digits)
+    assert T.shape == (4, 4)
+    assert np.abs(T[:3, :3] - pair.rotation).max() < 0.05  # the seeded pair's true pose
+    assert np.abs(T[:3, 3] - pair.translation).max() < 0.05
+    assert f"source {len(pair.source)} of {len(pair.source)} points" in browser.find_element("id", "shown").text
+
+    browser.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    canvas = browser.find_element("id", "canvas")
+    png = canvas.screenshot_as_png
+    (tmp_path / f"view-{renderer}.png").write_bytes(png)
+    browser.save_screenshot(str(tmp_path / f"page-{renderer}.png"))
+    source_px, target_px = colour_pixels(png, SOURCE_RGB), colour_pixels(png, TARGET_RGB)
+    assert source_px >= MIN_PIXELS and target_px >= MIN_PIXELS, (source_px, target_px)
+
+    browser.find_element("id", "show-before").click()  # the source as uploaded: still both colours
+    browser.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    before = canvas.screenshot_as_png
+    assert colour_pixels(before, SOURCE_RGB) >= MIN_PIXELS and colour_pixels(before, TARGET_RGB) >= MIN_PIXELS
+    assert before != png
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(80, 30).release().perform()
+    browser.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    assert canvas.screenshot_as_png != before  # dragging orbits the camera
+    assert external_requests(browser, server.url) == []
+
+
+def test_page_downloads_the_aligned_source_as_ply(browser, server, ply_files):
+    pair, source_file, target_file = ply_files
+    browser.get(f"{server.url}/")
+    browser.find_element("id", "source").send_keys(str(source_file))
+    browser.find_element("id", "target").send_keys(str(target_file))
+    browser.find_element("id", "register").click()
+    assert wait_for(browser, "document.body.dataset.state === 'done'", "the registration")
+    transform = np.array(browser.find_element("id", "transform").text.split(), dtype=float).reshape(4, 4)
+    browser.find_element("id", "download").click()
+    target = browser.downloads / "scan_a_aligned.ply"
+    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
+    for _ in range(100):
+        if target.is_file() and target.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
+            break
+        time.sleep(0.05)
+    aligned = read_points(target)  # [N, 3] float32
+    assert aligned.shape == pair.source.shape
+    expected = pair.source.astype(np.float64) @ transform[:3, :3].T + transform[:3, 3]
+    assert np.abs(aligned - expected).max() < 1e-4  # the page shows the pose to 5 significant digits
+
+
+@pytest.mark.parametrize(("path", "ready"), [
+    ("/docs", "document.querySelector('.swagger-ui .info .title')"),
+    ("/redoc", "document.querySelector('.api-info h1, h1')"),
+])
+def test_api_docs_load_with_no_external_requests(browser, server, path, ready):
+    page = httpx.get(server.url + path, timeout=10).text
+    hosts = set(re.findall(r"https?://[^\s'\"<>]+", page))
+    assert hosts == set(), hosts  # every asset URL is relative to this server
+    external_requests(browser, server.url)
+    browser.get(server.url + path)
+    wait_for(browser, ready, f"{path} to render")
+    title = wait_for(browser, f"{ready} && {ready}.textContent", f"{path} title")
+    assert "MFGNet registration service" in title
+    assert external_requests(browser, server.url) == []
