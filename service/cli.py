@@ -20,12 +20,21 @@ import typer
 from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
 from service.search_mode import RotationSearchMode, rotation_search_from_options, service_rotation_search
 
-app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False)
+app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False,
+                  rich_markup_mode=None)  # plain click help: flag names never cut at 80 columns
 
 TRAIN_EXTRA_HINT = "this command needs the training side: pip install 'mfgnet[train]'"
 SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
-DEFAULT_MODEL = "general"  # trained for independently sampled scans; clean/unseen reproduce the paper
-ACCURACY_KEYS = ("rmse_r", "mae_r", "rmse_t", "mae_t", "recall_r5_t005")  # shown first by `mfgnet models`
+DEFAULT_MODEL = "general"  # trained for independently sampled scans; clean/noise/unseen reproduce the paper
+# What each bundled model is for, shown by `mfgnet models` (a manifest's own "description" wins). The table shows
+# no accuracy figures: each manifest's are on that model's own validation pairs, not comparable across models.
+MODEL_PURPOSES = {
+    "general": "independently sampled scans",
+    "clean": "paper protocol: shared points, clean",
+    "noise": "paper protocol: shared points, noisy",
+    "unseen": "paper protocol: categories 0-19 only",
+}
+MODELS_TABLE_WIDTH = 100
 
 
 ModelDirs = Annotated[
@@ -74,95 +83,99 @@ def serve_command(
 # -------------------------------------------------------------------------------------- register
 
 
+SourceArg = Annotated[
+    Path, typer.Argument(metavar="SOURCE", help="cloud to move (.ply .pcd .xyz .txt .csv .npy .npz)")
+]
+TargetArg = Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to align it to (same formats)")]
+ModelOpt = Annotated[
+    str | None,
+    typer.Option(help=f"model name (bundled or under --model-dir) or a model folder; default {DEFAULT_MODEL!r} "
+                      "in-process, the server's default with --server"),
+]
+IterationsOpt = Annotated[int | None, typer.Option(help="network iterations (default: the model's)")]
+KeypointsOpt = Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")]
+RefineOpt = Annotated[
+    Refine | None,
+    typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = wide robust "
+                      "symmetric stage, then point-to-plane ICP (best for two independently sampled scans), "
+                      "icp-plane-multistart = icp-plane, then 12 turned restarts kept by a two-way fit (sparse "
+                      "clouds; ~2x the refinement time), "
+                      f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
+                      "server's MFGNET_DEFAULT_REFINE with --server]"),
+]
+RefinePointsOpt = Annotated[
+    int | None,
+    typer.Option(min=REFINE_POINTS_RANGE[0], max=REFINE_POINTS_RANGE[1],
+                 help="points per cloud the refinement uses (more: a more precise pose on dense scans, slower) "
+                      "[default: the network's working clouds, 768]"),
+]
+DropIsolatedOpt = Annotated[
+    bool, typer.Option(help="leave out isolated points (flying pixels, sparse clutter) before sampling the clouds")
+]
+InitialTransformOpt = Annotated[
+    Path | None, typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4")
+]
+OutOpt = Annotated[Path | None, typer.Option(help="write the pose, quality, model and timing as JSON here")]
+WriteAlignedOpt = Annotated[
+    Path | None, typer.Option(help="write the source moved onto the target (R @ p + t); format from extension")
+]
+ServerOpt = Annotated[
+    str | None, typer.Option(help="register through a running service at this URL instead of in-process")
+]
+ApiKeyOpt = Annotated[str | None, typer.Option(envvar="MFGNET_API_KEY", help="API key for --server")]
+BinaryOpt = Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files, not JSON")]
+RotationSearchOpt = Annotated[
+    bool | None,
+    typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; about 2-3x the "
+                      "time with a refinement, 10-20x without); = --rotation-search-mode on"),
+]
+RotationSearchModeOpt = Annotated[
+    RotationSearchMode | None,
+    typer.Option(help="off: never search; on: always (= --rotation-search); auto: register plainly first and "
+                      "search only when that result looks wrong (low inlier ratio for the target's density), "
+                      "keeping the better of both; timing_ms then has a 'search' key [default: off; with "
+                      "--server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
+]
+ThreadsOpt = Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")]
+
+
 @app.command("register")
 def register_command(
-    source: Annotated[
-        Path, typer.Argument(metavar="SOURCE", help="cloud to move (.ply .pcd .xyz .txt .csv .npy .npz)")
-    ],
-    target: Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to align it to (same formats)")],
-    model: Annotated[
-        str | None,
-        typer.Option(help=f"model name (bundled or under --model-dir) or a model folder; default {DEFAULT_MODEL!r} "
-                          "in-process, the server's default with --server"),
-    ] = None,
+    source: SourceArg,
+    target: TargetArg,
+    model: ModelOpt = None,
     model_dir: ModelDirs = None,
-    iterations: Annotated[int | None, typer.Option(help="network iterations (default: the model's)")] = None,
-    keypoints: Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")] = None,
-    refine: Annotated[
-        Refine | None,
-        typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = wide robust "
-                          "symmetric stage, then point-to-plane ICP (best for two independently sampled scans), "
-                          "icp-plane-multistart = icp-plane, then 12 turned restarts kept by a two-way fit (sparse "
-                          "clouds; ~2x the refinement time), "
-                          f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
-                          "server's MFGNET_DEFAULT_REFINE with --server]"),
-    ] = None,
-    refine_points: Annotated[
-        int | None,
-        typer.Option(min=REFINE_POINTS_RANGE[0], max=REFINE_POINTS_RANGE[1],
-                     help="points per cloud the refinement uses (more: a more precise pose on dense scans, slower) "
-                          "[default: the network's working clouds, 768]"),
-    ] = None,
-    drop_isolated: Annotated[
-        bool,
-        typer.Option(help="leave out isolated points (flying pixels, sparse clutter) before sampling the clouds"),
-    ] = True,
-    initial_transform: Annotated[
-        Path | None,
-        typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4"),
-    ] = None,
-    out: Annotated[Path | None, typer.Option(help="write the pose, quality, model and timing as JSON here")] = None,
-    write_aligned: Annotated[
-        Path | None, typer.Option(help="write the source moved onto the target (R @ p + t); format from extension")
-    ] = None,
-    server: Annotated[
-        str | None, typer.Option(help="register through a running service at this URL instead of in-process")
-    ] = None,
-    api_key: Annotated[str | None, typer.Option(envvar="MFGNET_API_KEY", help="API key for --server")] = None,
-    binary: Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files, not JSON")] = False,
-    rotation_search: Annotated[
-        bool | None,
-        typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; about 2-3x the "
-                          "time with a refinement, 10-20x without); "
-                          "= --rotation-search-mode on"),
-    ] = None,
-    rotation_search_mode: Annotated[
-        RotationSearchMode | None,
-        typer.Option(help="off: never search; on: always (= --rotation-search); auto: register plainly first and "
-                          "search only when that result looks wrong (low inlier ratio for the target's density), "
-                          "keeping the better of both; timing_ms then has a 'search' key [default: off; with "
-                          "--server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
-    ] = None,
-    threads: Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")] = None,
-    json_output: Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")] = False,
+    iterations: IterationsOpt = None,
+    keypoints: KeypointsOpt = None,
+    refine: RefineOpt = None,
+    refine_points: RefinePointsOpt = None,
+    drop_isolated: DropIsolatedOpt = True,
+    initial_transform: InitialTransformOpt = None,
+    out: OutOpt = None,
+    write_aligned: WriteAlignedOpt = None,
+    server: ServerOpt = None,
+    api_key: ApiKeyOpt = None,
+    binary: BinaryOpt = False,
+    rotation_search: RotationSearchOpt = None,
+    rotation_search_mode: RotationSearchModeOpt = None,
+    threads: ThreadsOpt = None,
+    json_output: JsonOpt = False,
 ) -> None:
     """Register SOURCE onto TARGET and print the 4x4 source->target transform.
 
     Runs in-process on a bundled or --model-dir model, or through a running service with --server.
 
-    Exit codes: 0 done;
-    2 bad input (unreadable or invalid cloud, bad option, unknown model, refused by the server);
+    \b
+    Exit codes:
+    0 done;
+    2 bad input (unreadable or invalid cloud, bad option, unknown model,
+      refused by the server);
     1 other failures (model integrity, server unreachable or 5xx).
     """
-    from service.pointcloud_io import SUFFIXES, PointCloudFormatError, read_points, write_points
-
-    if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
-        _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
-    if server and model_dir:
-        _fail("--model-dir only applies in-process; a server uses its own model folders")
-    try:
-        search = rotation_search_from_options(rotation_search, rotation_search_mode)
-    except ValueError as exc:
-        _fail(str(exc))
-    clouds = []
-    for path in (source, target):
-        try:
-            clouds.append(read_points(path).astype(np.float64))  # [N, 3]
-        except PointCloudFormatError as exc:
-            _fail(str(exc))
-        except OSError as exc:
-            _fail(f"cannot read {path}: {exc.strerror or exc}")
-    src, tgt = clouds
+    _check_register_flags(write_aligned, server, model_dir)
+    search = _search_option(rotation_search, rotation_search_mode)
+    src, tgt = _read_cloud(source), _read_cloud(target)
     init = _read_transform(initial_transform) if initial_transform is not None else None
     refine_mode = refine.value if refine is not None else None if server else SERVICE_DEFAULT_REFINE
     if not server:  # in-process: the service's defaults (with --server the server applies its own)
@@ -175,6 +188,43 @@ def register_command(
         record = _register_remote(server, api_key, src, tgt, model, options, binary)
     else:
         record = _register_local(src, tgt, model, model_dir or [], threads, options)
+    _write_outputs(record, src, out, write_aligned)
+    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
+
+
+def _check_register_flags(write_aligned: Path | None, server: str | None, model_dir: list[Path] | None) -> None:
+    """Usage errors that need no file read."""
+    from service.pointcloud_io import SUFFIXES
+
+    if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
+        _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
+    if server and model_dir:
+        _fail("--model-dir only applies in-process; a server uses its own model folders")
+
+
+def _search_option(flag: bool | None, mode: RotationSearchMode | None) -> bool | str | None:
+    """``rotation_search`` from ``--[no-]rotation-search`` and ``--rotation-search-mode``, or a usage error."""
+    try:
+        return rotation_search_from_options(flag, mode)
+    except ValueError as exc:
+        _fail(str(exc))
+
+
+def _read_cloud(path: Path) -> np.ndarray:
+    """``[N, 3]`` float64 points of ``path`` (any format :mod:`service.pointcloud_io` reads), or a usage error."""
+    from service.pointcloud_io import PointCloudFormatError, read_points
+
+    try:
+        return read_points(path).astype(np.float64)
+    except PointCloudFormatError as exc:
+        _fail(str(exc))
+    except OSError as exc:
+        _fail(f"cannot read {path}: {exc.strerror or exc}")
+
+
+def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligned: Path | None) -> None:
+    """``--out`` (the JSON record) and ``--write-aligned`` (the source moved by the pose)."""
+    from service.pointcloud_io import PointCloudFormatError, write_points
 
     R = np.asarray(record["rotation"], dtype=np.float64)  # [3, 3]
     t = np.asarray(record["translation"], dtype=np.float64)  # [3]
@@ -187,7 +237,6 @@ def register_command(
         except (PointCloudFormatError, OSError) as exc:
             _fail(f"cannot write {write_aligned}: {exc}", code=1)
         typer.echo(f"wrote {write_aligned}", err=True)
-    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
 
 
 def _read_transform(path: Path) -> list:
@@ -243,25 +292,39 @@ def _register_local(src, tgt, model: str | None, model_dirs: list[Path], threads
 
 
 def _resolve_model_dir(model: str | None, model_dirs: list[Path]) -> Path:
-    """The folder of ``model`` (a name or a path); without a name: the only model under ``--model-dir``,
-    else the bundled ``clean``. Folders under ``--model-dir`` win over bundled ones of the same name."""
-    from service.manifest import bundled_models_dir, discover_model_dirs
+    """The folder of ``model`` (a name or a path); without a name: :func:`_default_model_dir`.
+    Folders under ``--model-dir`` win over bundled ones of the same name."""
+    from service.manifest import bundled_models_dir
 
     if model is not None and Path(model).is_dir():
         return Path(model)
-    bundled = discover_model_dirs([])
-    extra = [d for d in discover_model_dirs(model_dirs) if d not in bundled]
-    candidates = [*extra, *bundled]
-    if model is None:
-        if len(extra) == 1:
-            return extra[0]
-        model = DEFAULT_MODEL
-    for directory in candidates:
-        if directory.name == model:
+    extra, bundled = _model_dirs(model_dirs)
+    if model is None and len(extra) == 1:
+        return extra[0]
+    name = DEFAULT_MODEL if model is None else model
+    for directory in [*extra, *bundled]:
+        if directory.name == name:
             return directory
-    names = sorted({d.name for d in candidates})
+    names = sorted({d.name for d in [*extra, *bundled]})
     where = ", ".join(str(d) for d in [bundled_models_dir(), *model_dirs])
-    _fail(f"model {model!r} not found in {where}; available: {', '.join(names) or 'none'}")
+    _fail(f"model {name!r} not found in {where}; available: {', '.join(names) or 'none'}")
+
+
+def _model_dirs(model_dirs: list[Path]) -> tuple[list[Path], list[Path]]:
+    """``(the model folders under --model-dir that are not bundled, the bundled ones)``."""
+    from service.manifest import discover_model_dirs
+
+    bundled = discover_model_dirs([])
+    return [d for d in discover_model_dirs(model_dirs) if d not in bundled], bundled
+
+
+def _default_model_dir(model_dirs: list[Path]) -> Path | None:
+    """What ``mfgnet register`` runs without ``--model``: the only model under ``--model-dir``, else the first
+    folder named ``DEFAULT_MODEL`` (``--model-dir`` ones first); ``None`` when there is none."""
+    extra, bundled = _model_dirs(model_dirs)
+    if len(extra) == 1:
+        return extra[0]
+    return next((d for d in [*extra, *bundled] if d.name == DEFAULT_MODEL), None)
 
 
 def _register_remote(server: str, api_key: str | None, src, tgt, model: str | None, options: dict,
@@ -335,31 +398,15 @@ def models_command(
     model_dir: ModelDirs = None,
     json_output: Annotated[bool, typer.Option("--json", help="print a JSON list instead of the table")] = False,
 ) -> None:
-    """List the bundled (and --model-dir) models: name, version, iterations, K, accuracy.
+    """List the bundled (and --model-dir) models: name, version, what each is for; * marks the default.
 
     Every model's files are checked against its manifest's sha256;
     models that fail are listed with the reason. Exit code 1 when no usable model is found.
     """
-    from service.manifest import ModelIntegrityError, discover_model_dirs, load_manifest
+    from service.manifest import discover_model_dirs
 
-    entries = []
-    for directory in discover_model_dirs(model_dir or []):
-        try:
-            manifest = load_manifest(directory)
-        except ModelIntegrityError as exc:
-            entries.append({"name": directory.name, "status": "failed", "error": str(exc),
-                            "directory": str(directory)})
-            continue
-        entries.append({
-            "name": manifest.name,
-            "status": "ok",
-            "version": manifest.version,
-            "iterations": manifest.config.get("iterations"),
-            "keypoints": manifest.config.get("keypoints"),
-            "accuracy": manifest.accuracy,
-            "sha256": manifest.sha256,
-            "directory": str(directory),
-        })
+    default = _default_model_dir(model_dir or [])
+    entries = [_model_entry(directory, directory == default) for directory in discover_model_dirs(model_dir or [])]
     if json_output:
         typer.echo(json.dumps(entries, indent=2))
     else:
@@ -368,29 +415,59 @@ def models_command(
         raise typer.Exit(code=1)
 
 
+def _model_entry(directory: Path, default: bool) -> dict:
+    """One model folder as ``mfgnet models --json`` lists it (``status`` ``ok`` or ``failed`` with ``error``)."""
+    from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
+
+    try:
+        manifest = load_manifest(directory)
+    except ModelIntegrityError as exc:
+        return {"name": directory.name, "status": "failed", "error": str(exc), "directory": str(directory)}
+    description = manifest.raw.get("description")
+    return {
+        "name": manifest.name,
+        "status": "ok",
+        "default": default,
+        "version": manifest.version,
+        "purpose": description if isinstance(description, str) else MODEL_PURPOSES.get(manifest.name),
+        "iterations": manifest.config.get("iterations"),
+        "keypoints": manifest.config.get("keypoints"),
+        "size_bytes": sum(path.stat().st_size for path in manifest.graphs.values()),
+        "bundled": directory.parent == bundled_models_dir(),
+        "accuracy": manifest.accuracy,  # on the model's own evaluation pairs (see MODEL_PURPOSES)
+        "sha256": manifest.sha256,
+        "directory": str(directory),
+    }
+
+
 def _models_table(entries: list[dict]) -> str:
+    """The table of ``mfgnet models``: at most ``MODELS_TABLE_WIDTH`` columns (long folders elided)."""
     if not entries:
         return "no models found"
     ok = [e for e in entries if e["status"] == "ok"]
-    rows = [("NAME", "VERSION", "ITER", "K", "ACCURACY", "DIRECTORY")]
-    rows += [(e["name"], e["version"], str(e["iterations"]), str(e["keypoints"]), _accuracy_text(e["accuracy"]),
-              e["directory"]) for e in ok]
+    rows = [("", "NAME", "VERSION", "ITER", "K", "GRAPHS", "FOR", "WHERE")]
+    rows += [("*" if e["default"] else "", e["name"], e["version"], str(e["iterations"]), str(e["keypoints"]),
+              f"{e['size_bytes'] / 2**20:.1f} MiB", e["purpose"] or "-", "bundled" if e["bundled"] else e["directory"])
+             for e in ok]
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]) - 1)]
-    lines = ["  ".join(cell.ljust(w) for cell, w in zip(row[:-1], widths, strict=True)) + "  " + row[-1]
-             for row in rows] if ok else []
-    lines += [f"FAILED {e['name']}: {e['error']}" for e in entries if e["status"] != "ok"]
+    room = MODELS_TABLE_WIDTH - sum(widths) - 2 * (len(widths) - 1) - 1
+    lines = [_models_row(row, widths, room) for row in rows] if ok else []
+    if any(e["default"] for e in ok):
+        lines.append("* the default: what `mfgnet register` runs without --model (a server: MFGNET_DEFAULT_MODEL)")
+    lines += [_elide(f"FAILED {e['name']}: {e['error']}", MODELS_TABLE_WIDTH) for e in entries if e["status"] != "ok"]
     return "\n".join(lines)
 
 
-def _accuracy_text(accuracy: dict) -> str:
-    """``rmse_r 1.2 mae_r 0.6 ... (on X)`` from a manifest's ``accuracy``; ``-`` when there is none."""
-    metrics = accuracy.get("metrics", accuracy) if isinstance(accuracy, dict) else {}
-    numeric = {k: v for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
-    keys = [k for k in ACCURACY_KEYS if k in numeric] or list(numeric)[:4]
-    if not keys:
-        return "-"
-    text = " ".join(f"{k} {numeric[k]:.4g}" for k in keys)
-    return f"{text} (on {accuracy['on']})" if isinstance(accuracy.get("on"), str) else text
+def _models_row(row: tuple[str, ...], widths: list[int], room: int) -> str:
+    cells = [cell.ljust(width) for cell, width in zip(row[:-1], widths, strict=True)]
+    return (cells[0] + " " + "  ".join(cells[1:]) + "  " + _elide(row[-1], room, left=True)).rstrip()
+
+
+def _elide(text: str, width: int, left: bool = False) -> str:
+    """``text`` cut to ``width`` characters with ``...`` (at the start when ``left``: a path's tail names it)."""
+    if len(text) <= width:
+        return text
+    return "..." + text[len(text) - width + 3:] if left else text[: width - 3] + "..."
 
 
 # ------------------------------------------------------------------------------ training plugins

@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from service.icp import Surface, icp_many, target_normals
+from service.icp import IcpResult, Surface, icp_many, icp_plane, target_normals
 from service.kdtree import KDTree
 
 MULTISTART_ANGLES = (15.0, 30.0)  # degrees: the turns of the refined pose about x, y and z, both ways
@@ -89,3 +89,15 @@ def best_turned_pose(
     )
     best = int(np.argmin(symmetric_plane_scores(src, tgt, R_h, t_h, MULTISTART_CAP * scale, target_surface)))
     return (R, t, 0) if best == 0 else (R_h[best], t_h[best], best)  # the pose itself as refined, not re-moved
+
+
+def multistart(src: np.ndarray, tgt: np.ndarray, refined: IcpResult, scale: float, distance: float,
+               max_iterations: int, target_surface: Surface | None = None) -> IcpResult:
+    """The multistart stage of ``refine="icp-plane-multistart"``: ``refined`` (a refinement of ``src`` onto
+    ``tgt``), or, when a turned start fits better (:func:`best_turned_pose`), that start moved by the precise
+    point-to-plane stage only (the wide one could pull it back). ``distance``: its correspondence cap."""
+    R_turn, t_turn, start = best_turned_pose(src, tgt, refined.rotation, refined.translation, scale, target_surface)
+    if not start:
+        return refined
+    return icp_plane(src, tgt, R_turn, t_turn, max_distance=distance, max_iterations=max_iterations,
+                     target_surface=target_surface)

@@ -35,8 +35,10 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 @cache
 def supports_option(registrar_type: type, option: str) -> bool:
-    """Whether ``registrar_type.register`` takes ``option`` (e.g. ``rotation_search``)."""
-    return option in inspect.signature(registrar_type.register).parameters
+    """Whether ``registrar_type.register`` takes ``option`` (e.g. ``rotation_search``): a parameter of its own or a
+    field of the options object it takes as keyword overrides (``option_names``)."""
+    names = getattr(registrar_type, "option_names", frozenset())
+    return option in names or option in inspect.signature(registrar_type.register).parameters
 
 
 class Runner:

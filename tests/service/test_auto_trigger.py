@@ -57,11 +57,11 @@ def sparse_pairs() -> dict:
 def test_auto_leaves_right_sparse_results_alone_that_a_fixed_ratio_would_search(sparse_pairs, monkeypatch) -> None:
     """Measured on these 8 pairs: every plain result within 4.7 deg, inlier ratios 0.46-0.79 (four below the
     former fixed threshold 0.7), attainable ratios about 0.6: "auto" searches none of them."""
-    import service.registrar as registrar_module
+    import service.stages.search as search_stage
 
     searched = []
-    real = registrar_module.search_hypotheses
-    monkeypatch.setattr(registrar_module, "search_hypotheses", lambda *a, **k: searched.append(1) or real(*a, **k))
+    real = search_stage.search_hypotheses
+    monkeypatch.setattr(search_stage, "search_hypotheses", lambda *a, **k: searched.append(1) or real(*a, **k))
     registrar = Registrar(bundled_models_dir() / "general")
     below_fixed = 0
     for src, tgt in zip(sparse_pairs["source"], sparse_pairs["target"], strict=True):

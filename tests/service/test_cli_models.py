@@ -12,7 +12,7 @@ from cli_support import snapshot_model
 from typer.testing import CliRunner
 
 from service.cli import app
-from service.manifest import bundled_models_dir
+from service.manifest import bundled_models_dir, load_manifest
 
 runner = CliRunner()
 
@@ -72,24 +72,29 @@ def test_models_failing_verification_are_listed_with_the_reason(models_root, tam
     assert "sha256 of matcher_2.onnx does not match" in failed[str(tampered_model)]["error"]
 
 
-def test_table_shows_the_figures_and_the_failures(models_root) -> None:
+def test_table_shows_name_version_purpose_and_the_failures(models_root) -> None:
     code, out, _ = list_models("--model-dir", models_root)
     assert code == 0
     header, *rows = out.splitlines()
-    assert header.split() == ["NAME", "VERSION", "ITER", "K", "ACCURACY", "DIRECTORY"]
-    assert any(row.startswith("clean") and row.endswith(str(models_root / "clean")) for row in rows)
+    assert header.split() == ["NAME", "VERSION", "ITER", "K", "GRAPHS", "FOR", "WHERE"]
+    clean = next(row for row in rows if row.endswith("/clean"))  # the folder's tail (elided to fit 100 columns)
+    assert clean.split()[:2] == ["clean", load_manifest(models_root / "clean").version]
+    assert "paper protocol" in clean and all(len(row) <= 100 for row in rows)
     assert any(row.startswith("FAILED bare:") and "manifest.json is missing" in row for row in rows)
 
 
-def test_table_shows_the_manifests_accuracy_figures(tmp_path, models_root) -> None:
+def test_table_shows_no_manifest_figures_and_json_keeps_them(tmp_path, models_root) -> None:
+    """Each manifest's figures are on that model's own validation pairs: not comparable, so not in the table."""
     model = tmp_path / "clean"
     shutil.copytree(models_root / "clean", model)
     manifest = json.loads((model / "manifest.json").read_text())
     manifest["accuracy"] = {"metrics": {"rmse_r": 1.25, "mae_r": 0.5, "n": 100}, "on": "val pairs"}
     (model / "manifest.json").write_text(json.dumps(manifest))  # graphs are hashed, the manifest is not
     code, out, _ = list_models("--model-dir", model)
-    row = next(line for line in out.splitlines() if line.endswith(str(model)))
-    assert code == 0 and "rmse_r 1.25 mae_r 0.5 (on val pairs)" in row
+    assert code == 0 and "rmse_r" not in out and "1.25" not in out and "val pairs" not in out
+    code, out, _ = list_models("--model-dir", model, "--json")
+    entry = next(e for e in json.loads(out) if e["directory"] == str(model))
+    assert entry["accuracy"]["metrics"]["rmse_r"] == 1.25 and entry["default"] is True  # the only --model-dir one
 
 
 def test_exit_code_1_when_no_model_is_usable(tmp_path, monkeypatch) -> None:

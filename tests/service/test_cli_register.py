@@ -256,15 +256,15 @@ def test_no_refine_option_means_icp_plane_and_refine_none_the_network_alone(tmp_
 
 
 def test_refine_points_option_sets_the_refinement_clouds(tmp_path, model_dir, monkeypatch) -> None:
-    import service.registrar
+    import service.stages.refine as refine_stage
 
-    sizes, real = [], service.registrar.refine_plane
+    sizes, real = [], refine_stage.refine_plane
 
     def spy(src_r, tgt_r, *args, **kwargs):
         sizes.append((len(src_r), len(tgt_r)))
         return real(src_r, tgt_r, *args, **kwargs)
 
-    monkeypatch.setattr(service.registrar, "refine_plane", spy)
+    monkeypatch.setattr(refine_stage, "refine_plane", spy)
     source = smooth_blob(1200, seed=3)
     R = Rotation.from_euler("zyx", [8.0, -4.0, 3.0], degrees=True).as_matrix()
     np.save(tmp_path / "s.npy", source)

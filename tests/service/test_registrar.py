@@ -140,20 +140,20 @@ def test_point_to_plane_refinement_beats_point_to_point_on_independent_samplings
 
 
 def test_refinement_on_more_points_is_more_precise_on_dense_independent_samplings(registrar, monkeypatch):
-    import service.registrar as registrar_module
+    import service.stages.refine as refine_stage
 
     rng = np.random.default_rng(1)
     src, other = ellipsoid_surface(rng, 4000), ellipsoid_surface(rng, 4000)  # two dense samplings
     R = Rotation.from_euler("zyx", [4, -3, 2], degrees=True).as_matrix()
     t = np.array([0.1, -0.05, 0.08])
     tgt = other @ R.T + t + rng.normal(scale=0.003, size=other.shape)
-    sizes, real = [], registrar_module.refine_plane
+    sizes, real = [], refine_stage.refine_plane
 
     def spy(src_r, tgt_r, *args, **kwargs):
         sizes.append((len(src_r), len(tgt_r)))
         return real(src_r, tgt_r, *args, **kwargs)
 
-    monkeypatch.setattr(registrar_module, "refine_plane", spy)
+    monkeypatch.setattr(refine_stage, "refine_plane", spy)
     working = registrar.register(src, tgt, refine="icp-plane")
     more = registrar.register(src, tgt, refine="icp-plane", refine_points=4000)
     assert sizes == [(768, 768), (4000, 4000)]

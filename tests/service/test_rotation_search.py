@@ -212,15 +212,15 @@ GENERAL = bundled_models_dir() / "general"
 
 @pytest.mark.skipif(not (GENERAL / "manifest.json").exists(), reason="bundled model 'general' absent")
 def test_with_a_refinement_general_searches_a_subsample_and_refines_the_full_clouds(monkeypatch) -> None:
-    import service.registrar as registrar_module
+    import service.stages.refine as refine_stage
 
     general = Registrar(GENERAL, threads=2)
     points, keypoints = general.manifest.search_subsample  # the export writes it for independent sampling
     assert (points, keypoints) == (SEARCH_POINTS, SEARCH_KEYPOINTS)
     embedded = spy_on_embedded_sizes(general, monkeypatch)
     refined: list[int] = []
-    real_refine = registrar_module.refine_plane
-    monkeypatch.setattr(registrar_module, "refine_plane", lambda src, *a, **k: refined.append(len(src)) or real_refine(
+    real_refine = refine_stage.refine_plane
+    monkeypatch.setattr(refine_stage, "refine_plane", lambda src, *a, **k: refined.append(len(src)) or real_refine(
         src, *a, **k))  # the kept candidates' short refinements, then the winner's
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(900, 3), asymmetric_blob(700, 4) @ R.T
@@ -260,8 +260,8 @@ def test_rotation_search_rejects_an_unsupported_size(registrar) -> None:
 
 @needs_model
 def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(registrar, monkeypatch) -> None:
-    import service.registrar as registrar_module
     import service.rotation_search as search_module
+    import service.stages.refine as refine_stage
 
     calls: dict[str, int] = {"final_point": 0, "final_plane": 0}
 
@@ -281,13 +281,13 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
     original_many = search_module.icp_many
     monkeypatch.setattr(search_module, "icp_many", short_icps)
     plane_iterations: list[int] = []
-    real_plane = registrar_module.refine_plane
-    monkeypatch.setattr(registrar_module, "icp", counted("final_point", registrar_module.icp))
+    real_plane = refine_stage.refine_plane
+    monkeypatch.setattr(refine_stage, "icp", counted("final_point", refine_stage.icp))
     def plane(*args, **kwargs):
         plane_iterations.append(kwargs["max_iterations"])
         return real_plane(*args, **kwargs)
 
-    monkeypatch.setattr(registrar_module, "refine_plane", counted("final_plane", plane))
+    monkeypatch.setattr(refine_stage, "refine_plane", counted("final_plane", plane))
     R = Rotation.from_euler("y", 120, degrees=True).as_matrix()
     source, target = asymmetric_blob(600, 3), asymmetric_blob(500, 4) @ R.T
     found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
@@ -296,7 +296,7 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
     # then point-to-plane only: a short refinement of each distinct kept candidate (none if only one), the winner's
     assert starts == [24, search_module.SEARCH_KEEP] and calls["final_point"] == 0
     *short, final = plane_iterations
-    assert final == 30 and set(short) <= {registrar_module.CANDIDATE_ITERATIONS}
+    assert final == 30 and set(short) <= {refine_stage.CANDIDATE_ITERATIONS}
     assert len(short) in (0, 2, 3, 4) and calls["final_plane"] == len(short) + 1
     assert "refine" in found.timing_ms and np.isfinite(found.transform).all()
 
@@ -309,10 +309,10 @@ def turned(candidate: SearchCandidate, degrees: float) -> SearchCandidate:
 
 def search_returning(monkeypatch, make_candidates) -> None:
     """Make ``Registrar.register``'s search return ``make_candidates(the real candidates)``."""
-    import service.registrar as registrar_module
+    import service.stages.search as search_stage
 
-    real = registrar_module.search_hypotheses
-    monkeypatch.setattr(registrar_module, "search_hypotheses", lambda *a, **k: make_candidates(real(*a, **k)))
+    real = search_stage.search_hypotheses
+    monkeypatch.setattr(search_stage, "search_hypotheses", lambda *a, **k: make_candidates(real(*a, **k)))
 
 
 @needs_model
@@ -386,16 +386,16 @@ def blob_pair(degrees: float, axis=(0.48, 0.85, -0.21)) -> tuple[np.ndarray, np.
 
 def spy_on_search(monkeypatch) -> list[int]:
     """Count the calls of the rotation search made by ``Registrar.register``."""
-    import service.registrar as registrar_module
+    import service.stages.search as search_stage
 
     calls: list[int] = []
-    real = registrar_module.search_hypotheses
+    real = search_stage.search_hypotheses
 
     def spy(*args, **kwargs):
         calls.append(1)
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(registrar_module, "search_hypotheses", spy)
+    monkeypatch.setattr(search_stage, "search_hypotheses", spy)
     return calls
 
 
@@ -438,11 +438,11 @@ def test_auto_searches_when_the_plain_result_looks_wrong_and_recovers_150_degree
 @needs_model
 def test_auto_never_searches_degenerate_clouds(registrar, monkeypatch) -> None:
     """Collinear points leave the rotation about their line open: no start rotation can fix that."""
-    import service.registrar as registrar_module
+    import service.stages.search as search_stage
 
     line = np.linspace(0.0, 1.0, 200)[:, None] * np.array([1.0, 2.0, 0.5])  # [200, 3]
     calls = spy_on_search(monkeypatch)
-    monkeypatch.setattr(registrar_module, "needs_search", lambda *_: True)  # however the result looks
+    monkeypatch.setattr(search_stage, "needs_search", lambda *_: True)  # however the result looks
     result = registrar.register(line, line + 0.1, refine="icp-plane", rotation_search="auto")
     assert calls == [] and "search" not in result.timing_ms
     assert not result.reliable and any("collinear" in w for w in result.warnings)
@@ -450,15 +450,15 @@ def test_auto_never_searches_degenerate_clouds(registrar, monkeypatch) -> None:
 
 @needs_model
 def test_auto_keeps_the_plain_result_when_it_ranks_before_the_searched_one(registrar, monkeypatch) -> None:
-    import service.registrar as registrar_module
+    import service.stages.search as search_stage
 
-    real = registrar_module.search_hypotheses
+    real = search_stage.search_hypotheses
 
     def wrong_winner(*args, **kwargs):  # the search "finds" a pose 90 degrees off the plain one
         return [turned(real(*args, **kwargs)[0], 90.0)]
 
-    monkeypatch.setattr(registrar_module, "needs_search", lambda *_: True)  # search even a good result
-    monkeypatch.setattr(registrar_module, "search_hypotheses", wrong_winner)
+    monkeypatch.setattr(search_stage, "needs_search", lambda *_: True)  # search even a good result
+    monkeypatch.setattr(search_stage, "search_hypotheses", wrong_winner)
     source, target, _, _ = blob_pair(20.0)
     options = {"working_size": 256, "keypoints": 64, "iterations": 2}
     plain = registrar.register(source, target, **options)
@@ -470,9 +470,9 @@ def test_auto_keeps_the_plain_result_when_it_ranks_before_the_searched_one(regis
 
 @needs_model
 def test_auto_returns_the_better_of_both_by_the_search_ranking(registrar, monkeypatch) -> None:
-    import service.registrar as registrar_module
+    import service.stages.search as search_stage
 
-    monkeypatch.setattr(registrar_module, "needs_search", lambda *_: True)  # search even a good result
+    monkeypatch.setattr(search_stage, "needs_search", lambda *_: True)  # search even a good result
     source, target, _, _ = blob_pair(20.0)
     options = {"working_size": 256, "keypoints": 64, "iterations": 2, "refine": "icp"}
     plain = registrar.register(source, target, **options)

@@ -1,0 +1,41 @@
+"""Input checks shared by the pipeline and the HTTP API: clouds and the initial transform."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.errors import InputError
+
+MIN_POINTS = 32
+
+
+def check_cloud(points, name: str) -> np.ndarray:
+    """``points`` as float64 ``[N, 3]`` with ``N >= MIN_POINTS`` and finite values, or ``InputError``."""
+    arr = np.asarray(points)
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise InputError(f"{name}: expected numbers, got dtype {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[0] == 1:
+        arr = arr[0]
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InputError(f"{name}: expected shape [N, 3], got {list(arr.shape)}")
+    if arr.shape[0] < MIN_POINTS:
+        raise InputError(f"{name}: needs at least {MIN_POINTS} points, got {arr.shape[0]}")
+    arr = arr.astype(np.float64)
+    if not np.isfinite(arr).all():
+        raise InputError(f"{name}: contains NaN or infinite coordinates")
+    if np.abs(arr).max() > np.finfo(np.float32).max:
+        raise InputError(f"{name}: coordinates overflow float32")
+    return arr
+
+
+def check_transform(matrix) -> tuple[np.ndarray, np.ndarray]:
+    """A 4x4 rigid ``src_to_tgt`` guess -> ``(R, t)``; rejects non-rigid or non-finite matrices."""
+    T = np.asarray(matrix, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"initial_transform must be 4x4, got {list(T.shape)}")
+    if not np.isfinite(T).all():
+        raise InputError("initial_transform contains NaN or infinite values")
+    R, t = T[:3, :3], T[:3, 3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise InputError("initial_transform must be rigid: orthonormal rotation with det +1 and last row 0 0 0 1")
+    return R, t

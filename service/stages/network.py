@@ -1,0 +1,30 @@
+"""Stage 4, network: the plain network loop on the normalised working clouds -> one candidate pose."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from service.rotation_search import SearchCandidate
+from service.stages.normalise import Working
+
+if TYPE_CHECKING:
+    from service.registrar import Registrar
+
+
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """Candidate poses between the normalised clouds, best first, and the clouds the network ran on."""
+
+    poses: list[SearchCandidate]
+    net_s: np.ndarray  # [Ns'] the caller's source rows the network ran on
+    net_t: np.ndarray  # [Nt'] the caller's target rows
+
+
+def network(registrar: Registrar, work: Working, iterations: int, keypoints: int,
+            timing: dict[str, float]) -> Candidates:
+    """The network's pose from the identity start (records ``timing`` ``encoder``, ``iterations``, ``svd``)."""
+    net = registrar.run_network(work.src_n, work.tgt_n, iterations, keypoints, timing)
+    return Candidates([SearchCandidate(net, np.eye(3), net.rotation, net.translation)], work.idx_s, work.idx_t)

@@ -1,0 +1,30 @@
+"""The stage functions a :class:`service.registrar.Registrar` runs, as one swappable record.
+
+Replace one (``dataclasses.replace(Stages(), sample=my_sample)``, then ``Registrar(dir, stages=...)``) to insert
+work before or after it -- e.g. a reduction of huge clouds wrapping ``sample`` -- with the same signature.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from service.stages.assess import assess_result
+from service.stages.network import network
+from service.stages.normalise import normalise
+from service.stages.refine import refine
+from service.stages.sample import sample
+from service.stages.search import auto_search, search
+from service.stages.validate import validate
+
+
+@dataclass(frozen=True)
+class Stages:
+    validate: Callable = validate  # (source, target, options, overrides, iterations, keypoints) -> Request
+    sample: Callable = sample  # (Request) -> Sampled
+    normalise: Callable = normalise  # (Sampled, reference_radius) -> Working
+    network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates
+    search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing) -> Candidates
+    refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
+    assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
+    auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing) -> RegistrationResult

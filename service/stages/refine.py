@@ -1,0 +1,61 @@
+"""Stage 5, refine: ICP (point-to-point or point-to-plane) of the network's pose in the caller's units.
+
+With several candidates (the rotation search) each first gets a short refinement -- the refinement's stages with
+at most ``CANDIDATE_ITERATIONS`` updates each -- and they are ranked again (:mod:`service.stages.ranking`); the
+winner gets the full refinement, then ``icp-plane-multistart`` tries turned starts
+(:func:`service.multistart.multistart`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+
+from service.icp import IcpResult, Surface, icp, refine_plane
+from service.multistart import multistart
+from service.options import RegistrationOptions
+from service.stages.normalise import ICP_DISTANCE, Working
+from service.stages.ranking import rank_candidates
+
+CANDIDATE_ITERATIONS = 3  # updates per stage of each search candidate's short refinement
+
+
+@dataclass(frozen=True, eq=False)
+class Refined:
+    rotation: np.ndarray  # [3, 3] final src_to_tgt (caller's units)
+    translation: np.ndarray  # [3]
+    pick: int  # which start won (0 without a search)
+    warnings: tuple[str, ...]  # the refinement's own (e.g. a degenerate system kept the previous pose)
+    ambiguity: str | None  # the candidate ranking's ambiguity warning
+    surface: Surface | None  # the refinement's target surface (icp-plane modes), reused by the assessment
+
+
+def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
+                max_iterations: int, surface: Surface | None) -> IcpResult:
+    """``refine`` (``icp`` or the point-to-plane stages of ``icp-plane*``) of the caller's pose ``R0, t0``."""
+    if refine == "icp":
+        return icp(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
+    return refine_plane(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
+                        target_surface=surface)
+
+
+def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: RegistrationOptions) -> Refined:
+    """The refined pose from the candidate ``starts`` (caller's units, best first); ``refine="none"``: the first."""
+    mode = options.refine_mode
+    if mode == "none":
+        return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
+    scale = work.norm.scale
+    distance = options.icp_max_distance if options.icp_max_distance is not None else ICP_DISTANCE * scale
+    surface = Surface.of(work.tgt_r) if mode != "icp" else None  # one target surface for every stage
+    pick, ambiguity, (R, t) = 0, None, starts[0]
+    if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
+        short = partial(refine_pose, work, refine=mode, distance=distance, max_iterations=CANDIDATE_ITERATIONS,
+                        surface=surface)
+        ranked = rank_candidates(work, starts, short)
+        pick, ambiguity, R, t = ranked.pick, ranked.ambiguity, ranked.rotation, ranked.translation
+    refined = refine_pose(work, R, t, mode, distance, options.icp_max_iterations, surface)
+    if mode == "icp-plane-multistart":
+        refined = multistart(work.src_r, work.tgt_r, refined, scale, distance, options.icp_max_iterations, surface)
+    return Refined(refined.rotation, refined.translation, pick, refined.warnings, ambiguity, surface)

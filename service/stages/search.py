@@ -1,0 +1,89 @@
+"""Stage 4 with ``rotation_search``: the network from many start rotations -> the best few candidate poses;
+and ``rotation_search="auto"``: search only when the plain result looks wrong, keep the better of both."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from functools import partial
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from service.quality import attainable_inlier_ratio, degenerate
+from service.result import RegistrationResult
+from service.rotation_search import distinct_candidates, rank_hypotheses, search_hypotheses
+from service.sampling import evenly_spaced_indices
+from service.stages.network import Candidates
+from service.stages.normalise import INLIER_DISTANCE, Working
+
+if TYPE_CHECKING:
+    from service.registrar import Registrar
+
+# rotation_search="auto" searches when the plain result's inlier ratio is below this share of the ratio a
+# right pose can reach at the target's density (service.quality.attainable_inlier_ratio). Chosen on the
+# bundled `general` model with refine="icp-plane" (docs/ROTATION_SEARCH.md, "The trigger"):
+# right poses reach 0.93-0.98 of it on dense and sparse pairs alike; at 0.8 "auto" matched the former fixed
+# threshold (inlier ratio 0.7) on dense pairs at 45/90/180 deg and on sparse pairs searched 5% instead of 77%
+# of 300 pairs within 45 deg (recall at 5 deg 0.860 vs 0.870), with equal or better recall at 90 and 180 deg.
+# Only the relative rule decides: the former extra "or not reliable" searched 3 more of those 300 pairs
+# (targets too sparse to reach the reliable ratio at all) and made one worse.
+AUTO_SEARCH_RELATIVE_RATIO = 0.8
+
+
+def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iterations: int, keypoints: int,
+           refine: str, timing: dict[str, float]) -> Candidates:
+    """:func:`service.rotation_search.search_hypotheses` from the start rotations ``hypotheses [H, 3, 3]``.
+
+    With a refinement (``refine != "none"``) every hypothesis gets a short point-to-point ICP, a model whose
+    manifest has a ``search`` section searches that many rows spread through each working cloud with at most that
+    many keypoints, and every distinct kept candidate is returned (the refine stage ranks them again); without
+    one, only the search's best. Records ``timing["encoder"]`` (the target, embedded once) and the search's keys.
+    """
+    short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
+    tic = time.perf_counter()
+    sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
+    subsample = registrar.manifest.search_subsample
+    if short_icp and subsample:  # the refinement restores the precision: search a subsample
+        sub_s, sub_t = (evenly_spaced_indices(len(c), subsample[0]) for c in (work.src_n, work.tgt_n))
+        keypoints = min(keypoints, subsample[1], len(sub_s), len(sub_t))
+    src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
+    target = registrar.embed_cloud(tgt_n)  # once for every hypothesis
+    timing["encoder"] = 1000 * (time.perf_counter() - tic)
+    candidates = search_hypotheses(
+        partial(registrar.start_network, target=target), src_n, tgt_n, hypotheses, iterations, keypoints,
+        short_icp, INLIER_DISTANCE, timing,
+    )
+    # with a refinement every distinct kept candidate is refined and the refined poses ranked again
+    candidates = distinct_candidates(candidates) if short_icp else candidates[:1]
+    return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])
+
+
+def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:
+    """Whether ``rotation_search="auto"`` searches after the plain ``result``: its inlier ratio is below
+    ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio`` (:func:`service.quality.attainable_inlier_ratio`
+    of the working target). The registrar never searches degenerate clouds (:func:`service.quality.degenerate`)."""
+    return result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
+
+
+def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: Working,
+                plain: RegistrationResult, hypotheses: np.ndarray, timing: dict[str, float]) -> RegistrationResult:
+    """``plain`` unless it looks wrong (:func:`needs_search`) on non-degenerate clouds; then ``solve(hypotheses,
+    {})`` (the pipeline with the search) and whichever final pose :func:`rank_hypotheses` ranks first (the plain
+    one on a tie), with the plain pass's stage timings. Records ``timing`` ``search`` (the whole second pass)
+    and ``search_per_hypothesis`` when it searched."""
+    if (degenerate(work.src_w) or degenerate(work.tgt_w)
+            or not needs_search(plain, attainable_inlier_ratio(work.tgt_w, work.inlier_distance))):
+        return plain
+    started = time.perf_counter()
+    searched = solve(hypotheses, {})
+    rotations = np.stack([plain.rotation, searched.rotation])  # [2, 3, 3] plain first: it wins ties
+    translations = np.stack([plain.translation, searched.translation])  # [2, 3]
+    order = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations, work.inlier_distance)[0]
+    result = plain
+    if order[0] == 1:  # the search's winner fits better; keep the plain pass's stage timings
+        searched.timing_ms = timing
+        result = searched
+    timing["search"] = 1000 * (time.perf_counter() - started)
+    timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
+    return result

@@ -1,0 +1,100 @@
+"""The stages through a real model: network, search, assess, auto search, and a replaced stage."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from shapes import asymmetric_blob
+
+from service.manifest import bundled_models_dir
+from service.options import RegistrationOptions
+from service.registrar import Registrar
+from service.result import RegistrationResult
+from service.stages.assess import assess_result
+from service.stages.network import network
+from service.stages.normalise import normalise, to_caller
+from service.stages.pipeline import Stages
+from service.stages.refine import refine
+from service.stages.sample import sample
+from service.stages.search import auto_search, search
+from service.stages.validate import validate
+
+BUNDLED = bundled_models_dir() / "clean"
+pytestmark = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'clean' absent")
+R_TRUE = Rotation.from_euler("zyx", [20.0, -10.0, 5.0], degrees=True).as_matrix()
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    return Registrar(BUNDLED, threads=1)
+
+
+def prepared(registrar, points: int = 600, **overrides):
+    src = asymmetric_blob(points, 0)
+    request = validate(src, src @ R_TRUE.T + 0.1, None, {"working_size": 256, "keypoints": 64, **overrides},
+                       registrar.default_iterations, registrar.default_keypoints)
+    return request, normalise(sample(request), registrar.reference_radius)
+
+
+def test_the_stages_by_hand_give_registers_result(registrar) -> None:
+    request, work = prepared(registrar, refine="icp-plane", return_iterations=True)
+    timing: dict[str, float] = {}
+    found = network(registrar, work, request.iterations, request.keypoints, timing)
+    assert len(found.poses) == 1 and set(timing) == {"encoder", "iterations", "svd"}
+    refined = refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], request.options)
+    result = assess_result(work, found, refined, request.iterations, True, timing)
+    whole = registrar.register(request.src, request.tgt, request.options)
+    np.testing.assert_array_equal(result.transform, whole.transform)
+    np.testing.assert_array_equal(result.source_index, whole.source_index)
+    assert (result.inlier_ratio, result.reliable, result.warnings) == (whole.inlier_ratio, whole.reliable,
+                                                                         whole.warnings)
+    assert len(result.iteration_poses) == request.iterations and "postprocess" in result.timing_ms
+
+
+def test_search_returns_distinct_candidates_with_a_refinement_and_one_without(registrar) -> None:
+    request, work = prepared(registrar, rotation_search=True)
+    timing: dict[str, float] = {}
+    one = search(registrar, work, request.hypotheses, 2, 64, "none", timing)
+    assert len(one.poses) == 1 and {"encoder", "search", "search_per_hypothesis"} <= set(timing)
+    several = search(registrar, work, request.hypotheses, 2, 64, "icp-plane", {})
+    assert 1 <= len(several.poses) <= 4 and len(several.net_s) == len(work.idx_s)  # `clean`: the full clouds
+
+
+def test_auto_search_returns_a_good_plain_result_without_solving_again(registrar) -> None:
+    request, work = prepared(registrar, refine="icp-plane")
+    plain = registrar.solve(work, request, None, {})
+    assert plain.inlier_ratio > 0.9
+
+    def solve(hypotheses, timing):
+        raise AssertionError("searched a good result")
+
+    timing: dict[str, float] = {}
+    assert auto_search(solve, work, plain, request.hypotheses, timing) is plain and timing == {}
+
+
+def test_auto_search_keeps_the_better_of_both(registrar) -> None:
+    # dense enough that a right pose's inlier ratio is attainable (service.quality.attainable_inlier_ratio)
+    request, work = prepared(registrar, 3000, refine="icp-plane", rotation_search="auto", working_size=768)
+    good = registrar.solve(work, request, None, {})
+    bad = dataclasses.replace(good, inlier_ratio=0.1, rotation=R_TRUE.T @ R_TRUE.T, timing_ms={})
+    timing = {"encoder": 1.0}
+    kept = auto_search(lambda hypotheses, t: good, work, bad, request.hypotheses, timing)
+    assert kept is good and kept.timing_ms is timing and timing["search_per_hypothesis"] == timing["search"] / 24
+
+
+def test_a_replaced_stage_runs_in_its_place(registrar) -> None:
+    seen = []
+
+    def spying_sample(request):
+        seen.append(request.options.working_size)
+        return sample(request)
+
+    spied = Registrar(BUNDLED, threads=1, warmup=False, stages=dataclasses.replace(Stages(), sample=spying_sample))
+    src = asymmetric_blob(600, 0)
+    options = RegistrationOptions(working_size=256, keypoints=64, refine="icp")
+    result = spied.register(src, src @ R_TRUE.T, options)
+    assert seen == [256] and isinstance(result, RegistrationResult)
+    np.testing.assert_array_equal(result.transform, registrar.register(src, src @ R_TRUE.T, options).transform)

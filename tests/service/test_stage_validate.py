@@ -1,0 +1,70 @@
+"""Stages validate, sample and normalise on their own: checked request -> working clouds -> normalised clouds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from shapes import bumpy_ellipsoid
+
+from service.errors import InputError
+from service.options import RegistrationOptions
+from service.stages.normalise import INLIER_DISTANCE, normalise, to_caller
+from service.stages.sample import sample
+from service.stages.validate import validate
+
+
+def request(src=None, tgt=None, options=None, **overrides):
+    src = bumpy_ellipsoid(900) if src is None else src
+    tgt = bumpy_ellipsoid(700, seed=1) if tgt is None else tgt
+    return validate(src, tgt, options, overrides, 3, 128)
+
+
+def test_validate_checks_the_clouds_before_the_options() -> None:
+    with pytest.raises(InputError, match="source: needs at least 32 points"):
+        request(src=np.zeros((5, 3)), refine="plane")
+    with pytest.raises(InputError, match="target: expected shape"):
+        request(tgt=np.zeros((50, 2)), refine="plane")
+    with pytest.raises(InputError, match="refine must be one of"):
+        request(refine="plane")
+
+
+def test_validate_fills_in_the_model_defaults_the_guess_and_the_search_starts() -> None:
+    guess = np.eye(4)
+    guess[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    guess[:3, 3] = [1.0, 2.0, 3.0]
+    r = request(options=RegistrationOptions(iterations=2), initial_transform=guess, rotation_search="auto")
+    assert (r.iterations, r.keypoints, r.options.iterations) == (2, 128, 2)
+    np.testing.assert_array_equal(r.R_init, guess[:3, :3])
+    np.testing.assert_array_equal(r.t_init, guess[:3, 3])
+    assert r.hypotheses is not None and r.hypotheses.shape == (24, 3, 3)
+    plain = request()
+    assert plain.hypotheses is None and np.array_equal(plain.R_init, np.eye(3)) and r.src.dtype == np.float64
+
+
+def test_sample_takes_working_rows_and_refinement_clouds() -> None:
+    s = sample(request(working_size=256, refine="icp-plane"))
+    assert (len(s.idx_s), len(s.idx_t)) == (256, 256) and s.tgt_r is s.tgt_w  # the refinement's: the working ones
+    np.testing.assert_array_equal(s.src_r, s.src[s.idx_s])
+    more = sample(request(working_size=256, refine="icp-plane", refine_points=600))
+    assert 256 < len(more.src_r) <= 600 and 256 < len(more.tgt_r) <= 600  # one per voxel: about 600
+    unrefined = sample(request(working_size=256, refine_points=600))  # no refinement: nothing to use them for
+    assert unrefined.tgt_r is unrefined.tgt_w
+
+
+def test_sample_moves_the_source_by_the_initial_guess() -> None:
+    guess = np.eye(4)
+    guess[:3, 3] = [5.0, 0.0, 0.0]
+    s = sample(request(initial_transform=guess))
+    np.testing.assert_allclose(s.src_w, s.src[s.idx_s] + [5.0, 0.0, 0.0])
+
+
+def test_normalise_gives_float32_clouds_and_poses_back_in_the_callers_frame() -> None:
+    guess = np.eye(4)
+    guess[:3, 3] = [0.5, -0.2, 0.1]
+    work = normalise(sample(request(initial_transform=guess, working_size=256)), 1.0)
+    assert work.src_n.dtype == work.tgt_n.dtype == np.float32 and work.src_n.shape == (256, 3)
+    assert work.inlier_distance == INLIER_DISTANCE * work.norm.scale
+    R, t = to_caller(work, np.eye(3), np.zeros(3))  # the identity between normalised clouds
+    moved = work.src[work.idx_s] @ R.T + t  # [Ns, 3]
+    np.testing.assert_allclose(work.norm.apply_tgt(moved), work.norm.apply_src(work.src_w), atol=1e-9)
