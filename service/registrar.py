@@ -310,6 +310,7 @@ class Registrar:
                                   timing)
         started = time.perf_counter()
         refined = stages.refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], o)
+        refined = stages.slide(work, refined, o)
         if o.refine_mode != "none":
             timing["refine"] = 1000 * (time.perf_counter() - started)
         return stages.assess(work, found, refined, request.iterations, o.return_iterations, timing)

@@ -10,12 +10,11 @@ from enum import Enum
 
 # What the HTTP API and `mfgnet register` run when a request names no rotation search (the server's
 # MFGNET_DEFAULT_ROTATION_SEARCH), applied only to refined requests (unrefined network poses of independent
-# scans never fit tightly, so "auto" would search every one). "off" by default: "auto" registers clouds at
-# any relative orientation and costs nothing where the plain result fits, but two partial views from
-# different viewpoints fit poorly even when right: it searched 12 of 30 such pairs (it fixed 2), mean time
-# per registration 549 vs 92 ms (docs/DESIGN.md, "Default rotation search").
-# Operators whose clouds come at any orientation set MFGNET_DEFAULT_ROTATION_SEARCH=auto.
-SERVICE_DEFAULT_ROTATION_SEARCH = "off"
+# scans never fit tightly, so "auto" would search every one). "auto": users' scans arrive at any relative
+# orientation, and the search runs only when the plain result fits worse than the clouds' density allows
+# (docs/decisions/0007-real-scan-defaults.md). Operators who need the lowest latency on clouds known to be
+# within ~45 deg of each other set MFGNET_DEFAULT_ROTATION_SEARCH=off.
+SERVICE_DEFAULT_ROTATION_SEARCH = "auto"
 MODE_VALUES: dict[str, bool | str] = {"off": False, "on": True, "auto": "auto"}
 
 

@@ -58,8 +58,8 @@ class Settings(BaseSettings):
         description="Rotation search for a request that names none, applied only when the request is refined: off "
         "(the lowest latency; clouds within ~45 deg of each other or with an initial_transform); auto = search "
         "over 24 start rotations when the plain result fits worse than the target's density allows (clouds at "
-        "any relative orientation; about 0.1-0.2 s more for the requests that search, which include many partial "
-        "views with little overlap); on = always.",
+        "any relative orientation; the default. About 0.1-0.3 s more for the requests that search, which include "
+        "partial views with little overlap); on = always.",
     )
     strict_readiness: bool = Field(
         True, description="Ready only if every discovered model loaded (Triton's --strict-readiness)."

@@ -30,6 +30,8 @@ class Working:
     tgt_n: np.ndarray  # [Nt, 3] float32, normalised
     R_init: np.ndarray  # [3, 3] initial guess
     t_init: np.ndarray  # [3]
+    src_e: np.ndarray  # [Ne, 3] the caller's source after the entry reduction (caller's units)
+    tgt_e: np.ndarray  # [Me, 3] the target after the entry reduction
 
     @property
     def inlier_distance(self) -> float:
@@ -43,7 +45,7 @@ def normalise(sampled: Sampled, reference_radius: float) -> Working:
     norm = Normalization.fit(s.src_w, s.tgt_w, reference_radius)
     src_n, tgt_n = norm.apply_src(s.src_w).astype(np.float32), norm.apply_tgt(s.tgt_w).astype(np.float32)
     return Working(s.src, s.idx_s, s.idx_t, s.src_w, s.tgt_w, s.src_r, s.tgt_r, norm, src_n, tgt_n, s.R_init,
-                   s.t_init)
+                   s.t_init, s.src_e, s.tgt_e)
 
 
 def to_caller(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

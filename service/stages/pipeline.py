@@ -15,6 +15,7 @@ from service.stages.normalise import normalise
 from service.stages.refine import refine
 from service.stages.sample import sample
 from service.stages.search import auto_search, search
+from service.stages.slide import slide
 from service.stages.validate import validate
 
 
@@ -26,5 +27,6 @@ class Stages:
     network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates
     search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing) -> Candidates
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
+    slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
     auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing) -> RegistrationResult

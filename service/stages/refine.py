@@ -41,13 +41,18 @@ def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, dist
                         target_surface=surface)
 
 
+def icp_distance(work: Working, options: RegistrationOptions) -> float:
+    """The refinement's correspondence distance in the caller's units: ``icp_max_distance`` or ``ICP_DISTANCE``."""
+    return options.icp_max_distance if options.icp_max_distance is not None else ICP_DISTANCE * work.norm.scale
+
+
 def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: RegistrationOptions) -> Refined:
     """The refined pose from the candidate ``starts`` (caller's units, best first); ``refine="none"``: the first."""
     mode = options.refine_mode
     if mode == "none":
         return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
     scale = work.norm.scale
-    distance = options.icp_max_distance if options.icp_max_distance is not None else ICP_DISTANCE * scale
+    distance = icp_distance(work, options)
     surface = Surface.of(work.tgt_r) if mode != "icp" else None  # one target surface for every stage
     pick, ambiguity, (R, t) = 0, None, starts[0]
     if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one

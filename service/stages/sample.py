@@ -1,4 +1,9 @@
-"""Stage 2, sample: the working clouds the network sees and the clouds the refinement moves."""
+"""Stage 2, sample: the working clouds the network sees and the clouds the refinement moves.
+
+Clouds above :data:`service.reduction.ENTRY_LIMIT` points are first reduced to about that many
+(:func:`service.reduction.entry_indices`), so that every later stage costs the same on a 2,000,000-point scan as on
+a 100,000-point one; every returned row still indexes the caller's arrays.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.reduction import entry_indices
 from service.sampling import resample_indices, spread_indices
 from service.stages.validate import Request
 
@@ -21,6 +27,8 @@ class Sampled:
     tgt_r: np.ndarray  # [Mr, 3] the target points it aligns them with
     R_init: np.ndarray  # [3, 3] initial guess
     t_init: np.ndarray  # [3]
+    src_e: np.ndarray  # [Ne, 3] the caller's source after the entry reduction (all of it up to ENTRY_LIMIT)
+    tgt_e: np.ndarray  # [Me, 3] the target after the entry reduction
 
 
 def sample(request: Request) -> Sampled:
@@ -28,12 +36,20 @@ def sample(request: Request) -> Sampled:
     with ``drop_isolated``); the refinement's clouds are the working ones unless ``refine_points`` asks for more."""
     o = request.options
     src, tgt = request.src, request.tgt
-    src_moved = src @ request.R_init.T + request.t_init  # [N, 3] source in the initial guess's frame
-    idx_s = resample_indices(src_moved, o.working_size, o.drop_isolated)  # [Ns] into the caller's source
-    idx_t = resample_indices(tgt, o.working_size, o.drop_isolated)  # [Nt]
-    src_w, tgt_w = src_moved[idx_s], tgt[idx_t]
+    keep_s, keep_t = entry_rows(src), entry_rows(tgt)  # [Ne], [Me] rows of the caller's clouds
+    src_e, tgt_e = src[keep_s], tgt[keep_t]  # [Ne, 3], [Me, 3]
+    src_moved = src_e @ request.R_init.T + request.t_init  # [Ne, 3] source in the initial guess's frame
+    local_s = resample_indices(src_moved, o.working_size, o.drop_isolated)  # [Ns] rows of src_e
+    idx_s, idx_t = keep_s[local_s], keep_t[resample_indices(tgt_e, o.working_size, o.drop_isolated)]  # caller's rows
+    src_w, tgt_w = src_moved[local_s], tgt[idx_t]
     src_r, tgt_r = src[idx_s], tgt_w
     if o.refine_points is not None and o.refine_mode != "none":
-        src_r = src[spread_indices(src_moved, int(o.refine_points), o.drop_isolated)]  # [Nr, 3]
-        tgt_r = tgt[spread_indices(tgt, int(o.refine_points), o.drop_isolated)]  # [Mr, 3]
-    return Sampled(src, idx_s, idx_t, src_w, tgt_w, src_r, tgt_r, request.R_init, request.t_init)
+        src_r = src_e[spread_indices(src_moved, int(o.refine_points), o.drop_isolated)]  # [Nr, 3]
+        tgt_r = tgt_e[spread_indices(tgt_e, int(o.refine_points), o.drop_isolated)]  # [Mr, 3]
+    return Sampled(src, idx_s, idx_t, src_w, tgt_w, src_r, tgt_r, request.R_init, request.t_init, src_e, tgt_e)
+
+
+def entry_rows(points: np.ndarray) -> np.ndarray:
+    """Rows of ``points [N, 3]`` kept on entry: all of them up to ``ENTRY_LIMIT``, else about that many."""
+    kept = entry_indices(points)
+    return np.arange(len(points)) if kept is None else kept

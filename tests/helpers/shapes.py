@@ -98,3 +98,19 @@ def ellipsoid_and_box(
     face = rng.integers(0, 3, size=m)
     box[np.arange(m), face] = np.sign(rng.normal(size=m)) * half
     return np.concatenate([ellipsoid, box * np.asarray(box_scale) + np.asarray(offset)])
+
+
+def room_scene(rng: np.random.Generator, count: int = 6000, boxes: int = 8) -> np.ndarray:
+    """A box-shaped room (floor and three walls, 4 x 3 x 2.5 m) with a table: points on its surfaces."""
+    floor = np.c_[rng.uniform(0, 4, count), rng.uniform(0, 3, count), np.zeros(count)]
+    wall_x = np.c_[np.zeros(count), rng.uniform(0, 3, count), rng.uniform(0, 2.5, count)]
+    wall_y = np.c_[rng.uniform(0, 4, count), np.zeros(count), rng.uniform(0, 2.5, count)]
+    wall_x2 = np.c_[np.full(count, 4.0), rng.uniform(0, 3, count), rng.uniform(0, 2.5, count)]
+    furniture = []  # the surfaces of boxes, which tell one place along the walls from another
+    for _ in range(boxes):
+        corner, size = rng.uniform([0.2, 0.2, 0.0], [3.4, 2.4, 0.5]), rng.uniform(0.2, 0.8, 3)
+        box = corner + rng.uniform(0, 1, (count // 4, 3)) * size
+        side = rng.integers(0, 3, len(box))
+        box[np.arange(len(box)), side] = corner[side] + size[side] * rng.integers(0, 2, len(box))
+        furniture.append(box)
+    return np.concatenate([floor, wall_x, wall_y, wall_x2, *furniture])

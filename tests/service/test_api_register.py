@@ -327,33 +327,34 @@ def test_openapi_documents_rotation_search_auto(client):
     assert InferParameters.model_validate({"rotation_search": "auto"}).rotation_search == "auto"  # OIP parameters
 
 
-def test_the_operator_can_make_auto_the_default_for_refined_requests(client):
-    """Pair 9 is rotated by 129 deg: plainly it ends 179 deg off; on a server whose
-    MFGNET_DEFAULT_ROTATION_SEARCH is auto a request naming none searches and ends 0.0 deg off; ``null`` equals
-    leaving the option out; ``false`` and ``refine: none`` do not search. The default server does not."""
+def test_auto_is_the_default_for_refined_requests_and_the_operator_can_turn_it_off(client):
+    """Pair 9 is rotated by 129 deg: plainly it ends 179 deg off; by default (MFGNET_DEFAULT_ROTATION_SEARCH auto)
+    a request naming none searches and ends 0.0 deg off; ``null`` equals leaving the option out; ``false`` and
+    ``refine: none`` do not search. A server whose default is off does not search."""
     pair = modelnet_pair(9, max_angle_deg=180.0)
     assert rotation_error_deg(np.eye(3), pair.rotation) > 120
-    default = client.post("/v1/register", json=pair_json(pair)).json()
+    off_server = start_thread_server(isolated_settings(models=[MODEL], default_rotation_search="off"))
+    try:
+        with off_server.client() as off_client:
+            default = off_client.post("/v1/register", json=pair_json(pair)).json()
+    finally:
+        off_server.stop()
     assert "search" not in default["timing_ms"]
     assert rotation_error_deg(np.array(default["rotation"]), pair.rotation) > 30
-    server = start_thread_server(isolated_settings(models=[MODEL], default_rotation_search="auto"))
-    try:
-        with server.client() as auto_client:
-            body = auto_client.post("/v1/register", json=pair_json(pair)).json()
-            assert body["timing_ms"]["search"] > 0, body
-            assert rotation_error_deg(np.array(body["rotation"]), pair.rotation) < 1.0  # measured 0.0 deg
-            explicit_null = auto_client.post("/v1/register", json=pair_json(pair, rotation_search=None)).json()
-            assert explicit_null["transform"] == body["transform"]
-            plain = auto_client.post("/v1/register", json=pair_json(pair, rotation_search=False)).json()
-            assert "search" not in plain["timing_ms"] and plain["transform"] == default["transform"]
-            unrefined = auto_client.post("/v1/register", json=pair_json(pair, refine="none")).json()
-            assert "search" not in unrefined["timing_ms"] and "refine" not in unrefined["timing_ms"]
-            response = auto_client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair))
-            assert response.status_code == 200, response.text
-            assert response.json()["parameters"]["search_ms"] > 0
-            np.testing.assert_array_equal(oip_transform(response), np.array(body["transform"], np.float32))
-    finally:
-        server.stop()
+    auto_client = client  # the suite's server runs the default settings
+    body = auto_client.post("/v1/register", json=pair_json(pair)).json()
+    assert body["timing_ms"]["search"] > 0, body
+    assert rotation_error_deg(np.array(body["rotation"]), pair.rotation) < 1.0  # measured 0.0 deg
+    explicit_null = auto_client.post("/v1/register", json=pair_json(pair, rotation_search=None)).json()
+    assert explicit_null["transform"] == body["transform"]
+    plain = auto_client.post("/v1/register", json=pair_json(pair, rotation_search=False)).json()
+    assert "search" not in plain["timing_ms"] and plain["transform"] == default["transform"]
+    unrefined = auto_client.post("/v1/register", json=pair_json(pair, refine="none")).json()
+    assert "search" not in unrefined["timing_ms"] and "refine" not in unrefined["timing_ms"]
+    response = auto_client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair))
+    assert response.status_code == 200, response.text
+    assert response.json()["parameters"]["search_ms"] > 0
+    np.testing.assert_array_equal(oip_transform(response), np.array(body["transform"], np.float32))
 
 
 def test_an_unknown_default_rotation_search_is_refused_at_start():

@@ -88,8 +88,9 @@ def test_rotation_search_options_map_to_the_registrar_argument():
 def test_the_services_default_search_applies_only_to_refined_requests():
     from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotation_search
 
-    assert SERVICE_DEFAULT_ROTATION_SEARCH == "off"
-    assert service_rotation_search(None, "icp-plane") is False
+    assert SERVICE_DEFAULT_ROTATION_SEARCH == "auto"  # clouds at any relative orientation (decision 0007)
+    assert service_rotation_search(None, "icp-plane") == "auto"
+    assert service_rotation_search(None, "icp-plane", "off") is False
     assert service_rotation_search(None, "icp-plane", "auto") == "auto"
     assert service_rotation_search(None, "icp", "auto") == "auto"
     assert service_rotation_search(None, "none", "auto") is False  # unrefined poses never fit tightly: no search

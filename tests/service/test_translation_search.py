@@ -2,23 +2,9 @@
 
 import numpy as np
 
+from shapes import room_scene
+
 from service.translation_search import occupancy, translation_candidates
-
-
-def room(rng: np.random.Generator, count: int = 6000) -> np.ndarray:
-    """A box-shaped room (floor and three walls, 4 x 3 x 2.5 m) with a table: points on its surfaces."""
-    floor = np.c_[rng.uniform(0, 4, count), rng.uniform(0, 3, count), np.zeros(count)]
-    wall_x = np.c_[np.zeros(count), rng.uniform(0, 3, count), rng.uniform(0, 2.5, count)]
-    wall_y = np.c_[rng.uniform(0, 4, count), np.zeros(count), rng.uniform(0, 2.5, count)]
-    wall_x2 = np.c_[np.full(count, 4.0), rng.uniform(0, 3, count), rng.uniform(0, 2.5, count)]
-    boxes = []  # furniture: the surfaces of eight boxes, which tell one place along the walls from another
-    for _ in range(8):
-        corner, size = rng.uniform([0.2, 0.2, 0.0], [3.4, 2.4, 0.5]), rng.uniform(0.2, 0.8, 3)
-        box = corner + rng.uniform(0, 1, (count // 4, 3)) * size
-        side = rng.integers(0, 3, len(box))
-        box[np.arange(len(box)), side] = corner[side] + size[side] * rng.integers(0, 2, len(box))
-        boxes.append(box)
-    return np.concatenate([floor, wall_x, wall_y, wall_x2, *boxes])
 
 
 def test_occupancy_marks_the_cells_points_fall_in():
@@ -28,7 +14,7 @@ def test_occupancy_marks_the_cells_points_fall_in():
 
 def test_finds_the_translation_of_overlapping_partial_views():
     rng = np.random.default_rng(0)
-    scene = room(rng)
+    scene = room_scene(rng)
     source = scene[scene[:, 0] < 3.2]  # two partial views that overlap on x in [0.8, 3.2]
     target = scene[scene[:, 0] > 0.8]
     true_t = np.array([0.7, -0.4, 0.2])
@@ -43,13 +29,13 @@ def test_finds_the_translation_of_overlapping_partial_views():
 
 def test_identity_when_clouds_coincide():
     rng = np.random.default_rng(1)
-    scene = room(rng, 2000)
+    scene = room_scene(rng, 2000)
     assert np.abs(translation_candidates(scene, scene)[0]).max() < 1e-9
 
 
 def test_candidates_are_distinct_basins():
     rng = np.random.default_rng(2)
-    scene = room(rng, 2000)
+    scene = room_scene(rng, 2000)
     candidates = translation_candidates(scene, scene + np.array([0.3, 0.0, 0.0]), count=4)
     cell = 4.3 / 32
     gaps = np.abs(candidates[:, None] - candidates[None]).max(-1) + np.eye(len(candidates)) * 99

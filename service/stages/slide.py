@@ -1,0 +1,52 @@
+"""Stage 5b, slide check: other translations for the refined rotation when the refined pose fits poorly.
+
+On room-sized fragments the rotation is often right while the translation is metres off: with the rotation
+fixed, the clouds slid along walls and floors into a wrong local fit. When the refined pose's inlier ratio is
+below ``SLIDE_TRIGGER`` of what the target's density allows, the occupancy cross-correlation of
+:mod:`service.translation_search` proposes the translations that overlay the turned source on the target best;
+each gets the search candidates' short refinement, they are ranked with the current pose by their fit on the
+working clouds (the current pose wins ties), and a new winner gets the full refinement.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import numpy as np
+
+from service.options import RegistrationOptions
+from service.quality import attainable_inlier_ratio
+from service.rotation_search import rank_hypotheses
+from service.stages.normalise import Working
+from service.stages.ranking import rank_candidates
+from service.stages.refine import CANDIDATE_ITERATIONS, Refined, icp_distance, refine_pose
+from service.translation_search import translation_candidates
+
+SLIDE_TRIGGER = 0.8  # share of the attainable inlier ratio below which the slide check runs
+
+
+def fits_poorly(work: Working, R: np.ndarray, t: np.ndarray, trigger: float = SLIDE_TRIGGER) -> bool:
+    """Whether the caller's pose ``R, t`` overlays fewer working source points on the target than ``trigger``
+    times the share a right pose reaches at the target's density (:func:`service.quality.attainable_inlier_ratio`)."""
+    ratio = rank_hypotheses(work.src[work.idx_s], work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
+    return ratio < trigger * attainable_inlier_ratio(work.tgt_w, work.inlier_distance)
+
+
+def slide(work: Working, refined: Refined, options: RegistrationOptions, trigger: float = SLIDE_TRIGGER) -> Refined:
+    """``refined`` unless it fits poorly (:func:`fits_poorly` at ``trigger``) and one of the candidate translations
+    for its rotation fits better."""
+    mode = options.refine_mode
+    if mode == "none" or not fits_poorly(work, refined.rotation, refined.translation, trigger):
+        return refined
+    R, t, distance = refined.rotation, refined.translation, icp_distance(work, options)
+    short = partial(refine_pose, work, refine=mode, distance=distance, max_iterations=CANDIDATE_ITERATIONS,
+                    surface=refined.surface)
+    moved = work.src_e @ R.T  # [Ne, 3] the caller's source turned by R
+    starts = [(R, t)] + [(R, shift) for shift in translation_candidates(moved, work.tgt_e)]
+    ranked = rank_candidates(work, starts, short)
+    if ranked.pick == 0:
+        return refined
+    full = refine_pose(work, ranked.rotation, ranked.translation, mode, distance, options.icp_max_iterations,
+                       refined.surface)
+    return dataclasses.replace(refined, rotation=full.rotation, translation=full.translation, warnings=full.warnings)
