@@ -79,7 +79,9 @@ def train(
     weight_decay: float = 1e-3,
     seed: int = 0,
     resume: Annotated[bool, typer.Option(help="continue from OUT/last.pt")] = False,
-    init: Annotated[str | None, typer.Option(help="initial weights (fine-tuning)")] = None,
+    init: Annotated[
+        str | None, typer.Option("--init", "--init-from", help="initial weights (fine-tuning): a checkpoint file")
+    ] = None,
     patience: int = 10,
     max_minutes: float | None = None,
     checkpoint_minutes: float = 5.0,
@@ -101,12 +103,19 @@ def train(
     recipe: Annotated[
         str | None,
         typer.Option(help="per-batch random training pairs: 'general' (independent sampling, noise, overlap, "
-                     "density mismatch; --max-angle sets its rotation range); validation keeps --setting"),
+                     "density mismatch; --max-angle sets its rotation range; validation keeps --setting) or "
+                     "'real' (general at any orientation with simulated sensor pairs, model.sensor_pairs; "
+                     "validation on sensor pairs)"),
     ] = None,
     views_share: Annotated[
         float | None,
         typer.Option(help="with --recipe: share of batches cut as two camera views (range scans, model.views), 0-1"),
     ] = None,
+    sensor_share: Annotated[
+        float | None,
+        typer.Option(help="with --recipe: share of batches of simulated sensor pairs (model.sensor_pairs), 0-1"),
+    ] = None,
+    val_pairs: Annotated[int, typer.Option(min=1, help="validation pairs per epoch (held-out training shapes)")] = 256,
     data_workers: Annotated[
         int, typer.Option(min=1, help="on CUDA: processes making batches ahead of the GPU (views cost the most)")
     ] = 1,
@@ -116,11 +125,11 @@ def train(
     from model.train import train as run
 
     setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, None, outliers)  # fail early
-    if views_share is not None and recipe is None:
-        raise typer.BadParameter("--views-share needs --recipe")
+    if (views_share is not None or sensor_share is not None) and recipe is None:
+        raise typer.BadParameter("--views-share and --sensor-share need --recipe")
     if recipe is not None:
         try:
-            recipe_draw(recipe, max_angle, outliers, views_share)  # fail early, on the recipe's own checks
+            recipe_draw(recipe, max_angle, outliers, views_share, sensor_share)  # fail early, on the recipe's checks
         except ValueError as err:
             raise typer.BadParameter(str(err)) from err
     opts = TrainOptions(
@@ -130,7 +139,7 @@ def train(
         config={"iterations": iterations, "share_weights": share_weights}, source_points=source_points,
         target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle, outliers=outliers,
         max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe, views_share=views_share,
-        workers=data_workers,
+        sensor_share=sensor_share, val_pairs=val_pairs, workers=data_workers,
     )
     best = run(opts)
     typer.echo(f"best checkpoint: {best}")

@@ -418,7 +418,9 @@ ProtocolDraw = Callable[[np.random.Generator], PairProtocol]
 class TrainPairStream:
     """Endless random training pairs from a shape array, one fresh pair per shape per epoch.
 
-    ``protocol`` is fixed, or a function drawing one protocol per batch (e.g. :func:`model.recipes.general_draw`).
+    ``protocol`` is fixed, or a function drawing one protocol per batch (e.g. :func:`model.recipes.recipe_draw`):
+    a :class:`PairProtocol`, or any object with ``make_pairs(shapes, rng)``
+    (:class:`model.sensor_pairs.SensorProtocol`).
     """
 
     def __init__(self, shapes: np.ndarray, protocol: PairProtocol | ProtocolDraw, seed: int):
@@ -442,4 +444,8 @@ class TrainPairStream:
                 continue
             rng = np.random.default_rng([self.seed, epoch, b])
             protocol = self.protocol if isinstance(self.protocol, PairProtocol) else self.protocol(rng)
-            yield make_pairs(self.shapes[order[b * batch_size : (b + 1) * batch_size]], protocol, rng)
+            shapes = self.shapes[order[b * batch_size : (b + 1) * batch_size]]
+            if isinstance(protocol, PairProtocol):
+                yield make_pairs(shapes, protocol, rng)
+            else:  # another kind of pair (e.g. model.sensor_pairs.SensorProtocol) makes its own
+                yield protocol.make_pairs(shapes, rng)

@@ -5,7 +5,12 @@ same points. ``general`` instead draws, for every batch, a protocol in which the
 sampled independently (disjoint halves, or two random subsets with noise so that no point has an
 exact partner), with a random overlap, noise level and density mismatch, so that the network
 learns to match surfaces rather than identical points. With ``views_share`` some batches are cut as
-two camera views (:mod:`model.views`: only the surface facing each camera), as range scans are.
+two camera views (:mod:`model.views`: only the surface facing each camera), as range scans are. With
+``sensor_share`` some batches are simulated sensor pairs instead (:mod:`model.sensor_pairs`: range-image density,
+range noise, flying pixels, room-like scenes of several objects on planes, any orientation).
+
+``real`` is ``general`` at any orientation (``max_angle_deg`` 180) with ``sensor_share`` 0.6: the recipe for models
+meant for real scans (issue 28), fine-tuned from ``general``.
 """
 
 from __future__ import annotations
@@ -16,8 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from model.data import NOISE_CLIP_SIGMAS, PairProtocol
+from model.sensor_pairs import KINDS, SensorProtocol
+from model.sensor_sim import SensorEffects
 
-RECIPES = ("general",)
+RECIPES = ("general", "real")
 MIN_CLOUD_POINTS = 128  # training samples 64 keypoints with a partner + 64 without per cloud (model.config)
 
 
@@ -36,8 +43,17 @@ class GeneralRecipe:
     views_share: float = 0.0  # batches cut as camera views (model.views: range scans) instead of the far-point crop
     view_keep: tuple[float, float] = (0.2, 0.3)  # views: fraction of a cloud's points kept (a view shows ~1/3)
     view_angle_deg: float = 60.0  # views: the target's camera turned from the source's by up to this angle
+    sensor_share: float = 0.0  # batches of simulated sensor pairs (model.sensor_pairs) instead of the above
+    sensor_points: tuple[int, int] = (384, 768)  # sensor pairs: points per cloud, drawn per batch and cloud
+    sensor_scene_share: float = 0.5  # sensor pairs: share of room-like scenes (the rest: single objects)
+    sensor_spread_share: float = 0.5  # sensor pairs: share sampled as the runtime does (else a random subset)
+    sensor_view_angle_deg: float = 75.0  # sensor object pairs: largest angle between the two cameras
+    sensor_noise: tuple[float, float] = (0.0005, 0.004)  # range noise sigma / distance
+    sensor_distance_power: tuple[float, float] = (0.0, 2.0)  # density ~ distance^-power (0: fused, 2: one image)
+    sensor_mixed: tuple[float, float] = (0.0, 0.03)  # flying points at depth discontinuities / kept points
+    sensor_half_angle_deg: tuple[float, float] = (25.0, 35.0)  # scenes: the cameras' cone of view
 
-    def draw(self, rng: np.random.Generator) -> PairProtocol:
+    def draw(self, rng: np.random.Generator) -> PairProtocol | SensorProtocol:
         """One batch's protocol."""
         disjoint = rng.random() < self.disjoint_share
         points = 512 if disjoint else 768
@@ -62,22 +78,50 @@ class GeneralRecipe:
             **counts, **views,
         )
         protocol.check()
+        if self.sensor_share > 0 and rng.random() < self.sensor_share:  # drawn last: general's draws unchanged
+            return self.draw_sensor(rng)
+        return protocol
+
+    def draw_sensor(self, rng: np.random.Generator) -> SensorProtocol:
+        """One batch's sensor-pair protocol."""
+        scene = rng.random() < self.sensor_scene_share
+        effects = SensorEffects(
+            half_angle_deg=float(rng.uniform(*self.sensor_half_angle_deg)) if scene else 180.0,
+            distance_power=float(rng.uniform(*self.sensor_distance_power)),
+            relative_noise=float(rng.uniform(*self.sensor_noise)),
+            mixed_share=float(rng.uniform(*self.sensor_mixed)),
+        )
+        low, high = self.sensor_points
+        protocol = SensorProtocol(
+            kind=KINDS[int(scene)], source_points=int(rng.integers(low, high + 1)),
+            target_points=int(rng.integers(low, high + 1)), max_angle_deg=self.max_angle_deg,
+            view_angle_deg=self.sensor_view_angle_deg,
+            sampling="spread" if rng.random() < self.sensor_spread_share else "random", effects=effects,
+        )
+        protocol.check()
         return protocol
 
 
+REAL = GeneralRecipe(max_angle_deg=180.0, sensor_share=0.6)
+
+
 def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None,
-                views_share: float | None = None):
+                views_share: float | None = None, sensor_share: float | None = None):
     """The per-batch protocol draw of a named recipe (``max_angle_deg`` overrides its rotation range,
-    ``outliers`` its largest share of scattered points, ``views_share`` its share of camera-view batches)."""
-    if name != "general":
+    ``outliers`` its largest share of scattered points, ``views_share`` its share of camera-view batches,
+    ``sensor_share`` its share of simulated sensor batches)."""
+    if name not in RECIPES:
         raise ValueError(f"unknown recipe {name!r}; expected one of {RECIPES}")
-    if views_share is not None and not 0.0 <= views_share <= 1.0:
-        raise ValueError(f"views_share must be in 0..1, got {views_share}")
-    recipe = GeneralRecipe()
+    for label, share in (("views_share", views_share), ("sensor_share", sensor_share)):
+        if share is not None and not 0.0 <= share <= 1.0:
+            raise ValueError(f"{label} must be in 0..1, got {share}")
+    recipe = REAL if name == "real" else GeneralRecipe()
     if max_angle_deg is not None:
         recipe = dataclasses.replace(recipe, max_angle_deg=float(max_angle_deg))
     if outliers is not None:
         recipe = dataclasses.replace(recipe, outliers=float(outliers))
     if views_share is not None:
         recipe = dataclasses.replace(recipe, views_share=float(views_share))
+    if sensor_share is not None:
+        recipe = dataclasses.replace(recipe, sensor_share=float(sensor_share))
     return recipe.draw

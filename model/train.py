@@ -21,6 +21,7 @@ from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
 from model.network import MFGNet
 from model.recipes import recipe_draw
+from model.sensor_pairs import validation_pairs as sensor_validation_pairs
 
 
 @dataclass
@@ -54,6 +55,7 @@ class TrainOptions:
     outliers: float | None = None  # share of scattered points per cloud (with a recipe: the largest drawn)
     recipe: str | None = None  # per-batch random protocols for training (model.recipes); validation keeps the setting's
     views_share: float | None = None  # with a recipe: its share of batches cut as camera views (model.views)
+    sensor_share: float | None = None  # with a recipe: its share of simulated sensor batches (model.sensor_pairs)
     prefetch: bool | None = None  # make batches in worker processes while the model trains; None: on for CUDA
     workers: int = 1  # with prefetch: processes making batches (camera-view pairs take ~4 ms each to make)
 
@@ -113,10 +115,14 @@ def train(opts: TrainOptions) -> Path:
     protocol = opts.pair_protocol()
     shapes, _ = load_shapes("train", opts.setting, opts.data)
     train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
-    draw = recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share) if opts.recipe else protocol
+    draw = (recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share, opts.sensor_share)
+            if opts.recipe else protocol)
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
-    val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
+    if opts.recipe == "real":  # checkpoints chosen on simulated sensor pairs at any orientation
+        val_pairs = sensor_validation_pairs(val_shapes, opts.seed)
+    else:
+        val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
 
     last_path, best_path, log_path = out / "last.pt", out / "best.pt", out / "log.jsonl"
     state = {"epoch": 0, "batch": 0, "best": float("inf"), "best_epoch": -1, "stale": 0}
