@@ -25,6 +25,9 @@ import numpy as np
 REGISTER_PATH = "/v1/register"
 MODELS_PATH = "/v1/models"
 READY_PATH = "/v2/health/ready"
+# Above this magnitude (caller's units) float32 rounds coordinates by more than ~1/1000 of a unit, so binary
+# uploads of arrays are sent recentred by a shared offset and the pose is mapped back (shared_offset).
+LARGE_COORDINATE = 1.0e4
 
 
 class MfgnetError(Exception):
@@ -96,7 +99,9 @@ class MfgnetClient:
             refine_points: points per cloud the refinement uses (``None``: the network's working clouds).
             drop_isolated: ``False`` keeps isolated points as sampling candidates (``None``: the server's, true).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
-                the options as form fields (smaller and faster than JSON for large clouds).
+                the options as form fields (smaller and faster than JSON for large clouds). Coordinates
+                beyond ``LARGE_COORDINATE`` (e.g. UTM) are first moved by one shared offset
+                (:func:`shared_offset`), and the returned pose is moved back: it is in the caller's frame.
 
         Raises:
             MfgnetError: the server refused the request or could not be reached.
@@ -115,9 +120,15 @@ class MfgnetClient:
         }
         options = {key: value for key, value in options.items() if value is not None}
         if binary or _is_path(source) or _is_path(target):
+            offset = None if _is_path(source) or _is_path(target) else shared_offset(source, target)
+            if offset is not None:  # float32 would round these coordinates: send both clouds recentred
+                source, target = np.asarray(source, np.float64) - offset, np.asarray(target, np.float64) - offset
+                if "initial_transform" in options:
+                    options["initial_transform"] = recentred_transform(options["initial_transform"], offset)
             files = {name: _upload(name, cloud) for name, cloud in (("source", source), ("target", target))}
             form = {key: _form_value(value) for key, value in options.items()}
-            return self._request("POST", REGISTER_PATH, data=form, files=files)
+            response = self._request("POST", REGISTER_PATH, data=form, files=files)
+            return response if offset is None else pose_in_caller_frame(response, offset)
         body = {"source": _as_list(source), "target": _as_list(target), **options}
         return self._request("POST", REGISTER_PATH, json=body)
 
@@ -180,6 +191,35 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
     if R.shape != (3, 3) or t.shape != (3,):
         raise ValueError(f"rotation must be 3x3 and translation length 3, got {R.shape} and {t.shape}")
     return R, t
+
+
+def shared_offset(source, target) -> np.ndarray | None:
+    """``None`` when every coordinate of both clouds is within ``LARGE_COORDINATE``, else one offset ``[3]``
+    (the source's centroid, rounded to whole units) that both clouds are moved by before float32."""
+    src, tgt = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    if max(np.abs(src).max(initial=0.0), np.abs(tgt).max(initial=0.0)) <= LARGE_COORDINATE:
+        return None
+    return np.round(src.reshape(-1, 3).mean(0))
+
+
+def recentred_transform(transform, offset: np.ndarray) -> list:
+    """A caller-frame ``src_to_tgt`` 4x4 as the same motion between the clouds moved by ``-offset``."""
+    T = np.array(transform, dtype=np.float64)  # [4, 4]
+    T[:3, 3] += T[:3, :3] @ offset - offset
+    return T.tolist()
+
+
+def pose_in_caller_frame(response: dict, offset: np.ndarray) -> dict:
+    """A response for clouds moved by ``-offset``, with its poses (final and per iteration) moved back:
+    ``t = t' + offset - R offset``; rotations and every other field are the same in both frames."""
+    from service.pose_json import pose_fields
+
+    R, t = pose_from_response(response)
+    response.update(pose_fields(R, t + offset - R @ offset))
+    for pose in response.get("iteration_poses") or []:
+        R_i = np.asarray(pose["rotation"], np.float64)
+        pose["translation"] = (np.asarray(pose["translation"], np.float64) + offset - R_i @ offset).tolist()
+    return response
 
 
 def _as_list(points) -> list:

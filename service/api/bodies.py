@@ -302,7 +302,7 @@ def register_pair_from_form(form: RegisterForm, max_points: int) -> Pair:
         if "initial_transform" in fields:
             try:
                 fields["initial_transform"] = json.loads(fields["initial_transform"])
-            except ValueError:  # JSONDecodeError, or an integer literal too long to convert
+            except (ValueError, RecursionError):  # bad JSON, an integer literal too long, or nested too deep
                 raise APIError(422, "invalid request: initial_transform: expected a JSON 4x4 array") from None
         try:
             options = RegisterOptions.model_validate(fields)

@@ -1,7 +1,7 @@
 """LAS and LAZ with ``laspy`` (LAZ through its ``lazrs`` backend): scaled x, y, z in float64.
 
 LAS stores integers with a scale and an offset, often UTM coordinates of millions of metres;
-they are returned in float64, unrounded (see :mod:`service.formats.frame` for float32 use).
+they are returned in float64, unrounded (the registrar centres each cloud before its float32 stages).
 """
 
 from __future__ import annotations

@@ -461,6 +461,6 @@ def test_train_command_rejects_an_unknown_recipe(tmp_path) -> None:
     result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), "--recipe", "paper"])
     assert result.exit_code != 0 and "unknown recipe" in result.output
     result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), "--views-share", "0.5"])
-    assert result.exit_code != 0 and "--views-share needs --recipe" in result.output
+    assert result.exit_code != 0 and "--views-share and --sensor-share need --recipe" in result.output
     result = CliRunner().invoke(app, ["train", "--out", str(tmp_path / "run"), "--data-workers", "0"])
     assert result.exit_code != 0 and "--data-workers" in result.output

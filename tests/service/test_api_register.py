@@ -463,3 +463,14 @@ def test_a_weakly_constrained_pose_is_returned_but_not_reliable(client):
     body = response.json()
     assert body["quality"]["stability"] < 0.01 and body["quality"]["reliable"] is False
     assert any(w.startswith("weakly constrained: a turn about the axis") for w in body["warnings"])
+
+
+def test_a_deeply_nested_initial_transform_in_a_form_is_a_422(client):
+    """A form field nested past Python's recursion limit is refused like any bad JSON, never a 500."""
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(64, 3)).astype(np.float32)
+    buffer = io.BytesIO()
+    np.save(buffer, cloud)
+    files = {"source": ("s.npy", buffer.getvalue()), "target": ("t.npy", buffer.getvalue())}
+    response = client.post("/v1/register", files=files, data={"initial_transform": "[" * 30_000 + "]" * 30_000})
+    assert_error(response, 422, "initial_transform")

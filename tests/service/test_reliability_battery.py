@@ -464,7 +464,7 @@ def test_oip_ignores_unknown_fields_and_parameters(targets):
     """OIP lets clients add fields and parameters; /v1 refuses unknown fields (typos like ``iteration``)."""
     request = oip(parameters={**CHEAP, "priority": 3}, extension={"trace": True})
     obj = json.loads(request["content"])
-    obj["inputs"][0]["parameters"] = {"binary_data_size": 0}
+    obj["inputs"][0]["parameters"] = {"colour_space": "sRGB"}  # binary_data_size is no longer unknown: OIP binary
     response = targets["main"].client.post(INFER, content=raw_json(obj), headers=request["headers"])
     assert response.status_code == 200, response.text
     transform = next(o for o in response.json()["outputs"] if o["name"] == "TRANSFORM")["data"]

@@ -1,14 +1,16 @@
 """The browser page: ``GET /`` (static files from ``service/web``), ``POST /v1/register/view`` (a registration
 plus decimated display clouds) and ``POST /v1/register/aligned`` (the source moved by a pose, as binary PLY).
 
-Uploads may be in any format :func:`service.pointcloud_io.parse_points` reads; the file name's extension is
-passed along as its hint. Display clouds are float32 little-endian ``[n, 3]`` rows, base64 in the JSON, at most
-:data:`DISPLAY_CAP` points per cloud (a seeded random subset when a cloud has more).
+Uploads go through the reader and limits of ``POST /v1/register`` (:func:`service.api.bodies.decode_upload`: any
+format of :mod:`service.formats`, found from the content, up to ``max_file_points`` per cloud). Display clouds
+are float32 little-endian ``[n, 3]`` rows, base64 in the JSON, at most :data:`DISPLAY_CAP` points per cloud (a
+seeded random subset when a cloud has more).
 """
 
 from __future__ import annotations
 
 import base64
+import io
 import json
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -18,19 +20,18 @@ import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
-from pydantic import BaseModel, Field, ValidationError
+from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
-from service.api.errors import APIError, error_docs, from_pydantic
+from service.api.errors import APIError, error_docs
 from service.api.responses import RenderedJSON
 from service.api.routes.register import _MULTIPART_SCHEMA
 from service.api.runner import register_response
-from service.api.schemas import RegisterOptions, RegisterResponse
+from service.api.schemas import RegisterResponse
 from service.errors import InputError
-from service.pointcloud_io import PointCloudFormatError, parse_points
 from service.registrar import check_transform
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
@@ -83,29 +84,6 @@ async def read_upload(request: Request, file_fields: tuple[str, ...]) -> Upload:
         await form.close()
 
 
-def decode_cloud(field: str, upload: tuple[str, bytes], max_points: int) -> np.ndarray:
-    """An uploaded point-cloud file -> float64 ``[N, 3]``; 400 naming the file when it cannot be read."""
-    filename, data = upload
-    name = PurePath(filename).name or field
-    try:
-        points = parse_points(data, PurePath(name).suffix, name=f"{field} ({name})")  # [N, 3] float32
-    except PointCloudFormatError as exc:
-        raise APIError(400, str(exc)) from None
-    if len(points) > max_points:
-        raise bodies.too_many_points(field, len(points), max_points)
-    return points.astype(np.float64)
-
-
-def parse_options(fields: dict[str, str]) -> RegisterOptions:
-    values: dict[str, Any] = dict(fields)
-    if "initial_transform" in values:
-        values["initial_transform"] = _json_field(values["initial_transform"], "initial_transform")
-    try:
-        return RegisterOptions.model_validate(values)
-    except ValidationError as exc:
-        raise from_pydantic(exc) from None
-
-
 def _json_field(text: str, name: str) -> Any:
     try:
         return json.loads(text)
@@ -136,12 +114,12 @@ class DisplayCloud(BaseModel):
 class Display(BaseModel):
     cap: int = Field(description="Most points per cloud sent for display.")
     source: DisplayCloud = Field(description="The source as uploaded (before the pose).")
-    target: DisplayCloud
+    target: DisplayCloud = Field(description="The target as uploaded.")
 
 
 class ViewResponse(BaseModel):
     result: RegisterResponse = Field(description="Exactly what POST /v1/register answers for the same upload.")
-    display: Display
+    display: Display = Field(description="Decimated copies of both clouds for drawing (caller's units and frame).")
 
 
 _ALIGNED_SCHEMA = {
@@ -171,15 +149,14 @@ def _multipart(schema: dict) -> dict:
 )
 async def register_view(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
+    bodies.require_media_type(request, bodies.MULTIPART)
     with runner.admit() as slot:
-        upload = await read_upload(request, UPLOAD_FIELDS)
+        form = await bodies.read_register_form(request)  # the same reader and limits as POST /v1/register
 
         def work():
-            options = parse_options(upload.fields)
-            source, target = (decode_cloud(f, upload.files.pop(f), settings.max_points) for f in UPLOAD_FIELDS)
-            pair = bodies.Pair(options, source, target)
+            pair = bodies.register_pair_from_form(form, settings.max_file_points)
             entry, result = runner.register_one(pair)
-            display = {"cap": DISPLAY_CAP, "source": display_cloud(source), "target": display_cloud(target)}
+            display = {"cap": DISPLAY_CAP, "source": display_cloud(pair.source), "target": display_cloud(pair.target)}
             return entry, pair, result, display
 
         (entry, pair, result, display), queue_ms = await runner.run(slot, work)
@@ -210,7 +187,9 @@ async def register_aligned(request: Request) -> Response:
     except (ValueError, TypeError, OverflowError):  # not a numeric array
         raise APIError(422, "invalid request: transform: expected a JSON 4x4 array of numbers") from None
     def work() -> bytes:
-        source = decode_cloud("source", upload.files["source"], settings.max_points)  # [N, 3]
+        name, data = upload.files["source"]
+        source = bodies.decode_upload(bodies.Upload("source", name[:200], io.BytesIO(data)),
+                                      settings.max_file_points)  # [N, 3] float64, the shared reader
         with np.errstate(over="ignore"):
             aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
         if not np.isfinite(aligned).all():
