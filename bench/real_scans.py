@@ -9,6 +9,7 @@ clouds in the same run::
     python -m bench.real_scans                      # the whole set; a per-pair table and the totals
     python -m bench.real_scans --json results/general-0.2.0/real_scans.json
     python -m bench.real_scans --pairs dragon_24_0 --no-fpfh --scales 1
+    python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
 
 Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
 given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
@@ -109,11 +110,14 @@ def npy_bytes(points: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def register_http(client: httpx.Client, url: str, source: np.ndarray, target: np.ndarray) -> dict:
-    """One ``POST /v1/register`` of two ``.npy`` uploads and no option: pose, ``reliable``, client seconds."""
+def register_http(client: httpx.Client, url: str, source: np.ndarray, target: np.ndarray,
+                  options: dict | None = None) -> dict:
+    """One ``POST /v1/register`` of two ``.npy`` uploads (and ``options`` as form fields; none by default):
+    pose, ``reliable``, client seconds."""
     began = time.perf_counter()
     files = {"source": ("source.npy", npy_bytes(source)), "target": ("target.npy", npy_bytes(target))}
-    response = client.post(url + "/v1/register", files=files)
+    fields = {key: json.dumps(value) if not isinstance(value, str) else value for key, value in (options or {}).items()}
+    response = client.post(url + "/v1/register", files=files, data=fields)
     seconds = time.perf_counter() - began
     if response.status_code != 200:
         return {"status": response.status_code, "error": response.text[:200], "seconds": seconds}
@@ -166,12 +170,12 @@ def judged(case: Case, rotation: np.ndarray | None, translation: np.ndarray | No
             "success": r_err < max_deg and t_err < max_t}
 
 
-def run_service(cases: list[Case], url: str) -> list[dict]:
+def run_service(cases: list[Case], url: str, options: dict | None = None) -> list[dict]:
     rows = []
     with httpx.Client(timeout=300) as client:
-        register_http(client, url, cases[0].source, cases[0].target)  # warm-up, untimed
+        register_http(client, url, cases[0].source, cases[0].target, options)  # warm-up, untimed
         for case in cases:
-            out = register_http(client, url, case.source, case.target)
+            out = register_http(client, url, case.source, case.target, options)
             row = judged(case, out.get("rotation"), out.get("translation"))
             row.update(seconds=round(out["seconds"], 4), reliable=out.get("reliable"),
                        status=out.get("status", 200), warnings=out.get("warnings", []))
@@ -246,6 +250,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
     parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems)")
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
+    parser.add_argument("--options", type=json.loads, default={},
+                        help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
     directory = data_dir(args.directory)
@@ -253,15 +259,15 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
     cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs)
     if args.url:
-        service = run_service(cases, args.url)
+        service = run_service(cases, args.url, args.options)
     else:
         with Server() as server:
-            service = run_service(cases, server.url)
+            service = run_service(cases, server.url, args.options)
     fpfh = None if args.no_fpfh else run_fpfh(cases, args.seed)
     print_table(cases, service, fpfh)
     rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
              **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
-    report = {"benchmark": "real_scans", "seed": args.seed, "machine": machine_info(2),
+    report = {"benchmark": "real_scans", "seed": args.seed, "options": args.options, "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
     emit_report({"totals": report["totals"]}, None)
     if args.json:

@@ -1,0 +1,3 @@
+"""Shared settings of the ``scripts`` tests."""
+
+from torch_threads import single_torch_thread  # noqa: F401  (autouse: one torch thread)
