@@ -246,6 +246,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("directory", nargs="?", help="the real-scan set (default: $MFGNET_REAL_DATA or ../shared)")
     parser.add_argument("--url", help="an already running server (default: start one on 127.0.0.1)")
+    parser.add_argument("--model-dir", type=Path,
+                        help="serve only this exported model (its folder name) instead of the bundled default")
     parser.add_argument("--seed", type=int, default=0, help="seed of the turns and of RANSAC")
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
     parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems)")
@@ -261,7 +263,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.url:
         service = run_service(cases, args.url, args.options)
     else:
-        with Server() as server:
+        dirs, name = (str(args.model_dir), args.model_dir.name) if args.model_dir else (None, None)
+        with Server(model_dirs=dirs, default_model=name) as server:
             service = run_service(cases, server.url, args.options)
     fpfh = None if args.no_fpfh else run_fpfh(cases, args.seed)
     print_table(cases, service, fpfh)
