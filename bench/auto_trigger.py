@@ -93,7 +93,7 @@ def report(results: dict, pair_files: list[Path], model: str) -> dict:
         both_ok = np.array([_right(r["auto_always"]) for r in rows])
         ms_plain, ms_both = np.array([r["ms_plain"] for r in rows]), np.array([r["ms_both"] for r in rows])
         attainable = attainable_ratios(path, reference)
-        # "or unreliable": the rule before 2026-11-26 07:25 UTC also searched every unreliable result
+        # "or unreliable": the earlier rule also searched every unreliable result (decisions/0002)
         triggers = {f"fixed {f} or unreliable": ~reliable | (ratio < f) for f in FIXED}
         triggers |= {f"relative {a} or unreliable": ~reliable | (ratio < a * attainable) for a in RELATIVE}
         triggers |= {f"relative {a}": ratio < a * attainable for a in RELATIVE}  # the registrar's rule

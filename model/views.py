@@ -5,7 +5,7 @@ sampled surface with the hidden point removal operator of Katz, Tal and Basri (S
 camera, each point is flipped about a large sphere (``p -> p + 2 (R - |p|) p / |p|``, ``R = 10^gamma max |p|``);
 the points whose flips are vertices of the convex hull of the flips and the camera are visible. ``gamma = 2``
 keeps 21-49% of a 2,048-point sample of a dense ModelNet40 test shape (unit ball) seen from 3 units off its
-origin (median 32%; 34 shapes, 2026-11-27).
+origin (median 32%; 34 shapes).
 
 :func:`view_crop_indices` gives each cloud of a batch its own camera: ``keep`` of its visible points at random,
 and where a view shows fewer than ``keep`` points, the hidden points nearest the camera fill the rest (counts stay

@@ -20,7 +20,7 @@ from service.kdtree import KDTree
 
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
 # ... and at least this share of the target's attainable inlier ratio. Measured with `general` + icp-plane on
-# 14 pair sets (2026-11-26, docs/RELIABILITY.md): one of 1,311 right poses fell below it (0.41, a partial view),
+# 14 pair sets (docs/decisions/0003): one of 1,311 right poses fell below it (0.41, a partial view),
 # while the wrong poses called reliable fell from 385 to 287 of 509 (dense pairs at 180 deg: 67 -> 26 of 83).
 RELIABLE_RELATIVE_RATIO = 0.6
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"

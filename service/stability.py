@@ -28,13 +28,13 @@ from service.kdtree import KDTree
 from service.normalization import rms_radius
 
 # A pose whose smallest eigenvalue is below this is weakly constrained (not reliable). Chosen on 300 sparse and
-# 170 dense seeded test pairs with `general` + icp-plane (2026-11-26, docs/RELIABILITY.md): it flagged 26 of the
+# 170 dense seeded test pairs with `general` + icp-plane (docs/decisions/0003): it flagged 26 of the
 # 40 sparse misses, nearly all of which the fit-based rule called reliable, but 8 of 260 right sparse poses and 1 of
 # 169 right dense ones.
 WEAK_EIGENVALUE = 0.01
 # ... and moving the paired points one target sample spacing along the weak motion raises their RMS distance to the
 # target by less than this factor (the samples do not pin it either). Between independent samples 0.85-1.11x on the
-# sparse and dense test pairs; between the paper protocol's shared points 1.9x and more (same pairs, 2026-11-26).
+# sparse and dense test pairs; between the paper protocol's shared points 1.9x and more (same pairs).
 PINNED_RATIO = 1.5
 ROTATION_SHARE = 0.7  # a weak motion whose eigenvector is at least this much rotation is named a turn
 TRANSLATION_SHARE = 0.7  # ... at least this much translation a slide; in between, a turn and slide together
