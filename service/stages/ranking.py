@@ -16,6 +16,22 @@ import numpy as np
 from service.icp import IcpResult
 from service.rotation_search import ambiguity_warning, rank_hypotheses
 from service.stages.normalise import Working
+from service.translation_search import translation_candidates
+
+CANDIDATE_SHIFTS = 3  # translations tried with each rotation search candidate's rotation
+
+
+def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], count: int = CANDIDATE_SHIFTS
+                      ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[int]]:
+    """``starts`` (caller's poses), then each start's rotation at its ``count`` best candidate translations
+    (:func:`service.translation_search.translation_candidates`), and for every returned pose the index of the start
+    it came from. The rotation search's candidates often hold the right rotation at a wrong translation."""
+    poses, origin = list(starts), list(range(len(starts)))
+    for index, (R, _) in enumerate(starts):
+        shifts = translation_candidates(work.src_e @ R.T, work.tgt_e, count)  # [C, 3]
+        poses += [(R, shift) for shift in shifts]
+        origin += [index] * len(shifts)
+    return poses, origin
 
 
 @dataclass(frozen=True, eq=False)

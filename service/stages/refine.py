@@ -1,6 +1,7 @@
 """Stage 5, refine: ICP (point-to-point or point-to-plane) of the network's pose in the caller's units.
 
-With several candidates (the rotation search) each first gets a short refinement -- the refinement's stages with
+With several candidates (the rotation search) each, and each one's rotation at its best candidate translations
+(:func:`service.stages.ranking.with_translations`), first gets a short refinement -- the refinement's stages with
 at most ``CANDIDATE_ITERATIONS`` updates each -- and they are ranked again (:mod:`service.stages.ranking`); the
 winner gets the full refinement, then ``icp-plane-multistart`` tries turned starts
 (:func:`service.multistart.multistart`).
@@ -17,7 +18,7 @@ from service.icp import IcpResult, Surface, icp, refine_plane
 from service.multistart import multistart
 from service.options import RegistrationOptions
 from service.stages.normalise import ICP_DISTANCE, Working
-from service.stages.ranking import rank_candidates
+from service.stages.ranking import rank_candidates, with_translations
 
 CANDIDATE_ITERATIONS = 3  # updates per stage of each search candidate's short refinement
 
@@ -58,8 +59,9 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
     if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
         short = partial(refine_pose, work, refine=mode, distance=distance, max_iterations=CANDIDATE_ITERATIONS,
                         surface=surface)
-        ranked = rank_candidates(work, starts, short)
-        pick, ambiguity, R, t = ranked.pick, ranked.ambiguity, ranked.rotation, ranked.translation
+        poses, origin = with_translations(work, starts)  # each candidate's rotation at other translations too
+        ranked = rank_candidates(work, poses, short)
+        pick, ambiguity, R, t = origin[ranked.pick], ranked.ambiguity, ranked.rotation, ranked.translation
     refined = refine_pose(work, R, t, mode, distance, options.icp_max_iterations, surface)
     if mode == "icp-plane-multistart":
         refined = multistart(work.src_r, work.tgt_r, refined, scale, distance, options.icp_max_iterations, surface)

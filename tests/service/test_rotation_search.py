@@ -262,6 +262,7 @@ def test_rotation_search_rejects_an_unsupported_size(registrar) -> None:
 def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(registrar, monkeypatch) -> None:
     import service.rotation_search as search_module
     import service.stages.refine as refine_stage
+    from service.stages.ranking import CANDIDATE_SHIFTS
 
     calls: dict[str, int] = {"final_point": 0, "final_plane": 0}
 
@@ -293,11 +294,13 @@ def test_rotation_search_with_icp_plane_refines_the_winner_point_to_plane(regist
     found = registrar.register(source, target, rotation_search=True, refine="icp-plane", working_size=256,
                                keypoints=64, iterations=2)
     # short ICPs stay point-to-point: all 24 starts after the first iteration, the SEARCH_KEEP kept after the last;
-    # then point-to-plane only: a short refinement of each distinct kept candidate (none if only one), the winner's
+    # then point-to-plane only: a short refinement of each distinct kept candidate and of its rotation at up to
+    # CANDIDATE_SHIFTS other translations (none if only one candidate), then the winner's full one
     assert starts == [24, search_module.SEARCH_KEEP] and calls["final_point"] == 0
     *short, final = plane_iterations
     assert final == 30 and set(short) <= {refine_stage.CANDIDATE_ITERATIONS}
-    assert len(short) in (0, 2, 3, 4) and calls["final_plane"] == len(short) + 1
+    assert len(short) == 0 or 2 <= len(short) <= search_module.SEARCH_KEEP * (1 + CANDIDATE_SHIFTS)
+    assert calls["final_plane"] == len(short) + 1
     assert "refine" in found.timing_ms and np.isfinite(found.transform).all()
 
 

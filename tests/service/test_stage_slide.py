@@ -14,6 +14,7 @@ from shapes import room_scene
 from service.registrar import Registrar
 from service.stages.normalise import normalise
 from service.stages.pipeline import Stages
+from service.stages.ranking import with_translations
 from service.stages.refine import refine
 from service.stages.sample import sample
 from service.stages.slide import fits_poorly, slide
@@ -72,3 +73,13 @@ def test_without_a_refinement_nothing_is_tried():
     options = validate(source, target, None, {"refine": "none"}, 3, 128).options
     refined = refine(work, [(np.eye(3), np.zeros(3))], options)
     assert slide(work, refined, options) is refined
+
+
+def test_each_search_candidate_is_also_tried_at_its_best_translations():
+    work, _ = working()
+    starts = [(R_TRUE, T_TRUE), (np.eye(3), np.zeros(3))]
+    poses, origin = with_translations(work, starts, count=2)
+    assert poses[:2] == starts and origin[:2] == [0, 1]
+    assert len(poses) == len(origin) <= 2 + 2 * 2
+    for (R, _), index in zip(poses[2:], origin[2:], strict=True):
+        assert R is starts[index][0]  # the candidate's own rotation, at another translation
