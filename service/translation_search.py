@@ -44,7 +44,9 @@ def translation_candidates(moved_source: np.ndarray, target: np.ndarray, count: 
     fixed, moving = occupancy(target, low, cell, shape), occupancy(moved_source, low, cell, shape)
     # score[d] = sum_x fixed[x + d] * moving[x]: the cells both occupy after moving the source by d cells
     score = fft.irfftn(fft.rfftn(fixed) * np.conj(fft.rfftn(moving)), s=shape)
-    order = np.argsort(score.ravel())[::-1][: 50 * count]
+    flat = score.ravel()
+    top = np.argpartition(flat, -50 * count)[-50 * count:] if flat.size > 50 * count else np.arange(flat.size)
+    order = top[np.argsort(flat[top], kind="stable")[::-1]]  # [P] the best-scoring shifts, best first
     shifts = np.stack(np.unravel_index(order, shape), axis=1)  # [P, 3] cell offsets, wrapped
     shifts = np.where(shifts > np.asarray(shape) // 2, shifts - np.asarray(shape), shifts)
     kept: list[np.ndarray] = []

@@ -18,7 +18,7 @@ from service.rotation_search import ambiguity_warning, rank_hypotheses
 from service.stages.normalise import Working
 from service.translation_search import translation_candidates
 
-CANDIDATE_SHIFTS = 3  # translations tried with each rotation search candidate's rotation
+CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
 
 
 def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], count: int = CANDIDATE_SHIFTS
@@ -27,8 +27,9 @@ def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]]
     (:func:`service.translation_search.translation_candidates`), and for every returned pose the index of the start
     it came from. The rotation search's candidates often hold the right rotation at a wrong translation."""
     poses, origin = list(starts), list(range(len(starts)))
-    for index, (R, _) in enumerate(starts):
+    for index, (R, t) in enumerate(starts):
         shifts = translation_candidates(work.src_e @ R.T, work.tgt_e, count)  # [C, 3]
+        shifts = shifts[np.linalg.norm(shifts - t, axis=1) > work.inlier_distance]  # not the start's own place
         poses += [(R, shift) for shift in shifts]
         origin += [index] * len(shifts)
     return poses, origin
