@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 import pytest
-from latency_stages import measure  # beside this file (pytest puts the folder on sys.path)
+from latency_stages import measure  # tests/helpers (on sys.path through pyproject pythonpath)
 
 from service.manifest import bundled_models_dir
 

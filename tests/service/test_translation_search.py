@@ -1,7 +1,6 @@
 """service.translation_search: occupancy cross-correlation finds the translation of a slid partial view."""
 
 import numpy as np
-
 from shapes import room_scene
 
 from service.translation_search import occupancy, translation_candidates

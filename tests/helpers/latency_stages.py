@@ -3,7 +3,7 @@ run. Absolute times vary between machines; these ratios much less.
 
 Refresh the committed baseline (on a quiet machine) with::
 
-    python tests/latency/latency_stages.py --write tests/latency/baseline.json
+    python tests/helpers/latency_stages.py --write tests/latency/baseline.json
 """
 
 from __future__ import annotations

@@ -12,11 +12,11 @@ throughput, and the server's RSS (``/proc/<pid>/status``) before and after the l
 
 Against a running server::
 
-    python tests/service/load_driver.py --url http://127.0.0.1:8080 --pid 1234 --seconds 60 --concurrency 8
+    python tests/helpers/load_driver.py --url http://127.0.0.1:8080 --pid 1234 --seconds 60 --concurrency 8
 
 or let it start one (a verified copy of the bundled model; ``MFGNET_*`` settings from the flags)::
 
-    python tests/service/load_driver.py --seconds 180 --concurrency 16 --max-concurrency 2 --max-queue 4 \\
+    python tests/helpers/load_driver.py --seconds 180 --concurrency 16 --max-concurrency 2 --max-queue 4 \\
         --out load.json
 """
 
