@@ -250,25 +250,27 @@ class RegisterForm:
             upload.file.close()
 
 
-async def read_register_form(request: Request) -> RegisterForm:
-    """Read the upload (bounded by max_upload_bytes upstream); the files stay spooled (on disk past 1 MiB)
-    and are decoded later, off the loop, by :func:`register_pair_from_form`, which closes them."""
-    form = await request.form(max_files=len(CLOUD_FIELDS), max_fields=32, max_part_size=MAX_FORM_FIELD_BYTES)
+async def read_register_form(request: Request, file_fields: tuple[str, ...] = CLOUD_FIELDS) -> RegisterForm:
+    """Read the upload (bounded by max_upload_bytes upstream): ``file_fields`` as point-cloud files (all required),
+    the rest as short text fields. The files stay spooled (on disk past 1 MiB) and are decoded later, off the loop
+    (:func:`register_pair_from_form`, or :func:`decode_upload` and :meth:`RegisterForm.close`)."""
+    form = await request.form(max_files=len(file_fields), max_fields=32, max_part_size=MAX_FORM_FIELD_BYTES)
     fields: dict[str, str] = {}
     files: dict[str, Upload] = {}
     try:
         for key, value in form.multi_items():
             if key in fields or key in files:
                 raise APIError(422, f"invalid request: {key}: given more than once")
-            if key in CLOUD_FIELDS:
+            if key in file_fields:
                 if not isinstance(value, UploadFile):
                     raise APIError(422, f"invalid request: {key}: expected a point-cloud file upload, got a text field")
                 files[key] = Upload(key, (value.filename or "")[:200], value.file)
             elif isinstance(value, UploadFile):
-                raise APIError(422, f"invalid request: {key}: unexpected file; only source and target are files")
+                raise APIError(422, f"invalid request: {key}: unexpected file; only {' and '.join(file_fields)} "
+                               f"{'are files' if len(file_fields) > 1 else 'is a file'}")
             else:
                 fields[key] = value
-        missing = [name for name in CLOUD_FIELDS if name not in files]
+        missing = [name for name in file_fields if name not in files]
         if missing:
             raise APIError(422, f"invalid request: {', '.join(missing)}: missing point-cloud file upload")
     except BaseException:

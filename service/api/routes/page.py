@@ -10,9 +10,7 @@ seeded random subset when a cloud has more).
 from __future__ import annotations
 
 import base64
-import io
 import json
-from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import Any
 
@@ -22,7 +20,6 @@ from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
-from starlette.datastructures import UploadFile
 
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
@@ -37,8 +34,6 @@ from service.registrar import check_transform
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
 DISPLAY_CAP = 100_000  # points per cloud sent to the page
 DISPLAY_SEED = 0
-UPLOAD_FIELDS = ("source", "target")
-MAX_FIELD_BYTES = 64 * 1024
 PAGE_POLICY = {"Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:"}  # nothing from elsewhere
 
 page_router = APIRouter(include_in_schema=False)
@@ -52,38 +47,6 @@ async def index() -> FileResponse:
 
 
 # -- upload ---------------------------------------------------------------------------------------
-@dataclass
-class Upload:
-    fields: dict[str, str]
-    files: dict[str, tuple[str, bytes]]  # field -> (file name, raw bytes)
-
-
-async def read_upload(request: Request, file_fields: tuple[str, ...]) -> Upload:
-    """The multipart form: ``file_fields`` as file uploads (all required), other fields as short text."""
-    bodies.require_media_type(request, bodies.MULTIPART)
-    form = await request.form(max_files=len(file_fields), max_fields=32, max_part_size=MAX_FIELD_BYTES)
-    try:
-        fields: dict[str, str] = {}
-        files: dict[str, tuple[str, bytes]] = {}
-        for key, value in form.multi_items():
-            if key in fields or key in files:
-                raise APIError(422, f"invalid request: {key}: given more than once")
-            if key in file_fields:
-                if not isinstance(value, UploadFile):
-                    raise APIError(422, f"invalid request: {key}: expected a file upload, got a text field")
-                files[key] = (value.filename or key, await value.read())
-            elif isinstance(value, UploadFile):
-                raise APIError(422, f"invalid request: {key}: unexpected file; only {', '.join(file_fields)}")
-            else:
-                fields[key] = value
-        missing = [name for name in file_fields if name not in files]
-        if missing:
-            raise APIError(422, f"invalid request: {', '.join(missing)}: missing file upload")
-        return Upload(fields, files)
-    finally:
-        await form.close()
-
-
 def _json_field(text: str, name: str) -> Any:
     try:
         return json.loads(text)
@@ -176,32 +139,42 @@ async def register_view(request: Request) -> RenderedJSON:
 )
 async def register_aligned(request: Request) -> Response:
     settings = get_settings(request)
-    upload = await read_upload(request, ("source",))
-    if "transform" not in upload.fields:
-        raise APIError(422, "invalid request: transform: missing (a JSON 4x4 array)")
-    matrix = _json_field(upload.fields["transform"], "transform")
+    bodies.require_media_type(request, bodies.MULTIPART)
+    form = await bodies.read_register_form(request, ("source",))  # the file stays spooled until decoded
     try:
-        R, t = check_transform(matrix)
+        R, t = _aligned_transform(form.fields)
+        upload = form.files["source"]
+
+        def work() -> bytes:
+            source = bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
+            with np.errstate(over="ignore"):
+                aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
+            if not np.isfinite(aligned).all():
+                raise APIError(422, "invalid request: the moved source leaves the float32 range")
+            return ply_bytes(aligned)
+
+        content = await run_in_threadpool(work)
+    finally:
+        form.close()
+    stem = PurePath(upload.filename).stem or "source"
+    return Response(
+        content,
+        media_type="application/octet-stream",
+        headers={"Content-Disposition": f'attachment; filename="{_safe(stem)}_aligned.ply"'},
+    )
+
+
+def _aligned_transform(fields: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
+    """The form's ``transform`` field as a rigid ``(R [3, 3], t [3])``, or a 422 naming what is wrong."""
+    if "transform" not in fields:
+        raise APIError(422, "invalid request: transform: missing (a JSON 4x4 array)")
+    matrix = _json_field(fields["transform"], "transform")
+    try:
+        return check_transform(matrix)
     except InputError as exc:
         raise APIError(422, f"invalid request: transform: {str(exc).removeprefix('initial_transform ')}") from None
     except (ValueError, TypeError, OverflowError):  # not a numeric array
         raise APIError(422, "invalid request: transform: expected a JSON 4x4 array of numbers") from None
-    def work() -> bytes:
-        name, data = upload.files["source"]
-        source = bodies.decode_upload(bodies.Upload("source", name[:200], io.BytesIO(data)),
-                                      settings.max_file_points)  # [N, 3] float64, the shared reader
-        with np.errstate(over="ignore"):
-            aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
-        if not np.isfinite(aligned).all():
-            raise APIError(422, "invalid request: the moved source leaves the float32 range")
-        return ply_bytes(aligned)
-
-    stem = PurePath(upload.files["source"][0]).stem or "source"
-    return Response(
-        await run_in_threadpool(work),
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{_safe(stem)}_aligned.ply"'},
-    )
 
 
 def ply_bytes(xyz: np.ndarray) -> bytes:
