@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
 from service.normalization import Normalization
 from service.procrustes import compose
+from service.quality import attainable_inlier_ratio
 from service.stages.sample import Sampled
 
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
@@ -27,6 +29,12 @@ class Working(Sampled):
     def inlier_distance(self) -> float:
         """``INLIER_DISTANCE`` in the caller's units."""
         return INLIER_DISTANCE * self.norm.scale
+
+    @cached_property
+    def attainable_ratio(self) -> float:
+        """The inlier ratio a right pose can reach at the working target's density
+        (:func:`service.quality.attainable_inlier_ratio`), computed once per registration."""
+        return attainable_inlier_ratio(self.tgt_w, self.inlier_distance)
 
 
 def normalise(sampled: Sampled, reference_radius: float) -> Working:

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.quality import attainable_inlier_ratio, degenerate
+from service.quality import degenerate
 from service.result import RegistrationResult
 from service.rotation_search import distinct_candidates, rank_hypotheses, search_hypotheses
 from service.sampling import evenly_spaced_indices
@@ -73,7 +73,7 @@ def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: W
     one on a tie), with the plain pass's stage timings. Records ``timing`` ``search`` (the whole second pass)
     and ``search_per_hypothesis`` when it searched."""
     if (degenerate(work.src_w) or degenerate(work.tgt_w)
-            or not needs_search(plain, attainable_inlier_ratio(work.tgt_w, work.inlier_distance))):
+            or not needs_search(plain, work.attainable_ratio)):
         return plain
     started = time.perf_counter()
     searched = solve(hypotheses, {})

@@ -16,7 +16,6 @@ from functools import partial
 import numpy as np
 
 from service.options import RegistrationOptions
-from service.quality import attainable_inlier_ratio
 from service.rotation_search import rank_hypotheses
 from service.stages.normalise import Working
 from service.stages.ranking import rank_candidates
@@ -30,7 +29,7 @@ def fits_poorly(work: Working, R: np.ndarray, t: np.ndarray, trigger: float = SL
     """Whether the caller's pose ``R, t`` overlays fewer working source points on the target than ``trigger``
     times the share a right pose reaches at the target's density (:func:`service.quality.attainable_inlier_ratio`)."""
     ratio = rank_hypotheses(work.src[work.idx_s], work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
-    return ratio < trigger * attainable_inlier_ratio(work.tgt_w, work.inlier_distance)
+    return ratio < trigger * work.attainable_ratio
 
 
 def slide(work: Working, refined: Refined, options: RegistrationOptions, trigger: float = SLIDE_TRIGGER) -> Refined:
