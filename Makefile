@@ -31,11 +31,14 @@ serve: install-serve
 
 # Two pytest workers, one test file each at a time (module fixtures such as servers stay per file): the suite waits
 # on servers, subprocesses and a browser much of the time, so two workers on two cores finish it about 1.35x sooner.
+# Timing-sensitive checks (marked serial: signals, deadlines, load, timing ratios) then run alone.
 test: install-dev install-browser
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow and not serial"
+	$(BIN)/python -m pytest -q -m "serial and not slow"
 
 test-all: install-dev install-browser
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "slow or not slow"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
+	$(BIN)/python -m pytest -q -m "serial"
 
 lint: install-dev
 	$(BIN)/ruff check .

@@ -16,6 +16,7 @@ MARGIN = 2.0  # fail past 2x the baseline: two quiet runs on the 2-vCPU VM diffe
 
 pytestmark = [
     pytest.mark.latency,
+    pytest.mark.serial,  # timing ratios: `make test` runs them alone, after the parallel part
     pytest.mark.skipif(not (bundled_models_dir() / "clean" / "manifest.json").exists(), reason="no bundled model"),
     pytest.mark.skipif(not BASELINE.exists(), reason="no committed latency baseline"),
 ]

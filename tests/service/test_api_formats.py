@@ -168,6 +168,7 @@ def test_a_bad_file_gets_one_4xx_naming_the_field_and_the_file(client, clouds, c
     assert_error(client.post("/v1/register", files=files, data=OPTIONS), status, *words)
 
 
+@pytest.mark.serial  # a timing ratio: `make test` runs it alone, after the parallel part
 def test_2m_point_binary_ply_parses_in_under_twice_the_npy_time(client, tmp_path) -> None:
     """Upload + parse only: a 31-point target is refused (422) after both files are decoded."""
     big = np.random.default_rng(0).normal(size=(2_000_000, 3)).astype(np.float32)  # [2M, 3]

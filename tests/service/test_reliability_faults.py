@@ -37,6 +37,8 @@ from api_server import (
 from service.api.app import create_app
 from service.api.registry import ModelRegistry
 
+pytestmark = pytest.mark.serial  # signals, deadlines, queue timing: `make test` runs them alone, after the rest
+
 CHEAP = {"iterations": 1, "keypoints": 16}
 SLOW = {"iterations": 8, "keypoints": 256}  # about 1 s on one core: long enough to hold a slot
 DEADLINE_S = 0.5

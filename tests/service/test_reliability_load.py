@@ -12,6 +12,8 @@ import pytest
 from api_server import LIMITED, limited_server, start_subprocess_server
 from load_driver import drive
 
+pytestmark = pytest.mark.serial  # load at saturation: `make test` runs it alone, after the rest
+
 CHEAP = {"iterations": 1, "keypoints": 16}
 
 
