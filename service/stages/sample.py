@@ -7,6 +7,7 @@ a 100,000-point one; every returned row still indexes the caller's arrays.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,11 +37,10 @@ def sample(request: Request) -> Sampled:
     with ``drop_isolated``); the refinement's clouds are the working ones unless ``refine_points`` asks for more."""
     o = request.options
     src, tgt = request.src, request.tgt
-    keep_s, keep_t = entry_rows(src), entry_rows(tgt)  # [Ne], [Me] rows of the caller's clouds
-    src_e, tgt_e = src[keep_s], tgt[keep_t]  # [Ne, 3], [Me, 3]
+    (src_e, to_s), (tgt_e, to_t) = entered(src), entered(tgt)  # [Ne, 3], [Me, 3] and row maps to the caller's
     src_moved = src_e @ request.R_init.T + request.t_init  # [Ne, 3] source in the initial guess's frame
     local_s = resample_indices(src_moved, o.working_size, o.drop_isolated)  # [Ns] rows of src_e
-    idx_s, idx_t = keep_s[local_s], keep_t[resample_indices(tgt_e, o.working_size, o.drop_isolated)]  # caller's rows
+    idx_s, idx_t = to_s(local_s), to_t(resample_indices(tgt_e, o.working_size, o.drop_isolated))  # caller's rows
     src_w, tgt_w = src_moved[local_s], tgt[idx_t]
     src_r, tgt_r = src[idx_s], tgt_w
     if o.refine_points is not None and o.refine_mode != "none":
@@ -49,7 +49,10 @@ def sample(request: Request) -> Sampled:
     return Sampled(src, idx_s, idx_t, src_w, tgt_w, src_r, tgt_r, request.R_init, request.t_init, src_e, tgt_e)
 
 
-def entry_rows(points: np.ndarray) -> np.ndarray:
-    """Rows of ``points [N, 3]`` kept on entry: all of them up to ``ENTRY_LIMIT``, else about that many."""
+def entered(points: np.ndarray) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """``points [N, 3]`` after the entry reduction (the array itself up to ``ENTRY_LIMIT`` rows, no copy), and the map
+    from its rows to the caller's."""
     kept = entry_indices(points)
-    return np.arange(len(points)) if kept is None else kept
+    if kept is None:
+        return points, lambda rows: rows
+    return points[kept], lambda rows: kept[rows]
