@@ -243,6 +243,7 @@ def icp_symmetric(
     tolerance: float = WIDE_TOLERANCE,
     normal_neighbours: int = NORMAL_NEIGHBOURS,
     target_surface: Surface | None = None,
+    source_surface: Surface | None = None,
 ) -> IcpResult:
     """Robust symmetric point-to-plane ICP: a wide basin for a start some way off the answer.
 
@@ -250,8 +251,9 @@ def icp_symmetric(
     ``max_distance`` (no mutual check), takes the residual along ``n = n_t + R n_s`` (both points'
     normals, signs aligned; the target's alone where the source's is undefined) and solves the same
     linearised 6-DoF step as :func:`icp_plane` with Geman-McClure weights ``(s^2 / (s^2 + r^2))^2``,
-    ``s = max_distance / 3``. Pairs need a defined target normal. ``target_surface``: ``Surface.of(tgt)``
-    when the caller has it.
+    ``s = max_distance / 3``. Pairs need a defined target normal. ``target_surface`` / ``source_surface``:
+    ``Surface.of(tgt)`` / ``Surface.of(src)`` when the caller has them (the source's normals, in its own frame,
+    do not change with the pose).
 
     Returns:
         :class:`IcpResult` (statistics at ``max_distance``, as :func:`icp`). With fewer than
@@ -261,7 +263,8 @@ def icp_symmetric(
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, tgt_normals, tgt_defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
-    src_normals, src_defined = target_normals(src, normal_neighbours)  # [N, 3], [N] in the source frame
+    own = Surface.of(src, normal_neighbours) if source_surface is None else source_surface
+    src_normals, src_defined = own.normals, own.defined  # [N, 3], [N] in the source frame
     scale, sigma2 = _rms_radius(tgt), (max_distance / 3.0) ** 2
     iterations, warnings = 0, []
     for _ in range(max_iterations):
@@ -303,22 +306,25 @@ def refine_plane(
     max_iterations: int = 30,
     tolerance: float = 1e-5,
     target_surface: Surface | None = None,
+    source_surface: Surface | None = None,
 ) -> IcpResult:
     """``refine="icp-plane"``: :func:`icp_symmetric` at ``WIDE_DISTANCE_FACTOR * max_distance`` (to reach
     the right basin), then reciprocal :func:`icp_plane` at ``max_distance`` (precision); each stage runs
     at most ``max_iterations`` updates; ``tolerance`` is the precise stage's (1e-5 rad: 1e-6 moved no pose of the
     170 dense test pairs by more than 1e-5 deg).
 
-    ``target_surface``: ``Surface.of(tgt)`` when the caller has it.
+    ``target_surface`` / ``source_surface``: ``Surface.of(tgt)`` / ``Surface.of(src)`` when the caller has them
+    (one registration refines many starts of the same clouds).
     Returns the second stage's :class:`IcpResult` with ``iterations`` counting both stages (the wide
     stage's own warnings are dropped: the precise stage meets the same geometry and reports it).
     """
     src, tgt, R0, t0 = _checked(src, tgt, R0, t0, max_distance, max_iterations)  # before building the tree
     surface = Surface.of(tgt) if target_surface is None else target_surface
     wide = icp_symmetric(src, tgt, R0, t0, max_distance=WIDE_DISTANCE_FACTOR * max_distance,
-                         max_iterations=max_iterations, target_surface=surface)
+                         max_iterations=max_iterations, target_surface=surface, source_surface=source_surface)
     precise = icp_plane(src, tgt, wide.rotation, wide.translation, max_distance=max_distance,
-                        max_iterations=max_iterations, tolerance=tolerance, target_surface=surface)
+                        max_iterations=max_iterations, tolerance=tolerance, target_surface=surface,
+                        source_surface=source_surface)
     return dataclasses.replace(precise, iterations=wide.iterations + precise.iterations)
 
 
@@ -334,6 +340,7 @@ def icp_plane(
     reciprocal: bool = True,
     normal_neighbours: int = NORMAL_NEIGHBOURS,
     target_surface: Surface | None = None,
+    source_surface: Surface | None = None,
 ) -> IcpResult:
     """Refine ``(R0, t0)`` with point-to-plane ICP: minimise ``sum_i (n_i . (R src_i + t - tgt_j(i)))^2``.
 
@@ -348,6 +355,7 @@ def icp_plane(
         src, tgt, R0, t0, max_distance, max_iterations, tolerance, reciprocal: as :func:`icp`.
         normal_neighbours: neighbourhood size of the target normals.
         target_surface: ``Surface.of(tgt, normal_neighbours)`` when the caller has it.
+        source_surface: ``Surface.of(src)`` when the caller has it (only its KD-tree is used, for the mutual check).
 
     Returns:
         :class:`IcpResult`.  With fewer than ``PLANE_MIN_INLIERS`` usable pairs, or normal equations
@@ -363,7 +371,7 @@ def icp_plane(
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
-    src_tree = KDTree(src) if reciprocal else None
+    src_tree = None if not reciprocal else KDTree(src) if source_surface is None else source_surface.tree
     scale = _rms_radius(tgt)
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):

@@ -7,6 +7,7 @@ from functools import cached_property
 
 import numpy as np
 
+from service.icp import Surface
 from service.normalization import Normalization
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio
@@ -35,6 +36,17 @@ class Working(Sampled):
         """The inlier ratio a right pose can reach at the working target's density
         (:func:`service.quality.attainable_inlier_ratio`), computed once per registration."""
         return attainable_inlier_ratio(self.tgt_w, self.inlier_distance)
+
+    @cached_property
+    def target_surface(self) -> Surface:
+        """KD-tree and normals of the refinement's target ``tgt_r``, built once per registration."""
+        return Surface.of(self.tgt_r)
+
+    @cached_property
+    def source_surface(self) -> Surface:
+        """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:
+        every start of every refinement moves the same points."""
+        return Surface.of(np.asarray(self.src_r, dtype=np.float64))
 
 
 def normalise(sampled: Sampled, reference_radius: float) -> Working:

@@ -39,7 +39,7 @@ def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, dist
     if refine == "icp":
         return icp(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
     return refine_plane(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
-                        target_surface=surface)
+                        target_surface=surface, source_surface=work.source_surface)
 
 
 def icp_distance(work: Working, options: RegistrationOptions) -> float:
@@ -54,7 +54,7 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
         return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
     scale = work.norm.scale
     distance = icp_distance(work, options)
-    surface = Surface.of(work.tgt_r) if mode != "icp" else None  # one target surface for every stage
+    surface = work.target_surface if mode != "icp" else None  # one target surface for every stage
     pick, ambiguity, (R, t) = 0, None, starts[0]
     if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
         short = partial(refine_pose, work, refine=mode, distance=distance, max_iterations=CANDIDATE_ITERATIONS,

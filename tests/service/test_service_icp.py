@@ -335,6 +335,20 @@ def test_shared_surface_gives_the_same_refinement() -> None:
         np.testing.assert_array_equal(own.translation, shared.translation)
 
 
+def test_shared_source_surface_gives_the_same_refinement() -> None:
+    """The source's normals and tree, built once in its own frame, serve every start: the same poses."""
+    src, tgt, _, _ = resampled_pair(6)
+    source, target = Surface.of(src), Surface.of(tgt)
+    start = Rotation.from_euler("zyx", [20.0, -10.0, 5.0], degrees=True).as_matrix()
+    for method in (icp_plane, icp_symmetric, refine_plane):
+        own = method(src, tgt, start, np.full(3, 0.05), max_distance=0.2)
+        shared = method(src, tgt, start, np.full(3, 0.05), max_distance=0.2, target_surface=target,
+                        source_surface=source)
+        assert own.iterations > 1
+        np.testing.assert_array_equal(own.rotation, shared.rotation)
+        np.testing.assert_array_equal(own.translation, shared.translation)
+
+
 def test_refine_plane_on_a_planar_target_reports_the_precise_stage_fallback() -> None:
     tgt = degenerate_target("planar")
     src = degenerate_target("planar")[::2] + 0.01
