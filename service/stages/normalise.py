@@ -8,6 +8,7 @@ from functools import cached_property
 import numpy as np
 
 from service.icp import Surface
+from service.kdtree import KDTree
 from service.normalization import Normalization
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio
@@ -15,6 +16,9 @@ from service.stages.sample import Sampled
 
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
 ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
+# The candidates' short refinements (service.stages.refine.short_refine) move every SHORT_REFINE_STRIDE-th point of
+# the refinement's source: they only rank basins, and the winner's full refinement moves every point.
+SHORT_REFINE_STRIDE = 3
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,6 +51,14 @@ class Working(Sampled):
         """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:
         every start of every refinement moves the same points."""
         return Surface.of(np.asarray(self.src_r, dtype=np.float64))
+
+    @cached_property
+    def short_source(self) -> tuple[np.ndarray, Surface]:
+        """Every ``SHORT_REFINE_STRIDE``-th row of ``src_r`` ``[Nr', 3]`` (float64; a spread subsample: the working
+        cloud is in farthest-point order) and its surface: its own KD-tree, the full cloud's normals."""
+        rows = slice(None, None, SHORT_REFINE_STRIDE)
+        points, full = np.asarray(self.src_r, dtype=np.float64)[rows], self.source_surface
+        return points, Surface(KDTree(points), full.normals[rows], full.defined[rows])
 
 
 def normalise(sampled: Sampled, reference_radius: float) -> Working:

@@ -42,6 +42,17 @@ def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, dist
                         target_surface=surface, source_surface=work.source_surface)
 
 
+def short_refine(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
+                 surface: Surface | None) -> IcpResult:
+    """A candidate's short refinement, enough to rank basins: ``refine`` with at most ``CANDIDATE_ITERATIONS`` updates
+    per stage, moving :attr:`Working.short_source` (every ``SHORT_REFINE_STRIDE``-th source point)."""
+    src, own = work.short_source
+    if refine == "icp":
+        return icp(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=CANDIDATE_ITERATIONS)
+    return refine_plane(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=CANDIDATE_ITERATIONS,
+                        target_surface=surface, source_surface=own)
+
+
 def icp_distance(work: Working, options: RegistrationOptions) -> float:
     """The refinement's correspondence distance in the caller's units: ``icp_max_distance`` or ``ICP_DISTANCE``."""
     return options.icp_max_distance if options.icp_max_distance is not None else ICP_DISTANCE * work.norm.scale
@@ -57,8 +68,7 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
     surface = work.target_surface if mode != "icp" else None  # one target surface for every stage
     pick, ambiguity, (R, t) = 0, None, starts[0]
     if len(starts) > 1:  # search candidates: a short refinement of each, ranked, then the winner's full one
-        short = partial(refine_pose, work, refine=mode, distance=distance, max_iterations=CANDIDATE_ITERATIONS,
-                        surface=surface)
+        short = partial(short_refine, work, refine=mode, distance=distance, surface=surface)
         poses, origin = with_translations(work, starts)  # each candidate's rotation at other translations too
         ranked = rank_candidates(work, poses, short)
         pick, ambiguity, R, t = origin[ranked.pick], ranked.ambiguity, ranked.rotation, ranked.translation

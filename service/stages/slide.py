@@ -19,7 +19,7 @@ from service.options import RegistrationOptions
 from service.rotation_search import rank_hypotheses
 from service.stages.normalise import Working
 from service.stages.ranking import rank_candidates
-from service.stages.refine import CANDIDATE_ITERATIONS, Refined, icp_distance, refine_pose
+from service.stages.refine import Refined, icp_distance, refine_pose, short_refine
 from service.translation_search import translation_candidates
 
 SLIDE_TRIGGER = 0.8  # share of the attainable inlier ratio below which the slide check runs
@@ -39,8 +39,7 @@ def slide(work: Working, refined: Refined, options: RegistrationOptions, trigger
     if mode == "none" or not fits_poorly(work, refined.rotation, refined.translation, trigger):
         return refined
     R, t, distance = refined.rotation, refined.translation, icp_distance(work, options)
-    short = partial(refine_pose, work, refine=mode, distance=distance, max_iterations=CANDIDATE_ITERATIONS,
-                    surface=refined.surface)
+    short = partial(short_refine, work, refine=mode, distance=distance, surface=refined.surface)
     moved = work.src_e @ R.T  # [Ne, 3] the caller's source turned by R
     starts = [(R, t)] + [(R, shift) for shift in translation_candidates(moved, work.tgt_e)]
     ranked = rank_candidates(work, starts, short)

@@ -12,9 +12,9 @@ from shapes import asymmetric_blob
 from service.icp import IcpResult, Surface
 from service.multistart import multistart
 from service.options import RegistrationOptions
-from service.stages.normalise import normalise
+from service.stages.normalise import SHORT_REFINE_STRIDE, normalise
 from service.stages.ranking import rank_candidates
-from service.stages.refine import CANDIDATE_ITERATIONS, refine, refine_pose
+from service.stages.refine import CANDIDATE_ITERATIONS, refine, refine_pose, short_refine
 from service.stages.sample import sample
 from service.stages.validate import validate
 
@@ -81,3 +81,15 @@ def test_multistart_recovers_a_pose_turned_into_a_wrong_basin() -> None:
     start = IcpResult(turn @ R_TRUE, T_TRUE, 0, 0.0, 0.0)  # as if a refinement had stopped 30 degrees off
     moved = multistart(work.src_r, work.tgt_r, start, work.norm.scale, 0.1 * work.norm.scale, 30)
     assert angle_deg(moved.rotation, R_TRUE) < angle_deg(start.rotation, R_TRUE) - 20
+
+
+def test_short_refinements_move_every_third_source_point_with_the_full_clouds_normals() -> None:
+    work, _ = working(refine="icp-plane")
+    points, surface = work.short_source
+    np.testing.assert_array_equal(points, work.src_r[::SHORT_REFINE_STRIDE])
+    np.testing.assert_array_equal(surface.normals, work.source_surface.normals[::SHORT_REFINE_STRIDE])
+    assert work.short_source is work.short_source and work.source_surface is work.source_surface  # built once
+    start = Rotation.from_euler("x", 10.0, degrees=True).as_matrix() @ R_TRUE
+    short = short_refine(work, start, T_TRUE, "icp-plane", 0.1 * work.norm.scale, work.target_surface)
+    assert short.iterations <= 2 * CANDIDATE_ITERATIONS
+    assert angle_deg(short.rotation, R_TRUE) < angle_deg(start, R_TRUE) - 3.0  # the basin is found from 10 deg
