@@ -14,11 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.icp import IcpResult
-from service.rotation_search import ambiguity_warning, rank_hypotheses
+from service.rotation_search import AMBIGUOUS_RATIO_GAP, ambiguity_warning, rank_hypotheses
 from service.stages.normalise import Working
 from service.translation_search import translation_candidates
 
 CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
+# Another ranked candidate that places the source's centroid more than AMBIGUOUS_SHIFT (normalised units) from the
+# winner's place, with an inlier ratio within AMBIGUOUS_RATIO_GAP of the winner's, makes the result ambiguous
+# (not reliable, a warning): room fragments slide along walls and floors into places that fit almost as well.
+AMBIGUOUS_SHIFT = 0.2
 
 
 def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], count: int = CANDIDATE_SHIFTS
@@ -53,4 +57,21 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
     order, ratios, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations,
                                        work.inlier_distance)
     pick = int(order[0])
-    return Ranked(pick, ambiguity_warning(rotations, ratios, pick), basins[pick].rotation, basins[pick].translation)
+    ambiguity = ambiguity_warning(rotations, ratios, pick) or shift_ambiguity(work, rotations, translations, ratios,
+                                                                              pick)
+    return Ranked(pick, ambiguity, basins[pick].rotation, basins[pick].translation)
+
+
+def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, ratios: np.ndarray,
+                    best: int) -> str | None:
+    """A warning when a candidate that places the working source's centroid more than ``AMBIGUOUS_SHIFT`` from where
+    the winner ``best`` does fits almost as well (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``ratios [C]``)."""
+    centre = work.src[work.idx_s].mean(axis=0)  # [3] the working source's centroid, caller's frame
+    placed = rotations @ centre + translations  # [C, 3]
+    shift = np.linalg.norm(placed - placed[best], axis=1)  # [C] caller's units
+    far = shift > AMBIGUOUS_SHIFT * work.norm.scale  # [C]
+    for i in np.argsort(-ratios, kind="stable"):
+        if i != best and far[i] and ratios[i] >= ratios[best] - AMBIGUOUS_RATIO_GAP:
+            return (f"ambiguous: a pose that moves the source {shift[i]:.3g} further fits almost as well (inlier ratio "
+                    f"{ratios[i]:.2f} vs {ratios[best]:.2f}); the clouds may slide along flat or repeated surfaces")
+    return None

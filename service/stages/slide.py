@@ -43,8 +43,10 @@ def slide(work: Working, refined: Refined, options: RegistrationOptions, trigger
     moved = work.src_e @ R.T  # [Ne, 3] the caller's source turned by R
     starts = [(R, t)] + [(R, shift) for shift in translation_candidates(moved, work.tgt_e)]
     ranked = rank_candidates(work, starts, short)
+    ambiguity = refined.ambiguity or ranked.ambiguity  # another place fitting almost as well is a doubt either way
     if ranked.pick == 0:
-        return refined
+        return refined if ambiguity == refined.ambiguity else dataclasses.replace(refined, ambiguity=ambiguity)
     full = refine_pose(work, ranked.rotation, ranked.translation, mode, distance, options.icp_max_iterations,
                        refined.surface)
-    return dataclasses.replace(refined, rotation=full.rotation, translation=full.translation, warnings=full.warnings)
+    return dataclasses.replace(refined, rotation=full.rotation, translation=full.translation, warnings=full.warnings,
+                               ambiguity=ambiguity)

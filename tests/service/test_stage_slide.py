@@ -14,7 +14,7 @@ from shapes import room_scene
 from service.registrar import Registrar
 from service.stages.normalise import normalise
 from service.stages.pipeline import Stages
-from service.stages.ranking import with_translations
+from service.stages.ranking import shift_ambiguity, with_translations
 from service.stages.refine import refine
 from service.stages.sample import sample
 from service.stages.slide import fits_poorly, slide
@@ -60,11 +60,14 @@ def test_a_slid_room_fragment_comes_back():
         source, target, truth = data["source"], data["target"], data["transform"]
     with_slide = Registrar(GENERAL)
     without = Registrar(GENERAL, stages=dataclasses.replace(Stages(), slide=lambda work, refined, options: refined))
-    errors = {}
+    errors, results = {}, {}
     for name, registrar in (("with", with_slide), ("without", without)):
-        result = registrar.register(source, target, refine="icp-plane", rotation_search=False)
-        errors[name] = np.linalg.norm(result.translation - truth[:3, 3])
+        results[name] = registrar.register(source, target, refine="icp-plane", rotation_search=False)
+        errors[name] = np.linalg.norm(results[name].translation - truth[:3, 3])
     assert errors["without"] > 0.5 and errors["with"] < 0.3, errors  # 3DMatch success: under 0.3 m
+    # the place 0.85 m along the walls fits almost as well (inlier ratio 0.50 vs 0.53): right, but not reliable
+    assert not results["with"].reliable
+    assert any(w.startswith("ambiguous: a pose that moves the source") for w in results["with"].warnings)
 
 
 def test_without_a_refinement_nothing_is_tried():
@@ -83,3 +86,14 @@ def test_each_search_candidate_is_also_tried_at_its_best_translations():
     assert len(poses) == len(origin) <= 2 + 2 * 2
     for (R, _), index in zip(poses[2:], origin[2:], strict=True):
         assert R is starts[index][0]  # the candidate's own rotation, at another translation
+
+
+def test_a_second_place_that_fits_almost_as_well_makes_the_result_ambiguous():
+    work, _ = working()
+    far, near = np.array([0.5, 0.0, 0.0]), np.array([0.01, 0.0, 0.0])  # metres; the room is ~4 m across
+    rotations = np.stack([R_TRUE] * 3)  # [3, 3, 3]
+    translations = np.stack([T_TRUE, T_TRUE + near, T_TRUE + far])  # [3, 3]
+    warning = shift_ambiguity(work, rotations, translations, np.array([0.50, 0.50, 0.48]), best=0)
+    assert warning is not None and warning.startswith("ambiguous: a pose that moves the source 0.5 further")
+    assert shift_ambiguity(work, rotations, translations, np.array([0.50, 0.50, 0.40]), best=0) is None  # fits worse
+    assert shift_ambiguity(work, rotations[:2], translations[:2], np.array([0.50, 0.50]), best=0) is None  # same place
