@@ -213,12 +213,15 @@ def sensor_pairs(shapes: np.ndarray, protocol: SensorProtocol, rng: np.random.Ge
             "translation": t.astype(np.float32)}
 
 
-def validation_pairs(shapes: np.ndarray, seed: int, counts: int = 512, chunk: int = 16) -> dict[str, np.ndarray]:
+def validation_pairs(shapes: np.ndarray, seed: int, counts: int = 512, chunk: int = 16,
+                     max_angle_deg: float = 180.0) -> dict[str, np.ndarray]:
     """Seeded sensor pairs for choosing checkpoints: chunks of ``chunk`` shapes, object and scene pairs in turn,
-    any orientation, ``counts`` points per cloud, the runtime's spread sampling."""
+    rotations up to ``max_angle_deg`` (default: any orientation), ``counts`` points per cloud, the runtime's spread
+    sampling."""
     rng = np.random.default_rng([seed, 7, 28])
     parts = []
     for i, start in enumerate(range(0, len(shapes), chunk)):
-        protocol = SensorProtocol(kind=KINDS[i % 2], source_points=counts, target_points=counts, sampling="spread")
+        protocol = SensorProtocol(kind=KINDS[i % 2], source_points=counts, target_points=counts, sampling="spread",
+                                  max_angle_deg=max_angle_deg)
         parts.append(sensor_pairs(shapes[start : start + chunk], protocol, rng))
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

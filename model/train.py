@@ -119,8 +119,8 @@ def train(opts: TrainOptions) -> Path:
             if opts.recipe else protocol)
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
-    if opts.recipe == "real":  # checkpoints chosen on simulated sensor pairs at any orientation
-        val_pairs = sensor_validation_pairs(val_shapes, opts.seed)
+    if opts.recipe == "real":  # checkpoints chosen on simulated sensor pairs over the training rotations
+        val_pairs = sensor_validation_pairs(val_shapes, opts.seed, max_angle_deg=opts.max_angle or 180.0)
     else:
         val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
 

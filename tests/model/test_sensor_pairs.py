@@ -116,6 +116,15 @@ def test_validation_pairs_alternate_objects_and_scenes_with_fixed_counts() -> No
     assert np.array_equal(pairs["target"], again["target"])
 
 
+def test_validation_pairs_keep_to_the_training_rotations() -> None:
+    angles = {}
+    for limit in (30.0, 180.0):
+        pairs = validation_pairs(sphere_shapes(16, seed=9), seed=0, counts=128, chunk=8, max_angle_deg=limit)
+        cos = (np.trace(pairs["rotation"].astype(np.float64), axis1=1, axis2=2) - 1.0) / 2.0
+        angles[limit] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))  # [16]
+    assert angles[30.0].max() <= 30.0 + 1e-3 and angles[180.0].max() > 30.0, angles
+
+
 def test_a_tiny_training_run_with_the_real_recipe(tmp_path) -> None:
     opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=tiny_training_data(tmp_path), epochs=1,
                         batch_size=2, max_batches_per_epoch=2, val_pairs=4, device="cpu", config=dict(TINY_MODEL),
