@@ -9,6 +9,7 @@ clouds in the same run::
     python -m bench.real_scans                      # the whole set; a per-pair table and the totals
     python -m bench.real_scans --json results/general-0.2.0/real_scans.json
     python -m bench.real_scans --pairs dragon_24_0 --no-fpfh --scales 1
+    python -m bench.real_scans --turns 4 --no-fpfh     # each pair also at 3 more seeded rotations
     python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
 
 Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
@@ -53,7 +54,7 @@ class Case:
 
     name: str
     sensor: str
-    variant: str  # "scanned" | "turned"
+    variant: str  # "scanned", "turned", "turned-2", ... (load_cases' turns)
     scale: float  # 1: metres, 1000: millimetres
     source: np.ndarray  # [N, 3] float32
     target: np.ndarray  # [M, 3] float32
@@ -76,19 +77,22 @@ def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> 
 
 
 def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0),
-               names: list[str] | None = None) -> list[Case]:
-    """Every pair of ``directory`` as scanned and turned (one seeded Haar-uniform rotation per pair), per scale."""
+               names: list[str] | None = None, turns: int = 1) -> list[Case]:
+    """Every pair of ``directory`` as scanned and turned by ``turns`` seeded Haar-uniform rotations (variants
+    ``turned``, ``turned-2``, ...; the first is the same whatever ``turns`` is), per scale."""
     files = sorted(directory.glob("*.npz"))
     if names:
         files = [f for f in files if f.stem in names]
-    rng = np.random.default_rng(seed)
+    rng, more = np.random.default_rng(seed), np.random.default_rng([seed, 1])  # the first turns, the others
     cases = []
     for file in files:
         with np.load(file) as data:
             source, target = data["source"].astype(np.float32), data["target"].astype(np.float32)
             truth, sensor = data["transform"].astype(np.float64), str(data["sensor"])
-        rotation = Rotation.random(random_state=rng).as_matrix()  # Haar-uniform on SO(3)
-        variants = {"scanned": (source, truth), "turned": turned(source, truth, rotation)}
+        rotations = [Rotation.random(random_state=r).as_matrix() for r in [rng] + [more] * (turns - 1)]  # Haar
+        variants = {"scanned": (source, truth)}
+        for k, rotation in enumerate(rotations, start=1):
+            variants["turned" if k == 1 else f"turned-{k}"] = turned(source, truth, rotation)
         for scale in scales:
             for variant, (src, T) in variants.items():
                 T_scaled = T.copy()
@@ -224,11 +228,11 @@ def summarise(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -
 
 
 def print_table(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -> None:
-    head = f"{'pair':22} {'variant':8} {'unit':5} | {'deg':>7} {'err_t':>8} ok rel {'ms':>6}"
+    head = f"{'pair':22} {'variant':9} {'unit':5} | {'deg':>7} {'err_t':>8} ok rel {'ms':>6}"
     print(head + (f" | {'deg':>7} {'err_t':>8} ok {'ms':>6}" if fpfh else ""))
     for i, case in enumerate(cases):
         s = service[i]
-        line = (f"{case.name:22} {case.variant:8} {'m' if case.scale == 1 else 'mm':5} | "
+        line = (f"{case.name:22} {case.variant:9} {'m' if case.scale == 1 else 'mm':5} | "
                 f"{_num(s['rotation_error_deg']):>7} {_num(s['translation_error']):>8} "
                 f"{'Y' if s['success'] else '.':2} {'Y' if s['reliable'] else '.':3} {1000 * s['seconds']:6.0f}")
         if fpfh:
@@ -249,6 +253,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--model-dir", type=Path,
                         help="serve only this exported model (its folder name) instead of the bundled default")
     parser.add_argument("--seed", type=int, default=0, help="seed of the turns and of RANSAC")
+    parser.add_argument("--turns", type=int, default=1,
+                        help="turned variants per pair (more: figures less tied to one rotation each)")
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
     parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems)")
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
@@ -259,7 +265,9 @@ def main(argv: list[str] | None = None) -> dict:
     directory = data_dir(args.directory)
     if not directory.is_dir():
         parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
-    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs)
+    if args.turns < 1:
+        parser.error(f"--turns must be at least 1, got {args.turns}")
+    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns)
     if args.url:
         service = run_service(cases, args.url, args.options)
     else:
@@ -270,7 +278,8 @@ def main(argv: list[str] | None = None) -> dict:
     print_table(cases, service, fpfh)
     rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
              **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
-    report = {"benchmark": "real_scans", "seed": args.seed, "options": args.options, "machine": machine_info(2),
+    report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "options": args.options,
+              "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
     emit_report({"totals": report["totals"]}, None)
     if args.json:

@@ -23,6 +23,25 @@ def test_turned_ground_truth_maps_the_turned_source_onto_the_target():
     np.testing.assert_allclose(moved @ moved_truth[:3, :3].T + moved_truth[:3, 3], target, atol=1e-5)
 
 
+def test_more_turns_add_variants_and_keep_the_first_turn(tmp_path):
+    rng = np.random.default_rng(2)
+    for name in ("a", "b"):
+        cloud = rng.normal(size=(40, 3)).astype(np.float32)
+        np.savez(tmp_path / f"{name}.npz", source=cloud, target=cloud + 1.0, transform=np.eye(4),
+                 sensor="cyberware-range")
+    one = real_scans.load_cases(tmp_path, seed=3, scales=(1.0,))
+    three = real_scans.load_cases(tmp_path, seed=3, scales=(1.0,), turns=3)
+    assert [c.variant for c in one] == ["scanned", "turned"] * 2
+    assert [(c.name, c.variant) for c in three] == [(n, v) for n in "ab" for v in ("scanned", "turned", "turned-2",
+                                                                                  "turned-3")]
+    first = {c.name: c.source for c in one if c.variant == "turned"}
+    for case in three:
+        if case.variant == "turned":
+            np.testing.assert_array_equal(case.source, first[case.name])  # the same as with one turn
+    b = [c.source for c in three if c.name == "b"]
+    assert all(np.abs(b[i] - b[j]).max() > 0.1 for i in range(4) for j in range(i))  # four different poses
+
+
 def test_thresholds_scale_with_the_unit():
     assert real_scans.thresholds("cyberware-range", 1000.0) == (5.0, 10.0)
     assert real_scans.thresholds("kinect-fused-2.5cm") == (15.0, 0.3)
