@@ -34,23 +34,22 @@ class Refined:
 
 
 def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
-                max_iterations: int, surface: Surface | None) -> IcpResult:
-    """``refine`` (``icp`` or the point-to-plane stages of ``icp-plane*``) of the caller's pose ``R0, t0``."""
+                max_iterations: int, surface: Surface | None,
+                source: tuple[np.ndarray, Surface] | None = None) -> IcpResult:
+    """``refine`` (``icp`` or the point-to-plane stages of ``icp-plane*``) of the caller's pose ``R0, t0``, moving
+    ``source`` (points ``[N', 3]`` and their surface; default: ``src_r`` and :attr:`Working.source_surface`)."""
+    src, own = (work.src_r, work.source_surface) if source is None else source
     if refine == "icp":
-        return icp(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
-    return refine_plane(work.src_r, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
-                        target_surface=surface, source_surface=work.source_surface)
+        return icp(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
+    return refine_plane(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
+                        target_surface=surface, source_surface=own)
 
 
 def short_refine(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
                  surface: Surface | None) -> IcpResult:
     """A candidate's short refinement, enough to rank basins: ``refine`` with at most ``CANDIDATE_ITERATIONS`` updates
     per stage, moving :attr:`Working.short_source` (every ``SHORT_REFINE_STRIDE``-th source point)."""
-    src, own = work.short_source
-    if refine == "icp":
-        return icp(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=CANDIDATE_ITERATIONS)
-    return refine_plane(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=CANDIDATE_ITERATIONS,
-                        target_surface=surface, source_surface=own)
+    return refine_pose(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface, work.short_source)
 
 
 def icp_distance(work: Working, options: RegistrationOptions) -> float:
