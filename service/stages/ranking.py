@@ -3,7 +3,8 @@ refinement and are ranked again by their fit on the working clouds.
 
 The search's own ranking (short point-to-point ICPs on its subsample) often put a wrong basin first: on 600
 seeded pairs at 90 and 180 degrees 359 -> 388 right for ~15 ms more (docs/ROTATION_SEARCH.md, "Ranking the kept
-candidates again").
+candidates again"). A close second that is turned far from the winner, or that places the source far from it,
+makes the ranking ambiguous (``docs/decisions/0008-ambiguous-places.md``).
 """
 
 from __future__ import annotations

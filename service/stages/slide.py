@@ -5,7 +5,8 @@ fixed, the clouds slid along walls and floors into a wrong local fit. When the r
 below ``SLIDE_TRIGGER`` of what the target's density allows, the occupancy cross-correlation of
 :mod:`service.translation_search` proposes the translations that overlay the turned source on the target best;
 each gets the search candidates' short refinement, they are ranked with the current pose by their fit on the
-working clouds (the current pose wins ties), and a new winner gets the full refinement.
+working clouds (the current pose wins ties), and a new winner gets the full refinement. Another place that fits
+almost as well makes the result ambiguous (:func:`service.stages.ranking.shift_ambiguity`), whichever wins.
 """
 
 from __future__ import annotations
