@@ -53,12 +53,17 @@ class Working(Sampled):
         return Surface.of(np.asarray(self.src_r, dtype=np.float64))
 
     @cached_property
-    def short_source(self) -> tuple[np.ndarray, Surface]:
+    def short_points(self) -> np.ndarray:
         """Every ``SHORT_REFINE_STRIDE``-th row of ``src_r`` ``[Nr', 3]`` (float64; a spread subsample: the working
-        cloud is in farthest-point order) and its surface: its own KD-tree, the full cloud's normals."""
+        cloud is in farthest-point order): what the candidates' short refinements move."""
+        return np.asarray(self.src_r, dtype=np.float64)[::SHORT_REFINE_STRIDE]
+
+    @cached_property
+    def short_surface(self) -> Surface:
+        """The surface of :attr:`short_points`: its own KD-tree, the full source's normals."""
+        full = self.source_surface
         rows = slice(None, None, SHORT_REFINE_STRIDE)
-        points, full = np.asarray(self.src_r, dtype=np.float64)[rows], self.source_surface
-        return points, Surface(KDTree(points), full.normals[rows], full.defined[rows])
+        return Surface(KDTree(self.short_points), full.normals[rows], full.defined[rows])
 
 
 def normalise(sampled: Sampled, reference_radius: float) -> Working:

@@ -34,13 +34,13 @@ class Refined:
 
 
 def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
-                max_iterations: int, surface: Surface | None,
-                source: tuple[np.ndarray, Surface] | None = None) -> IcpResult:
+                max_iterations: int, surface: Surface | None, short: bool = False) -> IcpResult:
     """``refine`` (``icp`` or the point-to-plane stages of ``icp-plane*``) of the caller's pose ``R0, t0``, moving
-    ``source`` (points ``[N', 3]`` and their surface; default: ``src_r`` and :attr:`Working.source_surface`)."""
-    src, own = (work.src_r, work.source_surface) if source is None else source
+    ``src_r`` (``short``: :attr:`Working.short_points`, every ``SHORT_REFINE_STRIDE``-th of its points)."""
+    src = work.short_points if short else work.src_r
     if refine == "icp":
         return icp(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
+    own = work.short_surface if short else work.source_surface
     return refine_plane(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
                         target_surface=surface, source_surface=own)
 
@@ -48,8 +48,8 @@ def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, dist
 def short_refine(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
                  surface: Surface | None) -> IcpResult:
     """A candidate's short refinement, enough to rank basins: ``refine`` with at most ``CANDIDATE_ITERATIONS`` updates
-    per stage, moving :attr:`Working.short_source` (every ``SHORT_REFINE_STRIDE``-th source point)."""
-    return refine_pose(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface, work.short_source)
+    per stage, moving :attr:`Working.short_points`."""
+    return refine_pose(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface, short=True)
 
 
 def icp_distance(work: Working, options: RegistrationOptions) -> float:

@@ -85,10 +85,10 @@ def test_multistart_recovers_a_pose_turned_into_a_wrong_basin() -> None:
 
 def test_short_refinements_move_every_third_source_point_with_the_full_clouds_normals() -> None:
     work, _ = working(refine="icp-plane")
-    points, surface = work.short_source
+    points, surface = work.short_points, work.short_surface
     np.testing.assert_array_equal(points, work.src_r[::SHORT_REFINE_STRIDE])
     np.testing.assert_array_equal(surface.normals, work.source_surface.normals[::SHORT_REFINE_STRIDE])
-    assert work.short_source is work.short_source and work.source_surface is work.source_surface  # built once
+    assert work.short_surface is surface and work.source_surface is work.source_surface  # built once
     start = Rotation.from_euler("x", 10.0, degrees=True).as_matrix() @ R_TRUE
     short = short_refine(work, start, T_TRUE, "icp-plane", 0.1 * work.norm.scale, work.target_surface)
     assert short.iterations <= 2 * CANDIDATE_ITERATIONS
