@@ -15,14 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.icp import IcpResult
-from service.rotation_search import AMBIGUOUS_RATIO_GAP, ambiguity_warning, rank_hypotheses
+from service.rotation_search import ambiguity_warning, close_second, rank_hypotheses
 from service.stages.normalise import Working
 from service.translation_search import translation_candidates
 
 CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
 # Another ranked candidate that places the source's centroid more than AMBIGUOUS_SHIFT (normalised units) from the
-# winner's place, with an inlier ratio within AMBIGUOUS_RATIO_GAP of the winner's, makes the result ambiguous
-# (not reliable, a warning): room fragments slide along walls and floors into places that fit almost as well.
+# winner's place, with an inlier ratio within service.rotation_search.AMBIGUOUS_RATIO_GAP of the winner's, makes the
+# result ambiguous (not reliable, a warning): room fragments slide along walls and floors into places that fit
+# almost as well.
 AMBIGUOUS_SHIFT = 0.2
 
 
@@ -70,9 +71,8 @@ def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarr
     centre = work.src[work.idx_s].mean(axis=0)  # [3] the working source's centroid, caller's frame
     placed = rotations @ centre + translations  # [C, 3]
     shift = np.linalg.norm(placed - placed[best], axis=1)  # [C] caller's units
-    far = shift > AMBIGUOUS_SHIFT * work.norm.scale  # [C]
-    for i in np.argsort(-ratios, kind="stable"):
-        if i != best and far[i] and ratios[i] >= ratios[best] - AMBIGUOUS_RATIO_GAP:
-            return (f"ambiguous: a pose that moves the source {shift[i]:.3g} further fits almost as well (inlier ratio "
-                    f"{ratios[i]:.2f} vs {ratios[best]:.2f}); the clouds may slide along flat or repeated surfaces")
-    return None
+    i = close_second(ratios, best, shift > AMBIGUOUS_SHIFT * work.norm.scale)
+    if i is None:
+        return None
+    return (f"ambiguous: a pose that moves the source {shift[i]:.3g} further fits almost as well (inlier ratio "
+            f"{ratios[i]:.2f} vs {ratios[best]:.2f}); the clouds may slide along flat or repeated surfaces")
