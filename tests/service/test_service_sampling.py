@@ -199,3 +199,16 @@ def test_coordinate_hash_depends_on_the_coordinates_alone() -> None:
     assert h.dtype == np.uint64 and len(np.unique(h)) == 1000
     np.testing.assert_array_equal(coordinate_hash(points[::-1]), h[::-1])
     assert coordinate_hash(np.array([[0.0, 0.0, 1.0]]))[0] != coordinate_hash(np.array([[0.0, 1.0, 0.0]]))[0]
+
+
+@pytest.mark.parametrize("n", [20_000, 200_000])
+def test_voxel_counting_by_table_and_by_sorting_select_the_same_points(monkeypatch, n: int) -> None:
+    import service.sampling as sampling
+
+    points, _ = _with_outliers(n, n // 10, seed=5)
+    by_table = [[resample_indices(points, 768, drop), spread_indices(points, 4096, drop)] for drop in (False, True)]
+    monkeypatch.setattr(sampling, "COUNT_TABLE_CELLS_PER_POINT", 0)
+    monkeypatch.setattr(sampling, "COUNT_TABLE_MIN_CELLS", 0)  # every grid counted by sorting
+    by_sorting = [[resample_indices(points, 768, drop), spread_indices(points, 4096, drop)] for drop in (False, True)]
+    for table, sort in zip(by_table, by_sorting, strict=True):
+        assert all(np.array_equal(a, b) for a, b in zip(table, sort, strict=True))
