@@ -39,7 +39,7 @@ SEARCH_ICP_STRIDE = 3
 SEARCH_BATCH = 4
 # With the short ICPs, every hypothesis goes through the first SEARCH_PRUNE_ITERATIONS network iterations and its
 # short ICP; only the SEARCH_KEEP best by rank_hypotheses go on through the remaining iterations (each exactly as
-# without pruning) and their own short ICPs, and all of them are returned (docs/ROTATION_SEARCH.md, "Pruning").
+# without pruning) and their own short ICPs, and all of them are returned (docs/ROTATION_SEARCH.md, step 3).
 # On real scans the first iteration often ranks the right basin below 4th place: 6 kept register 70 instead of 68
 # of the 90 development cases (4 turns per pair) for ~3% more time (docs/decisions/0010-six-search-candidates.md).
 SEARCH_PRUNE_ITERATIONS = 1
