@@ -118,7 +118,8 @@ class RegistrationOptions:
 
     ``rotation_search="auto"`` runs the plain registration (with ``refine``) first and returns it
     unchanged unless it looks wrong (:func:`service.stages.search.needs_search`: an inlier ratio below
-    ``AUTO_SEARCH_RELATIVE_RATIO`` of what the target's density allows) and neither working cloud is
+    ``AUTO_SEARCH_RELATIVE_RATIO`` of what the target's density allows, and not the look of a partial view's right
+    pose: :func:`service.stages.partial.looks_partial`) and neither working cloud is
     degenerate (identical or collinear points: no start rotation can fix what they leave open); then it
     runs the rotation search as above on the same working clouds and returns whichever of the two final poses
     :func:`service.rotation_search.rank_hypotheses`

@@ -23,6 +23,7 @@ RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial
 # 14 pair sets (docs/decisions/0003): one of 1,311 right poses fell below it (0.41, a partial view),
 # while the wrong poses called reliable fell from 385 to 287 of 509 (dense pairs at 180 deg: 67 -> 26 of 83).
 RELIABLE_RELATIVE_RATIO = 0.6
+NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier distances count as near the target
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
 IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
 
@@ -93,6 +94,22 @@ def inlier_statistics(distances: np.ndarray, inlier_distance: float) -> tuple[np
     sq_sum = np.where(inlier, distances, 0.0) ** 2
     rms = np.sqrt(sq_sum.sum(axis=-1) / np.maximum(count, 1))
     return count / max(distances.shape[-1], 1), np.where(count > 0, rms, 0.0)
+
+
+def near_surface_share(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
+                       tree: KDTree | None = None) -> float:
+    """Of the points of ``src (N, 3)`` moved by ``R (3, 3), t (3,)`` that lie within ``NEAR_SURFACE_FACTOR *
+    inlier_distance`` of ``tgt (M, 3)``, the share within ``inlier_distance`` (0.0 when none is that near).
+
+    High for a right pose of a partial view (the source's unseen parts lie far from the target, the rest on it),
+    however low its inlier ratio; low for a pose that crosses the target's surface. ``tree``: ``KDTree(tgt)`` when
+    the caller has it.
+    """
+    moved = np.asarray(src, dtype=np.float64) @ np.asarray(R).T + t  # [N, 3]
+    near = NEAR_SURFACE_FACTOR * inlier_distance
+    dist = (KDTree(tgt) if tree is None else tree).query(moved, k=1, distance_upper_bound=near)[0]  # [N]
+    within = int(np.count_nonzero(dist <= near))
+    return float(np.count_nonzero(dist <= inlier_distance) / within) if within else 0.0
 
 
 def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTree | None = None) -> float:

@@ -16,6 +16,7 @@ from service.rotation_search import distinct_candidates, rank_hypotheses, search
 from service.sampling import evenly_spaced_indices
 from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working
+from service.stages.partial import looks_partial
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -68,12 +69,13 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
 
 def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: Working,
                 plain: RegistrationResult, hypotheses: np.ndarray, timing: dict[str, float]) -> RegistrationResult:
-    """``plain`` unless it looks wrong (:func:`needs_search`) on non-degenerate clouds; then ``solve(hypotheses,
+    """``plain`` unless it looks wrong (:func:`needs_search`, and not a partial view:
+    :func:`service.stages.partial.looks_partial`) on non-degenerate clouds; then ``solve(hypotheses,
     {})`` (the pipeline with the search) and whichever final pose :func:`rank_hypotheses` ranks first (the plain
     one on a tie), with the plain pass's stage timings. Records ``timing`` ``search`` (the whole second pass)
     and ``search_per_hypothesis`` when it searched."""
     if (degenerate(work.src_w) or degenerate(work.tgt_w)
-            or not needs_search(plain, work.attainable_ratio)):
+            or not needs_search(plain, work.attainable_ratio) or looks_partial(work, plain)):
         return plain
     started = time.perf_counter()
     searched = solve(hypotheses, {})
