@@ -40,10 +40,10 @@ SEARCH_BATCH = 4
 # With the short ICPs, every hypothesis goes through the first SEARCH_PRUNE_ITERATIONS network iterations and its
 # short ICP; only the SEARCH_KEEP best by rank_hypotheses go on through the remaining iterations (each exactly as
 # without pruning) and their own short ICPs, and all of them are returned (docs/ROTATION_SEARCH.md, step 3).
-# On real scans the first iteration often ranks the right basin below 4th place: 6 kept register 70 instead of 68
-# of the 90 development cases (4 turns per pair) for ~3% more time (docs/decisions/0010-six-search-candidates.md).
+# On real scans the first iteration often ranks the right basin below 4th place: 8 kept register 71 instead of 68
+# of the 90 development cases (4 turns per pair) in process (docs/decisions/0010-eight-search-candidates.md).
 SEARCH_PRUNE_ITERATIONS = 1
-SEARCH_KEEP = 6
+SEARCH_KEEP = 8
 # The manifest's "search" section that the export writes for models trained on independently sampled pairs
 # (service.manifest.Manifest.search_subsample): when a refinement follows, the search runs on SEARCH_POINTS rows
 # spread evenly through each working cloud (service.sampling.evenly_spaced_indices) with SEARCH_KEYPOINTS
