@@ -3,9 +3,9 @@
 ``python -m bench.search_pruning --pairs dense180.npz --pairs resampled180.npz [--json out.json]``
 
 Registers every pair with ``rotation_search=True``, ``refine="icp-plane"`` (bundled ``general``) once per
-variant -- ``full`` (every hypothesis through every iteration), ``p1k4`` / ``p1k6`` (the default) / ``p2k4`` (all
-hypotheses through 1 / 1 / 2 iterations, then the best 4 / 6 / 4) -- alternating the order pair by pair; success =
-recall at (5 deg, 5 cm).
+variant -- ``full`` (every hypothesis through every iteration), ``p1k4`` / ``p1k6`` / ``p1k8`` (the default) /
+``p2k4`` (all hypotheses through 1 / 1 / 1 / 2 iterations, then the best 4 / 6 / 8 / 4) -- alternating the order
+pair by pair; success = recall at (5 deg, 5 cm).
 """
 
 from __future__ import annotations
@@ -19,7 +19,8 @@ import numpy as np
 from bench.auto_trigger import pose_errors
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
-VARIANTS = {"full": (1, 24), "p1k4": (1, 4), "p1k6": (1, 6), "p2k4": (2, 4)}  # (SEARCH_PRUNE_ITERATIONS, SEARCH_KEEP)
+# (SEARCH_PRUNE_ITERATIONS, SEARCH_KEEP) of each variant
+VARIANTS = {"full": (1, 24), "p1k4": (1, 4), "p1k6": (1, 6), "p1k8": (1, 8), "p2k4": (2, 4)}
 
 
 def run(pair_files: list[Path], model: str) -> dict:
