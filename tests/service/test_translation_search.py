@@ -3,7 +3,7 @@
 import numpy as np
 from shapes import room_scene
 
-from service.translation_search import occupancy, translation_candidates
+from service.translation_search import column_bounds, occupancy, translation_candidates
 
 
 def test_occupancy_marks_the_cells_points_fall_in():
@@ -39,3 +39,10 @@ def test_candidates_are_distinct_basins():
     cell = 4.3 / 32
     gaps = np.abs(candidates[:, None] - candidates[None]).max(-1) + np.eye(len(candidates)) * 99
     assert gaps.min() > 2 * cell - 1e-9
+
+
+def test_column_bounds_are_the_per_axis_minimum_and_maximum():
+    points = np.random.default_rng(3).normal(size=(5000, 3)) * [1.0, 10.0, 0.1]
+    low, high = column_bounds(points)
+    np.testing.assert_array_equal(low, points.min(axis=0))
+    np.testing.assert_array_equal(high, points.max(axis=0))
