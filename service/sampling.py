@@ -37,7 +37,7 @@ ISOLATED_PASSES = 2  # a second pass on the rest: dense pairs with 40% outliers 
 VOXEL_TRIGGER = 8  # reduce with a voxel grid first when N > VOXEL_TRIGGER * size
 VOXEL_TARGET = 3.5  # aim for about this many occupied voxels per requested point ...
 VOXEL_ACCEPT = (3.0, 4.0)  # ... and accept a voxel size whose occupancy / size lies in this range
-VOXEL_MAX_TRIES = 6  # voxel-size adjustments (each costs one sort of N keys)
+VOXEL_MAX_TRIES = 6  # voxel-size adjustments (each counts the occupied voxels of N keys once)
 VOXEL_MAX_CELLS_PER_AXIS = 1_000_000  # keeps linear voxel keys far from int64 overflow
 # Voxel keys are counted with a table (np.bincount) while the grid has at most this many cells per point, plus
 # COUNT_TABLE_MIN_CELLS; beyond that (a fine grid over scattered points) by sorting. A surface's grid holds a few
