@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.icp import IcpResult
 from service.rotation_search import ambiguity_warning, close_second, rank_hypotheses
 from service.stages.normalise import Working
 from service.translation_search import translation_candidates
@@ -50,18 +49,18 @@ class Ranked:
 
 
 def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
-                    short_refine: Callable[[np.ndarray, np.ndarray], IcpResult]) -> Ranked:
-    """``short_refine`` each start pose (caller's units), rank the results by inlier ratio then residual on the
-    working clouds (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere."""
-    basins = [short_refine(R0, t0) for R0, t0 in starts]  # short refinements: enough to rank the basins
-    rotations = np.stack([b.rotation for b in basins])  # [C, 3, 3]
-    translations = np.stack([b.translation for b in basins])  # [C, 3]
+                    short_refine: Callable[[list[tuple[np.ndarray, np.ndarray]]], tuple[np.ndarray, np.ndarray]]
+                    ) -> Ranked:
+    """``short_refine`` the start poses (caller's units; it returns ``R [C, 3, 3]``, ``t [C, 3]``), rank the results
+    by inlier ratio then residual on the working clouds (:func:`service.rotation_search.rank_hypotheses`), and flag a
+    close second elsewhere."""
+    rotations, translations = short_refine(starts)  # short refinements: enough to rank the basins
     order, ratios, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations,
                                        work.inlier_distance)
     pick = int(order[0])
     ambiguity = ambiguity_warning(rotations, ratios, pick) or shift_ambiguity(work, rotations, translations, ratios,
                                                                               pick)
-    return Ranked(pick, ambiguity, basins[pick].rotation, basins[pick].translation)
+    return Ranked(pick, ambiguity, rotations[pick], translations[pick])
 
 
 def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, ratios: np.ndarray,

@@ -15,6 +15,7 @@ from functools import partial
 import numpy as np
 
 from service.icp import IcpResult, Surface, icp, refine_plane
+from service.icp_batch import refine_plane_many
 from service.multistart import multistart
 from service.options import RegistrationOptions
 from service.stages.normalise import ICP_DISTANCE, Working
@@ -45,11 +46,18 @@ def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, dist
                         target_surface=surface, source_surface=own)
 
 
-def short_refine(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
-                 surface: Surface | None) -> IcpResult:
-    """A candidate's short refinement, enough to rank basins: ``refine`` with at most ``CANDIDATE_ITERATIONS`` updates
-    per stage, moving :attr:`Working.short_points`."""
-    return refine_pose(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, surface, short=True)
+def short_refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], refine: str, distance: float,
+                 surface: Surface | None) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates' short refinements, enough to rank basins: ``refine`` of each start pose (caller's units) with at
+    most ``CANDIDATE_ITERATIONS`` updates per stage, moving :attr:`Working.short_points`; the point-to-plane modes
+    refine every start at once (:func:`service.icp_batch.refine_plane_many`). Returns ``R [C, 3, 3]``, ``t [C, 3]``."""
+    if refine == "icp":
+        basins = [refine_pose(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, None, short=True)
+                  for R0, t0 in starts]
+        return np.stack([b.rotation for b in basins]), np.stack([b.translation for b in basins])
+    rotations, translations = np.stack([R for R, _ in starts]), np.stack([t for _, t in starts])  # [C, 3, 3], [C, 3]
+    return refine_plane_many(work.short_points, work.tgt_r, rotations, translations, max_distance=distance,
+                             max_iterations=CANDIDATE_ITERATIONS, target=surface, source=work.short_surface)
 
 
 def icp_distance(work: Working, options: RegistrationOptions) -> float:

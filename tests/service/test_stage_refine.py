@@ -59,8 +59,7 @@ def test_refine_pose_honours_the_iteration_cap() -> None:
 def test_ranking_picks_the_start_in_the_right_basin_wherever_it_is() -> None:
     work, _ = working(refine="icp-plane")
     surface = Surface.of(work.tgt_r)
-    short = partial(refine_pose, work, refine="icp-plane", distance=0.1 * work.norm.scale,
-                    max_iterations=CANDIDATE_ITERATIONS, surface=surface)
+    short = partial(short_refine, work, refine="icp-plane", distance=0.1 * work.norm.scale, surface=surface)
     wrong = (Rotation.from_euler("x", 120, degrees=True).as_matrix(), np.zeros(3))
     ranked = rank_candidates(work, [wrong, (np.eye(3), np.zeros(3))], short)
     assert ranked.pick == 1 and angle_deg(ranked.rotation, R_TRUE) < 5.0 and ranked.ambiguity is None
@@ -90,6 +89,11 @@ def test_short_refinements_move_every_third_source_point_with_the_full_clouds_no
     np.testing.assert_array_equal(surface.normals, work.source_surface.normals[::SHORT_REFINE_STRIDE])
     assert work.short_surface is surface and work.source_surface is work.source_surface  # built once
     start = Rotation.from_euler("x", 10.0, degrees=True).as_matrix() @ R_TRUE
-    short = short_refine(work, start, T_TRUE, "icp-plane", 0.1 * work.norm.scale, work.target_surface)
-    assert short.iterations <= 2 * CANDIDATE_ITERATIONS
-    assert angle_deg(short.rotation, R_TRUE) < angle_deg(start, R_TRUE) - 3.0  # the basin is found from 10 deg
+    (rotation,), (translation,) = short_refine(work, [(start, T_TRUE)], "icp-plane", 0.1 * work.norm.scale,
+                                               work.target_surface)
+    alone = refine_pose(work, start, T_TRUE, "icp-plane", 0.1 * work.norm.scale, CANDIDATE_ITERATIONS,
+                        work.target_surface, short=True)  # the same stages, one start at a time
+    assert alone.iterations <= 2 * CANDIDATE_ITERATIONS
+    np.testing.assert_allclose(rotation, alone.rotation, atol=1e-9)
+    np.testing.assert_allclose(translation, alone.translation, atol=1e-9)
+    assert angle_deg(rotation, R_TRUE) < angle_deg(start, R_TRUE) - 3.0  # the basin is found from 10 deg
