@@ -50,8 +50,10 @@ SEARCH_KEEP = 8
 # keypoints; it only has to find the basin, and the refinement of the winner on the full clouds restores the
 # precision. With `general` on 320 seeded independent-sample pairs at 90-180 deg the searched pairs cost 2-5x
 # less at the same or a higher success rate; the paper-protocol models (shared points) lost pairs on a
-# subsample and keep the full clouds (docs/ROTATION_SEARCH.md, "Searching on a subsample").
-SEARCH_POINTS = 256
+# subsample and keep the full clouds (docs/decisions/0002-rotation-search-default-and-trigger.md). 128 rather than
+# 256 points: more real-scan development cases registered, at the cost of dense complete shapes turned up to 180 deg
+# (docs/decisions/0012-search-on-128-points.md).
+SEARCH_POINTS = 128
 SEARCH_KEYPOINTS = 32
 # Kept candidates whose poses lie this close to a better one are not refined again (the same basin).
 DUPLICATE_DEGREES = 1.0
