@@ -5,9 +5,10 @@ on one line — a rotation about that line cannot be observed) and the share of 
 target point within ``inlier_distance`` reaches both ``RELIABLE_INLIER_RATIO`` and
 ``RELIABLE_RELATIVE_RATIO`` of what the target's own density allows (:func:`attainable_inlier_ratio`): a
 wrong pose that ICP has pulled onto the target's surface often still keeps a third of the points near it,
-but less often 60% of what a right pose reaches (``docs/RELIABILITY.md``, "What `reliable` means").
-Coplanar clouds only earn a warning: their pose is usually determined, but it
-can be ambiguous (sliding within the plane, symmetric outlines).
+but less often 60% of what a right pose reaches (``docs/RELIABILITY.md``, "What `reliable` means"); and of the
+moved source points near the target, the share on it (:func:`near_surface_share`) reaches ``RELIABLE_NEAR_SHARE``
+of that ratio: a right pose lies on the target where the clouds overlap. Coplanar clouds only earn a warning:
+their pose is usually determined, but it can be ambiguous (sliding within the plane, symmetric outlines).
 """
 
 from __future__ import annotations
@@ -24,6 +25,11 @@ RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial
 # while the wrong poses called reliable fell from 385 to 287 of 509 (dense pairs at 180 deg: 67 -> 26 of 83).
 RELIABLE_RELATIVE_RATIO = 0.6
 NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier distances count as near the target
+# ... and of the moved source points near the target (within NEAR_SURFACE_FACTOR inlier distances), a share within
+# one (near_surface_share) of at least this much of the attainable inlier ratio: a right pose lies on the target
+# where they overlap, a wrong one pulled onto it often crosses its surface
+# (docs/decisions/0013-reliable-needs-a-tight-fit.md).
+RELIABLE_NEAR_SHARE = 0.72
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
 IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
 
@@ -104,10 +110,15 @@ def near_surface_share(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.nd
     however low its inlier ratio; low for a pose that crosses the target's surface.
     """
     moved = np.asarray(src, dtype=np.float64) @ np.asarray(R).T + t  # [N, 3]
-    near = NEAR_SURFACE_FACTOR * inlier_distance
-    dist = KDTree(tgt).query(moved, k=1, distance_upper_bound=near)[0]  # [N]
-    within = int(np.count_nonzero(dist <= near))
-    return float(np.count_nonzero(dist <= inlier_distance) / within) if within else 0.0
+    dist = KDTree(tgt).query(moved, k=1, distance_upper_bound=NEAR_SURFACE_FACTOR * inlier_distance)[0]  # [N]
+    return share_on_surface(dist, inlier_distance)
+
+
+def share_on_surface(distances: np.ndarray, inlier_distance: float) -> float:
+    """Of the nearest-neighbour ``distances (N,)`` at most ``NEAR_SURFACE_FACTOR * inlier_distance``, the share at
+    most ``inlier_distance`` (0.0 when there is none)."""
+    within = int(np.count_nonzero(distances <= NEAR_SURFACE_FACTOR * inlier_distance))
+    return float(np.count_nonzero(distances <= inlier_distance) / within) if within else 0.0
 
 
 def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTree | None = None) -> float:
@@ -147,7 +158,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     warnings = [f"source {w}" for w in src_warnings] + [f"target {w}" for w in tgt_warnings]
     degenerate = any(w.startswith(_DEGENERATE) for w in src_warnings + tgt_warnings)
 
-    inlier_ratio, residual_rms, attainable = 0.0, 0.0, 1.0
+    inlier_ratio, residual_rms, attainable, near_share = 0.0, 0.0, 1.0, 0.0
     if src.shape[0] and tgt.shape[0]:
         tree = KDTree(tgt) if tree is None else tree
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -155,6 +166,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         ratio, rms = inlier_statistics(dist, inlier_distance)
         inlier_ratio, residual_rms = float(ratio), float(rms)
         attainable = attainable_inlier_ratio(tgt, inlier_distance, tree)
+        near_share = share_on_surface(dist, inlier_distance)
     if inlier_ratio < RELIABLE_INLIER_RATIO:
         sparse = attainable < RELIABLE_INLIER_RATIO / RELIABLE_RELATIVE_RATIO  # even a right pose keeps little
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (
@@ -163,5 +175,10 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     elif inlier_ratio < RELIABLE_RELATIVE_RATIO * attainable:
         warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {RELIABLE_RELATIVE_RATIO} of the "
                         f"{attainable:.2f} the target's density allows")
-    reliable = not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, RELIABLE_RELATIVE_RATIO * attainable)
+    elif near_share < RELIABLE_NEAR_SHARE * attainable:
+        warnings.append(f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
+                        f"target only {near_share:.2f} lie within one, < {RELIABLE_NEAR_SHARE} of the {attainable:.2f} "
+                        "the target's density allows; a right pose lies on the target where they overlap")
+    reliable = (not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, RELIABLE_RELATIVE_RATIO * attainable)
+                and near_share >= RELIABLE_NEAR_SHARE * attainable)
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

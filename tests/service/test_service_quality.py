@@ -8,10 +8,12 @@ from scipy.spatial.transform import Rotation
 
 from service.quality import (
     RELIABLE_INLIER_RATIO,
+    RELIABLE_NEAR_SHARE,
     RELIABLE_RELATIVE_RATIO,
     assess,
     attainable_inlier_ratio,
     degeneracy_warnings,
+    near_surface_share,
 )
 
 
@@ -109,6 +111,22 @@ def test_reliability_also_needs_a_share_of_what_the_target_density_allows(inlier
     quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
     assert quality.inlier_ratio == pytest.approx(inliers / 100) and quality.reliable is reliable
     assert any(w.startswith("poor fit") for w in quality.warnings) is (not reliable)  # 0.3 <= ratio < 0.6
+
+
+@pytest.mark.parametrize(("loose", "reliable"), [(27, True), (28, False)])
+def test_reliability_also_needs_the_points_near_the_target_to_lie_on_it(loose: int, reliable: bool) -> None:
+    assert RELIABLE_NEAR_SHARE == 0.72
+    tgt = blob(100, seed=6) * 10  # target points far apart: each source point's nearest is its own ...
+    tgt[1::2] = tgt[::2] + np.array([0.0, 0.0, 0.05])  # ... or its partner's 0.05 away: the attainable ratio is 1
+    assert attainable_inlier_ratio(tgt, 0.1) == 1.0
+    src = tgt.copy()
+    src[70 : 70 + loose, 0] += 0.2  # near the target (within 3 inlier distances) but not on it
+    src[70 + loose :] += 1000.0  # far away
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert quality.inlier_ratio == pytest.approx(0.7)  # 70 of the 70 + loose near points lie on the target
+    assert quality.reliable is reliable  # 70 / 97 = 0.722 >= 0.72 * 1.0 > 70 / 98
+    assert any(w.startswith("loose fit") for w in quality.warnings) is (not reliable)
+    assert near_surface_share(src, tgt, np.eye(3), np.zeros(3), 0.1) == pytest.approx(70 / (70 + loose))
 
 
 def test_a_target_too_sparse_for_the_inlier_distance_falls_back_to_the_fixed_ratio() -> None:
