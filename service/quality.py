@@ -5,7 +5,7 @@ on one line — a rotation about that line cannot be observed) and the share of 
 target point within ``inlier_distance`` reaches both ``RELIABLE_INLIER_RATIO`` and
 ``RELIABLE_RELATIVE_RATIO`` of what the target's own density allows (:func:`attainable_inlier_ratio`): a
 wrong pose that ICP has pulled onto the target's surface often still keeps a third of the points near it,
-but less often 60% of what a right pose reaches (``docs/RELIABILITY.md``, "What `reliable` means"); and of the
+but less often half of what a right pose reaches (``docs/RELIABILITY.md``, "What `reliable` means"); and of the
 moved source points near the target, the share on it (:func:`near_surface_share`) reaches ``RELIABLE_NEAR_SHARE``
 of that ratio: a right pose lies on the target where the clouds overlap. Coplanar clouds only earn a warning:
 their pose is usually determined, but it can be ambiguous (sliding within the plane, symmetric outlines).
@@ -20,10 +20,10 @@ import numpy as np
 from service.kdtree import KDTree
 
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
-# ... and at least this share of the target's attainable inlier ratio. Measured with `general` + icp-plane on
-# 14 pair sets (docs/decisions/0003): one of 1,311 right poses fell below it (0.41, a partial view),
-# while the wrong poses called reliable fell from 385 to 287 of 509 (dense pairs at 180 deg: 67 -> 26 of 83).
-RELIABLE_RELATIVE_RATIO = 0.6
+# ... and at least this share of the target's attainable inlier ratio: 0.6 alone (docs/decisions/0003), 0.5 beside
+# the tight-fit condition below, which tells wrong poses apart better; right poses of real scans that overlap by
+# half no longer fall below it (docs/decisions/0013-reliable-needs-a-tight-fit.md).
+RELIABLE_RELATIVE_RATIO = 0.5
 NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier distances count as near the target
 # ... and of the moved source points near the target (within NEAR_SURFACE_FACTOR inlier distances), a share within
 # one (near_surface_share) of at least this much of the attainable inlier ratio: a right pose lies on the target

@@ -152,7 +152,7 @@ class Quality(BaseModel):
     )
     reliable: bool = Field(
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
-        "0.3 or below 0.6 of what the target's point density allows, identical / collinear points, a weakly "
+        "0.3 or below 0.5 of what the target's point density allows, identical / collinear points, a weakly "
         "constrained pose (stability below 0.01: a 'weakly constrained' warning), or (rotation search) a pose far "
         "from the returned one that fits almost as well (an 'ambiguous' warning)."
     )
