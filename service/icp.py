@@ -99,7 +99,7 @@ def icp(
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     tree = KDTree(tgt)
     src_tree = KDTree(src) if reciprocal else None
-    translation_tolerance = tolerance * _rms_radius(tgt)
+    translation_tolerance = tolerance * rms_radius(tgt)
     iterations = 0
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -138,7 +138,7 @@ def icp_many(
         raise ValueError(f"R0 must be (H, 3, 3) and t0 (H, 3), got {R0.shape} and {t0.shape}")
     src, tgt, _, _ = _checked(src, tgt, np.eye(3), np.zeros(3), max_distance, max_iterations)
     tree = KDTree(tgt)
-    translation_tolerance = tolerance * _rms_radius(tgt)
+    translation_tolerance = tolerance * rms_radius(tgt)
     R, t = R0.copy(), t0.copy()
     running = np.arange(len(R))  # starts still updating
     for _ in range(max_iterations):
@@ -265,7 +265,7 @@ def icp_symmetric(
     tree, tgt_normals, tgt_defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
     own = Surface.of(src, normal_neighbours) if source_surface is None else source_surface
     src_normals, src_defined = own.normals, own.defined  # [N, 3], [N] in the source frame
-    scale, sigma2 = _rms_radius(tgt), (max_distance / 3.0) ** 2
+    scale, sigma2 = rms_radius(tgt), (max_distance / 3.0) ** 2
     iterations, warnings = 0, []
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -372,7 +372,7 @@ def icp_plane(
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
     src_tree = None if not reciprocal else KDTree(src) if source_surface is None else source_surface.tree
-    scale = _rms_radius(tgt)
+    scale = rms_radius(tgt)
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -493,7 +493,7 @@ def _checked(src, tgt, R0, t0, max_distance: float, max_iterations: int):
     return src, tgt, R, t
 
 
-def _rms_radius(points: np.ndarray) -> float:
+def rms_radius(points: np.ndarray) -> float:
     """RMS distance of ``points (M, 3)`` from their centroid (at least the smallest positive float)."""
     radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
     return max(radius, np.finfo(np.float64).tiny)

@@ -19,8 +19,8 @@ from service.icp import (
     WIDE_TOLERANCE,
     PairingHistory,
     Surface,
-    _rms_radius,
     icp,
+    rms_radius,
 )
 from service.procrustes import compose
 
@@ -36,7 +36,7 @@ def refine_plane_many(src: np.ndarray, tgt: np.ndarray, R0: np.ndarray, t0: np.n
     R, t = np.array(R0, dtype=np.float64), np.array(t0, dtype=np.float64)  # copies: updated in place
     if R.ndim != 3 or R.shape[1:] != (3, 3) or t.shape != (len(R), 3):
         raise ValueError(f"R0 must be (C, 3, 3) and t0 (C, 3), got {R.shape} and {t.shape}")
-    scale = _rms_radius(tgt)
+    scale = rms_radius(tgt)
     _symmetric_stage(src, tgt, R, t, WIDE_DISTANCE_FACTOR * max_distance, max_iterations, target, source, scale)
     _plane_stage(src, tgt, R, t, max_distance, max_iterations, tolerance, target, source, scale)
     return R, t
