@@ -11,9 +11,13 @@ clouds in the same run::
     python -m bench.real_scans --pairs dragon_24_0 --no-fpfh --scales 1
     python -m bench.real_scans --turns 4 --no-fpfh     # each pair also at 3 more seeded rotations
     python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
+    python -m bench.real_scans --no-fpfh --compare-root /tmp/before   # beside another checkout, taking turns
 
 Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
 given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
+``--compare-root`` also serves another checkout (its code and its bundled models); the two servers take turns case
+by case, so that a machine whose speed drifts between runs weighs on both alike, and the report adds that
+checkout's totals and this checkout's time over its.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import io
 import json
 import os
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,15 +180,24 @@ def judged(case: Case, rotation: np.ndarray | None, translation: np.ndarray | No
 
 
 def run_service(cases: list[Case], url: str, options: dict | None = None) -> list[dict]:
-    rows = []
-    with httpx.Client(timeout=300) as client:
-        register_http(client, url, cases[0].source, cases[0].target, options)  # warm-up, untimed
-        for case in cases:
-            out = register_http(client, url, case.source, case.target, options)
-            row = judged(case, out.get("rotation"), out.get("translation"))
-            row.update(seconds=round(out["seconds"], 4), reliable=out.get("reliable"),
-                       status=out.get("status", 200), warnings=out.get("warnings", []))
-            rows.append(row)
+    return run_services(cases, [url], options)[0]
+
+
+def run_services(cases: list[Case], urls: list[str], options: dict | None = None) -> list[list[dict]]:
+    """Every case on every server of ``urls``, the servers taking turns (their order flips from case to case): one
+    list of rows per server."""
+    rows: list[list[dict]] = [[] for _ in urls]
+    with ExitStack() as stack:
+        clients = [stack.enter_context(httpx.Client(timeout=300)) for _ in urls]
+        for client, url in zip(clients, urls, strict=True):
+            register_http(client, url, cases[0].source, cases[0].target, options)  # warm-up, untimed
+        for i, case in enumerate(cases):
+            for k in range(len(urls)) if i % 2 == 0 else reversed(range(len(urls))):
+                out = register_http(clients[k], urls[k], case.source, case.target, options)
+                row = judged(case, out.get("rotation"), out.get("translation"))
+                row.update(seconds=round(out["seconds"], 4), reliable=out.get("reliable"),
+                           status=out.get("status", 200), warnings=out.get("warnings", []))
+                rows[k].append(row)
     return rows
 
 
@@ -242,6 +256,16 @@ def print_table(cases: list[Case], service: list[dict], fpfh: list[dict] | None)
         print(line)
 
 
+def compared_report(root: Path, cases: list[Case], service: list[dict], compared: list[dict]) -> dict:
+    """The other checkout's totals, its rows and, per unit, this checkout's summed time over its."""
+    mine, theirs = summarise(cases, service, None), summarise(cases, compared, None)
+    return {"root": str(root), "totals": theirs,
+            "time_ratio": {scale: round(mine[scale]["service_seconds"] / theirs[scale]["service_seconds"], 3)
+                           for scale in mine},
+            "pairs": [{"pair": c.name, "variant": c.variant, "scale": c.scale, "service": compared[i]}
+                      for i, c in enumerate(cases)]}
+
+
 def _num(value) -> str:
     return "-" if value is None else f"{value:.3g}"
 
@@ -260,6 +284,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--options", type=json.loads, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
+    parser.add_argument("--compare-root", type=Path,
+                        help="also serve this other checkout (its code and bundled models), taking turns case by case")
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
     directory = data_dir(args.directory)
@@ -267,9 +293,15 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
     if args.turns < 1:
         parser.error(f"--turns must be at least 1, got {args.turns}")
+    if args.compare_root and (args.url or args.model_dir):
+        parser.error("--compare-root serves each checkout's own bundled models: not with --url or --model-dir")
     cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns)
+    compared = None
     if args.url:
         service = run_service(cases, args.url, args.options)
+    elif args.compare_root:
+        with Server() as server, Server(cwd=str(args.compare_root)) as other:
+            service, compared = run_services(cases, [server.url, other.url], args.options)
     else:
         dirs, name = (str(args.model_dir), args.model_dir.name) if args.model_dir else (None, None)
         with Server(model_dirs=dirs, default_model=name) as server:
@@ -281,7 +313,9 @@ def main(argv: list[str] | None = None) -> dict:
     report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "options": args.options,
               "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
-    emit_report({"totals": report["totals"]}, None)
+    if compared is not None:
+        report["compared"] = compared_report(args.compare_root, cases, service, compared)
+    emit_report({key: report[key] for key in ("totals", "compared") if key in report}, None)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(report, indent=1) + "\n")

@@ -1,5 +1,7 @@
 """bench.real_scans: the service half through a real server on one real pair; Open3D's half where installed."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -77,3 +79,23 @@ def test_fpfh_half_registers_the_pair_as_scanned():
     case = next(c for c in real_scans.load_cases(DATA, scales=(1.0,), names=[PAIR]) if c.variant == "scanned")
     R, t = real_scans.fpfh_ransac_icp(case.source, case.target)
     assert real_scans.judged(case, R, t)["success"]
+
+
+@needs_data
+def test_compare_root_serves_another_checkout_taking_turns():
+    root = Path(__file__).resolve().parents[2]  # this checkout again: the same code and models, the same poses
+    report = real_scans.main([str(DATA), "--pairs", PAIR, "--no-fpfh", "--scales", "1", "--compare-root", str(root)])
+    compared = report["compared"]
+    assert compared["root"] == str(root) and compared["totals"]["x1"]["cases"] == 2
+    for mine, theirs in zip(report["pairs"], compared["pairs"], strict=True):
+        assert (mine["variant"], mine["scale"]) == (theirs["variant"], theirs["scale"])
+        assert mine["service"]["success"] == theirs["service"]["success"]
+        assert mine["service"]["rotation_error_deg"] == pytest.approx(theirs["service"]["rotation_error_deg"], abs=1e-3)
+    mine_s, theirs_s = report["totals"]["x1"]["service_seconds"], compared["totals"]["x1"]["service_seconds"]
+    assert compared["time_ratio"]["x1"] == pytest.approx(mine_s / theirs_s, rel=1e-2)
+
+
+def test_compare_root_refuses_a_running_server(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        real_scans.main([str(tmp_path), "--no-fpfh", "--url", "http://127.0.0.1:9", "--compare-root", "."])
+    assert "--compare-root serves each checkout's own bundled models" in capsys.readouterr().err
