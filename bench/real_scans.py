@@ -313,10 +313,9 @@ def main(argv: list[str] | None = None) -> dict:
     report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "options": args.options,
               "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
-    if compared is not None:
-        report["compared"] = compared_report(args.compare_root, cases, service, compared)
     printed = {"totals": report["totals"]}
     if compared is not None:
+        report["compared"] = compared_report(args.compare_root, cases, service, compared)
         printed["compared"] = {key: report["compared"][key] for key in ("root", "totals", "time_ratio")}
     emit_report(printed, None)
     if args.json:
