@@ -42,6 +42,12 @@ class Working(Sampled):
         return attainable_inlier_ratio(self.tgt_w, self.inlier_distance)
 
     @cached_property
+    def entered_target_tree(self) -> KDTree:
+        """KD-tree of the entered target ``tgt_e`` (all of the caller's target up to the entry limit), built when a
+        stage first measures distances to the target's surface rather than to its working samples."""
+        return KDTree(np.asarray(self.tgt_e, dtype=np.float64))
+
+    @cached_property
     def target_surface(self) -> Surface:
         """KD-tree and normals of the refinement's target ``tgt_r``, built once per registration."""
         return Surface.of(self.tgt_r)

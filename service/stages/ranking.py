@@ -1,5 +1,6 @@
 """Candidate ranking (within the refine stage): the rotation search's kept candidates each get a short
-refinement and are ranked again by their fit on the working clouds.
+refinement and are ranked again, by their :func:`close_fit` to the caller's target, then their fit on the working
+clouds; the slide check ranks its places the same way.
 
 The search's own ranking (short point-to-point ICPs on its subsample) often put a wrong basin first: on 600
 seeded pairs at 90 and 180 degrees 359 -> 388 right for ~15 ms more (docs/ROTATION_SEARCH.md, "Ranking the kept
@@ -24,6 +25,9 @@ CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's
 # result ambiguous (not reliable, a warning): room fragments slide along walls and floors into places that fit
 # almost as well.
 AMBIGUOUS_SHIFT = 0.2
+# close_fit counts a working source point as on the target within CLOSE_FIT of the inlier distance of the entered
+# target's points (docs/decisions/0014-places-by-their-close-fit.md).
+CLOSE_FIT = 0.5
 
 
 def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], count: int = CANDIDATE_SHIFTS
@@ -48,15 +52,30 @@ class Ranked:
     translation: np.ndarray  # [3]
 
 
+def close_fit(work: Working, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """``[C]``: the share of the working source points that each pose (``rotations [C, 3, 3]``, ``translations
+    [C, 3]``, caller's units) places within ``CLOSE_FIT`` inlier distances of the entered target ``tgt_e``.
+
+    Distances to the target's surface, not to its working samples: on room-sized clouds those lie farther apart
+    than an inlier distance, and places slid along a wall overlay about as many source points on them as the
+    right place does."""
+    reach = CLOSE_FIT * work.inlier_distance
+    source = np.asarray(work.src[work.idx_s], dtype=np.float64)  # [Ns, 3]
+    moved = source @ rotations.transpose(0, 2, 1) + translations[:, None]  # [C, Ns, 3]
+    dist, _ = work.entered_target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=reach)
+    return (dist.reshape(moved.shape[:2]) < reach).mean(axis=1)
+
+
 def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
                     short_refine: Callable[[list[tuple[np.ndarray, np.ndarray]]], tuple[np.ndarray, np.ndarray]]
                     ) -> Ranked:
     """``short_refine`` the start poses (caller's units; it returns ``R [C, 3, 3]``, ``t [C, 3]``), rank the results
-    by inlier ratio then residual on the working clouds (:func:`service.rotation_search.rank_hypotheses`), and flag a
-    close second elsewhere."""
+    by :func:`close_fit`, ties by inlier ratio then residual on the working clouds
+    (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by inlier ratio)."""
     rotations, translations = short_refine(starts)  # short refinements: enough to rank the basins
     order, ratios, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations,
                                        work.inlier_distance)
+    order = order[np.argsort(-close_fit(work, rotations[order], translations[order]), kind="stable")]
     pick = int(order[0])
     ambiguity = ambiguity_warning(rotations, ratios, pick) or shift_ambiguity(work, rotations, translations, ratios,
                                                                               pick)
