@@ -172,21 +172,23 @@ def rotation_between_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(cos)))
 
 
-def ambiguity_warning(rotations: np.ndarray, ratios: np.ndarray, best: int) -> str | None:
-    """A warning when a pose far from the best one fits almost as well: ``rotations [H, 3, 3]`` and inlier
-    ratios ``[H]`` of the ranked candidates, ``best`` the winner's row. Symmetric or near-symmetric shapes
-    leave the pose undetermined; the winner is then wrong more often than right (docs/ROTATION_SEARCH.md)."""
+def ambiguity_warning(rotations: np.ndarray, ratios: np.ndarray, best: int, measure: str = "inlier ratio"
+                      ) -> str | None:
+    """A warning when a pose far from the best one fits almost as well: ``rotations [H, 3, 3]`` and fits ``[H]``
+    (inlier ratios, or the ``measure`` the warning names) of the ranked candidates, ``best`` the winner's row.
+    Symmetric or near-symmetric shapes leave the pose undetermined; the winner is then wrong more often than right
+    (docs/ROTATION_SEARCH.md)."""
     angles = np.array([rotation_between_deg(rotations[best], R) for R in rotations])  # [H]
     i = close_second(ratios, best, angles > AMBIGUOUS_DEGREES)
     if i is None:
         return None
-    return (f"ambiguous: a pose {angles[i]:.0f} deg away fits almost as well (inlier ratio {ratios[i]:.2f} vs "
+    return (f"ambiguous: a pose {angles[i]:.0f} deg away fits almost as well ({measure} {ratios[i]:.2f} vs "
             f"{ratios[best]:.2f}); the shape may be symmetric")
 
 
 def close_second(ratios: np.ndarray, best: int, far: np.ndarray) -> int | None:
-    """The best-fitting candidate other than ``best`` among those marked ``far [H]`` whose inlier ratio (``ratios
-    [H]``) is within ``AMBIGUOUS_RATIO_GAP`` of the winner's, or ``None``."""
+    """The best-fitting candidate other than ``best`` among those marked ``far [H]`` whose fit (``ratios [H]``: inlier
+    ratios or close fits) is within ``AMBIGUOUS_RATIO_GAP`` of the winner's, or ``None``."""
     for i in np.argsort(-ratios, kind="stable"):
         if i != best and far[i] and ratios[i] >= ratios[best] - AMBIGUOUS_RATIO_GAP:
             return int(i)

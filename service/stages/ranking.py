@@ -21,13 +21,14 @@ from service.translation_search import translation_candidates
 
 CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
 # Another ranked candidate that places the source's centroid more than AMBIGUOUS_SHIFT (normalised units) from the
-# winner's place, with an inlier ratio within service.rotation_search.AMBIGUOUS_RATIO_GAP of the winner's, makes the
+# winner's place, with a close fit within service.rotation_search.AMBIGUOUS_RATIO_GAP of the winner's, makes the
 # result ambiguous (not reliable, a warning): room fragments slide along walls and floors into places that fit
 # almost as well.
 AMBIGUOUS_SHIFT = 0.2
 # close_fit counts a working source point as on the target within CLOSE_FIT of the inlier distance of the entered
 # target's points (docs/decisions/0014-places-by-their-close-fit.md).
 CLOSE_FIT = 0.5
+FIT_NAME = "close fit"  # what the ambiguity warnings of a ranking call the close fit
 
 
 def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], count: int = CANDIDATE_SHIFTS
@@ -71,26 +72,26 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
                     ) -> Ranked:
     """``short_refine`` the start poses (caller's units; it returns ``R [C, 3, 3]``, ``t [C, 3]``), rank the results
     by :func:`close_fit`, ties by inlier ratio then residual on the working clouds
-    (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by inlier ratio)."""
+    (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by close fit)."""
     rotations, translations = short_refine(starts)  # short refinements: enough to rank the basins
-    order, ratios, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations,
-                                       work.inlier_distance)
-    order = order[np.argsort(-close_fit(work, rotations[order], translations[order]), kind="stable")]
-    pick = int(order[0])
-    ambiguity = ambiguity_warning(rotations, ratios, pick) or shift_ambiguity(work, rotations, translations, ratios,
-                                                                              pick)
+    order, _, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations, work.inlier_distance)
+    fits = close_fit(work, rotations, translations)  # [C]
+    pick = int(order[np.argsort(-fits[order], kind="stable")][0])
+    ambiguity = (ambiguity_warning(rotations, fits, pick, measure=FIT_NAME)
+                 or shift_ambiguity(work, rotations, translations, fits, pick, measure=FIT_NAME))
     return Ranked(pick, ambiguity, rotations[pick], translations[pick])
 
 
-def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, ratios: np.ndarray,
-                    best: int) -> str | None:
+def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray,
+                    best: int, measure: str = FIT_NAME) -> str | None:
     """A warning when a candidate that places the working source's centroid more than ``AMBIGUOUS_SHIFT`` from where
-    the winner ``best`` does fits almost as well (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``ratios [C]``)."""
+    the winner ``best`` does fits almost as well (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``fits [C]``: the
+    ``measure`` the warning names)."""
     centre = work.src[work.idx_s].mean(axis=0)  # [3] the working source's centroid, caller's frame
     placed = rotations @ centre + translations  # [C, 3]
     shift = np.linalg.norm(placed - placed[best], axis=1)  # [C] caller's units
-    i = close_second(ratios, best, shift > AMBIGUOUS_SHIFT * work.norm.scale)
+    i = close_second(fits, best, shift > AMBIGUOUS_SHIFT * work.norm.scale)
     if i is None:
         return None
-    return (f"ambiguous: a pose that moves the source {shift[i]:.3g} further fits almost as well (inlier ratio "
-            f"{ratios[i]:.2f} vs {ratios[best]:.2f}); the clouds may slide along flat or repeated surfaces")
+    return (f"ambiguous: a pose that moves the source {shift[i]:.3g} further fits almost as well ({measure} "
+            f"{fits[i]:.2f} vs {fits[best]:.2f}); the clouds may slide along flat or repeated surfaces")

@@ -67,9 +67,9 @@ def test_a_slid_room_fragment_comes_back():
         results[name] = registrar.register(source, target, refine="icp-plane", rotation_search=False)
         errors[name] = np.linalg.norm(results[name].translation - truth[:3, 3])
     assert errors["without"] > 0.5 and errors["with"] < 0.3, errors  # 3DMatch success: under 0.3 m
-    # the place 0.85 m along the walls fits almost as well (inlier ratio 0.50 vs 0.53): right, but not reliable
-    assert not results["with"].reliable
-    assert any(w.startswith("ambiguous: a pose that moves the source") for w in results["with"].warnings)
+    # by inlier ratio on the working clouds the place 0.82 m along the walls fitted almost as well (0.50 vs 0.53); by
+    # close fit to the target it does not, and the right result is reliable
+    assert results["with"].reliable, results["with"].warnings
 
 
 def test_without_a_refinement_nothing_is_tried():
