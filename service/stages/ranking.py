@@ -28,6 +28,9 @@ AMBIGUOUS_SHIFT = 0.2
 # close_fit counts a working source point as on the target within CLOSE_FIT of the inlier distance of the entered
 # target's points (docs/decisions/0014-places-by-their-close-fit.md).
 CLOSE_FIT = 0.5
+# ... and only where the entered target holds at least CLOSE_FIT_DENSITY times the working target's points (else the
+# candidates are ranked by their inlier ratio on the working clouds).
+CLOSE_FIT_DENSITY = 4
 FIT_NAME = "close fit"  # what the ambiguity warnings of a ranking call the close fit
 
 
@@ -67,18 +70,28 @@ def close_fit(work: Working, rotations: np.ndarray, translations: np.ndarray) ->
     return (dist.reshape(moved.shape[:2]) < reach).mean(axis=1)
 
 
+def samples_the_surface(work: Working) -> bool:
+    """Whether the entered target holds at least ``CLOSE_FIT_DENSITY`` times the working target's points: only then
+    does :func:`close_fit` measure distances to the surface rather than to samples as sparse as the working ones."""
+    return len(work.tgt_e) >= CLOSE_FIT_DENSITY * len(work.tgt_w)
+
+
 def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
                     short_refine: Callable[[list[tuple[np.ndarray, np.ndarray]]], tuple[np.ndarray, np.ndarray]]
                     ) -> Ranked:
     """``short_refine`` the start poses (caller's units; it returns ``R [C, 3, 3]``, ``t [C, 3]``), rank the results
-    by :func:`close_fit`, ties by inlier ratio then residual on the working clouds
-    (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by close fit)."""
+    by :func:`close_fit` where the entered target :func:`samples_the_surface`, then by inlier ratio and residual on
+    the working clouds (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by the
+    fit that ranked them)."""
     rotations, translations = short_refine(starts)  # short refinements: enough to rank the basins
-    order, _, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations, work.inlier_distance)
-    fits = close_fit(work, rotations, translations)  # [C]
-    pick = int(order[np.argsort(-fits[order], kind="stable")][0])
-    ambiguity = (ambiguity_warning(rotations, fits, pick, measure=FIT_NAME)
-                 or shift_ambiguity(work, rotations, translations, fits, pick, measure=FIT_NAME))
+    order, fits, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations, work.inlier_distance)
+    measure = "inlier ratio"
+    if samples_the_surface(work):
+        fits, measure = close_fit(work, rotations, translations), FIT_NAME  # [C]
+        order = order[np.argsort(-fits[order], kind="stable")]
+    pick = int(order[0])
+    ambiguity = (ambiguity_warning(rotations, fits, pick, measure=measure)
+                 or shift_ambiguity(work, rotations, translations, fits, pick, measure=measure))
     return Ranked(pick, ambiguity, rotations[pick], translations[pick])
 
 

@@ -4,12 +4,12 @@ On room-sized fragments the rotation is often right while the translation is met
 fixed, the clouds slid along walls and floors into a wrong local fit. When the refined pose's inlier ratio is
 below ``SLIDE_TRIGGER`` of what the target's density allows, the occupancy cross-correlation of
 :mod:`service.translation_search` proposes the translations that overlay the turned source on the target best;
-each gets the search candidates' short refinement, they are ranked with the current pose by their close fit to the
-caller's target (:func:`service.stages.ranking.close_fit`; the current pose wins ties), and a new winner gets the
-full refinement -- kept unless it fits less closely than its start: on the working clouds of a room the refinement
-can slide a right place along the walls again (``docs/decisions/0014-places-by-their-close-fit.md``). Another
-place that fits almost as well makes the result ambiguous (:func:`service.stages.ranking.shift_ambiguity`),
-whichever wins.
+each gets the search candidates' short refinement, they are ranked with the current pose
+(:func:`service.stages.ranking.rank_candidates`: by their close fit to a dense target; the current pose wins
+ties), and a new winner gets the full refinement -- with a dense target kept unless it fits less closely than its
+start: on the working clouds of a room the refinement can slide a right place along the walls again
+(``docs/decisions/0014-places-by-their-close-fit.md``). Another place that fits almost as well makes the result
+ambiguous (:func:`service.stages.ranking.shift_ambiguity`), whichever wins.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from service.icp import IcpResult
 from service.options import RegistrationOptions
 from service.rotation_search import rank_hypotheses
 from service.stages.normalise import Working
-from service.stages.ranking import close_fit, rank_candidates
+from service.stages.ranking import close_fit, rank_candidates, samples_the_surface
 from service.stages.refine import Refined, icp_distance, refine_pose, short_refine
 from service.translation_search import translation_candidates
 
@@ -60,8 +60,11 @@ def slide(work: Working, refined: Refined, options: RegistrationOptions, trigger
 
 def closer_of(work: Working, full: IcpResult, R: np.ndarray, t: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
-    """The full refinement's pose and warnings, or its start ``R, t`` (no warnings) where the start has the higher
+    """The full refinement's pose and warnings, or its start ``R, t`` (no warnings) where the entered target
+    :func:`service.stages.ranking.samples_the_surface` and the start has the higher
     :func:`service.stages.ranking.close_fit` (ties: the refinement)."""
+    if not samples_the_surface(work):
+        return full.rotation, full.translation, full.warnings
     fits = close_fit(work, np.stack([full.rotation, R]), np.stack([full.translation, t]))  # [2]
     if fits[1] > fits[0]:
         return R, t, ()
