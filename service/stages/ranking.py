@@ -1,6 +1,6 @@
 """Candidate ranking (within the refine stage): the rotation search's kept candidates each get a short
-refinement and are ranked again, by their :func:`close_fit` to the caller's target, then their fit on the working
-clouds; the slide check ranks its places the same way.
+refinement and are ranked again: by their :func:`close_fit` to the caller's target where it is dense, then by their
+fit on the working clouds; the slide check ranks its places the same way.
 
 The search's own ranking (short point-to-point ICPs on its subsample) often put a wrong basin first: on 600
 seeded pairs at 90 and 180 degrees 359 -> 388 right for ~15 ms more (docs/ROTATION_SEARCH.md, "Ranking the kept
@@ -21,7 +21,7 @@ from service.translation_search import translation_candidates
 
 CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
 # Another ranked candidate that places the source's centroid more than AMBIGUOUS_SHIFT (normalised units) from the
-# winner's place, with a close fit within service.rotation_search.AMBIGUOUS_RATIO_GAP of the winner's, makes the
+# winner's place, with a fit (as ranked) within service.rotation_search.AMBIGUOUS_RATIO_GAP of the winner's, makes the
 # result ambiguous (not reliable, a warning): room fragments slide along walls and floors into places that fit
 # almost as well.
 AMBIGUOUS_SHIFT = 0.2
@@ -96,7 +96,7 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
 
 
 def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray,
-                    best: int, measure: str = FIT_NAME) -> str | None:
+                    best: int, measure: str = "inlier ratio") -> str | None:
     """A warning when a candidate that places the working source's centroid more than ``AMBIGUOUS_SHIFT`` from where
     the winner ``best`` does fits almost as well (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``fits [C]``: the
     ``measure`` the warning names)."""

@@ -2,9 +2,9 @@
 
 With several candidates (the rotation search) each, and each one's rotation at its best candidate translations
 (:func:`service.stages.ranking.with_translations`), first gets a short refinement -- the refinement's stages with
-at most ``CANDIDATE_ITERATIONS`` updates each -- and they are ranked again by their close fit to the caller's
-target (:mod:`service.stages.ranking`); the winner gets the full refinement, then ``icp-plane-multistart`` tries
-turned starts (:func:`service.multistart.multistart`).
+at most ``CANDIDATE_ITERATIONS`` updates each -- and they are ranked again, by their close fit to a dense target
+(:mod:`service.stages.ranking`); the winner gets the full refinement, then ``icp-plane-multistart`` tries turned
+starts (:func:`service.multistart.multistart`).
 """
 
 from __future__ import annotations
