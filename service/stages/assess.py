@@ -8,13 +8,36 @@ import numpy as np
 
 from service.kdtree import KDTree
 from service.network_loop import NetworkOutput
-from service.quality import assess
+from service.quality import NEAR_SURFACE_FACTOR, assess, share_on_surface
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
 from service.stability import pose_stability, weak_motion_warning
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, Working, to_caller
+from service.stages.ranking import samples_the_surface
 from service.stages.refine import Refined
+
+# With a dense target (service.stages.ranking.samples_the_surface), of the moved working source points within
+# NEAR_SURFACE_FACTOR inlier distances of the entered target's points a reliable result has at least this share
+# within one (docs/decisions/0015-reliable-on-the-target-surface.md).
+RELIABLE_SURFACE_SHARE = 0.66
+
+
+def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
+    """A ``loose fit`` warning when the entered target is dense and the pose ``R, t`` (caller's units) leaves too many
+    of the working source points near its surface off it (below ``RELIABLE_SURFACE_SHARE``; the working target's own
+    tight-fit test, :func:`service.quality.assess`, measures to 768 samples only), else ``None``."""
+    if not samples_the_surface(work):
+        return None
+    reach = NEAR_SURFACE_FACTOR * work.inlier_distance
+    moved = np.asarray(work.src[work.idx_s], dtype=np.float64) @ R.T + t  # [Ns, 3]
+    share = share_on_surface(work.entered_target_tree.query(moved, k=1, distance_upper_bound=reach)[0],
+                             work.inlier_distance)
+    if share >= RELIABLE_SURFACE_SHARE:
+        return None
+    return (f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
+            f"only {share:.3f} lie within one, < {RELIABLE_SURFACE_SHARE}; a right pose lies on the target's surface "
+            "where they overlap")
 
 
 def iteration_poses(work: Working, candidate: SearchCandidate) -> list[IterationPose]:
@@ -35,8 +58,8 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     """Inlier ratio, residual and ``reliable`` (:func:`service.quality.assess`), the pose's stability
     (:func:`service.stability.pose_stability`) and the winning candidate's correspondences as a result.
 
-    Not reliable when the quality says so, the candidate ranking was ambiguous, or the motion is weakly
-    constrained; records ``timing["postprocess"]``."""
+    Not reliable when the quality says so, the candidate ranking was ambiguous, the motion is weakly constrained,
+    or the pose lies off a dense target's surface (:func:`off_the_surface`); records ``timing["postprocess"]``."""
     candidate = found.poses[refined.pick]
     net = candidate.output
     poses = iteration_poses(work, candidate) if return_iterations else []
@@ -48,6 +71,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     quality = assess(src, tgt_w, R, t, work.inlier_distance, tree)
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
     weak = weak_motion_warning(stability)
+    loose = off_the_surface(work, R, t) if quality.reliable and refined.ambiguity is None and weak is None else None
     result = RegistrationResult(
         rotation=R,
         translation=t,
@@ -57,8 +81,8 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
         weight=svd_weights(net),
         inlier_ratio=quality.inlier_ratio,
         residual_rms=quality.residual_rms,
-        reliable=bool(quality.reliable) and refined.ambiguity is None and weak is None,  # assess(): degenerate
-        warnings=[*quality.warnings, *refined.warnings, *(w for w in (refined.ambiguity, weak) if w)],
+        reliable=bool(quality.reliable) and refined.ambiguity is None and weak is None and loose is None,
+        warnings=[*quality.warnings, *refined.warnings, *(w for w in (refined.ambiguity, weak, loose) if w)],
         stability=None if stability is None else stability.eigenvalue,
         iterations=iterations,
         timing_ms=timing,

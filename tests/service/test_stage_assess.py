@@ -1,0 +1,72 @@
+"""The assess stage's check on a dense target's surface: a pose that leaves the source near but off the surface is
+not reliable."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from shapes import room_scene
+
+from bench.real_scans import load_cases, pose_errors, thresholds
+from service.registrar import Registrar
+from service.stages.assess import off_the_surface
+from service.stages.normalise import normalise
+from service.stages.sample import sample
+from service.stages.validate import validate
+
+GENERAL = Path(__file__).resolve().parents[2] / "service" / "models" / "general"
+R_TRUE = Rotation.from_euler("zyx", [20.0, 0.0, 0.0], degrees=True).as_matrix()
+T_TRUE = np.array([0.6, -0.3, 0.1])
+
+
+def real_data_dir() -> Path:
+    return Path(os.environ.get("MFGNET_REAL_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
+
+
+def room(target_points: int | None = None):
+    """Two overlapping partial views of one furnished room (metres) as a registration's working clouds."""
+    scene = room_scene(np.random.default_rng(3), 2000, boxes=30)
+    source, target = scene[scene[:, 0] < 3.0], scene[scene[:, 0] > 1.0] @ R_TRUE.T + T_TRUE
+    if target_points is not None:
+        target = target[np.random.default_rng(0).choice(len(target), target_points, replace=False)]
+    return normalise(sample(validate(source, target, None, {"refine": "icp-plane"}, 3, 128)), 1.0)
+
+
+def turned_about_the_target(work, degrees: float) -> tuple[np.ndarray, np.ndarray]:
+    """The true pose followed by a turn of ``degrees`` about the vertical through the target's centroid."""
+    turn = Rotation.from_euler("z", degrees, degrees=True).as_matrix()
+    centre = work.tgt_e.mean(axis=0)
+    return turn @ R_TRUE, turn @ T_TRUE + centre - turn @ centre
+
+
+def test_the_right_pose_lies_on_the_surface_and_a_turned_one_does_not():
+    work = room()
+    assert off_the_surface(work, R_TRUE, T_TRUE) is None
+    assert off_the_surface(work, *turned_about_the_target(work, 2.0)) is None
+    warning = off_the_surface(work, *turned_about_the_target(work, 20.0))
+    assert warning is not None and warning.startswith("loose fit: of the source points within 3 inlier distances of")
+
+
+def test_a_target_no_denser_than_its_working_cloud_is_not_checked():
+    work = room(target_points=1500)  # under 4 x 768 points: the working cloud's own tight-fit test decides
+    assert off_the_surface(work, *turned_about_the_target(work, 20.0)) is None
+
+
+def test_a_room_registered_wrong_is_not_called_reliable():
+    """A turned 3DMatch hotel fragment (the second turn of `bench.real_scans --seed 1 --turns 4`) comes back 44 deg
+    off in metres and 179 deg off in millimetres; its fit on the working clouds passed every other test."""
+    if not (real_data_dir() / "3dm_hotel3_15_8.npz").exists():
+        pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
+    registrar = Registrar(GENERAL)
+    cases = [c for c in load_cases(real_data_dir(), 1, (1.0, 1000.0), turns=4)
+             if c.name == "3dm_hotel3_15_8" and c.variant == "turned-2"]
+    assert len(cases) == 2
+    for case in cases:
+        result = registrar.register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+        degrees, distance = pose_errors(result.rotation, result.translation, case.src_to_tgt)
+        max_degrees, max_distance = thresholds(case.sensor, case.scale)
+        assert not result.reliable or (degrees < max_degrees and distance < max_distance), (case.scale, degrees)
