@@ -102,15 +102,18 @@ def inlier_statistics(distances: np.ndarray, inlier_distance: float) -> tuple[np
     return count / max(distances.shape[-1], 1), np.where(count > 0, rms, 0.0)
 
 
-def near_surface_share(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float) -> float:
+def near_surface_share(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
+                       tree: KDTree | None = None) -> float:
     """Of the points of ``src (N, 3)`` moved by ``R (3, 3), t (3,)`` that lie within ``NEAR_SURFACE_FACTOR *
     inlier_distance`` of ``tgt (M, 3)``, the share within ``inlier_distance`` (0.0 when none is that near).
+    ``tree``: ``KDTree(tgt)`` when the caller has it.
 
     High for a right pose of a partial view (the source's unseen parts lie far from the target, the rest on it),
     however low its inlier ratio; low for a pose that crosses the target's surface.
     """
     moved = np.asarray(src, dtype=np.float64) @ np.asarray(R).T + t  # [N, 3]
-    dist = KDTree(tgt).query(moved, k=1, distance_upper_bound=NEAR_SURFACE_FACTOR * inlier_distance)[0]  # [N]
+    tree = KDTree(tgt) if tree is None else tree
+    dist = tree.query(moved, k=1, distance_upper_bound=NEAR_SURFACE_FACTOR * inlier_distance)[0]  # [N]
     return share_on_surface(dist, inlier_distance)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 
 from service.kdtree import KDTree
 from service.network_loop import NetworkOutput
-from service.quality import NEAR_SURFACE_FACTOR, assess, share_on_surface
+from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
 from service.stability import pose_stability, weak_motion_warning
@@ -29,10 +29,7 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
     tight-fit test, :func:`service.quality.assess`, measures to 768 samples only), else ``None``."""
     if not samples_the_surface(work):
         return None
-    reach = NEAR_SURFACE_FACTOR * work.inlier_distance
-    moved = np.asarray(work.src[work.idx_s], dtype=np.float64) @ R.T + t  # [Ns, 3]
-    share = share_on_surface(work.entered_target_tree.query(moved, k=1, distance_upper_bound=reach)[0],
-                             work.inlier_distance)
+    share = near_surface_share(work.src[work.idx_s], work.tgt_e, R, t, work.inlier_distance, work.entered_target_tree)
     if share >= RELIABLE_SURFACE_SHARE:
         return None
     return (f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
