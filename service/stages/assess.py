@@ -68,7 +68,8 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     quality = assess(src, tgt_w, R, t, work.inlier_distance, tree)
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
     weak = weak_motion_warning(stability)
-    loose = off_the_surface(work, R, t) if quality.reliable and refined.ambiguity is None and weak is None else None
+    reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate
+    loose = off_the_surface(work, R, t) if reliable else None  # only where nothing else took `reliable` away
     result = RegistrationResult(
         rotation=R,
         translation=t,
@@ -78,7 +79,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
         weight=svd_weights(net),
         inlier_ratio=quality.inlier_ratio,
         residual_rms=quality.residual_rms,
-        reliable=bool(quality.reliable) and refined.ambiguity is None and weak is None and loose is None,
+        reliable=reliable and loose is None,
         warnings=[*quality.warnings, *refined.warnings, *(w for w in (refined.ambiguity, weak, loose) if w)],
         stability=None if stability is None else stability.eigenvalue,
         iterations=iterations,
