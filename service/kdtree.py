@@ -5,14 +5,14 @@ builds) behind :class:`KDTree`, with ``cKDTree.query``'s conventions: float64 di
 and where fewer than ``k`` points lie within ``distance_upper_bound`` (or the tree holds fewer than ``k``),
 the missing neighbours come back as distance ``inf`` and index ``n`` (the number of points in the tree).
 
-pykdtree spreads each query over OpenMP threads. Outside a registration every query runs one thread for the
-calling thread (OpenMP's thread count is a per-thread setting, restored right after): once torch is loaded (the
-training side), its process-wide OpenMP runtime serves pykdtree's calls with torch's thread count (a 768-point
-query: 1,186 us instead of 151 with one thread; ``docs/DESIGN.md``, "Nearest neighbours"). A registration
-(:meth:`service.registrar.Registrar.register`) runs inside :func:`sharing_cores` with its ONNX Runtime thread
-count: its queries then use that many threads divided by the registrations in flight at the time (a lone
-registration on 2 cores: both; two at once: one each), and one wherever a second OpenMP runtime (torch's) is
-loaded. The runtimes are found at the first query; one loaded after that is not seen.
+pykdtree spreads each query over OpenMP threads. Between the many short queries of an ICP idle OpenMP
+workers spin and slow the calling thread's numpy work on a 2-core machine; and once torch is loaded (the
+training side), its process-wide OpenMP runtime serves pykdtree's calls with torch's thread count (a
+768-point query: 1,186 us instead of 151 with one thread; ``docs/DESIGN.md``, "Nearest neighbours"). So
+each query runs with every loaded OpenMP runtime limited to one thread *for the calling thread* (OpenMP's
+thread count is a per-thread setting), restored right after: other threads, and torch's own work
+between queries, keep their threads. The runtimes are found at the first query; one loaded after that
+is not limited (slower queries, same results).
 """
 
 from __future__ import annotations
@@ -40,47 +40,17 @@ def openmp_runtimes() -> list:
 
 
 @contextmanager
-def openmp_threads(threads: int) -> Iterator[None]:
-    """Every OpenMP runtime at ``threads`` threads for the calling thread while the block runs."""
+def one_openmp_thread() -> Iterator[None]:
+    """Every OpenMP runtime at one thread for the calling thread while the block runs."""
     runtimes = openmp_runtimes()
     previous = [lib.get_num_threads() for lib in runtimes]
     for lib in runtimes:
-        lib.set_num_threads(threads)
+        lib.set_num_threads(1)
     try:
         yield
     finally:
-        for lib, count in zip(runtimes, previous, strict=True):
-            lib.set_num_threads(count)
-
-
-_sharing = threading.local()  # .cores: the calling thread's share of cores for its queries (unset: 1)
-_in_flight = 0  # threads inside a sharing_cores block now
-
-
-@contextmanager
-def sharing_cores(cores: int) -> Iterator[None]:
-    """Within the block the calling thread's queries use up to ``cores`` OpenMP threads, shared with the other
-    threads inside such a block at the time of each query (:func:`query_threads`)."""
-    global _in_flight
-    with _openmp_lock:
-        _in_flight += 1
-    previous = getattr(_sharing, "cores", 1)
-    _sharing.cores = max(1, int(cores))
-    try:
-        yield
-    finally:
-        _sharing.cores = previous
-        with _openmp_lock:
-            _in_flight -= 1
-
-
-def query_threads() -> int:
-    """The OpenMP threads of the calling thread's next query: its :func:`sharing_cores` share divided by the threads
-    sharing now (at least 1); 1 outside such a block and wherever more than one OpenMP runtime is loaded."""
-    cores = getattr(_sharing, "cores", 1)
-    if cores == 1 or len(openmp_runtimes()) != 1:
-        return 1
-    return max(1, cores // max(1, _in_flight))
+        for lib, threads in zip(runtimes, previous, strict=True):
+            lib.set_num_threads(threads)
 
 
 class KDTree:
@@ -102,7 +72,7 @@ class KDTree:
         ``[Q]`` each for ``k = 1``, else ``[Q, k]``; neighbours farther than ``distance_upper_bound`` (or
         beyond the tree's size) are ``inf`` / ``n``, as in ``scipy.spatial.cKDTree.query``."""
         queries = np.ascontiguousarray(points, dtype=np.float64)
-        with openmp_threads(query_threads()):
+        with one_openmp_thread():
             dist, idx = self._tree.query(queries, k=int(k), distance_upper_bound=distance_upper_bound)
         missing = idx == _MISSING
         index = idx.astype(np.int64)

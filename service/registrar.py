@@ -21,7 +21,6 @@ import onnxruntime as ort
 from service.blas_threads import use_one_blas_thread
 from service.checks import MIN_POINTS, check_cloud, check_transform
 from service.errors import InputError
-from service.kdtree import sharing_cores
 from service.manifest import Manifest, load_manifest
 from service.neighbours import knn_graph
 from service.network_loop import NetworkLoop, NetworkOutput, gather_rows
@@ -111,8 +110,7 @@ class Registrar:
         self.config = self.manifest.config
         self.reference_radius = float(self.manifest.normalization.get("reference_radius", 1.0))
         self.centroid = self.config.get("centroid", "weighted")
-        self.threads = threads or default_threads()  # ONNX Runtime's intra-op threads; also the KD-tree queries'
-        options = session_options(self.threads)
+        options = session_options(threads or default_threads())
         providers = ["CPUExecutionProvider"]
         started = time.perf_counter()
         self.encoder = ort.InferenceSession(self.manifest.graph_bytes("encoder"), options, providers=providers)
@@ -288,11 +286,6 @@ class Registrar:
         does. ``timing_ms`` has a key per stage (``preprocess``, ``encoder``, ``iterations``, ``svd``, ``refine``,
         ``postprocess``), ``search`` / ``search_per_hypothesis`` when the rotation search ran, and ``total``.
         """
-        with sharing_cores(self.threads):  # its nearest-neighbour queries use the cores no other registration uses
-            return self._register(source, target, options, overrides)
-
-    def _register(self, source, target, options: RegistrationOptions | None, overrides: dict) -> RegistrationResult:
-        """:meth:`register`'s pipeline."""
         t0 = time.perf_counter()
         timing: dict[str, float] = {}
         stages = self.stages

@@ -1,5 +1,4 @@
-"""service.kdtree.KDTree: scipy's cKDTree conventions on pykdtree; one OpenMP thread per querying thread, or a
-registration's share of the cores."""
+"""service.kdtree.KDTree: scipy's cKDTree conventions on pykdtree, one OpenMP thread per querying thread."""
 
 from __future__ import annotations
 
@@ -54,8 +53,13 @@ def test_inputs_any_float_layout_and_empty_queries() -> None:
         KDTree(np.empty((0, 3)))
 
 
-def _recording_tree(points: np.ndarray, runtimes: list) -> tuple[KDTree, list[list[int]]]:
-    """A real tree whose queries note the OpenMP thread counts they run under."""
+def test_queries_run_one_openmp_thread_and_restore_it() -> None:
+    """During a query every OpenMP runtime runs one thread for the querying thread; afterwards that thread
+    and every other keep their own count."""
+    runtimes = kdtree.openmp_runtimes()
+    if not runtimes:
+        pytest.skip("no OpenMP runtime is loaded (a pykdtree built without OpenMP): nothing to limit")
+    points = np.random.default_rng(2).random((256, 3))
     tree = KDTree(points)
     pykdtree_query = tree._tree.query
     during: list[list[int]] = []
@@ -65,22 +69,6 @@ def _recording_tree(points: np.ndarray, runtimes: list) -> tuple[KDTree, list[li
         return pykdtree_query(*args, **kwargs)
 
     tree._tree = type("Recording", (), {"query": staticmethod(recording_query)})()
-    return tree, during
-
-
-def _runtimes() -> list:
-    runtimes = kdtree.openmp_runtimes()
-    if not runtimes:
-        pytest.skip("no OpenMP runtime is loaded (a pykdtree built without OpenMP): nothing to set")
-    return runtimes
-
-
-def test_queries_run_one_openmp_thread_and_restore_it() -> None:
-    """Outside a registration every OpenMP runtime runs one thread for the querying thread during a query; afterwards
-    that thread and every other keep their own count."""
-    runtimes = _runtimes()
-    points = np.random.default_rng(2).random((256, 3))
-    tree, during = _recording_tree(points, runtimes)
     outcome: dict[str, list[int]] = {}
 
     def query_in_thread() -> None:
@@ -96,39 +84,3 @@ def test_queries_run_one_openmp_thread_and_restore_it() -> None:
     assert during == [[1] * len(runtimes)]
     assert outcome["after"] == [2] * len(runtimes)
     assert [lib.get_num_threads() for lib in runtimes] == before_here
-
-
-def test_a_lone_registration_queries_on_its_cores_and_concurrent_ones_share_them() -> None:
-    """Inside ``sharing_cores(2)`` a thread alone queries with 2 OpenMP threads; two such threads at once, 1 each;
-    with more than one OpenMP runtime loaded (torch's), 1. Results are the same either way."""
-    runtimes = _runtimes()
-    points = np.random.default_rng(3).random((512, 3))
-    tree, during = _recording_tree(points, runtimes)
-    expected = 2 if len(runtimes) == 1 else 1
-    with kdtree.sharing_cores(2):
-        alone = tree.query(points, k=2)
-    assert during == [[expected] * len(runtimes)]
-    np.testing.assert_array_equal(alone[1], tree.query(points, k=2)[1])  # outside: 1 thread, same neighbours
-    assert during[-1] == [1] * len(runtimes)
-
-    during.clear()
-    inside, release = threading.Barrier(2), threading.Event()
-
-    def concurrent_registration() -> None:
-        with kdtree.sharing_cores(2):
-            inside.wait()  # both threads are in their blocks before either queries
-            tree.query(points, k=2)
-            release.wait(timeout=10)
-
-    workers = [threading.Thread(target=concurrent_registration) for _ in range(2)]
-    for worker in workers:
-        worker.start()
-    for _ in range(1000):  # both queries done (at most 10 s)
-        if len(during) == 2:
-            break
-        threading.Event().wait(0.01)
-    release.set()
-    for worker in workers:
-        worker.join()
-    assert during == [[1] * len(runtimes)] * 2
-    assert kdtree.query_threads() == 1  # outside every block again
