@@ -301,7 +301,8 @@ class Registrar:
 
     def solve(self, work: Working, request: Request, hypotheses: np.ndarray | None,
               timing: dict[str, float]) -> RegistrationResult:
-        """Network (plain, or the rotation search from ``hypotheses [H, 3, 3]``) -> refine -> assess on ``work``."""
+        """Network (plain, or the rotation search from ``hypotheses [H, 3, 3]``) -> refine -> slide check -> (after a
+        search) flip check -> assess on ``work``."""
         stages, o = self.stages, request.options
         if hypotheses is None:
             found = stages.network(self, work, request.iterations, request.keypoints, timing)
@@ -311,6 +312,8 @@ class Registrar:
         started = time.perf_counter()
         refined = stages.refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], o)
         refined = stages.slide(work, refined, o)
+        if hypotheses is not None:  # a searched pose turned half a turn from the truth (docs/decisions/0016)
+            refined = stages.flip(work, refined, o)
         if o.refine_mode != "none":
             timing["refine"] = 1000 * (time.perf_counter() - started)
         return stages.assess(work, found, refined, request.iterations, o.return_iterations, timing)

@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from service.stages.assess import assess_result
+from service.stages.flip import flip
 from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.refine import refine
@@ -28,5 +29,6 @@ class Stages:
     search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing) -> Candidates
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
     slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined
+    flip: Callable = flip  # (Working, Refined, RegistrationOptions) -> Refined; after a search only
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
     auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing) -> RegistrationResult

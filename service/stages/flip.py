@@ -1,0 +1,46 @@
+"""Stage 5c, flip check (after the rotation search): the half turns of a result that still fits poorly.
+
+An elongated or near-symmetric object seen in part (a range image of the dragon) can come back from the search turned
+half a turn about one of its axes: the flipped shape overlaps the target along its length, and none of the search's
+candidates lay in the right basin. With a target that samples the caller's surface densely
+(:func:`service.stages.ranking.samples_the_surface`), a searched pose that fits poorly
+(:func:`service.stages.slide.fits_poorly`) competes with its three half turns about the moved working source's
+principal axes (:func:`service.stages.partial.half_turns`), each briefly refined like the search's candidates; a half
+turn whose :func:`service.stages.ranking.close_fit` exceeds the pose's by ``FLIP_MARGIN`` gets the full refinement and
+takes its place (``docs/decisions/0016-flip-check-after-the-search.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from service.options import RegistrationOptions
+from service.stages.normalise import Working
+from service.stages.partial import half_turns
+from service.stages.ranking import close_fit, samples_the_surface
+from service.stages.refine import Refined, icp_distance, refine_pose, short_refine
+from service.stages.slide import fits_poorly
+
+FLIP_MARGIN = 0.03  # close fit a half turn must gain over the pose (service.rotation_search.AMBIGUOUS_RATIO_GAP)
+
+
+def flip(work: Working, refined: Refined, options: RegistrationOptions) -> Refined:
+    """``refined`` unless the target is dense, it fits poorly and one of its half turns, briefly refined, fits more
+    closely by ``FLIP_MARGIN``: then that half turn after the full refinement."""
+    mode = options.refine_mode
+    if (mode == "none" or not samples_the_surface(work)
+            or not fits_poorly(work, refined.rotation, refined.translation)):
+        return refined
+    distance = icp_distance(work, options)
+    R_h, t_h = half_turns(work.src[work.idx_s], refined.rotation, refined.translation)  # [3, 3, 3], [3, 3]
+    R_s, t_s = short_refine(work, list(zip(R_h, t_h, strict=True)), mode, distance, refined.surface)
+    fits = close_fit(work, np.concatenate([refined.rotation[None], R_s]),
+                     np.concatenate([refined.translation[None], t_s]))  # [4]: the pose, then its half turns
+    best = int(np.argmax(fits[1:])) + 1
+    if fits[best] <= fits[0] + FLIP_MARGIN:
+        return refined
+    full = refine_pose(work, R_s[best - 1], t_s[best - 1], mode, distance, options.icp_max_iterations,
+                       refined.surface)
+    return dataclasses.replace(refined, rotation=full.rotation, translation=full.translation, warnings=full.warnings)
