@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bench.real_scans import load_cases, pose_errors, thresholds
-from service.manifest import bundled_models_dir
+from service.manifest import bundled_models_dir, load_manifest
 from service.registrar import Registrar
 from service.stages.flip import flip
 from service.stages.normalise import normalise
@@ -24,11 +24,17 @@ from service.stages.validate import validate
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.3, -0.2, 0.5])
 GENERAL = bundled_models_dir() / "general"
-REFERENCE_RADIUS = 0.5253546504808293  # `general`'s (its manifest's normalization): the inlier distance it implies
 
 
 def real_data_dir() -> Path:
     return Path(os.environ.get("MFGNET_REAL_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
+
+
+def reference_radius() -> float:
+    """`general`'s normalisation radius (its manifest): the inlier distance the checks judge by."""
+    if not (GENERAL / "manifest.json").exists():
+        pytest.skip("bundled model 'general' absent")
+    return float(load_manifest(GENERAL).normalization["reference_radius"])
 
 
 def range_patch(points: int) -> np.ndarray:
@@ -42,7 +48,7 @@ def working(target_points: int):
     """Part of the patch as the source, the whole patch moved by ``R_TRUE, T_TRUE`` as the target."""
     patch = range_patch(target_points)
     request = validate(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T + T_TRUE, None, {"refine": "icp-plane"}, 3, 128)
-    return normalise(sample(request), REFERENCE_RADIUS), request.options
+    return normalise(sample(request), reference_radius()), request.options
 
 
 def angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
