@@ -33,6 +33,7 @@ from service.options import (
     search_mode,
 )
 from service.result import IterationPose, RegistrationResult
+from service.selection import top_k
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
 from service.stages.refine import CANDIDATE_ITERATIONS
@@ -49,12 +50,6 @@ __all__ = [  # the names callers import from here, wherever they live now
 
 def default_threads() -> int:
     return max(1, min(2, os.cpu_count() or 1))
-
-
-def top_k(scores: np.ndarray, k: int) -> np.ndarray:
-    """Indices of the ``k`` highest ``scores [N]``, highest first (ties: lower index first)."""
-    idx = np.argpartition(-scores, k - 1)[:k] if k < len(scores) else np.arange(len(scores))
-    return idx[np.lexsort((idx, -scores[idx]))]
 
 
 def embedding_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -3,7 +3,7 @@
 import numpy as np
 from shapes import room_scene
 
-from service.translation_search import column_bounds, largest, occupancy, translation_candidates
+from service.translation_search import column_bounds, occupancy, translation_candidates
 
 
 def test_occupancy_marks_the_cells_points_fall_in():
@@ -46,13 +46,4 @@ def test_column_bounds_are_the_per_axis_minimum_and_maximum():
     low, high = column_bounds(points)
     np.testing.assert_array_equal(low, points.min(axis=0))
     np.testing.assert_array_equal(high, points.max(axis=0))
-
-
-def test_largest_matches_a_full_sort_ties_by_position():
-    rng = np.random.default_rng(4)
-    for values in (rng.normal(size=250_000), np.rint(rng.normal(scale=3.0, size=250_000)), rng.normal(size=40),
-                   np.zeros(1000)):
-        for count in (1, 100, 200):
-            expected = np.lexsort((np.arange(values.size), -values))[:count]  # value descending, then index
-            np.testing.assert_array_equal(largest(values, count), expected)
 

@@ -1,0 +1,14 @@
+"""service.selection.top_k: the largest values, largest first, ties by position."""
+
+import numpy as np
+
+from service.selection import top_k
+
+
+def test_top_k_matches_a_full_sort_ties_by_position():
+    rng = np.random.default_rng(4)
+    for values in (rng.normal(size=250_000), np.rint(rng.normal(scale=3.0, size=250_000)), rng.normal(size=40),
+                   np.zeros(1000)):
+        for count in (1, 100, 200):
+            expected = np.lexsort((np.arange(values.size), -values))[:count]  # value descending, then index
+            np.testing.assert_array_equal(top_k(values, count), expected)
