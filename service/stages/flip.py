@@ -5,9 +5,12 @@ half a turn about one of its axes: the flipped shape overlaps the target along i
 candidates lay in the right basin. With a target that samples the caller's surface densely
 (:func:`service.stages.ranking.samples_the_surface`), a searched pose that fits poorly
 (:func:`service.stages.slide.fits_poorly`) competes with its three half turns about the moved working source's
-principal axes (:func:`service.stages.partial.half_turns`), each briefly refined like the search's candidates; a half
-turn whose :func:`service.stages.ranking.close_fit` exceeds the pose's by ``FLIP_MARGIN`` gets the full refinement and
-takes its place (``docs/decisions/0016-flip-check-after-the-search.md``).
+principal axes (:func:`service.stages.partial.half_turns`). A half turn through the source's centroid turns the
+shape right but need not place it right (a room fragment's right place lies metres away), so each half turn's
+rotation is also tried at its best candidate translations (:func:`service.stages.ranking.with_translations`, as the
+search's candidates are), and all are briefly refined like the search's candidates; one whose
+:func:`service.stages.ranking.close_fit` exceeds the pose's by ``FLIP_MARGIN`` gets the full refinement and takes its
+place (``docs/decisions/0016-flip-check-after-the-search.md``, ``0017-half-turns-at-their-best-translations.md``).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import numpy as np
 from service.options import RegistrationOptions
 from service.stages.normalise import Working
 from service.stages.partial import half_turns
-from service.stages.ranking import close_fit, samples_the_surface
+from service.stages.ranking import close_fit, samples_the_surface, with_translations
 from service.stages.refine import Refined, icp_distance, refine_pose, short_refine
 from service.stages.slide import fits_poorly
 
@@ -27,17 +30,19 @@ FLIP_MARGIN = 0.03  # close fit a half turn must gain over the pose (service.rot
 
 
 def flip(work: Working, refined: Refined, options: RegistrationOptions) -> Refined:
-    """``refined`` unless the target is dense, it fits poorly and one of its half turns, briefly refined, fits more
-    closely by ``FLIP_MARGIN``: then that half turn after the full refinement."""
+    """``refined`` unless the target is dense, it fits poorly and one of its half turns (at the turn's own place or at
+    one of its rotation's best translations), briefly refined, fits more closely by ``FLIP_MARGIN``: then that one
+    after the full refinement."""
     mode = options.refine_mode
     if (mode == "none" or not samples_the_surface(work)
             or not fits_poorly(work, refined.rotation, refined.translation)):
         return refined
     distance = icp_distance(work, options)
     R_h, t_h = half_turns(work.src[work.idx_s], refined.rotation, refined.translation)  # [3, 3, 3], [3, 3]
-    R_s, t_s = short_refine(work, list(zip(R_h, t_h, strict=True)), mode, distance, refined.surface)
+    starts, _ = with_translations(work, list(zip(R_h, t_h, strict=True)))  # the turns, then each at other places
+    R_s, t_s = short_refine(work, starts, mode, distance, refined.surface)  # [C, 3, 3], [C, 3]
     fits = close_fit(work, np.concatenate([refined.rotation[None], R_s]),
-                     np.concatenate([refined.translation[None], t_s]))  # [4]: the pose, then its half turns
+                     np.concatenate([refined.translation[None], t_s]))  # [1 + C]: the pose, then the starts
     best = int(np.argmax(fits[1:])) + 1
     if fits[best] <= fits[0] + FLIP_MARGIN:
         return refined
