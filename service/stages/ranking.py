@@ -90,9 +90,18 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
         fits, measure = close_fit(work, rotations, translations), FIT_NAME  # [C]
         order = order[np.argsort(-fits[order], kind="stable")]
     pick = int(order[0])
-    ambiguity = (ambiguity_warning(rotations, fits, pick, measure=measure)
-                 or shift_ambiguity(work, rotations, translations, fits, pick, measure=measure))
+    ambiguity = ranking_ambiguity(work, rotations, translations, fits, pick, measure=measure)
     return Ranked(pick, ambiguity, rotations[pick], translations[pick])
+
+
+def ranking_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray, best: int,
+                      measure: str = "inlier ratio") -> str | None:
+    """The warning of a ranking whose winner is ``best`` (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``fits
+    [C]``: the ``measure`` the warning names): a close second turned far from it
+    (:func:`service.rotation_search.ambiguity_warning`), else one that places the source far from it
+    (:func:`shift_ambiguity`)."""
+    return (ambiguity_warning(rotations, fits, best, measure=measure)
+            or shift_ambiguity(work, rotations, translations, fits, best, measure=measure))
 
 
 def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray,

@@ -84,13 +84,16 @@ def test_half_turned_poses_that_fit_poorly_come_back_on_a_dense_target():
 
 def test_half_turned_poses_far_from_the_right_place_come_back():
     """Each half turn also slid half the patch's length along it: turning it back about the moved source's own centroid
-    leaves it there, so its rotation must be tried at its best translations too."""
+    leaves it there, so its rotation must be tried at its best translations too. The search's ambiguity, about the
+    pose that the flip replaces, goes with it."""
     work, options = working(8000)
     for start in half_turned(work):
-        slid = dataclasses.replace(start, translation=start.translation + np.array([0.5, 0.0, 0.0]))
+        slid = dataclasses.replace(start, translation=start.translation + np.array([0.5, 0.0, 0.0]),
+                                   ambiguity="ambiguous: the search's close second")
         assert fits_poorly(work, slid.rotation, slid.translation)
         back = flip(work, slid, options)
         assert angle(back.rotation, R_TRUE) < 1 and np.linalg.norm(back.translation - T_TRUE) < 0.01
+        assert back.ambiguity is None
 
 
 def test_with_a_target_no_denser_than_its_working_cloud_nothing_is_tried():
