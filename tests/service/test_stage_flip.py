@@ -102,30 +102,26 @@ def test_with_a_target_no_denser_than_its_working_cloud_nothing_is_tried():
         assert flip(work, start, options) is start
 
 
-def test_a_turned_dragon_that_came_back_half_a_turn_off_registers():
-    """``dragon_168_120`` loaded alone, its second seeded turn (metres): the search's result was 176 deg off."""
-    if not (real_data_dir() / "dragon_168_120.npz").exists():
+def assert_registers(pair: str, seed: int, variant: str) -> None:
+    """``pair`` loaded alone at ``seed`` (metres): its ``variant`` registers with the defaults, within the data
+    README's thresholds (skipped without the real-scan set or the bundled model)."""
+    if not (real_data_dir() / f"{pair}.npz").exists():
         pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
     if not (GENERAL / "manifest.json").exists():
         pytest.skip("bundled model 'general' absent")
-    case = next(c for c in load_cases(real_data_dir(), 0, (1.0,), ["dragon_168_120"], turns=6)
-                if c.variant == "turned-2")
+    case = next(c for c in load_cases(real_data_dir(), seed, (1.0,), [pair], turns=6) if c.variant == variant)
     result = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane", rotation_search="auto")
     degrees, metres = pose_errors(result.rotation, result.translation, case.src_to_tgt)
     max_degrees, max_metres = thresholds(case.sensor, 1.0)
     assert degrees < max_degrees and metres < max_metres, (degrees, metres)
+
+
+def test_a_turned_dragon_that_came_back_half_a_turn_off_registers():
+    """``dragon_168_120``'s second seeded turn: the search's result was 176 deg off."""
+    assert_registers("dragon_168_120", 0, "turned-2")
 
 
 def test_a_turned_room_that_came_back_half_a_turn_off_and_metres_away_registers():
-    """``3dm_hotel3_15_8`` loaded alone, its fourth seeded turn at seed 1 (metres): the search's result was 180 deg and
-    3.6 m off; the half turn's rotation at its best translation is right."""
-    if not (real_data_dir() / "3dm_hotel3_15_8.npz").exists():
-        pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
-    if not (GENERAL / "manifest.json").exists():
-        pytest.skip("bundled model 'general' absent")
-    case = next(c for c in load_cases(real_data_dir(), 1, (1.0,), ["3dm_hotel3_15_8"], turns=4)
-                if c.variant == "turned-4")
-    result = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane", rotation_search="auto")
-    degrees, metres = pose_errors(result.rotation, result.translation, case.src_to_tgt)
-    max_degrees, max_metres = thresholds(case.sensor, 1.0)
-    assert degrees < max_degrees and metres < max_metres, (degrees, metres)
+    """``3dm_hotel3_15_8``'s fourth seeded turn at seed 1: the search's result was 180 deg and 3.6 m off; the half
+    turn's rotation at its best translation is right."""
+    assert_registers("3dm_hotel3_15_8", 1, "turned-4")
