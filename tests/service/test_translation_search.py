@@ -46,4 +46,3 @@ def test_column_bounds_are_the_per_axis_minimum_and_maximum():
     low, high = column_bounds(points)
     np.testing.assert_array_equal(low, points.min(axis=0))
     np.testing.assert_array_equal(high, points.max(axis=0))
-
