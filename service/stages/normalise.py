@@ -12,6 +12,7 @@ from service.kdtree import KDTree
 from service.normalization import Normalization
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio
+from service.sampling import hashed_indices
 from service.stages.sample import Sampled
 
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
@@ -19,6 +20,10 @@ ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
 # The candidates' short refinements (service.stages.refine.short_refine) move every SHORT_REFINE_STRIDE-th point of
 # the refinement's source: they only rank basins, and the winner's full refinement moves every point.
 SHORT_REFINE_STRIDE = 3
+# The fine refinement (service.stages.fine) moves up to FINE_SOURCE_POINTS of the entered source onto up to
+# FINE_TARGET_POINTS of the entered target (docs/decisions/0018-fine-refinement-on-denser-clouds.md).
+FINE_SOURCE_POINTS = 2048
+FINE_TARGET_POINTS = 2048
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,6 +62,23 @@ class Working(Sampled):
         """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:
         every start of every refinement moves the same points."""
         return Surface.of(np.asarray(self.src_r, dtype=np.float64))
+
+    @cached_property
+    def fine_source(self) -> np.ndarray:
+        """``[Nf, 3]`` float64: up to ``FINE_SOURCE_POINTS`` points of the entered source ``src_e``, a uniform
+        subsample (:func:`service.sampling.hashed_indices`), caller's frame: what the fine refinement moves."""
+        return np.asarray(self.src_e[hashed_indices(self.src_e, FINE_SOURCE_POINTS)], dtype=np.float64)
+
+    @cached_property
+    def fine_target(self) -> np.ndarray:
+        """``[Mf, 3]`` float64: up to ``FINE_TARGET_POINTS`` points of the entered target ``tgt_e``, a uniform
+        subsample as :attr:`fine_source`."""
+        return np.asarray(self.tgt_e[hashed_indices(self.tgt_e, FINE_TARGET_POINTS)], dtype=np.float64)
+
+    @cached_property
+    def fine_target_surface(self) -> Surface:
+        """KD-tree and normals of :attr:`fine_target`, built once per registration."""
+        return Surface.of(self.fine_target)
 
     @cached_property
     def short_points(self) -> np.ndarray:

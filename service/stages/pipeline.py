@@ -10,6 +10,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from service.stages.assess import assess_result
+from service.stages.fine import fine
 from service.stages.flip import flip
 from service.stages.network import network
 from service.stages.normalise import normalise
@@ -32,3 +33,4 @@ class Stages:
     flip: Callable = flip  # (Working, Refined, RegistrationOptions) -> Refined; after a search only
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
     auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing) -> RegistrationResult
+    fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult

@@ -114,3 +114,10 @@ def room_scene(rng: np.random.Generator, count: int = 6000, boxes: int = 8) -> n
         box[np.arange(len(box)), side] = corner[side] + size[side] * rng.integers(0, 2, len(box))
         furniture.append(box)
     return np.concatenate([floor, wall_x, wall_y, wall_x2, *furniture])
+
+
+def range_patch(points: int, seed: int = 0) -> np.ndarray:
+    """``[points, 3]`` on a curved, asymmetric height field over 1 x 0.5: a range image's surface."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.random(points), 0.5 * rng.random(points)
+    return np.stack([x, y, 0.12 * np.sin(4 * x) * np.cos(5 * y) + 0.15 * x**2 + 0.05 * y], axis=1)

@@ -5,16 +5,12 @@ alone."""
 from __future__ import annotations
 
 import dataclasses
-import os
-from pathlib import Path
 
 import numpy as np
-import pytest
+from real_scan_cases import assert_registers, general_reference_radius
 from scipy.spatial.transform import Rotation
+from shapes import range_patch
 
-from bench.real_scans import load_cases, pose_errors, thresholds
-from service.manifest import bundled_models_dir, load_manifest
-from service.registrar import Registrar
 from service.stages.flip import flip
 from service.stages.normalise import normalise
 from service.stages.partial import half_turns
@@ -25,32 +21,13 @@ from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.3, -0.2, 0.5])
-GENERAL = bundled_models_dir() / "general"
-
-
-def real_data_dir() -> Path:
-    return Path(os.environ.get("MFGNET_REAL_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
-
-
-def reference_radius() -> float:
-    """`general`'s normalisation radius (its manifest): the inlier distance the checks judge by."""
-    if not (GENERAL / "manifest.json").exists():
-        pytest.skip("bundled model 'general' absent")
-    return float(load_manifest(GENERAL).normalization["reference_radius"])
-
-
-def range_patch(points: int) -> np.ndarray:
-    """``[points, 3]`` on a curved, asymmetric height field over 1 x 0.5: a range image's surface."""
-    rng = np.random.default_rng(0)
-    x, y = rng.random(points), 0.5 * rng.random(points)
-    return np.stack([x, y, 0.12 * np.sin(4 * x) * np.cos(5 * y) + 0.15 * x**2 + 0.05 * y], axis=1)
 
 
 def working(target_points: int):
     """Part of the patch as the source, the whole patch moved by ``R_TRUE, T_TRUE`` as the target."""
     patch = range_patch(target_points)
     request = validate(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T + T_TRUE, None, {"refine": "icp-plane"}, 3, 128)
-    return normalise(sample(request), reference_radius()), request.options
+    return normalise(sample(request), general_reference_radius()), request.options
 
 
 def angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -100,20 +77,6 @@ def test_with_a_target_no_denser_than_its_working_cloud_nothing_is_tried():
     work, options = working(768)
     for start in half_turned(work):
         assert flip(work, start, options) is start
-
-
-def assert_registers(pair: str, seed: int, variant: str) -> None:
-    """``pair`` loaded alone at ``seed`` (metres): its ``variant`` registers with the defaults, within the data
-    README's thresholds (skipped without the real-scan set or the bundled model)."""
-    if not (real_data_dir() / f"{pair}.npz").exists():
-        pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
-    if not (GENERAL / "manifest.json").exists():
-        pytest.skip("bundled model 'general' absent")
-    case = next(c for c in load_cases(real_data_dir(), seed, (1.0,), [pair], turns=6) if c.variant == variant)
-    result = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane", rotation_search="auto")
-    degrees, metres = pose_errors(result.rotation, result.translation, case.src_to_tgt)
-    max_degrees, max_metres = thresholds(case.sensor, 1.0)
-    assert degrees < max_degrees and metres < max_metres, (degrees, metres)
 
 
 def test_a_turned_dragon_that_came_back_half_a_turn_off_registers():

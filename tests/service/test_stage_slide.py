@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
+from real_scan_cases import GENERAL, assert_registers, real_data_dir
 from scipy.spatial.transform import Rotation
 from shapes import room_scene
 
-from bench.real_scans import load_cases, pose_errors
 from service.icp import IcpResult
 from service.registrar import Registrar
 from service.rotation_search import rank_hypotheses
@@ -29,13 +27,8 @@ from service.stages.sample import sample
 from service.stages.slide import closer_of, fits_poorly, slide
 from service.stages.validate import validate
 
-GENERAL = Path(__file__).resolve().parents[2] / "service" / "models" / "general"
 R_TRUE = Rotation.from_euler("zyx", [20.0, 0.0, 0.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.6, -0.3, 0.1])
-
-
-def real_data_dir() -> Path:
-    return Path(os.environ.get("MFGNET_REAL_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
 
 
 def room_pair():
@@ -159,13 +152,4 @@ def test_a_refinement_that_slides_off_the_surface_gives_way_to_its_start():
 def test_a_turned_room_fragment_in_millimetres_keeps_its_place():
     """A turned 3DMatch kitchen (this pair's third seeded turn when loaded alone): ranked by inlier ratio on the
     working clouds, the slid places won and the result came back 0.9 m off."""
-    if not (real_data_dir() / "3dm_geot_kitchen_6_0.npz").exists():
-        pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
-    case = next(
-        c
-        for c in load_cases(real_data_dir(), 0, (1000.0,), ["3dm_geot_kitchen_6_0"], turns=3)
-        if c.variant == "turned-3"
-    )
-    result = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane", rotation_search="auto")
-    degrees, millimetres = pose_errors(result.rotation, result.translation, case.src_to_tgt)
-    assert degrees < 15 and millimetres < 300, (degrees, millimetres)  # 3DMatch success
+    assert_registers("3dm_geot_kitchen_6_0", 0, "turned-3", 1000.0)

@@ -1,0 +1,69 @@
+"""Stage 7, fine: the final pose refined once more, on clouds denser than the working ones (coarse to fine).
+
+The network and every refinement before this one work on the 768-point working clouds. On a dense scan those
+samples lie far apart, and point-to-plane ICP against normals estimated from them stops a degree or more from the
+truth (several millimetres on a range image). Where the caller's target is much denser than its working cloud
+(:func:`service.stages.ranking.samples_the_surface`), reciprocal point-to-plane ICP (:func:`service.icp.icp_plane`)
+moves up to ``FINE_SOURCE_POINTS`` points of the entered source onto up to ``FINE_TARGET_POINTS`` of the entered
+target (uniform subsamples; :mod:`service.stages.normalise`), pairing points closer than one inlier distance
+(``docs/decisions/0018-fine-refinement-on-denser-clouds.md``).
+
+It runs once, on the result the pipeline chose (after the rotation search's comparison), and changes its pose only:
+the result's quality (``inlier_ratio``, ``reliable``, warnings, stability) is what the pipeline measured on the
+working clouds at the pose before it. A fine pose that moves a working source point more than ``FINE_MAX_MOVE``
+inlier distances from that pose has left the basin those checks judged, and is not taken.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from service.icp import icp_plane
+from service.options import RegistrationOptions
+from service.result import RegistrationResult
+from service.stages.normalise import Working
+from service.stages.ranking import samples_the_surface
+
+FINE_ITERATIONS = 15  # most updates
+FINE_TOLERANCE = 1e-5  # stop on updates below this (rad, x RMS radius), as the precise stage of icp-plane
+FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a working source point
+PLANE_MODES = ("icp-plane", "icp-plane-multistart")
+
+
+def applies(work: Working, options: RegistrationOptions) -> bool:
+    """Whether the fine refinement runs: a point-to-plane refinement on the working clouds (no ``refine_points``)
+    and a target dense enough that its working samples lie far apart."""
+    return options.refine_mode in PLANE_MODES and options.refine_points is None and samples_the_surface(work)
+
+
+def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The caller's pose ``R [3, 3], t [3]`` refined on the fine clouds (:attr:`Working.fine_source`,
+    :attr:`Working.fine_target`), or ``None`` where that refinement stops early (a degenerate system, too few pairs:
+    it warns) or moves a working source point more than ``FINE_MAX_MOVE`` inlier distances."""
+    fitted = icp_plane(work.fine_source, work.fine_target, R, t, max_distance=work.inlier_distance,
+                       max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE,
+                       target_surface=work.fine_target_surface)
+    if fitted.warnings:
+        return None
+    source = np.asarray(work.src[work.idx_s], dtype=np.float64)  # [Ns, 3] working source, caller's frame
+    moved = source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves
+    if np.sqrt((moved**2).sum(axis=1).max()) > FINE_MAX_MOVE * work.inlier_distance:
+        return None
+    return fitted.rotation, fitted.translation
+
+
+def fine(work: Working, result: RegistrationResult, options: RegistrationOptions,
+         timing: dict[str, float]) -> RegistrationResult:
+    """``result`` with its pose refined by :func:`fine_pose` where :func:`applies` (else ``result`` itself); the time
+    is added to ``timing["refine"]``."""
+    if not applies(work, options):
+        return result
+    started = time.perf_counter()
+    pose = fine_pose(work, result.rotation, result.translation)
+    timing["refine"] = timing.get("refine", 0.0) + 1000 * (time.perf_counter() - started)
+    if pose is None:
+        return result
+    return dataclasses.replace(result, rotation=pose[0], translation=pose[1])

@@ -1,0 +1,60 @@
+"""The real-scan development set and the bundled model ``general`` in tests: where the set lies, one case registered
+with the service's defaults, ``general``'s normalisation radius.
+
+Tests that use it skip with a reason when the set (``$MFGNET_REAL_DATA``, else ``../shared/data/real`` beside the
+repository) or the bundled model ``general`` is absent.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+from bench.real_scans import Case, load_cases, pose_errors, thresholds
+from service.manifest import bundled_models_dir, load_manifest
+from service.registrar import Registrar
+from service.result import RegistrationResult
+
+GENERAL = bundled_models_dir() / "general"
+
+
+def general_reference_radius() -> float:
+    """``general``'s normalisation radius (its manifest): the inlier distance the stages judge by; skips without it."""
+    if not (GENERAL / "manifest.json").exists():
+        pytest.skip("bundled model 'general' absent")
+    return float(load_manifest(GENERAL).normalization["reference_radius"])
+
+
+def real_data_dir() -> Path:
+    """The real-scan set: ``$MFGNET_REAL_DATA``, else ``../shared/data/real`` beside the repository."""
+    return Path(os.environ.get("MFGNET_REAL_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
+
+
+def real_case(pair: str, seed: int, variant: str, scale: float = 1.0) -> Case:
+    """``pair``'s ``variant`` (``scanned``, ``turned``, ``turned-2``, ...) loaded alone at ``seed`` and ``scale``, as
+    :func:`bench.real_scans.load_cases` makes it; skips without the set or the bundled model."""
+    if not (real_data_dir() / f"{pair}.npz").exists():
+        pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
+    if not (GENERAL / "manifest.json").exists():
+        pytest.skip("bundled model 'general' absent")
+    turns = int(variant.rpartition("-")[2]) if variant.startswith("turned-") else 1
+    return next(c for c in load_cases(real_data_dir(), seed, (scale,), [pair], turns=turns) if c.variant == variant)
+
+
+def register_with_defaults(case: Case) -> tuple[RegistrationResult, float, float]:
+    """``case`` registered by ``general`` with the service's defaults: the result, its rotation error (degrees) and its
+    translation error (the case's units)."""
+    result = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    return result, *pose_errors(result.rotation, result.translation, case.src_to_tgt)
+
+
+def assert_registers(pair: str, seed: int, variant: str, scale: float = 1.0) -> RegistrationResult:
+    """``pair``'s ``variant`` at ``seed`` and ``scale`` registers with the defaults, within the data README's
+    thresholds; returns the result."""
+    case = real_case(pair, seed, variant, scale)
+    result, degrees, error = register_with_defaults(case)
+    max_degrees, max_error = thresholds(case.sensor, scale)
+    assert degrees < max_degrees and error < max_error, (degrees, error)
+    return result
