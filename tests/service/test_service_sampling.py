@@ -13,6 +13,7 @@ from service.sampling import (
     DEFAULT_SIZE,
     coordinate_hash,
     evenly_spaced_indices,
+    hashed_indices,
     isolated_points,
     resample_indices,
     spread_indices,
@@ -191,6 +192,18 @@ def test_spread_indices_are_order_independent_spread_and_at_most_size(n: int, si
         chance = np.random.default_rng(7).choice(n, len(picked), replace=False)
         cover, random_cover = (np.percentile(cKDTree(points[i]).query(points)[0], 95) for i in (picked, chance))
         assert cover < 0.85 * random_cover
+
+
+@pytest.mark.parametrize(("n", "size"), [(1500, 2048), (60_000, 2048)])
+def test_hashed_indices_are_an_order_independent_uniform_subsample(n: int, size: int) -> None:
+    points = ellipsoid_and_box(n, 5)
+    picked = hashed_indices(points, size)
+    assert len(np.unique(picked)) == len(picked) == min(n, size)
+    perm = np.random.default_rng(6).permutation(n)
+    np.testing.assert_array_equal(points[perm][hashed_indices(points[perm], size)], points[picked])
+    if n > size:  # uniform: each region keeps its share of the points (here the half with x above the median)
+        upper = points[:, 0] > np.median(points[:, 0])
+        assert abs(np.count_nonzero(upper[picked]) / size - 0.5) < 0.04
 
 
 def test_coordinate_hash_depends_on_the_coordinates_alone() -> None:
