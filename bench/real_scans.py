@@ -237,8 +237,22 @@ def summarise(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -
             entry.update(fpfh_successes=sum(r["success"] for r in ref),
                          fpfh_seconds=round(sum(r["seconds"] for r in ref), 3))
             entry["speedup"] = round(entry["fpfh_seconds"] / entry["service_seconds"], 3)
+            entry.update(precision_where_both_right([cases[i] for i in pick], svc, ref))
         totals[f"x{scale:g}"] = entry
     return totals
+
+
+def precision_where_both_right(cases: list[Case], service: list[dict], fpfh: list[dict]) -> dict:
+    """How precise each method is on the cases both register: median rotation error (deg) and median translation
+    error as a share of the case's threshold (the sensors' thresholds differ), per method."""
+    both = [i for i in range(len(cases)) if service[i]["success"] and fpfh[i]["success"]]
+    entry: dict = {"both_right": len(both)}
+    for name, rows in (("service", service), ("fpfh", fpfh)):
+        degrees = [rows[i]["rotation_error_deg"] for i in both]
+        shares = [rows[i]["translation_error"] / thresholds(cases[i].sensor, cases[i].scale)[1] for i in both]
+        entry[f"{name}_median_rotation_error_deg"] = round(float(np.median(degrees)), 3) if both else None
+        entry[f"{name}_median_translation_share"] = round(float(np.median(shares)), 4) if both else None
+    return entry
 
 
 def print_table(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -> None:

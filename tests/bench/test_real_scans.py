@@ -56,6 +56,21 @@ def test_pose_errors():
     assert r_err == pytest.approx(10.0) and t_err == pytest.approx(5.0)
 
 
+def test_precision_is_compared_on_the_cases_both_methods_register():
+    cloud = np.zeros((3, 3), np.float32)
+    sensors = ["cyberware-range", "cyberware-range", "kinect-fused-2.5cm", "cyberware-range"]
+    cases = [real_scans.Case(f"p{i}", s, "scanned", 1.0, cloud, cloud, np.eye(4)) for i, s in enumerate(sensors)]
+
+    def row(degrees: float, error: float, success: bool = True) -> dict:
+        return {"rotation_error_deg": degrees, "translation_error": error, "success": success}
+
+    service = [row(0.2, 0.001), row(0.4, 0.003), row(2.0, 0.15), row(0.1, 0.0001)]
+    fpfh = [row(0.6, 0.002), row(0.8, 0.004), row(4.0, 0.03), row(170.0, 1.0, success=False)]
+    entry = real_scans.precision_where_both_right(cases, service, fpfh)  # the last case: FPFH missed it
+    assert entry == {"both_right": 3, "service_median_rotation_error_deg": 0.4, "service_median_translation_share": 0.3,
+                     "fpfh_median_rotation_error_deg": 0.8, "fpfh_median_translation_share": 0.2}
+
+
 @needs_data
 def test_service_half_registers_a_real_pair_over_http(tmp_path):
     out = tmp_path / "real.json"
