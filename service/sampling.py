@@ -136,9 +136,9 @@ def coordinate_hash(points: np.ndarray) -> np.ndarray:
 
 def hashed_indices(points: np.ndarray, size: int) -> np.ndarray:
     """Indices of ``min(N, size)`` rows of ``points (N, 3)``: those whose coordinates hash lowest
-    (:func:`coordinate_hash`), in hash order (every row when ``N <= size``). A pseudo-random uniform subsample that keeps each region's share of the
-    points, chosen by the coordinates alone (so independent of their order) and ~7x cheaper than
-    :func:`spread_indices` on tens of thousands of points."""
+    (:func:`coordinate_hash`), in hash order (every row when ``N <= size``). A pseudo-random uniform subsample that
+    keeps each region's share of the points, chosen by the coordinates alone (so independent of their order) and ~7x
+    cheaper than :func:`spread_indices` on tens of thousands of points."""
     points = _checked(points, size)
     hashes = coordinate_hash(points)  # [N]
     if points.shape[0] <= size:
