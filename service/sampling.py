@@ -137,8 +137,8 @@ def coordinate_hash(points: np.ndarray) -> np.ndarray:
 def hashed_indices(points: np.ndarray, size: int) -> np.ndarray:
     """Indices of ``min(N, size)`` rows of ``points (N, 3)``: those whose coordinates hash lowest
     (:func:`coordinate_hash`), in hash order (every row when ``N <= size``). A pseudo-random uniform subsample that
-    keeps each region's share of the points, chosen by the coordinates alone (so independent of their order) and ~7x
-    cheaper than :func:`spread_indices` on tens of thousands of points."""
+    keeps each region's share of the points, chosen by the coordinates alone (so independent of their order) and 2-9x
+    cheaper than :func:`spread_indices` on the real-scan set's 22,000-43,000-point targets (4,096 points)."""
     points = _checked(points, size)
     hashes = coordinate_hash(points)  # [N]
     if points.shape[0] <= size:
