@@ -2,7 +2,8 @@
 
 ``Registrar.register`` runs the stages of :mod:`service.stages`: validate -> sample (working clouds) ->
 normalise -> network (encoder, top-K keypoints, n x (matcher -> argmax -> credibility weights -> weighted SVD ->
-compose)) or the rotation search -> refine (optional ICP, point-to-point or point-to-plane) -> assess (quality).
+compose)) or the rotation search -> refine (optional ICP, point-to-point or point-to-plane) -> assess (quality) ->
+fine refinement of the result kept (dense clouds).
 This module holds the model's sessions and the network calls the network and search stages make.
 """
 

@@ -4,7 +4,8 @@ validate (:mod:`.validate`) -> sample (:mod:`.sample`) -> normalise (:mod:`.norm
 (:mod:`.network`) or rotation search (:mod:`.search`) -> refine (:mod:`.refine`: candidate ranking in
 :mod:`.ranking`, multistart in :mod:`service.multistart`) -> slide check (:mod:`.slide`) -> after a search, flip
 check (:mod:`.flip`) -> assess (:mod:`.assess`); ``rotation_search="auto"``
-solves again with the search when the plain result looks wrong (:func:`.search.auto_search`).
+solves again with the search when the plain result looks wrong (:func:`.search.auto_search`); last, the fine
+refinement (:mod:`.fine`) of the result kept.
 :class:`.pipeline.Stages` names the functions a :class:`service.registrar.Registrar` calls, so that one can be
 replaced or wrapped without touching the others.
 """
