@@ -206,6 +206,17 @@ def test_hashed_indices_are_an_order_independent_uniform_subsample(n: int, size:
         assert abs(np.count_nonzero(upper[picked]) / size - 0.5) < 0.04
 
 
+def test_hashed_indices_take_a_stack_of_identical_points_once() -> None:
+    points = ellipsoid_and_box(6000, 5)
+    stacked = points[np.argmin(coordinate_hash(points))].copy()  # the point that hashes lowest: the worst case
+    points[::2] = stacked  # half the rows: one point stacked (as a sensor's invalid (0, 0, 0) returns are)
+    picked = hashed_indices(points, 2048)
+    assert len(picked) == 2048 and len(np.unique(points[picked], axis=0)) == 2048
+    assert np.count_nonzero((points[picked] == stacked).all(axis=1)) == 1
+    few = hashed_indices(points, 4000)  # 3,001 distinct points: each once
+    assert len(few) == len(np.unique(points, axis=0)) == 3001
+
+
 def test_coordinate_hash_depends_on_the_coordinates_alone() -> None:
     points = np.random.default_rng(8).normal(size=(1000, 3))
     h = coordinate_hash(points)
