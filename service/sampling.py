@@ -145,8 +145,9 @@ def hashed_indices(points: np.ndarray, size: int) -> np.ndarray:
     hashes = coordinate_hash(points)  # [N]
     if points.shape[0] > size:
         lowest = np.argpartition(hashes, size - 1)[:size]  # [size] in no particular order
-        lowest = lowest[np.argsort(hashes[lowest], kind="stable")]
-        if np.all(hashes[lowest][1:] != hashes[lowest][:-1]):  # no two picks share their coordinates
+        order = np.argsort(hashes[lowest], kind="stable")
+        lowest, picked = lowest[order], hashes[lowest][order]  # [size] rows and their hashes, in hash order
+        if np.all(picked[1:] != picked[:-1]):  # no two picks share their coordinates
             return lowest.astype(np.int64)
     first = np.unique(hashes, return_index=True)[1]  # [D] each distinct point's first row, in hash order
     return first[:size].astype(np.int64)

@@ -29,7 +29,7 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
     tight-fit test, :func:`service.quality.assess`, measures to 768 samples only), else ``None``."""
     if not samples_the_surface(work):
         return None
-    share = near_surface_share(work.src[work.idx_s], work.tgt_e, R, t, work.inlier_distance, work.entered_target_tree)
+    share = near_surface_share(work.working_source, work.tgt_e, R, t, work.inlier_distance, work.entered_target_tree)
     if share >= RELIABLE_SURFACE_SHARE:
         return None
     return (f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
@@ -64,7 +64,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     R, t, surface, tgt_w = refined.rotation, refined.translation, refined.surface, work.tgt_w
     working = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
     tree = KDTree(tgt_w) if working is None else working.tree  # shared by the two checks below
-    src = work.src[work.idx_s]  # [Ns, 3] working source, caller's frame
+    src = work.working_source  # [Ns, 3] caller's frame
     quality = assess(src, tgt_w, R, t, work.inlier_distance, tree)
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
     weak = weak_motion_warning(stability)

@@ -48,8 +48,7 @@ def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, 
                        target_surface=work.fine_target_surface)
     if fitted.warnings:
         return None
-    source = np.asarray(work.src[work.idx_s], dtype=np.float64)  # [Ns, 3] working source, caller's frame
-    moved = source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves
+    moved = work.working_source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves
     if np.sqrt((moved**2).sum(axis=1).max()) > FINE_MAX_MOVE * work.inlier_distance:
         return None
     return fitted.rotation, fitted.translation

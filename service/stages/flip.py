@@ -39,7 +39,7 @@ def flip(work: Working, refined: Refined, options: RegistrationOptions) -> Refin
             or not fits_poorly(work, refined.rotation, refined.translation)):
         return refined
     distance = icp_distance(work, options)
-    R_h, t_h = half_turns(work.src[work.idx_s], refined.rotation, refined.translation)  # [3, 3, 3], [3, 3]
+    R_h, t_h = half_turns(work.working_source, refined.rotation, refined.translation)  # [3, 3, 3], [3, 3]
     starts, _ = with_translations(work, list(zip(R_h, t_h, strict=True)))  # the turns, then each at other places
     R_s, t_s = short_refine(work, starts, mode, distance, refined.surface)  # [C, 3, 3], [C, 3]
     rotations = np.concatenate([refined.rotation[None], R_s])  # [1 + C, 3, 3]: the pose, then the starts

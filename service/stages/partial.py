@@ -37,7 +37,7 @@ def looks_partial(work: Working, result: RegistrationResult) -> bool:
     """Whether ``result`` (the plain pass's) looks like a right pose of a partial view: its near-surface share on the
     working clouds reaches ``PARTIAL_NEAR_SHARE`` and none of its :func:`half_turns`, after the search's short ICP,
     reaches ``PARTIAL_FLIP_RATIO`` of its inlier ratio."""
-    src, tgt = work.src[work.idx_s], work.tgt_w  # [Ns, 3] caller's frame, [Nt, 3]
+    src, tgt = work.working_source, work.tgt_w  # [Ns, 3] caller's frame, [Nt, 3]
     R, t = result.rotation, result.translation
     if near_surface_share(src, tgt, R, t, work.inlier_distance) < PARTIAL_NEAR_SHARE:
         return False

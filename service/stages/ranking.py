@@ -64,8 +64,7 @@ def close_fit(work: Working, rotations: np.ndarray, translations: np.ndarray) ->
     than an inlier distance, and places slid along a wall overlay about as many source points on them as the
     right place does."""
     reach = CLOSE_FIT * work.inlier_distance
-    source = np.asarray(work.src[work.idx_s], dtype=np.float64)  # [Ns, 3]
-    moved = source @ rotations.transpose(0, 2, 1) + translations[:, None]  # [C, Ns, 3]
+    moved = work.working_source @ rotations.transpose(0, 2, 1) + translations[:, None]  # [C, Ns, 3]
     dist, _ = work.entered_target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=reach)
     return (dist.reshape(moved.shape[:2]) < reach).mean(axis=1)
 
@@ -84,7 +83,7 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
     the working clouds (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by the
     fit that ranked them)."""
     rotations, translations = short_refine(starts)  # short refinements: enough to rank the basins
-    order, fits, _ = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations, work.inlier_distance)
+    order, fits, _ = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)
     measure = "inlier ratio"
     if samples_the_surface(work):
         fits, measure = close_fit(work, rotations, translations), FIT_NAME  # [C]
@@ -109,7 +108,7 @@ def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarr
     """A warning when a candidate that places the working source's centroid more than ``AMBIGUOUS_SHIFT`` from where
     the winner ``best`` does fits almost as well (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``fits [C]``: the
     ``measure`` the warning names)."""
-    centre = work.src[work.idx_s].mean(axis=0)  # [3] the working source's centroid, caller's frame
+    centre = work.working_source.mean(axis=0)  # [3] the working source's centroid, caller's frame
     placed = rotations @ centre + translations  # [C, 3]
     shift = np.linalg.norm(placed - placed[best], axis=1)  # [C] caller's units
     i = close_second(fits, best, shift > AMBIGUOUS_SHIFT * work.norm.scale)

@@ -81,7 +81,7 @@ def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: W
     searched = solve(hypotheses, {})
     rotations = np.stack([plain.rotation, searched.rotation])  # [2, 3, 3] plain first: it wins ties
     translations = np.stack([plain.translation, searched.translation])  # [2, 3]
-    order = rank_hypotheses(work.src[work.idx_s], work.tgt_w, rotations, translations, work.inlier_distance)[0]
+    order = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)[0]
     result = plain
     if order[0] == 1:  # the search's winner fits better; keep the plain pass's stage timings
         searched.timing_ms = timing

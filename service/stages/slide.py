@@ -33,7 +33,7 @@ SLIDE_TRIGGER = 0.8  # share of the attainable inlier ratio below which the slid
 def fits_poorly(work: Working, R: np.ndarray, t: np.ndarray, trigger: float = SLIDE_TRIGGER) -> bool:
     """Whether the caller's pose ``R, t`` overlays fewer working source points on the target than ``trigger``
     times the share a right pose reaches at the target's density (:func:`service.quality.attainable_inlier_ratio`)."""
-    ratio = rank_hypotheses(work.src[work.idx_s], work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
+    ratio = rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
     return ratio < trigger * work.attainable_ratio
 
 
