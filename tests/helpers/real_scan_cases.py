@@ -7,12 +7,9 @@ repository) or the bundled model ``general`` is absent.
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import pytest
 
-from bench.real_scans import Case, load_cases, pose_errors, thresholds
+from bench.real_scans import Case, data_dir, load_cases, pose_errors, thresholds
 from service.manifest import bundled_models_dir, load_manifest
 from service.registrar import Registrar
 from service.result import RegistrationResult
@@ -27,20 +24,15 @@ def general_reference_radius() -> float:
     return float(load_manifest(GENERAL).normalization["reference_radius"])
 
 
-def real_data_dir() -> Path:
-    """The real-scan set: ``$MFGNET_REAL_DATA``, else ``../shared/data/real`` beside the repository."""
-    return Path(os.environ.get("MFGNET_REAL_DATA") or Path(__file__).resolve().parents[3] / "shared" / "data" / "real")
-
-
 def real_case(pair: str, seed: int, variant: str, scale: float = 1.0) -> Case:
     """``pair``'s ``variant`` (``scanned``, ``turned``, ``turned-2``, ...) loaded alone at ``seed`` and ``scale``, as
     :func:`bench.real_scans.load_cases` makes it; skips without the set or the bundled model."""
-    if not (real_data_dir() / f"{pair}.npz").exists():
-        pytest.skip(f"real-scan set absent ({real_data_dir()}; set MFGNET_REAL_DATA)")
+    if not (data_dir() / f"{pair}.npz").exists():
+        pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
     if not (GENERAL / "manifest.json").exists():
         pytest.skip("bundled model 'general' absent")
     turns = int(variant.rpartition("-")[2]) if variant.startswith("turned-") else 1
-    return next(c for c in load_cases(real_data_dir(), seed, (scale,), [pair], turns=turns) if c.variant == variant)
+    return next(c for c in load_cases(data_dir(), seed, (scale,), [pair], turns=turns) if c.variant == variant)
 
 
 def register_with_defaults(case: Case) -> tuple[RegistrationResult, float, float]:

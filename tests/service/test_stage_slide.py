@@ -6,10 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from real_scan_cases import GENERAL, assert_registers, real_data_dir
+from real_scan_cases import GENERAL, assert_registers
 from scipy.spatial.transform import Rotation
 from shapes import room_scene
 
+from bench.real_scans import data_dir
 from service.icp import IcpResult
 from service.registrar import Registrar
 from service.rotation_search import rank_hypotheses
@@ -55,7 +56,7 @@ def test_a_right_pose_fits_and_is_returned_unchanged():
 
 def test_a_slid_room_fragment_comes_back():
     """3DMatch kitchen fragments: the plain registration gets the rotation and slides 0.87 m along the walls."""
-    path = real_data_dir() / "3dm_geot_kitchen_6_0.npz"
+    path = data_dir() / "3dm_geot_kitchen_6_0.npz"
     if not path.exists():
         pytest.skip(f"real-scan set absent ({path.parent}; set MFGNET_REAL_DATA)")
     with np.load(path) as data:
