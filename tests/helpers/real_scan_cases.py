@@ -1,5 +1,5 @@
-"""The real-scan development set and the bundled model ``general`` in tests: where the set lies, one case registered
-with the service's defaults, ``general``'s normalisation radius.
+"""The real-scan development set and the bundled model ``general`` in tests: one case loaded and registered with the
+service's defaults, ``general``'s normalisation radius.
 
 Tests that use it skip with a reason when the set (``$MFGNET_REAL_DATA``, else ``../shared/data/real`` beside the
 repository) or the bundled model ``general`` is absent.
