@@ -11,6 +11,7 @@ from enum import Enum
 # icp: point-to-point, mutual nearest neighbours; icp-plane: wide robust symmetric stage + point-to-plane;
 # icp-plane-multistart: icp-plane, then the best of 13 turned starts (service.multistart)
 REFINE_MODES = ("none", "icp", "icp-plane", "icp-plane-multistart")
+PLANE_MODES = ("icp-plane", "icp-plane-multistart")  # the modes whose refinement ends point-to-plane
 
 # What the HTTP API and `mfgnet register` apply when a request names no refinement (the server's
 # MFGNET_DEFAULT_REFINE): two independently sampled scans need it (docs/DESIGN.md, "Default

@@ -23,6 +23,7 @@ import numpy as np
 
 from service.icp import icp_plane
 from service.options import RegistrationOptions
+from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
 from service.stages.normalise import Working
 from service.stages.ranking import samples_the_surface
@@ -30,7 +31,6 @@ from service.stages.ranking import samples_the_surface
 FINE_ITERATIONS = 15  # most updates
 FINE_TOLERANCE = 1e-5  # stop on updates below this (rad, x RMS radius), as the precise stage of icp-plane
 FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a working source point
-PLANE_MODES = ("icp-plane", "icp-plane-multistart")
 
 
 def applies(work: Working, options: RegistrationOptions) -> bool:
