@@ -17,10 +17,15 @@ from service.result import RegistrationResult
 GENERAL = bundled_models_dir() / "general"
 
 
-def general_reference_radius() -> float:
-    """``general``'s normalisation radius (its manifest): the inlier distance the stages judge by; skips without it."""
+def skip_without_general() -> None:
+    """Skips the calling test when the bundled model ``general`` is absent."""
     if not (GENERAL / "manifest.json").exists():
         pytest.skip("bundled model 'general' absent")
+
+
+def general_reference_radius() -> float:
+    """``general``'s normalisation radius (its manifest): the inlier distance the stages judge by; skips without it."""
+    skip_without_general()
     return float(load_manifest(GENERAL).normalization["reference_radius"])
 
 
@@ -29,8 +34,7 @@ def real_case(pair: str, seed: int, variant: str, scale: float = 1.0) -> Case:
     :func:`bench.real_scans.load_cases` makes it; skips without the set or the bundled model."""
     if not (data_dir() / f"{pair}.npz").exists():
         pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
-    if not (GENERAL / "manifest.json").exists():
-        pytest.skip("bundled model 'general' absent")
+    skip_without_general()
     turns = int(variant.rpartition("-")[2]) if variant.startswith("turned-") else 1
     return next(c for c in load_cases(data_dir(), seed, (scale,), [pair], turns=turns) if c.variant == variant)
 
