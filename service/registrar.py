@@ -1,9 +1,10 @@
 """The registration pipeline: ONNX Runtime for the networks, numpy for everything else.
 
-``Registrar.register`` runs the stages of :mod:`service.stages`: validate -> sample (working clouds) ->
-normalise -> network (encoder, top-K keypoints, n x (matcher -> argmax -> credibility weights -> weighted SVD ->
-compose)) or the rotation search -> refine (optional ICP, point-to-point or point-to-plane) -> assess (quality) ->
-fine refinement of the result kept (dense clouds).
+``Registrar.register`` runs the stages of :mod:`service.stages`: validate -> anchor (each cloud about its own
+centroid) -> sample (working clouds) -> normalise -> network (encoder, top-K keypoints, n x (matcher -> argmax ->
+credibility weights -> weighted SVD -> compose)) or the rotation search -> refine (optional ICP, point-to-point or
+point-to-plane) -> assess (quality) -> fine refinement of the result kept (dense clouds) -> the pose back in the
+caller's frames.
 This module holds the model's sessions and the network calls the network and search stages make.
 """
 
@@ -286,6 +287,7 @@ class Registrar:
         timing: dict[str, float] = {}
         stages = self.stages
         request = stages.validate(source, target, options, overrides, self.default_iterations, self.default_keypoints)
+        request, anchors = stages.anchor(request)  # every later stage works on clouds about the origin
         work = stages.normalise(stages.sample(request), self.reference_radius)
         timing["preprocess"] = 1000 * (time.perf_counter() - t0)
         mode = request.options.search
@@ -293,6 +295,7 @@ class Registrar:
         if mode == "auto":  # the search only when the plain result looks wrong
             result = stages.auto_search(partial(self.solve, work, request), work, result, request.hypotheses, timing)
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
+        result = anchors.result_to_caller(result)
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 

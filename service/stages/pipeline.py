@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from service.stages.anchor import anchor
 from service.stages.assess import assess_result
 from service.stages.fine import fine
 from service.stages.flip import flip
@@ -24,6 +25,7 @@ from service.stages.validate import validate
 @dataclass(frozen=True)
 class Stages:
     validate: Callable = validate  # (source, target, options, overrides, iterations, keypoints) -> Request
+    anchor: Callable = anchor  # (Request) -> (Request about the origin, Anchors back to the caller's frames)
     sample: Callable = sample  # (Request) -> Sampled
     normalise: Callable = normalise  # (Sampled, reference_radius) -> Working
     network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates

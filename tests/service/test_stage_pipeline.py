@@ -13,6 +13,7 @@ from service.manifest import bundled_models_dir
 from service.options import RegistrationOptions
 from service.registrar import Registrar
 from service.result import RegistrationResult
+from service.stages.anchor import anchor
 from service.stages.assess import assess_result
 from service.stages.network import network
 from service.stages.normalise import normalise, to_caller
@@ -40,13 +41,15 @@ def prepared(registrar, points: int = 600, **overrides):
 
 
 def test_the_stages_by_hand_give_registers_result(registrar) -> None:
-    request, work = prepared(registrar, refine="icp-plane", return_iterations=True)
+    caller = prepared(registrar, refine="icp-plane", return_iterations=True)[0]
+    request, anchors = anchor(caller)
+    work = normalise(sample(request), registrar.reference_radius)
     timing: dict[str, float] = {}
     found = network(registrar, work, request.iterations, request.keypoints, timing)
     assert len(found.poses) == 1 and set(timing) == {"encoder", "iterations", "svd"}
     refined = refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], request.options)
-    result = assess_result(work, found, refined, request.iterations, True, timing)
-    whole = registrar.register(request.src, request.tgt, request.options)
+    result = anchors.result_to_caller(assess_result(work, found, refined, request.iterations, True, timing))
+    whole = registrar.register(caller.src, caller.tgt, caller.options)
     np.testing.assert_array_equal(result.transform, whole.transform)
     np.testing.assert_array_equal(result.source_index, whole.source_index)
     assert (result.inlier_ratio, result.reliable, result.warnings) == (whole.inlier_ratio, whole.reliable,

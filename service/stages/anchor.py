@@ -1,0 +1,58 @@
+"""Stage 1b, anchor: each cloud moved to its own centroid before any other stage, the pose moved back after.
+
+Registration does not depend on where the caller's frames lie, but several stages work in the caller's frame: the
+translation search turns the source about the frame's origin and grids both clouds together (a source turned about
+an origin 100 m away lands far from the target, and the grid's cells grow with the gap), and sampling hashes
+coordinates. With both clouds anchored at their own centroids every stage sees clouds about the origin, whatever
+the caller's frames (``docs/decisions/0020-clouds-anchored-at-their-centroids.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.result import IterationPose, RegistrationResult
+from service.stages.validate import Request
+
+ANCHOR_ROWS = 65_536  # at most this many rows, spread through the cloud, are averaged for its anchor
+
+
+@dataclass(frozen=True)
+class Anchors:
+    """The points subtracted from each cloud: poses between the anchored clouds <-> the caller's ``src_to_tgt``."""
+
+    source: np.ndarray  # [3] caller's source frame
+    target: np.ndarray  # [3] caller's target frame
+
+    def to_anchored(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Caller's ``src_to_tgt`` ``R [3, 3], t [3]`` -> the same motion between the anchored clouds."""
+        return R, t + R @ self.source - self.target
+
+    def to_caller(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``src_to_tgt`` between the anchored clouds -> the caller's: ``y - a_t = R (x - a_s) + t``."""
+        return R, t + self.target - R @ self.source
+
+    def result_to_caller(self, result: RegistrationResult) -> RegistrationResult:
+        """``result`` with its final and per-iteration poses in the caller's frames (nothing else depends on them)."""
+        rotation, translation = self.to_caller(result.rotation, result.translation)
+        poses = [IterationPose(*self.to_caller(p.rotation, p.translation)) for p in result.iteration_poses]
+        return dataclasses.replace(result, rotation=rotation, translation=translation, iteration_poses=poses)
+
+
+def centroid(points: np.ndarray) -> np.ndarray:
+    """``[3]`` mean of at most ``ANCHOR_ROWS`` rows spread evenly through ``points [N, 3]``."""
+    stride = max(1, -(-len(points) // ANCHOR_ROWS))  # ceil(N / ANCHOR_ROWS)
+    return points[::stride].mean(axis=0, dtype=np.float64)
+
+
+def anchor(request: Request) -> tuple[Request, Anchors]:
+    """``request`` with each cloud moved by minus its :func:`centroid` (and the initial guess with them), and the
+    :class:`Anchors` that take poses back to the caller's frames."""
+    anchors = Anchors(centroid(request.src), centroid(request.tgt))
+    R_init, t_init = anchors.to_anchored(request.R_init, request.t_init)
+    anchored = dataclasses.replace(request, src=request.src - anchors.source, tgt=request.tgt - anchors.target,
+                                   R_init=R_init, t_init=t_init)
+    return anchored, anchors
