@@ -15,8 +15,8 @@ from service.rotation_search import search_rotations_for
 class Request:
     """One checked registration request."""
 
-    src: np.ndarray  # [N, 3] float64, the caller's source
-    tgt: np.ndarray  # [M, 3] float64, the caller's target
+    src: np.ndarray  # [N, 3] float64, the caller's source: the registration's own copy (the anchor stage moves it)
+    tgt: np.ndarray  # [M, 3] float64, the caller's target: its own copy as well
     options: RegistrationOptions
     iterations: int  # the model's default filled in
     keypoints: int

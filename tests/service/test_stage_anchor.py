@@ -69,7 +69,7 @@ def test_the_stages_after_it_see_clouds_about_the_origin_and_the_guess_with_them
     np.testing.assert_allclose(anchored.src.mean(axis=0), 0.0, atol=1e-9)
     np.testing.assert_allclose(anchored.tgt.mean(axis=0), 0.0, atol=1e-9)
     np.testing.assert_allclose(moved(anchored.src, anchored.R_init, anchored.t_init), anchored.tgt, atol=1e-9)
-    np.testing.assert_allclose(request.src, source)  # the caller's request is left as it was
+    assert np.abs(source.mean(axis=0) - FAR).max() < 1.0  # the caller's own array is left as it was
 
 
 @pytest.fixture(scope="module")
