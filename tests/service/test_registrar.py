@@ -143,14 +143,10 @@ def test_point_to_plane_refinement_beats_point_to_point_on_independent_samplings
 
 def test_refinement_on_more_points_is_more_precise_on_dense_independent_samplings(registrar, monkeypatch):
     """On 4,000-point clouds, refining on every point (``refine_points``) or refining the chosen pose once more on
-    denser clouds (the fine stage, by default) is more precise than refining on the working clouds alone."""
+    denser clouds (the fine stage, by default) is more precise than refining on the working clouds alone: in total
+    over four pairs (per pair the fine stage's subsample can land either way: 0.14-1.06x over seeds 0-7)."""
     import service.stages.refine as refine_stage
 
-    rng = np.random.default_rng(1)
-    src, other = ellipsoid_surface(rng, 4000), ellipsoid_surface(rng, 4000)  # two dense samplings
-    R = Rotation.from_euler("zyx", [4, -3, 2], degrees=True).as_matrix()
-    t = np.array([0.1, -0.05, 0.08])
-    tgt = other @ R.T + t + rng.normal(scale=0.003, size=other.shape)
     sizes, real = [], refine_stage.refine_plane
 
     def spy(src_r, tgt_r, *args, **kwargs):
@@ -160,15 +156,22 @@ def test_refinement_on_more_points_is_more_precise_on_dense_independent_sampling
     monkeypatch.setattr(refine_stage, "refine_plane", spy)
     working_only = Registrar(BUNDLED, threads=1,
                              stages=dataclasses.replace(Stages(), fine=lambda work, result, options, timing: result))
-    working = working_only.register(src, tgt, refine="icp-plane")
-    fine = registrar.register(src, tgt, refine="icp-plane")
-    more = registrar.register(src, tgt, refine="icp-plane", refine_points=4000)
-    assert sizes == [(768, 768), (768, 768), (4000, 4000)]
-    # measured: 0.099 (working clouds), 0.064 (fine stage), 0.054 deg (refine_points); seeds 0-3: the fine stage
-    # 0.66-0.81x and the 4,000-point refinement 0.51-0.77x the working clouds' error
-    assert _angle_deg(more.rotation, R) < 0.7 * _angle_deg(working.rotation, R)
-    assert _angle_deg(fine.rotation, R) < 0.75 * _angle_deg(working.rotation, R)
-    assert (more.inlier_ratio, more.reliable) == pytest.approx((working.inlier_ratio, True), abs=0.01)
+    R = Rotation.from_euler("zyx", [4, -3, 2], degrees=True).as_matrix()
+    t = np.array([0.1, -0.05, 0.08])
+    errors = np.zeros(3)  # [3] total rotation error (deg): working clouds, fine stage, refine_points
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        src, other = ellipsoid_surface(rng, 4000), ellipsoid_surface(rng, 4000)  # two dense samplings
+        tgt = other @ R.T + t + rng.normal(scale=0.003, size=other.shape)
+        sizes.clear()
+        working = working_only.register(src, tgt, refine="icp-plane")
+        fine = registrar.register(src, tgt, refine="icp-plane")
+        more = registrar.register(src, tgt, refine="icp-plane", refine_points=4000)
+        assert sizes == [(768, 768), (768, 768), (4000, 4000)]
+        errors += [_angle_deg(pose.rotation, R) for pose in (working, fine, more)]
+        assert (more.inlier_ratio, more.reliable) == pytest.approx((working.inlier_ratio, True), abs=0.01)
+    # measured: the fine stage 0.68x and the 4,000-point refinement 0.62x the working clouds' total error
+    assert errors[1] < 0.8 * errors[0] and errors[2] < 0.75 * errors[0], errors
     unrefined = registrar.register(src, tgt, refine_points=4000)  # no refinement: nothing to use them for
     assert sizes == [(768, 768), (768, 768), (4000, 4000)] and "refine" not in unrefined.timing_ms
 
