@@ -12,12 +12,15 @@ clouds in the same run::
     python -m bench.real_scans --turns 4 --no-fpfh     # each pair also at 3 more seeded rotations
     python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
     python -m bench.real_scans --no-fpfh --compare-root /tmp/before   # beside another checkout, taking turns
+    python -m bench.real_scans --no-fpfh --offset 1000 -2000 500   # both clouds 2 km from their frames' origin
 
 Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
 given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
 ``--compare-root`` also serves another checkout (its code and its bundled models); the two servers take turns case
 by case, so that a machine whose speed drifts between runs weighs on both alike, and the report adds that
-checkout's totals and this checkout's time over its.
+checkout's totals and this checkout's time over its. ``--offset X Y Z`` moves both clouds of every case by that
+vector before the upload (float32 rounds them there, as it would a map frame's coordinates); poses are judged in
+the clouds' own frames, so a rotation error about a far origin does not count as a translation error.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import json
 import os
 import time
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import httpx
@@ -63,7 +66,8 @@ class Case:
     scale: float  # 1: metres, 1000: millimetres
     source: np.ndarray  # [N, 3] float32
     target: np.ndarray  # [M, 3] float32
-    src_to_tgt: np.ndarray  # [4, 4] ground truth
+    src_to_tgt: np.ndarray  # [4, 4] ground truth, in the clouds' own frames
+    offset: np.ndarray | None = None  # [3] both clouds moved by it (moved_away); poses are judged without it
 
 
 def thresholds(sensor: str, scale: float = 1.0) -> tuple[float, float]:
@@ -105,6 +109,14 @@ def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0,
                 cases.append(Case(file.stem, sensor, variant, scale, (src * scale).astype(np.float32),
                                   (target * scale).astype(np.float32), T_scaled))
     return cases
+
+
+def moved_away(cases: list[Case], offset: np.ndarray) -> list[Case]:
+    """``cases`` with both clouds moved by ``offset [3]`` (in float64, then rounded to float32 as an upload is); the
+    ground truth stays that of the clouds' own frames (:func:`judged` moves a pose back by the offset)."""
+    offset = np.asarray(offset, dtype=np.float64)
+    return [replace(case, source=(case.source + offset).astype(np.float32),
+                    target=(case.target + offset).astype(np.float32), offset=offset) for case in cases]
 
 
 def pose_errors(rotation: np.ndarray, translation: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -173,6 +185,8 @@ def judged(case: Case, rotation: np.ndarray | None, translation: np.ndarray | No
     """Errors and success of one pose against the case's ground truth (a failed request is a miss)."""
     if rotation is None:
         return {"rotation_error_deg": None, "translation_error": None, "success": False}
+    if case.offset is not None:  # y + o = R (x + o) + t  ->  y = R x + t + R o - o
+        translation = translation + rotation @ case.offset - case.offset
     r_err, t_err = pose_errors(rotation, translation, case.src_to_tgt)
     max_deg, max_t = thresholds(case.sensor, case.scale)
     return {"rotation_error_deg": round(r_err, 3), "translation_error": float(f"{t_err:.4g}"),
@@ -298,6 +312,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--options", type=json.loads, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
+    parser.add_argument("--offset", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="move both clouds of every case by this vector (the clouds' unit) before the upload")
     parser.add_argument("--compare-root", type=Path,
                         help="also serve this other checkout (its code and bundled models), taking turns case by case")
     parser.add_argument("--json", type=Path, help="write the report here")
@@ -310,6 +326,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.compare_root and (args.url or args.model_dir):
         parser.error("--compare-root serves each checkout's own bundled models: not with --url or --model-dir")
     cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns)
+    if args.offset:
+        cases = moved_away(cases, np.asarray(args.offset))
     compared = None
     if args.url:
         service = run_service(cases, args.url, args.options)
@@ -325,6 +343,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
              **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
     report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "options": args.options,
+              "offset": args.offset,
               "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
     printed = {"totals": report["totals"]}

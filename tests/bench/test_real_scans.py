@@ -44,6 +44,28 @@ def test_more_turns_add_variants_and_keep_the_first_turn(tmp_path):
     assert all(np.abs(b[i] - b[j]).max() > 0.1 for i in range(4) for j in range(i))  # four different poses
 
 
+def test_cases_moved_away_are_judged_in_their_own_frames():
+    rng = np.random.default_rng(4)
+    source = rng.normal(size=(30, 3)).astype(np.float32)
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = Rotation.from_euler("zx", [40, -10], degrees=True).as_matrix(), [0.5, 0.0, 0.2]
+    case = real_scans.Case("p", "cyberware-range", "scanned", 1.0, source, source @ truth[:3, :3].T + truth[:3, 3],
+                           truth)
+    offset = np.array([1000.0, -2000.0, 500.0])
+    far = real_scans.moved_away([case], offset)[0]
+    assert far.source.dtype == np.float32 and np.abs(far.source - source - offset).max() < 1e-3  # float32 rounding
+    R, t = truth[:3, :3], truth[:3, 3] + offset - truth[:3, :3] @ offset  # the true pose between the moved clouds
+    np.testing.assert_allclose(far.source @ R.T + t, far.target, atol=2e-3)
+    # a pose a degree off about the moved source's centroid: a few mm at the data, 40 m at the far origin
+    D = Rotation.from_euler("z", 1, degrees=True).as_matrix()
+    centre = far.source.mean(axis=0, dtype=np.float64) @ R.T + t
+    R1, t1 = D @ R, D @ (t - centre) + centre
+    judged = real_scans.judged(far, R1, t1)
+    assert judged["rotation_error_deg"] == pytest.approx(1.0, abs=1e-6) and judged["translation_error"] < 0.1
+    assert real_scans.pose_errors(R1, t1, np.r_[np.c_[R, t], [[0, 0, 0, 1]]])[1] > 10  # as judged at the offset
+    assert real_scans.judged(far, R, t)["success"] and not real_scans.judged(case, R, t)["success"]
+
+
 def test_thresholds_scale_with_the_unit():
     assert real_scans.thresholds("cyberware-range", 1000.0) == (5.0, 10.0)
     assert real_scans.thresholds("kinect-fused-2.5cm") == (15.0, 0.3)
