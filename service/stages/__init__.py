@@ -1,11 +1,12 @@
 """The stages of ``Registrar.register``, one module each, in the order they run:
 
-validate (:mod:`.validate`) -> sample (:mod:`.sample`) -> normalise (:mod:`.normalise`) -> network
+validate (:mod:`.validate`) -> anchor (:mod:`.anchor`: each cloud about its own centroid) -> sample
+(:mod:`.sample`) -> normalise (:mod:`.normalise`) -> network
 (:mod:`.network`) or rotation search (:mod:`.search`) -> refine (:mod:`.refine`: candidate ranking in
 :mod:`.ranking`, multistart in :mod:`service.multistart`) -> slide check (:mod:`.slide`) -> after a search, flip
 check (:mod:`.flip`) -> assess (:mod:`.assess`); ``rotation_search="auto"``
 solves again with the search when the plain result looks wrong (:func:`.search.auto_search`); last, the fine
-refinement (:mod:`.fine`) of the result kept.
+refinement (:mod:`.fine`) of the result kept, and its pose back in the caller's frames.
 :class:`.pipeline.Stages` names the functions a :class:`service.registrar.Registrar` calls, so that one can be
 replaced or wrapped without touching the others.
 """
