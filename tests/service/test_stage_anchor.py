@@ -8,7 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from real_scan_cases import GENERAL, real_case, register_with_defaults
+from real_scan_cases import GENERAL, real_case, register_with_defaults, skip_without_general
 from scipy.spatial.transform import Rotation
 from shapes import range_patch
 
@@ -74,8 +74,7 @@ def test_the_stages_after_it_see_clouds_about_the_origin_and_the_guess_with_them
 
 @pytest.fixture(scope="module")
 def registrar():
-    if not (GENERAL / "manifest.json").exists():
-        pytest.skip("bundled model 'general' absent")
+    skip_without_general()
     seen = []
 
     def recording_sample(request):  # what the sample stage is given
