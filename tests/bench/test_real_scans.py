@@ -111,6 +111,15 @@ def test_service_half_registers_a_real_pair_over_http(tmp_path):
 
 
 @needs_data
+def test_a_pair_2_km_from_its_frames_origin_registers_over_http():
+    report = real_scans.main([str(DATA), "--pairs", PAIR, "--no-fpfh", "--scales", "1",
+                              "--offset", "1000", "-2000", "500"])
+    assert report["offset"] == [1000.0, -2000.0, 500.0]
+    scanned = report["pairs"][0]["service"]
+    assert report["pairs"][0]["variant"] == "scanned" and scanned["status"] == 200 and scanned["success"], scanned
+
+
+@needs_data
 def test_fpfh_half_registers_the_pair_as_scanned():
     pytest.importorskip("open3d", reason="FPFH + RANSAC + ICP needs the bench extra (Open3D)")
     case = next(c for c in real_scans.load_cases(DATA, scales=(1.0,), names=[PAIR]) if c.variant == "scanned")
