@@ -36,24 +36,38 @@ def column_bounds(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array([column.min() for column in points.T]), np.array([column.max() for column in points.T])
 
 
-def translation_candidates(moved_source: np.ndarray, target: np.ndarray, count: int = CANDIDATES,
-                           cells: int = GRID_CELLS) -> np.ndarray:
-    """Translations ``[C, 3]`` (best first) that overlay ``moved_source [N, 3]`` (already turned) on ``target [M, 3]``.
-
-    ``moved_source + t`` for each returned ``t`` maximises, to within one cell, the number of cells both clouds
-    occupy; peaks within ``SUPPRESS_CELLS`` cells of a better one are left out. ``cells`` sets the grid spacing
-    (the longer extent of both clouds over ``cells``).
-    """
+def correlation(moved_source: np.ndarray, target: np.ndarray, cells: int = GRID_CELLS
+                ) -> tuple[np.ndarray, float, tuple[float, float]] | None:
+    """The occupancy cross-correlation of ``moved_source [N, 3]`` (already turned) and ``target [M, 3]`` on a grid of
+    ``cells`` along the longer extent of both: ``score [X, Y, Z]`` (``score[d]``: the cells both occupy after moving
+    the source by ``d`` cells, offsets wrapped), the cell size, and the cells the target and the source occupy; ``None``
+    when both clouds are one point."""
     (source_low, source_high), (target_low, target_high) = column_bounds(moved_source), column_bounds(target)
     low, high = np.minimum(source_low, target_low), np.maximum(source_high, target_high)  # [3] each
     cell = float((high - low).max()) / cells
     if not cell > 0:
-        return np.zeros((1, 3))
+        return None
     span = np.ceil((high - low) / cell).astype(int) + 1  # [3] cells per axis
     shape = tuple(fft.next_fast_len(int(2 * n)) for n in span)  # zero padding: no wrap-around overlap
     fixed, moving = occupancy(target, low, cell, shape), occupancy(moved_source, low, cell, shape)
     # score[d] = sum_x fixed[x + d] * moving[x]: the cells both occupy after moving the source by d cells
     score = fft.irfftn(fft.rfftn(fixed) * np.conj(fft.rfftn(moving)), s=shape)
+    return score, cell, (float(fixed.sum()), float(moving.sum()))
+
+
+def translation_candidates(moved_source: np.ndarray, target: np.ndarray, count: int = CANDIDATES,
+                           cells: int = GRID_CELLS) -> np.ndarray:
+    """Translations ``[C, 3]`` (best first) that overlay ``moved_source [N, 3]`` (already turned) on ``target [M, 3]``.
+
+    ``moved_source + t`` for each returned ``t`` maximises, to within one cell, the number of cells both clouds
+    occupy (:func:`correlation`); peaks within ``SUPPRESS_CELLS`` cells of a better one are left out. ``cells`` sets
+    the grid spacing (the longer extent of both clouds over ``cells``).
+    """
+    correlated = correlation(moved_source, target, cells)
+    if correlated is None:
+        return np.zeros((1, 3))
+    score, cell, _ = correlated
+    shape = score.shape
     # the scores are counts: rounded, equal counts are ties (broken by position), not by the FFT's rounding noise
     order = top_k(np.rint(score).ravel(), PEAKS_PER_CANDIDATE * count)  # [P] the best-scoring shifts, best first
     shifts = np.stack(np.unravel_index(order, shape), axis=1)  # [P, 3] cell offsets, wrapped

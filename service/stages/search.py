@@ -10,9 +10,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.network_loop import NetworkLoop
+from service.plane_frames import frame_rotations, overlap_scores
 from service.quality import degenerate
 from service.result import RegistrationResult
-from service.rotation_search import distinct_candidates, rank_hypotheses, search_hypotheses
+from service.rotation_search import (
+    SEARCH_BATCH,
+    SEARCH_KEEP,
+    SearchCandidate,
+    distinct_candidates,
+    rank_hypotheses,
+    search_hypotheses,
+)
 from service.sampling import evenly_spaced_indices
 from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working
@@ -34,7 +43,8 @@ AUTO_SEARCH_RELATIVE_RATIO = 0.8
 
 def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iterations: int, keypoints: int,
            refine: str, timing: dict[str, float]) -> Candidates:
-    """:func:`service.rotation_search.search_hypotheses` from the start rotations ``hypotheses [H, 3, 3]``.
+    """:func:`service.rotation_search.search_hypotheses` from the start rotations ``hypotheses [H, 3, 3]``, or with
+    a refinement, where both working clouds are built of orthogonal planes, the :func:`plane_frame_starts` instead.
 
     With a refinement (``refine != "none"``) every hypothesis gets a short point-to-point ICP, a model whose
     manifest has a ``search`` section searches that many rows spread through each working cloud with at most that
@@ -43,6 +53,7 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     """
     short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
     tic = time.perf_counter()
+    starts = plane_frame_starts(work) if short_icp else None
     sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
     subsample = registrar.manifest.search_subsample
     if short_icp and subsample:  # the refinement restores the precision: search a subsample
@@ -51,6 +62,12 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
     target = registrar.embed_cloud(tgt_n)  # once for every hypothesis
     timing["encoder"] = 1000 * (time.perf_counter() - tic)
+    if starts is not None:
+        network = partial(registrar.start_network, target=target)
+        candidates = plane_frame_candidates(network, src_n, tgt_n, starts, iterations, keypoints, timing)
+        timing["search"] = 1000 * (time.perf_counter() - tic)
+        timing["search_per_hypothesis"] = timing["search"] / len(starts)
+        return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])
     candidates = search_hypotheses(
         partial(registrar.start_network, target=target), src_n, tgt_n, hypotheses, iterations, keypoints,
         short_icp, INLIER_DISTANCE, timing,
@@ -58,6 +75,34 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     # with a refinement every distinct kept candidate is refined and the refined poses ranked again
     candidates = distinct_candidates(candidates) if short_icp else candidates[:1]
     return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])
+
+
+def plane_frame_starts(work: Working, keep: int = SEARCH_KEEP) -> np.ndarray | None:
+    """``[keep, 3, 3]``: the rotations between the working clouds' dominant plane frames
+    (:func:`service.plane_frames.frame_rotations`) that overlay the clouds best on a coarse grid
+    (:func:`service.plane_frames.overlap_scores`), best first; ``None`` unless both clouds have such a frame."""
+    rotations = frame_rotations(work.src_n, work.tgt_n)  # [24, 3, 3] or None
+    if rotations is None:
+        return None
+    scores = overlap_scores(work.src_n, work.tgt_n, rotations)  # [24]
+    return rotations[np.argsort(-scores, kind="stable")[:keep]]
+
+
+def plane_frame_candidates(start_network: Callable[..., NetworkLoop], src_n: np.ndarray, tgt_n: np.ndarray,
+                           starts: np.ndarray, iterations: int, keypoints: int, timing: dict[str, float]
+                           ) -> list[SearchCandidate]:
+    """The ``starts [S, 3, 3]`` as candidate poses (centroids together; the refine stage tries each rotation at its
+    best translations too), each with the network's output from that start on ``src_n [N, 3]``, ``tgt_n [M, 3]``
+    (its correspondences, should it win): the starts are already within a few degrees of a right rotation, where
+    the network, trained on single objects, can turn a room fragment away from it."""
+    src_h = (src_n.astype(np.float64) @ starts.transpose(0, 2, 1)).astype(np.float32)  # [S, N, 3]
+    loops = []
+    for first in range(0, len(starts), SEARCH_BATCH):  # bounded ONNX Runtime arenas
+        loop = start_network(src_h[first : first + SEARCH_BATCH], tgt_n, keypoints, timing, same_source=True)
+        loop.advance(iterations, timing)
+        loops.append(loop)
+    outputs = NetworkLoop.join(loops).outputs()
+    return [SearchCandidate(output, start, start, np.zeros(3)) for output, start in zip(outputs, starts, strict=True)]
 
 
 def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:

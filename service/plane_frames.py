@@ -1,0 +1,82 @@
+"""Start rotations from the clouds' dominant plane directions, for scenes built of orthogonal planes.
+
+The normals of a room fragment (floor, walls, tables, cupboards) cluster about three orthogonal directions. Where
+each cloud shows such a frame (:func:`plane_frame`: ``F [3, 3]``, its columns the directions), a right rotation maps
+the source's frame onto the target's, up to which axis goes where and with which sign: one of the 24 rotations
+``F_t G F_s^T``, ``G`` a proper signed permutation (the cube's rotation group), lies within the frames' own error
+(a few degrees) of it (:func:`frame_rotations`), where the rotation search's fixed 24 starts lie up to 62.8 degrees
+away. :func:`overlap_scores` ranks them by a coarse occupancy correlation, so that only the best few are refined
+(``docs/decisions/0021-plane-frame-starts.md``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from service.icp import target_normals
+from service.rotation_search import search_rotations_for
+from service.translation_search import correlation
+
+AXIS_DEGREES = 10.0  # a normal within this angle of a direction (either sign) counts for it
+PERPENDICULAR_DEGREES = 20.0  # the second direction is sought among normals within this of perpendicular to the first
+MIN_FRAME_SHARE = 0.3  # share of a cloud's points whose normal lies near one of its frame's axes, for a frame
+MIN_NORMALS = 10  # defined normals a cloud needs for a frame
+OVERLAP_CELLS = 16  # grid cells along the pair's longer extent for overlap_scores
+
+
+def plane_frame(points: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """The dominant plane directions of ``points [N, 3]`` as a rotation ``F [3, 3]`` (columns: the most common normal
+    direction, the most common one roughly perpendicular to it, their cross product), and the share of the points
+    whose PCA normal (:func:`service.icp.target_normals`) lies within ``AXIS_DEGREES`` of one of the three (either
+    sign). ``None, 0`` where no such pair of directions exists; the frame counts only where the share reaches
+    ``MIN_FRAME_SHARE`` (:func:`frame_rotations`)."""
+    normals, defined = target_normals(np.asarray(points, dtype=np.float64))  # [N, 3], [N]
+    n = normals[defined]  # [D, 3] unit, sign arbitrary
+    if len(n) < MIN_NORMALS:
+        return None, 0.0
+    near = np.abs(n @ n.T) > np.cos(np.radians(AXIS_DEGREES))  # [D, D] same direction, either sign
+    first = int(np.argmax(near.sum(axis=1)))
+    d1 = mean_direction(n[near[first]], n[first])  # [3]
+    across = np.flatnonzero(np.abs(n @ d1) < np.sin(np.radians(PERPENDICULAR_DEGREES)))  # [P]
+    if len(across) < 3:
+        return None, 0.0
+    second = across[int(np.argmax(near[np.ix_(across, across)].sum(axis=1)))]
+    d2 = mean_direction(n[across[near[second, across]]], n[second])
+    d2 = d2 - (d2 @ d1) * d1
+    d2 /= np.linalg.norm(d2)
+    frame = np.stack([d1, d2, np.cross(d1, d2)], axis=1)  # [3, 3] columns: the axes, right-handed
+    on_axes = np.abs(n @ frame).max(axis=1) > np.cos(np.radians(AXIS_DEGREES))  # [D]
+    return frame, float(on_axes.sum()) / len(points)
+
+
+def mean_direction(normals: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The unit mean of ``normals [K, 3]`` after turning each to the side of ``reference [3]``."""
+    signs = np.where(normals @ reference < 0, -1.0, 1.0)  # [K]
+    mean = (normals * signs[:, None]).mean(axis=0)
+    return mean / np.linalg.norm(mean)
+
+
+def frame_rotations(source: np.ndarray, target: np.ndarray) -> np.ndarray | None:
+    """``[24, 3, 3]``: the rotations ``F_t G F_s^T`` taking the :func:`plane_frame` of ``source [N, 3]`` onto that of
+    ``target [M, 3]`` (``G``: the cube's 24 rotations), or ``None`` unless both clouds have a frame covering at least
+    ``MIN_FRAME_SHARE`` of their points."""
+    (f_s, share_s), (f_t, share_t) = plane_frame(source), plane_frame(target)
+    if f_s is None or f_t is None or min(share_s, share_t) < MIN_FRAME_SHARE:
+        return None
+    return f_t[None] @ search_rotations_for(24) @ f_s.T[None]
+
+
+def overlap_scores(source: np.ndarray, target: np.ndarray, rotations: np.ndarray,
+                   cells: int = OVERLAP_CELLS) -> np.ndarray:
+    """``[H]``: for each of ``rotations [H, 3, 3]``, the most cells of a coarse grid (``cells`` along the longer
+    extent) that the turned ``source [N, 3]`` and ``target [M, 3]`` occupy together at any translation, over the
+    fewer cells either occupies alone (1: one cloud's cells all lie in the other's)."""
+    scores = np.empty(len(rotations))
+    for h, rotation in enumerate(rotations):
+        correlated = correlation(source @ rotation.T, target, cells)
+        if correlated is None:  # both clouds one point
+            scores[h] = 0.0
+            continue
+        score, _, occupied = correlated
+        scores[h] = np.rint(score).max() / max(min(occupied), 1.0)
+    return scores
