@@ -23,6 +23,7 @@ from service.rotation_search import (
     search_hypotheses,
 )
 from service.sampling import evenly_spaced_indices
+from service.stages.assess import off_the_surface
 from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working
 from service.stages.partial import looks_partial
@@ -114,13 +115,18 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
 
 def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: Working,
                 plain: RegistrationResult, hypotheses: np.ndarray, timing: dict[str, float]) -> RegistrationResult:
-    """``plain`` unless it looks wrong (:func:`needs_search`, and not a partial view:
-    :func:`service.stages.partial.looks_partial`) on non-degenerate clouds; then ``solve(hypotheses,
-    {})`` (the pipeline with the search) and whichever final pose :func:`rank_hypotheses` ranks first (the plain
-    one on a tie), with the plain pass's stage timings. Records ``timing`` ``search`` (the whole second pass)
-    and ``search_per_hypothesis`` when it searched."""
-    if (degenerate(work.src_w) or degenerate(work.tgt_w)
-            or not needs_search(plain, work.attainable_ratio) or looks_partial(work, plain)):
+    """``plain`` unless it looks wrong on non-degenerate clouds: it fits poorly (:func:`needs_search`) and is not a
+    partial view's (:func:`service.stages.partial.looks_partial`), or it lies off a dense target's surface
+    (:func:`service.stages.assess.off_the_surface`: the inlier-ratio test misses wrong poses where the working
+    clouds are sparser than the inlier distance, as a LiDAR scan's are); then ``solve(hypotheses, {})`` (the
+    pipeline with the search) and whichever final pose :func:`rank_hypotheses` ranks first (the plain one on a tie),
+    with the plain pass's stage timings. Records ``timing`` ``search`` (the whole second pass) and
+    ``search_per_hypothesis`` when it searched."""
+    if degenerate(work.src_w) or degenerate(work.tgt_w):
+        return plain
+    fits_poorly = needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain)
+    # a reliable result has passed off_the_surface already
+    if not fits_poorly and (plain.reliable or off_the_surface(work, plain.rotation, plain.translation) is None):
         return plain
     started = time.perf_counter()
     searched = solve(hypotheses, {})

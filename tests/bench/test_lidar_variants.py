@@ -1,0 +1,41 @@
+"""The LiDAR variants: each one's truth maps its source onto the target's frame, the crops hold what they say, and
+the set is seeded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.lidar_variants import PAIR, RADII, load_pair, seen_from, variants
+from bench.real_scans import data_dir
+
+
+@pytest.fixture(scope="module")
+def pair():
+    if not (data_dir() / f"{PAIR}.npz").exists():
+        pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
+    return load_pair(data_dir())
+
+
+def test_the_truth_takes_the_source_back_to_the_target_frame_and_the_crops_hold(pair):
+    source_in_target, target = pair
+    src, tgt, truth = seen_from(source_in_target, target, 20.0, 0.7, 130.0, 20.0)
+    back = src.astype(np.float64) @ truth[:3, :3].T + truth[:3, 3]  # [N, 3] in the target's frame
+    sensor = truth[:3, 3]
+    assert np.isclose(np.linalg.norm(sensor), 20.0) and np.isclose(sensor[2], 0.0)
+    assert np.linalg.norm(back[:, :2] - sensor[:2], axis=1).max() < 20.0 + 1e-3
+    assert np.linalg.norm(tgt[:, :2], axis=1).max() < 20.0 + 1e-3  # float32
+    kept = np.linalg.norm(source_in_target[:, :2] - sensor[:2], axis=1) < 20.0
+    assert np.abs(back - source_in_target[kept]).max() < 1e-3  # float32 rounding of ~20 m coordinates
+
+
+def test_the_variants_are_seeded_and_turned_ones_keep_their_truth():
+    if not (data_dir() / f"{PAIR}.npz").exists():
+        pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
+    first, again = list(variants(data_dir())), list(variants(data_dir()))
+    assert len(first) == len(RADII) * 4 * 3 * 2
+    for (label, src, _, truth), (label2, src2, _, truth2) in zip(first, again, strict=True):
+        assert label == label2 and np.array_equal(src, src2) and np.array_equal(truth, truth2)
+    (_, level, _, truth), (_, turned_src, _, truth_t) = first[0], first[1]
+    moved = [c.astype(np.float64) @ T[:3, :3].T + T[:3, 3] for c, T in ((level, truth), (turned_src, truth_t))]
+    assert np.abs(moved[0] - moved[1]).max() < 1e-3  # both variants land on the same points of the target's frame
