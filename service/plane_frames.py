@@ -60,8 +60,11 @@ def frame_rotations(source: np.ndarray, target: np.ndarray) -> np.ndarray | None
     """``[24, 3, 3]``: the rotations ``F_t G F_s^T`` taking the :func:`plane_frame` of ``source [N, 3]`` onto that of
     ``target [M, 3]`` (``G``: the cube's 24 rotations), or ``None`` unless both clouds have a frame covering at least
     ``MIN_FRAME_SHARE`` of their points."""
-    (f_s, share_s), (f_t, share_t) = plane_frame(source), plane_frame(target)
-    if f_s is None or f_t is None or min(share_s, share_t) < MIN_FRAME_SHARE:
+    f_s, share_s = plane_frame(source)
+    if f_s is None or share_s < MIN_FRAME_SHARE:  # most clouds: the target's frame is not needed
+        return None
+    f_t, share_t = plane_frame(target)
+    if f_t is None or share_t < MIN_FRAME_SHARE:
         return None
     return f_t[None] @ search_rotations_for(24) @ f_s.T[None]
 
