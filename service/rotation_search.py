@@ -129,15 +129,9 @@ def search_hypotheses(
     records ``timing["search"]`` (the whole search) and ``timing["search_per_hypothesis"]``.
     """
     started = time.perf_counter()
-    src_h = (src_n.astype(np.float64) @ hypotheses.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
     prune = short_icp and len(hypotheses) > SEARCH_KEEP and iterations > SEARCH_PRUNE_ITERATIONS
     first = SEARCH_PRUNE_ITERATIONS if prune else iterations
-    batches = []
-    for start in range(0, len(hypotheses), SEARCH_BATCH):  # bounded ONNX Runtime arenas
-        batch = start_network(src_h[start : start + SEARCH_BATCH], tgt_n, keypoints, timing, same_source=True)
-        batch.advance(first, timing)
-        batches.append(batch)
-    loop, starts = NetworkLoop.join(batches), hypotheses
+    loop, starts = network_from(start_network, src_n, tgt_n, hypotheses, first, keypoints, timing), hypotheses
     if prune:
         keep = rank_hypotheses(src_n, tgt_n, *_search_poses(loop, starts, src_n, tgt_n), inlier_distance)[0]
         keep = keep[:SEARCH_KEEP]
@@ -149,6 +143,19 @@ def search_hypotheses(
     timing["search"] = 1000 * (time.perf_counter() - started)
     timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
     return [SearchCandidate(outputs[i], starts[i], R_h[i], t_h[i]) for i in order]
+
+
+def network_from(start_network: Callable[..., NetworkLoop], src_n: np.ndarray, tgt_n: np.ndarray,
+                 starts: np.ndarray, iterations: int, keypoints: int, timing: dict[str, float]) -> NetworkLoop:
+    """The network loop of ``src_n [N, 3]`` turned by each of ``starts [H, 3, 3]`` against ``tgt_n``, after
+    ``iterations``: ``SEARCH_BATCH`` starts per ``start_network`` call (bounded ONNX Runtime arenas)."""
+    src_h = (src_n.astype(np.float64) @ starts.transpose(0, 2, 1)).astype(np.float32)  # [H, N, 3]
+    batches = []
+    for first in range(0, len(starts), SEARCH_BATCH):
+        batch = start_network(src_h[first : first + SEARCH_BATCH], tgt_n, keypoints, timing, same_source=True)
+        batch.advance(iterations, timing)
+        batches.append(batch)
+    return NetworkLoop.join(batches)
 
 
 def distinct_candidates(candidates: list[SearchCandidate]) -> list[SearchCandidate]:

@@ -15,10 +15,10 @@ from service.plane_frames import frame_rotations, overlap_scores
 from service.quality import degenerate
 from service.result import RegistrationResult
 from service.rotation_search import (
-    SEARCH_BATCH,
     SEARCH_KEEP,
     SearchCandidate,
     distinct_candidates,
+    network_from,
     rank_hypotheses,
     search_hypotheses,
 )
@@ -96,13 +96,7 @@ def plane_frame_candidates(start_network: Callable[..., NetworkLoop], src_n: np.
     best translations too), each with the network's output from that start on ``src_n [N, 3]``, ``tgt_n [M, 3]``
     (its correspondences, should it win): the starts are already within a few degrees of a right rotation, where
     the network, trained on single objects, can turn a room fragment away from it."""
-    src_h = (src_n.astype(np.float64) @ starts.transpose(0, 2, 1)).astype(np.float32)  # [S, N, 3]
-    loops = []
-    for first in range(0, len(starts), SEARCH_BATCH):  # bounded ONNX Runtime arenas
-        loop = start_network(src_h[first : first + SEARCH_BATCH], tgt_n, keypoints, timing, same_source=True)
-        loop.advance(iterations, timing)
-        loops.append(loop)
-    outputs = NetworkLoop.join(loops).outputs()
+    outputs = network_from(start_network, src_n, tgt_n, starts, iterations, keypoints, timing).outputs()
     return [SearchCandidate(output, start, start, np.zeros(3)) for output, start in zip(outputs, starts, strict=True)]
 
 
