@@ -10,6 +10,7 @@ import numpy as np
 from service.icp import Surface
 from service.kdtree import KDTree
 from service.normalization import Normalization
+from service.plane_frames import frame_rotations
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio
 from service.sampling import hashed_indices
@@ -51,6 +52,13 @@ class Working(Sampled):
         """The inlier ratio a right pose can reach at the working target's density
         (:func:`service.quality.attainable_inlier_ratio`), computed once per registration."""
         return attainable_inlier_ratio(self.tgt_w, self.inlier_distance)
+
+    @cached_property
+    def plane_frame_rotations(self) -> np.ndarray | None:
+        """``[24, 3, 3]``: the rotations between the normalised working clouds' plane frames
+        (:func:`service.plane_frames.frame_rotations`), or ``None`` unless both are built of orthogonal planes;
+        found once per registration (``auto`` and the search both ask)."""
+        return frame_rotations(self.src_n, self.tgt_n)
 
     @cached_property
     def entered_target_tree(self) -> KDTree:

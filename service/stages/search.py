@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from service.network_loop import NetworkLoop
-from service.plane_frames import frame_rotations, overlap_scores
+from service.plane_frames import overlap_scores
 from service.quality import degenerate
 from service.result import RegistrationResult
 from service.rotation_search import (
@@ -27,6 +27,7 @@ from service.stages.assess import off_the_surface
 from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working
 from service.stages.partial import looks_partial
+from service.stages.ranking import samples_the_surface
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -82,7 +83,7 @@ def plane_frame_starts(work: Working, keep: int = SEARCH_KEEP) -> np.ndarray | N
     """``[keep, 3, 3]``: the rotations between the working clouds' dominant plane frames
     (:func:`service.plane_frames.frame_rotations`) that overlay the clouds best on a coarse grid
     (:func:`service.plane_frames.overlap_scores`), best first; ``None`` unless both clouds have such a frame."""
-    rotations = frame_rotations(work.src_n, work.tgt_n)  # [24, 3, 3] or None
+    rotations = work.plane_frame_rotations  # [24, 3, 3] or None
     if rotations is None:
         return None
     scores = overlap_scores(work.src_n, work.tgt_n, rotations)  # [24]
@@ -100,6 +101,14 @@ def plane_frame_candidates(start_network: Callable[..., NetworkLoop], src_n: np.
     return [SearchCandidate(output, start, start, np.zeros(3)) for output, start in zip(outputs, starts, strict=True)]
 
 
+def plane_frames_on_the_surface(work: Working) -> bool:
+    """Whether both working clouds are built of orthogonal planes (:attr:`Working.plane_frame_rotations`) and the
+    entered target samples their surface densely (:func:`service.stages.ranking.samples_the_surface`): then any of
+    the 24 frame rotations can overlay the source on walls and floor, and only the search's ranking of them tells a
+    quarter- or half-turned room from the right one (``docs/decisions/0023-auto-searches-rooms.md``)."""
+    return samples_the_surface(work) and work.plane_frame_rotations is not None
+
+
 def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:
     """Whether ``rotation_search="auto"`` searches after the plain ``result``: its inlier ratio is below
     ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio`` (:func:`service.quality.attainable_inlier_ratio`
@@ -109,18 +118,21 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
 
 def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: Working,
                 plain: RegistrationResult, hypotheses: np.ndarray, timing: dict[str, float]) -> RegistrationResult:
-    """``plain`` unless it looks wrong on non-degenerate clouds: it fits poorly (:func:`needs_search`) and is not a
-    partial view's (:func:`service.stages.partial.looks_partial`), or it lies off a dense target's surface
+    """``plain`` unless, on non-degenerate clouds, it may be wrong: it fits poorly (:func:`needs_search`) and is not a
+    partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a dense target's surface
     (:func:`service.stages.assess.off_the_surface`: the inlier-ratio test misses wrong poses where the working
-    clouds are sparser than the inlier distance, as a LiDAR scan's are); then ``solve(hypotheses, {})`` (the
-    pipeline with the search) and whichever final pose :func:`rank_hypotheses` ranks first (the plain one on a tie),
-    with the plain pass's stage timings. Records ``timing`` ``search`` (the whole second pass) and
-    ``search_per_hypothesis`` when it searched."""
+    clouds are sparser than the inlier distance, as a LiDAR scan's are); or both clouds are built of orthogonal
+    planes over a dense target (:func:`plane_frames_on_the_surface`: a room turned by a quarter or half turn can
+    lie on the target's walls and floor). Then ``solve(hypotheses, {})`` (the pipeline with the search) and whichever
+    final pose :func:`rank_hypotheses` ranks first (the plain one on a tie), with the plain pass's stage timings.
+    Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
     if degenerate(work.src_w) or degenerate(work.tgt_w):
         return plain
-    fits_poorly = needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain)
-    # a reliable result has passed off_the_surface already
-    if not fits_poorly and (plain.reliable or off_the_surface(work, plain.rotation, plain.translation) is None):
+    doubtful = ((needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain))
+                or plane_frames_on_the_surface(work)
+                # a reliable result has passed off_the_surface already
+                or (not plain.reliable and off_the_surface(work, plain.rotation, plain.translation) is not None))
+    if not doubtful:
         return plain
     started = time.perf_counter()
     searched = solve(hypotheses, {})
