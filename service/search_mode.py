@@ -11,8 +11,9 @@ from enum import Enum
 # What the HTTP API and `mfgnet register` run when a request names no rotation search (the server's
 # MFGNET_DEFAULT_ROTATION_SEARCH), applied only to refined requests (unrefined network poses of independent
 # scans never fit tightly, so "auto" would search every one). "auto": users' scans arrive at any relative
-# orientation, and the search runs only when the plain result fits worse than the clouds' density allows
-# (docs/decisions/0007-real-scan-defaults.md). Operators who need the lowest latency on clouds known to be
+# orientation, and the search runs only when the plain result may be wrong: it fits worse than the clouds' density
+# allows, lies off a dense target's surface, or both clouds are rooms (docs/decisions/0007-real-scan-defaults.md,
+# 0022, 0023). Operators who need the lowest latency on clouds known to be
 # within ~45 deg of each other set MFGNET_DEFAULT_ROTATION_SEARCH=off.
 SERVICE_DEFAULT_ROTATION_SEARCH = "auto"
 MODE_VALUES: dict[str, bool | str] = {"off": False, "on": True, "auto": "auto"}

@@ -54,8 +54,9 @@ REFINE_POINTS_DESCRIPTION = (
 ROTATION_SEARCH_DESCRIPTION = (
     "Search over initial rotations covering SO(3), for any relative orientation (about 2-3x the time of a refined "
     "request, 10-20x without a refinement): true = always; "
-    "'auto' = only when the plain result looks wrong (inlier ratio below "
-    f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows; never on degenerate clouds), then "
+    "'auto' = only when the plain result may be wrong (inlier ratio below "
+    f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows, or off a dense target's surface, or "
+    "both clouds built of orthogonal planes like rooms over a dense target; never on degenerate clouds), then "
     "the better of both is returned and timing_ms has a 'search' key; false = never. Default (null): the "
     "server's (MFGNET_DEFAULT_ROTATION_SEARCH; false unless the operator set 'auto' or true) when the request is "
     "refined, false with refine 'none'. 422 when the loaded pipeline does not support it."

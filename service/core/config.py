@@ -57,7 +57,8 @@ class Settings(BaseSettings):
         SERVICE_DEFAULT_ROTATION_SEARCH,
         description="Rotation search for a request that names none, applied only when the request is refined: off "
         "(the lowest latency; clouds within ~45 deg of each other or with an initial_transform); auto = search "
-        "over 24 start rotations when the plain result fits worse than the target's density allows (clouds at "
+        "when the plain result fits worse than the target's density allows, lies off a dense target's surface, or "
+        "both clouds are rooms built of orthogonal planes (clouds at "
         "any relative orientation; the default. About 0.1-0.3 s more for the requests that search, which include "
         "partial views with little overlap); on = always.",
     )
