@@ -62,18 +62,15 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
         sub_s, sub_t = (evenly_spaced_indices(len(c), subsample[0]) for c in (work.src_n, work.tgt_n))
         keypoints = min(keypoints, subsample[1], len(sub_s), len(sub_t))
     src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
-    target = registrar.embed_cloud(tgt_n)  # once for every hypothesis
+    network = partial(registrar.start_network, target=registrar.embed_cloud(tgt_n))  # target embedded once
     timing["encoder"] = 1000 * (time.perf_counter() - tic)
     if starts is not None:
-        network = partial(registrar.start_network, target=target)
         candidates = plane_frame_candidates(network, src_n, tgt_n, starts, iterations, keypoints, timing)
         timing["search"] = 1000 * (time.perf_counter() - tic)
         timing["search_per_hypothesis"] = timing["search"] / len(starts)
         return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])
-    candidates = search_hypotheses(
-        partial(registrar.start_network, target=target), src_n, tgt_n, hypotheses, iterations, keypoints,
-        short_icp, INLIER_DISTANCE, timing,
-    )
+    candidates = search_hypotheses(network, src_n, tgt_n, hypotheses, iterations, keypoints, short_icp,
+                                   INLIER_DISTANCE, timing)
     # with a refinement every distinct kept candidate is refined and the refined poses ranked again
     candidates = distinct_candidates(candidates) if short_icp else candidates[:1]
     return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])

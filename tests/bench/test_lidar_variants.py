@@ -9,11 +9,12 @@ import pytest
 from bench.lidar_variants import PAIR, RADII, load_pair, seen_from, variants
 from bench.real_scans import data_dir
 
+pytestmark = pytest.mark.skipif(not (data_dir() / f"{PAIR}.npz").exists(),
+                                reason=f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
+
 
 @pytest.fixture(scope="module")
 def pair():
-    if not (data_dir() / f"{PAIR}.npz").exists():
-        pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
     return load_pair(data_dir())
 
 
@@ -30,8 +31,6 @@ def test_the_truth_takes_the_source_back_to_the_target_frame_and_the_crops_hold(
 
 
 def test_the_variants_are_seeded_and_turned_ones_keep_their_truth():
-    if not (data_dir() / f"{PAIR}.npz").exists():
-        pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
     first, again = list(variants(data_dir())), list(variants(data_dir()))
     assert len(first) == len(RADII) * 4 * 3 * 2
     for (label, src, _, truth), (label2, src2, _, truth2) in zip(first, again, strict=True):
