@@ -12,16 +12,13 @@ pattern is not a second sensor's (the source stays densest where its own sensor 
 from __future__ import annotations
 
 import argparse
-import json
-import time
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.real_scans import data_dir, fpfh_ransac_icp, pose_errors, thresholds, turned
-from service.manifest import bundled_models_dir
-from service.registrar import Registrar
+from bench.real_scans import data_dir, turned
+from bench.variant_runs import registered, report
 
 PAIR = "lidar_small_gicp"
 RADII = (20.0, 30.0)  # m
@@ -72,36 +69,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
-    registrar = Registrar(bundled_models_dir() / "general")
-    max_deg, max_m = thresholds("lidar")
-    rows = []
-    for label, src, tgt, truth in variants(data_dir(args.dir)):
-        started = time.perf_counter()
-        result = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto")
-        seconds = time.perf_counter() - started
-        degrees, metres = pose_errors(result.rotation, result.translation, truth)
-        row = {"variant": label, "service_success": bool(degrees < max_deg and metres < max_m),
-               "reliable": bool(result.reliable), "rotation_error_deg": round(degrees, 3),
-               "translation_error_m": round(metres, 3), "service_seconds": round(seconds, 4)}
-        if not args.no_fpfh:
-            started = time.perf_counter()
-            R, t = fpfh_ransac_icp(src, tgt)
-            row["fpfh_seconds"] = round(time.perf_counter() - started, 4)
-            row["fpfh_success"] = bool(np.less(pose_errors(R, t, truth), (max_deg, max_m)).all())
-        rows.append(row)
-        print(json.dumps(row), flush=True)
-    totals = {"cases": len(rows), "service_successes": sum(r["service_success"] for r in rows),
-              "reliable_given": sum(r["reliable"] for r in rows),
-              "reliable_wrong": sum(r["reliable"] and not r["service_success"] for r in rows),
-              "service_seconds": round(sum(r["service_seconds"] for r in rows), 2)}
-    if not args.no_fpfh:
-        totals |= {"fpfh_successes": sum(r["fpfh_success"] for r in rows),
-                   "fpfh_seconds": round(sum(r["fpfh_seconds"] for r in rows), 2)}
-    print(json.dumps(totals))
-    report = {"benchmark": "lidar_variants", "totals": totals, "rows": rows}
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=1))
-    return report
+    cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(data_dir(args.dir)))
+    return report("lidar_variants", {"all": registered(cases, fpfh=not args.no_fpfh)}, args.json)
 
 
 if __name__ == "__main__":

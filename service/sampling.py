@@ -14,7 +14,9 @@ Strategy:
 * ``size < N <= VOXEL_TRIGGER * size``: farthest-point sampling (FPS) on all points.
 * ``N > VOXEL_TRIGGER * size``: an order-independent voxel-grid reduction to roughly
   ``VOXEL_TARGET * size`` representatives first (each voxel keeps the point closest to the voxel's
-  centre), then FPS on those.  200,000 points take a few tens of milliseconds.
+  centre), then FPS on those.  200,000 points take a few tens of milliseconds.  With ``drop_isolated`` the
+  voxels of scattered points are left out; where they were most of the grid's voxels, the grid was sized for
+  them rather than for the surface, and is made again on the points of the others.
 
 FPS starts from the point farthest from the centroid and always runs on candidates sorted in
 canonical order, so every ``argmax`` tie is broken lexicographically by coordinates.
@@ -37,6 +39,10 @@ ISOLATED_PASSES = 2  # a second pass on the rest: dense pairs with 40% outliers 
 VOXEL_TRIGGER = 8  # reduce with a voxel grid first when N > VOXEL_TRIGGER * size
 VOXEL_TARGET = 3.5  # aim for about this many occupied voxels per requested point ...
 VOXEL_ACCEPT = (3.0, 4.0)  # ... and accept a voxel size whose occupancy / size lies in this range
+# Where fewer than REGRID_SHARE of the grid's voxels hold more than scattered points (sparse_voxels), the
+# scattered points sized the grid (too coarse for the surface; the representatives of many surface voxels are
+# scattered points): the grid is made again on the points of the other voxels. Clean real scans keep 0.59-1.0.
+REGRID_SHARE = 0.5
 VOXEL_MAX_TRIES = 6  # voxel-size adjustments (each counts the occupied voxels of N keys once)
 VOXEL_MAX_CELLS_PER_AXIS = 1_000_000  # keeps linear voxel keys far from int64 overflow
 # Voxel keys are counted with a table (np.bincount) while the grid has at most this many cells per point, plus
@@ -46,13 +52,16 @@ COUNT_TABLE_CELLS_PER_POINT = 8
 COUNT_TABLE_MIN_CELLS = 65_536
 
 
-def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated: bool = False) -> np.ndarray:
+def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated: bool = False,
+                     regrid: bool = True) -> np.ndarray:
     """Indices of ``min(N, size)`` points chosen by geometry alone (fewer with ``drop_isolated``).
 
     Args:
         points: ``(N, 3)`` finite coordinates (any float dtype).
         size: number of points wanted (``>= 1``).
         drop_isolated: leave out :func:`isolated_points` first.
+        regrid: where most voxels of the grid hold only scattered points (:data:`REGRID_SHARE`), make the grid
+            again on the points of the others (once: the inner call passes ``False``).
 
     Returns:
         ``(min(C, size),)`` int64 indices into ``points`` of the ``C`` candidates (every point, or one per
@@ -68,11 +77,15 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
     if n <= size and not drop_isolated:
         return canonical_order(points)
     if n > VOXEL_TRIGGER * size:
-        candidates, occupancy = _voxel_representatives(points, size)
+        candidates, occupancy, group = _voxel_grid(points, size)
         if candidates.shape[0] < size:  # too few distinct places (heavy duplication): use everything
             candidates = np.arange(n)
         elif drop_isolated:  # voxels of scattered points hold one or two points, surface voxels many
-            candidates = candidates[~sparse_voxels(occupancy)]
+            sparse = sparse_voxels(occupancy)  # [V]
+            candidates = candidates[~sparse]
+            if regrid and candidates.shape[0] < REGRID_SHARE * len(sparse):  # scattered points sized the grid
+                kept = np.flatnonzero(~sparse[group])  # [N'] rows in voxels that are not sparse
+                return kept[resample_indices(points[kept], size, drop_isolated, regrid=False)]
     else:
         candidates = np.arange(n)
     if drop_isolated and candidates.shape[0] <= VOXEL_TRIGGER * size:  # bounded cost (else heavy duplication)
@@ -239,8 +252,15 @@ def _farthest_point_sampling(points: np.ndarray, size: int) -> np.ndarray:
 
 
 def _voxel_representatives(points: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of one point per occupied voxel, ~``VOXEL_TARGET * size`` of them, in any order, and the number
-    of points in each one's voxel.
+    """Indices of one point per occupied voxel, ~``VOXEL_TARGET * size`` of them, and each one's voxel count
+    (:func:`_voxel_grid`)."""
+    candidates, occupancy, _ = _voxel_grid(points, size)
+    return candidates, occupancy
+
+
+def _voxel_grid(points: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Indices ``[V]`` of one point per occupied voxel, ~``VOXEL_TARGET * size`` of them, in any order, the number
+    of points in each one's voxel ``[V]``, and for every point the position of its voxel's representative ``[N]``.
 
     The grid is anchored at the bounding-box minimum and its voxel size depends only on the bounding
     box and on occupancy counts, so the result does not depend on the input order.  Each voxel is
@@ -251,7 +271,7 @@ def _voxel_representatives(points: np.ndarray, size: int) -> tuple[np.ndarray, n
     extent = coords.max(axis=1) - lo  # [3]
     if not extent.max() > 0:  # every point identical
         picks = canonical_order(points)[:size]
-        return picks, np.full(len(picks), len(points))
+        return picks, np.full(len(picks), len(points)), np.zeros(len(points), dtype=np.int64)
     offsets = coords - lo[:, None]  # [3, N], >= 0
     target = VOXEL_TARGET * size
     min_voxel = extent.max() / VOXEL_MAX_CELLS_PER_AXIS
@@ -288,7 +308,10 @@ def _voxel_representatives(points: np.ndarray, size: int) -> tuple[np.ndarray, n
     tie_order = np.lexsort((candidates, c[:, 2], c[:, 1], c[:, 0], candidate_group))
     first = np.ones(tie_order.shape[0], dtype=bool)
     first[1:] = candidate_group[tie_order][1:] != candidate_group[tie_order][:-1]
-    return candidates[tie_order[first]], occupancy[candidate_group[tie_order[first]]]
+    voxel_of = candidate_group[tie_order[first]]  # [V] the voxel number of each representative
+    rank = np.empty(len(voxel_of), dtype=np.int64)
+    rank[voxel_of] = np.arange(len(voxel_of))  # voxel number -> representative
+    return candidates[tie_order[first]], occupancy[voxel_of], rank[group]
 
 
 def _voxel_keys(cell: np.ndarray, extent: np.ndarray, voxel: float) -> tuple[np.ndarray, int]:

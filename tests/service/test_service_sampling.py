@@ -236,3 +236,19 @@ def test_voxel_counting_by_table_and_by_sorting_select_the_same_points(monkeypat
     by_sorting = [[resample_indices(points, 768, drop), spread_indices(points, 4096, drop)] for drop in (False, True)]
     for table, sort in zip(by_table, by_sorting, strict=True):
         assert all(np.array_equal(a, b) for a, b in zip(table, sort, strict=True))
+
+
+@pytest.mark.parametrize("seed", [3, 5])
+def test_scattered_points_that_size_the_voxel_grid_do_not_fill_the_sample(seed: int) -> None:
+    """40,000 surface points and 10% more scattered through their bounding box: the scattered points occupied most
+    voxels of the first grid, which came out too coarse for the surface (a third of the working cloud scattered
+    points, measured 0.32 / 0.29); the grid made again on the other voxels' points keeps them to 0.13 / 0.11."""
+    rng = np.random.default_rng(seed)
+    surface = ellipsoid_and_box(40_000, seed)
+    scattered = rng.uniform(surface.min(axis=0), surface.max(axis=0), size=(4000, 3))
+    points = np.concatenate([surface, scattered])
+    kept = resample_indices(points, DEFAULT_SIZE, drop_isolated=True)
+    assert len(kept) == DEFAULT_SIZE and np.mean(kept >= len(surface)) < 0.2
+    perm = rng.permutation(len(points))
+    again = resample_indices(points[perm], DEFAULT_SIZE, drop_isolated=True)
+    np.testing.assert_array_equal(points[perm][again], points[kept])

@@ -1,0 +1,95 @@
+"""The real-scan set's pairs altered as other sensors and scenes would alter them: ``python -m bench.altered_scans``.
+
+Each pair of the set (``DIR``, else ``$MFGNET_REAL_DATA``, else ``../shared/data/real``) is altered in one of these
+ways, seeded per alteration and pair, and registered as altered and with the source turned about its centroid by a
+seeded Haar rotation (in process, :mod:`bench.variant_runs`: the service's defaults beside FPFH + RANSAC + ICP,
+``--no-fpfh`` to skip):
+
+- ``sparse30``, ``sparse10``: each cloud keeps a random 30% / 10% of its points (a sparser scanner);
+- ``noise``: Gaussian noise of one point spacing (the cloud's median nearest-neighbour distance) per coordinate;
+- ``crop``: the source keeps the 60% of its points on one side of a plane through its centroid, of random normal
+  (less overlap);
+- ``scattered``: each cloud gets ``--scattered`` (default 0.1) times its points more, uniform in its bounding box
+  (flying pixels, spurious returns).
+
+Success: the data README's thresholds for the pair's sensor. The points are real; the alterations are made up, to
+find where the defaults break before a user's scans do.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from bench.real_scans import data_dir, turned
+from bench.variant_runs import registered, report
+from service.kdtree import KDTree
+
+ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered")
+CROP_KEEP = 0.6  # share of the source's points that the crop keeps
+
+
+def point_spacing(points: np.ndarray, samples: int = 2000) -> float:
+    """The median distance from up to ``samples`` evenly spaced points of ``points [N, 3]`` to their nearest other."""
+    probe = points[:: max(1, len(points) // samples)]
+    return float(np.median(KDTree(points).query(probe, k=2)[0][:, 1]))
+
+
+def altered(kind: str, source: np.ndarray, target: np.ndarray, rng: np.random.Generator,
+            scattered: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """``source [N, 3]`` and ``target [M, 3]`` altered by ``kind`` (one of ``ALTERATIONS``), float32; the points keep
+    their frames, so the pair's ground truth holds."""
+    if kind.startswith("sparse"):
+        keep = int(kind.removeprefix("sparse")) / 100
+        return source[rng.random(len(source)) < keep], target[rng.random(len(target)) < keep]
+    if kind == "noise":
+        return tuple(  # type: ignore[return-value]
+            (c + rng.normal(0.0, point_spacing(c), c.shape)).astype(np.float32) for c in (source, target))
+    if kind == "crop":
+        normal = rng.normal(size=3)
+        side = (source - source.mean(axis=0)) @ (normal / np.linalg.norm(normal))  # [N]
+        return source[side < np.quantile(side, CROP_KEEP)], target
+    if kind == "scattered":
+        def with_scattered(c: np.ndarray) -> np.ndarray:
+            extra = rng.uniform(c.min(axis=0), c.max(axis=0), size=(int(len(c) * scattered), 3))
+            return np.concatenate([c, extra]).astype(np.float32)
+        return with_scattered(source), with_scattered(target)
+    raise ValueError(f"unknown alteration {kind!r}; one of {', '.join(ALTERATIONS)}")
+
+
+def cases(directory: Path, kind: str, scattered: float = 0.1, names: list[str] | None = None
+          ) -> Iterator[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]]:
+    """``(label, sensor, source, target, src_to_tgt)`` of every pair altered by ``kind``, as altered and turned."""
+    for file in sorted(directory.glob("*.npz")):
+        if names and file.stem not in names:
+            continue
+        rng = np.random.default_rng([ALTERATIONS.index(kind), sum(map(ord, file.stem))])
+        with np.load(file) as data:
+            source, target = data["source"].astype(np.float32), data["target"].astype(np.float32)
+            truth, sensor = data["transform"].astype(np.float64), str(data["sensor"])
+        source, target = altered(kind, source, target, rng, scattered)
+        yield f"{kind}/{file.stem}/scanned", sensor, source, target, truth
+        src_t, truth_t = turned(source, truth, Rotation.random(random_state=rng).as_matrix())
+        yield f"{kind}/{file.stem}/turned", sensor, src_t, target, truth_t
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dir", nargs="?", help="real-scan set (default: $MFGNET_REAL_DATA or ../shared/data/real)")
+    parser.add_argument("--alterations", nargs="+", choices=ALTERATIONS, default=list(ALTERATIONS))
+    parser.add_argument("--scattered", type=float, default=0.1, help="scattered points per point (`scattered`)")
+    parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems)")
+    parser.add_argument("--no-fpfh", action="store_true", help="the service only")
+    parser.add_argument("--json", type=Path, help="write every row here")
+    args = parser.parse_args(argv)
+    groups = {kind: registered(cases(data_dir(args.dir), kind, args.scattered, args.pairs), fpfh=not args.no_fpfh)
+              for kind in args.alterations}
+    return report("altered_scans", groups, args.json)
+
+
+if __name__ == "__main__":
+    main()

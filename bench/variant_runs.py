@@ -1,0 +1,66 @@
+"""In-process runs of made-up variants of real pairs: the service's defaults beside FPFH + RANSAC + ICP.
+
+Shared by :mod:`bench.lidar_variants` and :mod:`bench.altered_scans`: each case is registered by the bundled
+``general`` model with the service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``) and, unless left
+out, by :func:`bench.real_scans.fpfh_ransac_icp`; success by the data README's thresholds for the case's sensor.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+
+from bench.real_scans import fpfh_ransac_icp, pose_errors, thresholds
+from service.manifest import bundled_models_dir
+from service.registrar import Registrar
+
+
+def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]], fpfh: bool = True) -> list[dict]:
+    """One row per ``(label, sensor, source [N, 3], target [M, 3], src_to_tgt [4, 4])`` case (printed as it comes):
+    errors, success, ``reliable`` and seconds of the service, and FPFH + RANSAC + ICP's success and seconds."""
+    registrar = Registrar(bundled_models_dir() / "general")
+    rows = []
+    for label, sensor, src, tgt, truth in cases:
+        max_deg, max_error = thresholds(sensor)
+        started = time.perf_counter()
+        result = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto")
+        seconds = time.perf_counter() - started
+        degrees, error = pose_errors(result.rotation, result.translation, truth)
+        row = {"variant": label, "service_success": bool(degrees < max_deg and error < max_error),
+               "reliable": bool(result.reliable), "rotation_error_deg": round(degrees, 3),
+               "translation_error": float(f"{error:.4g}"), "service_seconds": round(seconds, 4)}
+        if fpfh:
+            started = time.perf_counter()
+            R, t = fpfh_ransac_icp(src, tgt)
+            row["fpfh_seconds"] = round(time.perf_counter() - started, 4)
+            row["fpfh_success"] = bool(np.less(pose_errors(R, t, truth), (max_deg, max_error)).all())
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    return rows
+
+
+def totals(rows: list[dict]) -> dict:
+    """Cases, successes, ``reliable`` given and wrong, and seconds of ``rows`` (FPFH + RANSAC + ICP's where run)."""
+    out = {"cases": len(rows), "service_successes": sum(r["service_success"] for r in rows),
+           "reliable_given": sum(r["reliable"] for r in rows),
+           "reliable_wrong": sum(r["reliable"] and not r["service_success"] for r in rows),
+           "service_seconds": round(sum(r["service_seconds"] for r in rows), 2)}
+    if rows and "fpfh_success" in rows[0]:
+        out |= {"fpfh_successes": sum(r["fpfh_success"] for r in rows),
+                "fpfh_seconds": round(sum(r["fpfh_seconds"] for r in rows), 2)}
+    return out
+
+
+def report(benchmark: str, groups: dict[str, list[dict]], json_path: Path | None) -> dict:
+    """The totals of each group of rows (printed), written with every row to ``json_path`` when given."""
+    summary = {name: totals(rows) for name, rows in groups.items()}
+    for name, figures in summary.items():
+        print(name, json.dumps(figures))
+    result = {"benchmark": benchmark, "totals": summary, "rows": [r for rows in groups.values() for r in rows]}
+    if json_path:
+        json_path.write_text(json.dumps(result, indent=1))
+    return result
