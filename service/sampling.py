@@ -102,7 +102,7 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -
     :func:`resample_indices` for large ``size`` (the refinement's clouds, ``refine_points``).
 
     Every point when ``N <= size``; else one point per occupied voxel of a grid sized for about ``size`` of
-    them (:func:`_voxel_representatives`), and where that gives more than ``size``, those whose coordinates
+    them (:func:`_voxel_grid`), and where that gives more than ``size``, those whose coordinates
     hash lowest (:func:`coordinate_hash`) -- no farthest-point sampling, whose cost grows with ``size`` times
     the candidates (8192 of 200,000 points: 0.8 s). Order-independent like :func:`resample_indices`;
     ``drop_isolated`` as there.
@@ -111,7 +111,7 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -
     n = points.shape[0]
     if n <= size:
         return resample_indices(points, size, drop_isolated)
-    candidates, occupancy = _voxel_representatives(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
+    candidates, occupancy, _ = _voxel_grid(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
     if drop_isolated:
         candidates = candidates[~sparse_voxels(occupancy)]
         candidates = candidates[~isolated_points(points[candidates])]
@@ -249,13 +249,6 @@ def _farthest_point_sampling(points: np.ndarray, size: int) -> np.ndarray:
         min_dist2[i] = -1.0
         i = int(np.argmax(min_dist2))
     return picks
-
-
-def _voxel_representatives(points: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of one point per occupied voxel, ~``VOXEL_TARGET * size`` of them, and each one's voxel count
-    (:func:`_voxel_grid`)."""
-    candidates, occupancy, _ = _voxel_grid(points, size)
-    return candidates, occupancy
 
 
 def _voxel_grid(points: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
