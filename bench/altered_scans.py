@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.real_scans import data_dir, turned
-from bench.variant_runs import registered, report
+from bench.variant_runs import general_registrar, registered, report
 from service.kdtree import KDTree
 
 ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered")
@@ -47,8 +47,9 @@ def altered(kind: str, source: np.ndarray, target: np.ndarray, rng: np.random.Ge
         keep = int(kind.removeprefix("sparse")) / 100
         return source[rng.random(len(source)) < keep], target[rng.random(len(target)) < keep]
     if kind == "noise":
-        return tuple(  # type: ignore[return-value]
-            (c + rng.normal(0.0, point_spacing(c), c.shape)).astype(np.float32) for c in (source, target))
+        def noisy(c: np.ndarray) -> np.ndarray:
+            return (c + rng.normal(0.0, point_spacing(c), c.shape)).astype(np.float32)
+        return noisy(source), noisy(target)
     if kind == "crop":
         normal = rng.normal(size=3)
         side = (source - source.mean(axis=0)) @ (normal / np.linalg.norm(normal))  # [N]
@@ -86,7 +87,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
-    groups = {kind: registered(cases(data_dir(args.dir), kind, args.scattered, args.pairs), fpfh=not args.no_fpfh)
+    registrar = general_registrar()
+    groups = {kind: registered(cases(data_dir(args.dir), kind, args.scattered, args.pairs), not args.no_fpfh, registrar)
               for kind in args.alterations}
     return report("altered_scans", groups, args.json)
 

@@ -19,10 +19,17 @@ from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 
 
-def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]], fpfh: bool = True) -> list[dict]:
+def general_registrar() -> Registrar:
+    """The bundled ``general`` model's registrar."""
+    return Registrar(bundled_models_dir() / "general")
+
+
+def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]], fpfh: bool = True,
+               registrar: Registrar | None = None) -> list[dict]:
     """One row per ``(label, sensor, source [N, 3], target [M, 3], src_to_tgt [4, 4])`` case (printed as it comes):
-    errors, success, ``reliable`` and seconds of the service, and FPFH + RANSAC + ICP's success and seconds."""
-    registrar = Registrar(bundled_models_dir() / "general")
+    errors, success, ``reliable`` and seconds of the service (``registrar``, default :func:`general_registrar`), and
+    FPFH + RANSAC + ICP's success and seconds."""
+    registrar = general_registrar() if registrar is None else registrar
     rows = []
     for label, sensor, src, tgt, truth in cases:
         max_deg, max_error = thresholds(sensor)
