@@ -30,6 +30,8 @@ NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier 
 # where they overlap, a wrong one pulled onto it often crosses its surface
 # (docs/decisions/0013-reliable-needs-a-tight-fit.md).
 RELIABLE_NEAR_SHARE = 0.72
+# ... and where the attainable ratio is that of the target's surface (attainable_on_surface), this much of it
+RELIABLE_NEAR_SHARE_ON_SURFACE = 0.70
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
 IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
 
@@ -140,13 +142,32 @@ def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTre
     return float(np.mean(nearest_other <= inlier_distance))
 
 
+def attainable_on_surface(surface: np.ndarray, tgt: np.ndarray, inlier_distance: float,
+                          tree: KDTree | None = None) -> float:
+    """Share of the points of ``surface (P, 3)`` -- denser samples of the surface that ``tgt (M, 3)`` samples, e.g.
+    the caller's whole target -- that lie within ``inlier_distance`` of a point of ``tgt``, points of ``tgt`` itself
+    (distance 0) left out; 1.0 when none is left. ``tree``: ``KDTree(tgt)`` when the caller has it.
+
+    The inlier ratio a right pose reaches where the clouds overlap: a source point of the overlap lies on the target's
+    surface, as these points do. Unlike :func:`attainable_inlier_ratio` it holds where ``tgt``'s points lie farther
+    apart than ``inlier_distance`` (a target far larger than the source, which sets the distance): a point on the
+    surface then still lies within it of a sample, while no sample has another that near.
+    """
+    tree = KDTree(tgt) if tree is None else tree
+    dist = tree.query(np.asarray(surface, dtype=np.float64), k=1)[0]  # [P]
+    off_samples = dist[dist > 0]
+    return float(np.mean(off_samples <= inlier_distance)) if len(off_samples) else 1.0
+
+
 def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
-           tree: KDTree | None = None) -> Quality:
+           tree: KDTree | None = None, attainable: float | None = None) -> Quality:
     """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
 
     A moved source point ``R p + t`` is an inlier when its nearest target point is at most
     ``inlier_distance`` away (caller's units).  Warnings name the cloud (``"source ..."``,
     ``"target ..."``) and flag a low inlier ratio. ``tree``: ``KDTree(tgt)`` when the caller has it.
+    ``attainable``: the inlier ratio a right pose reaches (:func:`attainable_on_surface`) where the caller knows
+    it, else :func:`attainable_inlier_ratio` of ``tgt``.
     """
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
@@ -161,15 +182,19 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     warnings = [f"source {w}" for w in src_warnings] + [f"target {w}" for w in tgt_warnings]
     degenerate = any(w.startswith(_DEGENERATE) for w in src_warnings + tgt_warnings)
 
-    inlier_ratio, residual_rms, attainable, near_share = 0.0, 0.0, 1.0, 0.0
+    inlier_ratio, residual_rms, near_share = 0.0, 0.0, 0.0
+    near_factor = RELIABLE_NEAR_SHARE if attainable is None else RELIABLE_NEAR_SHARE_ON_SURFACE
+    allows = "the target's density allows" if attainable is None else "a right pose reaches on the target's surface"
     if src.shape[0] and tgt.shape[0]:
         tree = KDTree(tgt) if tree is None else tree
         src_in_tgt = src @ R.T + t  # [N, 3]
         dist, _ = tree.query(src_in_tgt, k=1)  # [N]
         ratio, rms = inlier_statistics(dist, inlier_distance)
         inlier_ratio, residual_rms = float(ratio), float(rms)
-        attainable = attainable_inlier_ratio(tgt, inlier_distance, tree)
+        if attainable is None:
+            attainable = attainable_inlier_ratio(tgt, inlier_distance, tree)
         near_share = share_on_surface(dist, inlier_distance)
+    attainable = 1.0 if attainable is None else attainable  # empty clouds: degenerate, never reliable
     if inlier_ratio < RELIABLE_INLIER_RATIO:
         sparse = attainable < RELIABLE_INLIER_RATIO / RELIABLE_RELATIVE_RATIO  # even a right pose keeps little
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (
@@ -177,11 +202,11 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
             "pose may not reach it)" if sparse else ""))
     elif inlier_ratio < RELIABLE_RELATIVE_RATIO * attainable:
         warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {RELIABLE_RELATIVE_RATIO} of the "
-                        f"{attainable:.2f} the target's density allows")
-    elif near_share < RELIABLE_NEAR_SHARE * attainable:
+                        f"{attainable:.2f} {allows}")
+    elif near_share < near_factor * attainable:
         warnings.append(f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
-                        f"target only {near_share:.2f} lie within one, < {RELIABLE_NEAR_SHARE} of the {attainable:.2f} "
-                        "the target's density allows; a right pose lies on the target where they overlap")
+                        f"target only {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
+                        f"{allows}; a right pose lies on the target where they overlap")
     reliable = (not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, RELIABLE_RELATIVE_RATIO * attainable)
-                and near_share >= RELIABLE_NEAR_SHARE * attainable)
+                and near_share >= near_factor * attainable)
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

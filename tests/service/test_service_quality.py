@@ -9,9 +9,11 @@ from scipy.spatial.transform import Rotation
 from service.quality import (
     RELIABLE_INLIER_RATIO,
     RELIABLE_NEAR_SHARE,
+    RELIABLE_NEAR_SHARE_ON_SURFACE,
     RELIABLE_RELATIVE_RATIO,
     assess,
     attainable_inlier_ratio,
+    attainable_on_surface,
     degeneracy_warnings,
     near_surface_share,
 )
@@ -136,6 +138,37 @@ def test_a_target_too_sparse_for_the_inlier_distance_falls_back_to_the_fixed_rat
     src[35:] += 1000.0
     quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
     assert quality.reliable and not any(w.startswith(("poor fit", "low overlap")) for w in quality.warnings)
+
+
+def plane_grid(spacing: float, side: int) -> np.ndarray:
+    """``[side * side, 3]`` points of the plane z = 0 on a square grid of ``spacing``."""
+    u, v = np.meshgrid(np.arange(side) * spacing, np.arange(side) * spacing)
+    return np.stack([u.ravel(), v.ravel(), np.zeros(u.size)], axis=1)
+
+
+def test_on_a_target_sampled_coarser_than_the_inlier_distance_its_surface_still_lies_near_a_sample() -> None:
+    samples = plane_grid(1.0, 20)  # [400, 3]: no sample has another within 0.65
+    surface = np.random.default_rng(0).uniform([0.0, 0.0, 0.0], [19.0, 19.0, 0.0], size=(4000, 3))  # the same plane
+    assert attainable_inlier_ratio(samples, 0.65) == 0.0
+    # a point of a unit square lies within 0.65 of one of its corners unless near the centre (0.71 from each)
+    assert 0.95 < attainable_on_surface(surface, samples, 0.65) < 1.0
+    assert attainable_on_surface(surface, samples, 0.3) == pytest.approx(np.pi * 0.3**2, abs=0.03)  # quarter discs
+    assert attainable_on_surface(samples, samples, 0.8) == 1.0  # the samples themselves are left out: none is left
+
+
+def test_a_poor_fit_is_judged_against_the_attainable_ratio_the_caller_gives() -> None:
+    """A source point on the target's surface lies within the inlier distance of a sample, though no sample has
+    another that near: judged by the samples' density (0) only the fixed 0.3 counts; by the surface's, half."""
+    assert RELIABLE_NEAR_SHARE_ON_SURFACE == 0.70
+    tgt = plane_grid(1.0, 20)
+    src = plane_grid(1.0, 20) + np.array([0.3, 0.3, 0.0])  # the target's samples moved 0.42: every one an inlier at 0.8
+    src[160:] += np.array([0.0, 0.0, 100.0])  # 40% of the source near the target, the rest far away
+    by_density = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8)
+    assert by_density.inlier_ratio == pytest.approx(0.4) and by_density.reliable
+    on_surface = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8, attainable=0.97)
+    assert not on_surface.reliable
+    assert "poor fit: inlier ratio 0.40 < 0.5 of the 0.97 a right pose reaches on the target's surface" in (
+        on_surface.warnings)
 
 
 def test_low_overlap_on_a_sparse_target_says_that_the_target_is_sparse() -> None:
