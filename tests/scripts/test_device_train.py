@@ -1,4 +1,4 @@
-"""``scripts/device_train_general.py``: the seeded data subset and the two time-limited phases (on CPU)."""
+"""``scripts/device_train.py``: the seeded data subset and the two time-limited phases (on CPU)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from model.config import MFGNetConfig
 from model.network import MFGNet
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "scripts" / "device_train_general.py"
+SCRIPT = ROOT / "scripts" / "device_train.py"
 
 
 def script(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
@@ -47,3 +47,17 @@ def test_subset_and_both_phases_leave_the_files_that_come_back(tmp_path) -> None
     assert (out / "b" / "last.pt").exists() and not (out / "b" / "config.json").exists()
     files = [p for p in out.rglob("*") if p.is_file()]
     assert len(files) <= 8  # what a device run can bring back
+
+
+def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
+    data = tmp_path / "data"
+    data.mkdir()
+    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(48, seed=3).astype(np.float16),
+             labels=np.arange(48) % 40)
+    out = tmp_path / "out"
+    run = script("run", "--data", str(data), "--recipe", "real", "--config", '{"emb_dims": 16, "encoder_blocks": 2}',
+                 "--lr-a", "1e-3", "--minutes-a", "0.01", "--minutes-b", "0.01", "--device", "cpu", "--batch-size", "2",
+                 env={"OUT": str(out)})
+    assert "all done" in run.stdout
+    last = torch.load(out / "b" / "last.pt", map_location="cpu", weights_only=False)  # best.pt after a validation
+    assert last["config"]["emb_dims"] == 16 and last["config"]["encoder_blocks"] == 2

@@ -1,24 +1,29 @@
-"""Continue the ``general`` model on a lent GPU machine: lr 1e-4 for A minutes, then 1e-5 for B minutes.
+"""Train on a lent GPU machine: lr ``--lr-a`` (1e-4) for A minutes, then ``--lr-b`` (1e-5) for B minutes.
 
-How the 2026-11-26 runs (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCURACY.md) were made:
+The ``general`` runs of 2026-11-26 (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCURACY.md) were made so,
+with this script's first name ``device_train_general.py``:
 
-1. here: ``python scripts/device_train_general.py subset --out /tmp/gpu_data`` writes 7,000 of the
-   9,843 training shapes (seeded), small enough to travel with the working tree (64 MiB limit);
-2. there (``$OUT`` is the folder that comes back): ``python3 scripts/device_train_general.py run
-   --data .gpu/data --init runs/general/last.pt --minutes-a 6 --minutes-b 1.5`` (run 2: ``--init``
-   run 1's last weights, ``--minutes-a 3.5 --minutes-b 1.2``; ``--views-share 0.3`` cuts that share of the
-   batches as camera views, ``model.recipes``). The two runs used a first draft of this
-   script with the same options and phases, taking them as positional arguments.
+1. here: ``python scripts/device_train.py subset --out /tmp/gpu_data`` writes 7,000 of the 9,843 training shapes
+   (seeded), small enough to travel with the working tree (64 MiB limit);
+2. there (``$OUT`` is the folder that comes back): ``python3 scripts/device_train.py run --data .gpu/data --init
+   runs/general/last.pt --minutes-a 6 --minutes-b 1.5`` (run 2: ``--init`` run 1's last weights, ``--minutes-a 3.5
+   --minutes-b 1.2``; ``--views-share 0.3`` cuts that share of the batches as camera views, ``model.recipes``).
+
+A model for real scans (issue 28): ``--recipe real`` (any orientation, simulated sensor pairs, checkpoints chosen on
+sensor pairs: ``model.recipes``, ``model.sensor_pairs``), fine-tuning ``--init model/checkpoints/general.pt``; or a
+cheaper network from scratch, ``--config '{"emb_dims": 32, "encoder_blocks": 3}'`` (``model.config.MFGNetConfig``
+overrides) without ``--init``, with a larger ``--lr-a``.
 
 Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's last weights)
-``$OUT/b/{best.pt, last.pt, log.jsonl}``; both validate every 100 batches on the ``resampled``
-setting at 60 degrees, so their ``best.pt`` are comparable. If a phase fails with the prefetching
-worker it is retried once without it.
+``$OUT/b/{best.pt, last.pt, log.jsonl}``; both validate every 100 batches (the ``general`` recipe on the
+``resampled`` setting at ``--max-angle``, default 60 degrees; ``real`` on sensor pairs over its rotations), so their
+``best.pt`` are comparable. If a phase fails with the prefetching worker it is retried once without it.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import time
@@ -48,10 +53,11 @@ def run_phases(args: argparse.Namespace) -> None:
 
     out = Path(os.environ.get("OUT", "/tmp/out"))
     print("torch", torch.__version__, "cuda", torch.cuda.is_available(), flush=True)
-    common = dict(setting="resampled", recipe="general", max_angle=60.0, epochs=100_000, lr_drop_at=1.0,
+    max_angle = args.max_angle if args.max_angle is not None else (60.0 if args.recipe == "general" else None)
+    common = dict(setting="resampled", recipe=args.recipe, max_angle=max_angle, epochs=100_000, lr_drop_at=1.0,
                   batch_size=args.batch_size, max_batches_per_epoch=100, val_pairs=256, checkpoint_minutes=1.0,
                   patience=100_000, device=args.device, data=args.data, views_share=args.views_share,
-                  workers=args.workers)
+                  sensor_share=args.sensor_share, workers=args.workers, config=json.loads(args.config))
 
     def phase(opts: TrainOptions) -> None:
         try:
@@ -64,13 +70,13 @@ def run_phases(args: argparse.Namespace) -> None:
             train(opts)
 
     begin = time.time()
-    phase(TrainOptions(out=str(out / "a"), init=args.init, lr=1e-4, max_minutes=args.minutes_a, **common))
+    phase(TrainOptions(out=str(out / "a"), init=args.init, lr=args.lr_a, max_minutes=args.minutes_a, **common))
     print(f"phase a done after {(time.time() - begin) / 60:.2f} min", flush=True)
     handover = Path("/tmp/phase_a_last.pt")
     shutil.copy(out / "a" / "last.pt", handover)
     for name in ("last.pt", "config.json"):  # at most 8 files come back from the machine
         (out / "a" / name).unlink()
-    phase(TrainOptions(out=str(out / "b"), init=str(handover), lr=1e-5, max_minutes=args.minutes_b, **common))
+    phase(TrainOptions(out=str(out / "b"), init=str(handover), lr=args.lr_b, max_minutes=args.minutes_b, **common))
     (out / "b" / "config.json").unlink()
     print(f"all done after {(time.time() - begin) / 60:.2f} min", flush=True)
 
@@ -84,7 +90,13 @@ def main() -> None:
     subset.add_argument("--seed", type=int, default=0)
     run = sub.add_parser("run", help="train phase A then phase B")
     run.add_argument("--data", required=True, help="folder holding modelnet40_train.npz")
-    run.add_argument("--init", required=True, help="initial weights")
+    run.add_argument("--init", help="initial weights (default: a new network of --config)")
+    run.add_argument("--recipe", choices=("general", "real"), default="general")
+    run.add_argument("--config", default="{}", help="MFGNetConfig overrides as JSON (a new network's shape)")
+    run.add_argument("--max-angle", type=float, help="rotation range (default: 60 for general, real's own 180)")
+    run.add_argument("--sensor-share", type=float, help="with --recipe real: share of simulated sensor batches")
+    run.add_argument("--lr-a", type=float, default=1e-4)
+    run.add_argument("--lr-b", type=float, default=1e-5)
     run.add_argument("--minutes-a", type=float, required=True)
     run.add_argument("--minutes-b", type=float, required=True)
     run.add_argument("--device", default="auto")
