@@ -3,11 +3,13 @@
 ``reliable`` is a deliberately simple rule: neither cloud is degenerate (all points identical or
 on one line — a rotation about that line cannot be observed) and the share of moved source points with a
 target point within ``inlier_distance`` reaches both ``RELIABLE_INLIER_RATIO`` and
-``RELIABLE_RELATIVE_RATIO`` of what the target's own density allows (:func:`attainable_inlier_ratio`): a
-wrong pose that ICP has pulled onto the target's surface often still keeps a third of the points near it,
-but less often half of what a right pose reaches (``docs/RELIABILITY.md``, "What `reliable` means"); and of the
-moved source points near the target, the share on it (:func:`near_surface_share`) reaches ``RELIABLE_NEAR_SHARE``
-of that ratio: a right pose lies on the target where the clouds overlap. Coplanar clouds only earn a warning:
+``RELIABLE_RELATIVE_RATIO`` of what a right pose reaches -- the caller's :func:`attainable_on_surface` where it
+has denser points of the target's surface, else what the target's own density allows
+(:func:`attainable_inlier_ratio`): a wrong pose that ICP has pulled onto the target's surface often still keeps a
+third of the points near it, but less often half of what a right pose reaches (``docs/RELIABILITY.md``, "What
+`reliable` means"); and of the moved source points near the target, the share on it (:func:`near_surface_share`)
+reaches ``RELIABLE_NEAR_SHARE_ON_SURFACE`` / ``RELIABLE_NEAR_SHARE`` of that ratio: a right pose lies on the target
+where the clouds overlap. Coplanar clouds only earn a warning:
 their pose is usually determined, but it can be ambiguous (sliding within the plane, symmetric outlines).
 """
 
