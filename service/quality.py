@@ -1,16 +1,16 @@
 """How far a registration result can be trusted: overlap, residual and degenerate geometry.
 
-``reliable`` is a deliberately simple rule: neither cloud is degenerate (all points identical or
-on one line — a rotation about that line cannot be observed) and the share of moved source points with a
-target point within ``inlier_distance`` reaches both ``RELIABLE_INLIER_RATIO`` and
-``RELIABLE_RELATIVE_RATIO`` of what a right pose reaches -- the caller's :func:`attainable_on_surface` where it
-has denser points of the target's surface, else what the target's own density allows
-(:func:`attainable_inlier_ratio`): a wrong pose that ICP has pulled onto the target's surface often still keeps a
-third of the points near it, but less often half of what a right pose reaches (``docs/RELIABILITY.md``, "What
-`reliable` means"); and of the moved source points near the target, the share on it (:func:`near_surface_share`)
-reaches ``RELIABLE_NEAR_SHARE_ON_SURFACE`` / ``RELIABLE_NEAR_SHARE`` of that ratio: a right pose lies on the target
-where the clouds overlap. Coplanar clouds only earn a warning:
-their pose is usually determined, but it can be ambiguous (sliding within the plane, symmetric outlines).
+``reliable`` is a deliberately simple rule: neither cloud is degenerate (all points identical or on one line -- a
+rotation about that line cannot be observed) and the share of moved source points with a target point within
+``inlier_distance`` reaches both ``RELIABLE_INLIER_RATIO`` and a share of what a right pose reaches: of the
+caller's :func:`attainable_on_surface` where it has denser points of the target's surface
+(``RELIABLE_RELATIVE_RATIO_ON_SURFACE``), else of what the target's own density allows
+(:func:`attainable_inlier_ratio`, ``RELIABLE_RELATIVE_RATIO``). A wrong pose that ICP has pulled onto the target's
+surface often still keeps a third of the points near it, but less often half of what a right pose reaches
+(``docs/RELIABILITY.md``, "What `reliable` means"). And of the moved source points near the target, the share on it
+(:func:`near_surface_share`) reaches ``RELIABLE_NEAR_SHARE_ON_SURFACE`` / ``RELIABLE_NEAR_SHARE`` of that ratio: a
+right pose lies on the target where the clouds overlap. Coplanar clouds only earn a warning: their pose is usually
+determined, but it can be ambiguous (sliding within the plane, symmetric outlines).
 """
 
 from __future__ import annotations
@@ -26,6 +26,9 @@ RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial
 # the tight-fit condition below, which tells wrong poses apart better; right poses of real scans that overlap by
 # half no longer fall below it (docs/decisions/0013-reliable-needs-a-tight-fit.md).
 RELIABLE_RELATIVE_RATIO = 0.5
+# ... or where the attainable ratio is that of the target's surface (attainable_on_surface), this much of it: range
+# images 48 deg apart overlap by about half (docs/decisions/0026-reliable-at-045-of-the-surface-ratio.md)
+RELIABLE_RELATIVE_RATIO_ON_SURFACE = 0.45
 NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier distances count as near the target
 # ... and of the moved source points near the target (within NEAR_SURFACE_FACTOR inlier distances), a share within
 # one (near_surface_share) of at least this much of the attainable inlier ratio: a right pose lies on the target
@@ -186,6 +189,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
 
     inlier_ratio, residual_rms, near_share = 0.0, 0.0, 0.0
     near_factor = RELIABLE_NEAR_SHARE if attainable is None else RELIABLE_NEAR_SHARE_ON_SURFACE
+    relative = RELIABLE_RELATIVE_RATIO if attainable is None else RELIABLE_RELATIVE_RATIO_ON_SURFACE
     allows = "the target's density allows" if attainable is None else "a right pose reaches on the target's surface"
     if src.shape[0] and tgt.shape[0]:
         tree = KDTree(tgt) if tree is None else tree
@@ -202,13 +206,13 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (
             f" (the target is sparse for the inlier distance: its density allows {attainable:.2f}, so even a right "
             "pose may not reach it)" if sparse else ""))
-    elif inlier_ratio < RELIABLE_RELATIVE_RATIO * attainable:
-        warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {RELIABLE_RELATIVE_RATIO} of the "
+    elif inlier_ratio < relative * attainable:
+        warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {relative} of the "
                         f"{attainable:.2f} {allows}")
     elif near_share < near_factor * attainable:
         warnings.append(f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
                         f"target only {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
                         f"{allows}; a right pose lies on the target where they overlap")
-    reliable = (not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, RELIABLE_RELATIVE_RATIO * attainable)
+    reliable = (not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, relative * attainable)
                 and near_share >= near_factor * attainable)
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

@@ -11,6 +11,7 @@ from service.quality import (
     RELIABLE_NEAR_SHARE,
     RELIABLE_NEAR_SHARE_ON_SURFACE,
     RELIABLE_RELATIVE_RATIO,
+    RELIABLE_RELATIVE_RATIO_ON_SURFACE,
     assess,
     attainable_inlier_ratio,
     attainable_on_surface,
@@ -158,7 +159,7 @@ def test_on_a_target_sampled_coarser_than_the_inlier_distance_its_surface_still_
 
 def test_a_poor_fit_is_judged_against_the_attainable_ratio_the_caller_gives() -> None:
     """A source point on the target's surface lies within the inlier distance of a sample, though no sample has
-    another that near: judged by the samples' density (0) only the fixed 0.3 counts; by the surface's, half."""
+    another that near: judged by the samples' density (0) only the fixed 0.3 counts; by the surface's, 0.45 of it."""
     assert RELIABLE_NEAR_SHARE_ON_SURFACE == 0.70
     tgt = plane_grid(1.0, 20)
     src = plane_grid(1.0, 20) + np.array([0.3, 0.3, 0.0])  # the target's samples moved 0.42: every one an inlier at 0.8
@@ -167,8 +168,19 @@ def test_a_poor_fit_is_judged_against_the_attainable_ratio_the_caller_gives() ->
     assert by_density.inlier_ratio == pytest.approx(0.4) and by_density.reliable
     on_surface = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8, attainable=0.97)
     assert not on_surface.reliable
-    assert "poor fit: inlier ratio 0.40 < 0.5 of the 0.97 a right pose reaches on the target's surface" in (
+    assert "poor fit: inlier ratio 0.40 < 0.45 of the 0.97 a right pose reaches on the target's surface" in (
         on_surface.warnings)
+
+
+@pytest.mark.parametrize(("inliers", "reliable"), [(45, True), (44, False)])
+def test_against_the_surface_half_overlapping_poses_need_045_of_its_ratio(inliers: int, reliable: bool) -> None:
+    assert RELIABLE_RELATIVE_RATIO_ON_SURFACE == 0.45
+    tgt = plane_grid(1.0, 10) + np.random.default_rng(0).normal(scale=1e-3, size=(100, 3))
+    src = tgt.copy()
+    src[inliers:] += np.array([0.0, 0.0, 100.0])  # the rest far away: the near points all lie on the target
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8, attainable=1.0)
+    assert quality.inlier_ratio == pytest.approx(inliers / 100) and quality.reliable is reliable
+    assert any(w.startswith("poor fit") for w in quality.warnings) is (not reliable)
 
 
 def test_low_overlap_on_a_sparse_target_says_that_the_target_is_sparse() -> None:
