@@ -6,6 +6,8 @@ seeded Haar rotation (in process, :mod:`bench.variant_runs`: the service's defau
 ``--no-fpfh`` to skip):
 
 - ``sparse30``, ``sparse10``: each cloud keeps a random 30% / 10% of its points (a sparser scanner);
+- ``source10``: the source keeps a random 10% of its points, the target all of them (a sparse scan against a dense
+  one, as a LiDAR frame against a map);
 - ``noise``: Gaussian noise of one point spacing (the cloud's median nearest-neighbour distance) per coordinate;
 - ``crop``: the source keeps the 60% of its points on one side of a plane through its centroid, of random normal
   (less overlap);
@@ -29,7 +31,7 @@ from bench.real_scans import data_dir, turned
 from bench.variant_runs import general_registrar, registered, report
 from service.kdtree import KDTree
 
-ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered")
+ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered", "source10")
 CROP_KEEP = 0.6  # share of the source's points that the crop keeps
 
 
@@ -46,6 +48,8 @@ def altered(kind: str, source: np.ndarray, target: np.ndarray, rng: np.random.Ge
     if kind.startswith("sparse"):
         keep = int(kind.removeprefix("sparse")) / 100
         return source[rng.random(len(source)) < keep], target[rng.random(len(target)) < keep]
+    if kind == "source10":
+        return source[rng.random(len(source)) < 0.1], target
     if kind == "noise":
         def noisy(c: np.ndarray) -> np.ndarray:
             return (c + rng.normal(0.0, point_spacing(c), c.shape)).astype(np.float32)
