@@ -155,10 +155,10 @@ class Quality(BaseModel):
     )
     reliable: bool = Field(
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
-        "0.3 or below 0.5 of what a right pose can reach at the target's sampling, a loose fit (source points near "
-        "the target but off its surface: a 'loose fit' warning), identical / collinear points, a weakly constrained "
-        "pose (stability below 0.01: a 'weakly constrained' warning), or another pose -- turned far from the returned "
-        "one, or placing the source elsewhere -- that fits almost as well (an 'ambiguous' warning). "
+        "0.3 or below 0.45-0.5 of what a right pose can reach at the target's sampling, a loose fit (source "
+        "points near the target but off its surface: a 'loose fit' warning), identical / collinear points, a weakly "
+        "constrained pose (stability below 0.01: a 'weakly constrained' warning), or another pose -- turned far from "
+        "the returned one, or placing the source elsewhere -- that fits almost as well (an 'ambiguous' warning). "
         "docs/RELIABILITY.md lists each condition."
     )
     stability: float | None = Field(
