@@ -11,6 +11,7 @@ seeded Haar rotation (in process, :mod:`bench.variant_runs`: the service's defau
 - ``noise``: Gaussian noise of one point spacing (the cloud's median nearest-neighbour distance) per coordinate;
 - ``crop``: the source keeps the 60% of its points on one side of a plane through its centroid, of random normal
   (less overlap);
+- ``croptarget``: the same cut of the target, the source whole (a scan larger than what it is registered to);
 - ``scattered``: each cloud gets ``--scattered`` (default 0.1) times its points more, uniform in its bounding box
   (flying pixels, spurious returns).
 
@@ -31,7 +32,7 @@ from bench.real_scans import data_dir, turned
 from bench.variant_runs import general_registrar, registered, report
 from service.kdtree import KDTree
 
-ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered", "source10")
+ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered", "source10", "croptarget")
 CROP_KEEP = 0.6  # share of the source's points that the crop keeps
 
 
@@ -54,10 +55,12 @@ def altered(kind: str, source: np.ndarray, target: np.ndarray, rng: np.random.Ge
         def noisy(c: np.ndarray) -> np.ndarray:
             return (c + rng.normal(0.0, point_spacing(c), c.shape)).astype(np.float32)
         return noisy(source), noisy(target)
-    if kind == "crop":
+    if kind in ("crop", "croptarget"):
+        cut = source if kind == "crop" else target
         normal = rng.normal(size=3)
-        side = (source - source.mean(axis=0)) @ (normal / np.linalg.norm(normal))  # [N]
-        return source[side < np.quantile(side, CROP_KEEP)], target
+        side = (cut - cut.mean(axis=0)) @ (normal / np.linalg.norm(normal))  # [N]
+        cut = cut[side < np.quantile(side, CROP_KEEP)]
+        return (cut, target) if kind == "crop" else (source, cut)
     if kind == "scattered":
         def with_scattered(c: np.ndarray) -> np.ndarray:
             extra = rng.uniform(c.min(axis=0), c.max(axis=0), size=(int(len(c) * scattered), 3))

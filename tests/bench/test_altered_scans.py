@@ -27,6 +27,8 @@ def test_each_alteration_does_what_it_says():
     assert 0 < np.abs(noisy_s - source).mean() < 0.1
     cropped, same = altered("crop", source, target, rng)
     assert abs(len(cropped) - CROP_KEEP * len(source)) <= 1 and same is target
+    whole, cut = altered("croptarget", source, target, rng)
+    assert abs(len(cut) - CROP_KEEP * len(target)) <= 1 and whole is source and np.isin(cut, target).all()
     sparse_source, whole = altered("source10", source, target, rng)
     assert 800 < len(sparse_source) < 1200 and np.isin(sparse_source, source).all() and whole is target
     more_s, more_t = altered("scattered", source, target, rng, scattered=0.2)
