@@ -8,7 +8,7 @@ import numpy as np
 
 from service.kdtree import KDTree
 from service.network_loop import NetworkOutput
-from service.quality import NEAR_SURFACE_FACTOR, assess, attainable_on_surface, near_surface_share
+from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
 from service.stability import pose_stability, weak_motion_warning
@@ -37,14 +37,12 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
             "where they overlap")
 
 
-def reliable_attainable(work: Working, tree: KDTree) -> float:
+def reliable_attainable(work: Working) -> float:
     """The inlier ratio a right pose reaches, as the ``reliable`` rule judges it: on a dense entered target
     (:func:`service.stages.ranking.samples_the_surface`), that of points on its surface
-    (:func:`service.quality.attainable_on_surface` of :attr:`Working.fine_target`; ``tree``: the working target's);
-    else what the working target's density allows (:attr:`Working.attainable_ratio`)."""
-    if not samples_the_surface(work):
-        return work.attainable_ratio
-    return attainable_on_surface(work.fine_target, work.tgt_w, work.inlier_distance, tree)
+    (:attr:`Working.surface_attainable_ratio`); else what the working target's density allows
+    (:attr:`Working.attainable_ratio`)."""
+    return work.surface_attainable_ratio if samples_the_surface(work) else work.attainable_ratio
 
 
 def iteration_poses(work: Working, candidate: SearchCandidate) -> list[IterationPose]:
@@ -75,7 +73,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     working = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
     tree = KDTree(tgt_w) if working is None else working.tree  # shared by the two checks below
     src = work.working_source  # [Ns, 3] caller's frame
-    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, reliable_attainable(work, tree))
+    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, reliable_attainable(work))
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
     weak = weak_motion_warning(stability)
     reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate

@@ -12,7 +12,7 @@ from service.kdtree import KDTree
 from service.normalization import Normalization
 from service.plane_frames import frame_rotations
 from service.procrustes import compose
-from service.quality import attainable_inlier_ratio
+from service.quality import attainable_inlier_ratio, attainable_on_surface
 from service.sampling import hashed_indices
 from service.stages.sample import Sampled
 
@@ -52,6 +52,13 @@ class Working(Sampled):
         """The inlier ratio a right pose can reach at the working target's density
         (:func:`service.quality.attainable_inlier_ratio`), computed once per registration."""
         return attainable_inlier_ratio(self.tgt_w, self.inlier_distance)
+
+    @cached_property
+    def surface_attainable_ratio(self) -> float:
+        """The inlier ratio a right pose reaches on the target's surface: :func:`service.quality.attainable_on_surface`
+        of :attr:`fine_target` against the working target, computed once per registration (the plain pass and the
+        search both assess a pose)."""
+        return attainable_on_surface(self.fine_target, self.tgt_w, self.inlier_distance)
 
     @cached_property
     def plane_frame_rotations(self) -> np.ndarray | None:
