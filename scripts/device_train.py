@@ -3,8 +3,9 @@
 The ``general`` runs of 2026-11-26 (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCURACY.md) were made so,
 with this script's first name ``device_train_general.py``:
 
-1. here: ``python scripts/device_train.py subset --out /tmp/gpu_data`` writes 7,000 of the 9,843 training shapes
-   (seeded), small enough to travel with the working tree (64 MiB limit);
+1. here: ``python scripts/device_train.py subset --out .gpu/data`` writes 7,000 of the 9,843 training shapes
+   (seeded), small enough to travel with the working tree (``.gpu/`` is ignored by git: name ``.gpu/data`` in the
+   device call's ``carry``, 64 MiB limit);
 2. there (``$OUT`` is the folder that comes back): ``python3 scripts/device_train.py run --data .gpu/data --init
    runs/general/last.pt --minutes-a 6 --minutes-b 1.5`` (run 2: ``--init`` run 1's last weights, ``--minutes-a 3.5
    --minutes-b 1.2``; ``--views-share 0.3`` cuts that share of the batches as camera views, ``model.recipes``).
