@@ -33,7 +33,7 @@ from bench.variant_runs import general_registrar, registered, report
 from service.kdtree import KDTree
 
 ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered", "source10", "croptarget")
-CROP_KEEP = 0.6  # share of the source's points that the crop keeps
+CROP_KEEP = 0.6  # share of the cut cloud's points that `crop` (the source) and `croptarget` (the target) keep
 
 
 def point_spacing(points: np.ndarray, samples: int = 2000) -> float:

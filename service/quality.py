@@ -147,19 +147,17 @@ def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTre
     return float(np.mean(nearest_other <= inlier_distance))
 
 
-def attainable_on_surface(surface: np.ndarray, tgt: np.ndarray, inlier_distance: float,
-                          tree: KDTree | None = None) -> float:
+def attainable_on_surface(surface: np.ndarray, tgt: np.ndarray, inlier_distance: float) -> float:
     """Share of the points of ``surface (P, 3)`` -- denser samples of the surface that ``tgt (M, 3)`` samples, e.g.
     the caller's whole target -- that lie within ``inlier_distance`` of a point of ``tgt``, points of ``tgt`` itself
-    (distance 0) left out; 1.0 when none is left. ``tree``: ``KDTree(tgt)`` when the caller has it.
+    (distance 0) left out; 1.0 when none is left.
 
     The inlier ratio a right pose reaches where the clouds overlap: a source point of the overlap lies on the target's
     surface, as these points do. Unlike :func:`attainable_inlier_ratio` it holds where ``tgt``'s points lie farther
     apart than ``inlier_distance`` (a target far larger than the source, which sets the distance): a point on the
     surface then still lies within it of a sample, while no sample has another that near.
     """
-    tree = KDTree(tgt) if tree is None else tree
-    dist = tree.query(np.asarray(surface, dtype=np.float64), k=1)[0]  # [P]
+    dist = KDTree(tgt).query(np.asarray(surface, dtype=np.float64), k=1)[0]  # [P]
     off_samples = dist[dist > 0]
     return float(np.mean(off_samples <= inlier_distance)) if len(off_samples) else 1.0
 
