@@ -87,8 +87,12 @@ def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> 
 
 def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0),
                names: list[str] | None = None, turns: int = 1) -> list[Case]:
-    """Every pair of ``directory`` as scanned and turned by ``turns`` seeded Haar-uniform rotations (variants
-    ``turned``, ``turned-2``, ...; the first is the same whatever ``turns`` is), per scale."""
+    """Every pair of ``directory`` (or only ``names``) as scanned and turned by ``turns`` seeded Haar-uniform rotations
+    (variants ``turned``, ``turned-2``, ...), per scale.
+
+    The rotations are drawn pair after pair from ``seed``: a pair's ``turned`` is the same whatever ``turns`` is, but
+    ``turned-2`` onwards depend on ``turns``, and every rotation on which pairs are loaded (``names``): compare cases
+    only between runs that loaded the same pairs with the same ``turns``."""
     files = sorted(directory.glob("*.npz"))
     if names:
         files = [f for f in files if f.stem in names]
@@ -308,7 +312,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--turns", type=int, default=1,
                         help="turned variants per pair (more: figures less tied to one rotation each)")
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
-    parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems)")
+    parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems; the rotations depend on which)")
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--options", type=json.loads, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
