@@ -39,7 +39,7 @@ from service.selection import top_k
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
 from service.stages.refine import CANDIDATE_ITERATIONS
-from service.stages.search import AUTO_SEARCH_RELATIVE_RATIO, needs_search
+from service.stages.search import AUTO_SEARCH_RELATIVE_RATIO, needs_search, retry_points
 from service.stages.validate import Request
 
 __all__ = [  # the names callers import from here, wherever they live now
@@ -293,22 +293,23 @@ class Registrar:
         mode = request.options.search
         result = self.solve(work, request, request.hypotheses if mode == "on" else None, timing)
         if mode == "auto":  # the search only when the plain result looks wrong
-            result = stages.auto_search(partial(self.solve, work, request), work, result, request.hypotheses, timing)
+            result = stages.auto_search(partial(self.solve, work, request), work, result, request.hypotheses, timing,
+                                        retry_points(self.manifest.search_subsample))
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
         result = anchors.result_to_caller(result)
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 
     def solve(self, work: Working, request: Request, hypotheses: np.ndarray | None,
-              timing: dict[str, float]) -> RegistrationResult:
-        """Network (plain, or the rotation search from ``hypotheses [H, 3, 3]``) -> refine -> slide check -> (after a
-        search) flip check -> assess on ``work``."""
+              timing: dict[str, float], points: int | None = None) -> RegistrationResult:
+        """Network (plain, or the rotation search from ``hypotheses [H, 3, 3]``, on ``points`` rows per cloud where
+        given) -> refine -> slide check -> (after a search) flip check -> assess on ``work``."""
         stages, o = self.stages, request.options
         if hypotheses is None:
             found = stages.network(self, work, request.iterations, request.keypoints, timing)
         else:
             found = stages.search(self, work, hypotheses, request.iterations, request.keypoints, o.refine_mode,
-                                  timing)
+                                  timing, points)
         started = time.perf_counter()
         refined = stages.refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], o)
         refined = stages.slide(work, refined, o)

@@ -8,7 +8,14 @@ import numpy as np
 
 from service.kdtree import KDTree
 from service.network_loop import NetworkOutput
-from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
+from service.quality import (
+    NEAR_SURFACE_FACTOR,
+    RELIABLE_INLIER_RATIO,
+    RELIABLE_RELATIVE_RATIO,
+    RELIABLE_RELATIVE_RATIO_ON_SURFACE,
+    assess,
+    near_surface_share,
+)
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
 from service.stability import pose_stability, weak_motion_warning
@@ -37,12 +44,21 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
             "where they overlap")
 
 
-def reliable_attainable(work: Working) -> float:
-    """The inlier ratio a right pose reaches, as the ``reliable`` rule judges it: on a dense entered target
-    (:func:`service.stages.ranking.samples_the_surface`), that of points on its surface
-    (:attr:`Working.surface_attainable_ratio`); else what the working target's density allows
-    (:attr:`Working.attainable_ratio`)."""
-    return work.surface_attainable_ratio if samples_the_surface(work) else work.attainable_ratio
+def reliable_attainable(work: Working) -> float | None:
+    """What the ``reliable`` rule judges the inlier ratio against: on a dense entered target
+    (:func:`service.stages.ranking.samples_the_surface`), the ratio a right pose reaches on its surface
+    (:attr:`Working.surface_attainable_ratio`), with :func:`service.quality.assess`'s on-surface factors; elsewhere
+    ``None``: ``assess`` then estimates it from the working target's density, with that estimate's factors."""
+    return work.surface_attainable_ratio if samples_the_surface(work) else None
+
+
+def poor_fit(work: Working, inlier_ratio: float) -> bool:
+    """Whether ``inlier_ratio`` falls in the ``reliable`` rule's "poor fit": at least ``RELIABLE_INLIER_RATIO`` but
+    below its share of what a right pose reaches (:func:`reliable_attainable`; :func:`service.quality.assess`)."""
+    surface = reliable_attainable(work)
+    reach = (RELIABLE_RELATIVE_RATIO * work.attainable_ratio if surface is None
+             else RELIABLE_RELATIVE_RATIO_ON_SURFACE * surface)
+    return RELIABLE_INLIER_RATIO <= inlier_ratio < reach
 
 
 def iteration_poses(work: Working, candidate: SearchCandidate) -> list[IterationPose]:

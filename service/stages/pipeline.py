@@ -29,10 +29,10 @@ class Stages:
     sample: Callable = sample  # (Request) -> Sampled
     normalise: Callable = normalise  # (Sampled, reference_radius) -> Working
     network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates
-    search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing) -> Candidates
+    search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing, points=None)
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
     slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined
     flip: Callable = flip  # (Working, Refined, RegistrationOptions) -> Refined; after a search only
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
-    auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing) -> RegistrationResult
+    auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing, retry_points) -> result
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult

@@ -23,7 +23,7 @@ from service.rotation_search import (
     search_hypotheses,
 )
 from service.sampling import evenly_spaced_indices
-from service.stages.assess import off_the_surface
+from service.stages.assess import off_the_surface, poor_fit
 from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working
 from service.stages.partial import looks_partial
@@ -41,23 +41,35 @@ if TYPE_CHECKING:
 # Only the relative rule decides: the former extra "or not reliable" searched 3 more of those 300 pairs
 # (targets too sparse to reach the reliable ratio at all) and made one worse.
 AUTO_SEARCH_RELATIVE_RATIO = 0.8
+# After the search of rotation_search="auto", a result that still fits poorly (its inlier ratio below what the
+# `reliable` rule asks, service.quality) is searched again on RETRY_SEARCH_POINTS rows per cloud, where the model
+# searches a subsample (service.rotation_search.SEARCH_POINTS) and the clouds are not rooms built of orthogonal
+# planes (their search starts from the plane frames): on 128 points the network from none of the 24 starts
+# reached the right basin of some turned range images that it reaches on more (docs/decisions/0028). A pose only the
+# second search finds is not `reliable`: 1 of the 13 it would have called so was wrong.
+RETRY_SEARCH_POINTS = 256
+RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable, "
+                 "check it")
 
 
 def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iterations: int, keypoints: int,
-           refine: str, timing: dict[str, float]) -> Candidates:
+           refine: str, timing: dict[str, float], points: int | None = None) -> Candidates:
     """:func:`service.rotation_search.search_hypotheses` from the start rotations ``hypotheses [H, 3, 3]``, or with
     a refinement, where both working clouds are built of orthogonal planes, the :func:`plane_frame_starts` instead.
 
     With a refinement (``refine != "none"``) every hypothesis gets a short point-to-point ICP, a model whose
     manifest has a ``search`` section searches that many rows spread through each working cloud with at most that
     many keypoints, and every distinct kept candidate is returned (the refine stage ranks them again); without
-    one, only the search's best. Records ``timing["encoder"]`` (the target, embedded once) and the search's keys.
+    one, only the search's best. ``points``: that many rows per cloud instead of the manifest's (the second search of
+    :func:`auto_search`). Records ``timing["encoder"]`` (the target, embedded once) and the search's keys.
     """
     short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
     tic = time.perf_counter()
     starts = plane_frame_starts(work) if short_icp else None
     sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
     subsample = registrar.manifest.search_subsample
+    if subsample and points:
+        subsample = (points, subsample[1])
     if short_icp and subsample:  # the refinement restores the precision: search a subsample
         sub_s, sub_t = (evenly_spaced_indices(len(c), subsample[0]) for c in (work.src_n, work.tgt_n))
         keypoints = min(keypoints, subsample[1], len(sub_s), len(sub_t))
@@ -113,8 +125,9 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
     return result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
 
 
-def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: Working,
-                plain: RegistrationResult, hypotheses: np.ndarray, timing: dict[str, float]) -> RegistrationResult:
+def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: RegistrationResult,
+                hypotheses: np.ndarray, timing: dict[str, float], retry_points: int | None = None
+                ) -> RegistrationResult:
     """``plain`` unless, on non-degenerate clouds, it may be wrong: it fits poorly (:func:`needs_search`) and is not a
     partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a dense target's surface
     (:func:`service.stages.assess.off_the_surface`: the inlier-ratio test misses wrong poses where the working
@@ -122,6 +135,10 @@ def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: W
     planes over a dense target (:func:`plane_frames_on_the_surface`: a room turned by a quarter or half turn can
     lie on the target's walls and floor). Then ``solve(hypotheses, {})`` (the pipeline with the search) and whichever
     final pose :func:`rank_hypotheses` ranks first (the plain one on a tie), with the plain pass's stage timings.
+    If that still fits poorly (:func:`service.stages.assess.poor_fit`), ``retry_points`` is given
+    (:func:`retry_points`) and the clouds are not rooms (:attr:`Working.plane_frame_rotations`),
+    ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per
+    cloud, and its pose, should it rank first, comes back not ``reliable`` with ``RETRY_WARNING``.
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
     if degenerate(work.src_w) or degenerate(work.tgt_w):
         return plain
@@ -132,14 +149,32 @@ def auto_search(solve: Callable[[np.ndarray, dict], RegistrationResult], work: W
     if not doubtful:
         return plain
     started = time.perf_counter()
-    searched = solve(hypotheses, {})
-    rotations = np.stack([plain.rotation, searched.rotation])  # [2, 3, 3] plain first: it wins ties
-    translations = np.stack([plain.translation, searched.translation])  # [2, 3]
-    order = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)[0]
-    result = plain
-    if order[0] == 1:  # the search's winner fits better; keep the plain pass's stage timings
-        searched.timing_ms = timing
-        result = searched
+    result = better_of(work, plain, solve(hypotheses, {}), timing)
+    # rooms (both clouds of orthogonal planes) search from their plane frames: a denser subsample gained none
+    if retry_points and poor_fit(work, result.inlier_ratio) and work.plane_frame_rotations is None:
+        again = better_of(work, result, solve(hypotheses, {}, points=retry_points), timing)
+        if again is not result:  # only the denser search found it
+            again.reliable, again.warnings = False, [*again.warnings, RETRY_WARNING]
+        result = again
     timing["search"] = 1000 * (time.perf_counter() - started)
     timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
     return result
+
+
+def better_of(work: Working, kept: RegistrationResult, other: RegistrationResult, timing: dict[str, float]
+              ) -> RegistrationResult:
+    """Whichever of ``kept`` and ``other`` :func:`rank_hypotheses` ranks first on the working clouds (``kept`` on a
+    tie); ``other`` then carries ``timing`` (the plain pass's stage timings)."""
+    rotations = np.stack([kept.rotation, other.rotation])  # [2, 3, 3] kept first: it wins ties
+    translations = np.stack([kept.translation, other.translation])  # [2, 3]
+    order = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)[0]
+    if order[0] == 0:
+        return kept
+    other.timing_ms = timing
+    return other
+
+
+def retry_points(subsample: tuple[int, int] | None) -> int | None:
+    """``RETRY_SEARCH_POINTS`` where the model searches a subsample of fewer rows (its manifest's
+    ``search_subsample``), else ``None``: a model that searches the full working clouds has nothing denser to try."""
+    return RETRY_SEARCH_POINTS if subsample and subsample[0] < RETRY_SEARCH_POINTS else None

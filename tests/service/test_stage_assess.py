@@ -70,3 +70,37 @@ def test_a_room_registered_wrong_is_not_called_reliable():
         degrees, distance = pose_errors(result.rotation, result.translation, case.src_to_tgt)
         max_degrees, max_distance = thresholds(case.sensor, case.scale)
         assert not result.reliable or (degrees < max_degrees and distance < max_distance), (case.scale, degrees)
+
+
+def test_the_reliable_rule_judges_a_sparse_target_by_its_density_and_a_dense_one_by_its_surface():
+    """The surface estimate and its factors (0.45, 0.70) only where the entered target samples the surface densely;
+    elsewhere the density estimate with its own (0.5, 0.72) (docs/decisions/0026)."""
+    from service.stages.assess import reliable_attainable
+
+    assert reliable_attainable(room(target_points=1500)) is None  # sparse: assess estimates it from the density
+    dense = room()
+    assert reliable_attainable(dense) == dense.surface_attainable_ratio
+
+
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_poor_fit_is_the_reliable_rules_band_below_its_share_of_the_attainable_ratio(dense: bool):
+    """A real range-image pair (dense: the surface estimate) and a synthetic room target of 1,500 points (the density
+    estimate): poor fit from the fixed 0.3 up to the rule's share of what a right pose reaches."""
+    from real_scan_cases import general_reference_radius, real_case
+
+    from service.quality import RELIABLE_RELATIVE_RATIO, RELIABLE_RELATIVE_RATIO_ON_SURFACE
+    from service.stages.assess import poor_fit, reliable_attainable
+
+    if dense:
+        case = real_case("dragon_48_24", 0, "scanned")
+        request = validate(case.source, case.target, None, {"refine": "icp-plane"}, 3, 128)
+        work = normalise(sample(request), general_reference_radius())
+        reach = RELIABLE_RELATIVE_RATIO_ON_SURFACE * reliable_attainable(work)
+        assert reach > 0.4  # the surface estimate of a range image is about 1
+    else:
+        work = room(target_points=1500)
+        reach = RELIABLE_RELATIVE_RATIO * work.attainable_ratio
+    for ratio in np.linspace(0.0, 1.0, 101):
+        assert poor_fit(work, float(ratio)) is bool(0.3 <= ratio < reach), ratio

@@ -20,7 +20,7 @@ from service.stages.normalise import normalise, to_caller
 from service.stages.pipeline import Stages
 from service.stages.refine import refine
 from service.stages.sample import sample
-from service.stages.search import auto_search, search
+from service.stages.search import RETRY_SEARCH_POINTS, RETRY_WARNING, auto_search, retry_points, search
 from service.stages.validate import validate
 
 BUNDLED = bundled_models_dir() / "clean"
@@ -87,6 +87,46 @@ def test_auto_search_keeps_the_better_of_both(registrar) -> None:
     timing = {"encoder": 1.0}
     kept = auto_search(lambda hypotheses, t: good, work, bad, request.hypotheses, timing)
     assert kept is good and kept.timing_ms is timing and timing["search_per_hypothesis"] == timing["search"] / 24
+
+
+def test_a_search_result_that_still_fits_poorly_is_searched_again_on_more_points(registrar, monkeypatch) -> None:
+    import service.stages.search as search_stage
+
+    # this blob's working target is too sparse for the rule's "poor fit" band (service.stages.assess.poor_fit,
+    # tested on a room in test_stage_assess.py): here the inlier ratio 0.31 stands for it
+    monkeypatch.setattr(search_stage, "poor_fit", lambda work, inlier_ratio: inlier_ratio == 0.31)
+    request, work = prepared(registrar, 3000, refine="icp-plane", rotation_search="auto", working_size=768)
+    good = registrar.solve(work, request, None, {})
+    assert good.reliable and RETRY_WARNING not in good.warnings
+    wrong = R_TRUE.T @ R_TRUE.T
+
+    def poor() -> RegistrationResult:  # near the truth but off it, its inlier ratio in the rule's "poor fit"
+        shifted = good.translation + np.array([0.8 * work.inlier_distance, 0.0, 0.0])
+        return dataclasses.replace(good, inlier_ratio=0.31, translation=shifted, reliable=False, timing_ms={})
+
+    calls: list[int | None] = []
+
+    def solve(hypotheses, timing, points=None):
+        calls.append(points)
+        return dataclasses.replace(good, warnings=list(good.warnings)) if points else poor()
+
+    plain = dataclasses.replace(good, inlier_ratio=0.1, rotation=wrong, reliable=False, timing_ms={})  # searched
+    found = auto_search(solve, work, plain, request.hypotheses, {}, retry_points=RETRY_SEARCH_POINTS)
+    assert calls == [None, RETRY_SEARCH_POINTS]
+    np.testing.assert_array_equal(found.rotation, good.rotation)
+    assert not found.reliable and found.warnings[-1] == RETRY_WARNING  # only the denser search found it
+    calls.clear()
+    assert auto_search(solve, work, plain, request.hypotheses, {}, retry_points=None).inlier_ratio == 0.31
+    assert calls == [None]  # a model that searches its full working clouds: no second search
+    calls.clear()
+    auto_search(lambda hypotheses, timing, points=None: calls.append(points) or good, work, plain,
+                request.hypotheses, {}, retry_points=RETRY_SEARCH_POINTS)
+    assert calls == [None]  # the first search fitted well: no second one
+
+
+def test_only_a_model_that_searches_a_smaller_subsample_searches_again() -> None:
+    assert retry_points((128, 32)) == RETRY_SEARCH_POINTS == 256
+    assert retry_points(None) is None and retry_points((256, 32)) is None
 
 
 def test_a_replaced_stage_runs_in_its_place(registrar) -> None:
