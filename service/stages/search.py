@@ -42,12 +42,12 @@ if TYPE_CHECKING:
 # (targets too sparse to reach the reliable ratio at all) and made one worse.
 AUTO_SEARCH_RELATIVE_RATIO = 0.8
 # After the search of rotation_search="auto", a result that still fits poorly (its inlier ratio below what the
-# `reliable` rule asks, service.quality) is searched again on RETRY_SEARCH_POINTS rows per cloud, where the model
-# searches a subsample (service.rotation_search.SEARCH_POINTS) and the clouds are not rooms built of orthogonal
-# planes (their search starts from the plane frames): on 128 points the network from none of the 24 starts
-# reached the right basin of some turned range images that it reaches on more (docs/decisions/0028). A pose only the
-# second search finds is not `reliable`: 1 of the 13 it would have called so was wrong.
-RETRY_SEARCH_POINTS = 256
+# `reliable` rule asks, service.quality) is searched again on RETRY_SEARCH_POINTS rows per cloud (the default working
+# clouds whole), where the model searches a smaller subsample (service.rotation_search.SEARCH_POINTS) and the clouds
+# are not rooms built of orthogonal planes (their search starts from the plane frames): on 128 points the network
+# from none of the 24 starts reached the right basin of some turned range images that it reaches on more
+# (docs/decisions/0028). A pose only the second search finds is not `reliable`: 24 of 32 such were right.
+RETRY_SEARCH_POINTS = 768
 RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable, "
                  "check it")
 
@@ -150,7 +150,7 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
         return plain
     started = time.perf_counter()
     result = better_of(work, plain, solve(hypotheses, {}), timing)
-    # rooms (both clouds of orthogonal planes) search from their plane frames: a denser subsample gained none
+    # rooms (both clouds of orthogonal planes) search from their plane frames: a denser search gained none there
     if retry_points and poor_fit(work, result.inlier_ratio) and work.plane_frame_rotations is None:
         again = better_of(work, result, solve(hypotheses, {}, points=retry_points), timing)
         if again is not result:  # only the denser search found it

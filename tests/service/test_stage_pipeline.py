@@ -125,8 +125,8 @@ def test_a_search_result_that_still_fits_poorly_is_searched_again_on_more_points
 
 
 def test_only_a_model_that_searches_a_smaller_subsample_searches_again() -> None:
-    assert retry_points((128, 32)) == RETRY_SEARCH_POINTS == 256
-    assert retry_points(None) is None and retry_points((256, 32)) is None
+    assert retry_points((128, 32)) == RETRY_SEARCH_POINTS == 768
+    assert retry_points(None) is None and retry_points((768, 32)) is None
 
 
 def test_a_replaced_stage_runs_in_its_place(registrar) -> None:
