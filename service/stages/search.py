@@ -137,8 +137,8 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     final pose :func:`rank_hypotheses` ranks first (the plain one on a tie), with the plain pass's stage timings.
     If that still fits poorly (:func:`service.stages.assess.poor_fit`), ``retry_points`` is given
     (:func:`retry_points`) and the clouds are not rooms (:attr:`Working.plane_frame_rotations`),
-    ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per
-    cloud, and its pose, should it rank first, comes back not ``reliable`` with ``RETRY_WARNING``.
+    ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per cloud, and its pose, should
+    it rank first, comes back not ``reliable`` with ``RETRY_WARNING``.
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
     if degenerate(work.src_w) or degenerate(work.tgt_w):
         return plain

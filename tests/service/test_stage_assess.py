@@ -82,8 +82,6 @@ def test_the_reliable_rule_judges_a_sparse_target_by_its_density_and_a_dense_one
     assert reliable_attainable(dense) == dense.surface_attainable_ratio
 
 
-
-
 @pytest.mark.parametrize("dense", [True, False])
 def test_poor_fit_is_the_reliable_rules_band_below_its_share_of_the_attainable_ratio(dense: bool):
     """A real range-image pair (dense: the surface estimate) and a synthetic room target of 1,500 points (the density

@@ -93,7 +93,7 @@ def test_a_search_result_that_still_fits_poorly_is_searched_again_on_more_points
     import service.stages.search as search_stage
 
     # this blob's working target is too sparse for the rule's "poor fit" band (service.stages.assess.poor_fit,
-    # tested on a room in test_stage_assess.py): here the inlier ratio 0.31 stands for it
+    # tested on a real range-image pair and a synthetic room in test_stage_assess.py): here 0.31 stands for it
     monkeypatch.setattr(search_stage, "poor_fit", lambda work, inlier_ratio: inlier_ratio == 0.31)
     request, work = prepared(registrar, 3000, refine="icp-plane", rotation_search="auto", working_size=768)
     good = registrar.solve(work, request, None, {})
