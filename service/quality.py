@@ -162,15 +162,29 @@ def attainable_on_surface(surface: np.ndarray, tgt: np.ndarray, inlier_distance:
     return float(np.mean(off_samples <= inlier_distance)) if len(off_samples) else 1.0
 
 
+def relative_ratio(on_surface: bool) -> float:
+    """The share of the attainable inlier ratio the ``reliable`` rule asks for: ``RELIABLE_RELATIVE_RATIO_ON_SURFACE``
+    of the surface estimate (:func:`attainable_on_surface`), else ``RELIABLE_RELATIVE_RATIO`` of the density
+    estimate (:func:`attainable_inlier_ratio`)."""
+    return RELIABLE_RELATIVE_RATIO_ON_SURFACE if on_surface else RELIABLE_RELATIVE_RATIO
+
+
+def poor_fit(inlier_ratio: float, attainable: float, on_surface: bool) -> bool:
+    """Whether ``inlier_ratio`` is a "poor fit" of the ``reliable`` rule: at least ``RELIABLE_INLIER_RATIO`` (below,
+    "low overlap") but under :func:`relative_ratio` of ``attainable`` (the surface estimate where ``on_surface``)."""
+    return RELIABLE_INLIER_RATIO <= inlier_ratio < relative_ratio(on_surface) * attainable
+
+
 def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
-           tree: KDTree | None = None, attainable: float | None = None) -> Quality:
+           tree: KDTree | None = None, attainable: float | None = None, on_surface: bool = True) -> Quality:
     """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
 
     A moved source point ``R p + t`` is an inlier when its nearest target point is at most
     ``inlier_distance`` away (caller's units).  Warnings name the cloud (``"source ..."``,
     ``"target ..."``) and flag a low inlier ratio. ``tree``: ``KDTree(tgt)`` when the caller has it.
     ``attainable``: the inlier ratio a right pose reaches (:func:`attainable_on_surface`) where the caller knows
-    it, else :func:`attainable_inlier_ratio` of ``tgt``.
+    it, or with ``on_surface=False`` the :func:`attainable_inlier_ratio` of ``tgt`` the caller already has; else
+    this computes the latter.
     """
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
@@ -186,9 +200,10 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     degenerate = any(w.startswith(_DEGENERATE) for w in src_warnings + tgt_warnings)
 
     inlier_ratio, residual_rms, near_share = 0.0, 0.0, 0.0
-    near_factor = RELIABLE_NEAR_SHARE if attainable is None else RELIABLE_NEAR_SHARE_ON_SURFACE
-    relative = RELIABLE_RELATIVE_RATIO if attainable is None else RELIABLE_RELATIVE_RATIO_ON_SURFACE
-    allows = "the target's density allows" if attainable is None else "a right pose reaches on the target's surface"
+    on_surface = on_surface and attainable is not None
+    near_factor = RELIABLE_NEAR_SHARE_ON_SURFACE if on_surface else RELIABLE_NEAR_SHARE
+    relative = relative_ratio(on_surface)
+    allows = "a right pose reaches on the target's surface" if on_surface else "the target's density allows"
     if src.shape[0] and tgt.shape[0]:
         tree = KDTree(tgt) if tree is None else tree
         src_in_tgt = src @ R.T + t  # [N, 3]
@@ -204,7 +219,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (
             f" (the target is sparse for the inlier distance: its density allows {attainable:.2f}, so even a right "
             "pose may not reach it)" if sparse else ""))
-    elif inlier_ratio < relative * attainable:
+    elif poor_fit(inlier_ratio, attainable, on_surface):
         warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {relative} of the "
                         f"{attainable:.2f} {allows}")
     elif near_share < near_factor * attainable:

@@ -8,14 +8,8 @@ import numpy as np
 
 from service.kdtree import KDTree
 from service.network_loop import NetworkOutput
-from service.quality import (
-    NEAR_SURFACE_FACTOR,
-    RELIABLE_INLIER_RATIO,
-    RELIABLE_RELATIVE_RATIO,
-    RELIABLE_RELATIVE_RATIO_ON_SURFACE,
-    assess,
-    near_surface_share,
-)
+from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
+from service.quality import poor_fit as poor_fit_of  # the rule's band, given the attainable ratio
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
 from service.stability import pose_stability, weak_motion_warning
@@ -44,21 +38,20 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
             "where they overlap")
 
 
-def reliable_attainable(work: Working) -> float | None:
-    """What the ``reliable`` rule judges the inlier ratio against: on a dense entered target
-    (:func:`service.stages.ranking.samples_the_surface`), the ratio a right pose reaches on its surface
-    (:attr:`Working.surface_attainable_ratio`), with :func:`service.quality.assess`'s on-surface factors; elsewhere
-    ``None``: ``assess`` then estimates it from the working target's density, with that estimate's factors."""
-    return work.surface_attainable_ratio if samples_the_surface(work) else None
+def reliable_attainable(work: Working) -> tuple[float, bool]:
+    """What the ``reliable`` rule judges the inlier ratio against, and whether it is the surface estimate: on a dense
+    entered target (:func:`service.stages.ranking.samples_the_surface`), the ratio a right pose reaches on its surface
+    (:attr:`Working.surface_attainable_ratio`, judged with :func:`service.quality.assess`'s on-surface factors);
+    elsewhere what the working target's density allows (:attr:`Working.attainable_ratio`, with that estimate's)."""
+    if samples_the_surface(work):
+        return work.surface_attainable_ratio, True
+    return work.attainable_ratio, False
 
 
 def poor_fit(work: Working, inlier_ratio: float) -> bool:
-    """Whether ``inlier_ratio`` falls in the ``reliable`` rule's "poor fit": at least ``RELIABLE_INLIER_RATIO`` but
-    below its share of what a right pose reaches (:func:`reliable_attainable`; :func:`service.quality.assess`)."""
-    surface = reliable_attainable(work)
-    reach = (RELIABLE_RELATIVE_RATIO * work.attainable_ratio if surface is None
-             else RELIABLE_RELATIVE_RATIO_ON_SURFACE * surface)
-    return RELIABLE_INLIER_RATIO <= inlier_ratio < reach
+    """Whether ``inlier_ratio`` is the ``reliable`` rule's "poor fit" on ``work`` (:func:`service.quality.poor_fit`
+    against :func:`reliable_attainable`)."""
+    return poor_fit_of(inlier_ratio, *reliable_attainable(work))
 
 
 def iteration_poses(work: Working, candidate: SearchCandidate) -> list[IterationPose]:
@@ -89,7 +82,8 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     working = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
     tree = KDTree(tgt_w) if working is None else working.tree  # shared by the two checks below
     src = work.working_source  # [Ns, 3] caller's frame
-    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, reliable_attainable(work))
+    attainable, on_surface = reliable_attainable(work)
+    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface)
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
     weak = weak_motion_warning(stability)
     reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate

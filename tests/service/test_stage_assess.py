@@ -77,9 +77,10 @@ def test_the_reliable_rule_judges_a_sparse_target_by_its_density_and_a_dense_one
     elsewhere the density estimate with its own (0.5, 0.72) (docs/decisions/0026)."""
     from service.stages.assess import reliable_attainable
 
-    assert reliable_attainable(room(target_points=1500)) is None  # sparse: assess estimates it from the density
+    sparse = room(target_points=1500)
+    assert reliable_attainable(sparse) == (sparse.attainable_ratio, False)  # the density estimate and its factors
     dense = room()
-    assert reliable_attainable(dense) == dense.surface_attainable_ratio
+    assert reliable_attainable(dense) == (dense.surface_attainable_ratio, True)
 
 
 @pytest.mark.parametrize("dense", [True, False])
@@ -95,7 +96,9 @@ def test_poor_fit_is_the_reliable_rules_band_below_its_share_of_the_attainable_r
         case = real_case("dragon_48_24", 0, "scanned")
         request = validate(case.source, case.target, None, {"refine": "icp-plane"}, 3, 128)
         work = normalise(sample(request), general_reference_radius())
-        reach = RELIABLE_RELATIVE_RATIO_ON_SURFACE * reliable_attainable(work)
+        attainable, on_surface = reliable_attainable(work)
+        assert on_surface
+        reach = RELIABLE_RELATIVE_RATIO_ON_SURFACE * attainable
         assert reach > 0.4  # the surface estimate of a range image is about 1
     else:
         work = room(target_points=1500)
