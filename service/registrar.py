@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -36,10 +37,18 @@ from service.options import (
 )
 from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
+from service.speculation import Helpers, Speculation, check, shared_helpers
+from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
 from service.stages.refine import CANDIDATE_ITERATIONS
-from service.stages.search import AUTO_SEARCH_RELATIVE_RATIO, needs_search, retry_points
+from service.stages.search import (
+    AUTO_SEARCH_RELATIVE_RATIO,
+    needs_search,
+    retry_points,
+    searched_ahead,
+    worth_searching_ahead,
+)
 from service.stages.validate import Request
 
 __all__ = [  # the names callers import from here, wherever they live now
@@ -99,7 +108,7 @@ class Registrar:
     option_names = RegistrationOptions.names()  # what register() takes as keyword overrides
 
     def __init__(self, model_dir: str | Path, threads: int | None = None, warmup: bool = True,
-                 stages: Stages | None = None):
+                 stages: Stages | None = None, helpers: Helpers | None = None):
         use_one_blas_thread()
         self.stages = Stages() if stages is None else stages  # what register() runs (service.stages.pipeline)
         self.manifest: Manifest = load_manifest(model_dir)
@@ -107,7 +116,10 @@ class Registrar:
         self.config = self.manifest.config
         self.reference_radius = float(self.manifest.normalization.get("reference_radius", 1.0))
         self.centroid = self.config.get("centroid", "weighted")
-        options = session_options(threads or default_threads())
+        threads = threads or default_threads()
+        # spare cores run the search of "auto" ahead (service.speculation); one thread: none
+        self.helpers = (helpers or shared_helpers(default_threads())) if threads > 1 else None
+        options = session_options(threads)
         providers = ["CPUExecutionProvider"]
         started = time.perf_counter()
         self.encoder = ort.InferenceSession(self.manifest.graph_bytes("encoder"), options, providers=providers)
@@ -283,6 +295,10 @@ class Registrar:
         does. ``timing_ms`` has a key per stage (``preprocess``, ``encoder``, ``iterations``, ``svd``, ``refine``,
         ``postprocess``), ``search`` / ``search_per_hypothesis`` when the rotation search ran, and ``total``.
         """
+        with self.helpers.registering() if self.helpers is not None else nullcontext():
+            return self._register(source, target, options, overrides)
+
+    def _register(self, source, target, options: RegistrationOptions | None, overrides: dict) -> RegistrationResult:
         t0 = time.perf_counter()
         timing: dict[str, float] = {}
         stages = self.stages
@@ -291,29 +307,54 @@ class Registrar:
         work = stages.normalise(stages.sample(request), self.reference_radius)
         timing["preprocess"] = 1000 * (time.perf_counter() - t0)
         mode = request.options.search
-        result = self.solve(work, request, request.hypotheses if mode == "on" else None, timing)
-        if mode == "auto":  # the search only when the plain result looks wrong
-            result = stages.auto_search(partial(self.solve, work, request), work, result, request.hypotheses, timing,
-                                        retry_points(self.manifest.search_subsample))
+        if mode == "on":
+            result = self.solve(work, request, request.hypotheses, timing)
+        else:
+            found = stages.network(self, work, request.iterations, request.keypoints, timing)
+            ahead = self.search_ahead(work, request, found) if mode == "auto" else None
+            try:
+                result = self.solve(work, request, None, timing, found=found)
+                if mode == "auto":  # the search only when the plain result looks wrong
+                    solve = searched_ahead(partial(self.solve, work, request), ahead)
+                    result = stages.auto_search(solve, work, result, request.hypotheses, timing,
+                                                retry_points(self.manifest.search_subsample))
+            finally:
+                if ahead is not None:
+                    ahead.cancel()  # no-op when its result was taken
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
         result = anchors.result_to_caller(result)
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 
-    def solve(self, work: Working, request: Request, hypotheses: np.ndarray | None,
-              timing: dict[str, float], points: int | None = None) -> RegistrationResult:
+    def search_ahead(self, work: Working, request: Request, found: Candidates) -> Speculation | None:
+        """The search of ``rotation_search="auto"`` started in a helper thread beside the plain pass, where the plain
+        network's pose ``found`` fits poorly (:func:`service.stages.search.worth_searching_ahead`) and a core is
+        free (:class:`service.speculation.Helpers`); else ``None``."""
+        if self.helpers is None or not worth_searching_ahead(work, found):
+            return None
+        return self.helpers.start(
+            lambda cancelled: self.solve(work, request, request.hypotheses, {}, cancelled=cancelled))
+
+    def solve(self, work: Working, request: Request, hypotheses: np.ndarray | None, timing: dict[str, float],
+              points: int | None = None, found: Candidates | None = None,
+              cancelled: threading.Event | None = None) -> RegistrationResult:
         """Network (plain, or the rotation search from ``hypotheses [H, 3, 3]``, on ``points`` rows per cloud where
-        given) -> refine -> slide check -> (after a search) flip check -> assess on ``work``."""
+        given) -> refine -> slide check -> (after a search) flip check -> assess on ``work``. ``found``: the plain
+        network's candidates, already run; ``cancelled``: once set, stop with
+        :class:`service.speculation.CancelledError` at the next stage (work running ahead, :meth:`search_ahead`)."""
         stages, o = self.stages, request.options
         if hypotheses is None:
-            found = stages.network(self, work, request.iterations, request.keypoints, timing)
+            found = found or stages.network(self, work, request.iterations, request.keypoints, timing)
         else:
             found = stages.search(self, work, hypotheses, request.iterations, request.keypoints, o.refine_mode,
                                   timing, points)
+        check(cancelled)
         started = time.perf_counter()
         refined = stages.refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], o)
+        check(cancelled)
         refined = stages.slide(work, refined, o)
         if hypotheses is not None:  # a searched pose turned half a turn from the truth (docs/decisions/0016)
+            check(cancelled)
             refined = stages.flip(work, refined, o)
         if o.refine_mode != "none":
             timing["refine"] = 1000 * (time.perf_counter() - started)

@@ -23,9 +23,10 @@ from service.rotation_search import (
     search_hypotheses,
 )
 from service.sampling import evenly_spaced_indices
+from service.speculation import Speculation
 from service.stages.assess import off_the_surface, poor_fit
 from service.stages.network import Candidates
-from service.stages.normalise import INLIER_DISTANCE, Working
+from service.stages.normalise import INLIER_DISTANCE, Working, to_caller
 from service.stages.partial import looks_partial
 from service.stages.ranking import samples_the_surface
 
@@ -48,6 +49,10 @@ AUTO_SEARCH_RELATIVE_RATIO = 0.8
 # from none of the 24 starts reached the right basin of some turned range images that it reaches on more
 # (docs/decisions/0028). A pose only the second search finds is not `reliable`: 24 of 32 such were right.
 RETRY_SEARCH_POINTS = 768
+# rotation_search="auto" starts its search beside the plain pass (service.speculation) where the plain network's pose,
+# before any refinement, overlays fewer working source points than this share of the ratio a right pose can reach:
+# on the real-scan cases the plain pass then nearly always asks for the search (docs/decisions/0029).
+SEARCH_AHEAD_BELOW = 0.3
 RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable, "
                  "check it")
 
@@ -159,6 +164,31 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     timing["search"] = 1000 * (time.perf_counter() - started)
     timing["search_per_hypothesis"] = timing["search"] / len(hypotheses)
     return result
+
+
+def worth_searching_ahead(work: Working, found: Candidates) -> bool:
+    """Whether ``rotation_search="auto"`` should start its search before the plain pass has judged its pose: the clouds
+    are not degenerate and the plain network's pose ``found`` (before any refinement) overlays fewer working source
+    points than ``SEARCH_AHEAD_BELOW`` times the attainable inlier ratio."""
+    if degenerate(work.src_w) or degenerate(work.tgt_w):
+        return False
+    R, t = to_caller(work, found.poses[0].rotation, found.poses[0].translation)
+    ratio = rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
+    return bool(ratio < SEARCH_AHEAD_BELOW * work.attainable_ratio)
+
+
+def searched_ahead(solve: Callable[..., RegistrationResult], ahead: Speculation | None
+                   ) -> Callable[..., RegistrationResult]:
+    """``solve`` (``(hypotheses, timing, points=None)``, the pipeline with the search), except that the first search
+    (no ``points``) is the one ``ahead`` ran where it was started (the same hypotheses, so the same result)."""
+    if ahead is None:
+        return solve
+
+    def solve_or_wait(hypotheses: np.ndarray, timing: dict[str, float], points: int | None = None
+                      ) -> RegistrationResult:
+        return ahead.result() if points is None else solve(hypotheses, timing, points=points)
+
+    return solve_or_wait
 
 
 def better_of(work: Working, kept: RegistrationResult, other: RegistrationResult, timing: dict[str, float]
