@@ -29,6 +29,7 @@ from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working, to_caller
 from service.stages.partial import looks_partial
 from service.stages.ranking import samples_the_surface
+from service.stages.slide import fits_poorly
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -173,8 +174,7 @@ def worth_searching_ahead(work: Working, found: Candidates) -> bool:
     if degenerate(work.src_w) or degenerate(work.tgt_w):
         return False
     R, t = to_caller(work, found.poses[0].rotation, found.poses[0].translation)
-    ratio = rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
-    return bool(ratio < SEARCH_AHEAD_BELOW * work.attainable_ratio)
+    return fits_poorly(work, R, t, SEARCH_AHEAD_BELOW)
 
 
 def searched_ahead(solve: Callable[..., RegistrationResult], ahead: Speculation | None
