@@ -50,12 +50,12 @@ AUTO_SEARCH_RELATIVE_RATIO = 0.8
 # from none of the 24 starts reached the right basin of some turned range images that it reaches on more
 # (docs/decisions/0028). A pose only the second search finds is not `reliable`: 24 of 32 such were right.
 RETRY_SEARCH_POINTS = 768
+RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable, "
+                 "check it")
 # rotation_search="auto" starts its search beside the plain pass (service.speculation) where the plain network's pose,
 # before any refinement, overlays fewer working source points than this share of the ratio a right pose can reach:
 # on the real-scan cases the plain pass then nearly always asks for the search (docs/decisions/0029).
 SEARCH_AHEAD_BELOW = 0.3
-RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable, "
-                 "check it")
 
 
 def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iterations: int, keypoints: int,
