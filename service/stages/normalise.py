@@ -12,7 +12,7 @@ from service.kdtree import KDTree
 from service.normalization import Normalization
 from service.plane_frames import frame_rotations
 from service.procrustes import compose
-from service.quality import attainable_inlier_ratio, attainable_on_surface
+from service.quality import attainable_inlier_ratio, attainable_on_surface, degenerate
 from service.sampling import hashed_indices
 from service.stages.sample import Sampled
 
@@ -46,6 +46,12 @@ class Working(Sampled):
     def inlier_distance(self) -> float:
         """``INLIER_DISTANCE`` in the caller's units."""
         return INLIER_DISTANCE * self.norm.scale
+
+    @cached_property
+    def searchable(self) -> bool:
+        """Whether neither working cloud is degenerate (:func:`service.quality.degenerate`): ``auto`` searches, or
+        starts its search ahead, only then."""
+        return not (degenerate(self.src_w) or degenerate(self.tgt_w))
 
     @cached_property
     def attainable_ratio(self) -> float:

@@ -12,7 +12,6 @@ import numpy as np
 
 from service.network_loop import NetworkLoop
 from service.plane_frames import overlap_scores
-from service.quality import degenerate
 from service.result import RegistrationResult
 from service.rotation_search import (
     SEARCH_KEEP,
@@ -127,7 +126,7 @@ def plane_frames_on_the_surface(work: Working) -> bool:
 def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:
     """Whether ``rotation_search="auto"`` searches after the plain ``result``: its inlier ratio is below
     ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio`` (:func:`service.quality.attainable_inlier_ratio`
-    of the working target). The registrar never searches degenerate clouds (:func:`service.quality.degenerate`)."""
+    of the working target). The registrar never searches degenerate clouds (:attr:`Working.searchable`)."""
     return result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
 
 
@@ -146,7 +145,7 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per cloud, and its pose, should
     it rank first, comes back not ``reliable`` with ``RETRY_WARNING``.
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
-    if degenerate(work.src_w) or degenerate(work.tgt_w):
+    if not work.searchable:
         return plain
     doubtful = ((needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain))
                 or plane_frames_on_the_surface(work)
@@ -171,7 +170,7 @@ def worth_searching_ahead(work: Working, found: Candidates) -> bool:
     """Whether ``rotation_search="auto"`` should start its search before the plain pass has judged its pose: the clouds
     are not degenerate and the plain network's pose ``found`` (before any refinement) overlays fewer working source
     points than ``SEARCH_AHEAD_BELOW`` times the attainable inlier ratio."""
-    if degenerate(work.src_w) or degenerate(work.tgt_w):
+    if not work.searchable:
         return False
     R, t = to_caller(work, found.poses[0].rotation, found.poses[0].translation)
     return fits_poorly(work, R, t, SEARCH_AHEAD_BELOW)
