@@ -322,6 +322,7 @@ class Registrar:
                 if ahead is not None:
                     ahead.cancel()  # no-op when its result was taken
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
+        result = stages.symmetry(work, result, request.options, timing)  # reliable: no half turn fits as well
         result = anchors.result_to_caller(result)
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result

@@ -19,6 +19,7 @@ from service.stages.refine import refine
 from service.stages.sample import sample
 from service.stages.search import auto_search, search
 from service.stages.slide import slide
+from service.stages.symmetry import symmetry
 from service.stages.validate import validate
 
 
@@ -36,3 +37,4 @@ class Stages:
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
     auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing, retry_points) -> result
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
+    symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult

@@ -93,6 +93,16 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
     return Ranked(pick, ambiguity, rotations[pick], translations[pick])
 
 
+def candidate_fits(work: Working, rotations: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, str]:
+    """``[C]`` the fit :func:`rank_candidates` ranks the poses (``rotations [C, 3, 3]``, ``translations [C, 3]``,
+    caller's units) by -- :func:`close_fit` where the entered target :func:`samples_the_surface`, else the inlier
+    ratio on the working clouds -- and its name for warnings."""
+    if samples_the_surface(work):
+        return close_fit(work, rotations, translations), FIT_NAME
+    return rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)[1], \
+        "inlier ratio"
+
+
 def ranking_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray, best: int,
                       measure: str = "inlier ratio") -> str | None:
     """The warning of a ranking whose winner is ``best`` (``rotations [C, 3, 3]``, ``translations [C, 3]``, ``fits

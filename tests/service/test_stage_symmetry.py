@@ -1,0 +1,86 @@
+"""The symmetry check on its own: a reliable pose of a shape that a half turn maps onto itself (an open tub) loses
+``reliable`` with an ambiguity warning and keeps its pose; an asymmetric shape's stays reliable; results that are not
+reliable, or not refined, are not checked."""
+
+from __future__ import annotations
+
+import numpy as np
+from real_scan_cases import general_reference_radius
+from scipy.spatial.transform import Rotation
+from shapes import asymmetric_blob
+
+from service.manifest import bundled_models_dir
+from service.registrar import Registrar
+from service.result import RegistrationResult
+from service.stages.normalise import normalise
+from service.stages.sample import sample
+from service.stages.symmetry import half_turn_ambiguity, symmetry
+from service.stages.validate import validate
+
+R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
+T_TRUE = np.array([0.3, -0.2, 0.5])
+
+
+def open_tub(points: int, seed: int) -> np.ndarray:
+    """``[points, 3]`` on the floor and four walls of a 2 x 1 x 0.6 box without a lid: a half turn about its
+    vertical axis maps it onto itself, no other rotation does."""
+    rng = np.random.default_rng(seed)
+    faces = [  # (origin, first edge, second edge): floor, the walls at x = 0 / 2, y = 0 / 1
+        ((0, 0, 0), (2, 0, 0), (0, 1, 0)), ((0, 0, 0), (0, 1, 0), (0, 0, 0.6)), ((2, 0, 0), (0, 1, 0), (0, 0, 0.6)),
+        ((0, 0, 0), (2, 0, 0), (0, 0, 0.6)), ((0, 1, 0), (2, 0, 0), (0, 0, 0.6)),
+    ]
+    area = np.array([np.linalg.norm(np.cross(a, b)) for _, a, b in faces])
+    face = rng.choice(len(faces), size=points, p=area / area.sum())  # [points]
+    o, a, b = (np.array([f[k] for f in faces], dtype=np.float64)[face] for k in range(3))  # [points, 3] each
+    u, v = rng.random((2, points, 1))
+    return o + u * a + v * b - np.array([1.0, 0.5, 0.3])
+
+
+def working(source: np.ndarray, target: np.ndarray, refine: str = "icp-plane"):
+    request = validate(source, target, None, {"refine": refine}, 3, 128)
+    return normalise(sample(request), general_reference_radius()), request.options
+
+
+def result_at(R: np.ndarray, t: np.ndarray, reliable: bool = True) -> RegistrationResult:
+    empty = np.zeros(0)
+    return RegistrationResult(rotation=R, translation=t, source_index=empty.astype(np.int64),
+                              target_index=empty.astype(np.int64), credibility=empty, weight=empty,
+                              inlier_ratio=1.0, residual_rms=0.0, reliable=reliable, warnings=[], iterations=3,
+                              timing_ms={})
+
+
+def test_a_shape_a_half_turn_maps_onto_itself_is_ambiguous_and_keeps_its_pose():
+    work, options = working(open_tub(3000, 0), open_tub(3000, 1) @ R_TRUE.T + T_TRUE)
+    timing: dict[str, float] = {}
+    checked = symmetry(work, result_at(R_TRUE, T_TRUE), options, timing)
+    assert not checked.reliable
+    assert len(checked.warnings) == 1 and checked.warnings[0].startswith("ambiguous: a pose 180 deg away")
+    assert np.array_equal(checked.rotation, R_TRUE) and np.array_equal(checked.translation, T_TRUE)
+    assert timing["postprocess"] > 0
+
+
+def test_an_asymmetric_shape_stays_reliable():
+    blob = asymmetric_blob(3000)
+    work, options = working(blob, asymmetric_blob(3000, seed=1) @ R_TRUE.T + T_TRUE)
+    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None
+    result = result_at(R_TRUE, T_TRUE)
+    assert symmetry(work, result, options, {}) is result
+
+
+def test_results_not_reliable_or_not_refined_are_not_checked():
+    tub = open_tub(3000, 0)
+    work, options = working(tub, open_tub(3000, 1) @ R_TRUE.T + T_TRUE)
+    unreliable = result_at(R_TRUE, T_TRUE, reliable=False)
+    assert symmetry(work, unreliable, options, {}) is unreliable
+    work, options = working(tub, open_tub(3000, 1) @ R_TRUE.T + T_TRUE, refine="none")
+    unrefined = result_at(R_TRUE, T_TRUE)
+    timing: dict[str, float] = {}
+    assert symmetry(work, unrefined, options, timing) is unrefined and "postprocess" not in timing
+
+
+def test_the_registrar_does_not_call_a_symmetric_shape_reliable():
+    registrar = Registrar(bundled_models_dir() / "general", threads=1)
+    result = registrar.register(open_tub(3000, 0), open_tub(3000, 1) @ R_TRUE.T + T_TRUE, refine="icp-plane",
+                                rotation_search="auto")
+    assert not result.reliable
+    assert any(w.startswith("ambiguous") for w in result.warnings)
