@@ -83,24 +83,25 @@ def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
     the working clouds (:func:`service.rotation_search.rank_hypotheses`), and flag a close second elsewhere (by the
     fit that ranked them)."""
     rotations, translations = short_refine(starts)  # short refinements: enough to rank the basins
-    order, fits, _ = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)
-    measure = "inlier ratio"
-    if samples_the_surface(work):
-        fits, measure = close_fit(work, rotations, translations), FIT_NAME  # [C]
+    order, ratios, _ = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)
+    fits, measure = candidate_fits(work, rotations, translations, ratios)  # [C]
+    if measure == FIT_NAME:
         order = order[np.argsort(-fits[order], kind="stable")]
     pick = int(order[0])
     ambiguity = ranking_ambiguity(work, rotations, translations, fits, pick, measure=measure)
     return Ranked(pick, ambiguity, rotations[pick], translations[pick])
 
 
-def candidate_fits(work: Working, rotations: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, str]:
+def candidate_fits(work: Working, rotations: np.ndarray, translations: np.ndarray, ratios: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, str]:
     """``[C]`` the fit :func:`rank_candidates` ranks the poses (``rotations [C, 3, 3]``, ``translations [C, 3]``,
     caller's units) by -- :func:`close_fit` where the entered target :func:`samples_the_surface`, else the inlier
-    ratio on the working clouds -- and its name for warnings."""
+    ratio on the working clouds (``ratios [C]`` where the caller has them) -- and its name for warnings."""
     if samples_the_surface(work):
         return close_fit(work, rotations, translations), FIT_NAME
-    return rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)[1], \
-        "inlier ratio"
+    if ratios is None:
+        ratios = rank_hypotheses(work.working_source, work.tgt_w, rotations, translations, work.inlier_distance)[1]
+    return ratios, "inlier ratio"
 
 
 def ranking_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray, best: int,
