@@ -345,7 +345,8 @@ class Registrar:
         :class:`service.speculation.CancelledError` at the next stage (work running ahead, :meth:`search_ahead`)."""
         stages, o = self.stages, request.options
         if hypotheses is None:
-            found = found or stages.network(self, work, request.iterations, request.keypoints, timing)
+            if found is None:
+                found = stages.network(self, work, request.iterations, request.keypoints, timing)
         else:
             found = stages.search(self, work, hypotheses, request.iterations, request.keypoints, o.refine_mode,
                                   timing, points)
