@@ -103,9 +103,10 @@ def train(
     recipe: Annotated[
         str | None,
         typer.Option(help="per-batch random training pairs: 'general' (independent sampling, noise, overlap, "
-                     "density mismatch; --max-angle sets its rotation range; validation keeps --setting) or "
+                     "density mismatch; --max-angle sets its rotation range; validation keeps --setting), "
                      "'real' (general at any orientation with simulated sensor pairs, model.sensor_pairs; "
-                     "validation on sensor pairs)"),
+                     "validation on sensor pairs) or 'search' (real at the rotation search's 128 points per "
+                     "cloud and rotations within 65 deg)"),
     ] = None,
     views_share: Annotated[
         float | None,

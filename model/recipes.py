@@ -10,7 +10,9 @@ two camera views (:mod:`model.views`: only the surface facing each camera), as r
 range noise, flying pixels, room-like scenes of several objects on planes, any orientation).
 
 ``real`` is ``general`` at any orientation (``max_angle_deg`` 180) with ``sensor_share`` 0.6: the recipe for models
-meant for real scans (issue 28), fine-tuned from ``general``.
+meant for real scans (issue 28), fine-tuned from ``general``. ``search`` is ``real`` as the rotation search sees it:
+every cloud at the search's 128 points, rotations within 65 deg (each rotation lies within 62.8 deg of one of the
+search's 24 starts): the recipe for a network that only runs the search.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from model.data import NOISE_CLIP_SIGMAS, PairProtocol
 from model.sensor_pairs import KINDS, SensorProtocol
 from model.sensor_sim import SensorEffects
 
-RECIPES = ("general", "real")
+RECIPES = ("general", "real", "search")
 MIN_CLOUD_POINTS = 128  # training samples 64 keypoints with a partner + 64 without per cloud (model.config)
 
 
@@ -52,6 +54,7 @@ class GeneralRecipe:
     sensor_distance_power: tuple[float, float] = (0.0, 2.0)  # density ~ distance^-power (0: fused, 2: one image)
     sensor_mixed: tuple[float, float] = (0.0, 0.03)  # flying points at depth discontinuities / kept points
     sensor_half_angle_deg: tuple[float, float] = (25.0, 35.0)  # scenes: the cameras' cone of view
+    cloud_points: int | None = None  # every cloud of the other batches sampled to this many points (None: as drawn)
 
     def draw(self, rng: np.random.Generator) -> PairProtocol | SensorProtocol:
         """One batch's protocol."""
@@ -63,6 +66,8 @@ class GeneralRecipe:
         if rng.random() < self.mismatch_share:
             sparse = "source_points" if rng.random() < 0.5 else "target_points"
             counts[sparse] = max(MIN_CLOUD_POINTS, round(rng.uniform(*self.mismatch_keep) * keep))
+        if self.cloud_points is not None:
+            counts = {"source_points": self.cloud_points, "target_points": self.cloud_points}
         if self.outliers > 0:  # drawn last: without outliers the draws are the ones the bundled model saw
             counts["outliers"] = float(rng.uniform(0.0, self.outliers))
         views: dict = {}
@@ -103,6 +108,9 @@ class GeneralRecipe:
 
 
 REAL = GeneralRecipe(max_angle_deg=180.0, sensor_share=0.6)
+SEARCH_CLOUD_POINTS = 128  # the rotation search's rows per working cloud (the manifest's search points)
+SEARCH = dataclasses.replace(REAL, max_angle_deg=65.0, cloud_points=SEARCH_CLOUD_POINTS,
+                             sensor_points=(SEARCH_CLOUD_POINTS, SEARCH_CLOUD_POINTS))
 
 
 def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None,
@@ -115,7 +123,7 @@ def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float |
     for label, share in (("views_share", views_share), ("sensor_share", sensor_share)):
         if share is not None and not 0.0 <= share <= 1.0:
             raise ValueError(f"{label} must be in 0..1, got {share}")
-    recipe = REAL if name == "real" else GeneralRecipe()
+    recipe = {"real": REAL, "search": SEARCH}.get(name, GeneralRecipe())
     if max_angle_deg is not None:
         recipe = dataclasses.replace(recipe, max_angle_deg=float(max_angle_deg))
     if outliers is not None:

@@ -109,6 +109,17 @@ def test_a_stream_of_the_real_recipe_gives_fixed_shape_batches() -> None:
         assert 384 <= batch["source"].shape[1] <= 768 and 384 <= batch["target"].shape[1] <= 768
 
 
+def test_the_search_recipe_draws_the_searchs_clouds_within_65_degrees() -> None:
+    draw = recipe_draw("search")
+    protocols = [draw(np.random.default_rng([6, i])) for i in range(200)]
+    assert {type(p) for p in protocols} == {PairProtocol, SensorProtocol}
+    assert all(p.source_points == 128 and p.target_points == 128 for p in protocols)
+    assert all(p.max_angle_deg == 65.0 for p in protocols)
+    stream = TrainPairStream(sphere_shapes(12, seed=6), draw, seed=7)
+    for batch in stream.epoch(0, 4):
+        assert batch["source"].shape[1:] == (128, 3) and batch["target"].shape[1:] == (128, 3)
+
+
 def test_validation_pairs_alternate_objects_and_scenes_with_fixed_counts() -> None:
     pairs = validation_pairs(sphere_shapes(20, seed=8), seed=0, counts=256, chunk=8)
     assert pairs["source"].shape == (20, 256, 3) and pairs["target"].shape == (20, 256, 3)
@@ -125,10 +136,11 @@ def test_validation_pairs_keep_to_the_training_rotations() -> None:
     assert angles[30.0].max() <= 30.0 + 1e-3 and angles[180.0].max() > 30.0, angles
 
 
-def test_a_tiny_training_run_with_the_real_recipe(tmp_path) -> None:
+@pytest.mark.parametrize("recipe", ["real", "search"])
+def test_a_tiny_training_run_with_a_sensor_recipe(tmp_path, recipe: str) -> None:
     opts = TrainOptions(setting="resampled", out=str(tmp_path / "run"), data=tiny_training_data(tmp_path), epochs=1,
                         batch_size=2, max_batches_per_epoch=2, val_pairs=4, device="cpu", config=dict(TINY_MODEL),
-                        recipe="real", sensor_share=1.0)
+                        recipe=recipe, sensor_share=1.0)
     best = train(opts)
     assert best.exists()
     record = json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[0])
