@@ -11,7 +11,8 @@ with this script's first name ``device_train_general.py``:
    --minutes-b 1.2``; ``--views-share 0.3`` cuts that share of the batches as camera views, ``model.recipes``).
 
 A model for real scans (issue 28): ``--recipe real`` (any orientation, simulated sensor pairs, checkpoints chosen on
-sensor pairs: ``model.recipes``, ``model.sensor_pairs``), fine-tuning ``--init model/checkpoints/general.pt``; or a
+sensor pairs: ``model.recipes``, ``model.sensor_pairs``), fine-tuning ``--init model/checkpoints/general.pt``;
+``--recipe search`` for a network that only runs the rotation search (its 128 points per cloud, within 65 deg); or a
 cheaper network from scratch, ``--config '{"emb_dims": 32, "encoder_blocks": 3}'`` (``model.config.MFGNetConfig``
 overrides) without ``--init``, with a larger ``--lr-a``.
 
@@ -92,10 +93,10 @@ def main() -> None:
     run = sub.add_parser("run", help="train phase A then phase B")
     run.add_argument("--data", required=True, help="folder holding modelnet40_train.npz")
     run.add_argument("--init", help="initial weights (default: a new network of --config)")
-    run.add_argument("--recipe", choices=("general", "real"), default="general")
+    run.add_argument("--recipe", choices=("general", "real", "search"), default="general")
     run.add_argument("--config", default="{}", help="MFGNetConfig overrides as JSON (a new network's shape)")
     run.add_argument("--max-angle", type=float, help="rotation range (default: 60 for general, real's own 180)")
-    run.add_argument("--sensor-share", type=float, help="with --recipe real: share of simulated sensor batches")
+    run.add_argument("--sensor-share", type=float, help="with --recipe real or search: share of simulated sensor batches")
     run.add_argument("--lr-a", type=float, default=1e-4)
     run.add_argument("--lr-b", type=float, default=1e-5)
     run.add_argument("--minutes-a", type=float, required=True)

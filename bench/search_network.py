@@ -1,0 +1,123 @@
+"""Another network for the rotation search, judged through the whole pipeline: ``python -m bench.search_network DIR``.
+
+The real-scan set's cases (:func:`bench.real_scans.load_cases`: every pair as scanned and at ``--turns`` seeded
+rotations for each of ``--seeds``, in each of ``--scales``; the as-scanned cases once) are registered in process with
+the service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``) by two registrars of the bundled
+``general`` model, taking turns case by case: one as it is, and one whose rotation search runs the network of the
+exported model ``DIR`` (e.g. a checkpoint of ``mfgnet train --recipe search``, exported with ``mfgnet export
+--setting resampled``) through the pipeline's stage hook (:class:`service.stages.pipeline.Stages`); the plain pass,
+refinements and checks stay ``general``'s. Both models must normalise clouds alike (the same reference radius).
+
+It prints and writes (``--json``) each registrar's successes (the data README's thresholds), ``reliable`` results
+given and wrong, coverage (the share of successes given ``reliable``) and seconds, and every case whose success or
+``reliable`` flag differs between them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from bench.real_scans import Case, data_dir, load_cases, pose_errors, thresholds
+from service.manifest import bundled_models_dir
+from service.registrar import Registrar
+from service.stages.pipeline import Stages
+from service.stages.search import search
+
+VARIANTS = ("general", "search network")
+
+
+def searching_with(network: Registrar) -> Callable:
+    """A ``search`` stage that runs ``network``'s graphs instead of the calling registrar's."""
+
+    def search_stage(registrar: Registrar, *args, **kwargs):
+        return search(network, *args, **kwargs)
+
+    return search_stage
+
+
+def registrars(model_dir: Path) -> dict[str, Registrar]:
+    """``general`` as bundled, and ``general`` with ``model_dir``'s network in its rotation search."""
+    general = bundled_models_dir() / "general"
+    network = Registrar(model_dir)
+    plain = Registrar(general)
+    if network.reference_radius != plain.reference_radius:
+        raise SystemExit(f"{model_dir} normalises clouds to a reference radius of {network.reference_radius}, "
+                         f"general to {plain.reference_radius}: export it with --setting resampled")
+    swapped = Registrar(general, stages=dataclasses.replace(Stages(), search=searching_with(network)))
+    return dict(zip(VARIANTS, (plain, swapped), strict=True))
+
+
+def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ...],
+          pairs: list[str] | None) -> list[Case]:
+    """The cases of every seed, the as-scanned ones only with the first."""
+    out = []
+    for i, seed in enumerate(seeds):
+        out += [c for c in load_cases(directory, seed, scales, pairs, turns) if i == 0 or c.variant != "scanned"]
+    return out
+
+
+def outcome(registrar: Registrar, case: Case) -> dict:
+    """Success, ``reliable``, errors and seconds of one case."""
+    started = time.perf_counter()
+    result = registrar.register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    seconds = time.perf_counter() - started
+    degrees, error = pose_errors(result.rotation, result.translation, case.src_to_tgt)
+    max_deg, max_error = thresholds(case.sensor, case.scale)
+    return {"success": bool(degrees < max_deg and error < max_error), "reliable": bool(result.reliable),
+            "rotation_error_deg": round(degrees, 3), "translation_error": float(f"{error:.4g}"),
+            "seconds": round(seconds, 4)}
+
+
+def totals(rows: list[dict]) -> dict:
+    """Successes, ``reliable`` given / wrong, coverage and seconds of one variant's ``rows``."""
+    right = sum(r["success"] for r in rows)
+    given = sum(r["reliable"] for r in rows)
+    wrong = sum(r["reliable"] and not r["success"] for r in rows)
+    return {"cases": len(rows), "successes": right, "reliable_given": given, "reliable_wrong": wrong,
+            "coverage": round((given - wrong) / right, 3) if right else None,
+            "seconds": round(sum(r["seconds"] for r in rows), 2)}
+
+
+def compare(model_dir: Path, all_cases: list[Case]) -> dict:
+    """Every case through both :func:`registrars`, taking turns (the first case's order alternates case by case)."""
+    runners = registrars(model_dir)
+    rows: dict[str, list[dict]] = {name: [] for name in VARIANTS}
+    for i, case in enumerate(all_cases):
+        order = VARIANTS if i % 2 == 0 else VARIANTS[::-1]
+        for name in order:
+            rows[name].append({"case": f"{case.name}/{case.variant}/x{case.scale:g}", **outcome(runners[name], case)})
+    differ = [{"case": a["case"], **{name: {k: rows[name][i][k] for k in ("success", "reliable", "rotation_error_deg")}
+                                     for name in VARIANTS}}
+              for i, (a, b) in enumerate(zip(*rows.values(), strict=True))
+              if (a["success"], a["reliable"]) != (b["success"], b["reliable"])]
+    return {"benchmark": "search_network", "search_model": str(model_dir),
+            "totals": {name: totals(r) for name, r in rows.items()}, "differ": differ, "rows": rows}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model_dir", type=Path, help="exported model whose network runs the rotation search")
+    parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--turns", type=int, default=10)
+    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0])
+    parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    report = compare(args.model_dir, cases(data_dir(args.data), args.seeds, args.turns, tuple(args.scales), args.pairs))
+    for name, figures in report["totals"].items():
+        print(name, json.dumps(figures))
+    for row in report["differ"]:
+        print(json.dumps(row))
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1))
+    return report
+
+
+if __name__ == "__main__":
+    main()

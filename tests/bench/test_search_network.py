@@ -1,0 +1,54 @@
+"""bench.search_network: another model's network in the rotation search, beside general, on real cases."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from bench.real_scans import data_dir, load_cases
+from bench.search_network import main
+from service.manifest import bundled_models_dir
+
+PAIR = "dragon_48_24"
+needs_data = pytest.mark.skipif(not (data_dir() / f"{PAIR}.npz").exists(),
+                                reason=f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
+
+
+@needs_data
+def test_general_as_its_own_search_network_changes_nothing(tmp_path):
+    out = tmp_path / "report.json"
+    report = main([str(bundled_models_dir() / "general"), "--pairs", PAIR, "--seeds", "0", "--turns", "1",
+                   "--scales", "1", "--json", str(out)])
+    plain, swapped = report["totals"]["general"], report["totals"]["search network"]
+    assert plain["cases"] == swapped["cases"] == 2 and report["differ"] == []
+    assert {k: v for k, v in plain.items() if k != "seconds"} == {k: v for k, v in swapped.items() if k != "seconds"}
+    for a, b in zip(report["rows"]["general"], report["rows"]["search network"], strict=True):
+        assert a["rotation_error_deg"] == b["rotation_error_deg"]
+    assert json.loads(out.read_text())["search_model"].endswith("general")
+
+
+@needs_data
+def test_the_search_runs_the_other_registrars_network(monkeypatch):
+    import bench.search_network as bench
+
+    runners = bench.registrars(bundled_models_dir() / "general")
+    seen = []
+    real_search = bench.search
+
+    def recording(registrar, *args, **kwargs):
+        seen.append(registrar)
+        return real_search(registrar, *args, **kwargs)
+
+    monkeypatch.setattr(bench, "search", recording)
+    case = next(c for c in load_cases(data_dir(), 0, (1.0,), [PAIR], 1) if c.variant == "turned")
+    runners["search network"].register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    assert seen and all(r is not runners["search network"] for r in seen)  # searched, with the other registrar
+    seen.clear()
+    runners["general"].register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    assert not seen  # general's own search stage
+
+
+def test_a_model_normalised_otherwise_is_refused():
+    with pytest.raises(SystemExit, match="reference radius"):
+        main([str(bundled_models_dir() / "unseen"), "--pairs", "none", "--seeds", "0", "--turns", "1"])
