@@ -95,8 +95,9 @@ def main() -> None:
     run.add_argument("--init", help="initial weights (default: a new network of --config)")
     run.add_argument("--recipe", choices=("general", "real", "search"), default="general")
     run.add_argument("--config", default="{}", help="MFGNetConfig overrides as JSON (a new network's shape)")
-    run.add_argument("--max-angle", type=float, help="rotation range (default: 60 for general, real's own 180)")
-    run.add_argument("--sensor-share", type=float, help="with --recipe real or search: share of simulated sensor batches")
+    run.add_argument("--max-angle", type=float,
+                     help="rotation range (default: 60 for general, else the recipe's own: real 180, search 65)")
+    run.add_argument("--sensor-share", type=float, help="with --recipe real or search: share of sensor batches")
     run.add_argument("--lr-a", type=float, default=1e-4)
     run.add_argument("--lr-b", type=float, default=1e-5)
     run.add_argument("--minutes-a", type=float, required=True)
