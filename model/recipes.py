@@ -25,6 +25,7 @@ import numpy as np
 from model.data import NOISE_CLIP_SIGMAS, PairProtocol
 from model.sensor_pairs import KINDS, SensorProtocol
 from model.sensor_sim import SensorEffects
+from service.rotation_search import SEARCH_POINTS
 
 RECIPES = ("general", "real", "search")
 MIN_CLOUD_POINTS = 128  # training samples 64 keypoints with a partner + 64 without per cloud (model.config)
@@ -108,9 +109,8 @@ class GeneralRecipe:
 
 
 REAL = GeneralRecipe(max_angle_deg=180.0, sensor_share=0.6)
-SEARCH_CLOUD_POINTS = 128  # the rotation search's rows per working cloud (the manifest's search points)
-SEARCH = dataclasses.replace(REAL, max_angle_deg=65.0, cloud_points=SEARCH_CLOUD_POINTS,
-                             sensor_points=(SEARCH_CLOUD_POINTS, SEARCH_CLOUD_POINTS))
+SEARCH = dataclasses.replace(REAL, max_angle_deg=65.0, cloud_points=SEARCH_POINTS,  # the search's rows per cloud
+                             sensor_points=(SEARCH_POINTS, SEARCH_POINTS))
 
 
 def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None,

@@ -20,7 +20,7 @@ from model.inference import predict_poses
 from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
 from model.network import MFGNet
-from model.recipes import SEARCH, SEARCH_CLOUD_POINTS, recipe_draw
+from model.recipes import SEARCH, recipe_draw
 from model.sensor_pairs import validation_pairs as sensor_validation_pairs
 
 
@@ -122,7 +122,7 @@ def train(opts: TrainOptions) -> Path:
     if opts.recipe == "real":  # checkpoints chosen on simulated sensor pairs over the training rotations
         val_pairs = sensor_validation_pairs(val_shapes, opts.seed, max_angle_deg=opts.max_angle or 180.0)
     elif opts.recipe == "search":  # ... at the search's rows per cloud and rotations
-        val_pairs = sensor_validation_pairs(val_shapes, opts.seed, counts=SEARCH_CLOUD_POINTS,
+        val_pairs = sensor_validation_pairs(val_shapes, opts.seed, counts=SEARCH.cloud_points,
                                             max_angle_deg=opts.max_angle or SEARCH.max_angle_deg)
     else:
         val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
