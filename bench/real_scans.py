@@ -10,6 +10,7 @@ clouds in the same run::
     python -m bench.real_scans --json results/general-0.2.0/real_scans.json
     python -m bench.real_scans --pairs dragon_24_0 --no-fpfh --scales 1
     python -m bench.real_scans --turns 4 --no-fpfh     # each pair also at 3 more seeded rotations
+    python -m bench.real_scans --derived             # scans the set does not pair (bench.scan_pairs)
     python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
     python -m bench.real_scans --no-fpfh --compare-root /tmp/before   # beside another checkout, taking turns
     python -m bench.real_scans --no-fpfh --offset 1000 -2000 500   # both clouds 2 km from their frames' origin
@@ -40,6 +41,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.http_latency import Server
 from bench.report_io import emit_report, machine_info
+from bench.scan_pairs import derived_pairs, read_pairs
 
 DEFAULT_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 # Success thresholds per sensor class (rotation deg, translation m), from the data README.
@@ -86,32 +88,30 @@ def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> 
 
 
 def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0),
-               names: list[str] | None = None, turns: int = 1) -> list[Case]:
+               names: list[str] | None = None, turns: int = 1, derived: bool = False) -> list[Case]:
     """Every pair of ``directory`` (or only ``names``) as scanned and turned by ``turns`` seeded Haar-uniform rotations
-    (variants ``turned``, ``turned-2``, ...), per scale.
+    (variants ``turned``, ``turned-2``, ...), per scale; ``derived``: the pairs derived from the set instead of its
+    own (:func:`bench.scan_pairs.derived_pairs`: scans no file pairs, ground truth chained through shared scans).
 
     The rotations are drawn pair after pair from ``seed``: a pair's ``turned`` is the same whatever ``turns`` is, but
     ``turned-2`` onwards depend on ``turns``, and every rotation on which pairs are loaded (``names``): compare cases
     only between runs that loaded the same pairs with the same ``turns``."""
-    files = sorted(directory.glob("*.npz"))
+    pairs = derived_pairs(directory) if derived else read_pairs(directory)
     if names:
-        files = [f for f in files if f.stem in names]
+        pairs = [p for p in pairs if p.name in names]
     rng, more = np.random.default_rng(seed), np.random.default_rng([seed, 1])  # the first turns, the others
     cases = []
-    for file in files:
-        with np.load(file) as data:
-            source, target = data["source"].astype(np.float32), data["target"].astype(np.float32)
-            truth, sensor = data["transform"].astype(np.float64), str(data["sensor"])
+    for pair in pairs:
         rotations = [Rotation.random(random_state=r).as_matrix() for r in [rng] + [more] * (turns - 1)]  # Haar
-        variants = {"scanned": (source, truth)}
+        variants = {"scanned": (pair.source, pair.src_to_tgt)}
         for k, rotation in enumerate(rotations, start=1):
-            variants["turned" if k == 1 else f"turned-{k}"] = turned(source, truth, rotation)
+            variants["turned" if k == 1 else f"turned-{k}"] = turned(pair.source, pair.src_to_tgt, rotation)
         for scale in scales:
             for variant, (src, T) in variants.items():
                 T_scaled = T.copy()
                 T_scaled[:3, 3] *= scale
-                cases.append(Case(file.stem, sensor, variant, scale, (src * scale).astype(np.float32),
-                                  (target * scale).astype(np.float32), T_scaled))
+                cases.append(Case(pair.name, pair.sensor, variant, scale, (src * scale).astype(np.float32),
+                                  (pair.target * scale).astype(np.float32), T_scaled))
     return cases
 
 
@@ -313,6 +313,9 @@ def main(argv: list[str] | None = None) -> dict:
                         help="turned variants per pair (more: figures less tied to one rotation each)")
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
     parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems; the rotations depend on which)")
+    parser.add_argument("--derived", action="store_true",
+                        help="the pairs derived from the set instead of its own: scans that no file pairs, ground "
+                             "truth chained through shared scans (bench.scan_pairs)")
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--options", type=json.loads, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
@@ -329,7 +332,10 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--turns must be at least 1, got {args.turns}")
     if args.compare_root and (args.url or args.model_dir):
         parser.error("--compare-root serves each checkout's own bundled models: not with --url or --model-dir")
-    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns)
+    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived)
+    if not cases:
+        parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
+                     + (f" named {args.pairs}" if args.pairs else ""))
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
     compared = None
@@ -346,7 +352,8 @@ def main(argv: list[str] | None = None) -> dict:
     print_table(cases, service, fpfh)
     rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
              **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
-    report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "options": args.options,
+    report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "derived": args.derived,
+              "options": args.options,
               "offset": args.offset,
               "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
