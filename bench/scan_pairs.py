@@ -54,14 +54,13 @@ def _scan(prefix: str, label: str, points: np.ndarray) -> _Scan:
     return _Scan(prefix, int(label), hashlib.sha256(np.ascontiguousarray(points).tobytes()).hexdigest())
 
 
-def derived_pairs(directory: Path, pairs: list[ScanPair] | None = None) -> list[ScanPair]:
-    """The pairs of scans that share a prefix and a chain of the set's pairs but no file (see the module's
-    docstring), by prefix and then by source and target label; ``pairs``: the set, already read."""
-    pairs = read_pairs(directory) if pairs is None else pairs
+def derived_pairs(directory: Path) -> list[ScanPair]:
+    """The pairs of scans of ``directory`` that share a prefix and a chain of its pairs but no file (see the module's
+    docstring), by prefix and then by source and target label."""
     clouds: dict[_Scan, np.ndarray] = {}
     sensors: dict[str, str] = {}
     moves: dict[_Scan, list[tuple[_Scan, np.ndarray]]] = {}  # scan -> [(neighbour, scan_to_neighbour [4, 4])]
-    for pair in pairs:
+    for pair in read_pairs(directory):
         named = PAIR_NAME.match(pair.name)
         if named is None:
             continue
