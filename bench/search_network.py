@@ -53,11 +53,13 @@ def registrars(model_dir: Path) -> dict[str, Registrar]:
 
 
 def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ...],
-          pairs: list[str] | None) -> list[Case]:
-    """The cases of every seed, the as-scanned ones only with the first."""
+          pairs: list[str] | None, derived: bool = False) -> list[Case]:
+    """The cases of every seed, the as-scanned ones only with the first; ``derived``: of the pairs derived from the set
+    (:func:`bench.scan_pairs.derived_pairs`) instead of its own."""
     out = []
     for i, seed in enumerate(seeds):
-        out += [c for c in load_cases(directory, seed, scales, pairs, turns) if i == 0 or c.variant != "scanned"]
+        out += [c for c in load_cases(directory, seed, scales, pairs, turns, derived)
+                if i == 0 or c.variant != "scanned"]
     return out
 
 
@@ -107,9 +109,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--turns", type=int, default=10)
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
+    parser.add_argument("--derived", action="store_true",
+                        help="the pairs derived from the set instead of its own (held out: no default chosen on them)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    report = compare(args.model_dir, cases(data_dir(args.data), args.seeds, args.turns, tuple(args.scales), args.pairs))
+    all_cases = cases(data_dir(args.data), args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
+    report = compare(args.model_dir, all_cases)
     for name, figures in report["totals"].items():
         print(name, json.dumps(figures))
     for row in report["differ"]:

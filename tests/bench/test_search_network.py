@@ -52,3 +52,13 @@ def test_the_search_runs_the_other_registrars_network(monkeypatch):
 def test_a_model_normalised_otherwise_is_refused():
     with pytest.raises(SystemExit, match="reference radius"):
         main([str(bundled_models_dir() / "unseen"), "--pairs", "none", "--seeds", "0", "--turns", "1"])
+
+
+@needs_data
+def test_derived_cases_are_the_held_out_pairs_once_as_scanned():
+    from bench.search_network import cases
+
+    picked = cases(data_dir(), [0, 1], 2, (1.0,), ["dragon_72_0"], derived=True)
+    assert [(c.name, c.variant) for c in picked] == [("dragon_72_0", v) for v in ("scanned", "turned", "turned-2",
+                                                                                   "turned", "turned-2")]
+    assert all(c.name not in {p.stem for p in data_dir().glob("*.npz")} for c in picked)
