@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import lzma
+import math
+import os
+import struct
+import tokenize
 import zipfile
+import zlib
 from typing import BinaryIO
 
 import numpy as np
@@ -10,13 +16,22 @@ import numpy as np
 from service.formats.checks import check_count, xyz_columns
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
+MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
 
-def read_npy(f: BinaryIO, max_points: int | None) -> np.ndarray:
-    """``(N, >=3)`` or ``(1, N, >=3)`` numbers (the first three columns), or a structured array with x, y, z."""
+
+def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np.ndarray:
+    """``(N, >=3)`` or ``(1, N, >=3)`` numbers (the first three columns), or a structured array with x, y, z.
+
+    ``size``: the bytes of the whole ``.npy`` file where ``f`` has no end to seek to (a member of an ``.npz``).
+    """
     shape, fortran, dtype = _header(f)
     rows = _rows(shape, dtype)
     check_count(rows, max_points)
-    count = int(np.prod(shape))
+    count = math.prod(shape)
+    needed, held = count * dtype.itemsize, _bytes_left(f, size)
+    if needed > held:  # before numpy allocates the array
+        raise PointCloudFormatError(f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, "
+                                    f"{held} follow the header")
     try:
         array = np.fromfile(f, dtype=dtype, count=count) if _has_fileno(f) else _from_stream(f, dtype, count)
     except (OSError, ValueError) as exc:
@@ -47,9 +62,13 @@ def read_npz(f: BinaryIO, max_points: int | None) -> np.ndarray:
             raise PointCloudFormatError(f".npz archive has no 'points' array and not exactly one array: {keys}")
         try:
             with archive.open(member) as stream:
-                return read_npy(stream, max_points)
-        except (zipfile.BadZipFile, EOFError, OSError) as exc:  # e.g. a CRC error or a cut-off member
-            raise PointCloudFormatError(f"corrupt .npz archive ({exc})") from None
+                return read_npy(stream, max_points, archive.getinfo(member).file_size)
+        except PointCloudFormatError:
+            raise
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error, lzma.LZMAError, NotImplementedError,
+                RuntimeError) as exc:  # a CRC error, a cut-off or corrupt member, a compression or encryption
+            raise PointCloudFormatError(f"corrupt or unsupported .npz archive ({type(exc).__name__}: {exc})") \
+                from None
 
 
 def _header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
@@ -58,22 +77,38 @@ def _header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
         if version == (1, 0):
             return np.lib.format.read_array_header_1_0(f)
         if version == (2, 0):
+            _check_header_length(f)
             return np.lib.format.read_array_header_2_0(f)
         raise PointCloudFormatError(f"unsupported .npy format version {version}")
     except PointCloudFormatError:
         raise
-    except (ValueError, EOFError, SyntaxError, OSError):
+    except (ValueError, EOFError, SyntaxError, OSError, TypeError, tokenize.TokenError, RecursionError):
+        # what numpy's parsing of the header's Python literal lets through
         raise PointCloudFormatError("not a valid .npy file (unreadable header)") from None
 
 
+def _check_header_length(f: BinaryIO) -> None:
+    """A version 2.0 header is at most :data:`MAX_HEADER_BYTES` (numpy reads all 4 GiB its length may say first)."""
+    position = f.tell()
+    raw = f.read(4)
+    f.seek(position)
+    if len(raw) == 4 and struct.unpack("<I", raw)[0] > MAX_HEADER_BYTES:
+        raise PointCloudFormatError(f"not a valid .npy file (a header of {struct.unpack('<I', raw)[0]} bytes)")
+
+
 def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
+    if not all(type(n) is int and n >= 0 for n in shape):  # numpy lets negative numbers and booleans through
+        raise PointCloudFormatError(f"not a valid .npy file (shape {shape})")
     if dtype.hasobject:
         raise InvalidPointsError("object arrays are refused (they would need pickle)")
     if dtype.names is not None:
         missing = [axis for axis in "xyz" if axis not in dtype.names]
         if missing:
             raise InvalidPointsError(f"structured array lacks fields {missing}")
-        return int(np.prod(shape))
+        several = [axis for axis in "xyz" if dtype[axis].shape != ()]
+        if several:
+            raise InvalidPointsError(f"structured fields {several} are arrays; x, y and z must be single numbers")
+        return math.prod(shape)
     if dtype.kind not in "fiu":
         raise InvalidPointsError(f"coordinates must be real numbers, got dtype {dtype} ({dtype.kind=})")
     if len(shape) == 3 and shape[0] == 1:
@@ -81,6 +116,15 @@ def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
     if len(shape) != 2 or shape[1] < 3:
         raise InvalidPointsError(f"expected shape [N, 3] (or [N, >3]: the first three columns), got {list(shape)}")
     return int(shape[0])
+
+
+def _bytes_left(f: BinaryIO, size: int | None) -> int:
+    position = f.tell()
+    if size is not None:
+        return size - position
+    end = f.seek(0, os.SEEK_END)
+    f.seek(position)
+    return end - position
 
 
 def _has_fileno(f: BinaryIO) -> bool:

@@ -2,33 +2,138 @@
 
 LAS stores integers with a scale and an offset, often UTM coordinates of millions of metres;
 they are returned in float64, unrounded (the registrar centres each cloud before its float32 stages).
+
+The counts of the header (VLRs, points, LAZ chunks) are checked against the file's size before
+``laspy`` loops over them or ``lazrs`` allocates them (``lazrs`` aborts the process when an
+allocation fails), and points are read in batches of at most :data:`BATCH_BYTES`. LAZ is decompressed
+by ``lazrs``'s sequential decompressor: the parallel one allocates a buffer of the LAZ VLR's chunk size
+(points) at once, whatever the file holds.
 """
 
 from __future__ import annotations
 
+import os
+import struct
 from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.checks import check_count, xyz_columns
+from service.formats.checks import check_count, checked
 from service.formats.deps import require
 from service.formats.errors import MissingReaderError, PointCloudFormatError
+
+VLR_HEADER_BYTES = 54
+BATCH_BYTES = 16 * 2**20
 
 
 def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
     laspy = require("laspy", "reading LAS/LAZ files")
+    start = f.tell()
+    size = f.seek(0, os.SEEK_END) - start
+    f.seek(start)
+    _check_header(f, size)
     try:
-        with laspy.open(f, closefd=False) as reader:
-            count = int(reader.header.point_count)
+        # read_evlrs=False: EVLRs are not used here, and laspy reads one per count, past the file's end; LAZ 1.4
+        # layers other than x, y, z are skipped unread (lazrs allocates each layer's declared size)
+        xyz = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
+        with laspy.open(f, closefd=False, read_evlrs=False, laz_backend=laspy.LazBackend.Lazrs,
+                        decompression_selection=xyz) as reader:
+            header = reader.header
+            count = int(header.point_count)
             check_count(count, max_points)
-            if reader.header.are_points_compressed and not laspy.LazBackend.detect_available():
-                raise MissingReaderError("reading LAZ files needs the 'lazrs' package, which is not installed: "
-                                         "pip install 'mfgnet[formats]'")
-            points = reader.read_points(count)
+            if header.are_points_compressed:
+                if not laspy.LazBackend.detect_available():
+                    raise MissingReaderError("reading LAZ files needs the 'lazrs' package, which is not installed: "
+                                             "pip install 'mfgnet[formats]'")
+                _check_laz_items(header)
+                _check_chunk_table(f, start + header.offset_to_point_data, start + size)
+            elif count * header.point_format.size > size - header.offset_to_point_data:
+                raise PointCloudFormatError(
+                    f"LAS header declares {count} points of {header.point_format.size} bytes; the file holds "
+                    f"{max(0, size - header.offset_to_point_data)} bytes of points"
+                )
+            batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
     except PointCloudFormatError:
         raise
     except Exception as exc:  # laspy's LaspyException, or what numpy and the LAZ backend raise on bad data
         raise PointCloudFormatError(f"corrupt LAS/LAZ data ({type(exc).__name__}: {exc})") from None
-    if len(points) != count:
-        raise PointCloudFormatError(f"LAS data holds {len(points)} points; the header says {count}")
-    return xyz_columns([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)])
+    except BaseException as exc:
+        if type(exc).__name__ != "PanicException":  # pyo3's, for a panic in lazrs: not an Exception
+            raise
+        raise PointCloudFormatError(f"corrupt LAS/LAZ data (lazrs panicked: {exc})") from None
+    read = sum(len(batch) for batch in batches)
+    if read != count:
+        raise PointCloudFormatError(f"LAS data holds {read} points; the header says {count}")
+    return checked(np.concatenate(batches) if batches else np.empty((0, 3)))
+
+
+def _read_xyz(reader, count: int, batch: int) -> list[np.ndarray]:
+    """float64 ``[n, 3]`` batches of scaled x, y, z, up to ``count`` points or the first short batch."""
+    batches: list[np.ndarray] = []
+    left = count
+    while left > 0:
+        wanted = min(batch, left)
+        points = reader.read_points(wanted)
+        if len(points):
+            batches.append(np.stack([np.asarray(points.x), np.asarray(points.y), np.asarray(points.z)], axis=1))
+        left -= len(points)
+        if len(points) < wanted:
+            break
+    return batches
+
+
+def _check_header(f: BinaryIO, size: int) -> None:
+    """The VLR count and the offset to the points within the file (laspy reads a VLR per count, past the end)."""
+    start = f.tell()
+    head = f.read(227)  # the fixed part of a LAS 1.0-1.2 header, the start of every version's
+    f.seek(start)
+    if len(head) < 227:
+        return  # laspy says what is missing
+    offset, vlrs = struct.unpack_from("<II", head, 96)
+    if offset > size:
+        raise PointCloudFormatError(f"LAS header puts the points at byte {offset}; the file has {size} bytes")
+    if vlrs * VLR_HEADER_BYTES > size:
+        raise PointCloudFormatError(f"LAS header declares {vlrs} VLRs; the file of {size} bytes cannot hold them")
+
+
+def _check_laz_items(header) -> None:
+    """The LAZ VLR's items add up to the header's point size (lazrs sizes its buffers from the items)."""
+    found = header.vlrs.get("LasZipVlr")
+    if not found:
+        return  # laspy says that it is missing
+    data = found[0].record_data
+    items = struct.unpack_from("<H", data, 32)[0] if len(data) >= 34 else 0
+    if len(data) < 34 + 6 * items:
+        raise PointCloudFormatError(f"LAZ VLR cut short ({len(data)} bytes)")
+    size = sum(struct.unpack_from("<H", data, 34 + 6 * item + 2)[0] for item in range(items))
+    if size != header.point_format.size:
+        raise PointCloudFormatError(f"LAZ VLR describes points of {size} bytes; the header says "
+                                    f"{header.point_format.size}")
+
+
+def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
+    """The LAZ chunk table's count of chunks fits between the points' start and the table (lazrs allocates
+    16 bytes per chunk before reading them, and aborts the process if that allocation fails)."""
+    position = f.tell()
+    try:
+        f.seek(data)
+        table = _int64(f.read(8))
+        if table == -1:  # written to a stream: the table's offset is in the file's last 8 bytes
+            f.seek(max(data, end - 8))
+            table = _int64(f.read(8))
+        if table is None or not 0 <= table <= end - 8:
+            return  # lazrs finds no table there and says so
+        f.seek(table)
+        chunks = struct.unpack("<II", f.read(8))[1]
+        room = max(0, table - data - 8)
+        if chunks > room:
+            raise PointCloudFormatError(
+                f"LAZ chunk table at byte {table} declares {chunks} chunks; {room} bytes of compressed points "
+                "cannot hold them"
+            )
+    finally:
+        f.seek(position)
+
+
+def _int64(raw: bytes) -> int | None:
+    return struct.unpack("<q", raw)[0] if len(raw) == 8 else None

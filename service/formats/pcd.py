@@ -1,11 +1,13 @@
 """PCD (ascii, binary, binary_compressed) with ``pypcd4``: the x, y, z fields.
 
-The header is parsed first (``pypcd4.MetaData``) so that the point count and the compressed
-block's declared size are checked before anything is allocated. Other fields are ignored.
+The header is parsed once, here (``pypcd4.MetaData``), so that the point count, the record type and the
+body's size (the compressed block's declared sizes) are checked before anything is allocated; ``pypcd4``
+then reads the data that follows it. Other fields are ignored.
 """
 
 from __future__ import annotations
 
+import os
 import struct
 from typing import BinaryIO
 
@@ -17,28 +19,31 @@ from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 MAX_HEADER_LINES = 64
 MAX_LINE_BYTES = 4096
+MAX_VALUES_PER_POINT = 4096  # the sum of COUNT; pypcd4 makes a record field of each value (SHOT1344 has 1353)
+LZF_MAX_RATIO = 88  # an LZF back reference of 3 bytes repeats at most 264
 
 
 def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     pypcd4 = require("pypcd4", "reading PCD files")
     require("lzf", "reading PCD files")  # pypcd4 imports it for binary_compressed
-    start = f.tell()
     meta = _metadata(pypcd4, f)
     check_count(meta.points, max_points)
     missing = [axis for axis in "xyz" if axis not in meta.fields]
     if missing:
         raise InvalidPointsError(f"PCD file lacks fields {missing}")
-    if meta.data == "binary_compressed":
-        _check_compressed_sizes(f, meta)
-    f.seek(start)
+    dtype = _record(meta)
+    several = [axis for axis in "xyz" if meta.count[meta.fields.index(axis)] != 1]
+    if several:
+        raise InvalidPointsError(f"PCD fields {several} have COUNT > 1; x, y and z must be single values")
+    _check_body(f, meta, dtype)
     try:
-        cloud = pypcd4.PointCloud.from_fileobj(f)
+        table = pypcd4.pypcd4._parse_pc_data(f, meta)  # the data after the header parsed above
     except Exception as exc:  # pypcd4 raises what numpy, struct and lzf raise on bad data
         raise PointCloudFormatError(f"corrupt PCD data ({type(exc).__name__}: {exc})") from None
-    table = np.atleast_1d(cloud.pc_data)
+    table = np.atleast_1d(table)
     if len(table) != meta.points:
         raise PointCloudFormatError(f"PCD data holds {len(table)} points; the header says {meta.points}")
-    return xyz_columns([np.asarray(table[axis]).reshape(len(table), -1)[:, 0] for axis in "xyz"])
+    return xyz_columns([np.asarray(table[axis]).reshape(-1) for axis in "xyz"])
 
 
 def _metadata(pypcd4, f: BinaryIO):
@@ -64,11 +69,42 @@ def _metadata(pypcd4, f: BinaryIO):
         raise PointCloudFormatError(f"invalid PCD header ({reason})") from None
 
 
-def _check_compressed_sizes(f: BinaryIO, meta) -> None:
+def _record(meta) -> np.dtype:
+    """The numpy record of a point, from FIELDS, SIZE, TYPE and COUNT, once they are known to agree."""
+    entries = {"FIELDS": meta.fields, "SIZE": meta.size, "TYPE": meta.type, "COUNT": meta.count}
+    if len({len(values) for values in entries.values()}) != 1:
+        sizes = ", ".join(f"{key} {len(values)}" for key, values in entries.items())
+        raise PointCloudFormatError(f"invalid PCD header (FIELDS, SIZE, TYPE and COUNT differ in length: {sizes})")
+    if sum(meta.count) > MAX_VALUES_PER_POINT:
+        raise PointCloudFormatError(
+            f"invalid PCD header (COUNT adds up to {sum(meta.count)} values per point; at most {MAX_VALUES_PER_POINT})"
+        )
+    try:
+        return meta.build_dtype()
+    except (KeyError, ValueError, TypeError) as exc:  # TYPE F SIZE 2; a field named twice
+        raise PointCloudFormatError(f"invalid PCD header (no record type for its fields: {exc!r})") from None
+
+
+def _check_body(f: BinaryIO, meta, dtype: np.dtype) -> None:
+    """The bytes after the header hold the points the header declares (checked before pypcd4 allocates them)."""
+    if meta.data == "ascii" or meta.points == 0:
+        return
+    start = f.tell()
+    body = f.seek(0, os.SEEK_END) - start
+    f.seek(start)
+    expected = meta.points * dtype.itemsize
+    if meta.data == "binary":
+        if body < expected:
+            raise PointCloudFormatError(f"PCD binary data holds {body} bytes; the header's {meta.points} points "
+                                        f"need {expected}")
+        return
     sizes = f.read(8)
+    f.seek(start)
     if len(sizes) != 8:
         raise PointCloudFormatError("PCD binary_compressed data cut short")
-    _, raw = struct.unpack("<II", sizes)
-    expected = meta.points * meta.build_dtype().itemsize
+    compressed, raw = struct.unpack("<II", sizes)
     if raw != expected:
         raise PointCloudFormatError(f"PCD binary_compressed block declares {raw} bytes; the fields need {expected}")
+    if compressed > body - 8 or raw > compressed * LZF_MAX_RATIO:
+        raise PointCloudFormatError(f"PCD binary_compressed block of {compressed} bytes (with {body - 8} in the "
+                                    f"file) cannot expand to the {raw} bytes it declares")

@@ -2,11 +2,15 @@
 
 Other vertex properties (colours, normals, intensity) and other elements (faces) are ignored.
 Binary files are memory-mapped by ``plyfile``, so the caller passes a real file (one with a
-``fileno``); triangle faces are mapped too, other faces are read row by row.
+``fileno``); triangle faces are mapped too, other faces are read row by row. The header is parsed
+from its first :data:`MAX_HEADER_BYTES` at most, and the rows every element declares are checked
+against the bytes after the header before ``plyfile`` allocates them.
 """
 
 from __future__ import annotations
 
+import io
+import os
 from typing import BinaryIO
 
 import numpy as np
@@ -15,13 +19,19 @@ from service.formats.checks import check_count, xyz_columns
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
+MAX_HEADER_BYTES = 256 * 1024  # plyfile parses a header one byte at a time (about 1.5 us a byte)
+
 
 def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
     plyfile = require("plyfile", "reading PLY files")
     start = f.tell()
+    head = io.BytesIO(f.read(MAX_HEADER_BYTES))
     try:
-        header = plyfile.PlyData._parse_header(f)  # the header only: the counts before any allocation
+        header = plyfile.PlyData._parse_header(head)  # the header only: the counts before any allocation
     except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as exc:
+        if len(head.getbuffer()) == MAX_HEADER_BYTES and "early end-of-file" in str(exc):
+            raise PointCloudFormatError(f"invalid PLY header (no end_header in its first {MAX_HEADER_BYTES} bytes)") \
+                from None
         raise PointCloudFormatError(f"invalid PLY header ({exc})") from None
     if "vertex" not in header:
         raise InvalidPointsError("PLY file has no vertex element")
@@ -33,6 +43,7 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
         raise InvalidPointsError(f"PLY vertex element lacks properties {missing}")
     if any(isinstance(kinds[axis], plyfile.PlyListProperty) for axis in "xyz"):
         raise InvalidPointsError("PLY vertex x, y, z must be scalar properties, not lists")
+    _check_rows_fit(plyfile, header, f.seek(0, os.SEEK_END) - start - head.tell())
     triangles = {element.name: {prop.name: 3 for prop in element.properties
                                 if isinstance(prop, plyfile.PlyListProperty)} for element in header}
     data = _read(plyfile, f, start, triangles)
@@ -40,6 +51,27 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
         return xyz_columns([np.asarray(data["vertex"][axis]) for axis in "xyz"])
     finally:
         del data
+
+
+def _check_rows_fit(plyfile, header, body: int) -> None:
+    """Refuse counts whose rows cannot fit in the ``body`` bytes after the header, before ``plyfile`` allocates
+    an array of each element's count: a row takes at least one byte, in ASCII one per property (a value), in
+    binary the sizes of its scalars and list lengths."""
+    need = 0
+    for element in header:
+        if element.count < 0:
+            raise PointCloudFormatError(f"invalid PLY header (element '{element.name}' has count {element.count})")
+        if header.text:
+            row = len(element.properties)
+        else:
+            row = sum(np.dtype(prop.list_dtype()[0] if isinstance(prop, plyfile.PlyListProperty) else prop.dtype())
+                      .itemsize for prop in element.properties)
+        need += element.count * max(1, row)
+        if need > body:
+            raise PointCloudFormatError(
+                f"PLY header declares {element.count} '{element.name}' rows: with the elements before them at least "
+                f"{need} bytes, but {body} bytes follow the header"
+            )
 
 
 def _read(plyfile, f: BinaryIO, start: int, known_list_len: dict):

@@ -1,0 +1,387 @@
+"""Malformed point-cloud files found by fuzzing the readers (``service.formats``): each gets the readers' own
+error (a 4xx over HTTP) naming the problem, never another exception (a 500), a hang, an allocation of what a
+header declares before the body is known to hold it, or an abort of the process (``lazrs``, in Rust, aborts
+when an allocation fails, so those files are read in a subprocess here)."""
+
+from __future__ import annotations
+
+import io
+import struct
+import subprocess
+import sys
+import tracemalloc
+import zipfile
+from pathlib import Path
+
+import laspy
+import numpy as np
+import plyfile
+import pypcd4
+import pytest
+
+from service.formats import InvalidPointsError, PointCloudFormatError, read_cloud, write_cloud
+
+REPO = Path(__file__).resolve().parents[2]
+LIMIT = 2_000_000  # the server's max_file_points
+LAS_VLR_HEADER = 54
+LAS12_HEADER, LAS14_HEADER = 227, 375
+
+
+def cloud(n: int = 24) -> np.ndarray:
+    return np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)  # [N, 3]
+
+
+def peak_bytes(read) -> int:
+    """Peak bytes traced (numpy arrays and Python buffers) while ``read()`` runs."""
+    tracemalloc.start()
+    try:
+        read()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+def read_in_subprocess(path: Path, memory_mib: int = 3000) -> subprocess.CompletedProcess:
+    """read_cloud(path) in a fresh interpreter limited to ``memory_mib`` of address space: prints the shape or the
+    error; a Rust allocation failure aborts it (return code -6)."""
+    script = (
+        "import resource, sys\n"
+        f"resource.setrlimit(resource.RLIMIT_AS, ({memory_mib} << 20, {memory_mib} << 20))\n"
+        "from service.formats import PointCloudFormatError, read_cloud\n"
+        "try:\n"
+        f"    print('points', read_cloud(sys.argv[1], max_points={LIMIT}).shape)\n"
+        "except PointCloudFormatError as exc:\n"
+        "    print('error', exc)\n"
+    )
+    return subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=120,
+                          cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+
+
+# --- PLY ---------------------------------------------------------------------------------------------------------
+
+def ply_bytes(xyz: np.ndarray, text: bool, extra: int = 0) -> bytes:
+    fields = [(axis, "f8") for axis in "xyz"] + [(f"p{i}", "f8") for i in range(extra)]
+    vertex = np.zeros(len(xyz), dtype=fields)
+    for axis, name in enumerate("xyz"):
+        vertex[name] = xyz[:, axis]
+    out = io.BytesIO()
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], text=text).write(out)
+    return out.getvalue()
+
+
+def test_ply_count_beyond_int64_is_a_format_error(tmp_path: Path) -> None:
+    """plyfile raised OverflowError (its element's len() cannot be that large)."""
+    write_cloud(tmp_path / "a.ply", cloud())
+    data = (tmp_path / "a.ply").read_bytes().replace(b"element vertex 24", f"element vertex {2**63}".encode())
+    (tmp_path / "big.ply").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match=f"declares {2**63} 'vertex' rows"):
+        read_cloud(tmp_path / "big.ply")
+
+
+def test_ply_huge_count_of_another_element_is_refused_before_allocating(tmp_path: Path) -> None:
+    """Only the vertex count was checked against max_points: an ASCII face count made plyfile allocate an array
+    of that many rows (MemoryError, a 500)."""
+    data = ply_bytes(cloud().astype(np.float64), text=True)
+    data = data.replace(b"end_header", b"element face 1000000000000000\nproperty list uchar int vertex_indices\n"
+                                       b"end_header")
+    (tmp_path / "a.ply").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match="declares 1000000000000000 'face' rows") as caught:
+        read_cloud(tmp_path / "a.ply", max_points=LIMIT)
+    assert str(caught.value).startswith("a.ply: ")
+
+
+def test_ply_vertex_count_within_the_limit_is_checked_against_the_body(tmp_path: Path) -> None:
+    """1,999,999 vertices of 13 doubles announced, 24 written: plyfile allocated the 208 MB before reading."""
+    data = ply_bytes(cloud().astype(np.float64), text=True, extra=10)
+    (tmp_path / "a.ply").write_bytes(data.replace(b"element vertex 24", b"element vertex 1999999"))
+
+    def read() -> None:
+        with pytest.raises(PointCloudFormatError, match="declares 1999999 'vertex' rows"):
+            read_cloud(tmp_path / "a.ply", max_points=LIMIT)
+
+    assert peak_bytes(read) < 16 << 20
+
+
+def test_ply_header_without_end_header_is_refused_after_its_first_256_kib(tmp_path: Path) -> None:
+    """plyfile parses a header a byte at a time: a 256 MiB upload of comment lines kept a worker busy for minutes."""
+    (tmp_path / "a.ply").write_bytes(b"ply\nformat ascii 1.0\n" + b"comment more\n" * 400_000)
+    with pytest.raises(PointCloudFormatError, match="no end_header in its first 262144 bytes"):
+        read_cloud(tmp_path / "a.ply")
+
+
+# --- PCD ---------------------------------------------------------------------------------------------------------
+
+PCD_HEADER = ("VERSION 0.7\nFIELDS {fields}\nSIZE {size}\nTYPE {type}\nCOUNT {count}\nWIDTH {points}\nHEIGHT 1\n"
+              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n")
+
+
+def pcd_header(points: int = 24, data: str = "ascii", fields: str = "x y z", size: str = "4 4 4",
+               type: str = "F F F", count: str = "1 1 1") -> bytes:
+    return PCD_HEADER.format(fields=fields, size=size, type=type, count=count, points=points, data=data).encode()
+
+
+def test_pcd_without_points_is_an_empty_cloud(tmp_path: Path) -> None:
+    """POINTS 0 raised numpy's ValueError (reshape of an empty table)."""
+    (tmp_path / "a.pcd").write_bytes(pcd_header(points=0))
+    with pytest.raises(InvalidPointsError, match="empty"):
+        read_cloud(tmp_path / "a.pcd")
+
+
+def test_pcd_xyz_with_count_above_one_is_refused(tmp_path: Path) -> None:
+    """COUNT 2 for x raised numpy's ValueError (pypcd4 names the values x__0000, x__0001)."""
+    rows = b"".join(b"%g %g %g %g\n" % (x, x, y, z) for x, y, z in cloud())
+    (tmp_path / "a.pcd").write_bytes(pcd_header(count="2 1 1") + rows)
+    with pytest.raises(InvalidPointsError, match=r"\['x'\] have COUNT > 1"):
+        read_cloud(tmp_path / "a.pcd")
+
+
+@pytest.mark.parametrize("entries", [
+    {"size": "2 2 2"},  # no 2-byte float: KeyError
+    {"size": "4 4"},  # fewer sizes than fields: IndexError
+    {"fields": "x y z x", "size": "4 4 4 4", "type": "F F F F", "count": "1 1 1 1"},  # numpy's ValueError
+], ids=["float16", "short_size", "field_twice"])
+def test_pcd_fields_without_a_record_type_are_a_header_error(tmp_path: Path, entries: dict) -> None:
+    """The binary_compressed size check built pypcd4's record type outside any error handling."""
+    (tmp_path / "a.pcd").write_bytes(pcd_header(data="binary_compressed", **entries) + bytes(8))
+    with pytest.raises(PointCloudFormatError, match="invalid PCD header"):
+        read_cloud(tmp_path / "a.pcd")
+
+
+def test_pcd_count_is_bounded_before_pypcd4_names_every_value(tmp_path: Path) -> None:
+    """pypcd4 makes a record field per value: COUNT 1 1 100000000 took minutes and gigabytes."""
+    (tmp_path / "a.pcd").write_bytes(pcd_header(count="1 1 300000") + b"1 2 3\n")
+    with pytest.raises(PointCloudFormatError, match="COUNT adds up to 300002 values per point"):
+        read_cloud(tmp_path / "a.pcd")
+
+
+def test_pcd_header_of_eleven_entries_reads(tmp_path: Path) -> None:
+    """pypcd4 stops at ten header lines: an eleventh (a repeated VERSION) left its DATA unread, the binary points
+    were taken for a compressed block and a 1 GB read was allocated."""
+    write_cloud(tmp_path / "a.pcd", cloud())
+    data = (tmp_path / "a.pcd").read_bytes().replace(b"VERSION 0.7\n", b"VERSION 0.7\nVERSION 0.7\n", 1)
+    (tmp_path / "b.pcd").write_bytes(data)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "b.pcd"), cloud())
+
+
+def test_pcd_binary_points_beyond_the_body_are_refused_before_reading(tmp_path: Path) -> None:
+    """POINTS 100,000,000 over 24 points of data: the file read allocated 1.2 GB first."""
+    write_cloud(tmp_path / "a.pcd", cloud())
+    data = (tmp_path / "a.pcd").read_bytes()
+    data = data.replace(b"WIDTH 24", b"WIDTH 100000000").replace(b"POINTS 24", b"POINTS 100000000")
+    (tmp_path / "b.pcd").write_bytes(data)
+
+    def read() -> None:
+        with pytest.raises(PointCloudFormatError, match="PCD binary data holds 288 bytes"):
+            read_cloud(tmp_path / "b.pcd")
+
+    assert peak_bytes(read) < 64 << 20
+
+
+def test_pcd_compressed_block_that_cannot_expand_to_its_size_is_refused(tmp_path: Path) -> None:
+    """A 4 GB block declared by a 400-byte file: lzf allocated its declared size before decompressing."""
+    path = tmp_path / "a.pcd"
+    points = np.ones((24, 3), dtype=np.float32)  # compressible: pypcd4 writes binary where LZF gains nothing
+    pypcd4.PointCloud.from_xyz_points(points).save(path, encoding=pypcd4.Encoding.BINARY_COMPRESSED)
+    data = path.read_bytes()
+    start = data.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
+    compressed = struct.unpack_from("<I", data, start)[0]
+    points = 357_913_941  # 12 bytes each: 4,294,967,292 bytes, the largest a block can declare
+    header = data[:start].replace(b"WIDTH 24", b"WIDTH %d" % points).replace(b"POINTS 24", b"POINTS %d" % points)
+    path.write_bytes(header + struct.pack("<II", compressed, points * 12) + data[start + 8:])
+    with pytest.raises(PointCloudFormatError, match="cannot expand to the 4294967292 bytes"):
+        read_cloud(path)
+
+
+# --- LAS / LAZ ---------------------------------------------------------------------------------------------------
+
+def las_bytes(version: str, point_format: int, compressed: bool, n: int = 24) -> bytearray:
+    header = laspy.LasHeader(point_format=point_format, version=version)
+    header.scales, header.offsets = [2.0**-10] * 3, [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud(n).astype(np.float64).T
+    out = io.BytesIO()
+    las.write(out, do_compress=compressed)
+    return bytearray(out.getvalue())
+
+
+def on_grid(xyz: np.ndarray) -> np.ndarray:
+    return np.round(xyz.astype(np.float64) * 1024) / 1024
+
+
+def test_las_vlr_count_beyond_the_file_is_refused(tmp_path: Path) -> None:
+    """laspy reads one VLR per count, past the end of the file: 4,294,967,295 of them took hours."""
+    data = las_bytes("1.2", 0, compressed=False)
+    struct.pack_into("<I", data, 100, 300_000)
+    (tmp_path / "a.las").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match="declares 300000 VLRs"):
+        read_cloud(tmp_path / "a.las")
+
+
+@pytest.mark.parametrize("compressed", [False, True], ids=["las", "laz"])
+def test_las14_evlr_count_is_not_read(tmp_path: Path, compressed: bool) -> None:
+    """The EVLRs (never used here) were read from their count and offset: one at offset 0 read the header as an
+    EVLR and allocated its length (MemoryError)."""
+    data = las_bytes("1.4", 6, compressed)
+    struct.pack_into("<I", data, 243, 1)  # number of EVLRs; the start of the first stays 0
+    (tmp_path / "a.las").write_bytes(data)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.las"), on_grid(cloud()))
+
+
+def test_las_point_count_beyond_the_body_is_refused_before_reading(tmp_path: Path) -> None:
+    """1,900,000 points (within max_points) announced over 24: laspy allocated 65 MB before reading."""
+    data = las_bytes("1.2", 3, compressed=False)
+    struct.pack_into("<I", data, 107, 1_900_000)  # legacy point count
+    (tmp_path / "a.las").write_bytes(data)
+
+    def read() -> None:
+        with pytest.raises(PointCloudFormatError, match="declares 1900000 points of 34 bytes"):
+            read_cloud(tmp_path / "a.las", max_points=LIMIT)
+
+    assert peak_bytes(read) < 16 << 20
+
+
+def test_laz_chunk_table_count_beyond_the_file_does_not_abort(tmp_path: Path) -> None:
+    """lazrs allocated 16 bytes per declared chunk: 4,294,967,295 chunks aborted the process (a server down)."""
+    data = las_bytes("1.2", 1, compressed=True)
+    points_at = struct.unpack_from("<I", data, 96)[0]
+    table = struct.unpack_from("<q", data, points_at)[0]
+    struct.pack_into("<I", data, table + 4, 0xFFFFFFFF)
+    (tmp_path / "a.laz").write_bytes(data)
+    out = read_in_subprocess(tmp_path / "a.laz")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("error a.laz: LAZ chunk table") and "4294967295 chunks" in out.stdout
+
+
+def test_laz_vlr_chunk_size_does_not_abort(tmp_path: Path) -> None:
+    """lazrs's parallel decompressor allocated the LAZ VLR's chunk size in points at once: 4,294,967,280 aborted
+    the process. The sequential one reads the 24 points."""
+    data = las_bytes("1.2", 1, compressed=True)
+    struct.pack_into("<I", data, LAS12_HEADER + LAS_VLR_HEADER + 12, 0xFFFFFFF0)
+    (tmp_path / "a.laz").write_bytes(data)
+    out = read_in_subprocess(tmp_path / "a.laz")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("points (24, 3)")
+
+
+def test_laz14_damage_in_a_layer_other_than_xyz_is_skipped(tmp_path: Path) -> None:
+    """A LAZ 1.4 chunk declares each layer's size: a 4 GB intensity layer was allocated (an abort under a memory
+    limit). Only the x, y and z layers are decompressed now."""
+    data = las_bytes("1.4", 6, compressed=True)
+    chunk = struct.unpack_from("<I", data, 96)[0] + 8  # after the chunk table's offset
+    struct.pack_into("<I", data, chunk + 30 + 4 + 4 * 4, 0xF0000000)  # first point, count, 4 layer sizes before
+    (tmp_path / "a.laz").write_bytes(data)
+    out = read_in_subprocess(tmp_path / "a.laz")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("points (24, 3)")
+
+
+def test_laz_vlr_items_must_make_the_header_point_size(tmp_path: Path) -> None:
+    """lazrs sizes its buffer from the VLR's items (up to 4 GB a point): 120,000 points with a damaged item
+    size allocated 3.7 GB."""
+    data = las_bytes("1.2", 1, compressed=True)
+    struct.pack_into("<H", data, LAS12_HEADER + LAS_VLR_HEADER + 34 + 2, 60_000)  # first item's size (was 20)
+    (tmp_path / "a.laz").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match="LAZ VLR describes points of 60008 bytes; the header says 28"):
+        read_cloud(tmp_path / "a.laz")
+
+
+def test_laz_panic_in_lazrs_is_a_format_error(tmp_path: Path) -> None:
+    """A GPS-time item typed as a point: lazrs panics, and pyo3's PanicException is no Exception."""
+    data = las_bytes("1.2", 1, compressed=True)
+    struct.pack_into("<H", data, LAS12_HEADER + LAS_VLR_HEADER + 34 + 6, 6)  # second item's type: 7 -> 6
+    (tmp_path / "a.laz").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match="lazrs panicked"):
+        read_cloud(tmp_path / "a.laz")
+
+
+# --- NPY / NPZ ---------------------------------------------------------------------------------------------------
+
+def npy_bytes(header: str, body: bytes = bytes(48)) -> bytes:
+    text = header.encode("latin1") + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + body
+
+
+@pytest.mark.parametrize("header", [
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3, }",  # tokenize.TokenError
+    "{[]: 1}",  # TypeError: unhashable
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3), 1: 1}",  # TypeError: keys sorted for the message
+    "{'descr': '<f4', 'fortran_order': False, 'shape': (True, 3)}",  # a bool passes numpy's check of the shape
+], ids=["unclosed", "list_key", "int_key", "bool_dim"])
+def test_npy_unreadable_header_is_a_format_error(tmp_path: Path, header: str) -> None:
+    (tmp_path / "a.npy").write_bytes(npy_bytes(header))
+    with pytest.raises(PointCloudFormatError, match=r"not a valid \.npy file"):
+        read_cloud(tmp_path / "a.npy")
+
+
+def test_npy_header_length_beyond_numpys_limit_is_refused_before_reading(tmp_path: Path) -> None:
+    """A version 2.0 header's length (4 bytes) of 4 GiB: numpy read that much before checking its 10,000-byte limit."""
+    (tmp_path / "a.npy").write_bytes(b"\x93NUMPY\x02\x00" + struct.pack("<I", 0xFFFFFFFF) + b"{}")
+
+    def read() -> None:
+        with pytest.raises(PointCloudFormatError, match="a header of 4294967295 bytes"):
+            read_cloud(tmp_path / "a.npy")
+
+    assert peak_bytes(read) < 64 << 20
+
+
+@pytest.mark.parametrize("shape", [
+    (2**62, 4),  # numpy's product of the shape wrapped to 0: ValueError from reshape
+    (1, 2**63 - 1),  # OverflowError
+    (5, 10**9),  # 5 rows: 40 GB allocated (MemoryError)
+], ids=["wraps", "overflows", "wide"])
+@pytest.mark.parametrize("container", ["npy", "npz"])
+def test_npy_shape_beyond_the_file_is_refused_before_reading(tmp_path: Path, shape: tuple, container: str) -> None:
+    data = npy_bytes(f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}")
+    if container == "npz":
+        out = io.BytesIO()
+        with zipfile.ZipFile(out, "w") as archive:
+            archive.writestr("points.npy", data)
+        data = out.getvalue()
+    (tmp_path / f"a.{container}").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match=r"truncated \.npy file: shape .* needs"):
+        read_cloud(tmp_path / f"a.{container}")  # no max_points (the CLI): 2**62 rows are not refused as too many
+
+
+@pytest.mark.parametrize("shapes", [((2,), (), ()), ((0,), (0,), (0,))], ids=["x_pair", "empty_fields"])
+def test_npy_structured_fields_must_be_single_numbers(tmp_path: Path, shapes: tuple) -> None:
+    """Array fields raised numpy's broadcast ValueError, or ZeroDivisionError for a record of 0 bytes."""
+    fields = [(axis, "<f4", shape) for axis, shape in zip("xyz", shapes, strict=True)]
+    np.save(tmp_path / "a.npy", np.zeros(5, dtype=fields))
+    for source in (tmp_path / "a.npy", (tmp_path / "a.npy").read_bytes()):
+        with pytest.raises(InvalidPointsError, match="x, y and z must be single numbers"):
+            read_cloud(source)
+
+
+def npz_member_bytes(compress: int) -> bytearray:
+    array = io.BytesIO()
+    np.save(array, cloud())
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", compress) as archive:
+        archive.writestr("points.npy", array.getvalue())
+    return bytearray(out.getvalue())
+
+
+def corrupt_npz(case: str) -> bytes:
+    data = npz_member_bytes(zipfile.ZIP_DEFLATED if case == "bad_deflate" else zipfile.ZIP_STORED)
+    central = data.rindex(b"PK\x01\x02")
+    if case == "bad_deflate":  # the first block of the member's deflate stream of the reserved type 3
+        name, extra = struct.unpack_from("<HH", data, 26)
+        data[30 + name + extra] = 0xFF
+    elif case == "unknown_method":  # NotImplementedError
+        struct.pack_into("<H", data, 8, 99)
+        struct.pack_into("<H", data, central + 10, 99)
+    elif case == "encrypted":  # RuntimeError: password required
+        struct.pack_into("<H", data, 6, 1)
+        struct.pack_into("<H", data, central + 8, 1)
+    else:  # the central directory's offset beyond the archive: ValueError, negative seek
+        struct.pack_into("<I", data, data.rindex(b"PK\x05\x06") + 16, 0xFFFFFFFF)
+    return bytes(data)
+
+
+@pytest.mark.parametrize("case", ["bad_deflate", "unknown_method", "encrypted", "directory_offset"])
+def test_npz_corrupt_or_unsupported_member_is_a_format_error(tmp_path: Path, case: str) -> None:
+    (tmp_path / "a.npz").write_bytes(corrupt_npz(case))
+    with pytest.raises(PointCloudFormatError, match=r"\.npz archive") as caught:
+        read_cloud((tmp_path / "a.npz").read_bytes(), name="a.npz")
+    assert str(caught.value).startswith("a.npz: ")
