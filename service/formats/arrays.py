@@ -17,6 +17,9 @@ from service.formats.checks import check_count, xyz_columns
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
+# Most bytes per point (16 float64 values: x, y, z and 13 more columns). It bounds what an .npz member, whose
+# compressed size says nothing of it, may decompress to: 2,000,000 points of 128 bytes are 256 MiB, the upload limit.
+MAX_ROW_BYTES = 128
 
 
 def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np.ndarray:
@@ -32,6 +35,10 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
     if needed > held:  # before numpy allocates the array
         raise PointCloudFormatError(f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, "
                                     f"{held} follow the header")
+    row_bytes = count * dtype.itemsize // rows if rows else 0
+    if row_bytes > MAX_ROW_BYTES:
+        raise InvalidPointsError(f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "
+                                 f"bytes per point, e.g. 16 float64 columns")
     try:
         array = np.fromfile(f, dtype=dtype, count=count) if _has_fileno(f) else _from_stream(f, dtype, count)
     except (OSError, ValueError) as exc:

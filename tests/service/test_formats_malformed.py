@@ -385,3 +385,26 @@ def test_npz_corrupt_or_unsupported_member_is_a_format_error(tmp_path: Path, cas
     with pytest.raises(PointCloudFormatError, match=r"\.npz archive") as caught:
         read_cloud((tmp_path / "a.npz").read_bytes(), name="a.npz")
     assert str(caught.value).startswith("a.npz: ")
+
+
+def test_npz_of_wide_rows_is_refused_before_decompressing(tmp_path: Path) -> None:
+    """A 125 kB archive of zeros shaped (4, 4,000,000) decompressed to 128 MB: the point limit bounds rows only."""
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
+        member = io.BytesIO()
+        np.save(member, np.zeros((4, 4_000_000)))
+        archive.writestr("points.npy", member.getvalue())
+    (tmp_path / "a.npz").write_bytes(out.getvalue())
+    assert (tmp_path / "a.npz").stat().st_size < 1 << 20
+
+    def read() -> None:
+        with pytest.raises(InvalidPointsError, match="at most 128 bytes per point"):
+            read_cloud(tmp_path / "a.npz", max_points=LIMIT)
+
+    assert peak_bytes(read) < 8 << 20
+
+
+def test_rows_up_to_16_float64_columns_are_read(tmp_path: Path) -> None:
+    table = np.random.default_rng(1).normal(size=(50, 16))  # x, y, z and 13 more columns
+    np.savez_compressed(tmp_path / "a.npz", points=table)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.npz"), table[:, :3])
