@@ -24,6 +24,10 @@ from service.formats.errors import MissingReaderError, PointCloudFormatError
 
 VLR_HEADER_BYTES = 54
 BATCH_BYTES = 16 * 2**20
+# LAZ 1.4 layered items (type -> layers per chunk; Byte14: one per extra byte). A chunk starts with its first point
+# raw, its point count and each layer's size (u32); Point14's first two layers are x/y (with returns, channel) and z.
+POINT14, LAYERS = 10, {10: 9, 11: 1, 12: 2, 13: 1}
+BYTE14 = 14
 
 
 def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -47,6 +51,7 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
                                              "pip install 'mfgnet[formats]'")
                 _check_laz_items(header)
                 _check_chunk_table(f, start + header.offset_to_point_data, start + size)
+                _check_xyz_layers(f, header, start + header.offset_to_point_data)
             elif count * header.point_format.size > size - header.offset_to_point_data:
                 raise PointCloudFormatError(
                     f"LAS header declares {count} points of {header.point_format.size} bytes; the file holds "
@@ -131,6 +136,44 @@ def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
                 f"LAZ chunk table at byte {table} declares {chunks} chunks; {room} bytes of compressed points "
                 "cannot hold them"
             )
+    finally:
+        f.seek(position)
+
+
+def _check_xyz_layers(f: BinaryIO, header, data: int) -> None:
+    """In a LAZ 1.4 file of layered chunks, the x/y and z layer sizes of every chunk fit in the chunk (lazrs allocates
+    them, zero-filled, before reading: 4 GB each from a damaged size). Other layers are skipped unread."""
+    lazrs = require("lazrs", "reading LAZ files")
+    record = header.vlrs.get("LasZipVlr")[0].record_data
+    items = [struct.unpack_from("<HHH", record, 34 + 6 * k) for k in range(struct.unpack_from("<H", record, 32)[0])]
+    if not items or items[0][0] != POINT14 or items[0][2] < 3 or any(
+            kind not in LAYERS and kind != BYTE14 for kind, _, _ in items):
+        return  # not layered (LAZ 1.0-1.3 items are read point by point)
+    layers = sum(LAYERS.get(kind, size) for kind, size, _ in items)  # Byte14: ``size`` layers
+    point = header.point_format.size
+    position = f.tell()
+    try:
+        f.seek(data)
+        try:
+            chunks = lazrs.read_chunk_table(f, lazrs.LazVlr(record))
+        except BaseException as exc:  # no readable table (pyo3's PanicException is no Exception): lazrs's reading
+            if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":  # says what is wrong
+                raise
+            return
+        if not chunks:
+            return
+        at = data + 8  # the chunks follow the chunk table's offset
+        for k, (_, length) in enumerate(chunks):
+            f.seek(at + point + 4)  # after the first point and the point count
+            raw = f.read(8)
+            if len(raw) < 8:
+                break  # lazrs says the chunk is cut short
+            xy, z = struct.unpack("<II", raw)
+            room = length - point - 4 - 4 * layers
+            if xy + z > room:
+                raise PointCloudFormatError(f"LAZ chunk {k} declares x, y and z layers of {xy + z} bytes; it holds "
+                                            f"{max(0, room)} bytes of layers")
+            at += length
     finally:
         f.seek(position)
 

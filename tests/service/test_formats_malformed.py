@@ -408,3 +408,28 @@ def test_rows_up_to_16_float64_columns_are_read(tmp_path: Path) -> None:
     table = np.random.default_rng(1).normal(size=(50, 16))  # x, y, z and 13 more columns
     np.savez_compressed(tmp_path / "a.npz", points=table)
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.npz"), table[:, :3])
+
+
+def test_laz14_xyz_layer_sizes_beyond_the_chunk_are_refused(tmp_path: Path) -> None:
+    """A LAZ 1.4 chunk declares its x/y and z layers' sizes: lazrs allocated and zero-filled a damaged 4 GB one
+    (seconds and gigabytes of memory) before finding the file short."""
+    data = las_bytes("1.4", 6, compressed=True)
+    chunk = struct.unpack_from("<I", data, 96)[0] + 8  # after the chunk table's offset
+    struct.pack_into("<I", data, chunk + 30 + 4, 0xF0000000)  # the first point, the count, then the x/y layer
+    (tmp_path / "a.laz").write_bytes(data)
+    out = read_in_subprocess(tmp_path / "a.laz", memory_mib=1000)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("error a.laz: LAZ chunk 0 declares x, y and z layers of"), out.stdout
+
+
+@pytest.mark.parametrize("point_format", [6, 7, 8])
+def test_laz14_of_several_chunks_reads_as_laspy_reads_it(tmp_path: Path, point_format: int) -> None:
+    points = np.random.default_rng(point_format).normal(scale=100.0, size=(120_000, 3))
+    header = laspy.LasHeader(point_format=point_format, version="1.4")
+    header.scales, header.offsets = [0.001] * 3, [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points.T
+    las.write(tmp_path / "a.laz", do_compress=True, laz_backend=laspy.LazBackend.Lazrs)  # chunks of 50,000 points
+    back = laspy.read(tmp_path / "a.laz")
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.laz"),
+                                  np.stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)], axis=1))
