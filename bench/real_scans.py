@@ -96,9 +96,8 @@ def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0,
     The rotations are drawn pair after pair from ``seed``: a pair's ``turned`` is the same whatever ``turns`` is, but
     ``turned-2`` onwards depend on ``turns``, and every rotation on which pairs are loaded (``names``): compare cases
     only between runs that loaded the same pairs with the same ``turns``."""
-    pairs = derived_pairs(directory) if derived else read_pairs(directory)
-    if names:
-        pairs = [p for p in pairs if p.name in names]
+    pairs = [p for p in derived_pairs(directory) if not names or p.name in names] if derived \
+        else read_pairs(directory, names)
     rng, more = np.random.default_rng(seed), np.random.default_rng([seed, 1])  # the first turns, the others
     cases = []
     for pair in pairs:

@@ -33,10 +33,12 @@ class ScanPair:
     src_to_tgt: np.ndarray  # [4, 4] float64
 
 
-def read_pairs(directory: Path) -> list[ScanPair]:
-    """Every ``*.npz`` pair of ``directory``, in file-name order."""
+def read_pairs(directory: Path, names: list[str] | None = None) -> list[ScanPair]:
+    """Every ``*.npz`` pair of ``directory`` (or only those whose file stem is in ``names``), in file-name order."""
     pairs = []
     for file in sorted(Path(directory).glob("*.npz")):
+        if names and file.stem not in names:
+            continue
         with np.load(file) as data:
             pairs.append(ScanPair(file.stem, str(data["sensor"]), data["source"].astype(np.float32),
                                   data["target"].astype(np.float32), data["transform"].astype(np.float64)))
