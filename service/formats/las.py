@@ -110,7 +110,7 @@ def _check_laz_items(header) -> None:
     items = struct.unpack_from("<H", data, 32)[0] if len(data) >= 34 else 0
     if len(data) < 34 + 6 * items:
         raise PointCloudFormatError(f"LAZ VLR cut short ({len(data)} bytes)")
-    size = sum(struct.unpack_from("<H", data, 34 + 6 * item + 2)[0] for item in range(items))
+    size = sum(size for _, size, _ in _laz_items(data))
     if size != header.point_format.size:
         raise PointCloudFormatError(f"LAZ VLR describes points of {size} bytes; the header says "
                                     f"{header.point_format.size}")
@@ -145,7 +145,7 @@ def _check_xyz_layers(f: BinaryIO, header, data: int) -> None:
     them, zero-filled, before reading: 4 GB each from a damaged size). Other layers are skipped unread."""
     lazrs = require("lazrs", "reading LAZ files")
     record = header.vlrs.get("LasZipVlr")[0].record_data
-    items = [struct.unpack_from("<HHH", record, 34 + 6 * k) for k in range(struct.unpack_from("<H", record, 32)[0])]
+    items = _laz_items(record)
     if not items or items[0][0] != POINT14 or items[0][2] < 3 or any(
             kind not in LAYERS and kind != BYTE14 for kind, _, _ in items):
         return  # not layered (LAZ 1.0-1.3 items are read point by point)
@@ -176,6 +176,11 @@ def _check_xyz_layers(f: BinaryIO, header, data: int) -> None:
             at += length
     finally:
         f.seek(position)
+
+
+def _laz_items(record: bytes) -> list[tuple[int, int, int]]:
+    """The LAZ VLR's items: (type, size, version) each (the VLR checked to hold them, :func:`_check_laz_items`)."""
+    return [struct.unpack_from("<HHH", record, 34 + 6 * k) for k in range(struct.unpack_from("<H", record, 32)[0])]
 
 
 def _int64(raw: bytes) -> int | None:
