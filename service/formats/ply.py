@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import os
+import warnings
 from typing import BinaryIO
 
 import numpy as np
@@ -67,7 +68,10 @@ def _ascii_vertices(f: BinaryIO, vertex) -> np.ndarray:
     columns = [names.index(axis) for axis in "xyz"]
     text = io.TextIOWrapper(f, encoding="ascii", errors="strict", newline=None)
     try:
-        table = np.loadtxt(text, dtype=np.float64, usecols=columns, max_rows=vertex.count, ndmin=2, comments=None)
+        with warnings.catch_warnings():  # numpy warns of blank lines (not counted as rows) and of no rows at all
+            warnings.simplefilter("ignore", UserWarning)
+            table = np.loadtxt(text, dtype=np.float64, usecols=columns, max_rows=vertex.count, ndmin=2,
+                               comments=None)
     except (ValueError, UnicodeDecodeError) as exc:
         raise PointCloudFormatError(f"corrupt PLY data ({exc})") from None
     finally:

@@ -3,13 +3,14 @@ value cast to its declared type as plyfile casts it; the result is plyfile's own
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import plyfile
 import pytest
 
-from service.formats import PointCloudFormatError, read_cloud
+from service.formats import InvalidPointsError, PointCloudFormatError, read_cloud
 
 HEADER = """ply
 format ascii 1.0
@@ -69,3 +70,15 @@ def test_a_file_whose_first_element_is_not_the_vertices_still_reads(tmp_path: Pa
         "element vertex 30", "element camera 1\nproperty float view_x\nelement vertex 30", 1)
     (tmp_path / "b.ply").write_text(text.replace("end_header\n", "end_header\n0.5\n", 1))
     np.testing.assert_array_equal(read_cloud(tmp_path / "b.ply"), read_cloud(tmp_path / "a.ply"))
+
+
+def test_blank_lines_are_skipped_and_no_rows_is_an_empty_cloud_without_warnings(tmp_path: Path) -> None:
+    head = ("ply\nformat ascii 1.0\nelement vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+            "end_header\n")
+    (tmp_path / "a.ply").write_text(head.format(n=2) + "1 2 3\n\n4 5 6\n")
+    (tmp_path / "b.ply").write_text(head.format(n=0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's loadtxt warns of both by default
+        np.testing.assert_array_equal(read_cloud(tmp_path / "a.ply"), [[1, 2, 3], [4, 5, 6]])
+        with pytest.raises(InvalidPointsError, match="the cloud is empty"):
+            read_cloud(tmp_path / "b.ply")
