@@ -82,3 +82,14 @@ def test_blank_lines_are_skipped_and_no_rows_is_an_empty_cloud_without_warnings(
         np.testing.assert_array_equal(read_cloud(tmp_path / "a.ply"), [[1, 2, 3], [4, 5, 6]])
         with pytest.raises(InvalidPointsError, match="the cloud is empty"):
             read_cloud(tmp_path / "b.ply")
+
+
+@pytest.mark.parametrize(("kind", "z"), [("int", "nan"), ("int", "1.5"), ("uchar", "300")])
+def test_an_integer_property_must_hold_integers_of_its_type(tmp_path: Path, kind: str, z: str) -> None:
+    """A cast of the parsed value would have made NaN, 1.5 or 300 some integer and read it as a coordinate."""
+    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                                    f"property {kind} z\nend_header\n1 2 {z}\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(PointCloudFormatError, match="vertex z values that are not"):
+            read_cloud(tmp_path / "a.ply")
