@@ -14,6 +14,7 @@ clouds in the same run::
     python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
     python -m bench.real_scans --no-fpfh --compare-root /tmp/before   # beside another checkout, taking turns
     python -m bench.real_scans --no-fpfh --offset 1000 -2000 500   # both clouds 2 km from their frames' origin
+    python -m bench.real_scans --start-near-truth 10 --options '{"rotation_search": false}'   # the speed bound
 
 Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
 given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
@@ -22,6 +23,10 @@ by case, so that a machine whose speed drifts between runs weighs on both alike,
 checkout's totals and this checkout's time over its. ``--offset X Y Z`` moves both clouds of every case by that
 vector before the upload (float32 rounds them there, as it would a map frame's coordinates); poses are judged in
 the clouds' own frames, so a rotation error about a far origin does not count as a translation error.
+``--start-near-truth DEG`` sends every request an ``initial_transform``: the true pose after the source is turned
+``DEG`` degrees about its centroid (a seeded axis per case). With the search off it times what a network right at any
+orientation would leave to do (sampling, the network from that start, the refinements, the checks): the bound on
+the end-to-end time of today's pipeline without the rotation search.
 """
 
 from __future__ import annotations
@@ -128,6 +133,22 @@ def pose_errors(rotation: np.ndarray, translation: np.ndarray, truth: np.ndarray
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))), float(np.linalg.norm(translation - truth[:3, 3]))
 
 
+def near_truth_starts(cases: list[Case], degrees: float, seed: int) -> list[np.ndarray]:
+    """Per case a ``[4, 4]`` ``src_to_tgt`` start ``degrees`` off the truth: the source turned about its centroid by
+    that angle (about a seeded uniform axis), then moved by the true pose; its centroid lands where the truth puts it.
+    """
+    rng = np.random.default_rng([seed, 2])
+    starts = []
+    for case in cases:
+        axis = rng.normal(size=3)
+        turn = Rotation.from_rotvec(np.radians(degrees) * axis / np.linalg.norm(axis)).as_matrix()  # [3, 3]
+        centre = case.source.mean(0, dtype=np.float64)  # [3]
+        turn_about_centre = np.eye(4)
+        turn_about_centre[:3, :3], turn_about_centre[:3, 3] = turn, centre - turn @ centre
+        starts.append(case.src_to_tgt @ turn_about_centre)
+    return starts
+
+
 def npy_bytes(points: np.ndarray) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, points.astype(np.float32, copy=False))
@@ -147,7 +168,8 @@ def register_http(client: httpx.Client, url: str, source: np.ndarray, target: np
         return {"status": response.status_code, "error": response.text[:200], "seconds": seconds}
     body = response.json()
     return {"rotation": np.asarray(body["rotation"]), "translation": np.asarray(body["translation"]),
-            "reliable": bool(body["quality"]["reliable"]), "warnings": body.get("warnings", []), "seconds": seconds}
+            "reliable": bool(body["quality"]["reliable"]), "warnings": body.get("warnings", []), "seconds": seconds,
+            "timing_ms": body.get("timing_ms", {})}
 
 
 def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -196,24 +218,28 @@ def judged(case: Case, rotation: np.ndarray | None, translation: np.ndarray | No
             "success": r_err < max_deg and t_err < max_t}
 
 
-def run_service(cases: list[Case], url: str, options: dict | None = None) -> list[dict]:
-    return run_services(cases, [url], options)[0]
+def run_service(cases: list[Case], url: str, options: dict | None = None,
+                starts: list[np.ndarray] | None = None) -> list[dict]:
+    return run_services(cases, [url], options, starts)[0]
 
 
-def run_services(cases: list[Case], urls: list[str], options: dict | None = None) -> list[list[dict]]:
+def run_services(cases: list[Case], urls: list[str], options: dict | None = None,
+                 starts: list[np.ndarray] | None = None) -> list[list[dict]]:
     """Every case on every server of ``urls``, the servers taking turns (their order flips from case to case): one
-    list of rows per server."""
+    list of rows per server. ``starts``: a ``[4, 4]`` ``initial_transform`` per case, sent with ``options``."""
     rows: list[list[dict]] = [[] for _ in urls]
     with ExitStack() as stack:
         clients = [stack.enter_context(httpx.Client(timeout=300)) for _ in urls]
         for client, url in zip(clients, urls, strict=True):
             register_http(client, url, cases[0].source, cases[0].target, options)  # warm-up, untimed
         for i, case in enumerate(cases):
+            sent = options if starts is None else {**(options or {}), "initial_transform": starts[i].tolist()}
             for k in range(len(urls)) if i % 2 == 0 else reversed(range(len(urls))):
-                out = register_http(clients[k], urls[k], case.source, case.target, options)
+                out = register_http(clients[k], urls[k], case.source, case.target, sent)
                 row = judged(case, out.get("rotation"), out.get("translation"))
                 row.update(seconds=round(out["seconds"], 4), reliable=out.get("reliable"),
-                           status=out.get("status", 200), warnings=out.get("warnings", []))
+                           status=out.get("status", 200), warnings=out.get("warnings", []),
+                           timing_ms={key: round(v, 1) for key, v in out.get("timing_ms", {}).items()})
                 rows[k].append(row)
     return rows
 
@@ -320,6 +346,9 @@ def main(argv: list[str] | None = None) -> dict:
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
     parser.add_argument("--offset", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="move both clouds of every case by this vector (the clouds' unit) before the upload")
+    parser.add_argument("--start-near-truth", type=float, metavar="DEG",
+                        help="send each request an initial_transform DEG degrees off the true pose (a seeded axis "
+                             "per case): with the search off, the time a network right at any orientation would leave")
     parser.add_argument("--compare-root", type=Path,
                         help="also serve this other checkout (its code and bundled models), taking turns case by case")
     parser.add_argument("--json", type=Path, help="write the report here")
@@ -331,22 +360,25 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"--turns must be at least 1, got {args.turns}")
     if args.compare_root and (args.url or args.model_dir):
         parser.error("--compare-root serves each checkout's own bundled models: not with --url or --model-dir")
+    if args.offset and args.start_near_truth is not None:
+        parser.error("--start-near-truth starts from the clouds' own frames: not with --offset")
     cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived)
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
                      + (f" named {args.pairs}" if args.pairs else ""))
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
+    starts = None if args.start_near_truth is None else near_truth_starts(cases, args.start_near_truth, args.seed)
     compared = None
     if args.url:
-        service = run_service(cases, args.url, args.options)
+        service = run_service(cases, args.url, args.options, starts)
     elif args.compare_root:
         with Server() as server, Server(cwd=str(args.compare_root)) as other:
-            service, compared = run_services(cases, [server.url, other.url], args.options)
+            service, compared = run_services(cases, [server.url, other.url], args.options, starts)
     else:
         dirs, name = (str(args.model_dir), args.model_dir.name) if args.model_dir else (None, None)
         with Server(model_dirs=dirs, default_model=name) as server:
-            service = run_service(cases, server.url, args.options)
+            service = run_service(cases, server.url, args.options, starts)
     fpfh = None if args.no_fpfh else run_fpfh(cases, args.seed)
     print_table(cases, service, fpfh)
     rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
@@ -354,6 +386,7 @@ def main(argv: list[str] | None = None) -> dict:
     report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "derived": args.derived,
               "options": args.options,
               "offset": args.offset,
+              "start_near_truth_deg": args.start_near_truth,
               "machine": machine_info(2),
               "totals": summarise(cases, service, fpfh), "pairs": rows}
     printed = {"totals": report["totals"]}

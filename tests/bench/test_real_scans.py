@@ -145,3 +145,38 @@ def test_compare_root_refuses_a_running_server(tmp_path, capsys):
     with pytest.raises(SystemExit):
         real_scans.main([str(tmp_path), "--no-fpfh", "--url", "http://127.0.0.1:9", "--compare-root", "."])
     assert "--compare-root serves each checkout's own bundled models" in capsys.readouterr().err
+
+
+def test_near_truth_starts_are_the_angle_off_and_keep_the_centroid():
+    rng = np.random.default_rng(5)
+    source = rng.normal(size=(60, 3)).astype(np.float32) + 3.0
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = Rotation.from_euler("yz", [70, -20], degrees=True).as_matrix(), [0.3, -1.0, 2.0]
+    cases = [real_scans.Case(f"p{i}", "cyberware-range", "scanned", 1.0, source, source, truth) for i in range(3)]
+    starts = real_scans.near_truth_starts(cases, 10.0, seed=0)
+    assert len(starts) == 3 and not np.allclose(starts[0], starts[1])  # a seeded axis per case
+    assert all(np.array_equal(a, b) for a, b in zip(starts, real_scans.near_truth_starts(cases, 10.0, 0), strict=True))
+    centre = source.mean(0, dtype=np.float64)
+    for start in starts:
+        degrees, _ = real_scans.pose_errors(start[:3, :3], start[:3, 3], truth)
+        assert degrees == pytest.approx(10.0, abs=1e-6)
+        np.testing.assert_allclose(start[:3, :3] @ centre + start[:3, 3], truth[:3, :3] @ centre + truth[:3, 3],
+                                   atol=1e-9)
+
+
+@needs_data
+def test_start_near_truth_is_sent_with_each_request():
+    common = [str(DATA), "--pairs", PAIR, "--no-fpfh", "--scales", "1", "--options", '{"rotation_search": false}']
+    started = real_scans.main([*common, "--start-near-truth", "10"])
+    plain = real_scans.main(common)
+    assert started["start_near_truth_deg"] == 10.0
+    turned_started, turned_plain = (next(r["service"] for r in report["pairs"] if r["variant"] == "turned")
+                                    for report in (started, plain))
+    assert turned_started["success"] and not turned_plain["success"]  # turned far: only the start brings it back
+    assert "search" not in turned_started["timing_ms"] and turned_started["timing_ms"]["total"] > 0
+
+
+def test_start_near_truth_refuses_an_offset(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        real_scans.main([str(tmp_path), "--no-fpfh", "--start-near-truth", "10", "--offset", "1", "2", "3"])
+    assert "--start-near-truth starts from the clouds' own frames" in capsys.readouterr().err

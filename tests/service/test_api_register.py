@@ -116,6 +116,20 @@ def test_icp_refinement_and_initial_transform_are_accepted(client):
     assert "refine" in response.json()["timing_ms"]
 
 
+def test_a_pose_printed_with_three_decimals_is_a_valid_initial_transform(client):
+    pair = modelnet_pair(1)
+    guess = np.eye(4)
+    guess[:3, :3], guess[:3, 3] = np.round(pair.rotation, 3), np.round(pair.translation, 3)  # not quite orthonormal
+    response = client.post("/v1/register", json=pair_json(pair, refine="icp-plane", initial_transform=guess.tolist()))
+    assert response.status_code == 200, response.text
+    rotation = np.asarray(response.json()["rotation"])
+    cos = (np.trace(rotation.T @ pair.rotation) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 1.0
+    scaled = np.diag([1.01, 1.01, 1.01, 1.0])
+    response = client.post("/v1/register", json=pair_json(pair, initial_transform=scaled.tolist()))
+    assert_error(response, 422, "initial_transform must be rigid", "off by 0.0201")
+
+
 @pytest.fixture(scope="session")
 def plane_refined(client) -> dict:
     """``/v1/register`` of seeded pair 1 with ``refine="icp-plane"`` (the reference for the other routes)."""

@@ -42,6 +42,28 @@ def test_validate_fills_in_the_model_defaults_the_guess_and_the_search_starts() 
     assert plain.hypotheses is None and np.array_equal(plain.R_init, np.eye(3)) and r.src.dtype == np.float64
 
 
+def test_validate_takes_a_printed_pose_as_its_nearest_rotation() -> None:
+    truth = Rotation.from_euler("zyx", [100, -35, 60], degrees=True).as_matrix()
+    printed = np.eye(4)
+    printed[:3, :3], printed[:3, 3] = np.round(truth, 3), [0.25, -1.5, 2.0]  # a pose written with three decimals
+    assert np.abs(printed[:3, :3] @ printed[:3, :3].T - np.eye(3)).max() > 1e-4  # not orthonormal as written
+    r = request(initial_transform=printed)
+    np.testing.assert_allclose(r.R_init @ r.R_init.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r.R_init) == pytest.approx(1.0) and np.abs(r.R_init - truth).max() < 1e-3
+    np.testing.assert_array_equal(r.t_init, printed[:3, 3])
+
+
+@pytest.mark.parametrize(("matrix", "message"), [
+    (np.diag([1.01, 1.01, 1.01, 1.0]), r"off by 0\.0201"),  # a scale of 1%
+    (np.diag([1.0, 1.0, -1.0, 1.0]), "det \\+1"),  # a reflection
+    (np.r_[np.c_[np.eye(3) + np.triu(np.full((3, 3), 0.01), 1), np.zeros(3)], [[0, 0, 0, 1]]], "off by 0.01"),  # shear
+])
+def test_validate_refuses_a_transform_that_is_not_rigid(matrix, message) -> None:
+    with pytest.raises(InputError, match="initial_transform must be rigid") as raised:
+        request(initial_transform=matrix)
+    assert raised.match(message)
+
+
 def test_sample_takes_working_rows_and_refinement_clouds() -> None:
     s = sample(request(working_size=256, refine="icp-plane"))
     assert (len(s.idx_s), len(s.idx_t)) == (256, 256) and s.tgt_r is s.tgt_w  # the refinement's: the working ones
