@@ -311,7 +311,11 @@ class Registrar:
             result = self.solve(work, request, request.hypotheses, timing)
         else:
             found = stages.network(self, work, request.iterations, request.keypoints, timing)
-            ahead = self.search_ahead(work, request, found) if mode == "auto" else None
+            doubtful = mode == "auto" and worth_searching_ahead(work, found)  # the plain pose overlays poorly
+            if doubtful and request.options.refine_mode != "none":  # a feature-matched candidate beside it
+                found = stages.features(self, work, found, request.iterations, request.keypoints, timing)
+            # the search ahead only where no feature candidate joined
+            ahead = self.search_ahead(work, request) if doubtful and len(found.poses) == 1 else None
             try:
                 result = self.solve(work, request, None, timing, found=found)
                 if mode == "auto":  # the search only when the plain result looks wrong
@@ -327,11 +331,11 @@ class Registrar:
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 
-    def search_ahead(self, work: Working, request: Request, found: Candidates) -> Speculation | None:
-        """The search of ``rotation_search="auto"`` started in a helper thread beside the plain pass, where the plain
-        network's pose ``found`` fits poorly (:func:`service.stages.search.worth_searching_ahead`) and a core is
-        free (:class:`service.speculation.Helpers`); else ``None``."""
-        if self.helpers is None or not worth_searching_ahead(work, found):
+    def search_ahead(self, work: Working, request: Request) -> Speculation | None:
+        """The search of ``rotation_search="auto"`` started in a helper thread beside the plain pass (where the plain
+        network's pose fits poorly, :func:`service.stages.search.worth_searching_ahead`), when a core is free
+        (:class:`service.speculation.Helpers`); else ``None``."""
+        if self.helpers is None:
             return None
         return self.helpers.start(
             lambda cancelled: self.solve(work, request, request.hypotheses, {}, cancelled=cancelled))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from service.stages.anchor import anchor
 from service.stages.assess import assess_result
+from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
 from service.stages.network import network
@@ -30,6 +31,7 @@ class Stages:
     sample: Callable = sample  # (Request) -> Sampled
     normalise: Callable = normalise  # (Sampled, reference_radius) -> Working
     network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates
+    features: Callable = feature_candidates  # (registrar, Working, Candidates, iterations, keypoints, timing) -> more
     search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing, points=None)
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
     slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined

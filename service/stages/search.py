@@ -71,13 +71,7 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
     tic = time.perf_counter()
     starts = plane_frame_starts(work) if short_icp else None
-    sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
-    subsample = registrar.manifest.search_subsample
-    if subsample and points:
-        subsample = (points, subsample[1])
-    if short_icp and subsample:  # the refinement restores the precision: search a subsample
-        sub_s, sub_t = (evenly_spaced_indices(len(c), subsample[0]) for c in (work.src_n, work.tgt_n))
-        keypoints = min(keypoints, subsample[1], len(sub_s), len(sub_t))
+    sub_s, sub_t, keypoints = search_rows(registrar, work, keypoints, short_icp, points)
     src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
     network = partial(registrar.start_network, target=registrar.embed_cloud(tgt_n))  # target embedded once
     timing["encoder"] = 1000 * (time.perf_counter() - tic)
@@ -91,6 +85,21 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     # with a refinement every distinct kept candidate is refined and the refined poses ranked again
     candidates = distinct_candidates(candidates) if short_icp else candidates[:1]
     return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])
+
+
+def search_rows(registrar: Registrar, work: Working, keypoints: int, short_icp: bool, points: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The rows of the working source and target ``([Ns'], [Nt'])`` the search runs the network on, and its keypoints:
+    with a refinement after it (``short_icp``) and a manifest ``search`` section, that many rows spread through each
+    cloud (``points`` instead, where given) and at most that many keypoints; else every row and ``keypoints``."""
+    sub_s, sub_t = np.arange(len(work.src_n)), np.arange(len(work.tgt_n))
+    subsample = registrar.manifest.search_subsample
+    if subsample and points:
+        subsample = (points, subsample[1])
+    if short_icp and subsample:  # the refinement restores the precision: search a subsample
+        sub_s, sub_t = (evenly_spaced_indices(len(c), subsample[0]) for c in (work.src_n, work.tgt_n))
+        keypoints = min(keypoints, subsample[1], len(sub_s), len(sub_t))
+    return sub_s, sub_t, keypoints
 
 
 def plane_frame_starts(work: Working, keep: int = SEARCH_KEEP) -> np.ndarray | None:

@@ -73,6 +73,18 @@ def asymmetric_blob(n: int, seed: int = 0) -> np.ndarray:
     return d * radius[:, None]
 
 
+def lumpy_sphere(n: int, seed: int = 0) -> np.ndarray:
+    """``(n, 3)`` float64 points on a unit sphere carrying 40 Gaussian lumps and dents (heights -0.15-0.15, widths
+    0.15-0.35) at fixed places: every patch looks different, as a scanned object's surface does (rotation-invariant
+    descriptors need that), and no rotation maps it onto itself. ``seed`` draws the points only."""
+    centres = unit_directions(np.random.default_rng(100), 40)  # [40, 3] the same lumps for every seed
+    heights = np.random.default_rng(101).uniform(-0.15, 0.15, 40)  # [40]
+    widths = np.random.default_rng(102).uniform(0.15, 0.35, 40)  # [40]
+    d = unit_directions(np.random.default_rng(seed), n)  # [n, 3]
+    radius = 1 + (heights * np.exp(-((d[:, None] - centres[None]) ** 2).sum(2) / widths**2)).sum(1)  # [n]
+    return d * radius[:, None]
+
+
 def bumpy_sphere(rng: np.random.Generator, n: int) -> np.ndarray:
     """``(n, 3)`` float64 points on a sphere with radial bumps ``0.25 sin 3θ cos 2φ + 0.1 cos 5θ``,
     squashed to semi-axes 1, 0.7, 0.5."""

@@ -1,0 +1,71 @@
+"""A coarse ``src_to_tgt`` pose at any orientation from matched local descriptors (:mod:`service.features`).
+
+Both clouds are reduced to the means of a common voxel grid and described; descriptors that are each other's nearest
+neighbour pair the points; triplets of pairs whose side lengths agree give candidate poses (RANSAC), and the pose that
+brings the most pairs within ``INLIER_VOXELS`` voxels of each other wins, refitted on those pairs. Its ``support``
+(that count) says how much of the surface agrees: a few pairs agree by chance, dozens do not.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.features import DESCRIBED_NEIGHBOURS, describe, voxel_means
+from service.procrustes import weighted_procrustes
+
+RADIUS_VOXELS = 5.0  # descriptor radius, in voxels
+INLIER_VOXELS = 2.0  # a pair agrees with a pose within this distance, in voxels
+TRIPLETS = 3000  # RANSAC samples (seeded: the same clouds give the same pose)
+SIDE_AGREEMENT = 0.9  # a triplet's sides in the two clouds within this ratio of each other
+MIN_SIDE_VOXELS = 2.0  # ... and none shorter than this (nearly coincident points fix no rotation)
+
+
+@dataclass(frozen=True)
+class FeaturePose:
+    """A coarse pose and how many matched pairs agree with it."""
+
+    rotation: np.ndarray  # [3, 3] src_to_tgt
+    translation: np.ndarray  # [3]
+    support: int  # matched pairs within INLIER_VOXELS voxels at this pose
+    matches: int  # mutual descriptor matches
+
+
+def mutual_matches(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``(i [C], j [C])`` of descriptors ``source [Ns, D]`` and ``target [Nt, D]`` that are each other's nearest
+    neighbour (squared Euclidean distance)."""
+    distance = (target * target).sum(axis=1)[None] - 2.0 * source @ target.T  # [Ns, Nt] up to a per-row constant
+    nearest_target = distance.argmin(axis=1)  # [Ns]
+    distance += (source * source).sum(axis=1)[:, None]
+    nearest_source = distance.argmin(axis=0)  # [Nt]
+    mutual = np.flatnonzero(nearest_source[nearest_target] == np.arange(len(source)))
+    return mutual, nearest_target[mutual]
+
+
+def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int = 0) -> FeaturePose | None:
+    """The coarse pose of ``source [N, 3]`` onto ``target [M, 3]`` on a grid of ``voxel`` edges, or ``None`` where
+    a reduced cloud is too small to describe or no triplet of matches agrees in shape."""
+    src, tgt = voxel_means(source, voxel), voxel_means(target, voxel)  # [Vs, 3], [Vt, 3]
+    if min(len(src), len(tgt)) <= DESCRIBED_NEIGHBOURS:
+        return None
+    radius = RADIUS_VOXELS * voxel
+    i, j = mutual_matches(describe(src, radius), describe(tgt, radius))
+    p, q = src[i], tgt[j]  # [C, 3] matched points
+    if len(p) < 3:
+        return None
+    triplets = np.random.default_rng(seed).integers(0, len(p), size=(TRIPLETS, 3))  # [H, 3]
+    p3, q3 = p[triplets], q[triplets]  # [H, 3, 3]
+    sides_p = np.linalg.norm(p3 - p3[:, [1, 2, 0]], axis=2)  # [H, 3]
+    sides_q = np.linalg.norm(q3 - q3[:, [1, 2, 0]], axis=2)
+    agree = ((np.minimum(sides_p, sides_q) > SIDE_AGREEMENT * np.maximum(sides_p, sides_q)).all(axis=1)
+             & (sides_p.min(axis=1) > MIN_SIDE_VOXELS * voxel))  # [H]
+    if not agree.any():
+        return None
+    R, t = weighted_procrustes(p3[agree], q3[agree])  # [H', 3, 3], [H', 3]
+    moved = np.einsum("hij,cj->hci", R.astype(np.float32), p.astype(np.float32)) + t[:, None].astype(np.float32)
+    within = ((moved - q.astype(np.float32)[None]) ** 2).sum(axis=2) < (INLIER_VOXELS * voxel) ** 2  # [H', C]
+    support = within.sum(axis=1)  # [H']
+    best = int(support.argmax())  # the first of equals: seeded, so repeatable
+    R1, t1 = weighted_procrustes(p[within[best]], q[within[best]])
+    return FeaturePose(R1, t1, int(support[best]), len(p))

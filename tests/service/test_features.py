@@ -1,0 +1,63 @@
+"""service.features and service.feature_match: rotation-invariant descriptors and the coarse pose they give."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from shapes import asymmetric_blob, lumpy_sphere
+
+from service.feature_match import feature_pose, mutual_matches
+from service.features import BINS, PAIR_FEATURES, describe, voxel_means
+
+
+def rotation_error_deg(R: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R.T @ truth) - 1) / 2, -1, 1))))
+
+
+def test_voxel_means_average_each_occupied_cell_whatever_the_order() -> None:
+    points = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.2, 0.1, 0.1], [0.2, 0.2, 0.2]])
+    means = voxel_means(points, 1.0)
+    np.testing.assert_allclose(means, [[0.2, 0.2, 0.2], [1.2, 0.1, 0.1]])
+    np.testing.assert_allclose(voxel_means(points[::-1], 1.0), means)
+
+
+def test_descriptors_do_not_change_when_the_cloud_turns_and_moves() -> None:
+    cloud = asymmetric_blob(1500, seed=1)
+    R = Rotation.from_euler("zyx", [150, -70, 40], degrees=True).as_matrix()
+    moved = cloud @ R.T + [3.0, -2.0, 5.0]
+    a, b = describe(cloud, 0.3), describe(moved, 0.3)
+    assert a.shape == (1500, PAIR_FEATURES * BINS) and a.dtype == np.float32
+    # sums per feature: each point's own histogram (1) plus its neighbours' weighted mean (1)
+    np.testing.assert_allclose(a.reshape(1500, PAIR_FEATURES, BINS).sum(axis=2), 2.0, atol=1e-5)
+    assert np.abs(a - b).max() < 0.05 and np.mean(np.abs(a - b) > 1e-4) < 0.01  # rounding moves a rare bin count
+    other = describe(asymmetric_blob(1500, seed=1) * [1.0, 1.0, 0.3], 0.3)  # another shape: other descriptors
+    assert np.abs(a - other).mean() > 10 * np.abs(a - b).mean()
+
+
+def test_mutual_matches_keep_the_pairs_that_choose_each_other() -> None:
+    source = np.array([[0.0, 0.0], [1.0, 0.0], [5.0, 5.0]], np.float32)
+    target = np.array([[1.1, 0.0], [0.1, 0.0], [0.2, 0.0]], np.float32)
+    i, j = mutual_matches(source, target)  # source 2's nearest is target 0, which prefers source 1
+    assert i.tolist() == [0, 1] and j.tolist() == [1, 0]
+
+
+@pytest.mark.parametrize("degrees", [30, 120, 179])
+def test_feature_pose_finds_a_turned_partial_view_of_another_sample(degrees: float) -> None:
+    source, target = lumpy_sphere(20_000, seed=1), lumpy_sphere(20_000, seed=2)  # two samples of one surface
+    source, target = source[source[:, 0] > -0.4], target[target[:, 0] < 0.4]  # overlapping parts of it
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    R, t = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix(), np.array([0.4, 1.0, -2.0])
+    turned = (source - t) @ R  # the source in a frame where src_to_tgt is (R, t)
+    pose = feature_pose(turned, target, voxel=0.08)
+    assert pose is not None and pose.support >= 15, pose
+    assert rotation_error_deg(pose.rotation, R) < 10.0 and np.linalg.norm(pose.translation - t) < 0.2
+    again = feature_pose(turned, target, voxel=0.08)  # seeded: the same clouds give the same pose
+    np.testing.assert_array_equal(again.rotation, pose.rotation)
+
+
+def test_feature_pose_gives_none_without_enough_to_describe_or_match() -> None:
+    cloud = asymmetric_blob(3000, seed=3)
+    assert feature_pose(cloud, cloud, voxel=1.0) is None  # a handful of cells: nothing to describe
+    tip = cloud[np.argsort(cloud[:, 0])[-30:]]  # 30 points: too few to describe on a fine grid as well
+    assert feature_pose(tip, cloud, voxel=0.01) is None

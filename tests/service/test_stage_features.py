@@ -1,0 +1,68 @@
+"""Stage features: a feature-matched candidate beside the plain network's, through the bundled `general` model."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from shapes import lumpy_sphere
+
+from service.manifest import bundled_models_dir
+from service.registrar import Registrar
+from service.stages.pipeline import Stages
+
+BUNDLED = bundled_models_dir() / "general"
+pytestmark = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'general' absent")
+AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+T_TRUE = np.array([0.4, 1.0, -2.0])
+
+
+def turned_pair(degrees: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Overlapping parts of two samples of one surface, the source turned ``degrees``: (source, target, R)."""
+    source, target = lumpy_sphere(20_000, seed=1), lumpy_sphere(20_000, seed=2)
+    source, target = source[source[:, 0] > -0.4], target[target[:, 0] < 0.4]
+    R = Rotation.from_rotvec(np.radians(degrees) * AXIS).as_matrix()
+    return (source - T_TRUE) @ R, target, R
+
+
+def rotation_error_deg(R: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R.T @ truth) - 1) / 2, -1, 1))))
+
+
+@pytest.fixture(scope="module")
+def registrar() -> Registrar:
+    return Registrar(BUNDLED, threads=1)
+
+
+def test_a_half_turned_scan_is_registered_from_its_feature_candidate_without_a_search(registrar) -> None:
+    source, target, R = turned_pair(150)
+    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert rotation_error_deg(result.rotation, R) < 1.0 and np.linalg.norm(result.translation - T_TRUE) < 0.02
+    assert "features" in result.timing_ms and "search" not in result.timing_ms
+    # the network's correspondences from the feature pose, as rows of the caller's clouds
+    assert len(result.source_index) == len(result.target_index) == len(result.credibility) > 0
+    assert result.source_index.max() < len(source) and result.target_index.max() < len(target)
+
+
+def test_without_the_stage_the_plain_pass_keeps_a_pose_half_a_turn_off(registrar) -> None:
+    plain_only = Registrar(BUNDLED, threads=1,
+                           stages=dataclasses.replace(Stages(), features=lambda registrar, work, found, *_: found))
+    source, target, R = turned_pair(150)
+    result = plain_only.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert "features" not in result.timing_ms
+    assert rotation_error_deg(result.rotation, R) > 90  # a near-sphere half a turn off fits well enough to keep
+
+
+def test_a_pose_the_network_gets_right_asks_for_no_features(registrar) -> None:
+    source, target, R = turned_pair(20)
+    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert rotation_error_deg(result.rotation, R) < 1.0 and "features" not in result.timing_ms
+
+
+@pytest.mark.parametrize("options", [{"refine": "none"}, {"rotation_search": False}, {"rotation_search": True}])
+def test_only_the_auto_search_with_a_refinement_tries_features(registrar, options) -> None:
+    source, target, _ = turned_pair(120)
+    result = registrar.register(source, target, **{"refine": "icp-plane", "rotation_search": "auto", **options})
+    assert "features" not in result.timing_ms
