@@ -66,3 +66,11 @@ def test_only_the_auto_search_with_a_refinement_tries_features(registrar, option
     source, target, _ = turned_pair(120)
     result = registrar.register(source, target, **{"refine": "icp-plane", "rotation_search": "auto", **options})
     assert "features" not in result.timing_ms
+
+
+def test_sparse_clouds_ask_for_no_features(registrar) -> None:
+    source, target, _ = turned_pair(150)
+    rows = np.random.default_rng(0)
+    sparse_s, sparse_t = (c[rows.choice(len(c), 2000, replace=False)] for c in (source, target))  # < 4 x 768
+    result = registrar.register(sparse_s, sparse_t, refine="icp-plane", rotation_search="auto")
+    assert "features" not in result.timing_ms
