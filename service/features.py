@@ -44,12 +44,15 @@ def describe(points: np.ndarray, radius: float) -> np.ndarray:
     centred = around - around.mean(axis=1, keepdims=True)
     normals = smallest_eigenvectors(np.einsum("nki,nkj->nij", centred, centred))[1]  # [N, 3]
     within = distance < radius  # [N, k]
-    direction = (points[neighbour] - points[:, None]) / np.maximum(distance[..., None], 1e-12)  # [N, k, 3]
+    # float32 from here: the features only choose histogram bins
+    offsets = (points[neighbour] - points[:, None]).astype(np.float32)  # [N, k, 3]
+    direction = offsets / np.maximum(distance[..., None], 1e-12).astype(np.float32)
+    normals = normals.astype(np.float32)
     their_normals = normals[neighbour]  # [N, k, 3]
     features = (
-        np.abs(np.einsum("nj,nkj->nk", normals, direction)),
-        np.abs(np.einsum("nkj,nkj->nk", their_normals, direction)),
-        np.abs(np.einsum("nj,nkj->nk", normals, their_normals)),
+        np.abs(direction @ normals[:, :, None])[..., 0],  # |n_p . d|
+        np.abs((their_normals * direction).sum(axis=2)),  # |n_q . d|
+        np.abs(their_normals @ normals[:, :, None])[..., 0],  # |n_p . n_q|
         distance / radius,
     )  # each [N, k], in [0, 1]
     width = PAIR_FEATURES * BINS
@@ -58,7 +61,7 @@ def describe(points: np.ndarray, radius: float) -> np.ndarray:
     for f, values in enumerate(features):
         bins = np.minimum((values * BINS).astype(np.int64), BINS - 1)  # [N, k]
         counts += np.bincount((rows + f * BINS + bins)[within], minlength=n * width)
-    own = counts.reshape(n, width) / np.maximum(within.sum(axis=1, keepdims=True), 1)  # [N, width]
+    own = (counts.reshape(n, width) / np.maximum(within.sum(axis=1, keepdims=True), 1)).astype(np.float32)
     weights = np.where(within, 1.0 / np.maximum(distance, 1e-12), 0.0)  # [N, k]
-    weights /= np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)
-    return (own + np.einsum("nk,nkd->nd", weights, own[neighbour])).astype(np.float32)
+    weights = (weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)
+    return own + (weights[:, None, :] @ own[neighbour])[:, 0]  # [N, width]

@@ -21,7 +21,7 @@ from service.kdtree import KDTree
 from service.rotation_search import SearchCandidate, network_from
 from service.stages.network import Candidates
 from service.stages.normalise import Working
-from service.stages.search import search_rows
+from service.stages.search import plane_frames_on_the_surface, search_rows
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -46,10 +46,13 @@ def feature_voxel(work: Working) -> float:
 def feature_candidates(registrar: Registrar, work: Working, found: Candidates, iterations: int, keypoints: int,
                        timing: dict[str, float]) -> Candidates:
     """``found`` (the plain network's candidate) and, where both entered clouds hold ``DENSITY`` times the working
-    size and ``MIN_SUPPORT`` matched pairs agree with it, the feature pose of the entered clouds (in the initial guess's
+    size, they are not rooms (:func:`service.stages.search.plane_frames_on_the_surface`: searched in any case) and
+    ``MIN_SUPPORT`` matched pairs agree with it, the feature pose of the entered clouds (in the initial guess's
     frame), normalised, with the network's output from its rotation on the search's rows (its correspondences, should
     it win; remapped to the working rows). Records ``timing["features"]`` where it computed descriptors."""
     if min(len(work.src_e), len(work.tgt_e)) < DENSITY * max(len(work.src_w), len(work.tgt_w)):
+        return found
+    if plane_frames_on_the_surface(work):  # rooms: auto searches their plane frames whatever the plain pass gives
         return found
     started = time.perf_counter()
     source = work.src_e @ work.R_init.T + work.t_init  # [Ne, 3] the entered source after the initial guess
