@@ -20,6 +20,10 @@ INLIER_VOXELS = 2.0  # a pair agrees with a pose within this distance, in voxels
 TRIPLETS = 3000  # RANSAC samples (seeded: the same clouds give the same pose)
 SIDE_AGREEMENT = 0.9  # a triplet's sides in the two clouds within this ratio of each other
 MIN_SIDE_VOXELS = 2.0  # ... and none shorter than this (nearly coincident points fix no rotation)
+# At most this many cells per reduced cloud (the grid coarsened until both fit): the descriptor distances take
+# 4 * MAX_CELLS**2 bytes. The real-scan set's clouds reduce to at most 1,700 cells on the working spacing.
+MAX_CELLS = 4000
+SCORED_AT_ONCE = 500  # RANSAC poses scored per batch ([SCORED_AT_ONCE, C, 3] float32)
 
 
 @dataclass(frozen=True)
@@ -47,6 +51,9 @@ def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int
     """The coarse pose of ``source [N, 3]`` onto ``target [M, 3]`` on a grid of ``voxel`` edges, or ``None`` where
     a reduced cloud is too small to describe or no triplet of matches agrees in shape."""
     src, tgt = voxel_means(source, voxel), voxel_means(target, voxel)  # [Vs, 3], [Vt, 3]
+    while max(len(src), len(tgt)) > MAX_CELLS:  # bounded memory: a coarser grid
+        voxel *= 1.1 * np.sqrt(max(len(src), len(tgt)) / MAX_CELLS)
+        src, tgt = voxel_means(source, voxel), voxel_means(target, voxel)
     if min(len(src), len(tgt)) <= DESCRIBED_NEIGHBOURS:
         return None
     radius = RADIUS_VOXELS * voxel
@@ -63,9 +70,16 @@ def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int
     if not agree.any():
         return None
     R, t = weighted_procrustes(p3[agree], q3[agree])  # [H', 3, 3], [H', 3]
-    moved = np.einsum("hij,cj->hci", R.astype(np.float32), p.astype(np.float32)) + t[:, None].astype(np.float32)
-    within = ((moved - q.astype(np.float32)[None]) ** 2).sum(axis=2) < (INLIER_VOXELS * voxel) ** 2  # [H', C]
-    support = within.sum(axis=1)  # [H']
+    support = np.concatenate([agreeing(R[k:k + SCORED_AT_ONCE], t[k:k + SCORED_AT_ONCE], p, q, INLIER_VOXELS * voxel)
+                              .sum(axis=1) for k in range(0, len(R), SCORED_AT_ONCE)])  # [H']
     best = int(support.argmax())  # the first of equals: seeded, so repeatable
-    R1, t1 = weighted_procrustes(p[within[best]], q[within[best]])
+    kept = agreeing(R[best:best + 1], t[best:best + 1], p, q, INLIER_VOXELS * voxel)[0]  # [C]
+    R1, t1 = weighted_procrustes(p[kept], q[kept])
     return FeaturePose(R1, t1, int(support[best]), len(p))
+
+
+def agreeing(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, distance: float) -> np.ndarray:
+    """``[H, C]`` bool: which matched pairs ``p [C, 3] -> q [C, 3]`` lie within ``distance`` of each other at each of
+    the poses ``R [H, 3, 3]``, ``t [H, 3]`` (float32)."""
+    moved = np.einsum("hij,cj->hci", R.astype(np.float32), p.astype(np.float32)) + t[:, None].astype(np.float32)
+    return ((moved - q.astype(np.float32)[None]) ** 2).sum(axis=2) < distance**2

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, lumpy_sphere
 
-from service.feature_match import feature_pose, mutual_matches
+from service.feature_match import MAX_CELLS, feature_pose, mutual_matches
 from service.features import BINS, PAIR_FEATURES, describe, voxel_means
 
 
@@ -61,3 +61,11 @@ def test_feature_pose_gives_none_without_enough_to_describe_or_match() -> None:
     assert feature_pose(cloud, cloud, voxel=1.0) is None  # a handful of cells: nothing to describe
     tip = cloud[np.argsort(cloud[:, 0])[-30:]]  # 30 points: too few to describe on a fine grid as well
     assert feature_pose(tip, cloud, voxel=0.01) is None
+
+
+def test_a_grid_too_fine_for_the_clouds_is_coarsened_to_bounded_cells() -> None:
+    source, target = lumpy_sphere(30_000, seed=1), lumpy_sphere(30_000, seed=2)
+    assert len(voxel_means(source, 0.005)) > MAX_CELLS  # every point its own cell
+    pose = feature_pose(source, target, voxel=0.005)  # the same surface, not moved
+    assert pose is not None and pose.matches <= MAX_CELLS
+    assert rotation_error_deg(pose.rotation, np.eye(3)) < 10.0
