@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tracemalloc
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -69,3 +71,16 @@ def test_a_grid_too_fine_for_the_clouds_is_coarsened_to_bounded_cells() -> None:
     pose = feature_pose(source, target, voxel=0.005)  # the same surface, not moved
     assert pose is not None and pose.matches <= MAX_CELLS
     assert rotation_error_deg(pose.rotation, np.eye(3)) < 10.0
+
+
+def test_the_largest_entered_clouds_need_bounded_memory() -> None:
+    """Two 100,000-point clouds (the entry reduction's size) on a grid far too fine: the grid is coarsened to
+    ``MAX_CELLS`` cells, and the descriptors, matches and RANSAC stay within a few hundred MiB."""
+    source, target = lumpy_sphere(100_000, seed=1), lumpy_sphere(100_000, seed=2)
+    tracemalloc.start()
+    try:
+        pose = feature_pose(source, target, voxel=0.001)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert pose is not None and peak < 256 * 2**20, peak
