@@ -49,7 +49,10 @@ def mutual_matches(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, 
 
 def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int = 0) -> FeaturePose | None:
     """The coarse pose of ``source [N, 3]`` onto ``target [M, 3]`` on a grid of ``voxel`` edges, or ``None`` where
-    a reduced cloud is too small to describe or no triplet of matches agrees in shape."""
+    the grid has no positive size, a reduced cloud is too small to describe or no triplet of matches agrees in
+    shape."""
+    if not (np.isfinite(voxel) and voxel > 0):
+        return None
     src, tgt = voxel_means(source, voxel), voxel_means(target, voxel)  # [Vs, 3], [Vt, 3]
     while max(len(src), len(tgt)) > MAX_CELLS:  # bounded memory: a coarser grid
         voxel *= 1.1 * np.sqrt(max(len(src), len(tgt)) / MAX_CELLS)
