@@ -11,10 +11,7 @@ from shapes import asymmetric_blob, lumpy_sphere
 
 from service.feature_match import MAX_CELLS, feature_pose, mutual_matches
 from service.features import BINS, PAIR_FEATURES, describe, voxel_means
-
-
-def rotation_error_deg(R: np.ndarray, truth: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R.T @ truth) - 1) / 2, -1, 1))))
+from service.rotation_search import rotation_between_deg
 
 
 def test_voxel_means_average_each_occupied_cell_whatever_the_order() -> None:
@@ -53,7 +50,7 @@ def test_feature_pose_finds_a_turned_partial_view_of_another_sample(degrees: flo
     turned = (source - t) @ R  # the source in a frame where src_to_tgt is (R, t)
     pose = feature_pose(turned, target, voxel=0.08)
     assert pose is not None and pose.support >= 15, pose
-    assert rotation_error_deg(pose.rotation, R) < 10.0 and np.linalg.norm(pose.translation - t) < 0.2
+    assert rotation_between_deg(pose.rotation, R) < 10.0 and np.linalg.norm(pose.translation - t) < 0.2
     again = feature_pose(turned, target, voxel=0.08)  # seeded: the same clouds give the same pose
     np.testing.assert_array_equal(again.rotation, pose.rotation)
 
@@ -70,7 +67,7 @@ def test_a_grid_too_fine_for_the_clouds_is_coarsened_to_bounded_cells() -> None:
     assert len(voxel_means(source, 0.005)) > MAX_CELLS  # every point its own cell
     pose = feature_pose(source, target, voxel=0.005)  # the same surface, not moved
     assert pose is not None and pose.matches <= MAX_CELLS
-    assert rotation_error_deg(pose.rotation, np.eye(3)) < 10.0
+    assert rotation_between_deg(pose.rotation, np.eye(3)) < 10.0
 
 
 def test_the_largest_entered_clouds_need_bounded_memory() -> None:

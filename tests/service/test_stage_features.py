@@ -11,6 +11,7 @@ from shapes import lumpy_sphere
 
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
+from service.rotation_search import rotation_between_deg
 from service.stages.pipeline import Stages
 
 BUNDLED = bundled_models_dir() / "general"
@@ -27,9 +28,6 @@ def turned_pair(degrees: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return (source - T_TRUE) @ R, target, R
 
 
-def rotation_error_deg(R: np.ndarray, truth: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R.T @ truth) - 1) / 2, -1, 1))))
-
 
 @pytest.fixture(scope="module")
 def registrar() -> Registrar:
@@ -39,7 +37,7 @@ def registrar() -> Registrar:
 def test_a_half_turned_scan_is_registered_from_its_feature_candidate_without_a_search(registrar) -> None:
     source, target, R = turned_pair(150)
     result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
-    assert rotation_error_deg(result.rotation, R) < 1.0 and np.linalg.norm(result.translation - T_TRUE) < 0.02
+    assert rotation_between_deg(result.rotation, R) < 1.0 and np.linalg.norm(result.translation - T_TRUE) < 0.02
     assert "features" in result.timing_ms and "search" not in result.timing_ms
     # the network's correspondences from the feature pose, as rows of the caller's clouds
     assert len(result.source_index) == len(result.target_index) == len(result.credibility) > 0
@@ -52,13 +50,13 @@ def test_without_the_stage_the_plain_pass_keeps_a_pose_half_a_turn_off(registrar
     source, target, R = turned_pair(150)
     result = plain_only.register(source, target, refine="icp-plane", rotation_search="auto")
     assert "features" not in result.timing_ms
-    assert rotation_error_deg(result.rotation, R) > 90  # a near-sphere half a turn off fits well enough to keep
+    assert rotation_between_deg(result.rotation, R) > 90  # a near-sphere half a turn off fits well enough to keep
 
 
 def test_a_pose_the_network_gets_right_asks_for_no_features(registrar) -> None:
     source, target, R = turned_pair(20)
     result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
-    assert rotation_error_deg(result.rotation, R) < 1.0 and "features" not in result.timing_ms
+    assert rotation_between_deg(result.rotation, R) < 1.0 and "features" not in result.timing_ms
 
 
 @pytest.mark.parametrize("options", [{"refine": "none"}, {"rotation_search": False}, {"rotation_search": True}])
