@@ -131,19 +131,28 @@ def share_on_surface(distances: np.ndarray, inlier_distance: float) -> float:
     return float(np.count_nonzero(distances <= inlier_distance) / within) if within else 0.0
 
 
-def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTree | None = None) -> float:
+def nearest_other_distances(points: np.ndarray, tree: KDTree | None = None) -> np.ndarray:
+    """``[M]`` float64: each of ``points [M, 3]``'s distance to its nearest other point (``M >= 2``). ``tree``:
+    ``KDTree(points)`` when the caller has it."""
+    points = np.asarray(points, dtype=np.float64)
+    return (KDTree(points) if tree is None else tree).query(points, k=2)[0][:, 1]  # [:, 0] is the point itself
+
+
+def attainable_inlier_ratio(tgt: np.ndarray, inlier_distance: float, tree: KDTree | None = None,
+                            nearest_other: np.ndarray | None = None) -> float:
     """Share of the points of ``tgt (M, 3)`` whose nearest other target point lies within ``inlier_distance``.
 
     About the inlier ratio a right pose reaches when the source samples the same surface independently
     at the target's density: a source point then lies about as far from its nearest target point as
     target points lie from each other. On sparse clouds it is well below 1 (median 0.63 on the 384-point
     test pairs at the quality distance, 0.94 on the 768-point ones), which is why a fixed inlier-ratio
-    threshold cannot judge them. 1.0 for fewer than two points. ``tree``: ``KDTree(tgt)`` when the caller has it.
+    threshold cannot judge them. 1.0 for fewer than two points. ``tree``: ``KDTree(tgt)`` when the caller has it;
+    ``nearest_other``: :func:`nearest_other_distances` of ``tgt`` when the caller has them.
     """
-    tgt = np.asarray(tgt, dtype=np.float64)
     if len(tgt) < 2:
         return 1.0
-    nearest_other = (KDTree(tgt) if tree is None else tree).query(tgt, k=2)[0][:, 1]  # [M]; [:, 0] is the point
+    if nearest_other is None:
+        nearest_other = nearest_other_distances(tgt, tree)  # [M]
     return float(np.mean(nearest_other <= inlier_distance))
 
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from service.feature_match import feature_pose
-from service.kdtree import KDTree
+from service.quality import nearest_other_distances
 from service.rotation_search import SearchCandidate, network_from
 from service.stages.network import Candidates
 from service.stages.normalise import Working
@@ -39,8 +39,7 @@ def feature_voxel(work: Working) -> float:
     """The grid the descriptors are computed on (caller's units): the larger of the two working clouds' median
     nearest-neighbour spacings. The working clouds are spread samples of a fixed size, so the coarser surface gets
     about that many cells and the other no more."""
-    spacing = [float(np.median(KDTree(c).query(c, k=2)[0][:, 1])) for c in (work.src_w, work.tgt_w)]
-    return max(spacing)
+    return float(max(np.median(nearest_other_distances(work.src_w)), np.median(work.target_spacings)))
 
 
 def feature_candidates(registrar: Registrar, work: Working, found: Candidates, iterations: int, keypoints: int,

@@ -12,7 +12,7 @@ from service.kdtree import KDTree
 from service.normalization import Normalization
 from service.plane_frames import frame_rotations
 from service.procrustes import compose
-from service.quality import attainable_inlier_ratio, attainable_on_surface, degenerate
+from service.quality import attainable_inlier_ratio, attainable_on_surface, degenerate, nearest_other_distances
 from service.sampling import hashed_indices
 from service.stages.sample import Sampled
 
@@ -54,10 +54,18 @@ class Working(Sampled):
         return not (degenerate(self.src_w) or degenerate(self.tgt_w))
 
     @cached_property
+    def target_spacings(self) -> np.ndarray:
+        """``[Nt]`` each working target point's distance to its nearest other one
+        (:func:`service.quality.nearest_other_distances`; needs ``Nt >= 2``), measured once per registration."""
+        return nearest_other_distances(self.tgt_w)
+
+    @cached_property
     def attainable_ratio(self) -> float:
         """The inlier ratio a right pose can reach at the working target's density
         (:func:`service.quality.attainable_inlier_ratio`), computed once per registration."""
-        return attainable_inlier_ratio(self.tgt_w, self.inlier_distance)
+        if len(self.tgt_w) < 2:
+            return 1.0
+        return attainable_inlier_ratio(self.tgt_w, self.inlier_distance, nearest_other=self.target_spacings)
 
     @cached_property
     def surface_attainable_ratio(self) -> float:
