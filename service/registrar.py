@@ -38,6 +38,7 @@ from service.options import (
 from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
+from service.stages.features import feature_confirmed
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
@@ -321,7 +322,8 @@ class Registrar:
                 if mode == "auto":  # the search only when the plain result looks wrong
                     solve = searched_ahead(partial(self.solve, work, request), ahead)
                     result = stages.auto_search(solve, work, result, request.hypotheses, timing,
-                                                retry_points(self.manifest.search_subsample))
+                                                retry_points(self.manifest.search_subsample),
+                                                confirmed=feature_confirmed(work, found, result))
             finally:
                 if ahead is not None:
                     ahead.cancel()  # no-op when its result was taken

@@ -18,13 +18,14 @@ import numpy as np
 
 from service.feature_match import feature_pose
 from service.quality import nearest_other_distances
-from service.rotation_search import SearchCandidate, network_from
+from service.rotation_search import SearchCandidate, network_from, rotation_between_deg
 from service.stages.network import Candidates
-from service.stages.normalise import Working
+from service.stages.normalise import Working, to_caller
 from service.stages.search import plane_frames_on_the_surface, search_rows
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
+    from service.result import RegistrationResult
 
 # Descriptors need a densely sampled surface: both entered clouds must hold at least this many times the working
 # size. Scans do (15,000-65,000 points against 768 in the real-scan set); the ModelNet40 pairs (512-2,048 points) do
@@ -33,6 +34,9 @@ DENSITY = 4
 # A feature pose becomes a candidate when at least this many matched pairs agree with it. On the 36 one-turn real
 # cases the poses within 15 deg of the truth had 25-208 agreeing pairs but one (13), the others 6-18.
 MIN_SUPPORT = 15
+# A refined result within this angle of the feature pose lies in its basin (the feature poses are coarse: the refined
+# results that kept one lay 0.3-25 deg from it on the 756 in-process real cases, those that did not 55-179 deg).
+AGREEMENT_DEG = 30.0
 
 
 def feature_voxel(work: Working) -> float:
@@ -67,4 +71,16 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
     output = replace(output, src_kp=sub_s[output.src_kp], tgt_kp=sub_t[output.tgt_kp])  # working rows
     candidate = SearchCandidate(output, rotation, rotation, translation)
     timing["features"] = 1000 * (time.perf_counter() - started)
-    return Candidates([*found.poses, candidate], found.net_s, found.net_t)
+    return Candidates([*found.poses, candidate], found.net_s, found.net_t, feature_support=pose.support)
+
+
+def feature_confirmed(work: Working, found: Candidates, result: RegistrationResult) -> bool:
+    """Whether a feature candidate joined ``found`` (:func:`feature_candidates`: ``MIN_SUPPORT`` matched pairs agree
+    with it) and the refined ``result`` (caller's frame) lies within ``AGREEMENT_DEG`` of its rotation: the descriptors'
+    consensus and the refinement's fit point to the same pose, which ``auto`` then does not search
+    (``docs/decisions/0035-no-search-after-a-confirmed-feature-pose.md``)."""
+    if found.feature_support < MIN_SUPPORT:
+        return False
+    candidate = found.poses[-1]
+    rotation, _ = to_caller(work, candidate.rotation, candidate.translation)
+    return rotation_between_deg(rotation, result.rotation) < AGREEMENT_DEG

@@ -21,6 +21,7 @@ class Candidates:
     poses: list[SearchCandidate]
     net_s: np.ndarray  # [Ns'] the caller's source rows the network ran on
     net_t: np.ndarray  # [Nt'] the caller's target rows
+    feature_support: int = 0  # matched pairs agreeing with the last pose, a feature candidate (0: none joined)
 
 
 def network(registrar: Registrar, work: Working, iterations: int, keypoints: int,

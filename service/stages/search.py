@@ -140,8 +140,8 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
 
 
 def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: RegistrationResult,
-                hypotheses: np.ndarray, timing: dict[str, float], retry_points: int | None = None
-                ) -> RegistrationResult:
+                hypotheses: np.ndarray, timing: dict[str, float], retry_points: int | None = None,
+                confirmed: bool = False) -> RegistrationResult:
     """``plain`` unless, on non-degenerate clouds, it may be wrong: it fits poorly (:func:`needs_search`) and is not a
     partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a dense target's surface
     (:func:`service.stages.assess.off_the_surface`: the inlier-ratio test misses wrong poses where the working
@@ -152,9 +152,10 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     If that still fits poorly (:func:`service.stages.assess.poor_fit`), ``retry_points`` is given
     (:func:`retry_points`) and the clouds are not rooms (:attr:`Working.plane_frame_rotations`),
     ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per cloud, and its pose, should
-    it rank first, comes back not ``reliable`` with ``RETRY_WARNING``.
+    it rank first, comes back not ``reliable`` with ``RETRY_WARNING``. A ``confirmed`` result (a feature pose agrees
+    with it, :func:`service.stages.features.feature_confirmed`) is not searched.
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
-    if not work.searchable:
+    if not work.searchable or confirmed:
         return plain
     doubtful = ((needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain))
                 or plane_frames_on_the_surface(work)

@@ -12,7 +12,12 @@ from shapes import lumpy_sphere
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.rotation_search import rotation_between_deg
+from service.stages.features import MIN_SUPPORT, feature_candidates, feature_confirmed
+from service.stages.network import network
+from service.stages.normalise import normalise
 from service.stages.pipeline import Stages
+from service.stages.sample import sample
+from service.stages.validate import validate
 
 BUNDLED = bundled_models_dir() / "general"
 pytestmark = pytest.mark.skipif(not (BUNDLED / "manifest.json").exists(), reason="bundled model 'general' absent")
@@ -72,3 +77,40 @@ def test_sparse_clouds_ask_for_no_features(registrar) -> None:
     sparse_s, sparse_t = (c[rows.choice(len(c), 2000, replace=False)] for c in (source, target))  # < 4 x 768
     result = registrar.register(sparse_s, sparse_t, refine="icp-plane", rotation_search="auto")
     assert "features" not in result.timing_ms
+
+
+def doubted_everywhere(monkeypatch) -> None:
+    """Every plain result looks wrong to ``auto`` (it fits poorly and is no partial view's)."""
+    import service.stages.search as search_stage
+
+    monkeypatch.setattr(search_stage, "needs_search", lambda result, attainable_ratio=1.0: True)
+    monkeypatch.setattr(search_stage, "looks_partial", lambda work, result: False)
+
+
+def test_a_result_its_feature_pose_confirms_is_not_searched_where_it_looks_doubtful(registrar, monkeypatch) -> None:
+    doubted_everywhere(monkeypatch)
+    source, target, R = turned_pair(150)
+    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert rotation_between_deg(result.rotation, R) < 1.0
+    assert "features" in result.timing_ms and "search" not in result.timing_ms
+    # without the feature candidate the same doubt starts the search
+    plain_only = Registrar(BUNDLED, threads=1,
+                           stages=dataclasses.replace(Stages(), features=lambda registrar, work, found, *_: found))
+    assert "search" in plain_only.register(source, target, refine="icp-plane", rotation_search="auto").timing_ms
+
+
+def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_support(registrar) -> None:
+    source, target, R = turned_pair(150)
+    request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": "auto"},
+                       registrar.default_iterations, registrar.default_keypoints)
+    work = normalise(sample(request), registrar.reference_radius)
+    plain = network(registrar, work, request.iterations, request.keypoints, {})
+    found = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
+    assert len(found.poses) == 2 and found.feature_support >= MIN_SUPPORT
+    right = registrar.solve(work, request, None, {}, found=found)
+    assert rotation_between_deg(right.rotation, R) < 1.0 and feature_confirmed(work, found, right)
+    half_turned = dataclasses.replace(right, rotation=right.rotation @ Rotation.from_rotvec([0, 0, np.pi]).as_matrix())
+    assert not feature_confirmed(work, found, half_turned)
+    assert not feature_confirmed(work, plain, right)  # no feature candidate joined
+    weak = dataclasses.replace(found, feature_support=MIN_SUPPORT - 1)
+    assert not feature_confirmed(work, weak, right)

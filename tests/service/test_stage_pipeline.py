@@ -89,6 +89,17 @@ def test_auto_search_keeps_the_better_of_both(registrar) -> None:
     assert kept is good and kept.timing_ms is timing and timing["search_per_hypothesis"] == timing["search"] / 24
 
 
+def test_auto_search_searches_no_confirmed_result(registrar) -> None:
+    request, work = prepared(registrar, 3000, refine="icp-plane", rotation_search="auto", working_size=768)
+    good = registrar.solve(work, request, None, {})
+    bad = dataclasses.replace(good, inlier_ratio=0.1, rotation=R_TRUE.T @ R_TRUE.T, timing_ms={})
+
+    def solve(hypotheses, timing, points=None):
+        raise AssertionError("searched a confirmed result")
+
+    assert auto_search(solve, work, bad, request.hypotheses, {}, confirmed=True) is bad
+
+
 def test_a_search_result_that_still_fits_poorly_is_searched_again_on_more_points(registrar, monkeypatch) -> None:
     import service.stages.search as search_stage
 
