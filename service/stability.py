@@ -26,6 +26,7 @@ import numpy as np
 from service.icp import PLANE_MIN_INLIERS, Surface, plane_jacobian, rotation_of, target_normals
 from service.kdtree import KDTree
 from service.normalization import rms_radius
+from service.quality import nearest_other_distances
 
 # A pose whose smallest eigenvalue is below this is weakly constrained (not reliable). Chosen on 300 sparse and
 # 170 dense seeded test pairs with `general` + icp-plane (docs/decisions/0003): it flagged 26 of the
@@ -90,7 +91,7 @@ def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree,
                  scale: float, motion: np.ndarray) -> float:
     """RMS nearest-target distance of the paired points ``p [P, 3]`` (now ``dist [P]``) after moving them one target
     sample spacing (RMS displacement) along ``motion [6]`` either way, over their RMS distance now (the smaller)."""
-    spacing = float(np.median(tree.query(tgt, k=2)[0][:, 1]))  # [M] nearest other target point
+    spacing = float(np.median(nearest_other_distances(tgt, tree)))  # the target's median sample spacing
     turn, slide = motion[:3], motion[3:] * scale  # rotation vector per unit step; translation per unit step
     displacement = np.cross(turn, p - centre) + slide  # [P, 3] linearised, per unit step
     step = spacing / max(float(np.sqrt(np.mean(np.sum(displacement**2, axis=1)))), 1e-300)
