@@ -10,6 +10,7 @@ This module holds the model's sessions and the network calls the network and sea
 
 from __future__ import annotations
 
+import math
 import os
 import threading
 import time
@@ -38,17 +39,19 @@ from service.options import (
 from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
-from service.stages.features import feature_confirmed
+from service.stages.features import DESCRIBE_BELOW, feature_confirmed
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
 from service.stages.refine import CANDIDATE_ITERATIONS
 from service.stages.search import (
     AUTO_SEARCH_RELATIVE_RATIO,
+    SEARCH_AHEAD_BELOW,
+    looks_wrong,
     needs_search,
+    plain_overlay,
     retry_points,
     searched_ahead,
-    worth_searching_ahead,
 )
 from service.stages.validate import Request
 
@@ -312,13 +315,20 @@ class Registrar:
             result = self.solve(work, request, request.hypotheses, timing)
         else:
             found = stages.network(self, work, request.iterations, request.keypoints, timing)
-            doubtful = mode == "auto" and worth_searching_ahead(work, found)  # the plain pose overlays poorly
-            if doubtful and request.options.refine_mode != "none":  # a feature-matched candidate beside it
+            overlay = plain_overlay(work, found) if mode == "auto" else math.inf  # how well the plain pose overlays
+            describe = request.options.refine_mode != "none"
+            if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
                 found = stages.features(self, work, found, request.iterations, request.keypoints, timing)
             # the search ahead only where no feature candidate joined
-            ahead = self.search_ahead(work, request) if doubtful and len(found.poses) == 1 else None
+            doubtful = overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1
+            ahead = self.search_ahead(work, request) if doubtful else None
             try:
                 result = self.solve(work, request, None, timing, found=found)
+                if SEARCH_AHEAD_BELOW <= overlay < DESCRIBE_BELOW and describe and looks_wrong(work, result):
+                    # a passable plain pose refined into a doubtful result: a feature candidate before the search
+                    more = stages.features(self, work, found, request.iterations, request.keypoints, timing)
+                    if len(more.poses) > len(found.poses):
+                        found, result = more, self.solve(work, request, None, timing, found=more)
                 if mode == "auto":  # the search only when the plain result looks wrong
                     solve = searched_ahead(partial(self.solve, work, request), ahead)
                     result = stages.auto_search(solve, work, result, request.hypotheses, timing,
@@ -335,7 +345,7 @@ class Registrar:
 
     def search_ahead(self, work: Working, request: Request) -> Speculation | None:
         """The search of ``rotation_search="auto"`` started in a helper thread beside the plain pass (where the plain
-        network's pose fits poorly, :func:`service.stages.search.worth_searching_ahead`), when a core is free
+        network's pose overlays poorly, :func:`service.stages.search.plain_overlay`), when a core is free
         (:class:`service.speculation.Helpers`); else ``None``."""
         if self.helpers is None:
             return None

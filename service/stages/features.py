@@ -1,10 +1,11 @@
 """Stage 4a of ``rotation_search="auto"``: a candidate pose from matched local descriptors.
 
-Where the plain network's pose overlays the target poorly (:func:`service.stages.search.worth_searching_ahead`: a
-turned scan, mostly), a coarse pose from rotation-invariant descriptors (:func:`service.feature_match.feature_pose`)
-joins the network's as a second candidate before the refinement, which ranks both and refines the better one. Where
-enough matched pairs agree with it, the search is not started ahead, and a result that then fits well needs no search
-at all (``docs/decisions/0034-a-feature-matched-candidate.md``).
+Where the plain network's pose overlays the target poorly (:func:`service.stages.search.plain_overlay` below
+``DESCRIBE_BELOW``: a turned scan, mostly), a coarse pose from rotation-invariant descriptors
+(:func:`service.feature_match.feature_pose`) joins the network's as a second candidate before the refinement, which
+ranks both and refines the better one. Where enough matched pairs agree with it, the search is not started ahead, and
+a result that then fits well, or that the feature pose confirms (:func:`feature_confirmed`), needs no search at all
+(``docs/decisions/0034-a-feature-matched-candidate.md``, ``0035``, ``0036``).
 """
 
 from __future__ import annotations
@@ -27,6 +28,11 @@ if TYPE_CHECKING:
     from service.registrar import Registrar
     from service.result import RegistrationResult
 
+# auto tries the feature candidate where the plain network's pose overlays less than this share of what a right pose
+# reaches (service.stages.search.plain_overlay; the search ahead starts below 0.3). On the 756 in-process real cases,
+# 0.4, 0.45 and 0.6 each gained the same 3 cases and spared 27-29 searches; 0.45 computes descriptors on the fewest
+# plain poses that needed none (docs/decisions/0036-feature-candidates-below-045.md).
+DESCRIBE_BELOW = 0.45
 # Descriptors need a densely sampled surface: both entered clouds must hold at least this many times the working
 # size. Scans do (15,000-65,000 points against 768 in the real-scan set); the ModelNet40 pairs (512-2,048 points) do
 # not: on 680 simulated range scans of 512 points at any orientation the candidate changed no result.

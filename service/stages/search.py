@@ -3,6 +3,7 @@ and ``rotation_search="auto"``: search only when the plain result looks wrong, k
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from functools import partial
@@ -28,7 +29,6 @@ from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working, to_caller
 from service.stages.partial import looks_partial
 from service.stages.ranking import samples_the_surface
-from service.stages.slide import fits_poorly
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -139,11 +139,22 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
     return result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
 
 
+def looks_wrong(work: Working, plain: RegistrationResult) -> bool:
+    """Whether ``auto`` doubts the ``plain`` result (see :func:`auto_search`): it fits poorly and is not a partial
+    view's, both clouds are rooms over a dense target, or a result that is not ``reliable`` lies off the target's
+    surface."""
+    return ((needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain))
+            or plane_frames_on_the_surface(work)
+            # a reliable result has passed off_the_surface already
+            or (not plain.reliable and off_the_surface(work, plain.rotation, plain.translation) is not None))
+
+
 def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: RegistrationResult,
                 hypotheses: np.ndarray, timing: dict[str, float], retry_points: int | None = None,
                 confirmed: bool = False) -> RegistrationResult:
-    """``plain`` unless, on non-degenerate clouds, it may be wrong: it fits poorly (:func:`needs_search`) and is not a
-    partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a dense target's surface
+    """``plain`` unless, on non-degenerate clouds, it may be wrong (:func:`looks_wrong`): it fits poorly
+    (:func:`needs_search`) and is not a partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a
+    dense target's surface
     (:func:`service.stages.assess.off_the_surface`: the inlier-ratio test misses wrong poses where the working
     clouds are sparser than the inlier distance, as a LiDAR scan's are); or both clouds are built of orthogonal
     planes over a dense target (:func:`plane_frames_on_the_surface`: a room turned by a quarter or half turn can
@@ -155,13 +166,7 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     it rank first, comes back not ``reliable`` with ``RETRY_WARNING``. A ``confirmed`` result (a feature pose agrees
     with it, :func:`service.stages.features.feature_confirmed`) is not searched.
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
-    if not work.searchable or confirmed:
-        return plain
-    doubtful = ((needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain))
-                or plane_frames_on_the_surface(work)
-                # a reliable result has passed off_the_surface already
-                or (not plain.reliable and off_the_surface(work, plain.rotation, plain.translation) is not None))
-    if not doubtful:
+    if not work.searchable or confirmed or not looks_wrong(work, plain):
         return plain
     started = time.perf_counter()
     result = better_of(work, plain, solve(hypotheses, {}), timing)
@@ -176,14 +181,18 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     return result
 
 
-def worth_searching_ahead(work: Working, found: Candidates) -> bool:
-    """Whether ``rotation_search="auto"`` should start its search before the plain pass has judged its pose: the clouds
-    are not degenerate and the plain network's pose ``found`` (before any refinement) overlays fewer working source
-    points than ``SEARCH_AHEAD_BELOW`` times the attainable inlier ratio."""
-    if not work.searchable:
-        return False
+def plain_overlay(work: Working, found: Candidates) -> float:
+    """How well the plain network's pose ``found.poses[0]`` (before any refinement) overlays the target: the share of
+    working source points it brings within an inlier distance, over the share a right pose reaches at the target's
+    density (:attr:`Working.attainable_ratio`); ``inf`` where that is 0 (nothing to judge) or the clouds are
+    degenerate (never searched). Below ``SEARCH_AHEAD_BELOW`` ``auto`` tries a feature candidate in the plain pass and
+    starts its search ahead; below :data:`service.stages.features.DESCRIBE_BELOW`, where the refined plain result
+    looks wrong (:func:`looks_wrong`), it tries a feature candidate before the search."""
+    if not work.searchable or work.attainable_ratio <= 0:
+        return math.inf
     R, t = to_caller(work, found.poses[0].rotation, found.poses[0].translation)
-    return fits_poorly(work, R, t, SEARCH_AHEAD_BELOW)
+    ratio = rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
+    return float(ratio) / work.attainable_ratio
 
 
 def searched_ahead(solve: Callable[..., RegistrationResult], ahead: Speculation | None

@@ -17,6 +17,7 @@ from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.pipeline import Stages
 from service.stages.sample import sample
+from service.stages.search import SEARCH_AHEAD_BELOW, plain_overlay
 from service.stages.validate import validate
 
 BUNDLED = bundled_models_dir() / "general"
@@ -114,3 +115,41 @@ def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_suppo
     assert not feature_confirmed(work, plain, right)  # no feature candidate joined
     weak = dataclasses.replace(found, feature_support=MIN_SUPPORT - 1)
     assert not feature_confirmed(work, weak, right)
+
+
+@pytest.mark.parametrize(("overlay", "doubted", "described", "searched_ahead"), [
+    (0.6, True, False, False),  # a plain pose that overlays well: neither
+    (0.4, False, False, False),  # a passable one whose refined result looks right: neither
+    (0.4, True, True, False),  # ... whose refined result looks wrong: a feature candidate before the search
+    (0.2, False, True, True),  # a poor one: a feature candidate beside it, the search ahead where none joins
+])
+def test_the_plain_overlay_decides_the_feature_candidate_and_the_search_ahead(monkeypatch, overlay, doubted,
+                                                                              described, searched_ahead) -> None:
+    import service.registrar as registrar_module
+
+    calls: list[str] = []
+
+    def no_candidate(registrar, work, found, *_):  # the stage ran, no feature pose joined
+        calls.append("features")
+        return found
+
+    plain = Registrar(BUNDLED, threads=1, stages=dataclasses.replace(Stages(), features=no_candidate))
+    monkeypatch.setattr(registrar_module, "plain_overlay", lambda work, found: overlay)
+    monkeypatch.setattr(registrar_module, "looks_wrong", lambda work, result: doubted)
+    monkeypatch.setattr(plain, "search_ahead", lambda work, request: calls.append("ahead"))
+    source, target, _ = turned_pair(20)
+    plain.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert ("features" in calls) == described and ("ahead" in calls) == searched_ahead
+
+
+def test_the_plain_overlay_is_near_1_for_a_right_pose_and_low_for_a_half_turn(registrar) -> None:
+    source, target, R = turned_pair(150)
+    request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": "auto"},
+                       registrar.default_iterations, registrar.default_keypoints)
+    work = normalise(sample(request), registrar.reference_radius)
+    found = network(registrar, work, request.iterations, request.keypoints, {})
+    right = dataclasses.replace(found.poses[0], rotation=work.norm.normalize_pose(R, T_TRUE)[0],
+                                translation=work.norm.normalize_pose(R, T_TRUE)[1])
+    half_turned = dataclasses.replace(right, rotation=right.rotation @ Rotation.from_rotvec([0, 0, np.pi]).as_matrix())
+    assert plain_overlay(work, dataclasses.replace(found, poses=[right])) > 0.8
+    assert plain_overlay(work, dataclasses.replace(found, poses=[half_turned])) < SEARCH_AHEAD_BELOW
