@@ -28,10 +28,10 @@ if TYPE_CHECKING:
     from service.registrar import Registrar
     from service.result import RegistrationResult
 
-# auto tries the feature candidate where the plain network's pose overlays less than this share of what a right pose
-# reaches (service.stages.search.plain_overlay; the search ahead starts below 0.3). On the 756 in-process real cases,
-# 0.4, 0.45 and 0.6 each gained the same 3 cases and spared 27-29 searches; 0.45 computes descriptors on the fewest
-# plain poses that needed none (docs/decisions/0036-feature-candidates-below-045.md).
+# Where the plain network's pose overlays at least 0.3 (SEARCH_AHEAD_BELOW) but less than this share of what a right
+# pose reaches (service.stages.search.plain_overlay), auto tries the feature candidate after the plain pass, where its
+# refined result looks wrong, before the search: on the 756 in-process real cases 3 more right and 29 fewer searched;
+# thresholds of 0.4-0.6 gained the same (docs/decisions/0036-feature-candidates-before-the-search.md).
 DESCRIBE_BELOW = 0.45
 # Descriptors need a densely sampled surface: both entered clouds must hold at least this many times the working
 # size. Scans do (15,000-65,000 points against 768 in the real-scan set); the ModelNet40 pairs (512-2,048 points) do
