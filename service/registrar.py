@@ -320,8 +320,7 @@ class Registrar:
             if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
                 found = stages.features(self, work, found, request.iterations, request.keypoints, timing)
             # the search ahead only where no feature candidate joined
-            doubtful = overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1
-            ahead = self.search_ahead(work, request) if doubtful else None
+            ahead = self.search_ahead(work, request) if overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1 else None
             try:
                 result = self.solve(work, request, None, timing, found=found)
                 if SEARCH_AHEAD_BELOW <= overlay < DESCRIBE_BELOW and describe and looks_wrong(work, result):

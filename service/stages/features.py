@@ -1,11 +1,12 @@
 """Stage 4a of ``rotation_search="auto"``: a candidate pose from matched local descriptors.
 
 Where the plain network's pose overlays the target poorly (:func:`service.stages.search.plain_overlay` below
-``DESCRIBE_BELOW``: a turned scan, mostly), a coarse pose from rotation-invariant descriptors
+``SEARCH_AHEAD_BELOW``: a turned scan, mostly), a coarse pose from rotation-invariant descriptors
 (:func:`service.feature_match.feature_pose`) joins the network's as a second candidate before the refinement, which
-ranks both and refines the better one. Where enough matched pairs agree with it, the search is not started ahead, and
-a result that then fits well, or that the feature pose confirms (:func:`feature_confirmed`), needs no search at all
-(``docs/decisions/0034-a-feature-matched-candidate.md``, ``0035``, ``0036``).
+ranks both and refines the better one; where it overlays passably (below ``DESCRIBE_BELOW``), only once the refined
+plain result looks wrong, before the search. Where enough matched pairs agree with it, the search is not started
+ahead, and a result that then fits well, or that the feature pose confirms (:func:`feature_confirmed`), needs no
+search at all (``docs/decisions/0034-a-feature-matched-candidate.md``, ``0035``, ``0036``).
 """
 
 from __future__ import annotations
