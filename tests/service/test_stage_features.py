@@ -100,12 +100,17 @@ def test_a_result_its_feature_pose_confirms_is_not_searched_where_it_looks_doubt
     assert "search" in plain_only.register(source, target, refine="icp-plane", rotation_search="auto").timing_ms
 
 
-def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_support(registrar) -> None:
+def plain_pass_of_a_half_turned_scan(registrar: Registrar):
+    """The stages up to the plain network on ``turned_pair(150)``: (request, work, plain candidates, true R)."""
     source, target, R = turned_pair(150)
     request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": "auto"},
                        registrar.default_iterations, registrar.default_keypoints)
     work = normalise(sample(request), registrar.reference_radius)
-    plain = network(registrar, work, request.iterations, request.keypoints, {})
+    return request, work, network(registrar, work, request.iterations, request.keypoints, {}), R
+
+
+def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_support(registrar) -> None:
+    request, work, plain, R = plain_pass_of_a_half_turned_scan(registrar)
     found = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
     assert len(found.poses) == 2 and found.feature_support >= MIN_SUPPORT
     right = registrar.solve(work, request, None, {}, found=found)
@@ -143,13 +148,9 @@ def test_the_plain_overlay_decides_the_feature_candidate_and_the_search_ahead(mo
 
 
 def test_the_plain_overlay_is_near_1_for_a_right_pose_and_low_for_a_half_turn(registrar) -> None:
-    source, target, R = turned_pair(150)
-    request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": "auto"},
-                       registrar.default_iterations, registrar.default_keypoints)
-    work = normalise(sample(request), registrar.reference_radius)
-    found = network(registrar, work, request.iterations, request.keypoints, {})
-    right = dataclasses.replace(found.poses[0], rotation=work.norm.normalize_pose(R, T_TRUE)[0],
-                                translation=work.norm.normalize_pose(R, T_TRUE)[1])
+    _, work, found, R = plain_pass_of_a_half_turned_scan(registrar)
+    rotation, translation = work.norm.normalize_pose(R, T_TRUE)
+    right = dataclasses.replace(found.poses[0], rotation=rotation, translation=translation)
     half_turned = dataclasses.replace(right, rotation=right.rotation @ Rotation.from_rotvec([0, 0, np.pi]).as_matrix())
     assert plain_overlay(work, dataclasses.replace(found, poses=[right])) > 0.8
     assert plain_overlay(work, dataclasses.replace(found, poses=[half_turned])) < SEARCH_AHEAD_BELOW
