@@ -39,7 +39,7 @@ from service.options import (
 from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
-from service.stages.features import DESCRIBE_BELOW, feature_confirmed
+from service.stages.features import DESCRIBE_BELOW, describable, feature_confirmed
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
@@ -323,7 +323,8 @@ class Registrar:
             ahead = self.search_ahead(work, request) if overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1 else None
             try:
                 result = self.solve(work, request, None, timing, found=found)
-                if SEARCH_AHEAD_BELOW <= overlay < DESCRIBE_BELOW and describe and looks_wrong(work, result):
+                if (SEARCH_AHEAD_BELOW <= overlay < DESCRIBE_BELOW and describe and describable(work)
+                        and looks_wrong(work, result)):
                     # a passable plain pose refined into a doubtful result: a feature candidate before the search
                     more = stages.features(self, work, found, request.iterations, request.keypoints, timing)
                     if len(more.poses) > len(found.poses):

@@ -53,16 +53,22 @@ def feature_voxel(work: Working) -> float:
     return float(max(np.median(nearest_other_distances(work.src_w)), np.median(work.target_spacings)))
 
 
+def describable(work: Working) -> bool:
+    """Whether :func:`feature_candidates` computes descriptors for ``work``: both entered clouds hold ``DENSITY``
+    times the working size, and they are not rooms (:func:`service.stages.search.plane_frames_on_the_surface`:
+    ``auto`` searches their plane frames whatever the plain pass gives)."""
+    if min(len(work.src_e), len(work.tgt_e)) < DENSITY * max(len(work.src_w), len(work.tgt_w)):
+        return False
+    return not plane_frames_on_the_surface(work)
+
+
 def feature_candidates(registrar: Registrar, work: Working, found: Candidates, iterations: int, keypoints: int,
                        timing: dict[str, float]) -> Candidates:
-    """``found`` (the plain network's candidate) and, where both entered clouds hold ``DENSITY`` times the working
-    size, they are not rooms (:func:`service.stages.search.plane_frames_on_the_surface`: searched in any case) and
-    ``MIN_SUPPORT`` matched pairs agree with it, the feature pose of the entered clouds (in the initial guess's
-    frame), normalised, with the network's output from its rotation on the search's rows (its correspondences, should
-    it win; remapped to the working rows). Records ``timing["features"]`` where it computed descriptors."""
-    if min(len(work.src_e), len(work.tgt_e)) < DENSITY * max(len(work.src_w), len(work.tgt_w)):
-        return found
-    if plane_frames_on_the_surface(work):  # rooms: auto searches their plane frames whatever the plain pass gives
+    """``found`` (the plain network's candidate) and, where the clouds are :func:`describable` and ``MIN_SUPPORT``
+    matched pairs agree with it, the feature pose of the entered clouds (in the initial guess's frame), normalised,
+    with the network's output from its rotation on the search's rows (its correspondences, should it win; remapped to
+    the working rows). Records ``timing["features"]`` where it computed descriptors."""
+    if not describable(work):
         return found
     started = time.perf_counter()
     source = work.src_e @ work.R_init.T + work.t_init  # [Ne, 3] the entered source after the initial guess

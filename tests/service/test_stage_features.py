@@ -154,3 +154,20 @@ def test_the_plain_overlay_is_near_1_for_a_right_pose_and_low_for_a_half_turn(re
     half_turned = dataclasses.replace(right, rotation=right.rotation @ Rotation.from_rotvec([0, 0, np.pi]).as_matrix())
     assert plain_overlay(work, dataclasses.replace(found, poses=[right])) > 0.8
     assert plain_overlay(work, dataclasses.replace(found, poses=[half_turned])) < SEARCH_AHEAD_BELOW
+
+
+def test_sparse_clouds_get_no_feature_candidate_before_the_search_either(monkeypatch) -> None:
+    import service.registrar as registrar_module
+
+    calls: list[str] = []
+    plain = Registrar(BUNDLED, threads=1,
+                      stages=dataclasses.replace(Stages(), features=lambda *args: calls.append("features") or args[2]))
+    monkeypatch.setattr(registrar_module, "plain_overlay", lambda work, found: 0.4)  # passable
+    monkeypatch.setattr(registrar_module, "looks_wrong", lambda work, result: True)  # refined into a doubtful result
+    source, target, _ = turned_pair(20)
+    rows = np.random.default_rng(0)
+    sparse_s, sparse_t = (c[rows.choice(len(c), 2000, replace=False)] for c in (source, target))  # < 4 x 768
+    plain.register(sparse_s, sparse_t, refine="icp-plane", rotation_search="auto")
+    assert calls == []
+    plain.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert calls == ["features"]
