@@ -29,6 +29,7 @@ from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working, to_caller
 from service.stages.partial import looks_partial
 from service.stages.ranking import samples_the_surface
+from service.stages.slide import overlaid_share
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -191,8 +192,7 @@ def plain_overlay(work: Working, found: Candidates) -> float:
     if not work.searchable or work.attainable_ratio <= 0:
         return math.inf
     R, t = to_caller(work, found.poses[0].rotation, found.poses[0].translation)
-    ratio = rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
-    return float(ratio) / work.attainable_ratio
+    return overlaid_share(work, R, t) / work.attainable_ratio
 
 
 def searched_ahead(solve: Callable[..., RegistrationResult], ahead: Speculation | None

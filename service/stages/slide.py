@@ -30,11 +30,17 @@ from service.translation_search import translation_candidates
 SLIDE_TRIGGER = 0.8  # share of the attainable inlier ratio below which the slide check runs
 
 
+def overlaid_share(work: Working, R: np.ndarray, t: np.ndarray) -> float:
+    """The share of working source points the caller's pose ``R, t`` brings within an inlier distance of the working
+    target (the inlier ratio :func:`service.rotation_search.rank_hypotheses` ranks by)."""
+    return float(rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0])
+
+
 def fits_poorly(work: Working, R: np.ndarray, t: np.ndarray, trigger: float = SLIDE_TRIGGER) -> bool:
-    """Whether the caller's pose ``R, t`` overlays fewer working source points on the target than ``trigger``
-    times the share a right pose reaches at the target's density (:func:`service.quality.attainable_inlier_ratio`)."""
-    ratio = rank_hypotheses(work.working_source, work.tgt_w, R[None], t[None], work.inlier_distance)[1][0]
-    return ratio < trigger * work.attainable_ratio
+    """Whether the caller's pose ``R, t`` overlays fewer working source points on the target (:func:`overlaid_share`)
+    than ``trigger`` times the share a right pose reaches at the target's density
+    (:func:`service.quality.attainable_inlier_ratio`)."""
+    return overlaid_share(work, R, t) < trigger * work.attainable_ratio
 
 
 def slide(work: Working, refined: Refined, options: RegistrationOptions, trigger: float = SLIDE_TRIGGER) -> Refined:
