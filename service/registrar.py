@@ -315,11 +315,13 @@ class Registrar:
             result = self.solve(work, request, request.hypotheses, timing)
         else:
             found = stages.network(self, work, request.iterations, request.keypoints, timing)
+            if request.options.initial_transform is not None:  # the caller's guess, should the network leave it
+                found = stages.guess(work, found)
             overlay = plain_overlay(work, found) if mode == "auto" else math.inf  # how well the plain pose overlays
             describe = request.options.refine_mode != "none"
             if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
                 found = stages.features(self, work, found, request.iterations, request.keypoints, timing)
-            # the search ahead only where no feature candidate joined
+            # the search ahead only where the network's pose is the only candidate
             ahead = self.search_ahead(work, request) if overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1 else None
             try:
                 result = self.solve(work, request, None, timing, found=found)

@@ -14,6 +14,7 @@ from service.stages.assess import assess_result
 from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
+from service.stages.guess import guess_candidate
 from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.refine import refine
@@ -31,6 +32,7 @@ class Stages:
     sample: Callable = sample  # (Request) -> Sampled
     normalise: Callable = normalise  # (Sampled, reference_radius) -> Working
     network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates
+    guess: Callable = guess_candidate  # (Working, Candidates) -> more; where the caller gave an initial_transform
     features: Callable = feature_candidates  # (registrar, Working, Candidates, iterations, keypoints, timing) -> more
     search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing, points=None)
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
