@@ -24,9 +24,9 @@ checkout's totals and this checkout's time over its. ``--offset X Y Z`` moves bo
 vector before the upload (float32 rounds them there, as it would a map frame's coordinates); poses are judged in
 the clouds' own frames, so a rotation error about a far origin does not count as a translation error.
 ``--start-near-truth DEG`` sends every request an ``initial_transform``: the true pose after the source is turned
-``DEG`` degrees about its centroid (a seeded axis per case). With the search off it times what a network right at any
-orientation would leave to do (sampling, the network from that start, the refinements, the checks): the bound on
-the end-to-end time of today's pipeline without the rotation search.
+``DEG`` degrees about its centroid (a seeded axis per case), which the service also keeps as a candidate. With the
+search off it times what a network right at any orientation would leave to do (sampling, the network from that start,
+the refinements, the checks): the bound on the end-to-end time of today's pipeline without the rotation search.
 """
 
 from __future__ import annotations
