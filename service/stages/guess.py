@@ -3,7 +3,8 @@
 The network starts from the caller's guess and can move a good guess away: on the development set's real scans
 started 10 deg from the truth it turned 6 of 36 cases away. With the guess as a second candidate the refinement ranks
 both by their close fit and refines the better one, so a guess near the truth is kept where the network leaves it
-(``docs/decisions/0037-the-callers-guess-as-a-candidate.md``).
+(``docs/decisions/0037-the-callers-guess-as-a-candidate.md``). The registrar runs it in the plain pass only: with
+``rotation_search=True`` the search's starts are rotations about the guess instead.
 """
 
 from __future__ import annotations
