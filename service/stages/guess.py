@@ -1,4 +1,5 @@
-"""Stage 4b, guess: the caller's ``initial_transform`` itself as a candidate beside the network's pose.
+"""Stage 4, guess (after the network, before the features of 4a): the caller's ``initial_transform`` itself as a
+candidate beside the network's pose.
 
 The network starts from the caller's guess and can move a good guess away: on the development set's real scans
 started 10 deg from the truth it turned 6 of 36 cases away. With the guess as a second candidate the refinement ranks
@@ -18,8 +19,9 @@ from service.stages.normalise import Working
 
 def guess_candidate(work: Working, found: Candidates) -> Candidates:
     """``found`` and, after it, the initial guess: the identity in the guess's frame, normalised. It carries the
-    plain network's output (the network ran from that start), so its correspondences are the network's."""
+    plain network's output (the network ran from that start), so its correspondences are the network's. It runs before
+    the feature stage, which appends its candidate last (:func:`service.stages.features.feature_confirmed`)."""
     rotation, translation = work.norm.normalize_pose(np.eye(3), np.zeros(3))  # [3, 3], [3]
     plain = found.poses[0]
     guess = SearchCandidate(plain.output, np.eye(3), rotation, translation)
-    return Candidates([*found.poses, guess], found.net_s, found.net_t, feature_support=found.feature_support)
+    return Candidates([*found.poses, guess], found.net_s, found.net_t)
