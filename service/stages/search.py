@@ -183,16 +183,17 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
 
 
 def plain_overlay(work: Working, found: Candidates) -> float:
-    """How well the plain network's pose ``found.poses[0]`` (before any refinement) overlays the target: the share of
-    working source points it brings within an inlier distance, over the share a right pose reaches at the target's
-    density (:attr:`Working.attainable_ratio`); ``inf`` where that is 0 (nothing to judge) or the clouds are
-    degenerate (never searched). Below ``SEARCH_AHEAD_BELOW`` ``auto`` tries a feature candidate in the plain pass and
-    starts its search ahead; below :data:`service.stages.features.DESCRIBE_BELOW`, where the refined plain result
-    looks wrong (:func:`looks_wrong`), it tries a feature candidate before the search."""
+    """How well the plain pass's candidates (the network's pose, and the caller's guess where one was given: stage
+    ``guess``), before any refinement, overlay the target: the larger share of working source points they bring within
+    an inlier distance, over the share a right pose reaches at the target's density (:attr:`Working.attainable_ratio`);
+    ``inf`` where that is 0 (nothing to judge) or the clouds are degenerate (never searched). Below
+    ``SEARCH_AHEAD_BELOW`` ``auto`` tries a feature candidate in the plain pass and starts its search ahead; below
+    :data:`service.stages.features.DESCRIBE_BELOW`, where the refined plain result looks wrong (:func:`looks_wrong`),
+    it tries a feature candidate before the search."""
     if not work.searchable or work.attainable_ratio <= 0:
         return math.inf
-    R, t = to_caller(work, found.poses[0].rotation, found.poses[0].translation)
-    return overlaid_share(work, R, t) / work.attainable_ratio
+    shares = (overlaid_share(work, *to_caller(work, pose.rotation, pose.translation)) for pose in found.poses)
+    return max(shares) / work.attainable_ratio
 
 
 def searched_ahead(solve: Callable[..., RegistrationResult], ahead: Speculation | None

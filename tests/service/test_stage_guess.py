@@ -46,6 +46,14 @@ def turning_network(registrar, work, iterations, keypoints, timing) -> Candidate
     return Candidates([moved], found.net_s, found.net_t)
 
 
+def displacing_network(registrar, work, iterations, keypoints, timing) -> Candidates:
+    """The plain network stage with its pose moved two normalised units away: a pose that overlays nothing."""
+    found = network(registrar, work, iterations, keypoints, timing)
+    plain = found.poses[0]
+    moved = SearchCandidate(plain.output, plain.start, plain.rotation, plain.translation + 2.0)
+    return Candidates([moved], found.net_s, found.net_t)
+
+
 @pytest.fixture(scope="module")
 def general() -> Registrar:
     skip_without_general()
@@ -71,6 +79,15 @@ def test_a_guess_the_network_moves_away_is_kept(general, rotation_search) -> Non
     result = turned.register(source, target, refine="icp-plane", rotation_search=rotation_search,
                              initial_transform=guess)
     assert rotation_between_deg(result.rotation, R) < 1.0 and np.linalg.norm(result.translation - T_TRUE) < 0.02
+
+
+def test_a_guess_that_overlays_well_asks_for_no_feature_candidate(general) -> None:
+    """The plain pass's overlay is its best candidate's: a right guess beside a network pose turned away is enough."""
+    source, target, R, guess = pair_and_guess(5)
+    displaced = Registrar(GENERAL, threads=1, stages=dataclasses.replace(Stages(), network=displacing_network))
+    result = displaced.register(source, target, refine="icp-plane", rotation_search="auto", initial_transform=guess)
+    assert rotation_between_deg(result.rotation, R) < 1.0
+    assert "features" not in result.timing_ms and "search" not in result.timing_ms
 
 
 def test_without_the_stage_the_network_moves_the_guess_away(general) -> None:
