@@ -78,8 +78,7 @@ class RegistrationOptions:
     ``iterations`` / ``keypoints``: ``None`` = the model's. ``refine``: one of
     :data:`service.refine_modes.REFINE_MODES` (``None`` = ``"none"``, the network's pose alone).
     ``initial_transform``: a rigid 4x4 ``src_to_tgt`` guess; the source is moved by it before sampling, and the
-    guess itself is a candidate beside the plain network's pose (:mod:`service.stages.guess`; not with
-    ``rotation_search=True``, which searches rotations about it instead).
+    guess itself is a candidate beside the network's poses (:mod:`service.stages.guess`).
     ``working_size``: points per working cloud; ``return_iterations``: the pose after every network iteration.
 
     ``rotation_search=True`` starts the network from ``search_rotations`` initial rotations of the

@@ -314,9 +314,8 @@ class Registrar:
         if mode == "on":
             result = self.solve(work, request, request.hypotheses, timing)
         else:
-            found = stages.network(self, work, request.iterations, request.keypoints, timing)
-            if request.options.initial_transform is not None:  # the caller's guess, should the network leave it
-                found = stages.guess(work, found)
+            found = self.with_guess(work, request, stages.network(self, work, request.iterations, request.keypoints,
+                                                                  timing))
             overlay = plain_overlay(work, found) if mode == "auto" else math.inf  # how well the plain pose overlays
             describe = request.options.refine_mode != "none"
             if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
@@ -345,6 +344,11 @@ class Registrar:
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 
+    def with_guess(self, work: Working, request: Request, found: Candidates) -> Candidates:
+        """``found`` (the plain network's or the search's candidates) and, where the caller gave an
+        ``initial_transform``, that guess itself (stage ``guess``), should the network have moved a good guess away."""
+        return found if request.options.initial_transform is None else self.stages.guess(work, found)
+
     def search_ahead(self, work: Working, request: Request) -> Speculation | None:
         """The search of ``rotation_search="auto"`` started in a helper thread beside the plain pass (where the plain
         network's pose overlays poorly, :func:`service.stages.search.plain_overlay`), when a core is free
@@ -364,10 +368,11 @@ class Registrar:
         stages, o = self.stages, request.options
         if hypotheses is None:
             if found is None:
-                found = stages.network(self, work, request.iterations, request.keypoints, timing)
+                found = self.with_guess(work, request, stages.network(self, work, request.iterations,
+                                                                      request.keypoints, timing))
         else:
-            found = stages.search(self, work, hypotheses, request.iterations, request.keypoints, o.refine_mode,
-                                  timing, points)
+            found = self.with_guess(work, request, stages.search(self, work, hypotheses, request.iterations,
+                                                                 request.keypoints, o.refine_mode, timing, points))
         check(cancelled)
         started = time.perf_counter()
         refined = stages.refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], o)

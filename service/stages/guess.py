@@ -1,11 +1,11 @@
-"""Stage 4, guess (after the network, before the features of 4a): the caller's ``initial_transform`` itself as a
-candidate beside the network's pose.
+"""Stage 4, guess (after the network or the search, before the features of 4a): the caller's ``initial_transform``
+itself as a candidate beside the network's poses.
 
 The network starts from the caller's guess and can move a good guess away: on the development set's real scans
 started 10 deg from the truth it turned 6 of 36 cases away. With the guess as a second candidate the refinement ranks
 both by their close fit and refines the better one, so a guess near the truth is kept where the network leaves it
-(``docs/decisions/0037-the-callers-guess-as-a-candidate.md``). The registrar runs it in the plain pass only: with
-``rotation_search=True`` the search's starts are rotations about the guess instead.
+(``docs/decisions/0037-the-callers-guess-as-a-candidate.md``). It joins the plain pass's candidates and the rotation
+search's alike.
 """
 
 from __future__ import annotations
@@ -18,10 +18,11 @@ from service.stages.normalise import Working
 
 
 def guess_candidate(work: Working, found: Candidates) -> Candidates:
-    """``found`` and, after it, the initial guess: the identity in the guess's frame, normalised. It carries the
-    plain network's output (the network ran from that start), so its correspondences are the network's. It runs before
-    the feature stage, which appends its candidate last (:func:`service.stages.features.feature_confirmed`)."""
+    """``found`` and, after it, the initial guess: the identity in the guess's frame, normalised. It carries the first
+    candidate's network output and start (its correspondences and iteration poses, should it win): in the plain pass
+    the network's from that very start; after a search, the best search candidate's. It runs before the feature stage,
+    which appends its candidate last (:func:`service.stages.features.feature_confirmed`)."""
     rotation, translation = work.norm.normalize_pose(np.eye(3), np.zeros(3))  # [3, 3], [3]
-    plain = found.poses[0]
-    guess = SearchCandidate(plain.output, np.eye(3), rotation, translation)
+    first = found.poses[0]
+    guess = SearchCandidate(first.output, first.start, rotation, translation)
     return Candidates([*found.poses, guess], found.net_s, found.net_t)

@@ -20,6 +20,7 @@ from service.stages.network import Candidates, network
 from service.stages.normalise import normalise, to_caller
 from service.stages.pipeline import Stages
 from service.stages.sample import sample
+from service.stages.search import search
 from service.stages.validate import validate
 
 AXIS = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
@@ -44,6 +45,15 @@ def turning_network(registrar, work, iterations, keypoints, timing) -> Candidate
     turn = Rotation.from_rotvec(np.radians(90) * AXIS).as_matrix()
     moved = SearchCandidate(plain.output, plain.start, turn @ plain.rotation, turn @ plain.translation)
     return Candidates([moved], found.net_s, found.net_t)
+
+
+def turning_search(registrar, work, *args, **kwargs) -> Candidates:
+    """The search stage with every candidate's pose turned 120 deg about y: a search that moves the caller's guess
+    away."""
+    found = search(registrar, work, *args, **kwargs)
+    turn = Rotation.from_rotvec(np.radians(120) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    moved = [SearchCandidate(c.output, c.start, turn @ c.rotation, turn @ c.translation) for c in found.poses]
+    return Candidates(moved, found.net_s, found.net_t)
 
 
 def displacing_network(registrar, work, iterations, keypoints, timing) -> Candidates:
@@ -88,6 +98,16 @@ def test_a_guess_that_overlays_well_asks_for_no_feature_candidate(general) -> No
     result = displaced.register(source, target, refine="icp-plane", rotation_search="auto", initial_transform=guess)
     assert rotation_between_deg(result.rotation, R) < 1.0
     assert "features" not in result.timing_ms and "search" not in result.timing_ms
+
+
+@pytest.mark.parametrize("guess_stage", [guess_candidate, lambda work, found: found])
+def test_the_search_keeps_a_guess_among_its_candidates(general, guess_stage) -> None:
+    source, target, R, guess = pair_and_guess(5)
+    stages = dataclasses.replace(Stages(), search=turning_search, guess=guess_stage)
+    result = Registrar(GENERAL, threads=1, stages=stages).register(
+        source, target, refine="icp-plane", rotation_search=True, initial_transform=guess)
+    kept = rotation_between_deg(result.rotation, R) < 1.0
+    assert kept == (guess_stage is guess_candidate)
 
 
 def test_without_the_stage_the_network_moves_the_guess_away(general) -> None:
