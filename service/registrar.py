@@ -40,6 +40,7 @@ from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
 from service.stages.features import DESCRIBE_BELOW, describable, feature_confirmed
+from service.stages.guess import keeps_guess
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
@@ -332,9 +333,10 @@ class Registrar:
                         found, result = more, self.solve(work, request, None, timing, found=more)
                 if mode == "auto":  # the search only when the plain result looks wrong
                     solve = searched_ahead(partial(self.solve, work, request), ahead)
+                    guided = request.options.initial_transform is not None and keeps_guess(work, result)
                     result = stages.auto_search(solve, work, result, request.hypotheses, timing,
                                                 retry_points(self.manifest.search_subsample),
-                                                confirmed=feature_confirmed(work, found, result))
+                                                confirmed=feature_confirmed(work, found, result), guided=guided)
             finally:
                 if ahead is not None:
                     ahead.cancel()  # no-op when its result was taken

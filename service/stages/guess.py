@@ -10,11 +10,20 @@ search's alike.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from service.rotation_search import SearchCandidate
+from service.rotation_search import SearchCandidate, rotation_between_deg
 from service.stages.network import Candidates
 from service.stages.normalise import Working
+
+if TYPE_CHECKING:
+    from service.result import RegistrationResult
+
+# A result within this angle of the caller's guess keeps it: a room's other frame rotations lie a quarter or half turn
+# away (docs/decisions/0037-the-callers-guess-as-a-candidate.md).
+KEPT_DEG = 30.0
 
 
 def guess_candidate(work: Working, found: Candidates) -> Candidates:
@@ -26,3 +35,10 @@ def guess_candidate(work: Working, found: Candidates) -> Candidates:
     first = found.poses[0]
     guess = SearchCandidate(first.output, first.start, rotation, translation)
     return Candidates([*found.poses, guess], found.net_s, found.net_t)
+
+
+def keeps_guess(work: Working, result: RegistrationResult) -> bool:
+    """Whether ``result`` (caller's frame) lies within ``KEPT_DEG`` of the initial guess: the caller's prior then tells
+    which of a room's frame rotations is right, and ``auto`` does not search a room for being one
+    (:func:`service.stages.search.looks_wrong`). The registrar asks only where the caller gave a guess."""
+    return rotation_between_deg(work.R_init, result.rotation) < KEPT_DEG

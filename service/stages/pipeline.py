@@ -39,6 +39,6 @@ class Stages:
     slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined
     flip: Callable = flip  # (Working, Refined, RegistrationOptions) -> Refined; after a search only
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
-    auto_search: Callable = auto_search  # (solve, Working, plain result, hypotheses, timing, retry_points) -> result
+    auto_search: Callable = auto_search  # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided)
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult

@@ -140,19 +140,20 @@ def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> b
     return result.inlier_ratio < AUTO_SEARCH_RELATIVE_RATIO * attainable_ratio
 
 
-def looks_wrong(work: Working, plain: RegistrationResult) -> bool:
+def looks_wrong(work: Working, plain: RegistrationResult, guided: bool = False) -> bool:
     """Whether ``auto`` doubts the ``plain`` result (see :func:`auto_search`): it fits poorly and is not a partial
-    view's, both clouds are rooms over a dense target, or a result that is not ``reliable`` lies off the target's
-    surface."""
+    view's, both clouds are rooms over a dense target (unless ``guided``: the result keeps the caller's guess,
+    :func:`service.stages.guess.keeps_guess`, which tells a room's frame rotations apart), or a result that is not
+    ``reliable`` lies off the target's surface."""
     return ((needs_search(plain, work.attainable_ratio) and not looks_partial(work, plain))
-            or plane_frames_on_the_surface(work)
+            or (plane_frames_on_the_surface(work) and not guided)
             # a reliable result has passed off_the_surface already
             or (not plain.reliable and off_the_surface(work, plain.rotation, plain.translation) is not None))
 
 
 def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: RegistrationResult,
                 hypotheses: np.ndarray, timing: dict[str, float], retry_points: int | None = None,
-                confirmed: bool = False) -> RegistrationResult:
+                confirmed: bool = False, guided: bool = False) -> RegistrationResult:
     """``plain`` unless, on non-degenerate clouds, it may be wrong (:func:`looks_wrong`): it fits poorly
     (:func:`needs_search`) and is not a partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a
     dense target's surface
@@ -165,9 +166,10 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     (:func:`retry_points`) and the clouds are not rooms (:attr:`Working.plane_frame_rotations`),
     ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per cloud, and its pose, should
     it rank first, comes back not ``reliable`` with ``RETRY_WARNING``. A ``confirmed`` result (a feature pose agrees
-    with it, :func:`service.stages.features.feature_confirmed`) is not searched.
+    with it, :func:`service.stages.features.feature_confirmed`) is not searched, nor a ``guided`` one (it keeps the
+    caller's guess, :func:`service.stages.guess.keeps_guess`) for being a room's alone.
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
-    if not work.searchable or confirmed or not looks_wrong(work, plain):
+    if not work.searchable or confirmed or not looks_wrong(work, plain, guided):
         return plain
     started = time.perf_counter()
     result = better_of(work, plain, solve(hypotheses, {}), timing)

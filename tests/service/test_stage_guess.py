@@ -4,18 +4,19 @@ moves a good guess away cannot lose it."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from real_scan_cases import GENERAL, real_case, skip_without_general
 from scipy.spatial.transform import Rotation
-from shapes import lumpy_sphere
+from shapes import lumpy_sphere, room_scene
 
-from bench.real_scans import near_truth_starts, pose_errors, thresholds
+from bench.real_scans import near_truth_starts, pose_errors, thresholds, turned
 from service.registrar import Registrar
 from service.rotation_search import SearchCandidate, rotation_between_deg
 from service.stages.anchor import anchor
-from service.stages.guess import guess_candidate
+from service.stages.guess import KEPT_DEG, guess_candidate, keeps_guess
 from service.stages.network import Candidates, network
 from service.stages.normalise import normalise, to_caller
 from service.stages.pipeline import Stages
@@ -141,3 +142,44 @@ def test_a_real_range_image_keeps_a_guess_the_network_turns_away() -> None:
     degrees, error = pose_errors(result.rotation, result.translation, case.src_to_tgt)
     max_degrees, max_error = thresholds(case.sensor)
     assert degrees < max_degrees and error < max_error, (degrees, error)
+
+
+def room_and_guess(degrees_off: float, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Two thirds of a synthetic room turned by a seeded rotation (the source), the room (the target), the truth
+    ``[4, 4]``, and a guess: the truth after the source is turned ``degrees_off`` about ``axis`` at its centroid."""
+    room = room_scene(np.random.default_rng(0)).astype(np.float32)
+    source, truth = turned(room[room[:, 0] < 2.7], np.eye(4), Rotation.random(random_state=5).as_matrix())
+    off = np.eye(4)
+    off[:3, :3] = Rotation.from_rotvec(np.radians(degrees_off) * axis).as_matrix()
+    centre = source.mean(0, dtype=np.float64)
+    off[:3, 3] = centre - off[:3, :3] @ centre
+    return source, room, truth, truth @ off
+
+
+def test_a_room_that_keeps_the_callers_guess_is_not_searched_for_being_a_room(general) -> None:
+    source, target, truth, guess = room_and_guess(5, np.array([0.0, 0.0, 1.0]))
+    result = general.register(source, target, refine="icp-plane", rotation_search="auto", initial_transform=guess)
+    degrees, error = pose_errors(result.rotation, result.translation, truth)
+    assert degrees < 1.0 and error < 0.02, (degrees, error)
+    assert "search" not in result.timing_ms
+    unguided = general.register(source, target, refine="icp-plane", rotation_search="auto")
+    assert "search" in unguided.timing_ms  # a room is searched for being one (docs/decisions/0023)
+
+
+def test_a_room_guessed_a_quarter_turn_off_is_still_registered(general) -> None:
+    source, target, truth, guess = room_and_guess(90, np.array([0.0, 0.0, 1.0]))
+    result = general.register(source, target, refine="icp-plane", rotation_search="auto", initial_transform=guess)
+    degrees, error = pose_errors(result.rotation, result.translation, truth)
+    assert degrees < 1.0 and error < 0.02, (degrees, error)
+
+
+def test_a_result_keeps_the_guess_within_kept_deg_of_it() -> None:
+    source, target, _, guess = pair_and_guess(0)
+    request, _ = anchor(validate(source, target, None, {"initial_transform": guess}, 4, 128))
+    work = normalise(sample(request), 1.0)
+
+    def result_at(degrees: float) -> SimpleNamespace:  # keeps_guess reads the result's rotation only
+        return SimpleNamespace(rotation=Rotation.from_rotvec(np.radians(degrees) * AXIS).as_matrix() @ request.R_init)
+
+    for degrees, kept in ((KEPT_DEG - 1, True), (KEPT_DEG + 1, False), (90, False)):
+        assert keeps_guess(work, result_at(degrees)) is kept

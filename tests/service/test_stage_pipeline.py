@@ -100,6 +100,15 @@ def test_auto_search_searches_no_confirmed_result(registrar) -> None:
     assert auto_search(solve, work, bad, request.hypotheses, {}, confirmed=True) is bad
 
 
+def test_auto_search_still_searches_a_poorly_fitting_result_that_keeps_the_guess(registrar) -> None:
+    request, work = prepared(registrar, 3000, refine="icp-plane", rotation_search="auto", working_size=768)
+    good = registrar.solve(work, request, None, {})
+    poor = dataclasses.replace(good, inlier_ratio=0.1, rotation=R_TRUE.T @ R_TRUE.T, timing_ms={})  # fits poorly
+    searched = []
+    auto_search(lambda hypotheses, t: searched.append(1) or good, work, poor, request.hypotheses, {}, guided=True)
+    assert searched == [1]
+
+
 def test_a_search_result_that_still_fits_poorly_is_searched_again_on_more_points(registrar, monkeypatch) -> None:
     import service.stages.search as search_stage
 
