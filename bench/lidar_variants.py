@@ -7,11 +7,16 @@ it and the target to ``radius`` m about their own sensors, and registers it in p
 (:func:`bench.real_scans.fpfh_ransac_icp`, ``--no-fpfh`` to skip): level, and again turned about its centroid by a
 seeded Haar rotation. Success: the data README's LiDAR thresholds (< 5 deg, < 2 m). The points are real; the density
 pattern is not a second sensor's (the source stays densest where its own sensor stood).
+
+``--odometry DEG METRES`` sends every request an ``initial_transform`` as odometry would give it: the truth after
+the source is turned ``DEG`` about a seeded axis through its sensor (its frame's origin) and moved ``METRES`` in a
+seeded direction.
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -63,14 +68,33 @@ def variants(directory: Path, seed: int = 7):
                 yield f"{label}_turned", src_t, tgt, truth_t
 
 
+def odometry_guesses(degrees: float, metres: float, seed: int = 11) -> Callable[[np.ndarray], np.ndarray]:
+    """``truth [4, 4] -> guess [4, 4]``: the truth composed after a turn of ``degrees`` about a seeded axis through
+    the origin of the source's frame and a move of ``metres`` in a seeded direction, a new axis and direction per
+    call (the same sequence for the same seed)."""
+    rng = np.random.default_rng(seed)
+
+    def guess(truth: np.ndarray) -> np.ndarray:
+        axis, direction = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+        off = np.eye(4)
+        off[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
+        off[:3, 3] = metres * direction
+        return truth @ off
+
+    return guess
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dir", nargs="?", help="real-scan set (default: $MFGNET_REAL_DATA or ../shared/data/real)")
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
+    parser.add_argument("--odometry", nargs=2, type=float, metavar=("DEG", "METRES"),
+                        help="send each request an initial_transform this far off the truth, as odometry would")
     args = parser.parse_args(argv)
     cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(data_dir(args.dir)))
-    return report("lidar_variants", {"all": registered(cases, fpfh=not args.no_fpfh)}, args.json)
+    guess = None if args.odometry is None else odometry_guesses(*args.odometry)
+    return report("lidar_variants", {"all": registered(cases, fpfh=not args.no_fpfh, guess=guess)}, args.json)
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -25,16 +25,19 @@ def general_registrar() -> Registrar:
 
 
 def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]], fpfh: bool = True,
-               registrar: Registrar | None = None) -> list[dict]:
+               registrar: Registrar | None = None,
+               guess: Callable[[np.ndarray], np.ndarray] | None = None) -> list[dict]:
     """One row per ``(label, sensor, source [N, 3], target [M, 3], src_to_tgt [4, 4])`` case (printed as it comes):
     errors, success, ``reliable`` and seconds of the service (``registrar``, default :func:`general_registrar`), and
-    FPFH + RANSAC + ICP's success and seconds."""
+    FPFH + RANSAC + ICP's success and seconds. ``guess``: the service's ``initial_transform [4, 4]`` for a case's
+    truth (none without it; FPFH + RANSAC + ICP never takes one)."""
     registrar = general_registrar() if registrar is None else registrar
     rows = []
     for label, sensor, src, tgt, truth in cases:
         max_deg, max_error = thresholds(sensor)
+        options = {} if guess is None else {"initial_transform": guess(truth)}
         started = time.perf_counter()
-        result = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto")
+        result = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto", **options)
         seconds = time.perf_counter() - started
         degrees, error = pose_errors(result.rotation, result.translation, truth)
         row = {"variant": label, "service_success": bool(degrees < max_deg and error < max_error),
