@@ -315,8 +315,7 @@ class Registrar:
         if mode == "on":
             result = self.solve(work, request, request.hypotheses, timing)
         else:
-            found = self.with_guess(work, request, stages.network(self, work, request.iterations, request.keypoints,
-                                                                  timing))
+            found = self.plain_candidates(work, request, timing)
             overlay = plain_overlay(work, found) if mode == "auto" else math.inf  # how well the plain pose overlays
             describe = request.options.refine_mode != "none"
             if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
@@ -346,6 +345,11 @@ class Registrar:
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 
+    def plain_candidates(self, work: Working, request: Request, timing: dict[str, float]) -> Candidates:
+        """The plain network's pose (stage ``network``) and, where the caller gave one, the guess (``with_guess``)."""
+        return self.with_guess(work, request, self.stages.network(self, work, request.iterations, request.keypoints,
+                                                                  timing))
+
     def with_guess(self, work: Working, request: Request, found: Candidates) -> Candidates:
         """``found`` (the plain network's or the search's candidates) and, where the caller gave an
         ``initial_transform``, that guess itself (stage ``guess``), should the network have moved a good guess away."""
@@ -370,8 +374,7 @@ class Registrar:
         stages, o = self.stages, request.options
         if hypotheses is None:
             if found is None:
-                found = self.with_guess(work, request, stages.network(self, work, request.iterations,
-                                                                      request.keypoints, timing))
+                found = self.plain_candidates(work, request, timing)
         else:
             found = self.with_guess(work, request, stages.search(self, work, hypotheses, request.iterations,
                                                                  request.keypoints, o.refine_mode, timing, points))
