@@ -114,7 +114,7 @@ DropIsolatedOpt = Annotated[
 ]
 InitialTransformOpt = Annotated[
     Path | None, typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4; "
-                              "kept where it fits better than the network's poses")
+                              "with a refinement, kept where it fits better than the network's poses")
 ]
 OutOpt = Annotated[Path | None, typer.Option(help="write the pose, quality, model and timing as JSON here")]
 WriteAlignedOpt = Annotated[
