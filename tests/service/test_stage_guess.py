@@ -39,30 +39,27 @@ def pair_and_guess(degrees_off: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return source, target, R, guess
 
 
-def turning_network(registrar, work, iterations, keypoints, timing) -> Candidates:
-    """The plain network stage with its pose turned 90 deg: a network that moves the caller's guess away."""
-    found = network(registrar, work, iterations, keypoints, timing)
-    plain = found.poses[0]
-    turn = Rotation.from_rotvec(np.radians(90) * AXIS).as_matrix()
-    moved = SearchCandidate(plain.output, plain.start, turn @ plain.rotation, turn @ plain.translation)
-    return Candidates([moved], found.net_s, found.net_t)
+def moved(found: Candidates, turn: np.ndarray = np.eye(3), shift: float = 0.0) -> Candidates:
+    """``found`` with every candidate's pose turned by ``turn [3, 3]`` and moved by ``shift`` normalised units along
+    each axis: a stage that moves the caller's guess away."""
+    poses = [SearchCandidate(c.output, c.start, turn @ c.rotation, turn @ c.translation + shift) for c in found.poses]
+    return Candidates(poses, found.net_s, found.net_t)
+
+
+def turning_network(registrar, work, *args) -> Candidates:
+    """The plain network stage with its pose turned 90 deg."""
+    return moved(network(registrar, work, *args), Rotation.from_rotvec(np.radians(90) * AXIS).as_matrix())
 
 
 def turning_search(registrar, work, *args, **kwargs) -> Candidates:
-    """The search stage with every candidate's pose turned 120 deg about y: a search that moves the caller's guess
-    away."""
-    found = search(registrar, work, *args, **kwargs)
+    """The search stage with every candidate's pose turned 120 deg about y."""
     turn = Rotation.from_rotvec(np.radians(120) * np.array([0.0, 1.0, 0.0])).as_matrix()
-    moved = [SearchCandidate(c.output, c.start, turn @ c.rotation, turn @ c.translation) for c in found.poses]
-    return Candidates(moved, found.net_s, found.net_t)
+    return moved(search(registrar, work, *args, **kwargs), turn)
 
 
-def displacing_network(registrar, work, iterations, keypoints, timing) -> Candidates:
-    """The plain network stage with its pose moved two normalised units away: a pose that overlays nothing."""
-    found = network(registrar, work, iterations, keypoints, timing)
-    plain = found.poses[0]
-    moved = SearchCandidate(plain.output, plain.start, plain.rotation, plain.translation + 2.0)
-    return Candidates([moved], found.net_s, found.net_t)
+def displacing_network(registrar, work, *args) -> Candidates:
+    """The plain network stage with its pose moved two normalised units along each axis: it overlays nothing."""
+    return moved(network(registrar, work, *args), shift=2.0)
 
 
 @pytest.fixture(scope="module")
