@@ -25,6 +25,7 @@ from service.api.schemas import InferInputTensor, InferParameters, InferRequest,
 HEADER_LENGTH = "Inference-Header-Content-Length"
 OCTET_STREAM = "application/octet-stream"
 OIP_INPUTS = {"SOURCE": "source", "TARGET": "target"}
+GUESS_INPUT = "INITIAL_TRANSFORM"  # optional: FP32 [4, 4], the /v1/register option initial_transform
 OIP_OUTPUTS = ("TRANSFORM", "SOURCE_INDEX", "TARGET_INDEX", "CREDIBILITY")
 FP32_WIRE = np.dtype("<f4")  # binary FP32: little-endian float32
 MAX_HEADER_DIGITS = 19  # any int64; more digits cannot be a header length
@@ -136,6 +137,39 @@ def _decode_json_tensor(tensor: InferInputTensor, max_points: int) -> np.ndarray
     return _finite_float64(array, name)
 
 
+def _decode_transform(tensor: InferInputTensor, raw: memoryview | None) -> list[list[float]]:
+    """The ``INITIAL_TRANSFORM`` input, FP32 ``[4, 4]`` or ``[1, 4, 4]`` as JSON ``data`` or 64 binary bytes, as the
+    ``initial_transform`` option (4 rows of 4 finite numbers; 422 naming the problem). Whether it is rigid is checked
+    where every request's guess is (:func:`service.checks.check_transform`)."""
+    name = tensor.name
+    if tensor.datatype != "FP32":
+        raise APIError(422, f"invalid request: {name}: datatype must be FP32, got {tensor.datatype!r}")
+    if list(tensor.shape) not in ([4, 4], [1, 4, 4]):
+        raise APIError(422, f"invalid request: {name}: shape must be [4, 4] or [1, 4, 4], got {list(tensor.shape)}")
+    if raw is not None:
+        if len(raw) != 16 * FP32_WIRE.itemsize:
+            raise APIError(422, f"invalid request: {name}: binary_data_size is {len(raw)} bytes; [4, 4] of FP32 "
+                                f"needs {16 * FP32_WIRE.itemsize}")
+        array = np.frombuffer(raw, dtype=FP32_WIRE)
+    else:
+        if tensor.data is None:
+            raise APIError(422, f"invalid request: {name}: give the values in data or as binary data")
+        odd = sorted(t.__name__ for t in _scalar_types(tensor.data) - {int, float})
+        if odd:
+            raise APIError(422, f"invalid request: {name}: data must be numbers only, got {', '.join(odd)}")
+        try:
+            array = np.asarray(tensor.data, dtype=np.float64).reshape(-1)
+        except ValueError:
+            raise APIError(422, f"invalid request: {name}: data must be 16 numbers, row-major") from None
+        if array.size != 16:
+            raise APIError(422, f"invalid request: {name}: data has {array.size} values; [4, 4] needs 16")
+        with np.errstate(over="ignore"):
+            array = array.astype(np.float32)  # FP32 is the declared datatype
+    if not np.isfinite(array).all():
+        raise APIError(422, f"invalid request: {name}: data contains NaN or infinite values")
+    return array.astype(np.float64).reshape(4, 4).tolist()
+
+
 def binary_data_size(tensor: InferInputTensor) -> int | None:
     """The input's ``parameters.binary_data_size`` (bytes), ``None`` when it has none; 422 when not an int >= 0."""
     size = (tensor.parameters or {}).get("binary_data_size")
@@ -233,8 +267,9 @@ def infer_call(body: bytes | bytearray, length: int | None, max_points: int) -> 
         raise from_pydantic(exc) from None
     by_name: dict[str, InferInputTensor] = {}
     for tensor in req.inputs:
-        if tensor.name not in OIP_INPUTS:
-            raise APIError(422, f"invalid request: inputs: unknown input {tensor.name!r}; expected SOURCE and TARGET")
+        if tensor.name not in OIP_INPUTS and tensor.name != GUESS_INPUT:
+            raise APIError(422, f"invalid request: inputs: unknown input {tensor.name!r}; expected SOURCE and TARGET "
+                                f"(and optionally {GUESS_INPUT})")
         if tensor.name in by_name:
             raise APIError(422, f"invalid request: inputs: {tensor.name} given more than once")
         by_name[tensor.name] = tensor
@@ -250,9 +285,11 @@ def infer_call(body: bytes | bytearray, length: int | None, max_points: int) -> 
         clouds.append(
             _decode_json_tensor(tensor, max_points) if part is None else _decode_binary_tensor(tensor, part, max_points)
         )
+    guess = by_name.get(GUESS_INPUT)
     options = RegisterOptions(
         iterations=params.iterations, keypoints=params.keypoints, refine=params.refine,
         refine_points=params.refine_points, drop_isolated=params.drop_isolated, rotation_search=params.rotation_search,
+        initial_transform=None if guess is None else _decode_transform(guess, parts.get(GUESS_INPUT)),
         return_correspondences=True,
     )
     return InferCall(req.id, Pair(options, clouds[0], clouds[1]), outputs, binary_outputs)

@@ -35,6 +35,7 @@ def test_model_metadata_follows_the_inference_protocol(client):
     assert {t["name"]: (t["datatype"], t["shape"]) for t in meta["inputs"]} == {
         "SOURCE": ("FP32", [-1, 3]),
         "TARGET": ("FP32", [-1, 3]),
+        "INITIAL_TRANSFORM": ("FP32", [4, 4]),  # optional
     }
     assert {t["name"]: (t["datatype"], t["shape"]) for t in meta["outputs"]} == {
         "TRANSFORM": ("FP32", [4, 4]),

@@ -245,3 +245,67 @@ def test_point_limit_is_checked_from_the_shape_before_the_data():
     with server.client() as limited:
         # 700 points per cloud are above this server's max_points (400): the shape says so first
         assert_error(limited.post(INFER, content=body, headers=headers), 413, "SOURCE", "1000000000", "max_points")
+
+
+
+# -- the optional INITIAL_TRANSFORM input -----------------------------------------------------------
+def turned_guess(pair, radians: float) -> np.ndarray:
+    """``[4, 4]`` the pair's true src_to_tgt turned ``radians`` about x, rounded to float32 as the wire takes it."""
+    guess = np.eye(4)
+    turn = np.array([[1, 0, 0], [0, np.cos(radians), -np.sin(radians)], [0, np.sin(radians), np.cos(radians)]])
+    guess[:3, :3], guess[:3, 3] = np.asarray(pair.rotation) @ turn, pair.translation
+    return guess.astype(np.float32).astype(np.float64)
+
+
+@pytest.mark.parametrize("binary_data", [True, False])
+def test_tritonclient_sends_an_initial_transform_as_v1_register_takes_it(client, triton, binary_data):
+    """The network alone, started 1 rad off the truth: where it ends depends on the start, so the same pose as
+    ``/v1/register`` with that guess, and another than without one, shows the guess arrived."""
+    pair, options = modelnet_pair(2), {"refine": "none", "rotation_search": False}
+    guess = turned_guess(pair, 1.0)
+    with_guess = client.post("/v1/register", json=pair_json(pair, initial_transform=guess.tolist(), **options))
+    without = client.post("/v1/register", json=pair_json(pair, **options))
+    assert with_guess.status_code == without.status_code == 200, with_guess.text
+    tensor = httpclient.InferInput("INITIAL_TRANSFORM", [4, 4], "FP32")
+    tensor.set_data_from_numpy(guess.astype(np.float32), binary_data=binary_data)
+    result = triton.infer(MODEL, [*triton_inputs(pair, binary_data), tensor], parameters=options)
+    rotation = result.as_numpy("TRANSFORM").astype(np.float64)[:3, :3]
+    np.testing.assert_allclose(rotation, np.array(with_guess.json()["rotation"]), rtol=0, atol=1e-5)
+    assert np.abs(rotation - np.array(without.json()["rotation"])).max() > 1e-3
+
+
+def json_infer(pair, guess: dict) -> dict:
+    """A JSON infer request of ``pair`` with ``guess`` as its INITIAL_TRANSFORM input (the fields to send)."""
+    inputs = [{"name": n, "shape": list(p.shape), "datatype": "FP32", "data": p.astype(np.float32).ravel().tolist()}
+              for n, p in (("SOURCE", pair.source), ("TARGET", pair.target))]
+    return {"inputs": [*inputs, {"name": "INITIAL_TRANSFORM", **guess}], "parameters": CHEAP}
+
+
+RIGID = np.eye(4).ravel().tolist()
+GUESS_CASES = {
+    # name: (INITIAL_TRANSFORM fields, words of the 422)
+    "shape": ({"shape": [3, 3], "datatype": "FP32", "data": RIGID[:9]}, ["INITIAL_TRANSFORM", "[4, 4]"]),
+    "datatype": ({"shape": [4, 4], "datatype": "FP64", "data": RIGID}, ["INITIAL_TRANSFORM", "FP32"]),
+    "count": ({"shape": [4, 4], "datatype": "FP32", "data": RIGID[:15]}, ["INITIAL_TRANSFORM", "16"]),
+    "nan": ({"shape": [4, 4], "datatype": "FP32", "data": [float("nan"), *RIGID[1:]]}, ["INITIAL_TRANSFORM", "NaN"]),
+    "text": ({"shape": [4, 4], "datatype": "FP32", "data": ["1", *RIGID[1:]]}, ["INITIAL_TRANSFORM", "numbers"]),
+    "no_data": ({"shape": [4, 4], "datatype": "FP32"}, ["INITIAL_TRANSFORM", "data"]),
+    "not_rigid": ({"shape": [4, 4], "datatype": "FP32", "data": [2.0, *RIGID[1:]]}, ["initial_transform", "rigid"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(GUESS_CASES))
+def test_initial_transform_mistakes_get_a_clear_422(client, case):
+    fields, words = GUESS_CASES[case]
+    response = client.post(INFER, content=json.dumps(json_infer(PAIR, fields), allow_nan=True).encode())
+    assert_error(response, 422, *words)
+
+
+def test_a_binary_initial_transform_of_the_wrong_size_is_named(client):
+    body, length = binary_body(PAIR, parameters=CHEAP)
+    request = json.loads(body[:length])
+    request["inputs"].append({"name": "INITIAL_TRANSFORM", "shape": [4, 4], "datatype": "FP32",
+                              "parameters": {"binary_data_size": 60}})
+    head = json.dumps(request).encode()
+    response = client.post(INFER, content=head + body[length:] + bytes(60), headers={HEADER: str(len(head))})
+    assert_error(response, 422, "INITIAL_TRANSFORM", "60 bytes", "64")

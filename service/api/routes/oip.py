@@ -36,6 +36,7 @@ PLATFORM = "mfgnet_onnxruntime"
 INPUTS = [
     {"name": "SOURCE", "datatype": "FP32", "shape": [-1, 3]},
     {"name": "TARGET", "datatype": "FP32", "shape": [-1, 3]},
+    {"name": "INITIAL_TRANSFORM", "datatype": "FP32", "shape": [4, 4]},  # optional
 ]
 OUTPUTS = [
     {"name": "TRANSFORM", "datatype": "FP32", "shape": [4, 4]},
@@ -103,7 +104,10 @@ async def model_ready(name: str, request: Request) -> dict:
 INFER_DESCRIPTION = f"""Register SOURCE onto TARGET.
 
 **Inputs** SOURCE and TARGET: FP32, shape [N, 3] or [1, N, 3] (x, y, z rows, any units: the outputs are in the
-same units), each either as JSON `data` (flat or nested, row-major) or as binary tensor data.
+same units), each either as JSON `data` (flat or nested, row-major) or as binary tensor data. Optional
+INITIAL_TRANSFORM: FP32, shape [4, 4] or [1, 4, 4], a rigid src_to_tgt guess (row-major, the clouds' units), as
+`initial_transform` of `/v1/register`: the network starts from it, and with a refinement it is kept where it fits
+better than the network's poses.
 
 **Request parameters** (all optional): iterations, keypoints, refine ({', '.join(REFINE_MODES)}), refine_points,
 drop_isolated, rotation_search (true, false or 'auto'), binary_data_output (true: every output as binary data
@@ -122,11 +126,11 @@ K is the number of keypoint matches (the model's keypoints, or the `keypoints` p
 
 **Binary tensor data** (`binary_tensor_data` in `GET /v2`): a request may put any input's values after the
 JSON object, as little-endian float32 bytes (row-major, no padding): the input gets
-`parameters.binary_data_size` (bytes, = N x 3 x 4) instead of `data`, and the `{HEADER_LENGTH}` header gives the
-JSON object's length in bytes. The binary parts follow in the order of `inputs` and must fill the rest of the
-body exactly. Outputs asked for with `parameters.binary_data: true` (or all, with the request parameter
-`binary_data_output: true`) come back the same way: `parameters.binary_data_size` instead of `data`, their
-bytes after the JSON object in output order (INT64 as little-endian int64), the response's
+`parameters.binary_data_size` (bytes, = N x 3 x 4; 64 for INITIAL_TRANSFORM) instead of `data`, and the
+`{HEADER_LENGTH}` header gives the JSON object's length in bytes. The binary parts follow in the order of `inputs`
+and must fill the rest of the body exactly. Outputs asked for with `parameters.binary_data: true` (or all, with the
+request parameter `binary_data_output: true`) come back the same way: `parameters.binary_data_size` instead of
+`data`, their bytes after the JSON object in output order (INT64 as little-endian int64), the response's
 `{HEADER_LENGTH}` header giving the JSON length and its Content-Type {OCTET_STREAM}.
 
 The body may be sent without a Content-Type, or as application/json or {OCTET_STREAM}; not compressed.
