@@ -88,6 +88,13 @@ def _scalar_types(data: list, depth: int = 3) -> set[type]:
     return types | (set(map(type, level)) - {list})
 
 
+def _numbers_only(tensor: InferInputTensor) -> None:
+    """422 unless the JSON ``data`` holds numbers only: checked before numpy, which would quietly turn true into 1.0."""
+    odd = sorted(t.__name__ for t in _scalar_types(tensor.data) - {int, float})
+    if odd:
+        raise APIError(422, f"invalid request: {tensor.name}: data must be numbers only, got {', '.join(odd)}")
+
+
 def _point_count(tensor: InferInputTensor, max_points: int) -> int:
     """N of an FP32 ``[N, 3]`` or ``[1, N, 3]`` tensor (422 otherwise, 413 above ``max_points``)."""
     name = tensor.name
@@ -119,9 +126,7 @@ def _decode_json_tensor(tensor: InferInputTensor, max_points: int) -> np.ndarray
         raise APIError(422, f"invalid request: {name}: give the values in data or as binary data (binary_data_size)")
     if _rows_before_conversion(data) > max_points:
         raise too_many_points(name, _rows_before_conversion(data), max_points)
-    odd = sorted(t.__name__ for t in _scalar_types(data) - {int, float})
-    if odd:  # checked before numpy, which would quietly turn true into 1.0
-        raise APIError(422, f"invalid request: {name}: data must be numbers only, got {', '.join(odd)}")
+    _numbers_only(tensor)
     try:
         array = np.asarray(data)
     except ValueError:
@@ -154,9 +159,7 @@ def _decode_transform(tensor: InferInputTensor, raw: memoryview | None) -> list[
     else:
         if tensor.data is None:
             raise APIError(422, f"invalid request: {name}: give the values in data or as binary data")
-        odd = sorted(t.__name__ for t in _scalar_types(tensor.data) - {int, float})
-        if odd:
-            raise APIError(422, f"invalid request: {name}: data must be numbers only, got {', '.join(odd)}")
+        _numbers_only(tensor)
         try:
             array = np.asarray(tensor.data, dtype=np.float64).reshape(-1)
         except ValueError:
