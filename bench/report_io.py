@@ -14,6 +14,17 @@ def emit_report(report: dict, json_path: Path | None) -> None:
         json_path.write_text(text + "\n")
 
 
+def reliable_totals(rows: list[dict]) -> dict:
+    """Cases, successes, ``reliable`` results given and wrong, their precision (the share of those given that are
+    right) and coverage (the share of the successes given it) of ``rows`` (each with ``success`` and ``reliable``)."""
+    right = sum(r["success"] for r in rows)
+    given = sum(r["reliable"] for r in rows)
+    wrong = sum(r["reliable"] and not r["success"] for r in rows)
+    return {"cases": len(rows), "successes": right, "reliable_given": given, "reliable_wrong": wrong,
+            "precision": round((given - wrong) / given, 4) if given else None,
+            "coverage": round((given - wrong) / right, 4) if right else None}
+
+
 VECTOR_EXTENSIONS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile")  # what GEMM speed hangs on
 
 

@@ -9,8 +9,8 @@ exported model ``DIR`` (e.g. a checkpoint of ``mfgnet train --recipe search``, e
 refinements and checks stay ``general``'s. Both models must normalise clouds alike (the same reference radius).
 
 It prints and writes (``--json``) each registrar's successes (the data README's thresholds), ``reliable`` results
-given and wrong, coverage (the share of successes given ``reliable``) and seconds, and every case whose success or
-``reliable`` flag differs between them.
+given and wrong, precision, coverage (the share of successes given ``reliable``) and seconds, and every case whose
+success or ``reliable`` flag differs between them.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from bench.real_scans import Case, data_dir, load_cases, pose_errors, thresholds
+from bench.report_io import reliable_totals
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.stages.pipeline import Stages
@@ -76,13 +77,9 @@ def outcome(registrar: Registrar, case: Case) -> dict:
 
 
 def totals(rows: list[dict]) -> dict:
-    """Successes, ``reliable`` given / wrong, coverage and seconds of one variant's ``rows``."""
-    right = sum(r["success"] for r in rows)
-    given = sum(r["reliable"] for r in rows)
-    wrong = sum(r["reliable"] and not r["success"] for r in rows)
-    return {"cases": len(rows), "successes": right, "reliable_given": given, "reliable_wrong": wrong,
-            "coverage": round((given - wrong) / right, 3) if right else None,
-            "seconds": round(sum(r["seconds"] for r in rows), 2)}
+    """Successes, ``reliable`` given / wrong, precision, coverage (:func:`bench.report_io.reliable_totals`) and seconds
+    of one variant's ``rows``."""
+    return {**reliable_totals(rows), "seconds": round(sum(r["seconds"] for r in rows), 2)}
 
 
 def compare(model_dir: Path, all_cases: list[Case]) -> dict:

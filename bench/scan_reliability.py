@@ -1,0 +1,84 @@
+"""``reliable`` on shapes the real-scan set does not hold: ``python -m bench.scan_reliability`` (row H of
+``docs/REAL_SCANS.md``).
+
+Simulated range scans of ModelNet40 test shapes (the ``scans`` setting: two camera views of one shape, turned up to
+180 deg about each axis), ``--count`` shapes for each of ``--seeds``, registered in process by ``--model`` with the
+service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``; :func:`bench.runtime_eval.runtime_poses`).
+Right = within (5 deg, 5 cm). It prints and writes (``--json``) the pooled successes, ``reliable`` results given and
+wrong, their precision (the share of them that are right) and coverage (the share of the successes given it), the same
+per class, and every wrong ``reliable`` result with its kind: ``half turn`` (more than 170 deg off), ``turned``
+(5-170 deg off) or ``slid`` (the rotation within 5 deg, the translation 5 cm or more off).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from bench.report_io import reliable_totals
+from bench.runtime_eval import runtime_poses
+from model.data import class_names, make_test_pairs, protocol_for
+from model.metrics import isotropic_errors
+
+MAX_DEGREES, MAX_TRANSLATION = 5.0, 0.05  # right: within both (as recall_r5_t005)
+HALF_TURN_DEGREES = 170.0  # a wrong result further off than this is a half turn
+SEEDS = (5, 11, 12, 13, 14, 15)
+
+
+def seed_rows(model: str, seed: int, count: int, data: str | None = None) -> list[dict]:
+    """One row per pair of ``count`` seeded simulated scans at any orientation: class, errors, success, ``reliable``."""
+    pairs = make_test_pairs("scans", count=count, seed=seed, path=data, protocol=protocol_for("scans", max_angle=180))
+    run = runtime_poses(model, pairs, refine="icp-plane", rotation_search="auto", progress=False)
+    degrees, errors = isotropic_errors(run.rotation, run.translation, pairs["rotation"], pairs["translation"])  # [M]
+    return [{"seed": seed, "pair": i, "label": int(pairs["label"][i]), "rotation_error_deg": round(float(d), 3),
+             "translation_error": round(float(e), 4), "success": bool(d < MAX_DEGREES and e < MAX_TRANSLATION),
+             "reliable": bool(run.reliable[i])} for i, (d, e) in enumerate(zip(degrees, errors, strict=True))]
+
+
+def kind(row: dict) -> str:
+    """How a wrong result is wrong: ``half turn``, ``turned`` or ``slid``."""
+    if row["rotation_error_deg"] > HALF_TURN_DEGREES:
+        return "half turn"
+    return "turned" if row["rotation_error_deg"] >= MAX_DEGREES else "slid"
+
+
+def report(rows: list[dict], names: list[str] | None) -> dict:
+    """The pooled totals (:func:`bench.report_io.reliable_totals`), those of each class, and every wrong ``reliable``
+    result with its :func:`kind`."""
+    def name(label: int) -> str:
+        return names[label] if names and label < len(names) else str(label)
+
+    by_class = {name(label): reliable_totals([r for r in rows if r["label"] == label])
+                for label in sorted({r["label"] for r in rows})}
+    wrong = [{**r, "class": name(r["label"]), "kind": kind(r)} for r in rows if r["reliable"] and not r["success"]]
+    return {"benchmark": "scan_reliability", "totals": reliable_totals(rows), "by_class": by_class,
+            "reliable_wrong": wrong, "rows": rows}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", default="general", help="bundled model name or model folder")
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    parser.add_argument("--count", type=int, default=170, help="pairs per seed")
+    parser.add_argument("--data", default=None, help="ModelNet40 directory (default: $MFGNET_DATA, then ../shared)")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    rows: list[dict] = []
+    for seed in args.seeds:
+        rows += seed_rows(args.model, seed, args.count, args.data)
+        print(f"seed {seed}", json.dumps(reliable_totals([r for r in rows if r["seed"] == seed])), flush=True)
+    out = report(rows, class_names(args.data))
+    print("all", json.dumps(out["totals"]))
+    for name, figures in out["by_class"].items():
+        print(f"  {name}", json.dumps(figures))
+    for row in out["reliable_wrong"]:
+        print("  wrong reliable:", json.dumps({k: row[k] for k in ("seed", "pair", "class", "rotation_error_deg",
+                                                                   "translation_error", "kind")}))
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+    return out
+
+
+if __name__ == "__main__":
+    main()
