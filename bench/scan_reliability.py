@@ -19,9 +19,10 @@ from pathlib import Path
 from bench.report_io import reliable_totals
 from bench.runtime_eval import runtime_poses
 from model.data import class_names, make_test_pairs, protocol_for
-from model.metrics import isotropic_errors
+from model.metrics import RECALL_THRESHOLDS, isotropic_errors, recall_hits
 
-MAX_DEGREES, MAX_TRANSLATION = 5.0, 0.05  # right: within both (as recall_r5_t005)
+RIGHT = "recall_r5_t005"  # right: within (5 deg, 5 cm)
+MAX_DEGREES = RECALL_THRESHOLDS[RIGHT][0]
 HALF_TURN_DEGREES = 170.0  # a wrong result further off than this is a half turn
 SEEDS = (5, 11, 12, 13, 14, 15)
 
@@ -31,8 +32,9 @@ def seed_rows(model: str, seed: int, count: int, data: str | None = None) -> lis
     pairs = make_test_pairs("scans", count=count, seed=seed, path=data, protocol=protocol_for("scans", max_angle=180))
     run = runtime_poses(model, pairs, refine="icp-plane", rotation_search="auto", progress=False)
     degrees, errors = isotropic_errors(run.rotation, run.translation, pairs["rotation"], pairs["translation"])  # [M]
+    right = recall_hits(degrees, errors)[RIGHT]  # [M]
     return [{"seed": seed, "pair": i, "label": int(pairs["label"][i]), "rotation_error_deg": round(float(d), 3),
-             "translation_error": round(float(e), 4), "success": bool(d < MAX_DEGREES and e < MAX_TRANSLATION),
+             "translation_error": round(float(e), 4), "success": bool(right[i]),
              "reliable": bool(run.reliable[i])} for i, (d, e) in enumerate(zip(degrees, errors, strict=True))]
 
 
