@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.real_scans import fpfh_ransac_icp, pose_errors, thresholds
+from bench.report_io import reliable_totals
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 
@@ -55,9 +56,9 @@ def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarra
 
 def totals(rows: list[dict]) -> dict:
     """Cases, successes, ``reliable`` given and wrong, and seconds of ``rows`` (FPFH + RANSAC + ICP's where run)."""
-    out = {"cases": len(rows), "service_successes": sum(r["service_success"] for r in rows),
-           "reliable_given": sum(r["reliable"] for r in rows),
-           "reliable_wrong": sum(r["reliable"] and not r["service_success"] for r in rows),
+    counts = reliable_totals([{"success": r["service_success"], "reliable": r["reliable"]} for r in rows])
+    out = {"cases": counts["cases"], "service_successes": counts["successes"],
+           "reliable_given": counts["reliable_given"], "reliable_wrong": counts["reliable_wrong"],
            "service_seconds": round(sum(r["service_seconds"] for r in rows), 2)}
     if rows and "fpfh_success" in rows[0]:
         out |= {"fpfh_successes": sum(r["fpfh_success"] for r in rows),
