@@ -49,6 +49,17 @@ class Stability:
     motion: np.ndarray  # [6] its unit eigenvector: rotation (axis direction) then translation parts
     pairs: int  # source points that entered H
     probe_ratio: float | None = None  # RMS distance after / before a one-spacing move along it (low eigenvalues only)
+    centre: np.ndarray | None = None  # [3] the point the rotation part turns about (the pairs' centroid)
+    scale: float = 1.0  # the target's RMS radius: the translation part per unit step is ``motion[3:] * scale``
+
+    def turn_axis(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """A point ``[3]`` on the axis of the least constrained motion's turn and its unit direction ``[3]``: the line
+        that motion turns about (its instantaneous screw axis), or ``None`` where it hardly turns."""
+        turn, slide = self.motion[:3], self.motion[3:] * self.scale
+        norm2 = float(turn @ turn)
+        if self.centre is None or norm2 < 1e-12:
+            return None
+        return self.centre + np.cross(turn, slide) / norm2, turn / np.sqrt(norm2)
 
     @property
     def weak(self) -> bool:
@@ -84,7 +95,7 @@ def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_di
     probe = None
     if eigenvalue < WEAK_EIGENVALUE:  # only then does it matter whether the samples pin the motion down
         probe = _probe_ratio(p, dist[paired], tgt, tree, centre, scale, motion)
-    return Stability(eigenvalue, motion, len(p), probe)
+    return Stability(eigenvalue, motion, len(p), probe, centre, scale)
 
 
 def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree, centre: np.ndarray,

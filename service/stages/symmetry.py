@@ -9,6 +9,11 @@ candidates are (:func:`service.stages.refine.short_refine`), ranked by the fit t
 (:func:`service.stages.ranking.candidate_fits`); one within ``AMBIGUOUS_RATIO_GAP`` of the pose's fit, or above it,
 makes the result ambiguous: not ``reliable``, with a warning. The pose itself is kept
 (``docs/decisions/0030-half-turn-symmetry-check.md``).
+
+A shape of revolution seen in part (a vase, a bowl) turns about its axis without leaving its surface, and the axis
+need not be a principal axis of the part seen. Where the result's ``stability`` is low and its least constrained
+motion is a turn (:mod:`service.stability`), the pose also competes with itself turned ``AXIS_TURN_DEGREES`` either
+way about that motion's axis (``docs/decisions/0038-turns-about-the-least-constrained-axis.md``).
 """
 
 from __future__ import annotations
@@ -18,13 +23,19 @@ import time
 
 import numpy as np
 
+from service.icp import rotation_of
+from service.kdtree import KDTree
 from service.options import RegistrationOptions
 from service.result import RegistrationResult
 from service.rotation_search import ambiguity_warning
-from service.stages.normalise import Working
+from service.stability import ROTATION_SHARE, pose_stability
+from service.stages.normalise import ICP_DISTANCE, Working
 from service.stages.partial import half_turns
 from service.stages.ranking import candidate_fits
 from service.stages.refine import icp_distance, short_refine
+
+AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
+AXIS_TURN_DEGREES = 60.0  # ... this far either way
 
 
 def symmetry(work: Working, result: RegistrationResult, options: RegistrationOptions,
@@ -34,21 +45,41 @@ def symmetry(work: Working, result: RegistrationResult, options: RegistrationOpt
     if not result.reliable or options.refine_mode == "none":
         return result
     started = time.perf_counter()
-    warning = half_turn_ambiguity(work, result.rotation, result.translation, options)
+    warning = half_turn_ambiguity(work, result.rotation, result.translation, options, result.stability)
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
     if warning is None:
         return result
     return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
 
 
-def half_turn_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, options: RegistrationOptions) -> str | None:
-    """The ambiguity warning of the pose ``R [3, 3], t [3]`` (caller's units) against its three half turns after the
-    search's short refinement, or ``None`` where each of them fits worse by more than ``AMBIGUOUS_RATIO_GAP``."""
+def half_turn_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, options: RegistrationOptions,
+                        stability: float | None = None) -> str | None:
+    """The ambiguity warning of the pose ``R [3, 3], t [3]`` (caller's units) against its three half turns, and where
+    ``stability`` is below ``AXIS_TURN_STABILITY`` its :func:`axis_turns`, after the search's short refinement; or
+    ``None`` where each of them fits worse by more than ``AMBIGUOUS_RATIO_GAP`` or returns to the pose."""
     mode = options.refine_mode
     surface = work.target_surface if mode != "icp" else None
     R_h, t_h = half_turns(work.working_source, R, t)  # [3, 3, 3], [3, 3]
-    R_s, t_s = short_refine(work, list(zip(R_h, t_h, strict=True)), mode, icp_distance(work, options), surface)
-    rotations = np.concatenate([R[None], R_s])  # [4, 3, 3]: the pose, then its turns
-    translations = np.concatenate([t[None], t_s])  # [4, 3]
-    fits, measure = candidate_fits(work, rotations, translations)  # [4]
+    starts = list(zip(R_h, t_h, strict=True))
+    if stability is not None and stability < AXIS_TURN_STABILITY:
+        starts += axis_turns(work, R, t)
+    R_s, t_s = short_refine(work, starts, mode, icp_distance(work, options), surface)
+    rotations = np.concatenate([R[None], R_s])  # [1 + C, 3, 3]: the pose, then its turns
+    translations = np.concatenate([t[None], t_s])  # [1 + C, 3]
+    fits, measure = candidate_fits(work, rotations, translations)  # [1 + C]
     return ambiguity_warning(rotations, fits, 0, measure=measure)
+
+
+def axis_turns(work: Working, R: np.ndarray, t: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The pose ``R [3, 3], t [3]`` turned ``AXIS_TURN_DEGREES`` either way about the axis its least constrained motion
+    turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds); none where that motion is not
+    mostly a turn (``ROTATION_SHARE``)."""
+    moved = work.working_source @ R.T + t  # [Ns, 3]
+    found = pose_stability(moved, work.tgt_w, KDTree(work.tgt_w), ICP_DISTANCE * work.norm.scale)
+    axis = None if found is None or np.linalg.norm(found.motion[:3]) < ROTATION_SHARE else found.turn_axis()
+    if axis is None:
+        return []
+    point, direction = axis  # [3], [3]
+    angle = np.radians(AXIS_TURN_DEGREES)
+    turns = [rotation_of(sign * angle * direction, angle) for sign in (1.0, -1.0)]  # [3, 3] each
+    return [(Q @ R, Q @ (t - point) + point) for Q in turns]

@@ -36,6 +36,28 @@ def test_a_shape_of_revolution_turns_freely_about_its_axis() -> None:
     assert "symmetric" in warning
 
 
+def test_the_turn_axis_of_a_part_of_a_shape_of_revolution_is_its_axis() -> None:
+    """The least constrained turn of a part away from the axis is about the axis itself, not the part's centroid."""
+    offset = np.array([0.4, -0.2, 0.3])
+    part = spheroid(2000, 0)
+    part = part[part[:, 0] > 0.2] + offset  # [P, 3]: one side of the spheroid, its axis through ``offset``
+    stability = stability_of(part, spheroid(2000, 1) + offset)
+    point, direction = stability.turn_axis()
+    assert abs(direction[2]) > 0.99
+    off_axis = (point - offset) - ((point - offset) @ direction) * direction
+    assert np.linalg.norm(off_axis) < 0.03  # the centroid of the part lies about 0.4 from the axis
+    assert np.linalg.norm(stability.centre[:2] - offset[:2]) > 0.3
+
+
+def test_a_slide_has_no_turn_axis() -> None:
+    slide = Stability(0.001, np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0]), 100, None, np.zeros(3), 1.0)
+    assert slide.turn_axis() is None
+    screw = Stability(0.001, np.array([0.0, 0.0, 1.0, 0.0, 2.0, 0.0]) / np.sqrt(5.0), 100, None, np.zeros(3), 0.5)
+    point, direction = screw.turn_axis()  # velocity w x (p - c) + s, s = (0, 1, 0) / sqrt 5: zero on x = -1
+    np.testing.assert_allclose(direction, [0.0, 0.0, 1.0])
+    np.testing.assert_allclose(point, [-1.0, 0.0, 0.0], atol=1e-12)
+
+
 def test_shared_sample_points_pin_the_turn_of_a_shape_of_revolution() -> None:
     """The same points on both sides (synthetic pairs): moving them along the surface leaves their partners."""
     points = spheroid(800, 0)

@@ -1,6 +1,7 @@
 """The symmetry check on its own: a reliable pose of a shape that a half turn maps onto itself (an open tub) loses
-``reliable`` with an ambiguity warning and keeps its pose; an asymmetric shape's stays reliable; results that are not
-reliable, or not refined, are not checked."""
+``reliable`` with an ambiguity warning and keeps its pose; an asymmetric shape's stays reliable; a part of a shape of
+revolution (an open bowl) whose stability is low is turned about its axis; results that are not reliable, or not
+refined, are not checked."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from service.registrar import Registrar
 from service.result import RegistrationResult
 from service.stages.normalise import normalise
 from service.stages.sample import sample
-from service.stages.symmetry import half_turn_ambiguity, symmetry
+from service.stages.symmetry import AXIS_TURN_STABILITY, axis_turns, half_turn_ambiguity, symmetry
 from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
@@ -36,17 +37,39 @@ def open_tub(points: int, seed: int) -> np.ndarray:
     return o + u * a + v * b - np.array([1.0, 0.5, 0.3])
 
 
+def open_bowl(points: int, seed: int) -> np.ndarray:
+    """``[points, 3]`` on the side and floor of an open bowl about the z axis (radius 0.5 at the floor, 1.0 at the rim,
+    0.8 deep): every turn about that axis maps it onto itself."""
+    rng = np.random.default_rng(seed)
+    side = int(0.75 * points)
+    z, a = 0.8 * rng.random(side), 2 * np.pi * rng.random(side)  # [side] each
+    r = 0.5 + 0.5 * z / 0.8
+    floor_r, floor_a = 0.5 * np.sqrt(rng.random(points - side)), 2 * np.pi * rng.random(points - side)
+    wall = np.stack([r * np.cos(a), r * np.sin(a), z], axis=1)  # [side, 3]
+    floor = np.stack([floor_r * np.cos(floor_a), floor_r * np.sin(floor_a), np.zeros(points - side)], axis=1)
+    return np.concatenate([wall, floor]) - np.array([0.0, 0.0, 0.4])
+
+
+def bowl_part_on_bowl():
+    """A part of one bowl cut off by a tilted plane (none of its principal axes is the bowl's), on a whole other sample
+    of it moved by the true pose."""
+    cut = np.array([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
+    part = open_bowl(6000, 0)
+    return working(part[part @ cut > -0.1], open_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
+
+
 def working(source: np.ndarray, target: np.ndarray, refine: str = "icp-plane"):
     request = validate(source, target, None, {"refine": refine}, 3, 128)
     return normalise(sample(request), general_reference_radius()), request.options
 
 
-def result_at(R: np.ndarray, t: np.ndarray, reliable: bool = True) -> RegistrationResult:
+def result_at(R: np.ndarray, t: np.ndarray, reliable: bool = True, stability: float | None = None
+              ) -> RegistrationResult:
     empty = np.zeros(0)
     return RegistrationResult(rotation=R, translation=t, source_index=empty.astype(np.int64),
                               target_index=empty.astype(np.int64), credibility=empty, weight=empty,
                               inlier_ratio=1.0, residual_rms=0.0, reliable=reliable, warnings=[], iterations=3,
-                              timing_ms={})
+                              timing_ms={}, stability=stability)
 
 
 def test_a_shape_a_half_turn_maps_onto_itself_is_ambiguous_and_keeps_its_pose():
@@ -65,6 +88,35 @@ def test_an_asymmetric_shape_stays_reliable():
     assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None
     result = result_at(R_TRUE, T_TRUE)
     assert symmetry(work, result, options, {}) is result
+
+
+def test_a_part_of_a_shape_of_revolution_is_turned_about_its_axis_where_its_stability_is_low():
+    work, options = bowl_part_on_bowl()
+    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None  # no half turn about the part's axes fits
+    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options, AXIS_TURN_STABILITY) is None  # not below: not turned
+    warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY)
+    assert warning is not None and warning.startswith("ambiguous: a pose")
+    checked = symmetry(work, result_at(R_TRUE, T_TRUE, stability=0.5 * AXIS_TURN_STABILITY), options, {})
+    assert not checked.reliable and checked.warnings == [warning]
+    assert np.array_equal(checked.rotation, R_TRUE)
+
+
+def test_axis_turns_turn_the_pose_60_deg_either_way_about_the_axis_of_revolution():
+    work, _ = bowl_part_on_bowl()
+    axis = R_TRUE[:, 2]  # the bowl's axis after the true pose, through T_TRUE + R_TRUE (0, 0, -0.4)
+    turns = axis_turns(work, R_TRUE, T_TRUE)
+    assert len(turns) == 2
+    for R, t in turns:
+        turn = Rotation.from_matrix(R @ R_TRUE.T).as_rotvec(degrees=True)  # [3]
+        assert abs(np.linalg.norm(turn) - 60.0) < 1e-6 and abs(abs(turn @ axis) / 60.0 - 1.0) < 1e-3
+        on_axis = T_TRUE + R_TRUE @ np.array([0.0, 0.0, -0.4])  # a point of the axis stays where it was
+        assert np.linalg.norm(R @ (R_TRUE.T @ (on_axis - T_TRUE)) + t - on_axis) < 0.01
+
+
+def test_an_asymmetric_shape_has_no_free_turn_to_try():
+    blob = asymmetric_blob(3000)
+    work, options = working(blob, asymmetric_blob(3000, seed=1) @ R_TRUE.T + T_TRUE)
+    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY) is None
 
 
 def test_results_not_reliable_or_not_refined_are_not_checked():
