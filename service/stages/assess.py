@@ -6,7 +6,6 @@ import time
 
 import numpy as np
 
-from service.kdtree import KDTree
 from service.network_loop import NetworkOutput
 from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
 from service.quality import poor_fit as poor_fit_of  # the rule's band, given the attainable ratio
@@ -79,8 +78,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     poses = iteration_poses(work, candidate) if return_iterations else []
     t4 = time.perf_counter()
     R, t, surface, tgt_w = refined.rotation, refined.translation, refined.surface, work.tgt_w
-    working = surface if surface is not None and work.tgt_r is tgt_w else None  # the working target's normals
-    tree = KDTree(tgt_w) if working is None else working.tree  # shared by the two checks below
+    tree, working = work.working_target_lookup(surface)  # shared by the two checks below
     src = work.working_source  # [Ns, 3] caller's frame
     attainable, on_surface = reliable_attainable(work)
     quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface)

@@ -92,6 +92,13 @@ class Working(Sampled):
         """KD-tree and normals of the refinement's target ``tgt_r``, built once per registration."""
         return Surface.of(self.tgt_r)
 
+    def working_target_lookup(self, surface: Surface | None) -> tuple[KDTree, Surface | None]:
+        """A KD-tree of the working target ``tgt_w`` and its normals where they are at hand: ``surface`` (the
+        refinement's, of ``tgt_r``) when the refinement aligns with the working target itself, else a new tree and
+        ``None`` (:func:`service.stability.pose_stability` then computes the normals it needs)."""
+        working = surface if surface is not None and self.tgt_r is self.tgt_w else None
+        return (KDTree(self.tgt_w) if working is None else working.tree), working
+
     @cached_property
     def source_surface(self) -> Surface:
         """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:

@@ -23,8 +23,7 @@ import time
 
 import numpy as np
 
-from service.icp import rotation_of
-from service.kdtree import KDTree
+from service.icp import Surface, rotation_of
 from service.options import RegistrationOptions
 from service.result import RegistrationResult
 from service.rotation_search import ambiguity_warning
@@ -62,7 +61,7 @@ def half_turn_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, options: Re
     R_h, t_h = half_turns(work.working_source, R, t)  # [3, 3, 3], [3, 3]
     starts = list(zip(R_h, t_h, strict=True))
     if stability is not None and stability < AXIS_TURN_STABILITY:
-        starts += axis_turns(work, R, t)
+        starts += axis_turns(work, R, t, surface)
     R_s, t_s = short_refine(work, starts, mode, icp_distance(work, options), surface)
     rotations = np.concatenate([R[None], R_s])  # [1 + C, 3, 3]: the pose, then its turns
     translations = np.concatenate([t[None], t_s])  # [1 + C, 3]
@@ -70,12 +69,15 @@ def half_turn_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, options: Re
     return ambiguity_warning(rotations, fits, 0, measure=measure)
 
 
-def axis_turns(work: Working, R: np.ndarray, t: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def axis_turns(work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | None = None
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The pose ``R [3, 3], t [3]`` turned ``AXIS_TURN_DEGREES`` either way about the axis its least constrained motion
-    turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds); none where that motion is not
-    mostly a turn (``ROTATION_SHARE``)."""
+    turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds; ``surface``: the refinement's
+    target surface, reused where it is the working target's); none where that motion is not mostly a turn
+    (``ROTATION_SHARE``)."""
     moved = work.working_source @ R.T + t  # [Ns, 3]
-    found = pose_stability(moved, work.tgt_w, KDTree(work.tgt_w), ICP_DISTANCE * work.norm.scale)
+    tree, working = work.working_target_lookup(surface)
+    found = pose_stability(moved, work.tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
     axis = None if found is None or np.linalg.norm(found.motion[:3]) < ROTATION_SHARE else found.turn_axis()
     if axis is None:
         return []
