@@ -52,10 +52,15 @@ class Stability:
     centre: np.ndarray | None = None  # [3] the point the rotation part turns about (the pairs' centroid)
     scale: float = 1.0  # the target's RMS radius: the translation part per unit step is ``motion[3:] * scale``
 
+    @property
+    def turn_share(self) -> float:
+        """How much of the least constrained motion is rotation (0-1; its squares with the slide's sum to 1)."""
+        return float(np.linalg.norm(self.motion[:3]))
+
     def turn_axis(self) -> tuple[np.ndarray, np.ndarray] | None:
         """A point ``[3]`` on the axis of the least constrained motion's turn and its unit direction ``[3]``: the line
         that motion turns about (its instantaneous screw axis), or ``None`` where it hardly turns."""
-        turn, slide = self.motion[:3], self.motion[3:] * self.scale
+        turn, slide = unit_step(self.motion, self.scale)
         norm2 = float(turn @ turn)
         if self.centre is None or norm2 < 1e-12:
             return None
@@ -65,6 +70,12 @@ class Stability:
     def weak(self) -> bool:
         """Weakly constrained: neither the surface nor the sample points pin the least constrained motion down."""
         return self.eigenvalue < WEAK_EIGENVALUE and (self.probe_ratio is None or self.probe_ratio < PINNED_RATIO)
+
+
+def unit_step(motion: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation vector ``[3]`` and the translation ``[3]`` of one unit step along ``motion [6]`` (its translation
+    part in units of the target's RMS radius ``scale``)."""
+    return motion[:3], motion[3:] * scale
 
 
 def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_distance: float,
@@ -103,7 +114,7 @@ def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree,
     """RMS nearest-target distance of the paired points ``p [P, 3]`` (now ``dist [P]``) after moving them one target
     sample spacing (RMS displacement) along ``motion [6]`` either way, over their RMS distance now (the smaller)."""
     spacing = float(np.median(nearest_other_distances(tgt, tree)))  # the target's median sample spacing
-    turn, slide = motion[:3], motion[3:] * scale  # rotation vector per unit step; translation per unit step
+    turn, slide = unit_step(motion, scale)  # [3], [3]
     displacement = np.cross(turn, p - centre) + slide  # [P, 3] linearised, per unit step
     step = spacing / max(float(np.sqrt(np.mean(np.sum(displacement**2, axis=1)))), 1e-300)
     before = max(float(np.sqrt(np.mean(dist**2))), np.finfo(np.float64).tiny)
@@ -121,7 +132,7 @@ def weak_motion_warning(stability: Stability | None) -> str | None:
     if stability is None or not stability.weak:
         return None
     turn, slide = stability.motion[:3], stability.motion[3:]
-    turn_share, slide_share = float(np.linalg.norm(turn)), float(np.linalg.norm(slide))  # squares sum to 1
+    turn_share, slide_share = stability.turn_share, float(np.linalg.norm(slide))  # their squares sum to 1
     axis, direction = turn / max(turn_share, 1e-12), slide / max(slide_share, 1e-12)
     if turn_share >= ROTATION_SHARE:
         what = f"a turn about the axis ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"

@@ -78,7 +78,7 @@ def axis_turns(work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | N
     moved = work.working_source @ R.T + t  # [Ns, 3]
     tree, working = work.working_target_lookup(surface)
     found = pose_stability(moved, work.tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
-    axis = None if found is None or np.linalg.norm(found.motion[:3]) < ROTATION_SHARE else found.turn_axis()
+    axis = None if found is None or found.turn_share < ROTATION_SHARE else found.turn_axis()
     if axis is None:
         return []
     point, direction = axis  # [3], [3]
