@@ -103,7 +103,7 @@ class Runner:
             registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, refine)  # schema: refine_points
             if o.initial_transform is not None:
                 _, translation = check_transform(o.initial_transform)
-                reach = float(np.abs(translation).max()) + float(np.abs(pair.source).max())
+                reach = float(np.abs(translation).max()) + max(float(pair.source.max()), -float(pair.source.min()))
                 if not reach <= FLOAT32_MAX:  # the moved source would overflow the pipeline's sums
                     raise InputError("initial_transform: moves the source beyond the float32 range")
         except InputError as exc:

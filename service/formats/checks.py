@@ -30,6 +30,8 @@ def checked(xyz: np.ndarray) -> np.ndarray:
     """``xyz`` float64 ``[N, 3]`` if it has points, all finite and within float32's range."""
     if xyz.shape[0] == 0:
         raise InvalidPointsError("the cloud is empty")
+    if np.isfinite(xyz).all() and max(float(xyz.max()), -float(xyz.min())) <= FLOAT32_MAX:
+        return xyz  # without an [N, 3] |xyz| temporary
     bad = ~(np.abs(xyz) <= FLOAT32_MAX).all(axis=1)  # NaN compares false
     if bad.any():
         raise InvalidPointsError(

@@ -36,12 +36,6 @@ class Working(Sampled):
     src_n: np.ndarray  # [Ns, 3] float32, normalised (after the initial guess)
     tgt_n: np.ndarray  # [Nt, 3] float32, normalised
 
-    @cached_property
-    def working_source(self) -> np.ndarray:
-        """``[Ns, 3]`` the working source's rows of the caller's source, in its own frame (``src_w`` before the
-        initial guess): what the checks move by a caller's pose."""
-        return np.asarray(self.src[self.idx_s], dtype=np.float64)
-
     @property
     def inlier_distance(self) -> float:
         """``INLIER_DISTANCE`` in the caller's units."""

@@ -2,7 +2,8 @@
 
 Clouds above :data:`service.reduction.ENTRY_LIMIT` points are first reduced to about that many
 (:func:`service.reduction.entry_indices`), so that every later stage costs the same on a 2,000,000-point scan as on
-a 100,000-point one; every returned row still indexes the caller's arrays.
+a 100,000-point one; every returned row still indexes the caller's arrays. The rows kept are moved to each cloud's
+origin (:mod:`service.stages.anchor`): the caller's arrays are read, not copied whole nor written.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from service.stages.validate import Request
 
 @dataclass(frozen=True, eq=False)
 class Sampled:
-    src: np.ndarray  # [N, 3] the caller's source (float64)
+    working_source: np.ndarray  # [Ns, 3] float64, the working source's rows of the source (``src_w`` before the guess)
     idx_s: np.ndarray  # [Ns] working source rows
     idx_t: np.ndarray  # [Nt] working target rows
     src_w: np.ndarray  # [Ns, 3] working source, moved by the initial guess
@@ -28,31 +29,32 @@ class Sampled:
     tgt_r: np.ndarray  # [Mr, 3] the target points it aligns them with
     R_init: np.ndarray  # [3, 3] initial guess
     t_init: np.ndarray  # [3]
-    src_e: np.ndarray  # [Ne, 3] the caller's source after the entry reduction (all of it up to ENTRY_LIMIT)
-    tgt_e: np.ndarray  # [Me, 3] the target after the entry reduction
+    src_e: np.ndarray  # [Ne, 3] the source after the entry reduction (all of it up to ENTRY_LIMIT), about its origin
+    tgt_e: np.ndarray  # [Me, 3] the target after the entry reduction, the same
 
 
 def sample(request: Request) -> Sampled:
     """``working_size`` rows of each cloud (:func:`service.sampling.resample_indices`; isolated points left out
     with ``drop_isolated``); the refinement's clouds are the working ones unless ``refine_points`` asks for more."""
     o = request.options
-    src, tgt = request.src, request.tgt
-    (src_e, to_s), (tgt_e, to_t) = entered(src), entered(tgt)  # [Ne, 3], [Me, 3] and row maps to the caller's
+    src_e, to_s = entered(request.src, request.src_anchor)  # [Ne, 3] and its row map to the caller's rows
+    tgt_e, to_t = entered(request.tgt, request.tgt_anchor)  # [Me, 3]
     src_moved = src_e @ request.R_init.T + request.t_init  # [Ne, 3] source in the initial guess's frame
     local_s = resample_indices(src_moved, o.working_size, o.drop_isolated)  # [Ns] rows of src_e
-    idx_s, idx_t = to_s(local_s), to_t(resample_indices(tgt_e, o.working_size, o.drop_isolated))  # caller's rows
-    src_w, tgt_w = src_moved[local_s], tgt[idx_t]
-    src_r, tgt_r = src[idx_s], tgt_w
+    local_t = resample_indices(tgt_e, o.working_size, o.drop_isolated)  # [Nt] rows of tgt_e
+    working_source, src_w, tgt_w = src_e[local_s], src_moved[local_s], tgt_e[local_t]
+    src_r, tgt_r = src_e[local_s], tgt_w
     if o.refine_points is not None and o.refine_mode != "none":
         src_r = src_e[spread_indices(src_moved, int(o.refine_points), o.drop_isolated)]  # [Nr, 3]
         tgt_r = tgt_e[spread_indices(tgt_e, int(o.refine_points), o.drop_isolated)]  # [Mr, 3]
-    return Sampled(src, idx_s, idx_t, src_w, tgt_w, src_r, tgt_r, request.R_init, request.t_init, src_e, tgt_e)
+    return Sampled(working_source, to_s(local_s), to_t(local_t), src_w, tgt_w, src_r, tgt_r, request.R_init,
+                   request.t_init, src_e, tgt_e)
 
 
-def entered(points: np.ndarray) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
-    """``points [N, 3]`` after the entry reduction (the array itself up to ``ENTRY_LIMIT`` rows, no copy), and the map
-    from its rows to the caller's."""
-    kept = entry_indices(points)
+def entered(points: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]]:
+    """``points [N, 3]`` after the entry reduction, minus ``origin [3]`` (a new array of at most about
+    ``ENTRY_LIMIT`` rows), and the map from its rows to the caller's."""
+    kept = entry_indices(points, origin=origin)
     if kept is None:
-        return points, lambda rows: rows
-    return points[kept], lambda rows: kept[rows]
+        return points - origin, lambda rows: rows
+    return points[kept] - origin, lambda rows: kept[rows]

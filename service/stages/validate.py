@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -15,14 +15,18 @@ from service.rotation_search import search_rotations_for
 class Request:
     """One checked registration request."""
 
-    src: np.ndarray  # [N, 3] float64, the caller's source: the registration's own copy (the anchor stage moves it)
-    tgt: np.ndarray  # [M, 3] float64, the caller's target: its own copy as well
+    src: np.ndarray  # [N, 3] float64, the caller's source (its own array where it was float64): read, never written
+    tgt: np.ndarray  # [M, 3] float64, the caller's target, the same
     options: RegistrationOptions
     iterations: int  # the model's default filled in
     keypoints: int
     R_init: np.ndarray  # [3, 3] initial src_to_tgt guess (identity without one)
     t_init: np.ndarray  # [3]
     hypotheses: np.ndarray | None  # [H, 3, 3] the rotation search's starts; None when it never runs
+    # [3] each cloud's origin for the stages after the anchor stage (its centroid there; zero before), which the
+    # sample stage subtracts from the rows it keeps
+    src_anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    tgt_anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def validate(source, target, options: RegistrationOptions | None, overrides: dict, default_iterations: int,

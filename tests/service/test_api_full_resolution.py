@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import io
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
+import httpx
 import numpy as np
-from api_server import assert_error, main_server
+import pytest
+from api_server import assert_error, main_server, start_subprocess_server
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob
 
 POINTS = 2_000_000  # the default per-cloud limit of file uploads (MFGNET_MAX_FILE_POINTS)
 PEAK_MIB = 2048  # the largest accepted request must fit in this much server memory
+DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "k8s" / "deployment.yaml"
 
 
 def npy(points: np.ndarray) -> bytes:
@@ -24,20 +29,55 @@ def peak_rss_mib(pid: int) -> float:
         return next(int(line.split()[1]) / 1024 for line in status if line.startswith("VmHWM:"))
 
 
-def test_two_full_resolution_clouds_register_within_the_memory_bound():
-    server = main_server()
-    rotation = Rotation.from_euler("zyx", [25.0, -10.0, 5.0], degrees=True).as_matrix()
-    source = asymmetric_blob(POINTS, 0)  # [2M, 3] independent samples of one surface
-    target = asymmetric_blob(POINTS, 1) @ rotation.T + [0.2, -0.1, 0.05]
-    files = {"source": ("source.npy", npy(source)), "target": ("target.npy", npy(target))}
-    del source, target
-    with server.client() as client:
-        response = client.post("/v1/register", files=files)
+def full_resolution_upload(seed: int, degrees: float) -> tuple[dict, np.ndarray]:
+    """Two 2,000,000-point float32 ``.npy`` files, the target turned ``degrees`` about z, -10 about y and 5 about x:
+    the multipart files and the true rotation ``[3, 3]``."""
+    rotation = Rotation.from_euler("zyx", [degrees, -10.0, 5.0], degrees=True).as_matrix()
+    source = asymmetric_blob(POINTS, 2 * seed)  # [2M, 3] independent samples of one surface
+    target = asymmetric_blob(POINTS, 2 * seed + 1) @ rotation.T + [0.2, -0.1, 0.05]
+    return {"source": ("source.npy", npy(source)), "target": ("target.npy", npy(target))}, rotation
+
+
+def assert_registered(response: httpx.Response, rotation: np.ndarray) -> None:
     assert response.status_code == 200, response.text[:300]
     body = response.json()
     error = np.degrees(np.arccos(np.clip((np.trace(np.array(body["rotation"]).T @ rotation) - 1) / 2, -1, 1)))
     assert error < 1.0 and body["quality"]["reliable"]
-    assert peak_rss_mib(server.extra["proc"].pid) < PEAK_MIB
+
+
+def test_two_full_resolution_clouds_register_within_the_memory_bound():
+    server = main_server()
+    files, rotation = full_resolution_upload(0, 25.0)
+    with server.client() as client:
+        assert_registered(client.post("/v1/register", files=files), rotation)
+    peak = peak_rss_mib(server.extra["proc"].pid)
+    print(f"peak server RSS {peak:.0f} MiB")
+    assert peak < PEAK_MIB
+
+
+def manifest_memory_limit_mib() -> float:
+    """The memory limit of the Kubernetes manifest's container (``deploy/k8s/deployment.yaml``), in MiB."""
+    yaml = pytest.importorskip("yaml")
+    deployment = yaml.safe_load(DEPLOYMENT.read_text())
+    limit = deployment["spec"]["template"]["spec"]["containers"][0]["resources"]["limits"]["memory"]
+    assert limit.endswith("Gi") or limit.endswith("Mi"), limit
+    return float(limit[:-2]) * (1024 if limit.endswith("Gi") else 1)
+
+
+@pytest.mark.slow
+def test_two_full_resolution_requests_at_once_fit_the_manifests_memory_limit():
+    """The manifest's server (every bundled model, one thread, two requests at once), each request uploading two
+    2,000,000-point clouds, both at once: the server's peak memory stays below the manifest's limit."""
+    server = start_subprocess_server("manifest", MFGNET_BUNDLED_MODELS="true", MFGNET_MODEL_DIRS="",
+                                     MFGNET_DEFAULT_MODEL="general", MFGNET_MAX_CONCURRENCY="2")
+    uploads = [full_resolution_upload(seed, degrees) for seed, degrees in ((0, 25.0), (1, 65.0))]
+    with server.client() as client, ThreadPoolExecutor(2) as pool:
+        responses = list(pool.map(lambda upload: client.post("/v1/register", files=upload[0]), uploads))
+    for response, (_, rotation) in zip(responses, uploads, strict=True):
+        assert_registered(response, rotation)
+    peak, limit = peak_rss_mib(server.extra["proc"].pid), manifest_memory_limit_mib()
+    print(f"peak server RSS {peak:.0f} MiB, manifest limit {limit:.0f} MiB")
+    assert peak < limit
 
 
 def test_one_point_above_the_limit_is_refused_with_413():

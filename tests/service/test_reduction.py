@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from service.reduction import entry_indices
+from service.reduction import ENTRY_BLOCK, entry_indices
+from service.sampling import coordinate_hash
 
 
 def test_small_clouds_are_kept_whole():
@@ -25,3 +26,13 @@ def test_independent_of_point_order():
     a = points[entry_indices(points, limit=5_000)]
     b = points[order][entry_indices(points[order], limit=5_000)]
     assert np.array_equal(np.unique(a, axis=0), np.unique(b, axis=0))
+
+
+def test_blocks_hash_the_rows_about_the_origin():
+    """Hashed block by block about ``origin``: the same rows as hashing the whole moved cloud at once."""
+    points = np.random.default_rng(2).normal(size=(3 * ENTRY_BLOCK + 123, 3)) + np.array([40.0, -7.0, 3.0])
+    origin = points[::97].mean(axis=0)
+    kept = entry_indices(points, limit=20_000, origin=origin)
+    threshold = np.uint64(int(20_000 / len(points) * 2**64))
+    np.testing.assert_array_equal(kept, np.flatnonzero(coordinate_hash(points - origin) < threshold))
+    assert not np.array_equal(kept, entry_indices(points, limit=20_000))  # the origin does change the picks

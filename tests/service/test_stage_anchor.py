@@ -66,10 +66,11 @@ def test_the_stages_after_it_see_clouds_about_the_origin_and_the_guess_with_them
     request = validate(source, moved(source, R, t), None, {"initial_transform": np.r_[np.c_[R, t], [[0, 0, 0, 1]]]},
                        3, 128)
     anchored = anchor(request)[0]
-    np.testing.assert_allclose(anchored.src.mean(axis=0), 0.0, atol=1e-9)
-    np.testing.assert_allclose(anchored.tgt.mean(axis=0), 0.0, atol=1e-9)
-    np.testing.assert_allclose(moved(anchored.src, anchored.R_init, anchored.t_init), anchored.tgt, atol=1e-9)
-    assert np.abs(source.mean(axis=0) - FAR).max() < 1.0  # the caller's own array is left as it was
+    sampled = Stages.sample(anchored)  # every row of each cloud (below the entry limit), in the caller's order
+    np.testing.assert_allclose(sampled.src_e.mean(axis=0), 0.0, atol=1e-9)
+    np.testing.assert_allclose(sampled.tgt_e.mean(axis=0), 0.0, atol=1e-9)
+    np.testing.assert_allclose(moved(sampled.src_e, anchored.R_init, anchored.t_init), sampled.tgt_e, atol=1e-9)
+    assert anchored.src is source and np.abs(source.mean(axis=0) - FAR).max() < 1.0  # the caller's array, unmoved
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +79,9 @@ def registrar():
     seen = []
 
     def recording_sample(request):  # what the sample stage is given
-        seen.append(request.src.mean(axis=0))
-        return Stages.sample(request)
+        sampled = Stages.sample(request)
+        seen.append(sampled.src_e.mean(axis=0))
+        return sampled
 
     registrar = Registrar(GENERAL, stages=dataclasses.replace(Stages(), sample=recording_sample))
     registrar.seen = seen

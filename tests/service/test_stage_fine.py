@@ -40,14 +40,14 @@ def working(target_points: int, **options):
 
 def two_degrees_off(work) -> tuple[np.ndarray, np.ndarray]:
     """The right pose turned by ``OFF`` about the moved source's centroid and moved 5 mm."""
-    centroid = work.src.mean(axis=0) @ R_TRUE.T + T_TRUE
+    centroid = work.src_e.mean(axis=0) @ R_TRUE.T + T_TRUE
     return OFF @ R_TRUE, OFF @ (T_TRUE - centroid) + centroid + np.array([0.005, 0.0, 0.0])
 
 
 def errors(work, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
     """Rotation error (deg) and how far the pose puts the source's centroid from where the truth does."""
     degrees = np.degrees(Rotation.from_matrix(R.T @ R_TRUE).magnitude())
-    centroid = work.src.mean(axis=0)
+    centroid = work.src_e.mean(axis=0)
     return float(degrees), float(np.linalg.norm(centroid @ R.T + t - (centroid @ R_TRUE.T + T_TRUE)))
 
 

@@ -36,7 +36,7 @@ def angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
 
 def half_turned(work) -> list[Refined]:
     """The right pose turned half a turn about each principal axis of the moved working source."""
-    R_h, t_h = half_turns(work.src[work.idx_s], R_TRUE, T_TRUE)
+    R_h, t_h = half_turns(work.working_source, R_TRUE, T_TRUE)
     return [Refined(R, t, 0, (), None, work.target_surface) for R, t in zip(R_h, t_h, strict=True)]
 
 

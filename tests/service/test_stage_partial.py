@@ -78,5 +78,5 @@ def test_a_pose_whose_half_turn_fits_as_well_is_not_taken_for_a_partial_view(reg
     source, target = shape[shape[:, 0] < 0.4], shape[shape[:, 0] > -0.4]
     request, work = working(registrar, source, target)
     R, t = np.eye(3), np.zeros(3)
-    assert near_surface_share(work.src[work.idx_s], work.tgt_w, R, t, work.inlier_distance) >= 0.75
+    assert near_surface_share(work.working_source, work.tgt_w, R, t, work.inlier_distance) >= 0.75
     assert not looks_partial(work, as_result(registrar, request, work, R, t))  # its half turn about x fits too

@@ -42,7 +42,7 @@ def prepared(registrar, points: int = 600, **overrides):
 
 def test_the_stages_by_hand_give_registers_result(registrar) -> None:
     caller = prepared(registrar, refine="icp-plane", return_iterations=True)[0]
-    source, target = caller.src.copy(), caller.tgt.copy()  # the anchor stage moves the request's own copies
+    source, target = caller.src, caller.tgt
     request, anchors = anchor(caller)
     work = normalise(sample(request), registrar.reference_radius)
     timing: dict[str, float] = {}
@@ -162,3 +162,18 @@ def test_a_replaced_stage_runs_in_its_place(registrar) -> None:
     result = spied.register(src, src @ R_TRUE.T, options)
     assert seen == [256] and isinstance(result, RegistrationResult)
     np.testing.assert_array_equal(result.transform, registrar.register(src, src @ R_TRUE.T, options).transform)
+
+
+@pytest.mark.parametrize("points", [2_000, 150_000])  # below and above the entry limit (100,000)
+def test_the_callers_clouds_are_neither_copied_whole_nor_written(registrar, points) -> None:
+    """validate keeps a float64 cloud as it is and no stage writes to it: read-only arrays register, unchanged."""
+    source = asymmetric_blob(points, 0) + np.array([30.0, 0.0, -5.0])
+    target = asymmetric_blob(points, 1) @ R_TRUE.T + [0.1, 0.2, 0.0]
+    kept = source.copy(), target.copy()
+    for cloud in (source, target):
+        cloud.setflags(write=False)  # numpy raises on any write
+    assert validate(source, target, None, {}, 3, 128).src is source
+    result = registrar.register(source, target, refine="icp-plane")
+    assert np.degrees(Rotation.from_matrix(result.rotation @ R_TRUE.T).magnitude()) < 2.0
+    np.testing.assert_array_equal(source, kept[0])
+    np.testing.assert_array_equal(target, kept[1])

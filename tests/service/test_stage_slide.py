@@ -133,7 +133,7 @@ def test_close_fits_only_rank_where_the_target_is_denser_than_its_working_cloud(
     slid = (R_TRUE, T_TRUE + np.array([0.05, 0.0, 0.0]))
     ranked = rank_candidates(thin, [slid, (R_TRUE, T_TRUE)], as_poses)
     ratios = rank_hypotheses(
-        thin.src[thin.idx_s], thin.tgt_w, *as_poses([slid, (R_TRUE, T_TRUE)]), thin.inlier_distance
+        thin.working_source, thin.tgt_w, *as_poses([slid, (R_TRUE, T_TRUE)]), thin.inlier_distance
     )[1]
     assert ranked.pick == int(np.argmax(ratios))  # by inlier ratio (ties: the first)
     full = IcpResult(*slid, iterations=30, inlier_ratio=0.5, residual_rms=0.01)

@@ -67,7 +67,7 @@ def test_validate_refuses_a_transform_that_is_not_rigid(matrix, message) -> None
 def test_sample_takes_working_rows_and_refinement_clouds() -> None:
     s = sample(request(working_size=256, refine="icp-plane"))
     assert (len(s.idx_s), len(s.idx_t)) == (256, 256) and s.tgt_r is s.tgt_w  # the refinement's: the working ones
-    np.testing.assert_array_equal(s.src_r, s.src[s.idx_s])
+    np.testing.assert_array_equal(s.src_r, s.working_source)
     more = sample(request(working_size=256, refine="icp-plane", refine_points=600))
     assert 256 < len(more.src_r) <= 600 and 256 < len(more.tgt_r) <= 600  # one per voxel: about 600
     unrefined = sample(request(working_size=256, refine_points=600))  # no refinement: nothing to use them for
@@ -78,7 +78,7 @@ def test_sample_moves_the_source_by_the_initial_guess() -> None:
     guess = np.eye(4)
     guess[:3, 3] = [5.0, 0.0, 0.0]
     s = sample(request(initial_transform=guess))
-    np.testing.assert_allclose(s.src_w, s.src[s.idx_s] + [5.0, 0.0, 0.0])
+    np.testing.assert_allclose(s.src_w, s.working_source + np.array([5.0, 0.0, 0.0]))
 
 
 def test_normalise_gives_float32_clouds_and_poses_back_in_the_callers_frame() -> None:
@@ -88,5 +88,5 @@ def test_normalise_gives_float32_clouds_and_poses_back_in_the_callers_frame() ->
     assert work.src_n.dtype == work.tgt_n.dtype == np.float32 and work.src_n.shape == (256, 3)
     assert work.inlier_distance == INLIER_DISTANCE * work.norm.scale
     R, t = to_caller(work, np.eye(3), np.zeros(3))  # the identity between normalised clouds
-    moved = work.src[work.idx_s] @ R.T + t  # [Ns, 3]
+    moved = work.working_source @ R.T + t  # [Ns, 3]
     np.testing.assert_allclose(work.norm.apply_tgt(moved), work.norm.apply_src(work.src_w), atol=1e-9)
