@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import tracemalloc
 from pathlib import Path
 
 import laspy
@@ -114,6 +115,26 @@ def test_npy_takes_the_first_three_columns_of_any_numeric_dtype(tmp_path: Path) 
     fields["x"], fields["y"], fields["z"] = 1.5, 2.5, 3
     np.save(tmp_path / "c.npy", fields)
     np.testing.assert_array_equal(read_points(tmp_path / "c.npy"), [[1.5, 2.5, 3.0]] * 4)
+    np.save(tmp_path / "d.npy", np.array([[1.0, 2.0, 3.0]] * 40, dtype=">f8"))  # big-endian: converted
+    read = read_points(tmp_path / "d.npy")
+    assert read.dtype == np.float64 and read.dtype.isnative and read.flags.writeable
+
+
+@pytest.mark.parametrize(("dtype", "extra_mib"), [(np.float64, 10), (np.float32, 40)])
+def test_a_full_resolution_npy_is_read_without_cloud_sized_temporaries(tmp_path: Path, dtype, extra_mib) -> None:
+    """A 2,000,000-point file (the upload limit) peaks at most ``extra_mib`` above the 46 MiB float64 cloud returned:
+    a float64 file is returned as read, a float32 one holds its 23 MiB raw array besides (and the checks take no
+    copy of the cloud)."""
+    points = np.random.default_rng(0).normal(size=(2_000_000, 3)).astype(dtype)
+    np.save(tmp_path / "big.npy", points)
+    tracemalloc.start()
+    try:
+        read = read_cloud(tmp_path / "big.npy")
+        peak = tracemalloc.get_traced_memory()[1] - read.nbytes
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(read, points)
+    assert peak < extra_mib * 2**20, f"{peak / 2**20:.0f} MiB above the cloud"
 
 
 def test_text_skips_comments_header_and_extra_columns(tmp_path: Path) -> None:
