@@ -74,7 +74,8 @@ def axis_turns(work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | N
     """The pose ``R [3, 3], t [3]`` turned ``AXIS_TURN_DEGREES`` either way about the axis its least constrained motion
     turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds; ``surface``: the refinement's
     target surface, reused where it is the working target's); none where that motion is not mostly a turn
-    (``ROTATION_SHARE``)."""
+    (``ROTATION_SHARE``). The motion is measured at ``R, t`` itself: the final pose, which the fine stage may have
+    moved from the pose whose ``stability`` the result reports."""
     moved = work.working_source @ R.T + t  # [Ns, 3]
     tree, working = work.working_target_lookup(surface)
     found = pose_stability(moved, work.tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
