@@ -17,6 +17,7 @@ from service.api.limiter import InferenceLimiter, Slot
 from service.api.metrics import Metrics
 from service.api.registry import ModelEntry, ModelRegistry
 from service.api.schemas import RegisterOptions
+from service.checks import max_abs
 from service.pose_json import pose_fields
 from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import (
@@ -103,7 +104,7 @@ class Runner:
             registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, refine)  # schema: refine_points
             if o.initial_transform is not None:
                 _, translation = check_transform(o.initial_transform)
-                reach = float(np.abs(translation).max()) + max(float(pair.source.max()), -float(pair.source.min()))
+                reach = max_abs(translation) + max_abs(pair.source)
                 if not reach <= FLOAT32_MAX:  # the moved source would overflow the pipeline's sums
                     raise InputError("initial_transform: moves the source beyond the float32 range")
         except InputError as exc:

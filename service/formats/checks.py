@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.checks import max_abs
 from service.formats.errors import InvalidPointsError, TooManyPointsError
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -30,8 +31,8 @@ def checked(xyz: np.ndarray) -> np.ndarray:
     """``xyz`` float64 ``[N, 3]`` if it has points, all finite and within float32's range."""
     if xyz.shape[0] == 0:
         raise InvalidPointsError("the cloud is empty")
-    if np.isfinite(xyz).all() and max(float(xyz.max()), -float(xyz.min())) <= FLOAT32_MAX:
-        return xyz  # without an [N, 3] |xyz| temporary
+    if np.isfinite(xyz).all() and max_abs(xyz) <= FLOAT32_MAX:
+        return xyz
     bad = ~(np.abs(xyz) <= FLOAT32_MAX).all(axis=1)  # NaN compares false
     if bad.any():
         raise InvalidPointsError(

@@ -42,7 +42,6 @@ def prepared(registrar, points: int = 600, **overrides):
 
 def test_the_stages_by_hand_give_registers_result(registrar) -> None:
     caller = prepared(registrar, refine="icp-plane", return_iterations=True)[0]
-    source, target = caller.src, caller.tgt
     request, anchors = anchor(caller)
     work = normalise(sample(request), registrar.reference_radius)
     timing: dict[str, float] = {}
@@ -50,7 +49,7 @@ def test_the_stages_by_hand_give_registers_result(registrar) -> None:
     assert len(found.poses) == 1 and set(timing) == {"encoder", "iterations", "svd"}
     refined = refine(work, [to_caller(work, c.rotation, c.translation) for c in found.poses], request.options)
     result = anchors.result_to_caller(assess_result(work, found, refined, request.iterations, True, timing))
-    whole = registrar.register(source, target, caller.options)
+    whole = registrar.register(caller.src, caller.tgt, caller.options)
     np.testing.assert_array_equal(result.transform, whole.transform)
     np.testing.assert_array_equal(result.source_index, whole.source_index)
     assert (result.inlier_ratio, result.reliable, result.warnings) == (whole.inlier_ratio, whole.reliable,
