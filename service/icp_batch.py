@@ -20,6 +20,7 @@ from service.icp import (
     PairingHistory,
     Surface,
     icp,
+    plane_jacobian,
     rms_radius,
 )
 from service.procrustes import compose
@@ -112,8 +113,7 @@ def _plane_steps(p: np.ndarray, n: np.ndarray, r: np.ndarray, w: np.ndarray, sca
     rotation angles and translation lengths ``[B]``, and which systems were solved ``[B]`` (the rest are
     degenerate: smallest eigenvalue below ``PLANE_MIN_EIGEN_RATIO`` of the largest)."""
     centre = np.einsum("bn,bnc->bc", w, p) / w.sum(axis=1)[:, None]  # [B, 3]
-    arm = (p - centre[:, None]) / scale  # [B, N, 3]
-    J = np.concatenate([np.cross(arm, n), n], axis=2)  # [B, N, 6]
+    J = plane_jacobian(p, n, centre, scale)  # [B, N, 6]
     Jw = J * w[..., None]
     H = Jw.transpose(0, 2, 1) @ J  # [B, 6, 6]
     g = -np.einsum("bnk,bn->bk", Jw, r) / scale  # [B, 6]

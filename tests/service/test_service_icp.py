@@ -15,10 +15,12 @@ from shapes import ellipsoid_and_box, ellipsoid_surface, unit_directions
 from service.icp import (
     PairingHistory,
     Surface,
+    cross,
     icp,
     icp_many,
     icp_plane,
     icp_symmetric,
+    plane_jacobian,
     refine_plane,
     rotation_of,
     smallest_eigenvectors,
@@ -366,6 +368,24 @@ def test_rotation_of_an_axis_angle_matches_scipy_down_to_tiny_angles(seed: int) 
         rotvec = angle * axis / np.linalg.norm(axis)
         expected = Rotation.from_rotvec(rotvec).as_matrix()
         np.testing.assert_allclose(rotation_of(rotvec, float(np.linalg.norm(rotvec))), expected, rtol=0, atol=1e-15)
+
+
+def test_cross_equals_numpys_to_the_bit_with_broadcasting() -> None:
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(size=(4, 50, 3)), rng.normal(size=(4, 50, 3))
+    assert np.array_equal(cross(a, b), np.cross(a, b))
+    assert np.array_equal(cross(a[0, 0], b[1]), np.cross(a[0, 0], b[1]))  # [3] x [50, 3]
+
+
+def test_plane_jacobian_of_a_batch_is_each_member_s_jacobian() -> None:
+    rng = np.random.default_rng(6)
+    p, n, centre = rng.normal(size=(3, 40, 3)), rng.normal(size=(3, 40, 3)), rng.normal(size=(3, 3))
+    batch = plane_jacobian(p, n, centre, 2.0)  # [3, 40, 6]
+    for b in range(3):
+        single = plane_jacobian(p[b], n[b], centre[b], 2.0)  # [40, 6]
+        assert np.array_equal(batch[b], single)
+        assert np.array_equal(single[:, :3], np.cross((p[b] - centre[b]) / 2.0, n[b]))
+        assert np.array_equal(single[:, 3:], n[b])
 
 
 def test_pairing_history_reports_a_recurring_pairing_but_not_a_repeated_one() -> None:
