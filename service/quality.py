@@ -19,7 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.checks import MIN_POINTS
 from service.kdtree import KDTree
+from service.sampling import distinct_count
 
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
 # ... and at least this share of the target's attainable inlier ratio: 0.6 alone (docs/decisions/0003), 0.5 beside
@@ -44,7 +46,8 @@ IDENTICAL = "identical"  # first word of each degeneracy warning
 COLLINEAR = "collinear"
 COPLANAR = "coplanar"
 EMPTY = "empty"
-_DEGENERATE = (EMPTY, IDENTICAL, COLLINEAR)  # kinds that make a result unreliable
+FEW = "few distinct points"
+_DEGENERATE = (EMPTY, IDENTICAL, FEW, COLLINEAR)  # kinds that make a result unreliable
 
 
 @dataclass(frozen=True)
@@ -60,9 +63,10 @@ class Quality:
 def degeneracy_warnings(points: np.ndarray) -> list[str]:
     """Warnings about degenerate geometry of ``points (N, 3)``; empty when the cloud is fine.
 
-    Each warning starts with its kind: ``"empty"``, ``"identical"`` (all points the same),
-    ``"collinear"`` (second principal spread below ``DEGENERACY_RATIO`` of the first) or
-    ``"coplanar"`` (third principal spread below it).  At most one kind is reported: the strongest.
+    Each warning starts with its kind: ``"empty"``, ``"identical"`` (all points the same), ``"collinear"`` (second
+    principal spread below ``DEGENERACY_RATIO`` of the first), ``"few distinct points"`` (fewer than
+    ``MIN_POINTS`` distinct coordinates: stacks of repeated points) or ``"coplanar"`` (third principal spread below
+    it). At most one kind is reported: the strongest.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -81,6 +85,10 @@ def degeneracy_warnings(points: np.ndarray) -> list[str]:
             f"{COLLINEAR}: the points lie on a line (spread ratio {spread[1] / spread[0]:.2g}); "
             "the rotation about that line cannot be determined"
         ]
+    distinct = distinct_count(points)
+    if distinct < MIN_POINTS:
+        return [f"{FEW}: only {distinct} of the {points.shape[0]} points differ (a cloud needs {MIN_POINTS}); "
+                "the pose cannot be relied on"]
     if spread[2] <= DEGENERACY_RATIO * spread[0]:
         return [
             f"{COPLANAR}: the points lie in a plane (spread ratio {spread[2] / spread[0]:.2g}); "

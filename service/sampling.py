@@ -9,7 +9,10 @@ Strategy:
 
 * ``drop_isolated``: isolated points (:func:`isolated_points`: flying pixels, sparse clutter) are left out
   first (of all points, or of the voxel representatives below), so that farthest-point sampling, which
-  favours points far from all others, does not spend the working size on them.
+  favours points far from all others, does not spend the working size on them; unless fewer than ``MIN_POINTS``
+  would be left (:func:`kept_unless_too_few`).
+* A stack of identical points counts once (:func:`distinct_rows`), unless fewer than ``MIN_POINTS`` distinct points
+  are left.
 * ``N <= size``: every point, in canonical order (lexicographic by ``x, y, z``, ties by index).
 * ``size < N <= VOXEL_TRIGGER * size``: farthest-point sampling (FPS) on all points.
 * ``N > VOXEL_TRIGGER * size``: an order-independent voxel-grid reduction to roughly
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from service.checks import MIN_POINTS
 from service.kdtree import KDTree
 
 DEFAULT_SIZE = 768  # working size W of the network
@@ -54,7 +58,8 @@ COUNT_TABLE_MIN_CELLS = 65_536
 
 def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated: bool = False,
                      regrid: bool = True) -> np.ndarray:
-    """Indices of ``min(N, size)`` points chosen by geometry alone (fewer with ``drop_isolated``).
+    """Indices of ``min(N, size)`` points chosen by geometry alone (fewer with ``drop_isolated``, or where points
+    repeat a coordinate).
 
     Args:
         points: ``(N, 3)`` finite coordinates (any float dtype).
@@ -64,7 +69,7 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
             again on the points of the others (once: the inner call passes ``False``).
 
     Returns:
-        ``(min(C, size),)`` int64 indices into ``points`` of the ``C`` candidates (every point, or one per
+        ``(min(C, size),)`` int64 indices into ``points`` of the ``C`` candidates (every distinct point, or one per
         voxel above ``VOXEL_TRIGGER * size``, less the isolated ones): all of them in canonical order when
         ``C <= size``, else the farthest-point-sampling picks in the order they were picked (so any
         prefix is itself a well-spread subsample).
@@ -74,22 +79,20 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
     """
     points = _checked(points, size)
     n = points.shape[0]
-    if n <= size and not drop_isolated:
-        return canonical_order(points)
     if n > VOXEL_TRIGGER * size:
         candidates, occupancy, group = _voxel_grid(points, size)
-        if candidates.shape[0] < size:  # too few distinct places (heavy duplication): use everything
-            candidates = np.arange(n)
+        if candidates.shape[0] < size:  # too few distinct places (heavy duplication): every distinct point
+            candidates = distinct_rows(points, np.arange(n))
         elif drop_isolated:  # voxels of scattered points hold one or two points, surface voxels many
             sparse = sparse_voxels(occupancy)  # [V]
-            candidates = candidates[~sparse]
+            candidates = kept_unless_too_few(candidates, sparse)
             if regrid and candidates.shape[0] < REGRID_SHARE * len(sparse):  # scattered points sized the grid
                 kept = np.flatnonzero(~sparse[group])  # [N'] rows in voxels that are not sparse
                 return kept[resample_indices(points[kept], size, drop_isolated, regrid=False)]
     else:
-        candidates = np.arange(n)
+        candidates = distinct_rows(points, np.arange(n))
     if drop_isolated and candidates.shape[0] <= VOXEL_TRIGGER * size:  # bounded cost (else heavy duplication)
-        candidates = candidates[~isolated_points(points[candidates])]
+        candidates = kept_unless_too_few(candidates, isolated_points(points[candidates]))
     candidates = candidates[canonical_order(points[candidates])]  # ties -> lexicographic order
     if candidates.shape[0] <= size:
         return candidates.astype(np.int64)
@@ -113,8 +116,8 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -
         return resample_indices(points, size, drop_isolated)
     candidates, occupancy, _ = _voxel_grid(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
     if drop_isolated:
-        candidates = candidates[~sparse_voxels(occupancy)]
-        candidates = candidates[~isolated_points(points[candidates])]
+        candidates = kept_unless_too_few(candidates, sparse_voxels(occupancy))
+        candidates = kept_unless_too_few(candidates, isolated_points(points[candidates]))
     if candidates.shape[0] > size:
         candidates = candidates[np.argsort(coordinate_hash(points[candidates]), kind="stable")[:size]]
     return candidates[canonical_order(points[candidates])].astype(np.int64)
@@ -155,15 +158,48 @@ def hashed_indices(points: np.ndarray, size: int) -> np.ndarray:
     22,000-43,000-point targets (4,096 points). A stack of identical points (a sensor's invalid ``(0, 0, 0)``
     returns) counts once."""
     points = _checked(points, size)
-    hashes = coordinate_hash(points)  # [N]
-    if points.shape[0] > size:
+    return lowest_distinct(coordinate_hash(points), size)
+
+
+def lowest_distinct(hashes: np.ndarray, size: int, in_hash_order: bool = True) -> np.ndarray:
+    """``[min(D, size)]`` int64 rows of the ``size`` lowest of the ``D`` distinct values of ``hashes [N]`` (uint64),
+    one row each (the first, where a value repeats), in hash order (``in_hash_order=False``: in any order, which
+    spares a sort where no value repeats)."""
+    if hashes.shape[0] > size:
         lowest = np.argpartition(hashes, size - 1)[:size]  # [size] in no particular order
-        order = np.argsort(hashes[lowest], kind="stable")
-        lowest, picked = lowest[order], hashes[lowest][order]  # [size] rows and their hashes, in hash order
+        if in_hash_order:
+            lowest = lowest[np.argsort(hashes[lowest], kind="stable")]  # [size] rows in hash order
+            picked = hashes[lowest]
+        else:
+            picked = np.sort(hashes[lowest])  # [size] their hashes, sorted
         if np.all(picked[1:] != picked[:-1]):  # no two picks share their coordinates
             return lowest.astype(np.int64)
-    first = np.unique(hashes, return_index=True)[1]  # [D] each distinct point's first row, in hash order
+    first = np.unique(hashes, return_index=True)[1]  # [D] each distinct value's first row, in hash order
     return first[:size].astype(np.int64)
+
+
+def distinct_rows(points: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """``rows [C]`` of ``points (N, 3)`` less the repeats of a coordinate (each coordinate's first row is kept, in
+    ``rows``' order), unless fewer than ``MIN_POINTS`` would be left (:func:`kept_unless_too_few`): a stack of
+    identical points is one point of the surface, and counted as many would pass for overlap."""
+    first = np.unique(coordinate_hash(points[rows]), return_index=True)[1]  # [D] positions in rows
+    if first.shape[0] == rows.shape[0]:
+        return rows
+    repeat = np.ones(rows.shape[0], dtype=bool)
+    repeat[first] = False
+    return kept_unless_too_few(rows, repeat)
+
+
+def distinct_count(points: np.ndarray) -> int:
+    """How many distinct coordinates ``points (N, 3)`` hold (rows of equal float64 bit patterns count once)."""
+    return int(np.unique(coordinate_hash(points)).shape[0])
+
+
+def kept_unless_too_few(candidates: np.ndarray, drop: np.ndarray) -> np.ndarray:
+    """``candidates [C]`` less those ``drop [C]`` marks, unless fewer than ``MIN_POINTS`` (or than ``C``) would be left:
+    a filter never leaves the network fewer points than a request may send (its neighbour graph needs a dozen)."""
+    kept = candidates[~drop]
+    return kept if kept.shape[0] >= min(MIN_POINTS, candidates.shape[0]) else candidates
 
 
 def isolated_points(points: np.ndarray) -> np.ndarray:

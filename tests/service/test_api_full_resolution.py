@@ -85,3 +85,26 @@ def test_one_point_above_the_limit_is_refused_with_413():
     files = {"source": ("big.npy", npy(np.zeros((POINTS + 1, 3)))), "target": ("t.npy", npy(np.ones((64, 3))))}
     with server.client() as client:
         assert_error(client.post("/v1/register", files=files), 413, "source", "2000000")
+
+
+def few_distinct(rows: int, distinct: int, seed: int) -> np.ndarray:
+    """``[rows, 3]``: one point stacked ``rows - distinct + 1`` times (a sensor's invalid returns), and
+    ``distinct - 1`` others."""
+    points = np.zeros((rows, 3))
+    points[: distinct - 1] = np.random.default_rng(seed).normal(size=(distinct - 1, 3))
+    return points
+
+
+@pytest.mark.parametrize(("rows", "distinct", "kind"), [(POINTS, 1, "identical"), (300_000, 11, "few distinct points")])
+def test_full_resolution_stacks_of_one_point_get_a_pose_and_warnings(rows, distinct, kind):
+    """Reduced on entry, a cloud of a few distinct points stacked to full resolution keeps enough rows to judge: the
+    answer is a pose that is not ``reliable``, with warnings, never an error."""
+    server = main_server()
+    files = {"source": ("source.npy", npy(few_distinct(rows, distinct, 0))),
+             "target": ("target.npy", npy(few_distinct(rows, distinct, 1)))}
+    with server.client() as client:
+        response = client.post("/v1/register", files=files)
+    assert response.status_code == 200, response.text[:300]
+    body = response.json()
+    assert np.isfinite(body["transform"]).all() and not body["quality"]["reliable"]
+    assert any(warning.startswith(f"source {kind}") for warning in body["warnings"]), body["warnings"]

@@ -16,6 +16,7 @@ from service.quality import (
     attainable_inlier_ratio,
     attainable_on_surface,
     degeneracy_warnings,
+    degenerate,
     near_surface_share,
 )
 
@@ -46,6 +47,15 @@ def test_collinear_points_are_detected_even_with_tiny_noise() -> None:
 
 def test_two_points_are_collinear() -> None:
     assert degeneracy_warnings(np.array([[0.0, 0, 0], [1, 1, 1]]))[0].startswith("collinear")
+
+
+def test_few_distinct_points_are_degenerate_however_many_rows_repeat_them() -> None:
+    rng = np.random.default_rng(7)
+    few = rng.normal(size=(11, 3))
+    stacked = np.concatenate([few, np.zeros((300, 3))])  # 12 distinct points in 311 rows
+    (warning,) = degeneracy_warnings(stacked)
+    assert warning.startswith("few distinct points: only 12 of the 311") and degenerate(stacked)
+    assert degeneracy_warnings(np.concatenate([rng.normal(size=(32, 3)), np.zeros((300, 3))])) == []
 
 
 def test_coplanar_points_get_a_note() -> None:

@@ -9,12 +9,15 @@ import pytest
 from scipy.spatial import cKDTree
 from shapes import ellipsoid_and_box
 
+from service.checks import MIN_POINTS
 from service.sampling import (
     DEFAULT_SIZE,
     coordinate_hash,
+    distinct_rows,
     evenly_spaced_indices,
     hashed_indices,
     isolated_points,
+    kept_unless_too_few,
     resample_indices,
     spread_indices,
 )
@@ -78,13 +81,12 @@ def test_evenly_spaced_indices_are_ascending_distinct_and_keep_small_clouds_whol
     assert len(evenly_spaced_indices(257, 256)) == 256
 
 
-def test_heavily_duplicated_cloud_still_gives_distinct_indices() -> None:
+def test_heavily_duplicated_cloud_gives_each_place_once() -> None:
     distinct = ellipsoid_and_box(100, seed=6)
     points = np.repeat(distinct, 70, axis=0)  # 7000 points, only 100 places: fewer than `size`
     permutation = np.random.default_rng(2).permutation(points.shape[0])
     indices = resample_indices(points, 768)
-    assert np.unique(indices).size == 768
-    assert np.unique(points[indices[:100]], axis=0).shape[0] == 100  # every place before any repeat
+    assert indices.size == 100 and np.unique(points[indices], axis=0).shape[0] == 100  # every place, once
     np.testing.assert_array_equal(
         points[indices], points[permutation][resample_indices(points[permutation], 768)]
     )
@@ -171,6 +173,41 @@ def test_dropping_isolated_points_keeps_order_independence_and_spends_the_sample
     perm = np.random.default_rng(4).permutation(len(points))
     again = resample_indices(points[perm], DEFAULT_SIZE, drop_isolated=True)
     np.testing.assert_array_equal(points[perm][again], points[kept])
+
+def test_a_stack_of_identical_points_is_one_working_point() -> None:
+    """Repeats of a coordinate are one point of the surface, unless fewer than MIN_POINTS distinct points are left."""
+    rng = np.random.default_rng(8)
+    surface = ellipsoid_and_box(500, seed=8)
+    stacked = np.concatenate([np.repeat(surface[:1], 400, axis=0), surface])  # [900, 3]: 500 distinct
+    for drop in (False, True):
+        working = stacked[resample_indices(stacked, DEFAULT_SIZE, drop_isolated=drop)]
+        assert len(working) == len(np.unique(working, axis=0)) <= 500
+    few = np.concatenate([rng.normal(size=(10, 3)), np.zeros((90, 3))])  # 11 distinct points in 100 rows
+    np.testing.assert_array_equal(distinct_rows(few, np.arange(100)), np.arange(100))
+    np.testing.assert_array_equal(distinct_rows(stacked, np.arange(900)), np.r_[0, 401:900])  # first rows
+
+
+def three_clusters_of_other_scales() -> np.ndarray:
+    """``[32, 3]``: three clusters of about 11 points, of scales 1e-4 to 10 apart, far from each other: two passes of
+    the isolated-point filter leave 11 of them, fewer than the network's neighbour graph needs."""
+    rng = np.random.default_rng(68)
+    assert rng.integers(2, 6) == 3  # how the case was found: clusters of random scales, seed by seed
+    clusters = [rng.normal(0, 10.0 ** rng.integers(-4, 2), (11, 3)) + rng.uniform(-100, 100, 3) for _ in range(3)]
+    return np.concatenate(clusters)[:32]
+
+
+def test_filters_never_leave_fewer_points_than_a_request_may_send() -> None:
+    points = three_clusters_of_other_scales()
+    assert np.count_nonzero(~isolated_points(points)) < 12  # the filter alone would
+    for size in (16, DEFAULT_SIZE):
+        kept = resample_indices(points, size, drop_isolated=True)
+        assert len(kept) == min(size, 32) and len(np.unique(kept)) == len(kept)
+    np.testing.assert_array_equal(spread_indices(points, 24, drop_isolated=True), spread_indices(points, 24))
+    candidates = np.arange(100)
+    np.testing.assert_array_equal(kept_unless_too_few(candidates, candidates >= MIN_POINTS), np.arange(MIN_POINTS))
+    np.testing.assert_array_equal(kept_unless_too_few(candidates, candidates >= MIN_POINTS - 1), candidates)
+    np.testing.assert_array_equal(kept_unless_too_few(candidates[:10], candidates[:10] > 0), candidates[:10])
+
 
 
 @pytest.mark.parametrize(("stacked", "surface"), [(3000, 2000), (60_000, 20_000)])  # all points; voxel grid
