@@ -34,6 +34,12 @@ class NetworkOutput:
     min_median_gap: float  # smallest gap between the median credibility and the next lower one
 
 
+def sigmoid(logit: np.ndarray) -> np.ndarray:
+    """``1 / (1 + exp(-logit))`` in float64; logits beyond +-700 (degenerate clouds) saturate to 0 or 1 instead of
+    overflowing ``exp``."""
+    return 1.0 / (1.0 + np.exp(-np.clip(logit.astype(np.float64), -700.0, 700.0)))
+
+
 def lower_median_weights(credibility: np.ndarray) -> np.ndarray:
     """Credibilities at or above the lower median of their row, others zeroed (``[..., K] -> [..., K]``)."""
     k = (credibility.shape[-1] - 1) // 2
@@ -94,7 +100,7 @@ class NetworkLoop:
             if L > 1:
                 top2 = np.partition(scores, -2, axis=2)[..., -2:]  # [B, K, 2]
                 self.min_gap = np.minimum(self.min_gap, (top2[..., 1] - top2[..., 0]).min(axis=1))
-            credibility = 1.0 / (1.0 + np.exp(-logit.astype(np.float64)))  # [B, K]
+            credibility = sigmoid(logit)  # [B, K]
             weights = lower_median_weights(credibility)  # [B, K]
             kept = weights > 0
             has_below = (~kept).any(axis=1)  # [B]
