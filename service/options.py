@@ -124,7 +124,8 @@ class RegistrationOptions:
     unchanged unless it looks wrong (:func:`service.stages.search.needs_search`: an inlier ratio below
     ``AUTO_SEARCH_RELATIVE_RATIO`` of what the target's density allows, and not the look of a partial view's right
     pose: :func:`service.stages.partial.looks_partial`) and neither working cloud is
-    degenerate (identical or collinear points: no start rotation can fix what they leave open); then it
+    degenerate (identical or collinear points, or fewer than 32 distinct ones: no start rotation can fix what they
+    leave open); then it
     runs the rotation search as above on the same working clouds and returns whichever of the two final poses
     :func:`service.rotation_search.rank_hypotheses`
     ranks first (inlier ratio, then residual; the plain one on a tie). The stage keys of ``timing_ms``
