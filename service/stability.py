@@ -112,11 +112,15 @@ def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_di
 def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree, centre: np.ndarray,
                  scale: float, motion: np.ndarray) -> float:
     """RMS nearest-target distance of the paired points ``p [P, 3]`` (now ``dist [P]``) after moving them one target
-    sample spacing (RMS displacement) along ``motion [6]`` either way, over their RMS distance now (the smaller)."""
+    sample spacing (RMS displacement) along ``motion [6]`` either way, over their RMS distance now (the smaller); 1
+    where the motion does not move them (paired points that coincide: nothing pins the motion)."""
     spacing = float(np.median(nearest_other_distances(tgt, tree)))  # the target's median sample spacing
     turn, slide = unit_step(motion, scale)  # [3], [3]
     displacement = np.cross(turn, p - centre) + slide  # [P, 3] linearised, per unit step
-    step = spacing / max(float(np.sqrt(np.mean(np.sum(displacement**2, axis=1)))), 1e-300)
+    moves = float(np.sqrt(np.mean(np.sum(displacement**2, axis=1))))  # RMS displacement per unit step
+    if not moves > 1e-12 * max(scale, spacing):  # the motion does not move the points (they coincide): no probe
+        return 1.0
+    step = spacing / moves
     before = max(float(np.sqrt(np.mean(dist**2))), np.finfo(np.float64).tiny)
     ratios = []
     for sign in (1.0, -1.0):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -129,3 +130,19 @@ def test_a_registered_asymmetric_shape_stays_reliable(registrar) -> None:
                                 refine="icp-plane")
     assert result.stability > WEAK_EIGENVALUE and result.reliable
     assert not any(w.startswith("weakly constrained") for w in result.warnings)
+
+
+def test_the_probe_of_paired_points_that_coincide_is_one_and_finite() -> None:
+    """A stack of paired points at the turn's centre does not move along it: nothing pins the motion (ratio 1), and
+    the step along it is not sized by a displacement of zero (an overflow)."""
+    from service.stability import _probe_ratio
+
+    rng = np.random.default_rng(3)
+    tgt = rng.normal(size=(200, 3))
+    centre = np.array([0.1, -0.2, 0.3])
+    p = np.repeat(centre[None], 40, axis=0)  # [40, 3] coinciding paired points
+    turn_only = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])  # [6] a pure turn about the points' centre
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ratio = _probe_ratio(p, np.full(40, 0.01), tgt, KDTree(tgt), centre, 1.0, turn_only)
+    assert ratio == 1.0
