@@ -399,6 +399,9 @@ GEOMETRY: dict[str, tuple[Callable[[], tuple[Any, Any]], str | None, bool | None
     "collinear": (lambda: (line(), [[x + 0.1, y, z] for x, y, z in line()]), "collinear", False),
     "coplanar": (lambda: (plane(), plane() + np.array([0.1, 0.0, 0.0])), "coplanar", None),
     "duplicated": (lambda: (np.repeat(_pair()[0], 2, axis=0), np.repeat(_pair()[1], 2, axis=0)), None, None),
+    # 20 points of the shape and a stack of 300 at one of them: the stack must not pass for overlap
+    "few_distinct": (lambda: (np.repeat(_pair()[0][:20], [301] + [1] * 19, axis=0),
+                              np.repeat(_pair()[1][:20], [301] + [1] * 19, axis=0)), "few distinct points", False),
 }
 
 
@@ -416,7 +419,7 @@ def test_degenerate_geometry_gets_a_pose_and_an_honest_quality(targets, name):
     if kind is not None:
         assert kind in warnings
     else:
-        assert not any(word in warnings for word in ("identical", "collinear", "coplanar"))
+        assert not any(word in warnings for word in ("identical", "collinear", "coplanar", "few distinct"))
     if reliable is not None:
         assert result["quality"]["reliable"] is reliable
     if name == "duplicated":  # the same shape, each point twice: still close to the truth
