@@ -50,7 +50,7 @@ class Server:
     """``mfgnet``'s HTTP app in a subprocess on a free loopback port (one uvicorn process)."""
 
     def __init__(self, threads: int = 2, max_concurrency: int = 2, max_queue: int = 64, cwd: str | None = None,
-                 model_dirs: str | None = None, default_model: str | None = None):
+                 model_dirs: str | None = None, default_model: str | None = None, models: str | None = None):
         self.port = free_port()
         env = {**os.environ, "MFGNET_HOST": "127.0.0.1", "MFGNET_PORT": str(self.port),
                "MFGNET_THREADS": str(threads), "MFGNET_MAX_CONCURRENCY": str(max_concurrency),
@@ -59,6 +59,8 @@ class Server:
             env.update(MFGNET_MODEL_DIRS=model_dirs, MFGNET_BUNDLED_MODELS="false")
         if default_model:  # what a request naming no model gets
             env["MFGNET_DEFAULT_MODEL"] = default_model
+        if models:  # serve only these model names (comma separated)
+            env["MFGNET_MODELS"] = models
         if cwd:  # "-c" puts the working directory first on sys.path: that checkout's service package runs
             env["PYTHONPATH"] = cwd
         self.proc = subprocess.Popen([sys.executable, "-c", "from service.api.app import run_server; run_server()"],

@@ -1,0 +1,81 @@
+"""A real server's memory through a short session of default requests (``docs/DEPLOYMENT.md``, figure R)::
+
+    python -m bench.server_memory --models general
+    python -m bench.server_memory                   # every bundled model
+
+It starts ``mfgnet``'s HTTP app on 127.0.0.1 (``MFGNET_THREADS`` and ``MFGNET_MAX_CONCURRENCY`` 2, the server's
+defaults), reads its resident memory (``VmRSS``) after start, after ``--small`` default registrations of seeded
+1,024-point dense ModelNet40 test pairs, after one JSON registration of a ``--big-points`` pair (the same pair's
+points and jittered copies of them), and its peak (``VmHWM``); ``searched`` counts the requests that ran the
+rotation search. Every request is ``POST /v1/register`` with the two
+clouds as JSON and no option, so it runs what a caller gets by default (``rotation_search: "auto"`` included).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from bench.http_latency import Server, rss_mb
+from bench.latency import resize_cloud
+from bench.report_io import emit_report, machine_info
+
+SMALL_POINTS = 1024
+THREADS = 2
+
+
+def pairs(count: int, big_points: int, seed: int = 0) -> tuple[list[dict], dict]:
+    """JSON bodies of ``count`` seeded 1,024-point dense test pairs, and one of ``big_points`` points per cloud."""
+    from model.data import make_test_pairs
+
+    test = make_test_pairs("dense", "test", count=count, seed=seed)
+    rng = np.random.default_rng(seed)
+    small = [{"source": resize_cloud(s, SMALL_POINTS, rng).tolist(),
+              "target": resize_cloud(t, SMALL_POINTS, rng).tolist()}
+             for s, t in zip(test["source"], test["target"], strict=True)]
+    big = {"source": resize_cloud(test["source"][0], big_points, rng).tolist(),
+           "target": resize_cloud(test["target"][0], big_points, rng).tolist()}
+    return small, big
+
+
+def measure(models: str | None, small_requests: int = 5, big_points: int = 100_000, seed: int = 0) -> dict:
+    """Server RSS in MiB after start, after the small requests, after the big one, and its peak."""
+    small, big = pairs(small_requests, big_points, seed)
+    with Server(threads=THREADS, models=models) as server, httpx.Client(base_url=server.url, timeout=120) as client:
+        pid = server.proc.pid
+        rss = {"after_start": rss_mb(pid)}
+        searched = 0
+        for body in small:
+            response = client.post("/v1/register", json=body)
+            response.raise_for_status()
+            searched += "search" in response.json()["timing_ms"]
+        rss["after_small"] = rss_mb(pid)
+        response = client.post("/v1/register", json=big)
+        response.raise_for_status()
+        searched += "search" in response.json()["timing_ms"]
+        rss["after_big"] = rss_mb(pid)
+        rss["peak"] = rss_mb(pid, "VmHWM")
+        served = [m["name"] for m in client.get("/v1/models").json()["models"]]
+    return {"benchmark": "server_memory", "models": served, "small_requests": small_requests,
+            "small_points": SMALL_POINTS, "searched": searched, "big_points": big_points, "seed": seed,
+            "rss_mib": {k: round(v, 1) for k, v in rss.items()}, "machine": machine_info(THREADS)}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--models", help="serve only these model names, comma separated (default: every bundled one)")
+    parser.add_argument("--small", type=int, default=5, help="1,024-point registrations before the big one")
+    parser.add_argument("--big-points", type=int, default=100_000, help="points per cloud of the big JSON request")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", type=Path, help="also write the report here")
+    args = parser.parse_args(argv)
+    report = measure(args.models, args.small, args.big_points, args.seed)
+    emit_report(report, args.json)
+    return report
+
+
+if __name__ == "__main__":
+    main()
