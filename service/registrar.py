@@ -23,6 +23,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.blas_threads import use_one_blas_thread
+from service.bounded_runs import ENCODE_POINTS_PER_CALL, MATCH_PAIRS_PER_CALL, run_bounded, share_one_cpu_arena
 from service.checks import MIN_POINTS, check_cloud, check_transform
 from service.errors import InputError
 from service.manifest import Manifest, load_manifest
@@ -100,7 +101,7 @@ def session_options(threads: int) -> ort.SessionOptions:
     # shapes it saw, on top of its arena (+80 MB RSS from the second call on, same latency;
     # docs/BENCHMARKS.md, "HTTP overhead").
     options.enable_mem_pattern = False
-    return options
+    return share_one_cpu_arena(options)  # one arena for every session: bounded by the largest call (bounded_runs)
 
 
 class Registrar:
@@ -163,7 +164,8 @@ class Registrar:
         feeds = {"points": points.astype(np.float32, copy=False)}
         if self.encoder_takes_neighbours:
             feeds["neighbours"] = self.neighbours(feeds["points"]) if neighbours is None else neighbours
-        emb, score = self.encoder.run(None, feeds)
+        per_row = feeds["points"].shape[1]  # N points per row of [B, N, 3]
+        emb, score = run_bounded(self.encoder, feeds, per_row, ENCODE_POINTS_PER_CALL)
         return emb, score
 
     def embed_cloud(self, points: np.ndarray) -> EmbeddedCloud:
@@ -188,7 +190,8 @@ class Registrar:
         }
         if self.matcher_takes_distance:
             feeds["emb_dist"] = embedding_distance(src_emb, tgt_emb) if emb_dist is None else emb_dist
-        scores, logit = session.run(None, feeds)
+        pairs = src_xyz.shape[1] * tgt_xyz.shape[1]  # K x L per row
+        scores, logit = run_bounded(session, feeds, pairs, MATCH_PAIRS_PER_CALL)
         return scores, logit
 
     def start_network(
