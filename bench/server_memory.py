@@ -7,8 +7,8 @@ It starts ``mfgnet``'s HTTP app on 127.0.0.1 (``MFGNET_THREADS`` and ``MFGNET_MA
 defaults), reads its resident memory (``VmRSS``) after start, after ``--small`` default registrations of seeded
 1,024-point dense ModelNet40 test pairs, after one JSON registration of a ``--big-points`` pair (the same pair's
 points and jittered copies of them), and its peak (``VmHWM``); ``searched`` counts the requests that ran the
-rotation search. Every request is ``POST /v1/register`` with the two
-clouds as JSON and no option, so it runs what a caller gets by default (``rotation_search: "auto"`` included).
+rotation search. Every request is ``POST /v1/register`` with the two clouds as JSON and no option, so it runs what
+a caller gets by default (``rotation_search: "auto"`` included).
 """
 
 from __future__ import annotations
@@ -45,22 +45,23 @@ def measure(models: str | None, small_requests: int = 5, big_points: int = 100_0
     """Server RSS in MiB after start, after the small requests, after the big one, and its peak."""
     small, big = pairs(small_requests, big_points, seed)
     with Server(threads=THREADS, models=models) as server, httpx.Client(base_url=server.url, timeout=120) as client:
-        pid = server.proc.pid
-        rss = {"after_start": rss_mb(pid)}
-        searched = 0
-        for body in small:
+
+        def searched(body: dict) -> bool:
+            """Register ``body``; whether the rotation search ran."""
             response = client.post("/v1/register", json=body)
             response.raise_for_status()
-            searched += "search" in response.json()["timing_ms"]
+            return "search" in response.json()["timing_ms"]
+
+        pid = server.proc.pid
+        rss = {"after_start": rss_mb(pid)}
+        searches = sum(searched(body) for body in small)
         rss["after_small"] = rss_mb(pid)
-        response = client.post("/v1/register", json=big)
-        response.raise_for_status()
-        searched += "search" in response.json()["timing_ms"]
+        searches += searched(big)
         rss["after_big"] = rss_mb(pid)
         rss["peak"] = rss_mb(pid, "VmHWM")
         served = [m["name"] for m in client.get("/v1/models").json()["models"]]
     return {"benchmark": "server_memory", "models": served, "small_requests": small_requests,
-            "small_points": SMALL_POINTS, "searched": searched, "big_points": big_points, "seed": seed,
+            "small_points": SMALL_POINTS, "searched": searches, "big_points": big_points, "seed": seed,
             "rss_mib": {k: round(v, 1) for k, v in rss.items()}, "machine": machine_info(THREADS)}
 
 
