@@ -1,4 +1,4 @@
-"""A real server's memory through a short session of default requests (``docs/DEPLOYMENT.md``, figure R)::
+"""A real server's memory through a short session of default requests (``docs/DEPLOYMENT.md``, "Current figures")::
 
     python -m bench.server_memory --models general
     python -m bench.server_memory                   # every bundled model

@@ -1,4 +1,4 @@
-"""``python -m bench.server_memory``: a real server's memory through default requests (DEPLOYMENT figure R)."""
+"""``python -m bench.server_memory``: a real server's memory through default requests (DEPLOYMENT's current figures)."""
 
 from __future__ import annotations
 
