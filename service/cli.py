@@ -1,6 +1,6 @@
 """The ``mfgnet`` command. Runtime sub-commands (serve, register, models) live here; training-side ones
-(train, evaluate, make-pairs, export, ...) are discovered through the ``mfgnet.commands`` entry-point
-group, so this module never imports torch, ``model`` or ``export``.
+(train, evaluate, make-pairs, export, ...) come from the ``mfgnet.commands`` entry points, loaded only when run
+(``service.cli_plugins``), so a runtime command never imports torch, ``model``, ``export`` or ``bench``.
 
 Heavy runtime modules (onnxruntime, the HTTP stack) are imported inside the commands that need them,
 so ``mfgnet --help`` stays fast and works with the base install.
@@ -9,21 +9,19 @@ so ``mfgnet --help`` stays fast and works with the base install.
 from __future__ import annotations
 
 import json
-from importlib.metadata import entry_points
-from importlib.util import find_spec
 from pathlib import Path
 from typing import Annotated, NoReturn
 
 import numpy as np
 import typer
 
+from service.cli_plugins import PluginGroup
 from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
 from service.search_mode import RotationSearchMode, rotation_search_from_options, service_rotation_search
 
-app = typer.Typer(help="MFGNet point-cloud registration", no_args_is_help=True, add_completion=False,
-                  rich_markup_mode=None)  # plain click help: flag names never cut at 80 columns
+app = typer.Typer(cls=PluginGroup, help="MFGNet point-cloud registration", no_args_is_help=True,
+                  add_completion=False, rich_markup_mode=None)  # plain click help: flag names never cut at 80 columns
 
-TRAIN_EXTRA_HINT = "this command needs the training side: pip install 'mfgnet[train]'"
 SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
 DEFAULT_MODEL = "general"  # trained for independently sampled scans; clean/noise/unseen reproduce the paper
 # What each bundled model is for, shown by `mfgnet models` (a manifest's own "description" wins). The table shows
@@ -469,35 +467,6 @@ def _elide(text: str, width: int, left: bool = False) -> str:
     if len(text) <= width:
         return text
     return "..." + text[len(text) - width + 3:] if left else text[: width - 3] + "..."
-
-
-# ------------------------------------------------------------------------------ training plugins
-
-
-def _missing_command(name: str, error: Exception):
-    def command(ctx: typer.Context) -> None:
-        typer.echo(f"mfgnet {name}: {TRAIN_EXTRA_HINT} ({error})", err=True)
-        raise typer.Exit(code=2)
-
-    command.__doc__ = f"(not installed here: needs the train extra) {name}"  # no [...]: rich markup eats it
-    return command
-
-
-def _register_plugins() -> None:
-    torch_missing = find_spec("torch") is None  # checked without importing torch
-    for ep in entry_points(group="mfgnet.commands"):
-        try:
-            if torch_missing:
-                raise ImportError("torch is not installed")
-            fn = ep.load()
-        except ImportError as exc:  # torch or another training dependency is absent
-            app.command(ep.name, context_settings={"allow_extra_args": True, "ignore_unknown_options": True})(
-                _missing_command(ep.name, exc))
-        else:
-            app.command(ep.name)(fn)
-
-
-_register_plugins()
 
 
 def main() -> None:
