@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -120,7 +121,7 @@ def report(results: dict, pair_files: list[Path], model: str) -> dict:
     return table
 
 
-def _right(errors) -> bool:
+def _right(errors: Sequence[float]) -> bool:
     return errors[0] < 5 and errors[1] < 0.05
 
 

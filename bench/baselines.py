@@ -7,6 +7,7 @@ the scale of the paper's protocol).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -91,7 +92,8 @@ def fpfh_ransac(src: np.ndarray, tgt: np.ndarray, voxel: float = DEFAULT_VOXEL) 
 METHODS = {"fpfh-ransac-icp": fpfh_ransac_icp, "fpfh-ransac": fpfh_ransac, "fgr": fgr}
 
 
-def run_method(method, pairs: dict[str, np.ndarray], progress: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+def run_method(method: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]], pairs: dict[str, np.ndarray],
+               progress: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """Poses ``[M, 3, 3]``, ``[M, 3]`` of ``method(src, tgt)`` over the pairs and the seconds spent.
 
     The method first runs once on the first pair, untimed: Open3D's import and set-up (~3 s on the

@@ -42,7 +42,7 @@ class RecordingSession:
     def __init__(self, session: ort.InferenceSession):
         self.session, self.feeds = session, None
 
-    def run(self, outputs, feeds):
+    def run(self, outputs: list[str] | None, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         if self.feeds is None:
             self.feeds = {name: np.array(value) for name, value in feeds.items()}
         return self.session.run(outputs, feeds)

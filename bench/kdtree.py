@@ -28,7 +28,9 @@ class ScipyKDTree:
         self._tree = cKDTree(np.asarray(points, dtype=np.float64))
         self.n = self._tree.n
 
-    def query(self, points: np.ndarray, k: int = 1, distance_upper_bound: float | None = None):
+    def query(
+        self, points: np.ndarray, k: int = 1, distance_upper_bound: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         bound = np.inf if distance_upper_bound is None else distance_upper_bound
         return self._tree.query(np.asarray(points, dtype=np.float64), k=k, distance_upper_bound=bound)
 

@@ -10,13 +10,18 @@ from __future__ import annotations
 import json
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
 
 from bench.report_io import machine_info
+
+if TYPE_CHECKING:
+    from model.network import MFGNet
+    from service.registrar import Registrar
 
 SIZES = (512, 1024, 2048, 4096)  # network working sizes
 LARGE_INPUTS = (20_000, 100_000)  # input sizes resampled to the default working size
@@ -34,7 +39,7 @@ def percentiles(samples_ms: list[float]) -> dict[str, float]:
     }
 
 
-def time_calls(fn, repeats: int, warmup: int = 2) -> list[float]:
+def time_calls(fn: Callable[[], object], repeats: int, warmup: int = 2) -> list[float]:
     for _ in range(warmup):
         fn()
     out = []
@@ -46,7 +51,7 @@ def time_calls(fn, repeats: int, warmup: int = 2) -> list[float]:
 
 
 def bench_pipeline(
-    registrar,
+    registrar: Registrar,
     pairs: dict,
     repeats: int,
     iterations: int | None = None,
@@ -73,7 +78,7 @@ def bench_pipeline(
     return {"total": percentiles(totals), "stages": {k: float(np.median(v)) for k, v in stages.items()}}
 
 
-def bench_torch(model, pairs: dict, repeats: int, iterations: int | None = None) -> dict:
+def bench_torch(model: MFGNet, pairs: dict, repeats: int, iterations: int | None = None) -> dict:
     import torch
 
     n = len(pairs["source"])
@@ -174,7 +179,7 @@ def run_bench(
     return report
 
 
-def iteration_accuracy(registrar, setting: str, count: int, seed: int) -> dict:
+def iteration_accuracy(registrar: Registrar, setting: str, count: int, seed: int) -> dict:
     """The paper's ablation: accuracy of the pipeline (no refinement) at 1-6 iterations on the same seeded pairs."""
     from bench.baselines import run_method
     from model.data import make_test_pairs
@@ -183,7 +188,7 @@ def iteration_accuracy(registrar, setting: str, count: int, seed: int) -> dict:
     pairs = make_test_pairs(setting, "test", count=count, seed=seed)
 
     def with_iterations(n: int):
-        def method(src, tgt):
+        def method(src: np.ndarray, tgt: np.ndarray):
             res = registrar.register(src, tgt, iterations=n)
             return res.rotation, res.translation
 
@@ -204,7 +209,8 @@ def resize_cloud(points: np.ndarray, size: int, rng: np.random.Generator) -> np.
     return np.concatenate([points, extra.astype(points.dtype)])
 
 
-def compare_methods(registrar, model, setting: str, count: int, seed: int, classical: bool = True) -> dict:
+def compare_methods(registrar: Registrar, model: MFGNet, setting: str, count: int, seed: int,
+                    classical: bool = True) -> dict:
     """Accuracy (the paper's metrics) and ms per pair of every method on the same seeded pairs."""
     import torch
 
@@ -214,14 +220,14 @@ def compare_methods(registrar, model, setting: str, count: int, seed: int, class
     pairs = make_test_pairs(setting, "test", count=count, seed=seed)
 
     def pipeline(refine: str, rotation_search: bool | str = False):
-        def method(src, tgt):
+        def method(src: np.ndarray, tgt: np.ndarray):
             res = registrar.register(src, tgt, refine=refine, rotation_search=rotation_search)
             return res.rotation, res.translation
 
         return method
 
     @torch.no_grad()
-    def eager(src, tgt):
+    def eager(src: np.ndarray, tgt: np.ndarray):
         out = model(torch.from_numpy(src[None]), torch.from_numpy(tgt[None]))
         return out.rotation[0].double().numpy(), out.translation[0].double().numpy()
 

@@ -16,7 +16,7 @@ seeded direction.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +53,7 @@ def load_pair(directory: Path) -> tuple[np.ndarray, np.ndarray]:
     return source @ truth[:3, :3].T + truth[:3, 3], target
 
 
-def variants(directory: Path, seed: int = 7):
+def variants(directory: Path, seed: int = 7) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """``(label, source, target, src_to_tgt)`` for every variant, in a seeded order."""
     rng = np.random.default_rng(seed)
     source_in_target, target = load_pair(directory)

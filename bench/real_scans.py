@@ -186,7 +186,7 @@ def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, seed: int = 0) -> tu
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector((points.astype(np.float64) - centre) / radius))
         return pcd.voxel_down_sample(voxel)
 
-    def features(pcd):
+    def features(pcd: o3d.geometry.PointCloud):
         pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_NORMAL_RADIUS, max_nn=30))
         return reg.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=FPFH_FEATURE_RADIUS,
                                                                                      max_nn=100))
@@ -323,7 +323,7 @@ def compared_report(root: Path, cases: list[Case], service: list[dict], compared
                       for i, c in enumerate(cases)]}
 
 
-def _num(value) -> str:
+def _num(value: float | None) -> str:
     return "-" if value is None else f"{value:.3g}"
 
 

@@ -24,12 +24,16 @@ import json
 import time
 from datetime import date
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
 
 from bench.report_io import machine_info
+
+if TYPE_CHECKING:
+    from service.normalization import Normalization
+    from service.registrar import Registrar
 
 METHODS = ("plain", "search", "search_net_rank", "starts_icp")
 
@@ -40,7 +44,8 @@ def pose_errors(R: np.ndarray, t: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray
     return float(rotation_angle_deg(R[None], R_gt[None])[0]), float(np.linalg.norm(t - t_gt))
 
 
-def working_clouds(registrar, src: np.ndarray, tgt: np.ndarray, working_size: int = 768):
+def working_clouds(registrar: Registrar, src: np.ndarray, tgt: np.ndarray,
+                   working_size: int = 768) -> tuple[np.ndarray, np.ndarray, Normalization]:
     """The registrar's working clouds (caller's units) and their normalisation, as ``register`` builds them."""
     from service.normalization import Normalization
     from service.sampling import resample_indices
@@ -49,7 +54,8 @@ def working_clouds(registrar, src: np.ndarray, tgt: np.ndarray, working_size: in
     return src_w, tgt_w, Normalization.fit(src_w, tgt_w, registrar.reference_radius)
 
 
-def starts_icp(registrar, src_w, tgt_w, norm) -> tuple[np.ndarray, np.ndarray]:
+def starts_icp(registrar: Registrar, src_w: np.ndarray, tgt_w: np.ndarray,
+               norm: Normalization) -> tuple[np.ndarray, np.ndarray]:
     """The search without the network: short ICP from every start rotation, rank, refine (caller's units)."""
     from service import registrar as reg
     from service import rotation_search as search
@@ -66,7 +72,8 @@ def starts_icp(registrar, src_w, tgt_w, norm) -> tuple[np.ndarray, np.ndarray]:
     return refined.rotation, refined.translation
 
 
-def evaluate_pair(registrar, src, tgt, R_gt, t_gt) -> dict[str, dict[str, float]]:
+def evaluate_pair(registrar: Registrar, src: np.ndarray, tgt: np.ndarray, R_gt: np.ndarray,
+                  t_gt: np.ndarray) -> dict[str, dict[str, float]]:
     from service import registrar as reg
     from service.icp import icp
     from service.quality import assess
@@ -106,7 +113,7 @@ def summarise(records: list[dict[str, dict[str, float]]]) -> dict[str, dict[str,
     return summary
 
 
-def time_registrations(registrar, pairs: dict, repeats: int) -> dict[str, dict[str, float]]:
+def time_registrations(registrar: Registrar, pairs: dict, repeats: int) -> dict[str, dict[str, float]]:
     """Median ``timing_ms`` stages of ``repeats`` registrations per configuration, after one warm-up round.
 
     Configurations are interleaved (one call of each per round, same pair), so a machine whose load

@@ -95,7 +95,7 @@ class EncoderGraph(nn.Module):
         self.blocks = nn.ModuleList(LeanEdgeConv(block) for block in model.encoder.blocks)
         self.significance = copy.deepcopy(model.significance)
 
-    def forward(self, points: torch.Tensor, neighbours: torch.Tensor):
+    def forward(self, points: torch.Tensor, neighbours: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         idx_kn = neighbours.transpose(1, 2)  # [B, k, N]
         x = points
         for block in self.blocks:
@@ -162,7 +162,8 @@ class MatcherGraph(nn.Module):
         post.weight.data, post.bias.data = _const(cred.post[0].linear.weight), _const(cred.post[0].bn.shift)
         self.post, self.logit = post, copy.deepcopy(cred.post[1])
 
-    def forward(self, src_xyz, tgt_xyz, src_emb, tgt_emb, emb_dist):
+    def forward(self, src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src_emb: torch.Tensor, tgt_emb: torch.Tensor,
+                emb_dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         F_mat = self.feature(self.sign * src_emb, self.sign * tgt_emb, dist=emb_dist)  # [B, K, L]
         S_mat = self.coord(src_xyz, tgt_xyz, src_xyz)  # [B, K, L]
         scores = (F_mat + S_mat).clamp(-self.clamp, self.clamp)

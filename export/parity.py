@@ -8,7 +8,8 @@ import numpy as np
 import torch
 
 from model.metrics import rotation_angle_deg
-from model.network import MFGNet, knn_indices
+from model.network import MFGNet, RegistrationOutput, knn_indices
+from service.network_loop import NetworkOutput
 from service.registrar import Registrar
 
 GRAPH_TOL = 1e-4  # absolute, per graph output
@@ -125,7 +126,7 @@ def _same_graph(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(np.array_equal(np.sort(a, axis=-1), np.sort(b, axis=-1)))
 
 
-def _same_keypoints(ref, out) -> bool:
+def _same_keypoints(ref: RegistrationOutput, out: NetworkOutput) -> bool:
     return set(ref.src_idx[0].tolist()) == set(out.src_kp.tolist()) and set(ref.tgt_idx[0].tolist()) == set(
         out.tgt_kp.tolist()
     )

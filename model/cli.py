@@ -10,7 +10,7 @@ from typing import Annotated
 
 import typer
 
-from model.data import SETTINGS, make_test_pairs, protocol_for, save_pairs
+from model.data import SETTINGS, PairProtocol, make_test_pairs, protocol_for, save_pairs
 from model.recipes import recipe_draw
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
@@ -33,8 +33,9 @@ Points = Annotated[
 ]
 
 
-def setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points=None, outliers=None,
-                     view_angle=None):
+def setting_protocol(setting: str, source_points: int | None, target_points: int | None, overlap: float | None,
+                     noise: float | None, max_angle: float | None, points: int | None = None,
+                     outliers: float | None = None, view_angle: float | None = None) -> PairProtocol:
     """The setting's pair protocol with the command-line overrides, or a usage error."""
     try:
         return protocol_for(setting, source_points=source_points, target_points=target_points, overlap=overlap,

@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -211,7 +211,8 @@ def protocol_for(
     return protocol
 
 
-def load_shapes(split: str, setting: str = "clean", path=None) -> tuple[np.ndarray, np.ndarray]:
+def load_shapes(split: str, setting: str = "clean",
+                path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Points ``float32 [S, P, 3]`` and labels ``int64 [S]`` of a split for a setting.
 
     ``P = 1024`` (main files) or 4096 (``dense``, test split only, axes mapped to the main files'
@@ -329,7 +330,7 @@ def make_pairs(
     return pairs
 
 
-def _view_crops(shapes, src, tgt, protocol: PairProtocol, rng: np.random.Generator):
+def _view_crops(shapes: np.ndarray, src: np.ndarray, tgt: np.ndarray, protocol: PairProtocol, rng: np.random.Generator):
     """``crop="views"``: what the source's and the target's camera see of ``src`` / ``tgt`` ``[B, N, 3]`` (in the
     shape's frame, before the move and the noise) -> indices ``[B, keep]`` each and, for ``return_indices``, the
     cameras' unit directions ``source_view`` / ``target_view`` ``[B, 3]`` (shape frame) and ``source_hidden`` /
@@ -363,10 +364,10 @@ def make_test_pairs(
     split: str = "test",
     count: int | None = None,
     seed: int = 0,
-    path=None,
+    path: str | os.PathLike | None = None,
     protocol: PairProtocol | None = None,
     return_indices: bool = False,
-):
+) -> dict[str, np.ndarray]:
     """Deterministic pairs of a setting: the same seed gives the same pairs on every machine.
 
     ``protocol`` replaces the setting's default (e.g. ``protocol_for(setting, max_angle=90)``); the
@@ -429,7 +430,8 @@ class TrainPairStream:
     def batches_per_epoch(self, batch_size: int) -> int:
         return len(self.shapes) // batch_size
 
-    def epoch(self, epoch: int, batch_size: int, first: int = 0, shard: tuple[int, int] = (0, 1)):
+    def epoch(self, epoch: int, batch_size: int, first: int = 0,
+              shard: tuple[int, int] = (0, 1)) -> Iterator[dict[str, np.ndarray]]:
         """Yield batches (dicts of float32 arrays) of one epoch from batch ``first`` on.
 
         Batch ``b`` depends only on (seed, epoch, b): the epoch's shape order comes from (seed, epoch), its

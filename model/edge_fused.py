@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torch.autograd.function import FunctionCtx
 
 from model.fused_common import chunks, fold_batch_statistics, max_gradient
 
@@ -35,12 +36,12 @@ class NeighbourSum(torch.autograd.Function):
     its transpose given as CSR matrices (one sparse product each way, ~1.6x faster than 12 gathers)."""
 
     @staticmethod
-    def forward(ctx, y: torch.Tensor, adjacency: torch.Tensor, adjacency_t: torch.Tensor) -> torch.Tensor:
+    def forward(ctx: FunctionCtx, y: torch.Tensor, adjacency: torch.Tensor, adjacency_t: torch.Tensor) -> torch.Tensor:
         ctx.adjacency_t = adjacency_t
         return adjacency @ y
 
     @staticmethod
-    def backward(ctx, grad_s: torch.Tensor):
+    def backward(ctx: FunctionCtx, grad_s: torch.Tensor):
         return ctx.adjacency_t @ grad_s, None, None
 
 
@@ -78,7 +79,8 @@ class EdgeReluLinearMax(torch.autograd.Function):
     -> ``[P, D]``. Edges tied for a maximum share its gradient equally (as ``torch.amax``)."""
 
     @staticmethod
-    def forward(ctx, u: torch.Tensor, v: torch.Tensor, nbr: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    def forward(ctx: FunctionCtx, u: torch.Tensor, v: torch.Tensor, nbr: torch.Tensor,
+                weight: torch.Tensor) -> torch.Tensor:
         P, k = nbr.shape
         out = u.new_empty(P, weight.shape[0])
         hidden = u.new_empty(P, k, u.shape[1])  # [P, k, C] relu(u_j - v_i), kept for the backward
@@ -91,7 +93,7 @@ class EdgeReluLinearMax(torch.autograd.Function):
         return out
 
     @staticmethod
-    def backward(ctx, grad_m: torch.Tensor):
+    def backward(ctx: FunctionCtx, grad_m: torch.Tensor):
         nbr, weight, out, edges_out, hidden = ctx.saved_tensors
         C, D = hidden.shape[2], weight.shape[0]
         grad_u = hidden.new_zeros(nbr.shape[0], C)  # u has a row per point, as nbr

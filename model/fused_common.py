@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 from torch import nn
 
@@ -39,7 +41,7 @@ def max_gradient(
     return is_max.mul_(share[:, None])
 
 
-def chunks(n: int, size: int):
+def chunks(n: int, size: int) -> Iterator[slice]:
     """Slices ``[0, size), [size, 2 size), ...`` covering ``range(n)``."""
     for start in range(0, n, size):
         yield slice(start, min(start + size, n))

@@ -12,7 +12,8 @@ from model.network import MFGNet
 
 @torch.no_grad()
 def predict_poses(model: MFGNet, pairs: dict[str, np.ndarray], batch_size: int = 16,
-                  iterations: int | None = None, keypoints: int | None = None, progress: bool = False):
+                  iterations: int | None = None, keypoints: int | None = None,
+                  progress: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """``src_to_tgt`` poses ``R [M, 3, 3]``, ``t [M, 3]`` for every pair, and the seconds spent."""
     was_training = model.training
     model.eval()

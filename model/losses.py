@@ -45,7 +45,8 @@ def credibility_loss(logit: torch.Tensor, correct: torch.Tensor) -> torch.Tensor
     return F.binary_cross_entropy_with_logits(logit, correct.to(logit.dtype))
 
 
-def ground_truth_matches(src_kp, tgt_kp, R_gt, t_gt, threshold: float):
+def ground_truth_matches(src_kp: torch.Tensor, tgt_kp: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor,
+                         threshold: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Nearest target keypoint of each source keypoint under the true pose and whether it is close.
 
     ``src_kp [B, K, 3]`` (original source frame), ``tgt_kp [B, L, 3]`` -> ``[B, K]`` index, bool,
@@ -56,7 +57,8 @@ def ground_truth_matches(src_kp, tgt_kp, R_gt, t_gt, threshold: float):
     return idx, dist < threshold, src_gt
 
 
-def registration_losses(out: RegistrationOutput, src, tgt, R_gt, t_gt, threshold: float) -> LossTerms:
+def registration_losses(out: RegistrationOutput, src: torch.Tensor, tgt: torch.Tensor, R_gt: torch.Tensor,
+                        t_gt: torch.Tensor, threshold: float) -> LossTerms:
     """Sum over iterations of matching and credibility losses plus the first-iteration keypoint loss."""
     src_kp, tgt_kp = gather_points(src, out.src_idx), gather_points(tgt, out.tgt_idx)
     gt_idx, has_partner, src_gt = ground_truth_matches(src_kp, tgt_kp, R_gt, t_gt, threshold)
@@ -79,8 +81,9 @@ def _pick(mask: torch.Tensor, count: int, generator: torch.Generator | None) -> 
 
 
 @torch.no_grad()
-def sample_training_keypoints(src, tgt, R_gt, t_gt, positives: int, negatives: int, threshold: float,
-                              generator: torch.Generator | None = None):
+def sample_training_keypoints(src: torch.Tensor, tgt: torch.Tensor, R_gt: torch.Tensor, t_gt: torch.Tensor,
+                              positives: int, negatives: int, threshold: float,
+                              generator: torch.Generator | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The paper's training keypoints: per cloud 64 points with a partner and 64 without.
 
     Source positives have a target point within ``threshold`` under the true pose; the target's

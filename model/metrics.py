@@ -3,6 +3,8 @@ errors and recall, pooled over all pairs. Pure numpy + scipy."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -25,7 +27,8 @@ def rotation_angle_deg(R_pred: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
     return np.degrees(2.0 * np.arcsin(np.clip(chord, 0.0, 1.0)))
 
 
-def isotropic_errors(R_pred, t_pred, R_gt, t_gt) -> tuple[np.ndarray, np.ndarray]:
+def isotropic_errors(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray,
+                     t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per pair, the rotation error in degrees ``[M]`` (:func:`rotation_angle_deg`) and the translation error."""
     iso_t = np.linalg.norm(np.asarray(t_pred, np.float64) - np.asarray(t_gt, np.float64), axis=1)  # [M]
     return rotation_angle_deg(R_pred, R_gt), iso_t
@@ -36,7 +39,8 @@ def recall_hits(iso_r: np.ndarray, iso_t: np.ndarray) -> dict[str, np.ndarray]:
     return {key: (iso_r < max_r) & (iso_t < max_t) for key, (max_r, max_t) in RECALL_THRESHOLDS.items()}
 
 
-def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = None) -> dict[str, float]:
+def registration_metrics(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray,
+                         seconds: float | None = None) -> dict[str, float]:
     """Metrics over ``M`` pairs: ``R [M, 3, 3]``, ``t [M, 3]``.
 
     Euler differences are wrapped into ``[-180, 180)`` degrees (equal to the paper's plain
@@ -66,7 +70,8 @@ def registration_metrics(R_pred, t_pred, R_gt, t_gt, seconds: float | None = Non
     return out
 
 
-def reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) -> dict[str, float]:
+def reliability_metrics(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray,
+                        reliable: np.ndarray) -> dict[str, float]:
     """How well the runtime's ``quality.reliable`` flags ``reliable [M]`` separate right from wrong poses (right =
     within (5 deg, 5 cm), as ``recall_r5_t005``): the share flagged reliable, the share flagged reliable but
     wrong (the errors a caller trusting the flag would take) and the share right but flagged unreliable."""
@@ -80,7 +85,8 @@ def reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) -> dict[str, float
     }
 
 
-def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None = None) -> dict[str, dict]:
+def recall_by_label(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, labels: np.ndarray,
+                    names: list[str] | None = None) -> dict[str, dict]:
     """Recall per class: ``{"<label>": {"n", "recall_r1_t001", "recall_r5_t005"[, "name"]}}`` over the pairs
     ``R [M, 3, 3]``, ``t [M, 3]`` with ``labels [M]`` (``names[label]`` when given): which classes fail."""
     iso_r, iso_t = isotropic_errors(R_pred, t_pred, R_gt, t_gt)  # [M], [M]
@@ -97,7 +103,7 @@ def recall_by_label(R_pred, t_pred, R_gt, t_gt, labels, names: list[str] | None 
     return out
 
 
-def save_per_pair(path, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str, np.ndarray],
+def save_per_pair(path: str | os.PathLike, R_pred: np.ndarray, t_pred: np.ndarray, pairs: dict[str, np.ndarray],
                   reliable: np.ndarray | None = None, stability: np.ndarray | None = None) -> None:
     """Each pair's predicted pose ``[M, 3, 3]``, ``[M, 3]`` and its isotropic errors (``rotation_error_deg``,
     ``translation_error``), plus the pairs' ``label`` when they have one and the runtime's ``reliable [M]`` and

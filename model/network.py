@@ -217,7 +217,8 @@ class IterationMatcher(nn.Module):
         self.clamp = cfg.clamp
         self.feature_sign = 1.0 if cfg.feature_diff == "source_minus_target" else -1.0
 
-    def forward(self, src_xyz, tgt_xyz, src_emb, tgt_emb):
+    def forward(self, src_xyz: torch.Tensor, tgt_xyz: torch.Tensor, src_emb: torch.Tensor,
+                tgt_emb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Keypoints ``[B, K, 3]``/``[B, L, 3]`` (source in its current frame) and embeddings.
 
         Returns the matching matrix ``clamp(F + S) [B, K, L]`` and credibility logits ``[B, K]``.

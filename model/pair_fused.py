@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.autograd.function import FunctionCtx
 
 from model.fused_common import chunks, fold_batch_statistics, max_gradient
 
@@ -56,7 +57,8 @@ class FirstPairLayer(torch.autograd.Function):
     ``w [C]``, ``inv, dist [B, K, L]`` -> ``[B, K, L, C]`` and its moments (``_Moments``)."""
 
     @staticmethod
-    def forward(ctx, pa, pb, pe, w, inv, dist):
+    def forward(ctx: FunctionCtx, pa: torch.Tensor, pb: torch.Tensor, pe: torch.Tensor, w: torch.Tensor,
+                inv: torch.Tensor, dist: torch.Tensor):
         B, K, L = inv.shape
         C = pa.shape[2]
         out = pa.new_empty(B, K, L, C)
@@ -70,7 +72,7 @@ class FirstPairLayer(torch.autograd.Function):
         return out, moments.gram, moments.total
 
     @staticmethod
-    def backward(ctx, grad_out, grad_gram, grad_total):
+    def backward(ctx: FunctionCtx, grad_out: torch.Tensor, grad_gram: torch.Tensor, grad_total: torch.Tensor):
         pa, pb, pe, w, inv, dist, out = ctx.saved_tensors
         B, K, L = inv.shape
         C = pa.shape[2]
@@ -99,7 +101,7 @@ class HiddenPairLayer(torch.autograd.Function):
     ``[n, D]`` and its moments, one batch element (``rows``) at a time."""
 
     @staticmethod
-    def forward(ctx, a, weight, shift, rows: int):
+    def forward(ctx: FunctionCtx, a: torch.Tensor, weight: torch.Tensor, shift: torch.Tensor, rows: int):
         out = a.new_empty(a.shape[0], weight.shape[0])
         moments = _Moments(weight.shape[0])
         for s in chunks(a.shape[0], rows):
@@ -109,7 +111,7 @@ class HiddenPairLayer(torch.autograd.Function):
         return out, moments.gram, moments.total
 
     @staticmethod
-    def backward(ctx, grad_out, grad_gram, grad_total):
+    def backward(ctx: FunctionCtx, grad_out: torch.Tensor, grad_gram: torch.Tensor, grad_total: torch.Tensor):
         a, weight, out = ctx.saved_tensors
         moments_grad = _MomentsGrad(grad_gram, grad_total, a.dtype)
         grad_a = torch.empty_like(a)
@@ -127,7 +129,8 @@ class LastPairLayer(torch.autograd.Function):
     head, ``a [n, C]`` -> scores ``[n]``, one batch element (``rows``) at a time."""
 
     @staticmethod
-    def forward(ctx, a, weight, shift, head_weight, head_bias, rows: int):
+    def forward(ctx: FunctionCtx, a: torch.Tensor, weight: torch.Tensor, shift: torch.Tensor, head_weight: torch.Tensor,
+                head_bias: torch.Tensor, rows: int):
         hidden = a.new_empty(a.shape[0], weight.shape[0])  # [n, D] kept for the backward
         scores = a.new_empty(a.shape[0])
         head = head_weight.reshape(-1)  # [D]
@@ -139,7 +142,7 @@ class LastPairLayer(torch.autograd.Function):
         return scores
 
     @staticmethod
-    def backward(ctx, grad_scores):
+    def backward(ctx: FunctionCtx, grad_scores: torch.Tensor):
         a, weight, hidden, head_weight = ctx.saved_tensors
         head = head_weight.reshape(-1)
         grad_a = torch.empty_like(a)
@@ -161,7 +164,7 @@ class PairMax(torch.autograd.Function):
     kept: the backward pass recomputes it. Ties share the gradient (as ``torch.amax``)."""
 
     @staticmethod
-    def forward(ctx, F_mat, S_mat, w0, w1):
+    def forward(ctx: FunctionCtx, F_mat: torch.Tensor, S_mat: torch.Tensor, w0: torch.Tensor, w1: torch.Tensor):
         B, K = F_mat.shape[:2]
         out = F_mat.new_empty(B, K, w0.shape[0])
         for b in range(B):
@@ -170,7 +173,7 @@ class PairMax(torch.autograd.Function):
         return out
 
     @staticmethod
-    def backward(ctx, grad_out):
+    def backward(ctx: FunctionCtx, grad_out: torch.Tensor):
         F_mat, S_mat, w0, w1, out = ctx.saved_tensors
         C = w0.shape[0]
         grad_F, grad_S = torch.empty_like(F_mat), torch.empty_like(S_mat)
@@ -192,7 +195,8 @@ def _pair_pre(F_b: torch.Tensor, S_b: torch.Tensor, w0: torch.Tensor, w1: torch.
 CLOSE_PAIR = 1e-2  # pairs nearer than this enter the first layer's statistics explicitly (see below)
 
 
-def first_layer_statistics(pa, pb, pe, w, inv, dist) -> tuple[torch.Tensor, torch.Tensor]:
+def first_layer_statistics(pa: torch.Tensor, pb: torch.Tensor, pe: torch.Tensor, w: torch.Tensor, inv: torch.Tensor,
+                           dist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean and biased variance per channel of ``z_ij = inv_ij (pa_i - pb_j) + dist_ij w + pe_i`` over
     all ``B x K x L`` pairs (differentiable; summed in float64): ``[C], [C]``.
 
@@ -233,7 +237,8 @@ def first_layer_statistics(pa, pb, pe, w, inv, dist) -> tuple[torch.Tensor, torc
     return mean.to(dtype), (sum_z2 / n - mean * mean).to(dtype)
 
 
-def fused_pair_mlp(mlp: nn.Module, pa, pb, pe, w, inv, dist) -> torch.Tensor:
+def fused_pair_mlp(mlp: nn.Module, pa: torch.Tensor, pb: torch.Tensor, pe: torch.Tensor | None, w: torch.Tensor,
+                   inv: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
     """Training-mode scores ``[B, K, L]`` of ``mlp`` (a ``model.network.PairMLP``) with batch statistics;
     running statistics updated as eager BatchNorm does. ``pe`` None: no per-source extra term."""
     B, K, L = inv.shape

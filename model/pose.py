@@ -50,7 +50,8 @@ def weighted_procrustes(
     return R, t
 
 
-def compose(R_next: torch.Tensor, t_next: torch.Tensor, R: torch.Tensor, t: torch.Tensor):
+def compose(R_next: torch.Tensor, t_next: torch.Tensor, R: torch.Tensor,
+            t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pose of applying ``(R, t)`` then ``(R_next, t_next)``."""
     return R_next @ R, torch.einsum("bij,bj->bi", R_next, t) + t_next
 

@@ -18,6 +18,7 @@ search's 24 starts): the recipe for a network that only runs the search.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,7 +115,8 @@ SEARCH = dataclasses.replace(REAL, max_angle_deg=65.0, cloud_points=SEARCH_POINT
 
 
 def recipe_draw(name: str, max_angle_deg: float | None = None, outliers: float | None = None,
-                views_share: float | None = None, sensor_share: float | None = None):
+                views_share: float | None = None,
+                sensor_share: float | None = None) -> Callable[[np.random.Generator], PairProtocol | SensorProtocol]:
     """The per-batch protocol draw of a named recipe (``max_angle_deg`` overrides its rotation range,
     ``outliers`` its largest share of scattered points, ``views_share`` its share of camera-view batches,
     ``sensor_share`` its share of simulated sensor batches)."""

@@ -113,7 +113,8 @@ def _object_views(shape: np.ndarray, normals: np.ndarray, protocol: SensorProtoc
     return views
 
 
-def _plane(rng: np.random.Generator, origin, u, v, normal, density: float):
+def _plane(rng: np.random.Generator, origin: tuple[float, float, float], u: tuple[float, float, float],
+           v: tuple[float, float, float], normal: tuple[float, float, float], density: float):
     """Uniform points on the parallelogram ``origin + a u + b v`` (``a, b`` in [0, 1]) and its normals."""
     u, v = np.asarray(u, float), np.asarray(v, float)
     count = max(16, round(density * np.linalg.norm(np.cross(u, v))))
@@ -122,7 +123,8 @@ def _plane(rng: np.random.Generator, origin, u, v, normal, density: float):
     return pts, np.broadcast_to(np.asarray(normal, float), pts.shape)
 
 
-def build_scene(objects: list[np.ndarray], object_normals: list[np.ndarray], rng: np.random.Generator):
+def build_scene(objects: list[np.ndarray], object_normals: list[np.ndarray],
+                rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """A room corner: ``objects`` (``[P, 3]`` each, any scale) scaled to 0.25-0.6 m radius, turned about the
     vertical, standing apart on a floor ``[-L, L]^2`` (``L`` 1.5-2.5 m) with a wall along ``y = L`` and perhaps one
     along ``x = L``. Returns points ``[N, 3]``, normals ``[N, 3]``, the floor's half size, and the objects' centres
@@ -157,7 +159,8 @@ def build_scene(objects: list[np.ndarray], object_normals: list[np.ndarray], rng
     return np.vstack(pts), np.vstack(nrm), half, np.array(centres)
 
 
-def _scene_views(objects, object_normals, protocol: SensorProtocol, rng: np.random.Generator):
+def _scene_views(objects: list[np.ndarray], object_normals: list[np.ndarray], protocol: SensorProtocol,
+                 rng: np.random.Generator):
     """The two scans of one room-like scene (room frame): cameras on the open side, looking in and down, a baseline
     apart. Camera pairs whose views hold fewer than ``MIN_VIEW_POINTS`` points are drawn again (at last without
     the cone of view)."""

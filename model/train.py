@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -79,8 +80,9 @@ def split_validation(n: int, fraction: float, seed: int) -> tuple[np.ndarray, np
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
 
-def epoch_batches(stream: TrainPairStream, epoch: int, batch_size: int, prefetch: bool, first: int = 0,
-                  workers: int = 1):
+def epoch_batches(
+    stream: TrainPairStream, epoch: int, batch_size: int, prefetch: bool, first: int = 0, workers: int = 1
+) -> Iterator[dict[str, np.ndarray]] | torch.utils.data.DataLoader[dict[str, torch.Tensor]]:
     """One epoch's batches from batch ``first`` on, made here or (``prefetch``) in ``workers`` processes ahead.
 
     Worker ``i`` makes every ``workers``-th batch of the same seeded stream, starting with ``first + i``, and the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from service.errors import InputError
 
@@ -19,7 +20,7 @@ def max_abs(values: np.ndarray) -> float:
     return max(float(values.max()), -float(values.min()))
 
 
-def check_cloud(points, name: str) -> np.ndarray:
+def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
     """``points`` as float64 ``[N, 3]`` with ``N >= MIN_POINTS`` and finite values, or ``InputError``.
 
     A float64 array comes back as itself (or a view of it), not copied: a 2,000,000-point cloud is 46 MiB, and no
@@ -41,7 +42,7 @@ def check_cloud(points, name: str) -> np.ndarray:
     return arr
 
 
-def check_transform(matrix) -> tuple[np.ndarray, np.ndarray]:
+def check_transform(matrix: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """A 4x4 rigid ``src_to_tgt`` guess -> ``(R, t)``; rejects non-rigid or non-finite matrices.
 
     Poses written with a few decimals (a dataset's ground truth, another tool's output) are orthonormal only to

@@ -260,7 +260,8 @@ def _read_transform(path: Path) -> list:
     return T.tolist()
 
 
-def _register_local(src, tgt, model: str | None, model_dirs: list[Path], threads: int | None, options: dict) -> dict:
+def _register_local(src: np.ndarray, tgt: np.ndarray, model: str | None, model_dirs: list[Path], threads: int | None,
+                    options: dict) -> dict:
     try:
         from service.manifest import ModelIntegrityError
         from service.registrar import InputError, Registrar
@@ -326,8 +327,8 @@ def _default_model_dir(model_dirs: list[Path]) -> Path | None:
     return next((d for d in [*extra, *bundled] if d.name == DEFAULT_MODEL), None)
 
 
-def _register_remote(server: str, api_key: str | None, src, tgt, model: str | None, options: dict,
-                     binary: bool) -> dict:
+def _register_remote(server: str, api_key: str | None, src: np.ndarray, tgt: np.ndarray, model: str | None,
+                     options: dict, binary: bool) -> dict:
     try:
         from service.client import MfgnetClient, MfgnetError, pose_from_response
     except ImportError as exc:
@@ -346,8 +347,8 @@ def _register_remote(server: str, api_key: str | None, src, tgt, model: str | No
     return pose_record(R, t, **{key: response.get(key) for key in keys})
 
 
-def pose_record(rotation, translation, quality: dict | None, warnings: list | None, model: dict | None,
-                iterations: int | None, timing_ms: dict | None) -> dict:
+def pose_record(rotation: np.ndarray, translation: np.ndarray, quality: dict | None, warnings: list | None,
+                model: dict | None, iterations: int | None, timing_ms: dict | None) -> dict:
     """The JSON record of ``mfgnet register`` (the service's response without correspondences)."""
     from service.pose_json import pose_fields
 
@@ -378,7 +379,7 @@ def _summary(record: dict) -> str:
     return "\n".join(lines)
 
 
-def _number(value, spec: str = ".4g") -> str:
+def _number(value: float | None, spec: str = ".4g") -> str:
     return "?" if value is None else format(float(value), spec)
 
 

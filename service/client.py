@@ -21,6 +21,7 @@ from typing import Any, Literal
 
 import httpx
 import numpy as np
+from numpy.typing import ArrayLike
 
 REGISTER_PATH = "/v1/register"
 MODELS_PATH = "/v1/models"
@@ -68,13 +69,13 @@ class MfgnetClient:
     # -- endpoints ---------------------------------------------------------------------------
     def register(
         self,
-        source,
-        target,
+        source: ArrayLike | str | os.PathLike[str],
+        target: ArrayLike | str | os.PathLike[str],
         model: str | None = None,
         iterations: int | None = None,
         keypoints: int | None = None,
         refine: str | None = None,
-        initial_transform=None,
+        initial_transform: ArrayLike | None = None,
         return_correspondences: bool = True,
         return_iterations: bool = False,
         binary: bool = False,
@@ -193,7 +194,7 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def shared_offset(source, target) -> np.ndarray | None:
+def shared_offset(source: ArrayLike, target: ArrayLike) -> np.ndarray | None:
     """``None`` when every coordinate of both clouds is within ``LARGE_COORDINATE``, else one offset ``[3]``
     (the source's centroid, rounded to whole units) that both clouds are moved by before float32."""
     src, tgt = np.asarray(source, np.float64), np.asarray(target, np.float64)
@@ -202,7 +203,7 @@ def shared_offset(source, target) -> np.ndarray | None:
     return np.round(src.reshape(-1, 3).mean(0))
 
 
-def recentred_transform(transform, offset: np.ndarray) -> list:
+def recentred_transform(transform: ArrayLike, offset: np.ndarray) -> list:
     """A caller-frame ``src_to_tgt`` 4x4 as the same motion between the clouds moved by ``-offset``."""
     T = np.array(transform, dtype=np.float64)  # [4, 4]
     T[:3, 3] += T[:3, :3] @ offset - offset
@@ -222,15 +223,15 @@ def pose_in_caller_frame(response: dict, offset: np.ndarray) -> dict:
     return response
 
 
-def _as_list(points) -> list:
+def _as_list(points: ArrayLike) -> list:
     return np.asarray(points).tolist() if isinstance(points, np.ndarray) else points
 
 
-def _is_path(cloud) -> bool:
+def _is_path(cloud: ArrayLike | str | os.PathLike[str]) -> bool:
     return isinstance(cloud, (str, os.PathLike))
 
 
-def _upload(name: str, cloud) -> tuple[str, bytes, str]:
+def _upload(name: str, cloud: ArrayLike | str | os.PathLike[str]) -> tuple[str, bytes, str]:
     """A multipart file: a path's bytes under its own name, else the points as float32 ``.npy``."""
     if _is_path(cloud):
         path = Path(cloud)
@@ -238,13 +239,13 @@ def _upload(name: str, cloud) -> tuple[str, bytes, str]:
     return f"{name}.npy", _npy_bytes(cloud), "application/octet-stream"
 
 
-def _npy_bytes(points) -> bytes:
+def _npy_bytes(points: ArrayLike) -> bytes:
     buffer = io.BytesIO()
     np.save(buffer, np.asarray(points, dtype=np.float32), allow_pickle=False)
     return buffer.getvalue()
 
 
-def _form_value(value) -> str:
+def _form_value(value: bool | int | str | list | dict) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (list, dict)):

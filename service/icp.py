@@ -159,7 +159,7 @@ def icp_many(
 
 
 def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None,
-                   at: np.ndarray | None = None):
+                   at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
@@ -480,7 +480,8 @@ class PairingHistory:
         return cycle
 
 
-def _checked(src, tgt, R0, t0, max_distance: float, max_iterations: int):
+def _checked(src: np.ndarray, tgt: np.ndarray, R0: np.ndarray, t0: np.ndarray, max_distance: float,
+             max_iterations: int):
     """The inputs as float64 arrays, or ``ValueError``."""
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
@@ -504,7 +505,8 @@ def rms_radius(points: np.ndarray) -> float:
     return max(radius, np.finfo(np.float64).tiny)
 
 
-def _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+def _pairs(tree: KDTree, src_tree: KDTree | None, src_in_tgt: np.ndarray, tgt: np.ndarray, R: np.ndarray,
+           t: np.ndarray, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
     """Kept pairs ``inlier (N,)`` and nearest target index ``(N,)`` of the moved source ``src_in_tgt (N, 3)``.
 
     A pair is kept when it is closer than ``max_distance`` and, with ``src_tree`` (the unmoved
@@ -521,7 +523,8 @@ def _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance: float) -> tuple[
     return inlier, nearest
 
 
-def _result(tree, src, R, t, iterations: int, max_distance: float, warnings: tuple[str, ...] = ()) -> IcpResult:
+def _result(tree: KDTree, src: np.ndarray, R: np.ndarray, t: np.ndarray, iterations: int, max_distance: float,
+            warnings: tuple[str, ...] = ()) -> IcpResult:
     """:class:`IcpResult` of the pose ``(R, t)``: point-to-point statistics at ``max_distance``."""
     dist, _ = tree.query(src @ R.T + t, k=1, distance_upper_bound=max_distance)  # [N]
     inlier_dist = dist[dist < max_distance]

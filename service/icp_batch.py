@@ -43,8 +43,8 @@ def refine_plane_many(src: np.ndarray, tgt: np.ndarray, R0: np.ndarray, t0: np.n
     return R, t
 
 
-def _symmetric_stage(src, tgt, R, t, max_distance: float, max_iterations: int, target: Surface, source: Surface,
-                     scale: float) -> None:
+def _symmetric_stage(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, max_distance: float,
+                     max_iterations: int, target: Surface, source: Surface, scale: float) -> None:
     """:func:`service.icp.icp_symmetric`'s updates of every start, applied to ``R [C, 3, 3]``, ``t [C, 3]``."""
     sigma2 = (max_distance / 3.0) ** 2
     running = np.arange(len(R))
@@ -69,8 +69,8 @@ def _symmetric_stage(src, tgt, R, t, max_distance: float, max_iterations: int, t
         running = updated[still]
 
 
-def _plane_stage(src, tgt, R, t, max_distance: float, max_iterations: int, tolerance: float, target: Surface,
-                 source: Surface, scale: float) -> None:
+def _plane_stage(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, max_distance: float,
+                 max_iterations: int, tolerance: float, target: Surface, source: Surface, scale: float) -> None:
     """:func:`service.icp.icp_plane`'s (reciprocal) updates of every start, applied to ``R``, ``t`` in place."""
     running = np.arange(len(R))
     histories = [PairingHistory() for _ in range(len(R))]
@@ -98,7 +98,7 @@ def _plane_stage(src, tgt, R, t, max_distance: float, max_iterations: int, toler
         running = updated[still]
 
 
-def _nearest(surface: Surface, tgt, src, R, t, max_distance: float):
+def _nearest(surface: Surface, tgt: np.ndarray, src: np.ndarray, R: np.ndarray, t: np.ndarray, max_distance: float):
     """The source moved by each pose ``R [A, 3, 3]``, ``t [A, 3]`` (``[A, N, 3]``), each moved point's nearest target
     row (``[A, N]``, clipped into the target) and whether it lies closer than ``max_distance`` (``[A, N]``)."""
     moved = src @ R.transpose(0, 2, 1) + t[:, None]  # [A, N, 3]

@@ -98,7 +98,7 @@ def load_manifest(directory: str | Path) -> Manifest:
     )
 
 
-def _search_subsample(name: str, section) -> tuple[int, int] | None:
+def _search_subsample(name: str, section: dict | None) -> tuple[int, int] | None:
     """The manifest's optional ``search`` section ``{"points": P, "keypoints": K}`` -> ``(P, K)``."""
     if section is None:
         return None

@@ -21,6 +21,8 @@ refinement"; ``python -m bench.local_search``).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -36,7 +38,8 @@ MULTISTART_CAP = 0.05  # normalised units: a point's largest contribution to the
 MULTISTART_ICP_POINTS = 384
 
 
-def turned_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray, angles_deg=MULTISTART_ANGLES):
+def turned_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray,
+                 angles_deg: Sequence[float] = MULTISTART_ANGLES) -> tuple[np.ndarray, np.ndarray]:
     """``R [3, 3], t [3]`` and its turns by ``+-angle`` about x, y, z through ``centre`` -> ``[H, 3, 3], [H, 3]``
     (the pose itself first)."""
     turns = [np.eye(3)] + [
@@ -49,7 +52,8 @@ def turned_poses(R: np.ndarray, t: np.ndarray, centre: np.ndarray, angles_deg=MU
     return D @ R, (D @ (t - centre)[:, None])[..., 0] + centre
 
 
-def plane_distances(points: np.ndarray, tree: KDTree, cloud: np.ndarray, normals: np.ndarray):
+def plane_distances(points: np.ndarray, tree: KDTree, cloud: np.ndarray,
+                    normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Nearest-point and point-to-plane distances ``[N]`` of ``points`` to ``cloud`` (with ``normals``)."""
     dist, idx = tree.query(points)
     return dist, np.abs(((points - cloud[idx]) * normals[idx]).sum(1))
@@ -77,7 +81,7 @@ def symmetric_plane_scores(
 
 def best_turned_pose(
     src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, scale: float, target_surface: Surface | None = None
-):
+) -> tuple[np.ndarray, np.ndarray, int]:
     """The best of ``R, t`` and its turns after short ICPs (the module docstring) -> ``R [3, 3], t [3]`` and
     the index of the winning start (0: the pose itself). ``scale``: the clouds' size in normalised units;
     ``target_surface``: ``Surface.of(tgt)`` when the caller has it."""

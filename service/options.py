@@ -26,7 +26,7 @@ DEFAULT_WORKING_SIZE = 768
 SearchMode = bool | Literal["auto"]  # rotation_search: False, True or "auto"
 
 
-def search_mode(rotation_search) -> Literal["off", "on", "auto"]:
+def search_mode(rotation_search: SearchMode | np.bool_ | None) -> Literal["off", "on", "auto"]:
     """``rotation_search`` (``False``, ``True`` or ``"auto"``; ``None``: the default, ``False``) as a mode,
     or ``InputError``."""
     if rotation_search is None:

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from service.procrustes import to_matrix
 
 
-def pose_fields(rotation, translation) -> dict:
+def pose_fields(rotation: np.ndarray, translation: np.ndarray) -> dict:
     """``rotation`` (3x3), ``translation`` (3), ``transform`` (4x4, source -> target), ``euler_zyx_deg`` and
     ``yaw_pitch_roll_deg`` (degrees; see the module docstring), as plain float lists."""
     R = np.asarray(rotation, dtype=np.float64)  # [3, 3]

@@ -64,7 +64,7 @@ def weighted_procrustes(
     return R.astype(dtype), t.astype(dtype)
 
 
-def compose(R_next: np.ndarray, t_next: np.ndarray, R: np.ndarray, t: np.ndarray):
+def compose(R_next: np.ndarray, t_next: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pose of applying ``(R, t)`` then ``(R_next, t_next)``: ``R_next R``, ``R_next t + t_next``."""
     return R_next @ R, np.einsum("...ij,...j->...i", R_next, t) + t_next
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+from numpy.typing import ArrayLike
 
 from service.blas_threads import use_one_blas_thread
 from service.bounded_runs import ENCODE_POINTS_PER_CALL, MATCH_PAIRS_PER_CALL, run_bounded, share_one_cpu_arena
@@ -174,8 +175,8 @@ class Registrar:
         neighbours = self.neighbours(cloud) if self.encoder_takes_neighbours else None
         return EmbeddedCloud(*self.embed(cloud, neighbours))
 
-    def match(self, iteration: int, src_xyz, tgt_xyz, src_emb, tgt_emb,
-              emb_dist: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def match(self, iteration: int, src_xyz: np.ndarray, tgt_xyz: np.ndarray, src_emb: np.ndarray,
+              tgt_emb: np.ndarray, emb_dist: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Matching scores ``[B, K, L]`` and credibility logits ``[B, K]`` of one iteration.
 
         ``emb_dist [B, K, L]``: :func:`embedding_distance` of the embeddings when the caller has it
@@ -295,7 +296,8 @@ class Registrar:
                                       refine=refine, refine_points=refine_points)
         return options.network(self.default_iterations, self.default_keypoints)
 
-    def register(self, source, target, options: RegistrationOptions | None = None, **overrides) -> RegistrationResult:
+    def register(self, source: ArrayLike, target: ArrayLike, options: RegistrationOptions | None = None,
+                 **overrides) -> RegistrationResult:
         """Pose ``src_to_tgt`` of ``source [N, 3]`` onto ``target [M, 3]`` (caller's units).
 
         ``options`` (default: all defaults) with keyword ``overrides`` of its fields, e.g.
@@ -306,7 +308,8 @@ class Registrar:
         with self.helpers.registering() if self.helpers is not None else nullcontext():
             return self._register(source, target, options, overrides)
 
-    def _register(self, source, target, options: RegistrationOptions | None, overrides: dict) -> RegistrationResult:
+    def _register(self, source: ArrayLike, target: ArrayLike, options: RegistrationOptions | None,
+                  overrides: dict) -> RegistrationResult:
         t0 = time.perf_counter()
         timing: dict[str, float] = {}
         stages = self.stages

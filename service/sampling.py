@@ -123,7 +123,7 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -
     return candidates[canonical_order(points[candidates])].astype(np.int64)
 
 
-def _checked(points, size: int) -> np.ndarray:
+def _checked(points: np.ndarray, size: int) -> np.ndarray:
     """``points`` as a float64 ``(N, 3)`` array, or ``ValueError`` (wrong shape, NaN/Inf, ``size < 1``)."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3:

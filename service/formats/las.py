@@ -14,13 +14,16 @@ from __future__ import annotations
 
 import os
 import struct
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
 from service.formats.checks import check_count, checked
 from service.formats.deps import require
 from service.formats.errors import MissingReaderError, PointCloudFormatError
+
+if TYPE_CHECKING:
+    from laspy import LasHeader, LasReader
 
 VLR_HEADER_BYTES = 54
 BATCH_BYTES = 16 * 2**20
@@ -72,7 +75,7 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
     return checked(np.concatenate(batches) if batches else np.empty((0, 3)))
 
 
-def _read_xyz(reader, count: int, batch: int) -> list[np.ndarray]:
+def _read_xyz(reader: LasReader, count: int, batch: int) -> list[np.ndarray]:
     """float64 ``[n, 3]`` batches of scaled x, y, z, up to ``count`` points or the first short batch."""
     batches: list[np.ndarray] = []
     left = count
@@ -101,7 +104,7 @@ def _check_header(f: BinaryIO, size: int) -> None:
         raise PointCloudFormatError(f"LAS header declares {vlrs} VLRs; the file of {size} bytes cannot hold them")
 
 
-def _check_laz_items(header) -> None:
+def _check_laz_items(header: LasHeader) -> None:
     """The LAZ VLR's items add up to the header's point size (lazrs sizes its buffers from the items)."""
     found = header.vlrs.get("LasZipVlr")
     if not found:
@@ -140,7 +143,7 @@ def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
         f.seek(position)
 
 
-def _check_xyz_layers(f: BinaryIO, header, data: int) -> None:
+def _check_xyz_layers(f: BinaryIO, header: LasHeader, data: int) -> None:
     """In a LAZ 1.4 file of layered chunks, the x/y and z layer sizes of every chunk fit in the chunk (lazrs allocates
     them, zero-filled, before reading: 4 GB each from a damaged size). Other layers are skipped unread."""
     lazrs = require("lazrs", "reading LAZ files")

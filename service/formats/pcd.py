@@ -9,13 +9,17 @@ from __future__ import annotations
 
 import os
 import struct
-from typing import BinaryIO
+from types import ModuleType
+from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
 from service.formats.checks import check_count, xyz_columns
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
+
+if TYPE_CHECKING:
+    from pypcd4 import MetaData
 
 MAX_HEADER_LINES = 64
 MAX_LINE_BYTES = 4096
@@ -46,7 +50,7 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     return xyz_columns([np.asarray(table[axis]).reshape(-1) for axis in "xyz"])
 
 
-def _metadata(pypcd4, f: BinaryIO):
+def _metadata(pypcd4: ModuleType, f: BinaryIO):
     lines: list[str] = []
     for _ in range(MAX_HEADER_LINES):
         raw = f.readline(MAX_LINE_BYTES)
@@ -69,7 +73,7 @@ def _metadata(pypcd4, f: BinaryIO):
         raise PointCloudFormatError(f"invalid PCD header ({reason})") from None
 
 
-def _record(meta) -> np.dtype:
+def _record(meta: MetaData) -> np.dtype:
     """The numpy record of a point, from FIELDS, SIZE, TYPE and COUNT, once they are known to agree."""
     entries = {"FIELDS": meta.fields, "SIZE": meta.size, "TYPE": meta.type, "COUNT": meta.count}
     if len({len(values) for values in entries.values()}) != 1:
@@ -85,7 +89,7 @@ def _record(meta) -> np.dtype:
         raise PointCloudFormatError(f"invalid PCD header (no record type for its fields: {exc!r})") from None
 
 
-def _check_body(f: BinaryIO, meta, dtype: np.dtype) -> None:
+def _check_body(f: BinaryIO, meta: MetaData, dtype: np.dtype) -> None:
     """The bytes after the header hold the points the header declares (checked before pypcd4 allocates them)."""
     if meta.data == "ascii" or meta.points == 0:
         return

@@ -15,13 +15,17 @@ from __future__ import annotations
 import io
 import os
 import warnings
-from typing import BinaryIO
+from types import ModuleType
+from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
 from service.formats.checks import check_count, xyz_columns
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
+
+if TYPE_CHECKING:
+    from plyfile import PlyData, PlyElement
 
 MAX_HEADER_BYTES = 256 * 1024  # plyfile parses a header one byte at a time (about 1.5 us a byte)
 
@@ -61,7 +65,7 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
         del data
 
 
-def _ascii_vertices(f: BinaryIO, vertex) -> np.ndarray:
+def _ascii_vertices(f: BinaryIO, vertex: PlyElement) -> np.ndarray:
     """x, y, z of the ``vertex.count`` ASCII rows at ``f``'s position (``vertex``: plyfile's element of scalar
     properties), each cast to its property's declared type."""
     names = [prop.name for prop in vertex.properties]
@@ -94,7 +98,7 @@ def _as_declared(column: np.ndarray, dtype: np.dtype, axis: str) -> np.ndarray:
         return column.astype(dtype)
 
 
-def _check_rows_fit(plyfile, header, body: int) -> None:
+def _check_rows_fit(plyfile: ModuleType, header: PlyData, body: int) -> None:
     """Refuse counts whose rows cannot fit in the ``body`` bytes after the header, before ``plyfile`` allocates
     an array of each element's count: a row takes at least one byte, in ASCII one per property (a value), in
     binary the sizes of its scalars and list lengths."""
@@ -115,7 +119,7 @@ def _check_rows_fit(plyfile, header, body: int) -> None:
             )
 
 
-def _read(plyfile, f: BinaryIO, start: int, known_list_len: dict):
+def _read(plyfile: ModuleType, f: BinaryIO, start: int, known_list_len: dict):
     try:
         f.seek(start)
         try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from service.checks import check_cloud, check_transform
 from service.options import RegistrationOptions
@@ -29,8 +30,8 @@ class Request:
     tgt_anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
-def validate(source, target, options: RegistrationOptions | None, overrides: dict, default_iterations: int,
-             default_keypoints: int) -> Request:
+def validate(source: ArrayLike, target: ArrayLike, options: RegistrationOptions | None, overrides: dict,
+             default_iterations: int, default_keypoints: int) -> Request:
     """Check the clouds first, then the options (``options`` with keyword ``overrides``), then fill in the model's
     ``default_iterations`` / ``default_keypoints``; the first problem raises ``InputError``."""
     src = check_cloud(source, "source")

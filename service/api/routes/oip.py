@@ -69,7 +69,7 @@ async def live() -> dict:
     "/health/ready", response_model=ReadyResponse, response_model_exclude_none=True, responses=_NOT_READY,
     summary="Readiness",
 )
-async def ready(request: Request):
+async def ready(request: Request) -> dict | JSONResponse:
     registry = get_registry(request)
     is_ready, reason = registry.readiness()
     errors = registry.errors()  # failed model -> reason (missing file, sha256 mismatch, ...)
