@@ -1,6 +1,6 @@
 """Train on a lent GPU machine: lr ``--lr-a`` (1e-4) for A minutes, then ``--lr-b`` (1e-5) for B minutes.
 
-The ``general`` runs of 2026-11-26 (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCURACY.md) were made so,
+The ``general`` runs (``runs/general_gpu``, ``runs/general_gpu2``; docs/ACCURACY.md) were made so,
 with this script's first name ``device_train_general.py``:
 
 1. here: ``python scripts/device_train.py subset --out .gpu/data`` writes 7,000 of the 9,843 training shapes
