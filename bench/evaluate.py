@@ -50,7 +50,7 @@ def evaluate(
     model: Annotated[
         str | None, typer.Option("--model", help="evaluate a bundled ONNX model (or model folder) through the runtime")
     ] = None,
-    refine: Annotated[str, typer.Option(help="with --model: none, icp or icp-plane")] = "none",
+    refine: Annotated[str, typer.Option(help="with --model: none, icp, icp-plane or icp-plane-multistart")] = "none",
     refine_points: Annotated[
         int | None, typer.Option(help="with --model: points per cloud the refinement uses [default: working clouds]")
     ] = None,

@@ -82,7 +82,7 @@ def serve_command(
 
 
 SourceArg = Annotated[
-    Path, typer.Argument(metavar="SOURCE", help="cloud to move (.ply .pcd .xyz .txt .csv .npy .npz)")
+    Path, typer.Argument(metavar="SOURCE", help="cloud to move (.ply .pcd .las .laz .xyz .txt .csv .npy .npz)")
 ]
 TargetArg = Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to align it to (same formats)")]
 ModelOpt = Annotated[
@@ -132,8 +132,8 @@ RotationSearchModeOpt = Annotated[
     RotationSearchMode | None,
     typer.Option(help="off: never search; on: always (= --rotation-search); auto: register plainly first and "
                       "search only when that result looks wrong (low inlier ratio for the target's density), "
-                      "keeping the better of both; timing_ms then has a 'search' key [default: off; with "
-                      "--server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
+                      "keeping the better of both; timing_ms then has a 'search' key [default: auto, off with --refine "
+                      "none; with --server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
 ]
 ThreadsOpt = Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")]

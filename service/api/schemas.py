@@ -58,7 +58,7 @@ ROTATION_SEARCH_DESCRIPTION = (
     f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows, or off a dense target's surface, or "
     "both clouds built of orthogonal planes like rooms over a dense target; never on degenerate clouds), then "
     "the better of both is returned and timing_ms has a 'search' key; false = never. Default (null): the "
-    "server's (MFGNET_DEFAULT_ROTATION_SEARCH; false unless the operator set 'auto' or true) when the request is "
+    "server's (MFGNET_DEFAULT_ROTATION_SEARCH; 'auto' unless the operator set off or on) when the request is "
     "refined, false with refine 'none'. 422 when the loaded pipeline does not support it."
 )
 

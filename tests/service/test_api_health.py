@@ -155,8 +155,10 @@ def test_unknown_warning_kinds_are_counted_as_other():
     from service.api.metrics import Metrics
 
     metrics = Metrics()
-    metrics.observe_quality("m", True, ["weakly constrained: a turn ...", "source coplanar: ...", "made up 3: x", "x"])
+    metrics.observe_quality("m", True, ["weakly constrained: a turn ...", "source coplanar: ...", "made up 3: x", "x",
+                                        "loose fit: ...", "target few distinct points: ..."])
     text = generate_latest(metrics.registry).decode()
     assert metric(text, "mfgnet_registration_results_total", model="m", reliable="true") == 1
-    for kind, count in (("weakly constrained", 1), ("source coplanar", 1), ("other", 2)):
+    for kind, count in (("weakly constrained", 1), ("source coplanar", 1), ("other", 2), ("loose fit", 1),
+                        ("target few distinct points", 1)):
         assert metric(text, "mfgnet_registration_warnings_total", model="m", kind=kind) == count, kind
