@@ -20,6 +20,10 @@ def max_abs(values: np.ndarray) -> float:
     return max(float(values.max()), -float(values.min()))
 
 
+# Organized clouds (depth cameras, PCD with is_dense false) mark missing returns with NaN rows: the caller drops them
+LEAVE_NAN_ROWS_OUT = "leave such rows out (e.g. points[np.isfinite(points).all(axis=1)])"
+
+
 def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
     """``points`` as float64 ``[N, 3]`` with ``N >= MIN_POINTS`` and finite values, or ``InputError``.
 
@@ -36,7 +40,9 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
         raise InputError(f"{name}: needs at least {MIN_POINTS} points, got {arr.shape[0]}")
     arr = np.asarray(arr, dtype=np.float64)
     if not np.isfinite(arr).all():
-        raise InputError(f"{name}: contains NaN or infinite coordinates")
+        bad = ~np.isfinite(arr).all(axis=1)  # [N]
+        raise InputError(f"{name}: contains NaN or infinite coordinates in {int(bad.sum())} of {len(arr)} rows, first "
+                         f"at row {int(np.argmax(bad))}; {LEAVE_NAN_ROWS_OUT}")
     if max_abs(arr) > np.finfo(np.float32).max:
         raise InputError(f"{name}: coordinates overflow float32")
     return arr

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.checks import max_abs
+from service.checks import LEAVE_NAN_ROWS_OUT, max_abs
 from service.formats.errors import InvalidPointsError, TooManyPointsError
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -37,6 +37,6 @@ def checked(xyz: np.ndarray) -> np.ndarray:
     if bad.any():
         raise InvalidPointsError(
             f"{int(bad.sum())} point(s) with NaN/Inf coordinates or beyond the float32 range, "
-            f"first at index {int(np.argmax(bad))}"
+            f"first at index {int(np.argmax(bad))}; {LEAVE_NAN_ROWS_OUT}"
         )
     return xyz

@@ -103,6 +103,16 @@ def test_rejects_bad_clouds_with_a_clear_message(registrar, cloud, message):
         registrar.register(cloud, bumpy_ellipsoid(100))
 
 
+def test_nan_rows_are_counted_located_and_the_fix_named(registrar):
+    """An organized cloud's missing returns (NaN rows): the message says how many, where, and how to leave them out."""
+    cloud = bumpy_ellipsoid(100)
+    cloud[[7, 40, 41]] = np.nan
+    with pytest.raises(InputError, match=r"in 3 of 100 rows, first at row 7; leave such rows out"):
+        registrar.register(cloud, bumpy_ellipsoid(100))
+    kept = cloud[np.isfinite(cloud).all(axis=1)]  # the fix the message names
+    assert registrar.register(kept, bumpy_ellipsoid(100)).rotation.shape == (3, 3)
+
+
 def test_degenerate_geometry_is_flagged_unreliable(registrar):
     line = np.linspace(0, 1, 200)[:, None] * [1.0, 2.0, 3.0]
     res = registrar.register(line, line + 0.1)
