@@ -17,6 +17,8 @@ import threading
 import numpy as np
 import onnxruntime as ort
 
+from service.cancellation import raise_if_cancelled, run_options
+
 # Keypoint pairs (B x K x L) per matcher call: the rotation search of `refine: "none"` at the default keypoints
 # (four hypotheses of 128 x 128); the defaults' own largest call is one pair of 128 x 128.
 MATCH_PAIRS_PER_CALL = 4 * 128 * 128
@@ -46,8 +48,19 @@ def run_bounded(session: ort.InferenceSession, feeds: dict[str, np.ndarray], row
     slices of ``max(1, budget // row_cost)`` rows, their outputs (each ``[B, ...]``) joined along the batch."""
     rows = len(next(iter(feeds.values())))
     if rows * row_cost <= budget:
-        return session.run(None, feeds)
+        return run_cancellable(session, feeds)
     step = max(1, budget // row_cost)
-    parts = [session.run(None, {name: value[first : first + step] for name, value in feeds.items()})
+    parts = [run_cancellable(session, {name: value[first : first + step] for name, value in feeds.items()})
              for first in range(0, rows, step)]
     return [np.concatenate(outputs) for outputs in zip(*parts, strict=True)]
+
+
+def run_cancellable(session: ort.InferenceSession, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """``session.run`` with the current request's ``RunOptions`` (:mod:`service.cancellation`): a cancelled
+    request's call ends with :class:`service.cancellation.RegistrationCancelledError`."""
+    options = run_options()
+    try:
+        return session.run(None, feeds, options)
+    except Exception:
+        raise_if_cancelled()  # ONNX Runtime's error was the termination asked for
+        raise

@@ -14,6 +14,7 @@ Cancellation is cooperative: the helper's work calls :func:`check` between its s
 
 from __future__ import annotations
 
+import contextvars
 import threading
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -88,7 +89,8 @@ class Helpers:
             self._busy += 1
         cancelled = threading.Event()
         try:
-            future = self._pool.submit(self._run, work, cancelled)
+            # the helper runs in the caller's context: a request's cancellation (service.cancellation) reaches it
+            future = self._pool.submit(contextvars.copy_context().run, self._run, work, cancelled)
         except RuntimeError:  # the pool is shut down (interpreter exit)
             self._release()
             return None

@@ -2,8 +2,8 @@
 ``max_queue`` requests waiting for one (beyond that: 503 at once), and a deadline (504).
 
 A request takes a :class:`Slot` before its body is read, so an overloaded server refuses quickly.
-A job that outlives its deadline cannot be interrupted (ONNX Runtime has no cancel); its slot stays
-taken until the worker finishes, so abandoned work still counts against the limits.
+A job that outlives its deadline is cancelled (:mod:`service.cancellation`): it stops at its next network call,
+and its slot stays taken until then, so abandoned work counts against the limits only that long.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
 from service.api.errors import APIError
+from service.cancellation import Cancellation, cancellable
 
 T = TypeVar("T")
 
@@ -105,16 +106,19 @@ class Slot:
             raise RuntimeError("a slot runs one job")
         submitted = time.perf_counter()
         started: list[float] = []
+        cancellation = Cancellation()
 
         def timed() -> T:
             started.append(time.perf_counter())
-            return fn()
+            with cancellable(cancellation):
+                return fn()
 
         self._future = self._limiter._submit(timed)
         try:
             result = await asyncio.wait_for(asyncio.wrap_future(self._future), timeout=self._limiter.timeout_s)
         except TimeoutError:
-            self._future.cancel()  # dequeues it if it has not started; a running job finishes in the background
+            self._future.cancel()  # dequeues it if it has not started
+            cancellation.cancel()  # a running job stops at its next network call and frees its worker and slot
             raise DeadlineExceededError(self._limiter.timeout_s) from None
         return result, 1000 * (started[0] - submitted)
 
