@@ -88,7 +88,8 @@ class Settings(BaseSettings):
     max_batch: int = Field(16, ge=1, description="Most pairs in one /v1/register/batch request.")
     max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
     max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")
-    timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read; then 504.")
+    timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read; then 504, "
+                                "and its registration stops at its next network call.")
     keep_alive_s: int = Field(
         75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
         "(often 60 s), so the server never closes a connection that a client is about to reuse.",
