@@ -11,7 +11,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
@@ -21,6 +21,7 @@ from service.cancellation import Cancellation, cancellable
 T = TypeVar("T")
 
 RETRY_AFTER_OVERLOADED_S = 1
+DISCONNECT_POLL_S = 0.25  # how often a waiting request asks whether its client is still there
 
 
 class OverloadedError(APIError):
@@ -30,6 +31,11 @@ class OverloadedError(APIError):
             f"server is busy ({capacity} registrations running or waiting); retry later",
             headers={"Retry-After": str(RETRY_AFTER_OVERLOADED_S)},
         )
+
+
+class ClientGoneError(APIError):
+    def __init__(self) -> None:  # 499 (nginx's "client closed request"): only the access log sees it
+        super().__init__(499, "the client closed the connection before the registration finished")
 
 
 class DeadlineExceededError(APIError):
@@ -100,8 +106,11 @@ class Slot:
     def __exit__(self, *exc) -> None:
         self.release()
 
-    async def run(self, fn: Callable[[], T]) -> tuple[T, float]:
-        """``(fn(), ms waited for a worker)``, run in the pool within ``timeout_s``."""
+    async def run(self, fn: Callable[[], T], disconnected: Callable[[], Awaitable[bool]] | None = None
+                  ) -> tuple[T, float]:
+        """``(fn(), ms waited for a worker)``, run in the pool within ``timeout_s``; ``disconnected``: asked every
+        ``DISCONNECT_POLL_S`` while the job waits or runs, ``True`` once the client has gone (the job is cancelled and
+        :class:`ClientGoneError` raised)."""
         if self._future is not None:
             raise RuntimeError("a slot runs one job")
         submitted = time.perf_counter()
@@ -114,13 +123,24 @@ class Slot:
                 return fn()
 
         self._future = self._limiter._submit(timed)
-        try:
-            result = await asyncio.wait_for(asyncio.wrap_future(self._future), timeout=self._limiter.timeout_s)
-        except TimeoutError:
-            self._future.cancel()  # dequeues it if it has not started
-            cancellation.cancel()  # a running job stops at its next network call and frees its worker and slot
-            raise DeadlineExceededError(self._limiter.timeout_s) from None
-        return result, 1000 * (started[0] - submitted)
+        job = asyncio.wrap_future(self._future)
+        deadline = submitted + self._limiter.timeout_s
+        while not job.done():
+            left = deadline - time.perf_counter()
+            if left <= 0:
+                self._drop(cancellation)
+                raise DeadlineExceededError(self._limiter.timeout_s)
+            await asyncio.wait({job}, timeout=min(left, DISCONNECT_POLL_S) if disconnected else left)
+            if not job.done() and disconnected is not None and await disconnected():
+                self._drop(cancellation)
+                raise ClientGoneError
+        return job.result(), 1000 * (started[0] - submitted)
+
+    def _drop(self, cancellation: Cancellation) -> None:
+        """Nobody waits for the job any more: dequeue it, or stop it at its next network call
+        (:mod:`service.cancellation`), which frees its worker and its slot."""
+        self._future.cancel()
+        cancellation.cancel()
 
     def release(self) -> None:
         if self._released:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Callable
 from functools import cache
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 
@@ -29,6 +29,9 @@ from service.registrar import (
     check_transform,
 )
 from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotation_search
+
+if TYPE_CHECKING:
+    from starlette.requests import Request
 
 T = TypeVar("T")
 FLOAT32_MAX = float(np.finfo(np.float32).max)
@@ -63,9 +66,10 @@ class Runner:
     def admit(self) -> Slot:
         return self.limiter.admit()
 
-    async def run(self, slot: Slot, work: Callable[[], T]) -> tuple[T, float]:
-        """``work()`` in a worker within the deadline -> ``(result, ms spent waiting for a worker)``."""
-        return await slot.run(work)
+    async def run(self, slot: Slot, work: Callable[[], T], request: Request | None = None) -> tuple[T, float]:
+        """``work()`` in a worker within the deadline -> ``(result, ms spent waiting for a worker)``; with the HTTP
+        ``request``, cancelled when its client goes away."""
+        return await slot.run(work, request.is_disconnected if request is not None else None)
 
     # -- the pipeline (worker threads) -------------------------------------------------------------
     def resolve(self, name: str | None) -> ModelEntry:

@@ -102,6 +102,21 @@ def test_beyond_the_queue_is_503_with_retry_after_at_once_and_admitted_requests_
         assert response.json()["transform"] == reference
 
 
+def test_a_client_that_goes_away_frees_the_worker_long_before_the_deadline(overload, reference):
+    """The only worker runs a search of tens of seconds; its client gives up after 1 s and closes the connection:
+    the registration is cancelled (``service.cancellation``) and the worker serves the next request at once."""
+    rng = np.random.default_rng(1)
+    heavy = {"source": rng.normal(size=(20_000, 3)).tolist(), "target": rng.normal(size=(20_000, 3)).tolist(),
+             "iterations": 8, "keypoints": 512, "refine": "none", "rotation_search": True}
+    with httpx.Client(base_url=overload.url, timeout=1.0) as impatient, pytest.raises(httpx.TimeoutException):
+        impatient.post("/v1/register", json=heavy)
+    wait_for(lambda: metric(overload, "mfgnet_inference_slots_taken") == 0, timeout=3.0, what="the slot freed")
+    response = post(overload, pair_json(modelnet_pair(1), **SLOW))
+    assert response.status_code == 200 and response.json()["transform"] == reference
+    with overload.client() as c:
+        assert 'status="499"' in c.get("/metrics").text  # the access metrics count it as the client's close
+
+
 # -- memory ---------------------------------------------------------------------------------------
 def test_memory_stays_flat_over_144_requests():
     """RSS of the server process over three rounds of 48 requests after a warm-up: registrations and rejected

@@ -172,7 +172,7 @@ async def infer(name: str, request: Request) -> Response:
             entry, result = runner.register_one(call.pair, model=name)
             return call, entry, result
 
-        (call, entry, result), queue_ms = await runner.run(slot, work)
+        (call, entry, result), queue_ms = await runner.run(slot, work, request)
     runner.observe(entry, result, queue_ms)
     head = {"model_name": entry.name, "model_version": entry.registrar.manifest.version}
     if call.request_id is not None:  # OIP: id only when the request had one

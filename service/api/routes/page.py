@@ -122,7 +122,7 @@ async def register_view(request: Request) -> RenderedJSON:
             display = {"cap": DISPLAY_CAP, "source": display_cloud(pair.source), "target": display_cloud(pair.target)}
             return entry, pair, result, display
 
-        (entry, pair, result, display), queue_ms = await runner.run(slot, work)
+        (entry, pair, result, display), queue_ms = await runner.run(slot, work, request)
     runner.observe(entry, result, queue_ms)
     return RenderedJSON({"result": register_response(entry, pair, result, queue_ms), "display": display})
 

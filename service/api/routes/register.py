@@ -91,7 +91,7 @@ async def register(request: Request) -> RenderedJSON:
             entry, result = runner.register_one(pair)
             return entry, pair, result
 
-        (entry, pair, result), queue_ms = await runner.run(slot, work)
+        (entry, pair, result), queue_ms = await runner.run(slot, work, request)
     runner.observe(entry, result, queue_ms)
     return RenderedJSON(register_response(entry, pair, result, queue_ms))  # response_model: for the docs only
 
@@ -115,7 +115,7 @@ async def register_batch(request: Request) -> RenderedJSON:
             pairs = bodies.batch_pairs_from_json(received.pop(), settings.max_points, settings.max_batch)
             return pairs, runner.register_batch(pairs)
 
-        (pairs, done), queue_ms = await runner.run(slot, work)
+        (pairs, done), queue_ms = await runner.run(slot, work, request)
     for entry, result in done:
         runner.observe(entry, result, queue_ms)
     results = [register_response(e, p, r, queue_ms) for p, (e, r) in zip(pairs, done, strict=True)]
