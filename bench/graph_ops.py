@@ -42,10 +42,11 @@ class RecordingSession:
     def __init__(self, session: ort.InferenceSession):
         self.session, self.feeds = session, None
 
-    def run(self, outputs: list[str] | None, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    def run(self, outputs: list[str] | None, feeds: dict[str, np.ndarray],
+            run_options: ort.RunOptions | None = None) -> list[np.ndarray]:
         if self.feeds is None:
             self.feeds = {name: np.array(value) for name, value in feeds.items()}
-        return self.session.run(outputs, feeds)
+        return self.session.run(outputs, feeds, run_options)
 
     def __getattr__(self, name: str):
         return getattr(self.session, name)
