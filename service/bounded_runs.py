@@ -17,7 +17,7 @@ import threading
 import numpy as np
 import onnxruntime as ort
 
-from service.cancellation import raise_if_cancelled, run_options
+from service.cancellation import RegistrationCancelledError, cancelled, run_options
 
 # Keypoint pairs (B x K x L) per matcher call: the rotation search of `refine: "none"` at the default keypoints
 # (four hypotheses of 128 x 128); the defaults' own largest call is one pair of 128 x 128.
@@ -62,5 +62,6 @@ def run_cancellable(session: ort.InferenceSession, feeds: dict[str, np.ndarray])
     try:
         return session.run(None, feeds, options)
     except Exception:
-        raise_if_cancelled()  # ONNX Runtime's error was the termination asked for
+        if cancelled():  # ONNX Runtime's error was the termination asked for
+            raise RegistrationCancelledError from None
         raise

@@ -65,9 +65,8 @@ def run_options() -> ort.RunOptions | None:
     return cancellation.run_options
 
 
-def raise_if_cancelled() -> None:
-    """:class:`RegistrationCancelledError` where the current cancellation was cancelled (a network call's failure
-    is then its termination, not an error of the model)."""
+def cancelled() -> bool:
+    """Whether the current cancellation was cancelled (a network call's failure is then its termination, not an
+    error of the model)."""
     cancellation = _current.get()
-    if cancellation is not None and cancellation.cancelled:
-        raise RegistrationCancelledError
+    return cancellation is not None and cancellation.cancelled

@@ -128,18 +128,20 @@ class Slot:
         while not job.done():
             left = deadline - time.perf_counter()
             if left <= 0:
-                self._drop(cancellation)
+                self._drop(job, cancellation)
                 raise DeadlineExceededError(self._limiter.timeout_s)
             await asyncio.wait({job}, timeout=min(left, DISCONNECT_POLL_S) if disconnected else left)
             if not job.done() and disconnected is not None and await disconnected():
-                self._drop(cancellation)
+                self._drop(job, cancellation)
                 raise ClientGoneError
         return job.result(), 1000 * (started[0] - submitted)
 
-    def _drop(self, cancellation: Cancellation) -> None:
+    @staticmethod
+    def _drop(job: asyncio.Future, cancellation: Cancellation) -> None:
         """Nobody waits for the job any more: dequeue it, or stop it at its next network call
-        (:mod:`service.cancellation`), which frees its worker and its slot."""
-        self._future.cancel()
+        (:mod:`service.cancellation`), which frees its worker and its slot. ``job``, the job's future in the event
+        loop, is cancelled too, so that the job's exception is never handed to it (asyncio would report it, unread)."""
+        job.cancel()  # cancels the worker's future as well: dequeued if it has not started
         cancellation.cancel()
 
     def release(self) -> None:
