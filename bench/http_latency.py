@@ -50,7 +50,8 @@ class Server:
     """``mfgnet``'s HTTP app in a subprocess on a free loopback port (one uvicorn process)."""
 
     def __init__(self, threads: int = 2, max_concurrency: int = 2, max_queue: int = 64, cwd: str | None = None,
-                 model_dirs: str | None = None, default_model: str | None = None, models: str | None = None):
+                 model_dirs: str | None = None, default_model: str | None = None, models: str | None = None,
+                 timeout_s: float | None = None):
         self.port = free_port()
         env = {**os.environ, "MFGNET_HOST": "127.0.0.1", "MFGNET_PORT": str(self.port),
                "MFGNET_THREADS": str(threads), "MFGNET_MAX_CONCURRENCY": str(max_concurrency),
@@ -61,6 +62,8 @@ class Server:
             env["MFGNET_DEFAULT_MODEL"] = default_model
         if models:  # serve only these model names (comma separated)
             env["MFGNET_MODELS"] = models
+        if timeout_s is not None:  # the deadline per request
+            env["MFGNET_TIMEOUT_S"] = str(timeout_s)
         if cwd:  # "-c" puts the working directory first on sys.path: that checkout's service package runs
             env["PYTHONPATH"] = cwd
         self.proc = subprocess.Popen([sys.executable, "-c", "from service.api.app import run_server; run_server()"],
