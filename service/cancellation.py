@@ -1,10 +1,10 @@
-"""Stopping a registration nobody waits for any more: its HTTP deadline has passed and the 504 is sent.
+"""Stopping a registration nobody waits for any more: its HTTP deadline has passed (504) or its client has gone.
 
 Python cannot interrupt an ONNX Runtime call; its ``RunOptions.terminate`` can: set from any thread, it ends the call
 running with those options at its next node, and every later call with them at once. A :class:`Cancellation` holds
 one ``RunOptions`` per request. While it is current (:func:`cancellable`, a context variable, so work that a
 registration hands to a helper thread with ``contextvars.copy_context`` carries it along), every network call passes
-its options (:func:`service.bounded_runs.run_bounded`), and after :meth:`Cancellation.cancel` the registration stops
+its options (:func:`service.bounded_runs.run_cancellable`), and after :meth:`Cancellation.cancel` the registration stops
 with :class:`RegistrationCancelledError` at its next network call: its worker and its limiter slot are free again
 instead of running to the end. Outside a request (the CLI, the library) nothing is current and calls run as before.
 """
