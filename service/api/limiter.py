@@ -15,6 +15,8 @@ from collections.abc import Awaitable, Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
+from starlette.requests import ClientDisconnect
+
 from service.api.errors import APIError
 from service.cancellation import Cancellation, cancellable
 
@@ -31,11 +33,6 @@ class OverloadedError(APIError):
             f"server is busy ({capacity} registrations running or waiting); retry later",
             headers={"Retry-After": str(RETRY_AFTER_OVERLOADED_S)},
         )
-
-
-class ClientGoneError(APIError):
-    def __init__(self) -> None:  # 499 (nginx's "client closed request"): only the access log sees it
-        super().__init__(499, "the client closed the connection before the registration finished")
 
 
 class DeadlineExceededError(APIError):
@@ -110,7 +107,8 @@ class Slot:
                   ) -> tuple[T, float]:
         """``(fn(), ms waited for a worker)``, run in the pool within ``timeout_s``; ``disconnected``: asked every
         ``DISCONNECT_POLL_S`` while the job waits or runs, ``True`` once the client has gone (the job is cancelled and
-        :class:`ClientGoneError` raised)."""
+        Starlette's ``ClientDisconnect`` raised, which the access middleware records as 499 as it does for a body
+        cut short)."""
         if self._future is not None:
             raise RuntimeError("a slot runs one job")
         submitted = time.perf_counter()
@@ -133,7 +131,7 @@ class Slot:
             await asyncio.wait({job}, timeout=min(left, DISCONNECT_POLL_S) if disconnected else left)
             if not job.done() and disconnected is not None and await disconnected():
                 self._drop(job, cancellation)
-                raise ClientGoneError
+                raise ClientDisconnect
         return job.result(), 1000 * (started[0] - submitted)
 
     @staticmethod

@@ -7,7 +7,9 @@ import asyncio
 import gc
 import time
 
-from service.api.limiter import ClientGoneError, DeadlineExceededError, InferenceLimiter
+from starlette.requests import ClientDisconnect
+
+from service.api.limiter import DeadlineExceededError, InferenceLimiter
 
 
 def failing_job() -> None:
@@ -29,7 +31,9 @@ def run_and_collect_reports(limiter: InferenceLimiter, disconnected=None) -> tup
         try:
             with limiter.admit() as slot:
                 await slot.run(failing_job, disconnected)
-        except (ClientGoneError, DeadlineExceededError) as exc:
+        except ClientDisconnect:
+            return 499  # as the access middleware records it
+        except DeadlineExceededError as exc:
             return exc.status
         return 200
 
