@@ -49,7 +49,6 @@ class PluginGroup(TyperGroup):
     def __init__(self, *args: object, **kwargs: object) -> None:
         super().__init__(*args, **kwargs)
         self.plugins = {ep.name: ep for ep in entry_points(group=PLUGIN_GROUP)}
-        self.loaded: dict[str, click.Command] = {}
 
     def list_commands(self, ctx: click.Context) -> list[str]:
         built_in = super().list_commands(ctx)
@@ -57,8 +56,7 @@ class PluginGroup(TyperGroup):
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         command = super().get_command(ctx, cmd_name)
-        if command is not None or cmd_name not in self.plugins:
-            return command
-        if cmd_name not in self.loaded:
-            self.loaded[cmd_name] = plugin_command(self.plugins[cmd_name])
-        return self.loaded[cmd_name]
+        if command is None and cmd_name in self.plugins:  # loaded once, then a command of the group like the others
+            command = plugin_command(self.plugins[cmd_name])
+            self.add_command(command, cmd_name)
+        return command
