@@ -59,6 +59,7 @@ class TrainOptions:
     sensor_share: float | None = None  # with a recipe: its share of simulated sensor batches (model.sensor_pairs)
     prefetch: bool | None = None  # make batches in worker processes while the model trains; None: on for CUDA
     workers: int = 1  # with prefetch: processes making batches (camera-view pairs take ~4 ms each to make)
+    snapshot_every: int = 0  # keep the weights after every this many epochs (snapshots/epoch_NNNN.pt); 0: none
 
     def pair_protocol(self) -> PairProtocol:
         """The training / validation pair protocol: the setting's, with these overrides."""
@@ -243,6 +244,9 @@ def train(opts: TrainOptions) -> Path:
                 checkpoint(best_path, val=val)
             else:
                 state["stale"] += 1
+            if opts.snapshot_every and epoch % opts.snapshot_every == 0:  # weights only, chosen later elsewhere
+                save_checkpoint(out / "snapshots" / f"epoch_{epoch:04d}.pt", model, state=dict(state), val=val,
+                                setting=opts.setting)
             checkpoint(last_path)
             last_save = time.time()
             if state["stale"] >= opts.patience:

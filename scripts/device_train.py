@@ -17,9 +17,11 @@ cheaper network from scratch, ``--config '{"emb_dims": 32, "encoder_blocks": 3}'
 overrides) without ``--init``, with a larger ``--lr-a``.
 
 Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's last weights)
-``$OUT/b/{best.pt, last.pt, log.jsonl}``; both validate every 100 batches (the ``general`` recipe on the
-``resampled`` setting at ``--max-angle``, default 60 degrees; ``real`` on sensor pairs over its rotations), so their
-``best.pt`` are comparable. If a phase fails with the prefetching worker it is retried once without it.
+``$OUT/b/{best.pt, last.pt, log.jsonl}``, with ``--snapshot-every N`` also ``snapshots.tar`` (the weights after every
+N-th epoch: simulated validation does not rank real-scan models, 0033). Both validate every 100 batches (the
+``general`` recipe on the ``resampled`` setting at ``--max-angle``, default 60 degrees; ``real`` on sensor pairs over
+its rotations), so their ``best.pt`` are comparable. If a phase fails with the prefetching worker it is retried once
+without it.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import argparse
 import json
 import os
 import shutil
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -59,7 +62,8 @@ def run_phases(args: argparse.Namespace) -> None:
     common = dict(setting="resampled", recipe=args.recipe, max_angle=max_angle, epochs=100_000, lr_drop_at=1.0,
                   batch_size=args.batch_size, max_batches_per_epoch=100, val_pairs=256, checkpoint_minutes=1.0,
                   patience=100_000, device=args.device, data=args.data, views_share=args.views_share,
-                  sensor_share=args.sensor_share, workers=args.workers, config=json.loads(args.config))
+                  sensor_share=args.sensor_share, workers=args.workers, config=json.loads(args.config),
+                  snapshot_every=args.snapshot_every)
 
     def phase(opts: TrainOptions) -> None:
         try:
@@ -71,15 +75,22 @@ def run_phases(args: argparse.Namespace) -> None:
             opts.resume = (Path(opts.out) / "last.pt").exists()
             train(opts)
 
+    def pack_snapshots(folder: Path) -> None:  # one file instead of many (at most 8 come back, 2 folders down)
+        if (folder / "snapshots").is_dir():
+            shutil.make_archive(str(folder / "snapshots"), "tar", folder / "snapshots")
+            shutil.rmtree(folder / "snapshots")
+
     begin = time.time()
     phase(TrainOptions(out=str(out / "a"), init=args.init, lr=args.lr_a, max_minutes=args.minutes_a, **common))
+    pack_snapshots(out / "a")
     print(f"phase a done after {(time.time() - begin) / 60:.2f} min", flush=True)
-    handover = Path("/tmp/phase_a_last.pt")
+    handover = Path(tempfile.mkdtemp()) / "phase_a_last.pt"  # runs side by side each keep their own
     shutil.copy(out / "a" / "last.pt", handover)
     for name in ("last.pt", "config.json"):  # at most 8 files come back from the machine
         (out / "a" / name).unlink()
     phase(TrainOptions(out=str(out / "b"), init=str(handover), lr=args.lr_b, max_minutes=args.minutes_b, **common))
     (out / "b" / "config.json").unlink()
+    pack_snapshots(out / "b")
     print(f"all done after {(time.time() - begin) / 60:.2f} min", flush=True)
 
 
@@ -106,6 +117,8 @@ def main() -> None:
     run.add_argument("--batch-size", type=int, default=32)
     run.add_argument("--views-share", type=float, default=None, help="share of batches cut as camera views")
     run.add_argument("--workers", type=int, default=4, help="processes making batches ahead of the GPU")
+    run.add_argument("--snapshot-every", type=int, default=0,
+                     help="keep the weights after every N epochs (snapshots.tar per phase), to choose on real scans")
     args = parser.parse_args()
     if args.command == "subset":
         write_subset(args.out, args.shapes, args.seed)
