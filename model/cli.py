@@ -121,6 +121,10 @@ def train(
     data_workers: Annotated[
         int, typer.Option(min=1, help="on CUDA: processes making batches ahead of the GPU (views cost the most)")
     ] = 1,
+    snapshot_every: Annotated[
+        int, typer.Option(min=0, help="keep the weights after every N-th epoch (OUT/snapshots/), to choose on real "
+                          "scans; 0: only best.pt and last.pt")
+    ] = 0,
 ) -> None:
     """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
     from model.train import TrainOptions
@@ -141,7 +145,7 @@ def train(
         config={"iterations": iterations, "share_weights": share_weights}, source_points=source_points,
         target_points=target_points, overlap=overlap, noise=noise, max_angle=max_angle, outliers=outliers,
         max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe, views_share=views_share,
-        sensor_share=sensor_share, val_pairs=val_pairs, workers=data_workers,
+        sensor_share=sensor_share, val_pairs=val_pairs, workers=data_workers, snapshot_every=snapshot_every,
     )
     best = run(opts)
     typer.echo(f"best checkpoint: {best}")

@@ -89,6 +89,7 @@ def test_train_writes_checkpoints_and_log_and_resume_continues(tmp_path, synthet
     assert best == run / "best.pt"
     assert {"best.pt", "last.pt", "log.jsonl", "config.json"} <= {p.name for p in run.iterdir()}
     assert not list(run.glob("*.tmp"))
+    assert not (run / "snapshots").exists()  # only with snapshot_every
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in records] == [0]
     assert records[0]["batches"] == 2
@@ -142,6 +143,19 @@ def test_prefetched_training_logs_the_same_losses(tmp_path, synthetic_modelnet) 
         train(options(run, synthetic_modelnet, prefetch=prefetch, workers=workers))
         logs.append(json.loads((run / "log.jsonl").read_text())["train_total"])
     assert logs[0] == logs[1] == logs[2]
+
+
+def test_snapshots_keep_the_weights_of_every_nth_epoch(tmp_path, synthetic_modelnet) -> None:
+    run = tmp_path / "run"
+    train(options(run, synthetic_modelnet, epochs=3, max_batches_per_epoch=1, snapshot_every=2))
+    assert sorted(p.name for p in (run / "snapshots").iterdir()) == ["epoch_0000.pt", "epoch_0002.pt"]
+    snapshot = read_checkpoint(run / "snapshots" / "epoch_0002.pt")
+    last = read_checkpoint(run / "last.pt")
+    assert "optimizer" not in snapshot  # weights to choose from, not a run to resume
+    assert all(torch.equal(v, last["model"][k]) for k, v in snapshot["model"].items())  # the last epoch's weights
+    assert np.isfinite(snapshot["val"]["mae_r"])
+    first = read_checkpoint(run / "snapshots" / "epoch_0000.pt")
+    assert any(not torch.equal(v, first["model"][k]) for k, v in snapshot["model"].items() if v.is_floating_point())
 
 
 def test_train_config_overrides_reach_the_saved_model(tmp_path, synthetic_modelnet) -> None:
