@@ -16,6 +16,12 @@ sensor pairs: ``model.recipes``, ``model.sensor_pairs``), fine-tuning ``--init m
 cheaper network from scratch, ``--config '{"emb_dims": 32, "encoder_blocks": 3}'`` (``model.config.MFGNetConfig``
 overrides) without ``--init``, with a larger ``--lr-a``.
 
+Several runs share one GPU with ``side-by-side`` (each makes its batches in its own ``--workers`` processes; the
+machine has 16 cores): ``python3 scripts/device_train.py side-by-side --hard-seconds 500 --run "search:--recipe
+search --workers 5 --data .gpu/data --init model/checkpoints/general.pt --minutes-a 5 --minutes-b 1.5
+--snapshot-every 3" --run "real:--recipe real --workers 9 ..."`` leaves ``$OUT/search.tar`` and ``$OUT/real.tar``
+(decision record 0044's runs; pykdtree is not on that machine: carry its wheel, as the device notes say).
+
 Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's last weights)
 ``$OUT/b/{best.pt, last.pt, log.jsonl}``, with ``--snapshot-every N`` also ``snapshots.tar`` (the weights after every
 N-th epoch: simulated validation does not rank real-scan models, 0033). Both validate every 100 batches (the
@@ -29,7 +35,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 import traceback
@@ -94,6 +103,32 @@ def run_phases(args: argparse.Namespace) -> None:
     print(f"all done after {(time.time() - begin) / 60:.2f} min", flush=True)
 
 
+def side_by_side(specs: list[str], hard_seconds: float) -> None:
+    """Several ``run`` commands at once on one GPU, each killed after ``hard_seconds``; each run's folder (phases,
+    snapshots, its log) is packed into ``$OUT/NAME.tar``, the only files that come back."""
+    out = Path(os.environ.get("OUT", "/tmp/out"))
+    out.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp())
+    runs = {}
+    for spec in specs:
+        name, _, args = spec.partition(":")
+        folder = work / name
+        folder.mkdir()
+        log = (folder / "train.log").open("w")
+        runs[name] = (subprocess.Popen([sys.executable, __file__, "run", *shlex.split(args)], stdout=log,
+                                       stderr=subprocess.STDOUT, env={**os.environ, "OUT": str(folder)}), log)
+    deadline = time.time() + hard_seconds
+    for name, (process, log) in runs.items():
+        try:
+            process.wait(timeout=max(deadline - time.time(), 0))
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        log.close()
+        shutil.make_archive(str(out / name), "tar", work / name)
+        print(f"{name}: exit {process.returncode}, packed into {out / name}.tar", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -119,9 +154,16 @@ def main() -> None:
     run.add_argument("--workers", type=int, default=4, help="processes making batches ahead of the GPU")
     run.add_argument("--snapshot-every", type=int, default=0,
                      help="keep the weights after every N epochs (snapshots.tar per phase), to choose on real scans")
+    sides = sub.add_parser("side-by-side", help="several runs at once, each packed into $OUT/NAME.tar")
+    sides.add_argument("--run", action="append", required=True, metavar="NAME:ARGS",
+                       help="a run's name and its 'run' arguments, e.g. 'search:--recipe search --workers 4 ...'")
+    sides.add_argument("--hard-seconds", type=float, required=True,
+                       help="kill what still runs after this long, then pack (inside the device call's limit)")
     args = parser.parse_args()
     if args.command == "subset":
         write_subset(args.out, args.shapes, args.seed)
+    elif args.command == "side-by-side":
+        side_by_side(args.run, args.hard_seconds)
     else:
         run_phases(args)
 

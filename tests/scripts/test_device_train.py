@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
@@ -61,3 +62,26 @@ def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
     assert "all done" in run.stdout
     last = torch.load(out / "b" / "last.pt", map_location="cpu", weights_only=False)  # best.pt after a validation
     assert last["config"]["emb_dims"] == 16 and last["config"]["encoder_blocks"] == 2
+
+
+def test_runs_side_by_side_each_come_back_as_one_archive(tmp_path) -> None:
+    data = tmp_path / "data"
+    data.mkdir()
+    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(48, seed=4).astype(np.float16),
+             labels=np.arange(48) % 40)
+    out = tmp_path / "out"
+    common = (f"--data {data} --minutes-a 0.01 --minutes-b 0.01 --device cpu --batch-size 2 "
+              '--config \'{"emb_dims": 16, "encoder_blocks": 2}\'')
+    run = script("side-by-side", "--hard-seconds", "240", "--run", f"one:--recipe general {common}",
+                 "--run", f"two:--recipe search {common}", env={"OUT": str(out)})
+    assert "one: exit 0" in run.stdout and "two: exit 0" in run.stdout
+    assert sorted(p.name for p in out.iterdir()) == ["one.tar", "two.tar"]
+    for name in ("one", "two"):
+        with tarfile.open(out / f"{name}.tar") as packed:
+            names = set(packed.getnames())
+        assert {"./b/last.pt", "./train.log"} <= names, names
+
+    killed = script("side-by-side", "--hard-seconds", "1", "--run", f"slow:--recipe general {common}",
+                    env={"OUT": str(tmp_path / "killed")})
+    assert "slow: exit -9" in killed.stdout  # killed, and still packed
+    assert (tmp_path / "killed" / "slow.tar").exists()
