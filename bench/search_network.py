@@ -2,11 +2,13 @@
 
 The real-scan set's cases (:func:`bench.real_scans.load_cases`: every pair as scanned and at ``--turns`` seeded
 rotations for each of ``--seeds``, in each of ``--scales``; the as-scanned cases once) are registered in process with
-the service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``) by two registrars of the bundled
-``general`` model, taking turns case by case: one as it is, and one whose rotation search runs the network of the
-exported model ``DIR`` (e.g. a checkpoint of ``mfgnet train --recipe search``, exported with ``mfgnet export
---setting resampled``) through the pipeline's stage hook (:class:`service.stages.pipeline.Stages`); the plain pass,
-refinements and checks stay ``general``'s. Both models must normalise clouds alike (the same reference radius).
+the service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``) by registrars of the bundled ``general``
+model, taking turns case by case: one as it is, and one whose rotation search runs the network of the exported model
+``DIR`` (e.g. a checkpoint of ``mfgnet train --recipe search``, exported with ``mfgnet export --setting resampled``)
+through the pipeline's stage hook (:class:`service.stages.pipeline.Stages`); the plain pass, refinements and checks
+stay ``general``'s. Every model must normalise clouds as ``general`` does (the same reference radius). Several
+``DIR`` (the checkpoints of one run, say) get one registrar each in the same run, named by their folders, beside one
+``general``.
 
 It prints and writes (``--json``) each registrar's successes (the data README's thresholds), ``reliable`` results
 given and wrong, precision, coverage (the share of successes given ``reliable``) and seconds, and every case whose
@@ -41,16 +43,28 @@ def searching_with(network: Registrar) -> Callable:
     return search_stage
 
 
-def registrars(model_dir: Path) -> dict[str, Registrar]:
-    """``general`` as bundled, and ``general`` with ``model_dir``'s network in its rotation search."""
+def variant_names(model_dirs: list[Path]) -> tuple[str, ...]:
+    """``general`` and one name per candidate: ``search network`` for one, else each directory's name."""
+    if len(model_dirs) == 1:
+        return VARIANTS
+    names = [d.name for d in model_dirs]
+    if len(set(names)) != len(names) or "general" in names:
+        raise SystemExit(f"candidates need distinct folder names other than general, got {names}")
+    return ("general", *names)
+
+
+def registrars(model_dir: Path, *more: Path) -> dict[str, Registrar]:
+    """``general`` as bundled, and ``general`` with each candidate's network in its rotation search."""
     general = bundled_models_dir() / "general"
-    network = Registrar(model_dir)
     plain = Registrar(general)
-    if network.reference_radius != plain.reference_radius:
-        raise SystemExit(f"{model_dir} normalises clouds to a reference radius of {network.reference_radius}, "
-                         f"general to {plain.reference_radius}: export it with --setting resampled")
-    swapped = Registrar(general, stages=dataclasses.replace(Stages(), search=searching_with(network)))
-    return dict(zip(VARIANTS, (plain, swapped), strict=True))
+    swapped = []
+    for candidate in (model_dir, *more):
+        network = Registrar(candidate)
+        if network.reference_radius != plain.reference_radius:
+            raise SystemExit(f"{candidate} normalises clouds to a reference radius of {network.reference_radius}, "
+                             f"general to {plain.reference_radius}: export it with --setting resampled")
+        swapped.append(Registrar(general, stages=dataclasses.replace(Stages(), search=searching_with(network))))
+    return dict(zip(variant_names([model_dir, *more]), (plain, *swapped), strict=True))
 
 
 def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ...],
@@ -82,25 +96,28 @@ def totals(rows: list[dict]) -> dict:
     return {**reliable_totals(rows), "seconds": round(sum(r["seconds"] for r in rows), 2)}
 
 
-def compare(model_dir: Path, all_cases: list[Case]) -> dict:
-    """Every case through both :func:`registrars`, taking turns (the first case's order alternates case by case)."""
-    runners = registrars(model_dir)
-    rows: dict[str, list[dict]] = {name: [] for name in VARIANTS}
+def compare(model_dirs: list[Path], all_cases: list[Case]) -> dict:
+    """Every case through every one of :func:`registrars`, taking turns (the order rotates case by case)."""
+    runners = registrars(*model_dirs)
+    names = tuple(runners)
+    rows: dict[str, list[dict]] = {name: [] for name in names}
     for i, case in enumerate(all_cases):
-        order = VARIANTS if i % 2 == 0 else VARIANTS[::-1]
-        for name in order:
+        shift = i % len(names)
+        for name in names[shift:] + names[:shift]:
             rows[name].append({"case": f"{case.name}/{case.variant}/x{case.scale:g}", **outcome(runners[name], case)})
-    differ = [{"case": a["case"], **{name: {k: rows[name][i][k] for k in ("success", "reliable", "rotation_error_deg")}
-                                     for name in VARIANTS}}
-              for i, (a, b) in enumerate(zip(*rows.values(), strict=True))
-              if (a["success"], a["reliable"]) != (b["success"], b["reliable"])]
-    return {"benchmark": "search_network", "search_model": str(model_dir),
+    differ = [{"case": same[0]["case"], **{name: {k: row[k] for k in ("success", "reliable", "rotation_error_deg")}
+                                          for name, row in zip(names, same, strict=True)}}
+              for same in zip(*rows.values(), strict=True)
+              if len({(row["success"], row["reliable"]) for row in same}) > 1]
+    models = [str(d) for d in model_dirs]
+    return {"benchmark": "search_network", "search_model": models[0] if len(models) == 1 else models,
             "totals": {name: totals(r) for name, r in rows.items()}, "differ": differ, "rows": rows}
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("model_dir", type=Path, help="exported model whose network runs the rotation search")
+    parser.add_argument("model_dirs", type=Path, nargs="+", metavar="DIR",
+                        help="exported model(s) whose network runs the rotation search; several: all in one run")
     parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--turns", type=int, default=10)
@@ -111,7 +128,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     all_cases = cases(data_dir(args.data), args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
-    report = compare(args.model_dir, all_cases)
+    report = compare(args.model_dirs, all_cases)
     for name, figures in report["totals"].items():
         print(name, json.dumps(figures))
     for row in report["differ"]:

@@ -62,3 +62,28 @@ def test_derived_cases_are_the_held_out_pairs_once_as_scanned():
     assert [(c.name, c.variant) for c in picked] == [("dragon_72_0", v) for v in ("scanned", "turned", "turned-2",
                                                                                    "turned", "turned-2")]
     assert all(c.name not in {p.stem for p in data_dir().glob("*.npz")} for c in picked)
+
+
+@needs_data
+def test_several_candidates_take_turns_beside_one_general(tmp_path):
+    import shutil
+
+    candidates = []
+    for name in ("first", "second"):  # general's own network under two names: nothing may change
+        shutil.copytree(bundled_models_dir() / "general", tmp_path / name)
+        manifest = tmp_path / name / "manifest.json"
+        manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "name": name}))  # folder = name
+        candidates.append(str(tmp_path / name))
+    report = main([*candidates, "--pairs", PAIR, "--seeds", "0", "--turns", "1", "--scales", "1"])
+    assert list(report["totals"]) == ["general", "first", "second"] and report["differ"] == []
+    assert report["search_model"] == candidates
+    for rows in zip(*report["rows"].values(), strict=True):
+        assert len({row["rotation_error_deg"] for row in rows}) == 1
+
+
+def test_candidates_need_distinct_names(tmp_path):
+    from bench.search_network import variant_names
+
+    assert variant_names([tmp_path / "a"]) == ("general", "search network")
+    with pytest.raises(SystemExit, match="distinct folder names"):
+        variant_names([tmp_path / "x" / "a", tmp_path / "y" / "a"])
