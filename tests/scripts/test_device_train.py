@@ -25,11 +25,17 @@ def script(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300, check=True)
 
 
+def training_file(folder: Path, seed: int) -> np.ndarray:
+    """A small ``modelnet40_train.npz`` of 48 seeded shapes in ``folder``; returns its labels."""
+    folder.mkdir()
+    labels = np.arange(48) % 40
+    np.savez(folder / "modelnet40_train.npz", points=sphere_shapes(48, seed=seed).astype(np.float16), labels=labels)
+    return labels
+
+
 def test_subset_and_both_phases_leave_the_files_that_come_back(tmp_path) -> None:
     data = tmp_path / "data"
-    data.mkdir()
-    labels = np.arange(48) % 40
-    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(48, seed=2).astype(np.float16), labels=labels)
+    labels = training_file(data, seed=2)
     subset = tmp_path / "subset"
     script("subset", "--out", str(subset), "--shapes", "30", "--seed", "1", env={"MFGNET_DATA": str(data)})
     with np.load(subset / "modelnet40_train.npz") as written:
@@ -52,9 +58,7 @@ def test_subset_and_both_phases_leave_the_files_that_come_back(tmp_path) -> None
 
 def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
     data = tmp_path / "data"
-    data.mkdir()
-    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(48, seed=3).astype(np.float16),
-             labels=np.arange(48) % 40)
+    training_file(data, seed=3)
     out = tmp_path / "out"
     run = script("run", "--data", str(data), "--recipe", "real", "--config", '{"emb_dims": 16, "encoder_blocks": 2}',
                  "--lr-a", "1e-3", "--minutes-a", "0.01", "--minutes-b", "0.01", "--device", "cpu", "--batch-size", "2",
@@ -66,9 +70,7 @@ def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
 
 def test_runs_side_by_side_each_come_back_as_one_archive(tmp_path) -> None:
     data = tmp_path / "data"
-    data.mkdir()
-    np.savez(data / "modelnet40_train.npz", points=sphere_shapes(48, seed=4).astype(np.float16),
-             labels=np.arange(48) % 40)
+    training_file(data, seed=4)
     out = tmp_path / "out"
     common = (f"--data {data} --minutes-a 0.01 --minutes-b 0.01 --device cpu --batch-size 2 "
               '--config \'{"emb_dims": 16, "encoder_blocks": 2}\'')
