@@ -53,18 +53,19 @@ def variant_names(model_dirs: list[Path]) -> tuple[str, ...]:
     return ("general", *names)
 
 
-def registrars(model_dir: Path, *more: Path) -> dict[str, Registrar]:
+def registrars(model_dirs: list[Path]) -> dict[str, Registrar]:
     """``general`` as bundled, and ``general`` with each candidate's network in its rotation search."""
+    names = variant_names(model_dirs)  # before any model loads
     general = bundled_models_dir() / "general"
     plain = Registrar(general)
     swapped = []
-    for candidate in (model_dir, *more):
+    for candidate in model_dirs:
         network = Registrar(candidate)
         if network.reference_radius != plain.reference_radius:
             raise SystemExit(f"{candidate} normalises clouds to a reference radius of {network.reference_radius}, "
                              f"general to {plain.reference_radius}: export it with --setting resampled")
         swapped.append(Registrar(general, stages=dataclasses.replace(Stages(), search=searching_with(network))))
-    return dict(zip(variant_names([model_dir, *more]), (plain, *swapped), strict=True))
+    return dict(zip(names, (plain, *swapped), strict=True))
 
 
 def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ...],
@@ -98,7 +99,7 @@ def totals(rows: list[dict]) -> dict:
 
 def compare(model_dirs: list[Path], all_cases: list[Case]) -> dict:
     """Every case through every one of :func:`registrars`, taking turns (the order rotates case by case)."""
-    runners = registrars(*model_dirs)
+    runners = registrars(model_dirs)
     names = tuple(runners)
     rows: dict[str, list[dict]] = {name: [] for name in names}
     for i, case in enumerate(all_cases):

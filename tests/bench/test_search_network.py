@@ -32,7 +32,7 @@ def test_general_as_its_own_search_network_changes_nothing(tmp_path):
 def test_the_search_runs_the_other_registrars_network(monkeypatch):
     import bench.search_network as bench
 
-    runners = bench.registrars(bundled_models_dir() / "general")
+    runners = bench.registrars([bundled_models_dir() / "general"])
     seen = []
     real_search = bench.search
 
