@@ -8,7 +8,8 @@ depend on the plain pass, so the result is the same either way, only sooner
 (``docs/decisions/0029-the-search-started-beside-the-plain-pass.md``).
 
 Helpers share the process's cores with the registrations: :class:`Helpers` starts one only while fewer threads are
-registering or helping than it has cores, so concurrent requests, which already fill them, run as before.
+registering or helping than it has cores, so concurrent requests, which already fill them, run as before; and the
+large KD-tree queries of a registering or helping thread run on its share of the cores (:meth:`Helpers.share`).
 Cancellation is cooperative: the helper's work calls :func:`check` between its stages and stops at the next one.
 """
 
@@ -20,6 +21,8 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Any
+
+from service.kdtree import sharing_cores
 
 
 class CancelledError(Exception):
@@ -70,13 +73,19 @@ class Helpers:
         with self._lock:
             return self._busy
 
+    def share(self) -> int:
+        """The cores each busy thread may use now (at least 1): what a KD-tree query of theirs runs on
+        (:func:`service.kdtree.sharing_cores`)."""
+        return max(1, self.cores // max(1, self._busy))  # a read of one int: no lock needed
+
     @contextmanager
     def registering(self) -> Iterator[None]:
-        """Count the calling thread as busy while the block runs."""
+        """Count the calling thread as busy while the block runs; its KD-tree queries take its :meth:`share`."""
         with self._lock:
             self._busy += 1
         try:
-            yield
+            with sharing_cores(self.share):
+                yield
         finally:
             self._release()
 
@@ -99,7 +108,8 @@ class Helpers:
     def _run(self, work: Callable[[threading.Event], Any], cancelled: threading.Event) -> Any:
         try:
             check(cancelled)
-            return work(cancelled)
+            with sharing_cores(self.share):
+                return work(cancelled)
         finally:
             self._release()
 

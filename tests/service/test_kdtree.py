@@ -1,7 +1,11 @@
-"""service.kdtree.KDTree: scipy's cKDTree conventions on pykdtree, one OpenMP thread per querying thread."""
+"""service.kdtree.KDTree: scipy's cKDTree conventions on pykdtree, one OpenMP thread per querying thread
+or a registration's share of the cores, and a runtime that waits passively."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -53,13 +57,8 @@ def test_inputs_any_float_layout_and_empty_queries() -> None:
         KDTree(np.empty((0, 3)))
 
 
-def test_queries_run_one_openmp_thread_and_restore_it() -> None:
-    """During a query every OpenMP runtime runs one thread for the querying thread; afterwards that thread
-    and every other keep their own count."""
-    runtimes = kdtree.openmp_runtimes()
-    if not runtimes:
-        pytest.skip("no OpenMP runtime is loaded (a pykdtree built without OpenMP): nothing to limit")
-    points = np.random.default_rng(2).random((256, 3))
+def _recording_tree(points: np.ndarray, runtimes: list) -> tuple[KDTree, list[list[int]]]:
+    """A real tree whose queries note the OpenMP thread counts they run under."""
     tree = KDTree(points)
     pykdtree_query = tree._tree.query
     during: list[list[int]] = []
@@ -69,6 +68,22 @@ def test_queries_run_one_openmp_thread_and_restore_it() -> None:
         return pykdtree_query(*args, **kwargs)
 
     tree._tree = type("Recording", (), {"query": staticmethod(recording_query)})()
+    return tree, during
+
+
+def _runtimes() -> list:
+    runtimes = kdtree.openmp_runtimes()
+    if not runtimes:
+        pytest.skip("no OpenMP runtime is loaded (a pykdtree built without OpenMP): nothing to set")
+    return runtimes
+
+
+def test_queries_run_one_openmp_thread_and_restore_it() -> None:
+    """Outside a registration every OpenMP runtime runs one thread for the querying thread during a query;
+    afterwards that thread and every other keep their own count."""
+    runtimes = _runtimes()
+    points = np.random.default_rng(2).random((kdtree.SPLIT_QUERIES, 3))
+    tree, during = _recording_tree(points, runtimes)
     outcome: dict[str, list[int]] = {}
 
     def query_in_thread() -> None:
@@ -84,3 +99,41 @@ def test_queries_run_one_openmp_thread_and_restore_it() -> None:
     assert during == [[1] * len(runtimes)]
     assert outcome["after"] == [2] * len(runtimes)
     assert [lib.get_num_threads() for lib in runtimes] == before_here
+
+
+def test_a_large_query_inside_sharing_cores_runs_on_its_share() -> None:
+    """Inside ``sharing_cores`` a query of at least ``SPLIT_QUERIES`` points runs on the share asked at that moment
+    (at most ``MAX_QUERY_THREADS``), a smaller one on one thread; with more than one OpenMP runtime loaded (torch's),
+    every query on one. The neighbours are the same either way, and the count is restored after the block."""
+    runtimes = _runtimes()
+    points = np.random.default_rng(3).random((kdtree.SPLIT_QUERIES, 3))
+    tree, during = _recording_tree(points, runtimes)
+    one_runtime = len(runtimes) == 1
+    share = [2]
+    outside = tree.query(points, k=2)
+    during.clear()
+    with kdtree.sharing_cores(lambda: share[0]):
+        inside = tree.query(points, k=2)
+        tree.query(points[: kdtree.SPLIT_QUERIES - 1], k=2)
+        share[0] = 1  # a second registration started
+        tree.query(points, k=2)
+        share[0] = 16
+        tree.query(points, k=2)
+    tree.query(points, k=2)
+    expected = [2, 1, 1, kdtree.MAX_QUERY_THREADS, 1] if one_runtime else [1] * 5
+    assert during == [[n] * len(runtimes) for n in expected]
+    np.testing.assert_array_equal(inside[1], outside[1])
+    np.testing.assert_array_equal(inside[0], outside[0])
+
+
+def test_pykdtree_runtime_waits_passively_and_the_environment_is_left_as_it_was() -> None:
+    """Loaded by ``service.kdtree``, pykdtree's OpenMP runtime does not spin between queries (libgomp reports a spin
+    count of 0); ``OMP_WAIT_POLICY`` is not left set, so a runtime loaded after it keeps its own default."""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env["OMP_DISPLAY_ENV"] = "VERBOSE"  # libgomp prints its settings to stderr when it loads
+    code = "import os, service.kdtree; print(os.environ.get('OMP_WAIT_POLICY'))"
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60, check=True)
+    if "GOMP_SPINCOUNT" not in run.stderr:
+        pytest.skip("pykdtree's OpenMP runtime is not libgomp: no settings to read")
+    assert "GOMP_SPINCOUNT = '0'" in run.stderr
+    assert run.stdout.strip() == "None"

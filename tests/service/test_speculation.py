@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob
 
+from service import kdtree
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.speculation import CancelledError, Helpers, check
@@ -43,6 +44,22 @@ def test_one_core_never_starts_a_helper_beside_its_registration() -> None:
     helpers = Helpers(1)
     with helpers.registering():
         assert helpers.start(lambda cancelled: 1) is None
+
+
+def test_kd_tree_queries_of_busy_threads_share_the_cores() -> None:
+    """A registration alone gets both cores for its large KD-tree queries; with its helper at work, or beside a
+    second registration, one each; outside every block none is shared."""
+    helpers = Helpers(2)
+    with helpers.registering():
+        alone = kdtree._sharing.cores()
+        ahead = helpers.start(lambda cancelled: (kdtree._sharing.cores(), helpers.share()))
+        assert ahead is not None
+        in_helper, while_helping = ahead.result()
+    with helpers.registering(), helpers.registering():  # two registrations at once
+        two = helpers.share()
+    assert (alone, in_helper, while_helping, two) == (2, 1, 1, 1)
+    assert getattr(kdtree._sharing, "cores", None) is None
+    wait_until_idle(helpers)
 
 
 def test_cancelled_work_stops_at_its_next_check_and_frees_its_core() -> None:
