@@ -159,19 +159,23 @@ def icp_many(
 
 
 def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None,
-                   at: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   at: np.ndarray | None = None, hood: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
     False where the neighbourhood is (nearly) a line or a single point, so that no plane is defined.
-    ``at (A,)``: only the normals of ``tgt[at]`` (``(A, 3)`` and ``(A,)``).
+    ``at (A,)``: only the normals of ``tgt[at]`` (``(A, 3)`` and ``(A,)``). ``hood (M, K)``: each point's nearest
+    rows, nearest first, ``K >= neighbours``, when the caller has them (no query then).
     """
     points = tgt if at is None else tgt[at]  # [A, 3]
     k = min(int(neighbours), tgt.shape[0])
     if k < 3:
         return np.zeros_like(points), np.zeros(points.shape[0], dtype=bool)
-    tree = KDTree(tgt) if tree is None else tree
-    _, idx = tree.query(points, k=k)  # [A, k]
+    if hood is not None and at is None and hood.shape == (len(tgt), hood.shape[1]) and hood.shape[1] >= k:
+        idx = hood[:, :k]  # [M, k]
+    else:
+        tree = KDTree(tgt) if tree is None else tree
+        _, idx = tree.query(points, k=k)  # [A, k]
     hood = tgt[idx]  # [A, k, 3]
     centred = hood - hood.mean(axis=1, keepdims=True)  # [A, k, 3]
     cov = centred.transpose(0, 2, 1) @ centred / k  # [A, 3, 3] (batched matmul: 3x faster than einsum here)
@@ -227,9 +231,10 @@ class Surface:
     defined: np.ndarray  # [M] bool
 
     @classmethod
-    def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS) -> Surface:
+    def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, hood: np.ndarray | None = None) -> Surface:
+        """``hood [M, K]``: the points' nearest rows where the caller has them (:func:`target_normals`)."""
         tree = KDTree(points)
-        return cls(tree, *target_normals(points, neighbours, tree))
+        return cls(tree, *target_normals(points, neighbours, tree, hood=hood))
 
 
 def icp_symmetric(

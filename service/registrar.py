@@ -203,6 +203,7 @@ class Registrar:
         timing: dict[str, float] | None = None,
         same_source: bool = False,
         target: EmbeddedCloud | None = None,
+        graphs: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> NetworkLoop:
         """Encoder and keypoints of a batch of pairs of normalised working clouds: the loop before its first
         iteration (:class:`service.network_loop.NetworkLoop`; :meth:`run_network` runs it to the end).
@@ -211,6 +212,8 @@ class Registrar:
         encoder call when ``N == M`` (else one per side); keypoints are chosen per cloud (embeddings change
         with rotation). ``same_source``: the B sources are rigid copies of one cloud and share its k-NN graph.
         ``target``: :meth:`embed_cloud` of ``tgt_n [M, 3]``, when the caller runs it against many sources.
+        ``graphs``: one pair's clouds' nearest rows, ``[N, K]`` and ``[M, K]`` with ``K >= knn``, nearest first
+        (itself included), when the caller has them (:attr:`service.stages.normalise.Working.working_graphs`).
         Records ``timing["encoder"]``, and the keypoint selection in ``timing["iterations"]``.
         """
         timing = {} if timing is None else timing
@@ -223,7 +226,9 @@ class Registrar:
             raise ValueError(f"run_network: target embedding {target.scores.shape} is not of target {tgt_n.shape}")
         t1 = time.perf_counter()
         nb_s = nb_t = None
-        if self.encoder_takes_neighbours:
+        if self.encoder_takes_neighbours and graphs is not None and B == 1 and target is None:
+            nb_s, nb_t = (graph[None, :, : self.knn] for graph in graphs)  # [1, N, knn], [1, M, knn]
+        elif self.encoder_takes_neighbours:
             # rigid copies of one source (the rotation search) share its k-NN graph
             nb_s = np.repeat(self.neighbours(src_b[:1]), B, axis=0) if same_source else self.neighbours(src_b)
             nb_t = self.neighbours(tgt_b) if target is None else None
@@ -271,18 +276,20 @@ class Registrar:
         timing: dict[str, float] | None = None,
         same_source: bool = False,
         target: EmbeddedCloud | None = None,
+        graphs: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> NetworkOutput | list[NetworkOutput]:
         """The network loop on normalised working clouds (float32), for one pair or a batch of B.
 
         ``src_n`` is ``[N, 3]`` (one pair: returns a :class:`NetworkOutput`) or ``[B, N, 3]`` (B
-        hypotheses: returns a list of B); ``tgt_n``, ``same_source`` and ``target`` as in
+        hypotheses: returns a list of B); ``tgt_n``, ``same_source``, ``target`` and ``graphs`` as in
         :meth:`start_network`; one matcher call of batch B per iteration.
         """
         timing = {} if timing is None else timing
         for stage in ("encoder", "iterations", "svd"):  # this call's own figures
             timing[stage] = 0.0
         single = src_n.ndim == 2
-        loop = self.start_network(src_n[None] if single else src_n, tgt_n, keypoints, timing, same_source, target)
+        loop = self.start_network(src_n[None] if single else src_n, tgt_n, keypoints, timing, same_source, target,
+                                  graphs)
         loop.advance(iterations, timing)
         outputs = loop.outputs()
         return outputs[0] if single else outputs

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.icp import NORMAL_NEIGHBOURS
 from service.rotation_search import SearchCandidate
 from service.stages.normalise import Working
 
@@ -27,5 +28,7 @@ class Candidates:
 def network(registrar: Registrar, work: Working, iterations: int, keypoints: int,
             timing: dict[str, float]) -> Candidates:
     """The network's pose from the identity start (records ``timing`` ``encoder``, ``iterations``, ``svd``)."""
-    net = registrar.run_network(work.src_n, work.tgt_n, iterations, keypoints, timing)
+    shared = registrar.encoder_takes_neighbours and registrar.knn <= NORMAL_NEIGHBOURS
+    graphs = work.working_graphs if shared else None  # the refinement's normals use them too
+    net = registrar.run_network(work.src_n, work.tgt_n, iterations, keypoints, timing, graphs=graphs)
     return Candidates([SearchCandidate(net, np.eye(3), net.rotation, net.translation)], work.idx_s, work.idx_t)

@@ -7,8 +7,9 @@ from functools import cached_property
 
 import numpy as np
 
-from service.icp import Surface
+from service.icp import NORMAL_NEIGHBOURS, Surface
 from service.kdtree import KDTree
+from service.neighbours import knn_graph
 from service.normalization import Normalization
 from service.plane_frames import frame_rotations
 from service.procrustes import compose
@@ -82,9 +83,16 @@ class Working(Sampled):
         return KDTree(np.asarray(self.tgt_e, dtype=np.float64))
 
     @cached_property
+    def working_graphs(self) -> tuple[np.ndarray, np.ndarray]:
+        """``[Ns, K]``, ``[Nt, K]`` (``K = NORMAL_NEIGHBOURS``): each normalised working cloud's nearest rows, nearest
+        first, itself included; one query per cloud for the network's neighbour graph and, where the refinement
+        moves the working clouds themselves, for its normals."""
+        return knn_graph(self.src_n[None], NORMAL_NEIGHBOURS)[0], knn_graph(self.tgt_n[None], NORMAL_NEIGHBOURS)[0]
+
+    @cached_property
     def target_surface(self) -> Surface:
         """KD-tree and normals of the refinement's target ``tgt_r``, built once per registration."""
-        return Surface.of(self.tgt_r)
+        return Surface.of(self.tgt_r, hood=self.working_graphs[1] if self.tgt_r is self.tgt_w else None)
 
     def working_target_lookup(self, surface: Surface | None) -> tuple[KDTree, Surface | None]:
         """A KD-tree of the working target ``tgt_w`` and its normals where they are at hand: ``surface`` (the
@@ -97,7 +105,8 @@ class Working(Sampled):
     def source_surface(self) -> Surface:
         """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:
         every start of every refinement moves the same points."""
-        return Surface.of(np.asarray(self.src_r, dtype=np.float64))
+        hood = self.working_graphs[0] if self.src_r is self.working_source else None  # src_w: the same rows, moved
+        return Surface.of(np.asarray(self.src_r, dtype=np.float64), hood=hood)
 
     @cached_property
     def fine_source(self) -> np.ndarray:

@@ -9,6 +9,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob
 
+from service.icp import NORMAL_NEIGHBOURS, target_normals
+from service.kdtree import KDTree
 from service.manifest import bundled_models_dir
 from service.options import RegistrationOptions
 from service.registrar import Registrar
@@ -55,6 +57,27 @@ def test_the_stages_by_hand_give_registers_result(registrar) -> None:
     assert (result.inlier_ratio, result.reliable, result.warnings) == (whole.inlier_ratio, whole.reliable,
                                                                          whole.warnings)
     assert len(result.iteration_poses) == request.iterations and "postprocess" in result.timing_ms
+
+
+def test_the_network_and_the_refinements_normals_share_one_neighbour_query_per_cloud(registrar, monkeypatch) -> None:
+    """The encoder's neighbour graph and the refinement's normals come from one query per working cloud
+    (``Working.working_graphs``), and the normals equal those of the refinement's own query."""
+    request, work = prepared(registrar, refine="icp-plane")
+    queries: list[tuple[int, int]] = []
+    real_query = KDTree.query
+
+    def counting_query(tree, points, k=1, distance_upper_bound=None):
+        queries.append((len(points), int(k)))
+        return real_query(tree, points, k, distance_upper_bound)
+
+    monkeypatch.setattr(KDTree, "query", counting_query)
+    network(registrar, work, request.iterations, request.keypoints, {})
+    surfaces = work.source_surface, work.target_surface
+    assert [q for q in queries if q[1] == NORMAL_NEIGHBOURS] == [(256, NORMAL_NEIGHBOURS)] * 2
+    for surface, cloud in zip(surfaces, (work.src_r, work.tgt_r), strict=True):
+        normals, defined = target_normals(np.asarray(cloud, dtype=np.float64))
+        np.testing.assert_array_equal(surface.defined, defined)
+        np.testing.assert_allclose(np.abs(np.sum(surface.normals * normals, axis=1)), 1.0, atol=1e-9)
 
 
 def test_search_returns_distinct_candidates_with_a_refinement_and_one_without(registrar) -> None:
