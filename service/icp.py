@@ -159,20 +159,21 @@ def icp_many(
 
 
 def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None,
-                   at: np.ndarray | None = None, hood: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   at: np.ndarray | None = None, nearest_rows: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
     False where the neighbourhood is (nearly) a line or a single point, so that no plane is defined.
-    ``at (A,)``: only the normals of ``tgt[at]`` (``(A, 3)`` and ``(A,)``). ``hood (M, K)``: each point's nearest
-    rows, nearest first, ``K >= neighbours``, when the caller has them (no query then).
+    ``at (A,)``: only the normals of ``tgt[at]`` (``(A, 3)`` and ``(A,)``). ``nearest_rows (M, K)``: each point's
+    nearest rows, nearest first, ``K >= neighbours``, when the caller has them (no query then).
     """
     points = tgt if at is None else tgt[at]  # [A, 3]
     k = min(int(neighbours), tgt.shape[0])
     if k < 3:
         return np.zeros_like(points), np.zeros(points.shape[0], dtype=bool)
-    if hood is not None and at is None and hood.shape == (len(tgt), hood.shape[1]) and hood.shape[1] >= k:
-        idx = hood[:, :k]  # [M, k]
+    if nearest_rows is not None and at is None and len(nearest_rows) == len(tgt) and nearest_rows.shape[1] >= k:
+        idx = nearest_rows[:, :k]  # [M, k]
     else:
         tree = KDTree(tgt) if tree is None else tree
         _, idx = tree.query(points, k=k)  # [A, k]
@@ -231,10 +232,11 @@ class Surface:
     defined: np.ndarray  # [M] bool
 
     @classmethod
-    def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, hood: np.ndarray | None = None) -> Surface:
-        """``hood [M, K]``: the points' nearest rows where the caller has them (:func:`target_normals`)."""
+    def of(cls, points: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, nearest_rows: np.ndarray | None = None
+           ) -> Surface:
+        """``nearest_rows [M, K]``: the points' nearest rows where the caller has them (:func:`target_normals`)."""
         tree = KDTree(points)
-        return cls(tree, *target_normals(points, neighbours, tree, hood=hood))
+        return cls(tree, *target_normals(points, neighbours, tree, nearest_rows=nearest_rows))
 
 
 def icp_symmetric(

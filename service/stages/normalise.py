@@ -92,7 +92,8 @@ class Working(Sampled):
     @cached_property
     def target_surface(self) -> Surface:
         """KD-tree and normals of the refinement's target ``tgt_r``, built once per registration."""
-        return Surface.of(self.tgt_r, hood=self.working_graphs[1] if self.tgt_r is self.tgt_w else None)
+        nearest = self.working_graphs[1] if self.tgt_r is self.tgt_w else None
+        return Surface.of(self.tgt_r, nearest_rows=nearest)
 
     def working_target_lookup(self, surface: Surface | None) -> tuple[KDTree, Surface | None]:
         """A KD-tree of the working target ``tgt_w`` and its normals where they are at hand: ``surface`` (the
@@ -105,8 +106,8 @@ class Working(Sampled):
     def source_surface(self) -> Surface:
         """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:
         every start of every refinement moves the same points."""
-        hood = self.working_graphs[0] if self.src_r is self.working_source else None  # src_w: the same rows, moved
-        return Surface.of(np.asarray(self.src_r, dtype=np.float64), hood=hood)
+        nearest = self.working_graphs[0] if self.src_r is self.working_source else None  # src_w: the same rows, moved
+        return Surface.of(np.asarray(self.src_r, dtype=np.float64), nearest_rows=nearest)
 
     @cached_property
     def fine_source(self) -> np.ndarray:

@@ -225,13 +225,13 @@ def test_target_normals_are_surface_normals_and_undefined_on_a_line() -> None:
 
 
 def test_target_normals_from_the_callers_neighbour_rows_equal_its_own_query() -> None:
-    """``hood``: the caller's nearest rows (more columns than needed, nearest first) replace the query."""
+    """``nearest_rows``: the caller's nearest rows (more columns than needed, nearest first) replace the query."""
     points = np.random.default_rng(5).normal(size=(500, 3))
     hood = KDTree(points).query(points, k=16)[1]  # [500, 16]
-    own, with_hood = target_normals(points), target_normals(points, hood=hood)
+    own, with_hood = target_normals(points), target_normals(points, nearest_rows=hood)
     np.testing.assert_array_equal(with_hood[1], own[1])
     np.testing.assert_allclose(np.abs(np.sum(with_hood[0] * own[0], axis=1)), 1.0, atol=1e-12)  # up to sign
-    shuffled = target_normals(points, hood=np.random.default_rng(6).permutation(hood))  # rows of other points
+    shuffled = target_normals(points, nearest_rows=np.random.default_rng(6).permutation(hood))  # rows of other points
     assert np.abs(np.sum(shuffled[0] * own[0], axis=1)).min() < 0.9
 
 
