@@ -17,7 +17,7 @@ from service.procrustes import weighted_procrustes
 
 RADIUS_VOXELS = 5.0  # descriptor radius, in voxels
 INLIER_VOXELS = 2.0  # a pair agrees with a pose within this distance, in voxels
-TRIPLETS = 3000  # RANSAC samples (seeded: the same clouds give the same pose)
+TRIPLETS = 20_000  # RANSAC samples (seeded: the same clouds give the same pose; decisions/0047)
 SIDE_AGREEMENT = 0.9  # a triplet's sides in the two clouds within this ratio of each other
 MIN_SIDE_VOXELS = 2.0  # ... and none shorter than this (nearly coincident points fix no rotation)
 # At most this many cells per reduced cloud (the grid coarsened until both fit): the descriptor distances take

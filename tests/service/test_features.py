@@ -41,9 +41,12 @@ def test_mutual_matches_keep_the_pairs_that_choose_each_other() -> None:
     assert i.tolist() == [0, 1] and j.tolist() == [1, 0]
 
 
+# 6-7% of the mutual matches are right at 179 deg (seeds 1, 2) and 120 deg (seeds 7, 8): 3,000 triplets hold about one
+# all-right triplet there and missed the pose on some CPUs; TRIPLETS finds it.
+@pytest.mark.parametrize("seeds", [(1, 2), (7, 8)])
 @pytest.mark.parametrize("degrees", [30, 120, 179])
-def test_feature_pose_finds_a_turned_partial_view_of_another_sample(degrees: float) -> None:
-    source, target = lumpy_sphere(20_000, seed=1), lumpy_sphere(20_000, seed=2)  # two samples of one surface
+def test_feature_pose_finds_a_turned_partial_view_of_another_sample(degrees: float, seeds: tuple[int, int]) -> None:
+    source, target = lumpy_sphere(20_000, seed=seeds[0]), lumpy_sphere(20_000, seed=seeds[1])  # one surface twice
     source, target = source[source[:, 0] > -0.4], target[target[:, 0] < 0.4]  # overlapping parts of it
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     R, t = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix(), np.array([0.4, 1.0, -2.0])
