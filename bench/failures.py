@@ -27,23 +27,13 @@ import time
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
-
-from bench.real_scans import Case, data_dir, pose_errors, thresholds
+from bench.real_scans import Case, data_dir, judged
 from bench.search_network import cases
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 
 DEFAULTS = {"refine": "icp-plane", "rotation_search": "auto"}  # the service's defaults for a request
 CLASSES = ("truth leaves", "fits worse", "not reached")
-
-
-def right(case: Case, rotation: np.ndarray, translation: np.ndarray) -> tuple[bool, float, float]:
-    """Whether the pose ``rotation [3, 3], translation [3]`` lies within the case's thresholds, and its rotation
-    (deg) and translation errors."""
-    degrees, error = pose_errors(rotation, translation, case.src_to_tgt)
-    max_deg, max_error = thresholds(case.sensor, case.scale)
-    return bool(degrees < max_deg and error < max_error), degrees, error
 
 
 def failure_class(truth_right: bool, truth_ratio: float, wrong_ratio: float) -> str:
@@ -59,18 +49,18 @@ def examine(registrar: Registrar, case: Case) -> dict | None:
     started = time.perf_counter()
     result = registrar.register(case.source, case.target, **DEFAULTS)
     seconds = time.perf_counter() - started
-    success, degrees, error = right(case, result.rotation, result.translation)
-    if success:
+    returned = judged(case, result.rotation, result.translation)
+    if returned["success"]:
         return None
     from_truth = registrar.register(case.source, case.target, refine=DEFAULTS["refine"], rotation_search=False,
                                     initial_transform=case.src_to_tgt)
-    truth_right, truth_degrees, truth_error = right(case, from_truth.rotation, from_truth.translation)
+    stayed = judged(case, from_truth.rotation, from_truth.translation)
     return {"case": f"{case.name}/{case.variant}/x{case.scale:g}", "sensor": case.sensor,
-            "class": failure_class(truth_right, from_truth.inlier_ratio, result.inlier_ratio),
-            "rotation_error_deg": round(degrees, 2), "translation_error": float(f"{error:.4g}"),
+            "class": failure_class(stayed["success"], from_truth.inlier_ratio, result.inlier_ratio),
+            "rotation_error_deg": returned["rotation_error_deg"], "translation_error": returned["translation_error"],
             "inlier_ratio": round(result.inlier_ratio, 4), "reliable": bool(result.reliable),
-            "from_truth": {"rotation_error_deg": round(truth_degrees, 2),
-                           "translation_error": float(f"{truth_error:.4g}"),
+            "from_truth": {"rotation_error_deg": stayed["rotation_error_deg"],
+                           "translation_error": stayed["translation_error"],
                            "inlier_ratio": round(from_truth.inlier_ratio, 4)},
             "seconds": round(seconds, 3)}
 
