@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from bench.real_scans import Case, data_dir, load_cases, pose_errors, thresholds
+from bench.real_scans import Case, data_dir, judged, load_cases
 from bench.report_io import reliable_totals
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
@@ -84,10 +84,7 @@ def outcome(registrar: Registrar, case: Case) -> dict:
     started = time.perf_counter()
     result = registrar.register(case.source, case.target, refine="icp-plane", rotation_search="auto")
     seconds = time.perf_counter() - started
-    degrees, error = pose_errors(result.rotation, result.translation, case.src_to_tgt)
-    max_deg, max_error = thresholds(case.sensor, case.scale)
-    return {"success": bool(degrees < max_deg and error < max_error), "reliable": bool(result.reliable),
-            "rotation_error_deg": round(degrees, 3), "translation_error": float(f"{error:.4g}"),
+    return {**judged(case, result.rotation, result.translation), "reliable": bool(result.reliable),
             "seconds": round(seconds, 4)}
 
 
