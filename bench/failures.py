@@ -28,13 +28,10 @@ from collections import Counter
 from pathlib import Path
 
 from bench.real_scans import Case, data_dir, judged
-from bench.search_network import cases
+from bench.search_network import DEFAULTS, cases
 from service.manifest import bundled_models_dir
-from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import Registrar
-from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 
-DEFAULTS = {"refine": SERVICE_DEFAULT_REFINE, "rotation_search": SERVICE_DEFAULT_ROTATION_SEARCH}  # a request's
 CLASSES = ("truth leaves", "fits worse", "not reached")
 
 

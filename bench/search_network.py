@@ -2,13 +2,13 @@
 
 The real-scan set's cases (:func:`bench.real_scans.load_cases`: every pair as scanned and at ``--turns`` seeded
 rotations for each of ``--seeds``, in each of ``--scales``; the as-scanned cases once) are registered in process with
-the service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``) by registrars of the bundled ``general``
-model, taking turns case by case: one as it is, and one whose rotation search runs the network of the exported model
-``DIR`` (e.g. a checkpoint of ``mfgnet train --recipe search``, exported with ``mfgnet export --setting resampled``)
-through the pipeline's stage hook (:class:`service.stages.pipeline.Stages`); the plain pass, refinements and checks
-stay ``general``'s. Every model must normalise clouds as ``general`` does (the same reference radius). Several
-``DIR`` (the checkpoints of one run, say) get one registrar each in the same run, named by their folders, beside one
-``general``.
+the service's defaults (``DEFAULTS``: ``refine="icp-plane"``, ``rotation_search="auto"``) by registrars of the bundled
+``general`` model, taking turns case by case: one as it is, and one whose rotation search runs the network of the
+exported model ``DIR`` (e.g. a checkpoint of ``mfgnet train --recipe search``, exported with ``mfgnet export --setting
+resampled``) through the pipeline's stage hook (:class:`service.stages.pipeline.Stages`); the plain pass, refinements
+and checks stay ``general``'s. Every model must normalise clouds as ``general`` does (the same reference radius).
+Several ``DIR`` (the checkpoints of one run, say) get one registrar each in the same run, named by their folders, beside
+one ``general``.
 
 It prints and writes (``--json``) each registrar's successes (the data README's thresholds), ``reliable`` results
 given and wrong, precision, coverage (the share of successes given ``reliable``) and seconds, and every case whose
@@ -27,11 +27,14 @@ from pathlib import Path
 from bench.real_scans import Case, data_dir, judged, load_cases
 from bench.report_io import reliable_totals
 from service.manifest import bundled_models_dir
+from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import Registrar
+from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 from service.stages.pipeline import Stages
 from service.stages.search import search
 
 VARIANTS = ("general", "search network")
+DEFAULTS = {"refine": SERVICE_DEFAULT_REFINE, "rotation_search": SERVICE_DEFAULT_ROTATION_SEARCH}  # a request's
 
 
 def searching_with(network: Registrar) -> Callable:
@@ -82,7 +85,7 @@ def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ..
 def outcome(registrar: Registrar, case: Case) -> dict:
     """Success, ``reliable``, errors and seconds of one case."""
     started = time.perf_counter()
-    result = registrar.register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    result = registrar.register(case.source, case.target, **DEFAULTS)
     seconds = time.perf_counter() - started
     return {**judged(case, result.rotation, result.translation), "reliable": bool(result.reliable),
             "seconds": round(seconds, 4)}
