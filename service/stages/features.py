@@ -38,8 +38,13 @@ DESCRIBE_BELOW = 0.45
 # size. Scans do (15,000-65,000 points against 768 in the real-scan set); the ModelNet40 pairs (512-2,048 points) do
 # not: on 680 simulated range scans of 512 points at any orientation the candidate changed no result.
 DENSITY = 4
-# A feature pose becomes a candidate when at least this many matched pairs agree with it. On the 36 one-turn real
-# cases the poses within 15 deg of the truth had 25-208 agreeing pairs but one (13), the others 6-18.
+# A feature pose becomes a candidate when at least this many matched pairs agree with it: the refinement ranks it
+# beside the network's pose. On the 756 in-process real cases 12 registered 3 more than 15 and called 11 more
+# `reliable` (none wrong); 10 called two wrong derived cases `reliable`
+# (docs/decisions/0048-feature-candidates-from-twelve-agreeing-pairs.md). On the 36 one-turn real cases the poses
+# within 15 deg of the truth had 25-208 agreeing pairs but one (13), the others 6-18.
+JOIN_SUPPORT = 12
+# A feature pose confirms the refined result it agrees with (no search, feature_confirmed) when at least this many do.
 MIN_SUPPORT = 15
 # A refined result within this angle of the feature pose lies in its basin (the feature poses are coarse: the refined
 # results that kept one lay 0.3-25 deg from it on the 756 in-process real cases, those that did not 55-179 deg).
@@ -64,7 +69,7 @@ def describable(work: Working) -> bool:
 
 def feature_candidates(registrar: Registrar, work: Working, found: Candidates, iterations: int, keypoints: int,
                        timing: dict[str, float]) -> Candidates:
-    """``found`` (the plain network's candidate) and, where the clouds are :func:`describable` and ``MIN_SUPPORT``
+    """``found`` (the plain network's candidate) and, where the clouds are :func:`describable` and ``JOIN_SUPPORT``
     matched pairs agree with it, the feature pose of the entered clouds (in the initial guess's frame), normalised,
     with the network's output from its rotation on the search's rows (its correspondences, should it win; remapped to
     the working rows). Records ``timing["features"]`` where it computed descriptors."""
@@ -73,7 +78,7 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
     started = time.perf_counter()
     source = work.src_e @ work.R_init.T + work.t_init  # [Ne, 3] the entered source after the initial guess
     pose = feature_pose(source, work.tgt_e, feature_voxel(work))
-    if pose is None or pose.support < MIN_SUPPORT:
+    if pose is None or pose.support < JOIN_SUPPORT:
         timing["features"] = 1000 * (time.perf_counter() - started)
         return found
     rotation, translation = work.norm.normalize_pose(pose.rotation, pose.translation)

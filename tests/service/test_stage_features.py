@@ -9,10 +9,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import lumpy_sphere
 
+import service.stages.features as features_stage
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.rotation_search import rotation_between_deg
-from service.stages.features import MIN_SUPPORT, feature_candidates, feature_confirmed
+from service.stages.features import JOIN_SUPPORT, MIN_SUPPORT, feature_candidates, feature_confirmed
 from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.pipeline import Stages
@@ -120,6 +121,22 @@ def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_suppo
     assert not feature_confirmed(work, plain, right)  # no feature candidate joined
     weak = dataclasses.replace(found, feature_support=MIN_SUPPORT - 1)
     assert not feature_confirmed(work, weak, right)
+
+
+def test_a_feature_pose_joins_from_join_support_and_confirms_only_from_min_support(registrar, monkeypatch) -> None:
+    assert JOIN_SUPPORT < MIN_SUPPORT  # a candidate the ranking may turn down needs less agreement than a confirmation
+    request, work, plain, R = plain_pass_of_a_half_turned_scan(registrar)
+    found = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
+    support = found.feature_support
+    monkeypatch.setattr(features_stage, "JOIN_SUPPORT", support + 1)  # one pair short: it does not join
+    short = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
+    assert len(short.poses) == 1 and short.feature_support == 0
+    monkeypatch.setattr(features_stage, "JOIN_SUPPORT", support)  # enough to join ...
+    monkeypatch.setattr(features_stage, "MIN_SUPPORT", support + 1)  # ... not to confirm
+    joined = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
+    assert len(joined.poses) == 2 and joined.feature_support == support
+    right = registrar.solve(work, request, None, {}, found=joined)
+    assert rotation_between_deg(right.rotation, R) < 1.0 and not feature_confirmed(work, joined, right)
 
 
 @pytest.mark.parametrize(("overlay", "doubted", "described", "searched_ahead"), [
