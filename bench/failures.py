@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 from collections import Counter
 from pathlib import Path
 
 from bench.real_scans import Case, data_dir, judged
-from bench.search_network import DEFAULTS, cases
+from bench.search_network import DEFAULTS, cases, registered
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 
@@ -45,9 +44,7 @@ def failure_class(truth_right: bool, truth_ratio: float, wrong_ratio: float) -> 
 
 def examine(registrar: Registrar, case: Case) -> dict | None:
     """``None`` where the defaults register ``case`` right; else the failure's row."""
-    started = time.perf_counter()
-    result = registrar.register(case.source, case.target, **DEFAULTS)
-    seconds = time.perf_counter() - started
+    result, seconds = registered(registrar, case)
     returned = judged(case, result.rotation, result.translation)
     if returned["success"]:
         return None

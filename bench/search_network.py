@@ -29,6 +29,7 @@ from bench.report_io import reliable_totals
 from service.manifest import bundled_models_dir
 from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import Registrar
+from service.result import RegistrationResult
 from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 from service.stages.pipeline import Stages
 from service.stages.search import search
@@ -82,11 +83,16 @@ def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ..
     return out
 
 
-def outcome(registrar: Registrar, case: Case) -> dict:
-    """Success, ``reliable``, errors and seconds of one case."""
+def registered(registrar: Registrar, case: Case) -> tuple[RegistrationResult, float]:
+    """One case registered with the service's ``DEFAULTS``: the result and its seconds."""
     started = time.perf_counter()
     result = registrar.register(case.source, case.target, **DEFAULTS)
-    seconds = time.perf_counter() - started
+    return result, time.perf_counter() - started
+
+
+def outcome(registrar: Registrar, case: Case) -> dict:
+    """Success, ``reliable``, errors and seconds of one case."""
+    result, seconds = registered(registrar, case)
     return {**judged(case, result.rotation, result.translation), "reliable": bool(result.reliable),
             "seconds": round(seconds, 4)}
 
