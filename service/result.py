@@ -30,7 +30,7 @@ class RegistrationResult:
     iterations: int
     timing_ms: dict[str, float]
     iteration_poses: list[IterationPose] = field(default_factory=list)
-    stability: float | None = None  # service.stability: below WEAK_EIGENVALUE the pose is weakly constrained
+    stability: float | None = None  # service.stability: weakly constrained below WEAK_EIGENVALUE (dense targets: 0.02)
 
     @property
     def transform(self) -> np.ndarray:

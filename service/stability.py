@@ -51,6 +51,7 @@ class Stability:
     probe_ratio: float | None = None  # RMS distance after / before a one-spacing move along it (low eigenvalues only)
     centre: np.ndarray | None = None  # [3] the point the rotation part turns about (the pairs' centroid)
     scale: float = 1.0  # the target's RMS radius: the translation part per unit step is ``motion[3:] * scale``
+    weak_below: float = WEAK_EIGENVALUE  # the eigenvalue below which the pose counts as weakly constrained
 
     @property
     def turn_share(self) -> float:
@@ -69,7 +70,7 @@ class Stability:
     @property
     def weak(self) -> bool:
         """Weakly constrained: neither the surface nor the sample points pin the least constrained motion down."""
-        return self.eigenvalue < WEAK_EIGENVALUE and (self.probe_ratio is None or self.probe_ratio < PINNED_RATIO)
+        return self.eigenvalue < self.weak_below and (self.probe_ratio is None or self.probe_ratio < PINNED_RATIO)
 
 
 def unit_step(motion: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -79,13 +80,14 @@ def unit_step(motion: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]
 
 
 def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_distance: float,
-                   surface: Surface | None = None) -> Stability | None:
+                   surface: Surface | None = None, weak_below: float = WEAK_EIGENVALUE) -> Stability | None:
     """:class:`Stability` of the moved source ``src_in_tgt [N, 3]`` on ``tgt [M, 3]`` (``tree``: its KD-tree), over
     the source points within ``max_distance`` of a target point whose normal is defined.
 
     ``surface``: the target's normals when the caller has them (the refinement's), else only the normals of the
-    target points that are some source point's partner are computed. None with fewer than ``PLANE_MIN_INLIERS``
-    such points (no rigid motion is determined by them).
+    target points that are some source point's partner are computed. ``weak_below``: the eigenvalue below which the
+    pose is weakly constrained (:attr:`Stability.weak`; the samples are probed below it). None with fewer than
+    ``PLANE_MIN_INLIERS`` such points (no rigid motion is determined by them).
     """
     dist, nearest = tree.query(src_in_tgt, k=1, distance_upper_bound=max_distance)  # [N], [N]
     paired = dist < max_distance  # [N]; misses come back as inf
@@ -104,9 +106,9 @@ def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_di
     eigenvalues, eigenvectors = np.linalg.eigh(J.T @ J / len(p))  # ascending
     eigenvalue, motion = float(max(eigenvalues[0], 0.0)), eigenvectors[:, 0]
     probe = None
-    if eigenvalue < WEAK_EIGENVALUE:  # only then does it matter whether the samples pin the motion down
+    if eigenvalue < weak_below:  # only then does it matter whether the samples pin the motion down
         probe = _probe_ratio(p, dist[paired], tgt, tree, centre, scale, motion)
-    return Stability(eigenvalue, motion, len(p), probe, centre, scale)
+    return Stability(eigenvalue, motion, len(p), probe, centre, scale, weak_below)
 
 
 def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree, centre: np.ndarray,
@@ -148,4 +150,4 @@ def weak_motion_warning(stability: Stability | None) -> str | None:
         what = f"a turn about ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) with a slide"
         why = "the overlap may be symmetric"
     return (f"weakly constrained: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
-            f"{WEAK_EIGENVALUE:g}); {why}, and the pose along it is a guess")
+            f"{stability.weak_below:g}); {why}, and the pose along it is a guess")

@@ -159,16 +159,18 @@ class Quality(BaseModel):
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
         "0.3 or below 0.45-0.5 of what a right pose can reach at the target's sampling, a loose fit (source "
         "points near the target but off its surface: a 'loose fit' warning), identical / collinear points, a weakly "
-        "constrained pose (stability below 0.01: a 'weakly constrained' warning), or another pose -- turned far from "
-        "the returned one, or placing the source elsewhere -- that fits almost as well (an 'ambiguous' warning). "
+        "constrained pose (stability below 0.01, 0.02 on a dense target: a 'weakly constrained' warning), or "
+        "another pose -- turned far from the returned one, or placing the source elsewhere -- that fits almost as "
+        "well (an 'ambiguous' warning). "
         "docs/RELIABILITY.md lists each condition."
     )
     stability: float | None = Field(
         default=None,
         description="How firmly the geometry pins the pose down: the smallest eigenvalue of the point-to-plane "
         "information matrix per paired point (unitless: rotation arms in units of the target's RMS radius). "
-        "Below 0.01 some motion -- a turn about an axis of symmetry, a slide along a flat overlap -- hardly "
-        "changes the fit and the pose along it is a guess; null with too few paired points.",
+        "Below 0.01 (0.02 where the target holds 4x the working points) some motion -- a turn about an axis of "
+        "symmetry, a slide along a flat overlap -- hardly changes the fit and the pose along it is a guess; null "
+        "with too few paired points.",
     )
 
 

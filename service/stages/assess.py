@@ -11,7 +11,7 @@ from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
 from service.quality import poor_fit as poor_fit_of  # the rule's band, given the attainable ratio
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
-from service.stability import pose_stability, weak_motion_warning
+from service.stability import WEAK_EIGENVALUE, pose_stability, weak_motion_warning
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, Working, to_caller
 from service.stages.ranking import samples_the_surface
@@ -21,6 +21,10 @@ from service.stages.refine import Refined
 # NEAR_SURFACE_FACTOR inlier distances of the entered target's points a reliable result has at least this share
 # within one (docs/decisions/0015-reliable-on-the-target-surface.md).
 RELIABLE_SURFACE_SHARE = 0.66
+# With a dense target, a pose whose stability is below this is weakly constrained (not reliable), instead of
+# service.stability.WEAK_EIGENVALUE: right poses on real scans stay at 0.03 and above, cut or not, while a wrong pose
+# on a small patch of the overlap turns or slides more freely (docs/decisions/0050-a-firmer-pose-on-dense-targets.md).
+RELIABLE_STABILITY_ON_SURFACE = 0.02
 
 
 def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
@@ -53,6 +57,12 @@ def poor_fit(work: Working, inlier_ratio: float) -> bool:
     return poor_fit_of(inlier_ratio, *reliable_attainable(work))
 
 
+def weak_below(work: Working) -> float:
+    """The stability eigenvalue below which a pose on ``work`` is weakly constrained: ``RELIABLE_STABILITY_ON_SURFACE``
+    on a dense entered target (:func:`service.stages.ranking.samples_the_surface`), else ``WEAK_EIGENVALUE``."""
+    return RELIABLE_STABILITY_ON_SURFACE if samples_the_surface(work) else WEAK_EIGENVALUE
+
+
 def iteration_poses(work: Working, candidate: SearchCandidate) -> list[IterationPose]:
     """The caller's cumulative pose after each network iteration of ``candidate`` (from its start rotation)."""
     net, R_start = candidate.output, candidate.start
@@ -71,8 +81,9 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     """Inlier ratio, residual and ``reliable`` (:func:`service.quality.assess`), the pose's stability
     (:func:`service.stability.pose_stability`) and the winning candidate's correspondences as a result.
 
-    Not reliable when the quality says so, the candidate ranking was ambiguous, the motion is weakly constrained,
-    or the pose lies off a dense target's surface (:func:`off_the_surface`); records ``timing["postprocess"]``."""
+    Not reliable when the quality says so, the candidate ranking was ambiguous, the motion is weakly constrained
+    (:func:`weak_below`), or the pose lies off a dense target's surface (:func:`off_the_surface`); records
+    ``timing["postprocess"]``."""
     candidate = found.poses[refined.pick]
     net = candidate.output
     poses = iteration_poses(work, candidate) if return_iterations else []
@@ -82,7 +93,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     src = work.working_source  # [Ns, 3] caller's frame
     attainable, on_surface = reliable_attainable(work)
     quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface)
-    stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
+    stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working, weak_below(work))
     weak = weak_motion_warning(stability)
     reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate
     loose = off_the_surface(work, R, t) if reliable else None  # only where nothing else took `reliable` away

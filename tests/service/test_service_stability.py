@@ -69,6 +69,16 @@ def test_shared_sample_points_pin_the_turn_of_a_shape_of_revolution() -> None:
     assert weak_motion_warning(shared) is None
 
 
+def test_a_caller_can_ask_for_a_firmer_pose() -> None:
+    """``weak_below``: the same pose is weakly constrained below a higher floor, with the floor in the warning."""
+    source, target = asymmetric_blob(800, 0), asymmetric_blob(800, 1)
+    default = stability_of(source, target)
+    firmer = pose_stability(source, target, KDTree(target), 0.1, weak_below=2 * default.eigenvalue)
+    assert not default.weak and default.probe_ratio is None
+    assert firmer.eigenvalue == default.eigenvalue and firmer.probe_ratio < PINNED_RATIO and firmer.weak
+    assert f"< {2 * default.eigenvalue:g})" in weak_motion_warning(firmer)
+
+
 def test_an_asymmetric_shape_pins_the_pose_down() -> None:
     stability = stability_of(asymmetric_blob(800, 0), asymmetric_blob(800, 1))
     assert stability is not None and stability.eigenvalue > 3 * WEAK_EIGENVALUE
