@@ -27,24 +27,6 @@ SCORED_AT_ONCE = 500  # RANSAC poses scored per batch ([SCORED_AT_ONCE, C, 3] fl
 
 
 @dataclass(frozen=True)
-class Matches:
-    """Mutually matched cells of the two reduced clouds (the means of a grid's cells)."""
-
-    source: np.ndarray  # [C, 3] source cell means
-    target: np.ndarray  # [C, 3] their matched target cell means
-    voxel: float  # the grid's edge
-
-    @property
-    def distance(self) -> float:
-        """How near a pose must bring a matched pair for it to agree: ``INLIER_VOXELS`` voxels."""
-        return INLIER_VOXELS * self.voxel
-
-    def agreeing(self, R: np.ndarray, t: np.ndarray) -> int:
-        """How many matched pairs the ``src_to_tgt`` pose ``R [3, 3]``, ``t [3]`` brings within :attr:`distance`."""
-        return int(agreeing(R[None], t[None], self.source, self.target, self.distance).sum())
-
-
-@dataclass(frozen=True)
 class FeaturePose:
     """A coarse pose and how many matched pairs agree with it."""
 
@@ -69,14 +51,6 @@ def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int
     """The coarse pose of ``source [N, 3]`` onto ``target [M, 3]`` on a grid of ``voxel`` edges, or ``None`` where
     the grid has no positive size, a reduced cloud is too small to describe or no triplet of matches agrees in
     shape."""
-    matches = matched_cells(source, target, voxel)
-    return None if matches is None else pose_of(matches, seed)
-
-
-def matched_cells(source: np.ndarray, target: np.ndarray, voxel: float) -> Matches | None:
-    """The mutually matched descriptors of ``source [N, 3]`` and ``target [M, 3]`` reduced to the means of a grid of
-    ``voxel`` edges (coarsened until both fit ``MAX_CELLS``), or ``None`` where the grid has no positive size or a
-    reduced cloud is too small to describe."""
     if not (np.isfinite(voxel) and voxel > 0):
         return None
     src, tgt = voxel_means(source, voxel), voxel_means(target, voxel)  # [Vs, 3], [Vt, 3]
@@ -87,13 +61,7 @@ def matched_cells(source: np.ndarray, target: np.ndarray, voxel: float) -> Match
         return None
     radius = RADIUS_VOXELS * voxel
     i, j = mutual_matches(describe(src, radius), describe(tgt, radius))
-    return Matches(src[i], tgt[j], voxel)  # [C, 3] each
-
-
-def pose_of(matches: Matches, seed: int = 0) -> FeaturePose | None:
-    """The pose that most ``matches`` agree with, from seeded triplets of them whose sides agree (RANSAC), refitted on
-    those that agree; ``None`` with fewer than 3 matches or no triplet that agrees in shape."""
-    p, q, voxel, distance = matches.source, matches.target, matches.voxel, matches.distance
+    p, q = src[i], tgt[j]  # [C, 3] matched points
     if len(p) < 3:
         return None
     triplets = np.random.default_rng(seed).integers(0, len(p), size=(TRIPLETS, 3))  # [H, 3]
@@ -105,10 +73,10 @@ def pose_of(matches: Matches, seed: int = 0) -> FeaturePose | None:
     if not agree.any():
         return None
     R, t = weighted_procrustes(p3[agree], q3[agree])  # [H', 3, 3], [H', 3]
-    support = np.concatenate([agreeing(R[k:k + SCORED_AT_ONCE], t[k:k + SCORED_AT_ONCE], p, q, distance)
+    support = np.concatenate([agreeing(R[k:k + SCORED_AT_ONCE], t[k:k + SCORED_AT_ONCE], p, q, INLIER_VOXELS * voxel)
                               .sum(axis=1) for k in range(0, len(R), SCORED_AT_ONCE)])  # [H']
     best = int(support.argmax())  # the first of equals: seeded, so repeatable
-    kept = agreeing(R[best:best + 1], t[best:best + 1], p, q, distance)[0]  # [C]
+    kept = agreeing(R[best:best + 1], t[best:best + 1], p, q, INLIER_VOXELS * voxel)[0]  # [C]
     R1, t1 = weighted_procrustes(p[kept], q[kept])
     return FeaturePose(R1, t1, int(support[best]), len(p))
 

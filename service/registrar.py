@@ -325,7 +325,6 @@ class Registrar:
         work = stages.normalise(stages.sample(request), self.reference_radius)
         timing["preprocess"] = 1000 * (time.perf_counter() - t0)
         mode = request.options.search
-        matches = None  # the feature stage's matched descriptors, where it ran
         if mode == "on":
             result = self.solve(work, request, request.hypotheses, timing)
         else:
@@ -334,7 +333,6 @@ class Registrar:
             describe = request.options.refine_mode != "none"
             if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
                 found = stages.features(self, work, found, request.iterations, request.keypoints, timing)
-                matches = found.matches
             # the search ahead only where the network's pose is the only candidate
             ahead = self.search_ahead(work, request) if overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1 else None
             try:
@@ -343,7 +341,6 @@ class Registrar:
                         and looks_wrong(work, result)):
                     # a passable plain pose refined into a doubtful result: a feature candidate before the search
                     more = stages.features(self, work, found, request.iterations, request.keypoints, timing)
-                    matches = more.matches
                     if len(more.poses) > len(found.poses):
                         found, result = more, self.solve(work, request, None, timing, found=more)
                 if mode == "auto":  # the search only when the plain result looks wrong
@@ -357,7 +354,6 @@ class Registrar:
                     ahead.cancel()  # no-op when its result was taken
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
         result = stages.symmetry(work, result, request.options, timing)  # reliable: no half turn fits as well
-        result = stages.agreement(result, matches)  # reliable: the matched descriptors agree with the pose
         result = anchors.result_to_caller(result)
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result

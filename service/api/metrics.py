@@ -8,7 +8,7 @@ LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0
 # Warning kinds are the text before a warning's colon ("weakly constrained", "target coplanar", ...): a fixed set
 # in this code base; anything else is counted as "other" so that no request can grow the label set.
 WARNING_KINDS = frozenset({
-    "low overlap", "poor fit", "loose fit", "weakly constrained", "ambiguous", "refinement", "unconfirmed",
+    "low overlap", "poor fit", "loose fit", "weakly constrained", "ambiguous", "refinement",
     *(f"{cloud} {kind}" for cloud in ("source", "target")
       for kind in ("empty", "identical", "collinear", "few distinct points", "coplanar")),
 })

@@ -6,8 +6,7 @@ Where the plain network's pose overlays the target poorly (:func:`service.stages
 ranks both and refines the better one; where it overlays passably (below ``DESCRIBE_BELOW``), only once the refined
 plain result looks wrong, before the search. Where enough matched pairs agree with it, the search is not started
 ahead, and a result that then fits well, or that the feature pose confirms (:func:`feature_confirmed`), needs no
-search at all (``docs/decisions/0034-a-feature-matched-candidate.md``, ``0035``, ``0036``). Last of all, a ``reliable``
-result that too few of the matched descriptors agree with loses ``reliable`` (:func:`descriptor_agreement`, ``0052``).
+search at all (``docs/decisions/0034-a-feature-matched-candidate.md``, ``0035``, ``0036``).
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.feature_match import Matches, matched_cells, pose_of
+from service.feature_match import feature_pose
 from service.quality import nearest_other_distances
 from service.rotation_search import SearchCandidate, network_from, rotation_between_deg
 from service.stages.network import Candidates
@@ -50,10 +49,6 @@ MIN_SUPPORT = 15
 # A refined result within this angle of the feature pose lies in its basin (the feature poses are coarse: the refined
 # results that kept one lay 0.3-25 deg from it on the 756 in-process real cases, those that did not 55-179 deg).
 AGREEMENT_DEG = 30.0
-# Where the descriptors were matched, a reliable result has at least this many matched pairs agreeing with it: right
-# reliable results on the real-scan set had 6-200, while a wrong one that fits better than the truth at low overlap
-# had 3 (docs/decisions/0052-reliable-needs-the-descriptors-agreement.md).
-MIN_AGREEING = 5
 
 
 def feature_voxel(work: Working) -> float:
@@ -82,11 +77,7 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
         return found
     started = time.perf_counter()
     source = work.src_e @ work.R_init.T + work.t_init  # [Ne, 3] the entered source after the initial guess
-    matches = matched_cells(source, work.tgt_e, feature_voxel(work))
-    pose = None if matches is None else pose_of(matches)
-    if matches is not None:  # kept in the entered source's frame, as the result's pose is
-        matches = replace(matches, source=(matches.source - work.t_init) @ work.R_init)
-        found = replace(found, matches=matches)
+    pose = feature_pose(source, work.tgt_e, feature_voxel(work))
     if pose is None or pose.support < JOIN_SUPPORT:
         timing["features"] = 1000 * (time.perf_counter() - started)
         return found
@@ -98,8 +89,7 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
     output = replace(output, src_kp=sub_s[output.src_kp], tgt_kp=sub_t[output.tgt_kp])  # working rows
     candidate = SearchCandidate(output, rotation, rotation, translation)
     timing["features"] = 1000 * (time.perf_counter() - started)
-    return Candidates([*found.poses, candidate], found.net_s, found.net_t, feature_support=pose.support,
-                      matches=matches)
+    return Candidates([*found.poses, candidate], found.net_s, found.net_t, feature_support=pose.support)
 
 
 def feature_confirmed(work: Working, found: Candidates, result: RegistrationResult) -> bool:
@@ -112,18 +102,3 @@ def feature_confirmed(work: Working, found: Candidates, result: RegistrationResu
     candidate = found.poses[-1]
     rotation, _ = to_caller(work, candidate.rotation, candidate.translation)
     return rotation_between_deg(rotation, result.rotation) < AGREEMENT_DEG
-
-
-def descriptor_agreement(result: RegistrationResult, matches: Matches | None) -> RegistrationResult:
-    """``result``, no longer ``reliable`` where the feature stage matched descriptors (``matches``, the entered source's
-    frame, as the result's pose) and fewer than ``MIN_AGREEING`` matched pairs agree with its pose: the clouds' own
-    surface features do not confirm it (a pose on a patch that merely fits, at low overlap)."""
-    if matches is None or not result.reliable:
-        return result
-    agree = matches.agreeing(result.rotation, result.translation)
-    if agree < MIN_AGREEING:
-        result.reliable = False
-        result.warnings = [*result.warnings, (
-            f"unconfirmed: only {agree} of the {len(matches.source)} matched surface descriptors agree with the pose "
-            f"(< {MIN_AGREEING}); the clouds may overlap too little to tell")]
-    return result

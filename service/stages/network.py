@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.feature_match import Matches
 from service.icp import NORMAL_NEIGHBOURS
 from service.rotation_search import SearchCandidate
 from service.stages.normalise import Working
@@ -24,7 +23,6 @@ class Candidates:
     net_s: np.ndarray  # [Ns'] the caller's source rows the network ran on
     net_t: np.ndarray  # [Nt'] the caller's target rows
     feature_support: int = 0  # matched pairs agreeing with the last pose, a feature candidate (0: none joined)
-    matches: Matches | None = None  # the feature stage's matched descriptors (entered source frame), where it ran
 
 
 def network(registrar: Registrar, work: Working, iterations: int, keypoints: int,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 from service.stages.anchor import anchor
 from service.stages.assess import assess_result
-from service.stages.features import descriptor_agreement, feature_candidates
+from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
 from service.stages.guess import guess_candidate
@@ -42,4 +42,3 @@ class Stages:
     auto_search: Callable = auto_search  # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided)
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
-    agreement: Callable = descriptor_agreement  # (RegistrationResult, Matches | None) -> RegistrationResult

@@ -10,18 +10,10 @@ from scipy.spatial.transform import Rotation
 from shapes import lumpy_sphere
 
 import service.stages.features as features_stage
-from service.feature_match import Matches
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.rotation_search import rotation_between_deg
-from service.stages.features import (
-    JOIN_SUPPORT,
-    MIN_AGREEING,
-    MIN_SUPPORT,
-    descriptor_agreement,
-    feature_candidates,
-    feature_confirmed,
-)
+from service.stages.features import JOIN_SUPPORT, MIN_SUPPORT, feature_candidates, feature_confirmed
 from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.pipeline import Stages
@@ -196,36 +188,3 @@ def test_sparse_clouds_get_no_feature_candidate_before_the_search_either(monkeyp
     assert calls == []
     plain.register(source, target, refine="icp-plane", rotation_search="auto")
     assert calls == ["features"]
-
-
-def test_the_matched_descriptors_lie_in_the_entered_frames_with_or_without_a_guess(registrar) -> None:
-    """The feature stage keeps its matches in the entered source's frame, the frame of the result's pose."""
-    source, target, R = turned_pair(150)
-    guess = np.eye(4)
-    guess[:3, :3], guess[:3, 3] = Rotation.from_rotvec([0.0, 0.5, 0.2]).as_matrix(), [1.0, 2.0, 3.0]
-    half_turn = Rotation.from_rotvec([0, 0, np.pi]).as_matrix()
-    for options in ({}, {"initial_transform": guess}):
-        request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": "auto", **options},
-                           registrar.default_iterations, registrar.default_keypoints)
-        work = normalise(sample(request), registrar.reference_radius)
-        plain = network(registrar, work, request.iterations, request.keypoints, {})
-        matches = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {}).matches
-        assert matches is not None and matches.agreeing(R, T_TRUE) >= MIN_SUPPORT, options
-        assert matches.agreeing(R @ half_turn, T_TRUE) < MIN_AGREEING, options
-
-
-def test_a_reliable_result_too_few_matched_descriptors_agree_with_is_not_reliable(registrar) -> None:
-    source, target, _ = turned_pair(150)
-    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
-    result = dataclasses.replace(result, reliable=True, warnings=[])  # as every other check left it
-    cells = np.random.default_rng(0).uniform(-1.0, 1.0, (40, 3))
-    moved = cells @ result.rotation.T + result.translation  # [40, 3] where the pose puts them
-    def kept(count: int) -> Matches:  # the pose brings `count` matched pairs together, the others 5 units apart
-        return Matches(cells, moved + np.r_[np.zeros((count, 3)), np.full((40 - count, 3), 5.0)], voxel=0.01)
-
-    enough = descriptor_agreement(dataclasses.replace(result), kept(MIN_AGREEING))
-    assert enough.reliable and not any(w.startswith("unconfirmed") for w in enough.warnings)
-    too_few = descriptor_agreement(dataclasses.replace(result), kept(MIN_AGREEING - 1))
-    assert not too_few.reliable
-    assert any(w.startswith(f"unconfirmed: only {MIN_AGREEING - 1} of the 40") for w in too_few.warnings)
-    assert descriptor_agreement(dataclasses.replace(result), None).reliable  # no descriptors: nothing to say
