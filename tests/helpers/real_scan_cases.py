@@ -29,12 +29,17 @@ def general_reference_radius() -> float:
     return float(load_manifest(GENERAL).normalization["reference_radius"])
 
 
-def real_case(pair: str, seed: int, variant: str, scale: float = 1.0) -> Case:
-    """``pair``'s ``variant`` (``scanned``, ``turned``, ``turned-2``, ...) loaded alone at ``seed`` and ``scale``, as
-    :func:`bench.real_scans.load_cases` makes it; skips without the set or the bundled model."""
+def skip_without(pair: str) -> None:
+    """Skips the calling test when ``pair`` of the real-scan set or the bundled model ``general`` is absent."""
     if not (data_dir() / f"{pair}.npz").exists():
         pytest.skip(f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
     skip_without_general()
+
+
+def real_case(pair: str, seed: int, variant: str, scale: float = 1.0) -> Case:
+    """``pair``'s ``variant`` (``scanned``, ``turned``, ``turned-2``, ...) loaded alone at ``seed`` and ``scale``, as
+    :func:`bench.real_scans.load_cases` makes it; skips without the set or the bundled model."""
+    skip_without(pair)
     turns = int(variant.rpartition("-")[2]) if variant.startswith("turned-") else 1
     return next(c for c in load_cases(data_dir(), seed, (scale,), [pair], turns=turns) if c.variant == variant)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from real_scan_cases import real_case, register_with_defaults
+from real_scan_cases import real_case, register_with_defaults, skip_without
 
 from bench.altered_scans import ALTERATIONS, altered, cases
 from bench.real_scans import Case, data_dir, thresholds
@@ -28,7 +28,7 @@ def test_a_cut_room_fragment_half_a_turn_off_is_weakly_constrained_on_its_dense_
     """``3dlo_kitchen_34_21`` with its source cut (``bench.altered_scans``'s ``crop``) and turned comes back about half
     a turn off, on a patch of the target that fits it better than the right pose does: no fit tells them apart, but the
     patch pins the pose down less than a dense target pins a right one (decisions/0050)."""
-    real_case("3dlo_kitchen_34_21", 0, "scanned")  # skips without the set or the model
+    skip_without("3dlo_kitchen_34_21")
     label, sensor, source, target, truth = next(
         c for c in cases(data_dir(), "crop", names=["3dlo_kitchen_34_21"]) if c[0].endswith("/turned"))
     result, degrees, error = register_with_defaults(Case(label, sensor, "turned", 1.0, source, target, truth))
