@@ -7,6 +7,7 @@ from functools import cached_property
 
 import numpy as np
 
+from service.free_space import RangeView, range_view
 from service.icp import NORMAL_NEIGHBOURS, Surface
 from service.kdtree import KDTree
 from service.neighbours import knn_graph
@@ -26,6 +27,10 @@ SHORT_REFINE_STRIDE = 3
 # FINE_TARGET_POINTS of the entered target (docs/decisions/0018-fine-refinement-on-denser-clouds.md).
 FINE_SOURCE_POINTS = 2048
 FINE_TARGET_POINTS = 2048
+# An entered cloud with at least this many times its working cloud's points samples its surface densely: the target's
+# surface then stands in for its working samples (service.stages.ranking.close_fit), and either cloud's density can
+# tell a range image (Working.range_views).
+CLOSE_FIT_DENSITY = 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,6 +73,14 @@ class Working(Sampled):
         of :attr:`fine_target` against the working target, computed once per registration (the plain pass and the
         search both assess a pose)."""
         return attainable_on_surface(self.fine_target, self.tgt_w, self.inlier_distance)
+
+    @cached_property
+    def range_views(self) -> tuple[RangeView | None, RangeView | None]:
+        """The entered source's and target's :func:`service.free_space.range_view`, each ``None`` unless the cloud
+        samples its surface densely (``CLOSE_FIT_DENSITY`` times its working cloud's points) as a range image does;
+        built once per registration, when the ``reliable`` rule first asks."""
+        return (range_view(self.src_e) if len(self.src_e) >= CLOSE_FIT_DENSITY * len(self.src_w) else None,
+                range_view(self.tgt_e) if len(self.tgt_e) >= CLOSE_FIT_DENSITY * len(self.tgt_w) else None)
 
     @cached_property
     def plane_frame_rotations(self) -> np.ndarray | None:

@@ -14,6 +14,7 @@ from service.stages.assess import assess_result
 from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
+from service.stages.free_space import free_space
 from service.stages.guess import guess_candidate
 from service.stages.network import network
 from service.stages.normalise import normalise
@@ -42,3 +43,4 @@ class Stages:
     auto_search: Callable = auto_search  # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided)
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
+    free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.rotation_search import ambiguity_warning, close_second, rank_hypotheses
-from service.stages.normalise import Working
+from service.stages.normalise import CLOSE_FIT_DENSITY, Working
 from service.translation_search import translation_candidates
 
 CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
@@ -28,9 +28,6 @@ AMBIGUOUS_SHIFT = 0.2
 # close_fit counts a working source point as on the target within CLOSE_FIT of the inlier distance of the entered
 # target's points (docs/decisions/0014-places-by-their-close-fit.md).
 CLOSE_FIT = 0.5
-# ... and only where the entered target holds at least CLOSE_FIT_DENSITY times the working target's points (else the
-# candidates are ranked by their inlier ratio on the working clouds).
-CLOSE_FIT_DENSITY = 4
 FIT_NAME = "close fit"  # what the ambiguity warnings of a ranking call the close fit
 
 

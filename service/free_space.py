@@ -1,0 +1,153 @@
+"""Free space of a range image: where its sensor saw through, a right pose puts no surface of the other scan.
+
+A range image samples its surface on the sensor's pixel grid, so its density on the surface falls with the cosine of
+the incidence angle. :func:`range_view` finds the viewing direction that best explains a cloud's density that way
+(the correlation of log density and log ``|cos|`` over its points); a cloud it explains well (a correlation of at
+least ``RANGE_IMAGE_CORRELATION``: single range images, not fused room fragments, LiDAR frames or uniform samples of
+a mesh) gets a depth map along that direction: per cell of a grid across it, the nearest and the farthest depth seen.
+
+:func:`free_space_share` then counts the points of the other scan, moved by a pose, that lie well in front of what the
+sensor saw in a cell it saw: space the sensor looked through. Which end of the axis the sensor was on is not known
+from the points, so both are tried and the smaller share counts; surface hidden from the sensor (behind what it saw,
+or in cells it did not see) is no evidence either way. A right pose leaves a few percent there; a pose half a turn off,
+or one that overlays a low-overlap pair better than the truth, puts a tenth or more of the other scan in that space
+(``docs/decisions/0053-free-space-of-range-images.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.kdtree import KDTree
+
+RANGE_IMAGE_CORRELATION = 0.6  # range images 0.76-0.83; fused fragments, LiDAR frames and mesh samples 0.4 or less
+VIEW_QUERIES = 1000  # the points whose density and normal fit the direction (all points are their neighbours: a
+# random share of a pixel grid would blur its density with sampling noise)
+VIEW_NEIGHBOURS = 10
+VIEW_DIRECTIONS = 300  # directions over a hemisphere tried first, then refined about the best
+CELL_SPACINGS = 2.0  # the depth map's cell, in the view points' median spacing
+DEPTH_TOLERANCE_SPACINGS = 4.0  # how far in front of the seen depth a point must lie to count (noise, grazing cells)
+MIN_COSINE = 0.05  # |cos| floor in the fit (grazing normals)
+_SEED = 0  # the queries are drawn the same way for the same cloud
+
+
+@dataclass(frozen=True)
+class RangeView:
+    """A range image's viewing axis and depth map (cells ``[Gu * Gv]``, flattened)."""
+
+    axis: np.ndarray  # [3] unit, the viewing direction up to its sign
+    across: np.ndarray  # [2, 3] unit, spanning the image plane
+    correlation: float  # of log density and log |cos| along ``axis``
+    cell: float  # grid cell, in the cloud's units
+    tolerance: float  # depth tolerance, the same units
+    corner: np.ndarray  # [2] int64, the grid's lowest cell
+    shape: tuple[int, int]
+    nearest: np.ndarray  # [Gu * Gv] largest depth along +axis per cell (-inf: unseen)
+    farthest: np.ndarray  # [Gu * Gv] smallest depth along +axis per cell (+inf: unseen)
+
+    def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The flat cell of each of ``points [N, 3]`` and whether it lies on the grid (``[N]`` each)."""
+        ij = np.floor(points @ self.across.T / self.cell).astype(np.int64) - self.corner  # [N, 2]
+        on = (ij >= 0).all(axis=1) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] < self.shape[1])
+        return np.where(on, ij[:, 0] * self.shape[1] + ij[:, 1], 0), on
+
+
+def hemisphere(count: int) -> np.ndarray:
+    """``[~count / 2, 3]`` unit directions spread evenly over the hemisphere ``z >= 0`` (a Fibonacci lattice)."""
+    i = np.arange(count) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / count)
+    azimuth = np.pi * (1.0 + 5.0**0.5) * i
+    dirs = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+    return dirs[dirs[:, 2] >= 0]
+
+
+def across_axis(axis: np.ndarray) -> np.ndarray:
+    """``[2, 3]``: two unit vectors orthogonal to ``axis [3]`` and to each other."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(axis, u)])
+
+
+def _correlations(log_density: np.ndarray, normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """``[D]`` correlation of ``log_density [Q]`` (centred) with log ``|cos|`` of ``normals [Q, 3]`` and ``dirs``."""
+    log_cos = np.log(np.maximum(np.abs(normals @ dirs.T.astype(np.float32)), MIN_COSINE))  # [Q, D] float32
+    log_cos -= log_cos.mean(axis=0)
+    norms = np.linalg.norm(log_cos, axis=0) * np.linalg.norm(log_density)
+    return (log_density @ log_cos) / np.maximum(norms, 1e-12)
+
+
+def viewing_axis(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+    """The direction that best explains the density of ``points [N >= VIEW_NEIGHBOURS, 3]`` as a range image's, its
+    correlation, and the points' median spacing."""
+    tree = KDTree(points)
+    queries = points[rng.choice(len(points), min(VIEW_QUERIES, len(points)), replace=False)]  # [Q, 3]
+    dist, nb = tree.query(queries, k=VIEW_NEIGHBOURS)  # [Q, k]
+    local = points[nb] - points[nb].mean(axis=1, keepdims=True)  # [Q, k, 3]
+    normals = np.linalg.eigh(np.einsum("qki,qkj->qij", local, local))[1][:, :, 0].astype(np.float32)  # [Q, 3]
+    log_density = -2.0 * np.log(np.maximum(dist[:, -1], 1e-12))  # k points within the k-th distance, on a surface
+    log_density = (log_density - log_density.mean()).astype(np.float32)
+    dirs = hemisphere(VIEW_DIRECTIONS)
+    scores = _correlations(log_density, normals, dirs)
+    best, score = dirs[int(np.argmax(scores))], float(scores.max())
+    offsets = np.vstack([hemisphere(60), -hemisphere(60)])  # [~60, 3] nudges in every direction
+    for step in (0.05, 0.02):
+        near = best + step * offsets
+        near /= np.linalg.norm(near, axis=1, keepdims=True)
+        near_scores = _correlations(log_density, normals, near)
+        if near_scores.max() > score:
+            best, score = near[int(np.argmax(near_scores))], float(near_scores.max())
+    return best, score, float(np.median(dist[:, 1]))
+
+
+def range_view(points: np.ndarray) -> RangeView | None:
+    """The :class:`RangeView` of ``points [N, 3]`` (all of them: the entry reduction bounds ``N``), or ``None``
+    where their density does not follow a viewing direction (correlation below ``RANGE_IMAGE_CORRELATION``) or they
+    are too few to tell."""
+    if len(points) < 4 * VIEW_NEIGHBOURS:
+        return None
+    share = np.asarray(points, dtype=np.float64)  # [N, 3]
+    axis, correlation, spacing = viewing_axis(share, np.random.default_rng(_SEED))
+    if correlation < RANGE_IMAGE_CORRELATION or not spacing > 0:
+        return None
+    across, cell = across_axis(axis), CELL_SPACINGS * spacing
+    ij = np.floor(share @ across.T / cell).astype(np.int64)  # [P, 2]
+    corner = ij.min(axis=0)
+    ij -= corner
+    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    depth = share @ axis
+    nearest = np.full(shape[0] * shape[1], -np.inf)
+    farthest = np.full(shape[0] * shape[1], np.inf)
+    np.maximum.at(nearest, flat, depth)
+    np.minimum.at(farthest, flat, depth)
+    return RangeView(axis, across, correlation, cell, DEPTH_TOLERANCE_SPACINGS * spacing, corner, shape, nearest,
+                     farthest)
+
+
+def free_space_share(view: RangeView, points: np.ndarray) -> float:
+    """The share of ``points [N, 3]`` (in the view's frame) that lie in front of what ``view`` saw in a seen cell, by
+    more than its tolerance, with the sensor at whichever end of the axis gives the smaller share."""
+    if len(points) == 0:
+        return 0.0
+    flat, on = view.cells(points)
+    depth = points @ view.axis  # [N]
+    seen = on & np.isfinite(view.nearest[flat])
+    plus = np.count_nonzero(seen & (depth > view.nearest[flat] + view.tolerance))
+    minus = np.count_nonzero(seen & (depth < view.farthest[flat] - view.tolerance))
+    return min(plus, minus) / len(points)
+
+
+def pose_free_space(source_view: RangeView | None, target_view: RangeView | None, source: np.ndarray,
+                    target: np.ndarray, R: np.ndarray, t: np.ndarray) -> float | None:
+    """The larger :func:`free_space_share` of the pose ``src_to_tgt = (R, t)`` both ways: ``source [N, 3]`` moved into
+    ``target_view`` and ``target [M, 3]`` moved back into ``source_view``; ``None`` where neither cloud is a range
+    image."""
+    shares = []
+    if target_view is not None:
+        shares.append(free_space_share(target_view, source @ R.T + t))
+    if source_view is not None:
+        shares.append(free_space_share(source_view, (target - t) @ R))
+    return max(shares) if shares else None
