@@ -28,6 +28,7 @@ VIEW_QUERIES = 1000  # the points whose density and normal fit the direction (al
 VIEW_NEIGHBOURS = 10
 VIEW_DIRECTIONS = 300  # directions over a hemisphere tried first, then refined about the best
 CELL_SPACINGS = 2.0  # the depth map's cell, in the view points' median spacing
+EDGE_CELLS = 2  # cells this close to an unseen one do not count as seen: a cut or cropped image's edge is no evidence
 DEPTH_TOLERANCE_SPACINGS = 4.0  # how far in front of the seen depth a point must lie to count (noise, grazing cells)
 MIN_COSINE = 0.05  # |cos| floor in the fit (grazing normals)
 _SEED = 0  # the queries are drawn the same way for the same cloud
@@ -123,8 +124,21 @@ def range_view(points: np.ndarray) -> RangeView | None:
     farthest = np.full(shape[0] * shape[1], np.inf)
     np.maximum.at(nearest, flat, depth)
     np.minimum.at(farthest, flat, depth)
+    inner = away_from_edges(np.isfinite(nearest).reshape(shape), EDGE_CELLS).ravel()  # [Gu * Gv]
+    nearest[~inner], farthest[~inner] = -np.inf, np.inf
     return RangeView(axis, across, correlation, cell, DEPTH_TOLERANCE_SPACINGS * spacing, corner, shape, nearest,
                      farthest)
+
+
+def away_from_edges(seen: np.ndarray, cells: int) -> np.ndarray:
+    """``seen [Gu, Gv]`` eroded by ``cells``: a cell stays where every cell within ``cells`` steps along the grid's
+    axes and diagonals is seen."""
+    inner = seen.copy()
+    for _ in range(cells):
+        padded = np.pad(inner, 1, constant_values=False)
+        inner = np.logical_and.reduce([padded[1 + du:padded.shape[0] - 1 + du, 1 + dv:padded.shape[1] - 1 + dv]
+                                       for du in (-1, 0, 1) for dv in (-1, 0, 1)])
+    return inner
 
 
 def free_space_share(view: RangeView, points: np.ndarray) -> float:
