@@ -353,8 +353,8 @@ class Registrar:
                 if ahead is not None:
                     ahead.cancel()  # no-op when its result was taken
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
-        result = stages.symmetry(work, result, request.options, timing)  # reliable: no half turn fits as well
         result = stages.free_space(work, result, request.options, timing)  # reliable: no surface through free space
+        result = stages.symmetry(work, result, request.options, timing)  # reliable: no half turn fits as well
         result = anchors.result_to_caller(result)
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result

@@ -161,7 +161,9 @@ class Quality(BaseModel):
         "points near the target but off its surface: a 'loose fit' warning), identical / collinear points, a weakly "
         "constrained pose (stability below 0.01, 0.02 on a dense target: a 'weakly constrained' warning), or "
         "another pose -- turned far from the returned one, or placing the source elsewhere -- that fits almost as "
-        "well (an 'ambiguous' warning). "
+        "well (an 'ambiguous' warning), or, where a cloud is a range image, a pose that puts the other cloud's "
+        "surface where that sensor saw through (a 'through free space' warning); a loose fit of range images whose "
+        "free space confirms the pose is reliable (a 'confirmed by free space' note). "
         "docs/RELIABILITY.md lists each condition."
     )
     stability: float | None = Field(

@@ -21,30 +21,46 @@ from service.stages.normalise import Working
 # Right poses on the real range images leave a few percent of the other scan in front of what a sensor saw; poses half
 # a turn off, and low-overlap poses that overlay the clouds better than the truth, a tenth or more.
 RELIABLE_FREE_SPACE = 0.08
+# ... and a pose that leaves at most this share there, where a loose fit alone kept it from `reliable`, is: right
+# low-overlap range images overlay each other loosely at 0.014 and less, wrong poses that fit loosely put 0.19 and more
+# there.
+CONFIRMS_BELOW = 0.03
+LOOSE_FIT = "loose fit"  # the warning (service.quality.assess, service.stages.assess.off_the_surface) it overrules
 
 
-def free_space_warning(work: Working, result: RegistrationResult) -> str | None:
-    """A ``through free space`` warning where the pose of ``result`` puts more than ``RELIABLE_FREE_SPACE`` of one
-    cloud's fine points where the other cloud's range-image sensor saw through, else ``None`` (also where neither
-    cloud is a range image)."""
+def free_space_of(work: Working, result: RegistrationResult) -> float | None:
+    """The share of one cloud's fine points that the pose of ``result`` puts where the other cloud's range-image
+    sensor saw through (the larger of the two ways), or ``None`` where neither cloud is a range image."""
     source_view, target_view = work.range_views
-    share = pose_free_space(source_view, target_view, work.fine_source, work.fine_target, result.rotation,
-                            result.translation)
-    if share is None or share <= RELIABLE_FREE_SPACE:
-        return None
-    return (f"through free space: {share:.3f} of one scan's points lie where the other scan's sensor saw through, "
-            f"> {RELIABLE_FREE_SPACE}; a right pose puts surface only where a sensor saw surface or nothing")
+    return pose_free_space(source_view, target_view, work.fine_source, work.fine_target, result.rotation,
+                           result.translation)
+
+
+def only_loose(result: RegistrationResult) -> bool:
+    """Whether every warning of ``result`` (at least one) is a ``loose fit``."""
+    return bool(result.warnings) and all(w.startswith(LOOSE_FIT) for w in result.warnings)
 
 
 def free_space(work: Working, result: RegistrationResult, options: RegistrationOptions,
                timing: dict[str, float]) -> RegistrationResult:
-    """``result``, not ``reliable`` and with :func:`free_space_warning`'s warning where that applies; the time is
-    added to ``timing["postprocess"]``."""
-    if not result.reliable:
+    """``result`` judged by its free space (:func:`free_space_of`): a ``reliable`` one with more than
+    ``RELIABLE_FREE_SPACE`` is not, with a ``through free space`` warning; one that only a ``loose fit`` kept from
+    ``reliable`` is, with at most ``CONFIRMS_BELOW`` (its warnings stay, and a note says so). The time is added to
+    ``timing["postprocess"]``."""
+    if not (result.reliable or only_loose(result)):
         return result
     started = time.perf_counter()
-    warning = free_space_warning(work, result)
+    share = free_space_of(work, result)
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
-    if warning is None:
+    if share is None:
         return result
-    return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
+    if result.reliable and share > RELIABLE_FREE_SPACE:
+        warning = (f"through free space: {share:.3f} of one scan's points lie where the other scan's sensor saw "
+                   f"through, > {RELIABLE_FREE_SPACE}; a right pose puts surface only where a sensor saw surface or "
+                   "nothing")
+        return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
+    if not result.reliable and share <= CONFIRMS_BELOW:
+        note = (f"confirmed by free space: only {share:.3f} of one scan's points lie where the other scan's sensor saw "
+                f"through, <= {CONFIRMS_BELOW}; the loose fit is that of range images that overlap in part")
+        return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, note])
+    return result
