@@ -68,3 +68,39 @@ def test_points_hidden_behind_what_the_sensor_saw_are_no_evidence() -> None:
     assert free_space_share(view, behind) == 0.0
     beside = target[::7] + np.array([5.0, 0.0, 0.0])  # cells the sensor never saw
     assert free_space_share(view, beside) == 0.0
+
+
+def perspective_scan(camera: np.ndarray, fov_deg: float, pixels: int) -> np.ndarray:
+    """``[P, 3]``: the surface ``z = height(x, y)`` (``|x|, |y| <= 1``) where the rays of a pinhole camera at
+    ``camera [3]``, looking at the origin, first meet it (marched in steps, then interpolated)."""
+    look = -camera / np.linalg.norm(camera)
+    right = np.cross(look, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, look)
+    half = np.tan(np.radians(fov_deg / 2))
+    u, v = np.meshgrid(np.linspace(-half, half, pixels), np.linspace(-half, half, pixels))
+    rays = look + u.reshape(-1, 1) * right + v.reshape(-1, 1) * up  # [R, 3]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    along = camera + np.linspace(0.5, 4.0, 500)[None, :, None] * rays[:, None, :]  # [R, T, 3]
+    above = along[..., 2] - height(along[..., 0], along[..., 1])  # [R, T] > 0: in front of the surface
+    on_patch = (np.abs(along[..., 0]) <= 1) & (np.abs(along[..., 1]) <= 1)
+    crossing = (above[:, :-1] > 0) & (above[:, 1:] <= 0) & on_patch[:, 1:]  # [R, T - 1]
+    ray = np.flatnonzero(crossing.any(axis=1))
+    step = crossing[ray].argmax(axis=1)
+    a0, a1 = above[ray, step], above[ray, step + 1]
+    share = (a0 / (a0 - a1))[:, None]
+    return along[ray, step] + share * (along[ray, step + 1] - along[ray, step])
+
+
+def test_a_wide_angle_perspective_scan_keeps_the_truth_out_of_free_space() -> None:
+    """A pinhole camera close to the surface (80 deg field of view) breaks the parallel rays the depth map assumes;
+    the right pose still leaves free space empty and a pose half a turn off does not."""
+    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
+    target = perspective_scan(np.array([0.0, 0.0, 1.5]), 80.0, 120)
+    source = perspective_scan(source_to_target.T @ np.array([0.0, 0.0, 1.5]), 80.0, 120) @ source_to_target
+    views = (range_view(source), range_view(target))
+    assert views != (None, None)
+    assert pose_free_space(*views, source, target, source_to_target, np.zeros(3)) < 0.02
+    off = turn(np.array([1.0, 0.0, 0.0]), 180.0)  # about the target's centroid
+    centre = target.mean(axis=0)
+    assert pose_free_space(*views, source, target, off @ source_to_target, centre - off @ centre) > RELIABLE_FREE_SPACE
