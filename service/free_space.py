@@ -22,7 +22,7 @@ import numpy as np
 
 from service.kdtree import KDTree
 
-RANGE_IMAGE_CORRELATION = 0.6  # range images 0.76-0.83; fused fragments, LiDAR frames and mesh samples 0.4 or less
+RANGE_IMAGE_CORRELATION = 0.6  # range images 0.74-0.83; fused fragments, LiDAR frames and mesh samples 0.4 or less
 VIEW_QUERIES = 1000  # the points whose density and normal fit the direction (all points are their neighbours: a
 # random share of a pixel grid would blur its density with sampling noise)
 VIEW_NEIGHBOURS = 10

@@ -1,11 +1,13 @@
-"""Stage 9, free space: a ``reliable`` result whose pose puts surface where a range image's sensor saw through is not.
+"""Stage 8, free space: a ``reliable`` result whose pose puts surface where a range image's sensor saw through is not.
 
 Where either entered cloud is a range image (:attr:`service.stages.normalise.Working.range_views`), the final pose
 moves the other cloud's fine points (:attr:`Working.fine_source`, :attr:`Working.fine_target`) into that image's
 view; more than ``RELIABLE_FREE_SPACE`` of them in front of the surface its sensor saw
-(:func:`service.free_space.pose_free_space`) takes ``reliable`` away, with a warning. The pose itself is kept. It runs
-last, on the pose the caller gets (after the fine refinement), and only on a result still about to be called
-``reliable`` (``docs/decisions/0053-free-space-of-range-images.md``).
+(:func:`service.free_space.pose_free_space`) takes ``reliable`` away, with a warning. Conversely, a result that only
+``loose fit`` warnings kept from ``reliable`` is ``reliable`` where at most ``CONFIRMS_BELOW`` lie there: two range
+images that overlap in part overlay each other loosely. The pose itself is kept. It runs on the pose the caller gets
+(after the fine refinement), before the symmetry check, which still judges a confirmed result
+(``docs/decisions/0053-free-space-of-range-images.md``).
 """
 
 from __future__ import annotations

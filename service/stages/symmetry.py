@@ -1,4 +1,4 @@
-"""Stage 8, symmetry check: a ``reliable`` result whose half turns fit almost as well is ambiguous.
+"""Stage 9, symmetry check: a ``reliable`` result whose half turns fit almost as well is ambiguous.
 
 A near-symmetric shape (a bathtub, a bench) seen from two views overlays the target about as well
 turned half a turn about one of its axes: the inlier ratio and the close fit cannot tell the two poses apart, and a
