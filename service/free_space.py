@@ -80,10 +80,11 @@ def _correlations(log_density: np.ndarray, normals: np.ndarray, dirs: np.ndarray
     return (log_density @ log_cos) / np.maximum(norms, 1e-12)
 
 
-def viewing_axis(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, float, float]:
+def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | None = None
+                 ) -> tuple[np.ndarray, float, float]:
     """The direction that best explains the density of ``points [N >= VIEW_NEIGHBOURS, 3]`` as a range image's, its
-    correlation, and the points' median spacing."""
-    tree = KDTree(points)
+    correlation, and the points' median spacing; ``tree``: a KD-tree of ``points`` already built."""
+    tree = KDTree(points) if tree is None else tree
     queries = points[rng.choice(len(points), min(VIEW_QUERIES, len(points)), replace=False)]  # [Q, 3]
     dist, nb = tree.query(queries, k=VIEW_NEIGHBOURS)  # [Q, k]
     local = points[nb] - points[nb].mean(axis=1, keepdims=True)  # [Q, k, 3]
@@ -103,14 +104,14 @@ def viewing_axis(points: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarr
     return best, score, float(np.median(dist[:, 1]))
 
 
-def range_view(points: np.ndarray) -> RangeView | None:
+def range_view(points: np.ndarray, tree: KDTree | None = None) -> RangeView | None:
     """The :class:`RangeView` of ``points [N, 3]`` (all of them: the entry reduction bounds ``N``), or ``None``
     where their density does not follow a viewing direction (correlation below ``RANGE_IMAGE_CORRELATION``) or they
-    are too few to tell."""
+    are too few to tell; ``tree``: a KD-tree of ``points`` where one is built already."""
     if len(points) < 4 * VIEW_NEIGHBOURS:
         return None
     share = np.asarray(points, dtype=np.float64)  # [N, 3]
-    axis, correlation, spacing = viewing_axis(share, np.random.default_rng(_SEED))
+    axis, correlation, spacing = viewing_axis(share, np.random.default_rng(_SEED), tree)
     if correlation < RANGE_IMAGE_CORRELATION or not spacing > 0:
         return None
     across, cell = across_axis(axis), CELL_SPACINGS * spacing

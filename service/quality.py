@@ -23,6 +23,7 @@ from service.checks import MIN_POINTS
 from service.kdtree import KDTree
 from service.sampling import distinct_count
 
+LOOSE_FIT = "loose fit"  # the kind of warning a pose near the target but off its surface gets (here and in the stages)
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
 # ... and at least this share of the target's attainable inlier ratio: 0.6 alone (docs/decisions/0003), 0.5 beside
 # the tight-fit condition below, which tells wrong poses apart better; right poses of real scans that overlap by
@@ -240,7 +241,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {relative} of the "
                         f"{attainable:.2f} {allows}")
     elif near_share < near_factor * attainable:
-        warnings.append(f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
+        warnings.append(f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
                         f"target only {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
                         f"{allows}; a right pose lies on the target where they overlap")
     reliable = (not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, relative * attainable)

@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from service.network_loop import NetworkOutput
-from service.quality import NEAR_SURFACE_FACTOR, assess, near_surface_share
+from service.quality import LOOSE_FIT, NEAR_SURFACE_FACTOR, assess, near_surface_share
 from service.quality import poor_fit as poor_fit_of  # the rule's band, given the attainable ratio
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
@@ -36,7 +36,7 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
     share = near_surface_share(work.working_source, work.tgt_e, R, t, work.inlier_distance, work.entered_target_tree)
     if share >= RELIABLE_SURFACE_SHARE:
         return None
-    return (f"loose fit: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
+    return (f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
             f"only {share:.3f} lie within one, < {RELIABLE_SURFACE_SHARE}; a right pose lies on the target's surface "
             "where they overlap")
 

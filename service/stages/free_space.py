@@ -17,6 +17,7 @@ import time
 
 from service.free_space import pose_free_space
 from service.options import RegistrationOptions
+from service.quality import LOOSE_FIT  # the warning it overrules (quality.assess, stages.assess.off_the_surface)
 from service.result import RegistrationResult
 from service.stages.normalise import Working
 
@@ -27,7 +28,6 @@ RELIABLE_FREE_SPACE = 0.08
 # low-overlap range images overlay each other loosely at 0.014 and less, wrong poses that fit loosely put 0.19 and more
 # there.
 CONFIRMS_BELOW = 0.03
-LOOSE_FIT = "loose fit"  # the warning (service.quality.assess, service.stages.assess.off_the_surface) it overrules
 
 
 def free_space_of(work: Working, result: RegistrationResult) -> float | None:
