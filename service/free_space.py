@@ -31,6 +31,8 @@ CELL_SPACINGS = 2.0  # the depth map's cell, in the view points' median spacing
 EDGE_CELLS = 2  # cells this close to an unseen one do not count as seen: a cut or cropped image's edge is no evidence
 DEPTH_TOLERANCE_SPACINGS = 4.0  # how far in front of the seen depth a point must lie to count (noise, grazing cells)
 MIN_COSINE = 0.05  # |cos| floor in the fit (grazing normals)
+GRID_QUANTILE = 0.001  # the depth map spans the points between these quantiles across the axis: far strays lie off it
+MAX_GRID_CELLS = 4_000_000  # above this the image is spread too thinly to map (two float64 maps: 64 MB)
 _SEED = 0  # the queries are drawn the same way for the same cloud
 
 
@@ -50,9 +52,16 @@ class RangeView:
 
     def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The flat cell of each of ``points [N, 3]`` and whether it lies on the grid (``[N]`` each)."""
-        ij = np.floor(points @ self.across.T / self.cell).astype(np.int64) - self.corner  # [N, 2]
-        on = (ij >= 0).all(axis=1) & (ij[:, 0] < self.shape[0]) & (ij[:, 1] < self.shape[1])
+        ij, on = grid_cells(points @ self.across.T / self.cell, self.corner, self.shape)
         return np.where(on, ij[:, 0] * self.shape[1] + ij[:, 1], 0), on
+
+
+def grid_cells(placed: np.ndarray, corner: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The integer cell ``[N, 2]`` (from ``corner [2]``) of each of ``placed [N, 2]`` (coordinates in cells) and
+    whether it lies on a grid of ``shape`` (``[N]``); cells off it are 0, however far (no integer overflow)."""
+    rel = np.floor(placed) - corner  # [N, 2] float: compared before any cast
+    on = (rel >= 0).all(axis=1) & (rel[:, 0] < shape[0]) & (rel[:, 1] < shape[1])
+    return np.where(on[:, None], rel, 0).astype(np.int64), on
 
 
 def hemisphere(count: int) -> np.ndarray:
@@ -115,12 +124,15 @@ def range_view(points: np.ndarray, tree: KDTree | None = None) -> RangeView | No
     if correlation < RANGE_IMAGE_CORRELATION or not spacing > 0:
         return None
     across, cell = across_axis(axis), CELL_SPACINGS * spacing
-    ij = np.floor(share @ across.T / cell).astype(np.int64)  # [P, 2]
-    corner = ij.min(axis=0)
-    ij -= corner
-    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
-    depth = share @ axis
+    placed = share @ across.T / cell  # [P, 2] in cells
+    low, high = np.quantile(placed, [GRID_QUANTILE, 1.0 - GRID_QUANTILE], axis=0)  # [2] each: strays off the grid
+    if np.prod(high - low + 1.0) > MAX_GRID_CELLS:
+        return None  # a sparse image spread too wide to map within bounded memory
+    corner = np.floor(low).astype(np.int64)
+    shape = (int(np.floor(high[0])) - int(corner[0]) + 1, int(np.floor(high[1])) - int(corner[1]) + 1)
+    ij, on = grid_cells(placed, corner, shape)
+    flat = ij[on, 0] * shape[1] + ij[on, 1]
+    depth = share[on] @ axis
     nearest = np.full(shape[0] * shape[1], -np.inf)
     farthest = np.full(shape[0] * shape[1], np.inf)
     np.maximum.at(nearest, flat, depth)

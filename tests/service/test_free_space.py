@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from service.free_space import RANGE_IMAGE_CORRELATION, free_space_share, pose_free_space, range_view
@@ -104,3 +106,14 @@ def test_a_wide_angle_perspective_scan_keeps_the_truth_out_of_free_space() -> No
     off = turn(np.array([1.0, 0.0, 0.0]), 180.0)  # about the target's centroid
     centre = target.mean(axis=0)
     assert pose_free_space(*views, source, target, off @ source_to_target, centre - off @ centre) > RELIABLE_FREE_SPACE
+
+
+def test_a_stray_point_far_away_neither_widens_the_map_nor_overflows_its_cells() -> None:
+    """One point 1e30 away (a sensor's glitch) leaves the depth map the size of the image's own, and points that far
+    fall off it without an integer overflow (numpy warnings are errors here)."""
+    scan = pixel_grid_scan(np.eye(3))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        view = range_view(np.vstack([scan, [[1e30, 0.0, 0.0]]]))
+        assert view is not None and view.nearest.size <= 2 * range_view(scan).nearest.size
+        assert free_space_share(view, np.array([[1e30, 1e30, 1e30], [-1e30, 0.0, 0.0]])) == 0.0
