@@ -34,6 +34,8 @@ def free_space_of(work: Working, result: RegistrationResult) -> float | None:
     """The share of one cloud's fine points that the pose of ``result`` puts where the other cloud's range-image
     sensor saw through (the larger of the two ways), or ``None`` where neither cloud is a range image."""
     source_view, target_view = work.range_views
+    if source_view is None and target_view is None:
+        return None  # before the fine points are asked for: a cloud that skips the fine stage has none built
     return pose_free_space(source_view, target_view, work.fine_source, work.fine_target, result.rotation,
                            result.translation)
 

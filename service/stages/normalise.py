@@ -33,6 +33,11 @@ FINE_TARGET_POINTS = 2048
 CLOSE_FIT_DENSITY = 4
 
 
+def samples_densely(entered: np.ndarray, working: np.ndarray) -> bool:
+    """Whether an ``entered`` cloud holds at least ``CLOSE_FIT_DENSITY`` times its ``working`` cloud's points."""
+    return len(entered) >= CLOSE_FIT_DENSITY * len(working)
+
+
 @dataclass(frozen=True, eq=False)
 class Working(Sampled):
     """One registration's working clouds (:class:`service.stages.sample.Sampled`) and their normalisation, shared by
@@ -80,9 +85,8 @@ class Working(Sampled):
         samples its surface densely (``CLOSE_FIT_DENSITY`` times its working cloud's points) as a range image does;
         built once per registration, when the free-space stage first asks (the target's from
         :attr:`entered_target_tree`)."""
-        return (range_view(self.src_e) if len(self.src_e) >= CLOSE_FIT_DENSITY * len(self.src_w) else None,
-                range_view(self.tgt_e, self.entered_target_tree)
-                if len(self.tgt_e) >= CLOSE_FIT_DENSITY * len(self.tgt_w) else None)
+        return (range_view(self.src_e) if samples_densely(self.src_e, self.src_w) else None,
+                range_view(self.tgt_e, self.entered_target_tree) if samples_densely(self.tgt_e, self.tgt_w) else None)
 
     @cached_property
     def plane_frame_rotations(self) -> np.ndarray | None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.rotation_search import ambiguity_warning, close_second, rank_hypotheses
-from service.stages.normalise import CLOSE_FIT_DENSITY, Working
+from service.stages.normalise import Working, samples_densely
 from service.translation_search import translation_candidates
 
 CANDIDATE_SHIFTS = 2  # translations tried with each rotation search candidate's rotation
@@ -69,7 +69,7 @@ def close_fit(work: Working, rotations: np.ndarray, translations: np.ndarray) ->
 def samples_the_surface(work: Working) -> bool:
     """Whether the entered target holds at least ``CLOSE_FIT_DENSITY`` times the working target's points: only then
     does :func:`close_fit` measure distances to the surface rather than to samples as sparse as the working ones."""
-    return len(work.tgt_e) >= CLOSE_FIT_DENSITY * len(work.tgt_w)
+    return samples_densely(work.tgt_e, work.tgt_w)
 
 
 def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
