@@ -4,8 +4,10 @@ Where either entered cloud is a range image (:attr:`service.stages.normalise.Wor
 moves the other cloud's fine points (:attr:`Working.fine_source`, :attr:`Working.fine_target`) into that image's
 view; more than ``RELIABLE_FREE_SPACE`` of them in front of the surface its sensor saw
 (:func:`service.free_space.pose_free_space`) takes ``reliable`` away, with a warning. Conversely, a result that only
-``loose fit`` warnings kept from ``reliable`` is ``reliable`` where at most ``CONFIRMS_BELOW`` lie there: two range
-images that overlap in part overlay each other loosely. The pose itself is kept. It runs on the pose the caller gets
+the doubts free space settles (``SETTLED_DOUBTS``) kept from ``reliable`` is ``reliable`` where at most
+``CONFIRMS_BELOW`` lie there: two range images that overlap in part overlay each other loosely, and a pose only the
+second, denser rotation search found is not half a turn off if it leaves the sensors' free space clear. The pose itself
+is kept. It runs on the pose the caller gets
 (after the fine refinement), before the symmetry check, which still judges a confirmed result
 (``docs/decisions/0053-free-space-of-range-images.md``).
 """
@@ -20,14 +22,18 @@ from service.options import RegistrationOptions
 from service.quality import LOOSE_FIT  # the warning it overrules (quality.assess, stages.assess.off_the_surface)
 from service.result import RegistrationResult
 from service.stages.normalise import Working
+from service.stages.search import RETRY_WARNING  # the other doubt it settles
 
 # Right poses on the real range images leave a few percent of the other scan in front of what a sensor saw; poses half
 # a turn off, and low-overlap poses that overlay the clouds better than the truth, a tenth or more.
 RELIABLE_FREE_SPACE = 0.08
-# ... and a pose that leaves at most this share there, where a loose fit alone kept it from `reliable`, is: right
+# ... and a pose that leaves at most this share there, where only SETTLED_DOUBTS kept it from `reliable`, is: right
 # low-overlap range images overlay each other loosely at 0.014 and less, wrong poses that fit loosely put 0.19 and more
 # there.
 CONFIRMS_BELOW = 0.03
+# The warnings free space settles: a loose fit, and a pose found by the second, denser search only (0028: a few such
+# were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.10 or more).
+SETTLED_DOUBTS = (LOOSE_FIT, RETRY_WARNING)
 
 
 def free_space_of(work: Working, result: RegistrationResult) -> float | None:
@@ -40,18 +46,18 @@ def free_space_of(work: Working, result: RegistrationResult) -> float | None:
                            result.translation)
 
 
-def only_loose(result: RegistrationResult) -> bool:
-    """Whether every warning of ``result`` (at least one) is a ``loose fit``."""
-    return bool(result.warnings) and all(w.startswith(LOOSE_FIT) for w in result.warnings)
+def only_settled_doubts(result: RegistrationResult) -> bool:
+    """Whether every warning of ``result`` (at least one) is one of ``SETTLED_DOUBTS``."""
+    return bool(result.warnings) and all(w.startswith(SETTLED_DOUBTS) for w in result.warnings)
 
 
 def free_space(work: Working, result: RegistrationResult, options: RegistrationOptions,
                timing: dict[str, float]) -> RegistrationResult:
     """``result`` judged by its free space (:func:`free_space_of`): a ``reliable`` one with more than
-    ``RELIABLE_FREE_SPACE`` is not, with a ``through free space`` warning; one that only a ``loose fit`` kept from
-    ``reliable`` is, with at most ``CONFIRMS_BELOW`` (its warnings stay, and a note says so). The time is added to
+    ``RELIABLE_FREE_SPACE`` is not, with a ``through free space`` warning; one that only ``SETTLED_DOUBTS`` kept
+    from ``reliable`` is, with at most ``CONFIRMS_BELOW`` (its warnings stay, and a note says so). The time is added to
     ``timing["postprocess"]``."""
-    if not (result.reliable or only_loose(result)):
+    if not (result.reliable or only_settled_doubts(result)):
         return result
     started = time.perf_counter()
     share = free_space_of(work, result)
@@ -65,6 +71,7 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
         return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
     if not result.reliable and share <= CONFIRMS_BELOW:
         note = (f"confirmed by free space: only {share:.3f} of one scan's points lie where the other scan's sensor saw "
-                f"through, <= {CONFIRMS_BELOW}; the loose fit is that of range images that overlap in part")
+                f"through, <= {CONFIRMS_BELOW}; range images that overlap in part overlay each other loosely, and a "
+                "pose half a turn off would put surface there")
         return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, note])
     return result

@@ -48,10 +48,11 @@ AUTO_SEARCH_RELATIVE_RATIO = 0.8
 # clouds whole), where the model searches a smaller subsample (service.rotation_search.SEARCH_POINTS) and the clouds
 # are not rooms built of orthogonal planes (their search starts from the plane frames): on 128 points the network
 # from none of the 24 starts reached the right basin of some turned range images that it reaches on more
-# (docs/decisions/0028). A pose only the second search finds is not `reliable`: 24 of 32 such were right.
+# (docs/decisions/0028). A pose only the second search finds is not `reliable`: 24 of 32 such were right; on range
+# images the free-space stage can confirm it (service.stages.free_space).
 RETRY_SEARCH_POINTS = 768
-RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable, "
-                 "check it")
+RETRY_WARNING = ("found by the second, denser rotation search only (the first fitted poorly): not reliable unless "
+                 "the scans' free space confirms it")
 # rotation_search="auto" starts its search beside the plain pass (service.speculation) where the plain network's pose,
 # before any refinement, overlays fewer working source points than this share of the ratio a right pose can reach:
 # on the real-scan cases the plain pass then nearly always asks for the search (docs/decisions/0029).

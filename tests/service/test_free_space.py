@@ -1,13 +1,16 @@
-"""A range image's viewing axis and free space (service.free_space), on synthetic scans of a bumpy surface."""
+"""A range image's viewing axis and free space (service.free_space), on synthetic scans of a bumpy surface; which doubts
+the free-space stage settles."""
 
 from __future__ import annotations
 
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 
 from service.free_space import RANGE_IMAGE_CORRELATION, free_space_share, pose_free_space, range_view
-from service.stages.free_space import RELIABLE_FREE_SPACE
+from service.stages.free_space import RELIABLE_FREE_SPACE, only_settled_doubts
+from service.stages.search import RETRY_WARNING
 
 
 def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -117,3 +120,15 @@ def test_a_stray_point_far_away_neither_widens_the_map_nor_overflows_its_cells()
         view = range_view(np.vstack([scan, [[1e30, 0.0, 0.0]]]))
         assert view is not None and view.nearest.size <= 2 * range_view(scan).nearest.size
         assert free_space_share(view, np.array([[1e30, 1e30, 1e30], [-1e30, 0.0, 0.0]])) == 0.0
+
+
+def test_loose_fits_and_poses_only_the_second_search_found_are_the_doubts_it_settles() -> None:
+    def result(*warnings: str) -> SimpleNamespace:  # only_settled_doubts reads the warnings alone
+        return SimpleNamespace(warnings=list(warnings))
+
+    loose = "loose fit: of the source points within 3 inlier distances ..."
+    assert only_settled_doubts(result(loose)) and only_settled_doubts(result(loose, RETRY_WARNING))
+    assert only_settled_doubts(result(RETRY_WARNING))
+    assert not only_settled_doubts(result())  # nothing to settle
+    assert not only_settled_doubts(result(RETRY_WARNING, "poor fit: inlier ratio 0.31 < 0.45 ..."))
+    assert not only_settled_doubts(result(loose, "ambiguous: a pose 180 deg away fits almost as well ..."))

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from real_scan_cases import GENERAL, register_with_defaults, skip_without
+from real_scan_cases import GENERAL, real_case, register_with_defaults, skip_without
 
 from bench.real_scans import Case, data_dir, load_cases, thresholds
 from service.registrar import Registrar
 from service.result import RegistrationResult
 from service.stages.pipeline import Stages
+from service.stages.search import RETRY_WARNING
 
 
 def derived_case(name: str, variant: str) -> Case:
@@ -48,5 +49,16 @@ def test_a_right_loose_fit_of_range_images_that_overlap_in_part_is_confirmed() -
     case = derived_case("dragon_72_0", "turned")
     result, degrees, error = register_with_defaults(case)
     assert is_right(case, degrees, error), (degrees, error)
+    assert result.reliable and any(w.startswith("confirmed by free space") for w in result.warnings), result.warnings
+    assert not without_free_space(case).reliable
+
+
+def test_a_right_pose_only_the_second_search_found_is_confirmed() -> None:
+    """``dragon_72_24`` ``turned-4`` (seed 0, loaded alone): only the second, denser search finds the right pose, which
+    alone is not ``reliable`` (decisions/0028); it leaves the sensors' free space clear, so it is."""
+    case = real_case("dragon_72_24", 0, "turned-4")
+    result, degrees, error = register_with_defaults(case)
+    assert is_right(case, degrees, error), (degrees, error)
+    assert RETRY_WARNING in result.warnings, result.warnings
     assert result.reliable and any(w.startswith("confirmed by free space") for w in result.warnings), result.warnings
     assert not without_free_space(case).reliable
