@@ -162,9 +162,9 @@ class Quality(BaseModel):
         "constrained pose (stability below 0.01, 0.02 on a dense target: a 'weakly constrained' warning), or "
         "another pose -- turned far from the returned one, or placing the source elsewhere -- that fits almost as "
         "well (an 'ambiguous' warning), or, where a cloud is a range image, a pose that puts the other cloud's "
-        "surface where that sensor saw through (a 'through free space' warning); a loose fit of range images, or a pose "
-        "only the second rotation search found, whose free space confirms the pose is reliable (a 'confirmed by free "
-        "space' note). "
+        "surface where that sensor saw through (a 'through free space' warning); a loose fit of range images, or a "
+        "pose only the second rotation search found, whose free space confirms the pose is reliable (a 'confirmed by "
+        "free space' note). "
         "docs/RELIABILITY.md lists each condition."
     )
     stability: float | None = Field(
