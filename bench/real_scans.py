@@ -274,6 +274,7 @@ def summarise(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -
             "reliable_precision": round(sum(r["success"] for r in given) / len(given), 4) if given else None,
             "reliable_coverage": round(len([r for r in given if r["success"]])
                                        / max(1, sum(r["success"] for r in svc)), 4),
+            "stage_seconds": stage_seconds(svc),
         }
         if fpfh is not None:
             ref = [fpfh[i] for i in pick]
@@ -283,6 +284,18 @@ def summarise(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -
             entry.update(precision_where_both_right([cases[i] for i in pick], svc, ref))
         totals[f"x{scale:g}"] = entry
     return totals
+
+
+def stage_seconds(rows: list[dict]) -> dict[str, float]:
+    """The server's own time per stage summed over ``rows`` (each response's ``timing_ms``: ``queue``,
+    ``preprocess``, ``encoder``, ``iterations``, ``svd``, ``features``, ``search``, ``refine``, ``postprocess``,
+    ``total``), in seconds; where the client's time goes."""
+    sums: dict[str, float] = {}
+    for row in rows:
+        for key, ms in row.get("timing_ms", {}).items():
+            if key != "search_per_hypothesis":  # a per-hypothesis share of ``search``, not a stage
+                sums[key] = sums.get(key, 0.0) + ms / 1000
+    return {key: round(value, 3) for key, value in sums.items()}
 
 
 def precision_where_both_right(cases: list[Case], service: list[dict], fpfh: list[dict]) -> dict:

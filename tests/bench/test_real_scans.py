@@ -106,6 +106,9 @@ def test_service_half_registers_a_real_pair_over_http(tmp_path):
     assert scanned["status"] == 200 and scanned["success"] and scanned["rotation_error_deg"] < 5
     for scale in ("x1", "x1000"):
         assert report["totals"][scale]["cases"] == 2 and report["totals"][scale]["service_seconds"] > 0
+        stages = report["totals"][scale]["stage_seconds"]  # the server's own time, summed per stage
+        assert {"preprocess", "encoder", "refine", "postprocess", "total"} <= set(stages)
+        assert 0 < stages["preprocess"] < stages["total"] <= report["totals"][scale]["service_seconds"]
     # the same pair in millimetres is judged with thresholds x1000: errors scale, success does not change
     assert rows[2]["service"]["success"] == scanned["success"]
 
