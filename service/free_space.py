@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service.icp import smallest_eigenvectors
 from service.kdtree import KDTree
 
 RANGE_IMAGE_CORRELATION = 0.6  # range images 0.74-0.83; fused fragments, LiDAR frames and mesh samples 0.4 or less
@@ -59,9 +60,10 @@ class RangeView:
 def grid_cells(placed: np.ndarray, corner: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """The integer cell ``[N, 2]`` (from ``corner [2]``) of each of ``placed [N, 2]`` (coordinates in cells) and
     whether it lies on a grid of ``shape`` (``[N]``); cells off it are 0, however far (no integer overflow)."""
-    rel = np.floor(placed) - corner  # [N, 2] float: compared before any cast
-    on = (rel >= 0).all(axis=1) & (rel[:, 0] < shape[0]) & (rel[:, 1] < shape[1])
-    return np.where(on[:, None], rel, 0).astype(np.int64), on
+    u = np.floor(placed[:, 0]) - corner[0]  # [N] float: compared before any cast
+    v = np.floor(placed[:, 1]) - corner[1]
+    on = (u >= 0) & (v >= 0) & (u < shape[0]) & (v < shape[1])
+    return np.stack([np.where(on, u, 0), np.where(on, v, 0)], axis=1).astype(np.int64), on
 
 
 def hemisphere(count: int) -> np.ndarray:
@@ -96,8 +98,9 @@ def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | No
     tree = KDTree(points) if tree is None else tree
     queries = points[rng.choice(len(points), min(VIEW_QUERIES, len(points)), replace=False)]  # [Q, 3]
     dist, nb = tree.query(queries, k=VIEW_NEIGHBOURS)  # [Q, k]
-    local = points[nb] - points[nb].mean(axis=1, keepdims=True)  # [Q, k, 3]
-    normals = np.linalg.eigh(np.einsum("qki,qkj->qij", local, local))[1][:, :, 0].astype(np.float32)  # [Q, 3]
+    around = points[nb]  # [Q, k, 3]
+    local = around - around.mean(axis=1, keepdims=True)
+    normals = smallest_eigenvectors(np.einsum("qki,qkj->qij", local, local))[1].astype(np.float32)  # [Q, 3]
     log_density = -2.0 * np.log(np.maximum(dist[:, -1], 1e-12))  # k points within the k-th distance, on a surface
     log_density = (log_density - log_density.mean()).astype(np.float32)
     dirs = hemisphere(VIEW_DIRECTIONS)
