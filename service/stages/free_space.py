@@ -7,9 +7,9 @@ view; more than ``RELIABLE_FREE_SPACE`` of them in front of the surface its sens
 the doubts free space settles (``SETTLED_DOUBTS``) kept from ``reliable`` is ``reliable`` where at most
 ``CONFIRMS_BELOW`` lie there: two range images that overlap in part overlay each other loosely, and a pose only the
 second, denser rotation search found is not half a turn off if it leaves the sensors' free space clear. The pose itself
-is kept. It runs on the pose the caller gets
-(after the fine refinement), before the symmetry check, which still judges a confirmed result
-(``docs/decisions/0053-free-space-of-range-images.md``).
+is kept. It runs on the pose the caller gets (after the fine refinement), before the symmetry check, which still judges
+a confirmed result (``docs/decisions/0053-free-space-of-range-images.md``,
+``docs/decisions/0054-free-space-settles-the-second-search.md``).
 """
 
 from __future__ import annotations
@@ -24,15 +24,17 @@ from service.result import RegistrationResult
 from service.stages.normalise import Working
 from service.stages.search import RETRY_WARNING  # the other doubt it settles
 
-# Right poses on the real range images leave a few percent of the other scan in front of what a sensor saw; poses half
-# a turn off, and low-overlap poses that overlay the clouds better than the truth, a tenth or more.
+# Right poses on the real range images leave a few percent of the other scan in front of what a sensor saw; wrong ones
+# 0.038 and more, and those the other checks left `reliable` (half a turn off, or low-overlap poses that overlay the
+# clouds better than the truth) a tenth or more.
 RELIABLE_FREE_SPACE = 0.08
 # ... and a pose that leaves at most this share there, where only SETTLED_DOUBTS kept it from `reliable`, is: right
-# low-overlap range images overlay each other loosely at 0.014 and less, wrong poses that fit loosely put 0.19 and more
-# there.
+# low-overlap range images overlay each other loosely at 0.014 and less; wrong poses that fit loosely put 0.059 and
+# more there (the derived dragon pairs at 10 turns), each with another doubt besides.
 CONFIRMS_BELOW = 0.03
 # The warnings free space settles: a loose fit, and a pose found by the second, denser search only (0028: a few such
-# were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.10 or more).
+# were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.038 and
+# more, each with another doubt besides).
 SETTLED_DOUBTS = (LOOSE_FIT, RETRY_WARNING)
 
 
