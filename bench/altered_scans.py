@@ -29,17 +29,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.real_scans import data_dir, turned
+from bench.surface_resample import point_spacing
 from bench.variant_runs import general_registrar, registered, report
-from service.kdtree import KDTree
 
 ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered", "source10", "croptarget")
 CROP_KEEP = 0.6  # share of the cut cloud's points that `crop` (the source) and `croptarget` (the target) keep
-
-
-def point_spacing(points: np.ndarray, samples: int = 2000) -> float:
-    """The median distance from up to ``samples`` evenly spaced points of ``points [N, 3]`` to their nearest other."""
-    probe = points[:: max(1, len(points) // samples)]
-    return float(np.median(KDTree(points).query(probe, k=2)[0][:, 1]))
 
 
 def altered(kind: str, source: np.ndarray, target: np.ndarray, rng: np.random.Generator,

@@ -11,6 +11,7 @@ clouds in the same run::
     python -m bench.real_scans --pairs dragon_24_0 --no-fpfh --scales 1
     python -m bench.real_scans --turns 4 --no-fpfh     # each pair also at 3 more seeded rotations
     python -m bench.real_scans --derived             # scans the set does not pair (bench.scan_pairs)
+    python -m bench.real_scans --densify 300000      # fused fragments at full-resolution size (bench.surface_resample)
     python -m bench.real_scans --no-fpfh --scales 1 --options '{"rotation_search": false}'   # an alternative
     python -m bench.real_scans --no-fpfh --compare-root /tmp/before   # beside another checkout, taking turns
     python -m bench.real_scans --no-fpfh --offset 1000 -2000 500   # both clouds 2 km from their frames' origin
@@ -36,6 +37,7 @@ import io
 import json
 import os
 import time
+import zlib
 from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -46,7 +48,8 @@ from scipy.spatial.transform import Rotation
 
 from bench.http_latency import Server
 from bench.report_io import emit_report, machine_info
-from bench.scan_pairs import derived_pairs, read_pairs
+from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
+from bench.surface_resample import FUSED_SENSORS, densified
 
 DEFAULT_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 # Success thresholds per sensor class (rotation deg, translation m), from the data README.
@@ -93,16 +96,21 @@ def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> 
 
 
 def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0),
-               names: list[str] | None = None, turns: int = 1, derived: bool = False) -> list[Case]:
+               names: list[str] | None = None, turns: int = 1, derived: bool = False,
+               densify: int | None = None) -> list[Case]:
     """Every pair of ``directory`` (or only ``names``) as scanned and turned by ``turns`` seeded Haar-uniform rotations
     (variants ``turned``, ``turned-2``, ...), per scale; ``derived``: the pairs derived from the set instead of its
     own (:func:`bench.scan_pairs.derived_pairs`: scans no file pairs, ground truth chained through shared scans).
+    ``densify``: each cloud of the fused fragments resampled to that many points on its surface (:func:`densified`,
+    seeded by ``seed`` and the pair), as full-resolution fragments hold; the other sensors' clouds as they are.
 
     The rotations are drawn pair after pair from ``seed``: a pair's ``turned`` is the same whatever ``turns`` is, but
     ``turned-2`` onwards depend on ``turns``, and every rotation on which pairs are loaded (``names``): compare cases
     only between runs that loaded the same pairs with the same ``turns``."""
     pairs = [p for p in derived_pairs(directory) if not names or p.name in names] if derived \
         else read_pairs(directory, names)
+    if densify is not None:
+        pairs = [densified_pair(pair, densify, seed) for pair in pairs]
     rng, more = np.random.default_rng(seed), np.random.default_rng([seed, 1])  # the first turns, the others
     cases = []
     for pair in pairs:
@@ -117,6 +125,17 @@ def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0,
                 cases.append(Case(pair.name, pair.sensor, variant, scale, (src * scale).astype(np.float32),
                                   (pair.target * scale).astype(np.float32), T_scaled))
     return cases
+
+
+def densified_pair(pair: ScanPair, count: int, seed: int) -> ScanPair:
+    """``pair`` with each cloud resampled to ``count`` points on its surface where its sensor fused a voxel-reduced
+    fragment (:data:`FUSED_SENSORS`; never fewer points than it holds), else ``pair`` itself. Seeded by ``seed`` and the
+    pair's name, so a pair gets the same clouds whichever others are loaded."""
+    if pair.sensor not in FUSED_SENSORS:
+        return pair
+    source_rng, target_rng = (np.random.default_rng([seed, 3, zlib.crc32(pair.name.encode()), k]) for k in (0, 1))
+    return replace(pair, source=densified(pair.source, max(count, len(pair.source)), source_rng),
+                   target=densified(pair.target, max(count, len(pair.target)), target_rng))
 
 
 def moved_away(cases: list[Case], offset: np.ndarray) -> list[Case]:
@@ -357,6 +376,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--options", type=json.loads, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
+    parser.add_argument("--densify", type=int, metavar="POINTS",
+                        help="resample each cloud of the fused RGB-D fragments to POINTS points on its surface (the "
+                             "size of full-resolution fragments, 260,000-350,000), seeded; other sensors' as they are")
     parser.add_argument("--offset", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="move both clouds of every case by this vector (the clouds' unit) before the upload")
     parser.add_argument("--start-near-truth", type=float, metavar="DEG",
@@ -375,7 +397,9 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--compare-root serves each checkout's own bundled models: not with --url or --model-dir")
     if args.offset and args.start_near_truth is not None:
         parser.error("--start-near-truth starts from the clouds' own frames: not with --offset")
-    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived)
+    if args.densify is not None and not 1 <= args.densify <= 2_000_000:
+        parser.error(f"--densify must be 1 to 2,000,000 points (the service's file limit), got {args.densify}")
+    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived, args.densify)
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
                      + (f" named {args.pairs}" if args.pairs else ""))
@@ -397,6 +421,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
              **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
     report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "derived": args.derived,
+              "densify": args.densify,
               "options": args.options,
               "offset": args.offset,
               "start_near_truth_deg": args.start_near_truth,
