@@ -13,6 +13,7 @@ from shapes import range_patch, room_scene
 from bench.real_scans import pose_errors, turned
 from service.plane_frames import MIN_FRAME_SHARE, frame_rotations, overlap_scores, plane_frame
 from service.registrar import Registrar
+from service.rotation_search import SEARCH_KEEP
 from service.sampling import resample_indices
 from service.stages.normalise import normalise
 from service.stages.sample import sample
@@ -69,8 +70,12 @@ def test_the_search_starts_from_the_plane_frames_of_a_room_and_not_of_a_range_pa
     source, target = room_pair()
     request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": True}, 3, 128)
     starts = plane_frame_starts(normalise(sample(request), radius))
-    assert starts is not None and len(starts) == PLANE_FRAME_KEEP
+    assert starts is not None and len(starts) == PLANE_FRAME_KEEP  # a dense target: ranked by close fit
     assert min(angle(R, R_TRUE) for R in starts) < 3.0
+    sparse = target[np.random.default_rng(1).choice(len(target), 2000, replace=False)]  # < 4x the working size
+    request = validate(source, sparse, None, {"refine": "icp-plane", "rotation_search": True}, 3, 128)
+    starts = plane_frame_starts(normalise(sample(request), radius))
+    assert starts is not None and len(starts) == SEARCH_KEEP  # ranked by the inlier ratio: more candidates
     patch = range_patch(5000)
     request = validate(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T, None, {"refine": "icp-plane"}, 3, 128)
     assert plane_frame_starts(normalise(sample(request), radius)) is None
