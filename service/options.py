@@ -97,10 +97,10 @@ class RegistrationOptions:
     returns its ``SEARCH_KEEP`` best hypotheses; each distinct one gets a short refinement (``refine``'s stages
     with at most ``CANDIDATE_ITERATIONS`` updates each), they are ranked again on the working clouds, and the
     winner gets the full refinement. With any refinement, where both working clouds are built of orthogonal
-    planes (room fragments; :mod:`service.plane_frames`), the candidates are instead the ``PLANE_FRAME_KEEP`` (4)
-    rotations between the clouds' plane frames that overlay them best, whatever ``search_rotations`` is (one of the
-    24 lies within a few degrees of a right rotation). With any refinement, a model whose manifest has a ``search``
-    section (those trained on independently sampled pairs) searches on that many points spread evenly through each
+    planes (room fragments; :mod:`service.plane_frames`), the candidates are instead the ``SEARCH_KEEP`` rotations
+    between the clouds' plane frames that overlay them best, whatever ``search_rotations`` is (one of the 24 lies
+    within a few degrees of a right rotation). With any refinement, a model whose manifest has a ``search`` section
+    (those trained on independently sampled pairs) searches on that many points spread evenly through each
     working cloud's rows with at most that many keypoints, and the winner is refined on the full clouds;
     its correspondences are then those of the subsample (that many).
     ``refine="icp-plane-multistart"`` then turns the refined pose by

@@ -57,14 +57,6 @@ RETRY_WARNING = ("found by the second, denser rotation search only (the first fi
 # before any refinement, overlays fewer working source points than this share of the ratio a right pose can reach:
 # on the real-scan cases the plain pass then nearly always asks for the search (docs/decisions/0029).
 SEARCH_AHEAD_BELOW = 0.3
-# Where both clouds are built of orthogonal planes and the entered target samples its surface densely (real rooms,
-# LiDAR frames), the candidates are the PLANE_FRAME_KEEP frame rotations that overlay them best on the coarse grid
-# (plane_frame_starts), ranked then by their close fit. The rotation nearest the truth ranked 1st-3rd on every room
-# registered in 520 in-process cases (real fragments and LiDAR frames, altered, synthetic rooms); 4 keeps a rank of
-# margin and takes 0.84x the time of 8, with the same outcomes. Sparse samples (ModelNet40's furniture) keep
-# SEARCH_KEEP: ranked by the inlier ratio, their further candidates also tell the ranking it is ambiguous
-# (docs/decisions/0055).
-PLANE_FRAME_KEEP = 4
 
 
 def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iterations: int, keypoints: int,
@@ -112,16 +104,13 @@ def search_rows(registrar: Registrar, work: Working, keypoints: int, short_icp: 
     return sub_s, sub_t, keypoints
 
 
-def plane_frame_starts(work: Working, keep: int | None = None) -> np.ndarray | None:
+def plane_frame_starts(work: Working, keep: int = SEARCH_KEEP) -> np.ndarray | None:
     """``[keep, 3, 3]``: the rotations between the working clouds' dominant plane frames
     (:func:`service.plane_frames.frame_rotations`) that overlay the clouds best on a coarse grid
-    (:func:`service.plane_frames.overlap_scores`), best first; ``None`` unless both clouds have such a frame. ``keep``
-    by default: ``PLANE_FRAME_KEEP`` where the entered target :func:`samples_the_surface`, else ``SEARCH_KEEP``."""
+    (:func:`service.plane_frames.overlap_scores`), best first; ``None`` unless both clouds have such a frame."""
     rotations = work.plane_frame_rotations  # [24, 3, 3] or None
     if rotations is None:
         return None
-    if keep is None:
-        keep = PLANE_FRAME_KEEP if samples_the_surface(work) else SEARCH_KEEP
     scores = overlap_scores(work.src_n, work.tgt_n, rotations)  # [24]
     return rotations[np.argsort(-scores, kind="stable")[:keep]]
 
