@@ -55,7 +55,6 @@ from service.stages.search import (
     plain_overlay,
     retry_points,
     searched_ahead,
-    searched_whatever_the_plain_result,
 )
 from service.stages.validate import Request
 
@@ -334,12 +333,8 @@ class Registrar:
             describe = request.options.refine_mode != "none"
             if overlay < SEARCH_AHEAD_BELOW and describe:  # a turned scan, mostly: a feature candidate beside it
                 found = stages.features(self, work, found, request.iterations, request.keypoints, timing)
-            # the search ahead where the network's pose overlays poorly or a room is searched anyway, and only where
-            # the network's pose is the only candidate
-            certain = mode == "auto" and searched_whatever_the_plain_result(
-                work, request.options.initial_transform is not None)
-            ahead = (self.search_ahead(work, request)
-                     if (overlay < SEARCH_AHEAD_BELOW or certain) and len(found.poses) == 1 else None)
+            # the search ahead only where the network's pose is the only candidate
+            ahead = self.search_ahead(work, request) if overlay < SEARCH_AHEAD_BELOW and len(found.poses) == 1 else None
             try:
                 result = self.solve(work, request, None, timing, found=found)
                 if (SEARCH_AHEAD_BELOW <= overlay < DESCRIBE_BELOW and describe and describable(work)
@@ -376,8 +371,7 @@ class Registrar:
 
     def search_ahead(self, work: Working, request: Request) -> Speculation | None:
         """The search of ``rotation_search="auto"`` started in a helper thread beside the plain pass (where the plain
-        network's pose overlays poorly, :func:`service.stages.search.plain_overlay`, or the clouds are rooms that are
-        searched anyway, :func:`service.stages.search.searched_whatever_the_plain_result`), when a core is free
+        network's pose overlays poorly, :func:`service.stages.search.plain_overlay`), when a core is free
         (:class:`service.speculation.Helpers`); else ``None``."""
         if self.helpers is None:
             return None

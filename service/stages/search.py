@@ -134,13 +134,6 @@ def plane_frames_on_the_surface(work: Working) -> bool:
     return samples_the_surface(work) and work.plane_frame_rotations is not None
 
 
-def searched_whatever_the_plain_result(work: Working, has_guess: bool) -> bool:
-    """Whether ``rotation_search="auto"`` will search whatever the plain result is (:func:`looks_wrong`): searchable
-    rooms over a dense target (:func:`plane_frames_on_the_surface`) without a caller's guess (``has_guess``), which
-    alone could keep a room from its search. Their search can start beside the plain pass."""
-    return work.searchable and not has_guess and plane_frames_on_the_surface(work)
-
-
 def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:
     """Whether ``rotation_search="auto"`` searches after the plain ``result``: its inlier ratio is below
     ``AUTO_SEARCH_RELATIVE_RATIO`` times ``attainable_ratio`` (:func:`service.quality.attainable_inlier_ratio`

@@ -8,17 +8,12 @@ import time
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from shapes import asymmetric_blob, room_scene
+from shapes import asymmetric_blob
 
 from service import kdtree
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.speculation import CancelledError, Helpers, check
-from service.stages.anchor import anchor
-from service.stages.normalise import normalise
-from service.stages.sample import sample
-from service.stages.search import SEARCH_AHEAD_BELOW, plain_overlay
-from service.stages.validate import validate
 
 GENERAL = bundled_models_dir() / "general"
 
@@ -148,26 +143,3 @@ def test_a_pair_the_plain_network_fits_starts_nothing_ahead() -> None:
     result = Registrar(GENERAL, threads=2, helpers=helpers, warmup=False).register(
         src, src @ turn.T + 0.05, refine="icp-plane", rotation_search="auto")
     assert helpers.started == 0 and "search" not in result.timing_ms
-
-
-@pytest.mark.skipif(not (GENERAL / "manifest.json").exists(), reason="bundled model 'general' absent")
-def test_a_room_is_searched_ahead_even_where_the_plain_network_fits_it() -> None:
-    room = room_scene(np.random.default_rng(0)).astype(np.float32)
-    turn = Rotation.from_euler("z", 10.0, degrees=True).as_matrix()
-    src = (room[room[:, 0] < 2.7] - 1.0) @ turn.T  # two thirds of the room, turned a little
-    ahead, after = CountingHelpers(2), CountingHelpers(1)
-    with_ahead = Registrar(GENERAL, threads=2, helpers=ahead, warmup=False)
-    options = {"refine": "icp-plane", "rotation_search": "auto"}  # the service's defaults
-    request, _ = anchor(validate(src, room, None, options, with_ahead.default_iterations,
-                                 with_ahead.default_keypoints))
-    work = normalise(sample(request), with_ahead.reference_radius)
-    found = with_ahead.plain_candidates(work, request, {})
-    assert plain_overlay(work, found) >= SEARCH_AHEAD_BELOW  # not started ahead for a poor overlay
-    a = with_ahead.register(src, room, **options)
-    b = Registrar(GENERAL, threads=2, helpers=after, warmup=False).register(src, room, **options)
-    assert ahead.started == 1 and after.started == 0 and "search" in a.timing_ms  # a room: searched anyway
-    np.testing.assert_array_equal(a.transform, b.transform)
-    assert (a.reliable, a.warnings, a.inlier_ratio) == (b.reliable, b.warnings, b.inlier_ratio)
-    wait_until_idle(ahead)
-    guided = with_ahead.register(src, room, initial_transform=a.transform, **options)  # a kept guess: no search
-    assert ahead.started == 1 and "search" not in guided.timing_ms
