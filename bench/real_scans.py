@@ -50,6 +50,7 @@ from bench.http_latency import Server
 from bench.report_io import emit_report, machine_info
 from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
 from bench.surface_resample import FUSED_SENSORS, densified
+from service.core.config import Settings
 
 DEFAULT_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real"
 # Success thresholds per sensor class (rotation deg, translation m), from the data README.
@@ -59,6 +60,7 @@ INDOOR_THRESHOLDS = (15.0, 0.3)  # kinect-*, xtion-* fused fragments (3DMatch re
 FPFH_VOXEL, FPFH_NORMAL_RADIUS, FPFH_FEATURE_RADIUS = 0.03, 0.1, 0.25
 RANSAC_DISTANCE, RANSAC_EDGE, RANSAC_ITERATIONS, RANSAC_CONFIDENCE = 0.05, 0.9, 100_000, 0.999
 ICP_VOXEL, ICP_DISTANCE = 0.01, 0.02
+MAX_FILE_POINTS = Settings.model_fields["max_file_points"].default  # what a default server takes per uploaded cloud
 
 
 def data_dir(path: str | None = None) -> Path:
@@ -397,8 +399,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--compare-root serves each checkout's own bundled models: not with --url or --model-dir")
     if args.offset and args.start_near_truth is not None:
         parser.error("--start-near-truth starts from the clouds' own frames: not with --offset")
-    if args.densify is not None and not 1 <= args.densify <= 2_000_000:
-        parser.error(f"--densify must be 1 to 2,000,000 points (the service's file limit), got {args.densify}")
+    if args.densify is not None and not 1 <= args.densify <= MAX_FILE_POINTS:
+        parser.error(f"--densify must be 1 to {MAX_FILE_POINTS:,} points (the service's file limit): {args.densify}")
     cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived, args.densify)
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"

@@ -56,3 +56,9 @@ def test_only_fused_fragments_are_densified_and_their_turns_share_the_clouds(tmp
         np.testing.assert_allclose(moved.mean(0), room[0].source.mean(0) + 0.1, atol=1e-4)
     again = real_scans.load_cases(tmp_path, seed=1, scales=(1.0,), names=["room_1_0"], densify=5000)
     np.testing.assert_array_equal(again[0].source, room[0].source)  # the same clouds whichever pairs are loaded
+
+
+def test_densify_above_the_services_file_limit_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        real_scans.main([str(tmp_path), "--densify", str(real_scans.MAX_FILE_POINTS + 1), "--no-fpfh"])
+    assert "--densify must be 1 to 2,000,000 points" in capsys.readouterr().err
