@@ -9,6 +9,7 @@ ends exactly where the unpruned loop would have taken it.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -32,6 +33,29 @@ class NetworkOutput:
     cumulative: list[tuple[np.ndarray, np.ndarray]]  # pose after each iteration
     min_top2_gap: float  # smallest gap between a keypoint's two best scores (argmax ties)
     min_median_gap: float  # smallest gap between the median credibility and the next lower one
+
+
+class DeferredOutput:
+    """A :class:`NetworkOutput` computed when first read, once (thread-safe): a candidate's network pass whose
+    correspondences are reported only should it win (``docs/decisions/0056-network-passes-only-for-the-winner.md``)."""
+
+    def __init__(self, compute: Callable[[], NetworkOutput]) -> None:
+        self._compute: Callable[[], NetworkOutput] | None = compute
+        self._output: NetworkOutput | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def computed(self) -> bool:
+        """Whether the output was read (and so computed) already."""
+        return self._output is not None
+
+    def get(self) -> NetworkOutput:
+        """The output, computed on the first call."""
+        with self._lock:
+            if self._output is None:
+                assert self._compute is not None
+                self._output, self._compute = self._compute(), None  # drop the clouds the computation held
+            return self._output
 
 
 def sigmoid(logit: np.ndarray) -> np.ndarray:

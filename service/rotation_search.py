@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 
 import numpy as np
@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from service.errors import InputError
 from service.icp import icp_many
 from service.kdtree import KDTree
-from service.network_loop import NetworkLoop, NetworkOutput
+from service.network_loop import DeferredOutput, NetworkLoop, NetworkOutput
 from service.quality import inlier_statistics
 
 SEARCH_GROUPS = {24: "O", 60: "I"}  # rotation-search sizes: the cube's (octahedral) / icosahedral group
@@ -97,13 +97,19 @@ def rank_hypotheses(
 
 @dataclass(frozen=True, eq=False)  # compared by identity (array fields)
 class SearchCandidate:
-    """A hypothesis the search kept: its network output, start rotation and pose of the searched (normalised)
-    source onto the target, after its short ICP when the search ran them."""
+    """A hypothesis the search kept: its network output (or one computed when first read, :func:`deferred_output`),
+    start rotation and pose of the searched (normalised) source onto the target, after its short ICP when the
+    search ran them."""
 
-    output: NetworkOutput
+    network: NetworkOutput | DeferredOutput
     start: np.ndarray  # [3, 3] start rotation
     rotation: np.ndarray  # [3, 3] network pose composed after the start (and the short ICP)
     translation: np.ndarray  # [3]
+
+    @property
+    def output(self) -> NetworkOutput:
+        """The network's output from :attr:`start` (its correspondences, iteration poses), computed here if deferred."""
+        return self.network.get() if isinstance(self.network, DeferredOutput) else self.network
 
 
 def search_hypotheses(
@@ -156,6 +162,23 @@ def network_from(start_network: Callable[..., NetworkLoop], src_n: np.ndarray, t
         batch.advance(iterations, timing)
         batches.append(batch)
     return NetworkLoop.join(batches)
+
+
+def deferred_output(start_network: Callable[..., NetworkLoop], src_n: np.ndarray, tgt_n: np.ndarray,
+                    start: np.ndarray, iterations: int, keypoints: int, timing: dict[str, float], key: str,
+                    rows: tuple[np.ndarray, np.ndarray] | None = None) -> DeferredOutput:
+    """The network's output from ``start [3, 3]`` on ``src_n [N, 3]``, ``tgt_n [M, 3]`` (:func:`network_from`),
+    computed only when first read, its time then added to ``timing[key]``; ``rows``: the source's and target's rows
+    ``([N], [M])`` its keypoints are given as."""
+    def compute() -> NetworkOutput:
+        tic = time.perf_counter()
+        output = network_from(start_network, src_n, tgt_n, start[None], iterations, keypoints, {}).outputs()[0]
+        if rows is not None:
+            output = replace(output, src_kp=rows[0][output.src_kp], tgt_kp=rows[1][output.tgt_kp])
+        timing[key] = timing.get(key, 0.0) + 1000 * (time.perf_counter() - tic)
+        return output
+
+    return DeferredOutput(compute)
 
 
 def distinct_candidates(candidates: list[SearchCandidate]) -> list[SearchCandidate]:

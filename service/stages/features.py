@@ -12,15 +12,13 @@ search at all (``docs/decisions/0034-a-feature-matched-candidate.md``, ``0035``,
 from __future__ import annotations
 
 import time
-from dataclasses import replace
-from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from service.feature_match import feature_pose
 from service.quality import nearest_other_distances
-from service.rotation_search import SearchCandidate, network_from, rotation_between_deg
+from service.rotation_search import SearchCandidate, deferred_output, rotation_between_deg
 from service.stages.network import Candidates
 from service.stages.normalise import Working, to_caller
 from service.stages.search import plane_frames_on_the_surface, search_rows
@@ -72,7 +70,8 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
     """``found`` (the plain network's candidate) and, where the clouds are :func:`describable` and ``JOIN_SUPPORT``
     matched pairs agree with it, the feature pose of the entered clouds (in the initial guess's frame), normalised,
     with the network's output from its rotation on the search's rows (its correspondences, should it win; remapped to
-    the working rows). Records ``timing["features"]`` where it computed descriptors."""
+    the working rows), computed only where it is read. Records ``timing["features"]`` where it computed descriptors
+    (and adds that network pass's time to it, should it run)."""
     if not describable(work):
         return found
     started = time.perf_counter()
@@ -83,10 +82,8 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
         return found
     rotation, translation = work.norm.normalize_pose(pose.rotation, pose.translation)
     sub_s, sub_t, kp = search_rows(registrar, work, keypoints, short_icp=True)
-    tgt_n = work.tgt_n[sub_t]
-    network = partial(registrar.start_network, target=registrar.embed_cloud(tgt_n))
-    output = network_from(network, work.src_n[sub_s], tgt_n, rotation[None], iterations, kp, {}).outputs()[0]
-    output = replace(output, src_kp=sub_s[output.src_kp], tgt_kp=sub_t[output.tgt_kp])  # working rows
+    output = deferred_output(registrar.start_network, work.src_n[sub_s], work.tgt_n[sub_t], rotation, iterations, kp,
+                             timing, "features", rows=(sub_s, sub_t))  # keypoints as working rows
     candidate = SearchCandidate(output, rotation, rotation, translation)
     timing["features"] = 1000 * (time.perf_counter() - started)
     return Candidates([*found.poses, candidate], found.net_s, found.net_t, feature_support=pose.support)

@@ -33,7 +33,7 @@ def guess_candidate(work: Working, found: Candidates) -> Candidates:
     which appends its candidate last (:func:`service.stages.features.feature_confirmed`)."""
     rotation, translation = work.norm.normalize_pose(np.eye(3), np.zeros(3))  # [3, 3], [3]
     first = found.poses[0]
-    guess = SearchCandidate(first.output, first.start, rotation, translation)
+    guess = SearchCandidate(first.network, first.start, rotation, translation)  # a deferred output stays so
     return Candidates([*found.poses, guess], found.net_s, found.net_t)
 
 

@@ -17,8 +17,8 @@ from service.result import RegistrationResult
 from service.rotation_search import (
     SEARCH_KEEP,
     SearchCandidate,
+    deferred_output,
     distinct_candidates,
-    network_from,
     rank_hypotheses,
     search_hypotheses,
 )
@@ -75,13 +75,14 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     starts = plane_frame_starts(work) if short_icp else None
     sub_s, sub_t, keypoints = search_rows(registrar, work, keypoints, short_icp, points)
     src_n, tgt_n = work.src_n[sub_s], work.tgt_n[sub_t]  # [Ns', 3], [Nt', 3]
-    network = partial(registrar.start_network, target=registrar.embed_cloud(tgt_n))  # target embedded once
-    timing["encoder"] = 1000 * (time.perf_counter() - tic)
     if starts is not None:
-        candidates = plane_frame_candidates(network, src_n, tgt_n, starts, iterations, keypoints, timing)
+        candidates = plane_frame_candidates(registrar.start_network, src_n, tgt_n, starts, iterations, keypoints,
+                                            timing)
         timing["search"] = 1000 * (time.perf_counter() - tic)
         timing["search_per_hypothesis"] = timing["search"] / len(starts)
         return Candidates(candidates, work.idx_s[sub_s], work.idx_t[sub_t])
+    network = partial(registrar.start_network, target=registrar.embed_cloud(tgt_n))  # target embedded once
+    timing["encoder"] = 1000 * (time.perf_counter() - tic)
     candidates = search_hypotheses(network, src_n, tgt_n, hypotheses, iterations, keypoints, short_icp,
                                    INLIER_DISTANCE, timing)
     # with a refinement every distinct kept candidate is refined and the refined poses ranked again
@@ -120,10 +121,12 @@ def plane_frame_candidates(start_network: Callable[..., NetworkLoop], src_n: np.
                            ) -> list[SearchCandidate]:
     """The ``starts [S, 3, 3]`` as candidate poses (centroids together; the refine stage tries each rotation at its
     best translations too), each with the network's output from that start on ``src_n [N, 3]``, ``tgt_n [M, 3]``
-    (its correspondences, should it win): the starts are already within a few degrees of a right rotation, where
-    the network, trained on single objects, can turn a room fragment away from it."""
-    outputs = network_from(start_network, src_n, tgt_n, starts, iterations, keypoints, timing).outputs()
-    return [SearchCandidate(output, start, start, np.zeros(3)) for output, start in zip(outputs, starts, strict=True)]
+    (its correspondences, should it win), computed only where it is read (:func:`deferred_output`, its time added to
+    ``timing["search"]``): the starts are already within a few degrees of a right rotation, where the network,
+    trained on single objects, can turn a room fragment away from it, so only the winner's correspondences need it
+    (``docs/decisions/0056-network-passes-only-for-the-winner.md``)."""
+    return [SearchCandidate(deferred_output(start_network, src_n, tgt_n, start, iterations, keypoints, timing,
+                                            "search"), start, start, np.zeros(3)) for start in starts]
 
 
 def plane_frames_on_the_surface(work: Working) -> bool:

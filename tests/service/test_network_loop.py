@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import threading
 import warnings
 
 import numpy as np
 
-from service.network_loop import lower_median_weights, sigmoid
+from service.network_loop import DeferredOutput, lower_median_weights, sigmoid
 
 
 def test_sigmoid_saturates_without_overflow_on_extreme_logits() -> None:
@@ -22,3 +23,23 @@ def test_sigmoid_equals_the_plain_formula_within_range() -> None:
     logit = np.linspace(-30, 30, 61, dtype=np.float32)[None]
     np.testing.assert_array_equal(sigmoid(logit), 1.0 / (1.0 + np.exp(-logit.astype(np.float64))))
     assert lower_median_weights(sigmoid(logit)).shape == logit.shape
+
+
+def test_a_deferred_output_is_computed_once_when_first_read_even_from_two_threads() -> None:
+    calls: list[int] = []
+    release = threading.Event()
+
+    def compute() -> str:
+        calls.append(1)
+        release.wait(5.0)  # both readers are waiting before the first computation ends
+        return "output"
+
+    deferred = DeferredOutput(compute)  # type: ignore[arg-type]
+    assert not deferred.computed and calls == []
+    readers = [threading.Thread(target=deferred.get) for _ in range(2)]
+    for reader in readers:
+        reader.start()
+    release.set()
+    for reader in readers:
+        reader.join()
+    assert deferred.get() == "output" and deferred.computed and calls == [1]

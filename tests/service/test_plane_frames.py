@@ -17,7 +17,7 @@ from service.rotation_search import SEARCH_KEEP
 from service.sampling import resample_indices
 from service.stages.normalise import normalise
 from service.stages.sample import sample
-from service.stages.search import plane_frame_starts
+from service.stages.search import plane_frame_starts, search
 from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [130.0, -70.0, 160.0], degrees=True).as_matrix()
@@ -97,3 +97,22 @@ def test_auto_searches_a_room_whose_plain_pose_lies_on_the_walls_a_quarter_turn_
     assert "search" in result.timing_ms
     degrees, error = pose_errors(result.rotation, result.translation, truth)
     assert degrees < 1.0 and error < 0.02, (degrees, error)
+
+
+def test_a_rooms_search_runs_the_network_only_for_the_winning_start():
+    """The plane-frame starts are candidates without a network pass; refined, ranked and assessed, only the winner's
+    output is computed, for the correspondences the result reports (decision 0056)."""
+    skip_without_general()
+    registrar = Registrar(GENERAL, threads=1)
+    source, target = room_pair()
+    request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": True},
+                       registrar.default_iterations, registrar.default_keypoints)
+    work = normalise(sample(request), registrar.reference_radius)
+    found = search(registrar, work, request.hypotheses, request.iterations, request.keypoints, "icp-plane", {})
+    assert len(found.poses) == SEARCH_KEEP and not any(c.network.computed for c in found.poses)
+    result = registrar.solve(work, request, None, {}, found=found)
+    computed = [c for c in found.poses if c.network.computed]
+    assert len(computed) == 1 and angle(result.rotation, R_TRUE) < 1.0
+    winner = computed[0].output
+    assert np.array_equal(result.source_index, found.net_s[winner.src_kp])
+    assert np.array_equal(result.target_index, found.net_t[winner.tgt_kp[winner.matched]])

@@ -114,7 +114,9 @@ def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_suppo
     request, work, plain, R = plain_pass_of_a_half_turned_scan(registrar)
     found = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
     assert len(found.poses) == 2 and found.feature_support >= MIN_SUPPORT
+    assert not found.poses[-1].network.computed  # its network pass runs only should it win (decision 0056)
     right = registrar.solve(work, request, None, {}, found=found)
+    assert found.poses[-1].network.computed  # it won: its correspondences are the result's
     assert rotation_between_deg(right.rotation, R) < 1.0 and feature_confirmed(work, found, right)
     half_turned = dataclasses.replace(right, rotation=right.rotation @ Rotation.from_rotvec([0, 0, np.pi]).as_matrix())
     assert not feature_confirmed(work, found, half_turned)
