@@ -68,7 +68,8 @@ def search(registrar: Registrar, work: Working, hypotheses: np.ndarray, iteratio
     manifest has a ``search`` section searches that many rows spread through each working cloud with at most that
     many keypoints, and every distinct kept candidate is returned (the refine stage ranks them again); without
     one, only the search's best. ``points``: that many rows per cloud instead of the manifest's (the second search of
-    :func:`auto_search`). Records ``timing["encoder"]`` (the target, embedded once) and the search's keys.
+    :func:`auto_search`). Records ``timing["encoder"]`` (the target, embedded once; not from plane frames, whose
+    network pass waits for the winner) and the search's keys.
     """
     short_icp = refine != "none"  # point-to-point for every refine mode (docs/DESIGN.md)
     tic = time.perf_counter()
