@@ -56,6 +56,7 @@ DEFAULT_DIR = Path(__file__).resolve().parent.parent.parent / "shared" / "data" 
 # Success thresholds per sensor class (rotation deg, translation m), from the data README.
 THRESHOLDS = {"cyberware-range": (5.0, 0.01), "lidar": (5.0, 2.0)}
 INDOOR_THRESHOLDS = (15.0, 0.3)  # kinect-*, xtion-* fused fragments (3DMatch registration recall)
+INDOOR_SENSORS = ("kinect-", "xtion-")  # the prefixes of the indoor class's sensor names
 # FPFH + RANSAC + ICP on the pair normalised jointly to the unit sphere (the data README's reference).
 FPFH_VOXEL, FPFH_NORMAL_RADIUS, FPFH_FEATURE_RADIUS = 0.03, 0.1, 0.25
 RANSAC_DISTANCE, RANSAC_EDGE, RANSAC_ITERATIONS, RANSAC_CONFIDENCE = 0.05, 0.9, 100_000, 0.999
@@ -83,8 +84,16 @@ class Case:
 
 
 def thresholds(sensor: str, scale: float = 1.0) -> tuple[float, float]:
-    """Success thresholds (rotation deg, translation in the clouds' unit) of a sensor class."""
-    degrees, metres = THRESHOLDS.get(sensor, INDOOR_THRESHOLDS)
+    """Success thresholds (rotation deg, translation in the clouds' unit) of a sensor's class (the data README's:
+    ``cyberware-range``, ``kinect-*`` and ``xtion-*``, ``lidar``); ``ValueError`` for a sensor of no class, whose
+    results no threshold of the README judges."""
+    if sensor in THRESHOLDS:
+        degrees, metres = THRESHOLDS[sensor]
+    elif sensor.startswith(INDOOR_SENSORS):
+        degrees, metres = INDOOR_THRESHOLDS
+    else:
+        raise ValueError(f"sensor {sensor!r} is of no class with success thresholds (cyberware-range, kinect-*, "
+                         "xtion-*, lidar: the data README's)")
     return degrees, metres * scale
 
 
@@ -405,6 +414,11 @@ def main(argv: list[str] | None = None) -> dict:
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
                      + (f" named {args.pairs}" if args.pairs else ""))
+    for sensor in sorted({c.sensor for c in cases}):
+        try:
+            thresholds(sensor)
+        except ValueError as error:  # before any registration: a new set's sensors named otherwise
+            parser.error(str(error))
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
     starts = None if args.start_near_truth is None else near_truth_starts(cases, args.start_near_truth, args.seed)

@@ -69,6 +69,19 @@ def test_cases_moved_away_are_judged_in_their_own_frames():
 def test_thresholds_scale_with_the_unit():
     assert real_scans.thresholds("cyberware-range", 1000.0) == (5.0, 10.0)
     assert real_scans.thresholds("kinect-fused-2.5cm") == (15.0, 0.3)
+    assert real_scans.thresholds("xtion-fused-2.5cm", 1000.0) == (15.0, 300.0)
+    assert real_scans.thresholds("lidar") == (5.0, 2.0)
+
+
+def test_a_sensor_of_no_class_is_refused_before_any_registration(tmp_path, capsys):
+    """A set whose sensors the data README gives no thresholds for is not judged by the indoor ones silently."""
+    with pytest.raises(ValueError, match="'velodyne-hdl64' is of no class"):
+        real_scans.thresholds("velodyne-hdl64")
+    cloud = np.random.default_rng(0).normal(size=(40, 3)).astype(np.float32)
+    np.savez(tmp_path / "frames.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="velodyne-hdl64")
+    with pytest.raises(SystemExit):
+        real_scans.main([str(tmp_path), "--no-fpfh", "--url", "http://127.0.0.1:9"])  # nothing listens there
+    assert "sensor 'velodyne-hdl64' is of no class with success thresholds" in capsys.readouterr().err
 
 
 def test_pose_errors():
