@@ -21,12 +21,22 @@ PEAKS_PER_CANDIDATE = 50  # best-scoring shifts examined per candidate returned 
 
 
 def occupancy(points: np.ndarray, origin: np.ndarray, cell: float, shape: tuple[int, int, int]) -> np.ndarray:
-    """Grid ``shape`` of 1.0 where ``points [N, 3]`` fall (cells of size ``cell`` from ``origin``), else 0.0."""
-    index = np.floor((points - origin) / cell).astype(np.int64)  # [N, 3]
-    i, j, k = index.T  # [N] each; column by column: numpy's reductions over the short axis of [N, 3] are slow
+    """Grid ``shape`` of 1.0 where ``points [N, 3]`` fall (cells of size ``cell`` from ``origin``), else 0.0.
+
+    The cell coordinates stay floats (whole numbers, exact) until the flat index of the cells inside is cast, and are
+    computed in place and then laid out axis by axis: about 3x faster on a LiDAR frame's 64,000 points than casting
+    every ``[N, 3]`` coordinate first, the same grid (``docs/decisions/0057-occupancy-grids-in-place.md``)."""
+    scaled = points - origin  # [N, 3] float64
+    scaled /= cell
+    np.floor(scaled, out=scaled)
+    i, j, k = np.ascontiguousarray(scaled.T)  # [N] each, contiguous: comparisons over strided columns are slow
     inside = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1]) & (k >= 0) & (k < shape[2])
+    flat = i * shape[1]  # [N] float64: exact below 2**53, far above any grid's cell count
+    flat += j
+    flat *= shape[2]
+    flat += k
     grid = np.zeros(shape, np.float32)
-    grid.reshape(-1)[((i * shape[1] + j) * shape[2] + k)[inside]] = 1.0
+    grid.reshape(-1)[flat[inside].astype(np.int64)] = 1.0
     return grid
 
 

@@ -11,6 +11,22 @@ def test_occupancy_marks_the_cells_points_fall_in():
     assert grid.sum() == 2 and grid[0, 0, 0] == 1 and grid[2, 0, 0] == 1  # the point outside the grid is ignored
 
 
+def test_occupancy_is_the_cell_of_each_point_inside_the_grid_one_by_one():
+    rng = np.random.default_rng(4)
+    points = rng.uniform(-1.5, 6.5, size=(5000, 3))  # [N, 3] about a third outside the grid, on every side
+    points[:3] = [[1e30, 0.5, 0.5], [-1e30, 0.5, 0.5], [0.5, 0.5, 1e18]]  # far beyond any integer cell
+    origin, cell, shape = np.array([0.0, -0.5, 0.25]), 0.37, (13, 17, 11)
+    expected = np.zeros(shape, np.float32)
+    for point in points:
+        index = np.floor((point - origin) / cell)
+        if np.all(index >= 0) and np.all(index < shape):
+            expected[tuple(index.astype(int))] = 1.0
+    assert 0 < expected.sum() < len(points)
+    assert np.array_equal(occupancy(points, origin, cell, shape), expected)
+    assert np.array_equal(occupancy(points.astype(np.float32), origin, cell, shape),
+                          occupancy(points.astype(np.float32).astype(np.float64), origin, cell, shape))
+
+
 def test_finds_the_translation_of_overlapping_partial_views():
     rng = np.random.default_rng(0)
     scene = room_scene(rng)
