@@ -27,19 +27,22 @@ def test_sigmoid_equals_the_plain_formula_within_range() -> None:
 
 def test_a_deferred_output_is_computed_once_when_first_read_even_from_two_threads() -> None:
     calls: list[int] = []
-    release = threading.Event()
+    computing, release = threading.Event(), threading.Event()
 
     def compute() -> str:
         calls.append(1)
-        release.wait(5.0)  # both readers are waiting before the first computation ends
+        computing.set()
+        release.wait(5.0)  # held until the second reader has started
         return "output"
 
     deferred = DeferredOutput(compute)  # type: ignore[arg-type]
     assert not deferred.computed and calls == []
-    readers = [threading.Thread(target=deferred.get) for _ in range(2)]
-    for reader in readers:
-        reader.start()
+    first, second = (threading.Thread(target=deferred.get) for _ in range(2))
+    first.start()
+    assert computing.wait(5.0) and not deferred.computed
+    second.start()  # reads while the first computes
+    second.join(0.1)
     release.set()
-    for reader in readers:
+    for reader in (first, second):
         reader.join()
     assert deferred.get() == "output" and deferred.computed and calls == [1]
