@@ -164,6 +164,8 @@ def _decode_transform(tensor: InferInputTensor, raw: memoryview | None) -> list[
             array = np.asarray(tensor.data, dtype=np.float64).reshape(-1)
         except ValueError:
             raise APIError(422, f"invalid request: {name}: data must be 16 numbers, row-major") from None
+        except OverflowError:  # a JSON integer beyond float64 (10**400)
+            raise APIError(422, f"invalid request: {name}: data holds a number beyond float64's range") from None
         if array.size != 16:
             raise APIError(422, f"invalid request: {name}: data has {array.size} values; [4, 4] needs 16")
         with np.errstate(over="ignore"):

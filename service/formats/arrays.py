@@ -35,6 +35,8 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
     if needed > held:  # before numpy allocates the array
         raise PointCloudFormatError(f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, "
                                     f"{held} follow the header")
+    if math.prod(n for n in shape if n) * dtype.itemsize > np.iinfo(np.intp).max:  # empty, as (0, 2**63)
+        raise PointCloudFormatError(f"not a valid .npy file (shape {list(shape)} is beyond any array's size)")
     row_bytes = count * dtype.itemsize // rows if rows else 0
     if row_bytes > MAX_ROW_BYTES:
         raise InvalidPointsError(f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "

@@ -343,6 +343,22 @@ def test_npy_shape_beyond_the_file_is_refused_before_reading(tmp_path: Path, sha
         read_cloud(tmp_path / f"a.{container}")  # no max_points (the CLI): 2**62 rows are not refused as too many
 
 
+@pytest.mark.parametrize("shape", [(0, 2**63), (0, 2**62), (1, 0, 2**63)], ids=["beyond_intp", "too_big", "three_dims"])
+@pytest.mark.parametrize("container", ["npy", "npz"])
+def test_npy_empty_shape_beyond_any_array_is_a_format_error(tmp_path: Path, shape: tuple, container: str) -> None:
+    """A shape with a zero holds no data, so it passes the check against the file, but numpy cannot make an array of
+    its other dimensions (its reshape raised outside the reader's errors: a 500)."""
+    data = npy_bytes(f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}", body=b"")
+    if container == "npz":
+        out = io.BytesIO()
+        with zipfile.ZipFile(out, "w") as archive:
+            archive.writestr("points.npy", data)
+        data = out.getvalue()
+    (tmp_path / f"a.{container}").write_bytes(data)
+    with pytest.raises(PointCloudFormatError, match=r"not a valid \.npy file \(shape .* beyond any array's size"):
+        read_cloud(tmp_path / f"a.{container}")
+
+
 @pytest.mark.parametrize("shapes", [((2,), (), ()), ((0,), (0,), (0,))], ids=["x_pair", "empty_fields"])
 def test_npy_structured_fields_must_be_single_numbers(tmp_path: Path, shapes: tuple) -> None:
     """Array fields raised numpy's broadcast ValueError, or ZeroDivisionError for a record of 0 bytes."""

@@ -258,6 +258,8 @@ BAD_INPUTS: dict[str, Case] = {
     "npy_truncated": case(lambda: form(source=npy(_pair()[0])[:300]), 400, "source", ".npy"),
     "npy_header_is_code": case(lambda: form(source=b"\x93NUMPY\x01\x00\x10\x00__import__('os')\n"), 400,
                                "source", ".npy"),
+    "npy_empty_shape_beyond_any_array": case(lambda: form(source=npy_header("<f8", "(0, 9223372036854775808)")), 400,
+                                             "source", ".npy", "beyond"),
     "npy_version_3": case(lambda: form(source=npy_header("<f8", "(40, 3)", b"\x03\x00")), 400, "source",
                           "version"),
     "npy_pickled_object_array": case(lambda: form(source=npy(np.array([Unpickler()] * 40, dtype=object))), 422,
@@ -294,6 +296,9 @@ BAD_INPUTS: dict[str, Case] = {
     "oip_objects": case(lambda: oip(data_of([{"x": 1}] * 2100)), 422, "SOURCE", "numbers", "dict"),
     "oip_fp64": case(lambda: oip({"shape": [700, 3], "datatype": "FP64", "data": [0.5] * 2100}), 422, "SOURCE",
                      "FP32"),
+    "oip_transform_beyond_float64": case(lambda: jpost({"inputs": [*oip_inputs(), {
+        "name": "INITIAL_TRANSFORM", "shape": [4, 4], "datatype": "FP32", "data": [10**400] + [0] * 15}]}, INFER), 422,
+                                         "INITIAL_TRANSFORM", "float64"),
     "oip_missing_target": case(lambda: jpost({"inputs": oip_inputs()[:1]}, INFER), 422, "TARGET", "missing"),
     "oip_iterations_0": case(lambda: oip(parameters={"iterations": 0}), 422, "iterations"),
     "oip_iterations_true": case(lambda: oip(parameters={"iterations": True}), 422, "iterations", "integer"),
