@@ -13,13 +13,10 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.checks import check_count, checked, xyz_columns
+from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
-# Most bytes per point (16 float64 values: x, y, z and 13 more columns). It bounds what an .npz member, whose
-# compressed size says nothing of it, may decompress to: 2,000,000 points of 128 bytes are 256 MiB, the upload limit.
-MAX_ROW_BYTES = 128
 
 
 def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np.ndarray:

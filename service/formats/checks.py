@@ -2,18 +2,53 @@
 
 from __future__ import annotations
 
+from typing import BinaryIO
+
 import numpy as np
 
 from service.checks import LEAVE_NAN_ROWS_OUT, max_abs
-from service.formats.errors import InvalidPointsError, TooManyPointsError
+from service.formats.errors import InvalidPointsError, PointCloudFormatError, TooManyPointsError
 
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+# Most bytes per point of an array or a compressed record (16 float64 values: x, y, z and 13 more columns). It bounds
+# what an .npz member or a binary_compressed PCD, whose compressed size says nothing of it, may expand to: 2,000,000
+# points of 128 bytes are 256 MiB, the upload limit.
+MAX_ROW_BYTES = 128
+# Longest line of a text body (XYZ / CSV / TXT, ASCII PLY and PCD). numpy's text reader keeps about 32 bytes per value
+# of a line, so a 256 MiB upload of one line would take several GB; a row of 4,096 values of 16 characters (PCD's
+# MAX_VALUES_PER_POINT) is 64 KiB.
+MAX_TEXT_LINE_BYTES = 1 << 20
+_SCAN_BLOCK = 1 << 22
 
 
 def check_count(count: int, max_points: int | None) -> None:
     """:class:`TooManyPointsError` when a header announces more than ``max_points`` points."""
     if max_points is not None and count > max_points:
         raise TooManyPointsError(f"has {count} points; the limit is {max_points} per cloud", count, max_points)
+
+
+def check_line_lengths(f: BinaryIO, what: str) -> None:
+    """:class:`PointCloudFormatError` where a line from ``f``'s position to its end (split at ``\\n`` or ``\\r``)
+    is longer than ``MAX_TEXT_LINE_BYTES``, before a text reader holds it; ``f``'s position is kept."""
+    start = f.tell()
+    line_start = position = start  # where the current line began; bytes scanned so far
+    too_long_at = None
+    while too_long_at is None and (block := f.read(_SCAN_BLOCK)):
+        data = np.frombuffer(block, dtype=np.uint8)
+        ends = np.flatnonzero((data == 10) | (data == 13)) + position  # [E] absolute offsets of line breaks
+        position += len(block)
+        if len(ends):
+            lengths = np.diff(ends, prepend=line_start - 1) - 1  # [E] each line's bytes, its break left out
+            longest = int(np.argmax(lengths))
+            if lengths[longest] > MAX_TEXT_LINE_BYTES:
+                too_long_at = int(ends[longest] - lengths[longest])
+            line_start = int(ends[-1]) + 1
+        if too_long_at is None and position - line_start > MAX_TEXT_LINE_BYTES:
+            too_long_at = line_start
+    f.seek(start)
+    if too_long_at is not None:
+        raise PointCloudFormatError(f"{what}: a line longer than {MAX_TEXT_LINE_BYTES} bytes (from byte "
+                                    f"{too_long_at}); rows of numbers are far shorter")
 
 
 def xyz_columns(columns: list[np.ndarray]) -> np.ndarray:

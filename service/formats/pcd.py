@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
-from service.formats.checks import check_count, xyz_columns
+from service.formats.checks import MAX_ROW_BYTES, check_count, check_line_lengths, xyz_columns
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -90,8 +90,12 @@ def _record(meta: MetaData) -> np.dtype:
 
 
 def _check_body(f: BinaryIO, meta: MetaData, dtype: np.dtype) -> None:
-    """The bytes after the header hold the points the header declares (checked before pypcd4 allocates them)."""
-    if meta.data == "ascii" or meta.points == 0:
+    """The bytes after the header hold the points the header declares (checked before pypcd4 allocates them); ASCII
+    data, no line too long for numpy's text reader."""
+    if meta.data == "ascii":
+        check_line_lengths(f, "PCD ascii data")
+        return
+    if meta.points == 0:
         return
     start = f.tell()
     body = f.seek(0, os.SEEK_END) - start
@@ -102,6 +106,9 @@ def _check_body(f: BinaryIO, meta: MetaData, dtype: np.dtype) -> None:
             raise PointCloudFormatError(f"PCD binary data holds {body} bytes; the header's {meta.points} points "
                                         f"need {expected}")
         return
+    if dtype.itemsize > MAX_ROW_BYTES:  # its compressed size does not bound what it expands to
+        raise InvalidPointsError(f"PCD binary_compressed records of {dtype.itemsize} bytes: at most {MAX_ROW_BYTES} "
+                                 "bytes per point (e.g. 16 float64 fields); save it as binary, or without extra fields")
     sizes = f.read(8)
     f.seek(start)
     if len(sizes) != 8:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
-from service.formats.checks import check_count, xyz_columns
+from service.formats.checks import check_count, check_line_lengths, xyz_columns
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -52,6 +52,9 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
     if any(isinstance(kinds[axis], plyfile.PlyListProperty) for axis in "xyz"):
         raise InvalidPointsError("PLY vertex x, y, z must be scalar properties, not lists")
     _check_rows_fit(plyfile, header, f.seek(0, os.SEEK_END) - start - head.tell())
+    if header.text:
+        f.seek(start + head.tell())
+        check_line_lengths(f, "PLY ASCII data")
     if header.text and header.elements[0].name == "vertex" and not any(
             isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties):
         f.seek(start + head.tell())

@@ -193,6 +193,67 @@ def test_pcd_compressed_block_that_cannot_expand_to_its_size_is_refused(tmp_path
         read_cloud(path)
 
 
+def compressed_pcd(points: int, extra_values: int) -> bytes:
+    """A binary_compressed PCD of ``points`` records of x, y, z and ``extra_values`` more float32 values, all zeros: an
+    LZF stream of one literal byte and back references of 264 bytes, about 88 times smaller than what it expands to."""
+    raw = points * (12 + 4 * extra_values)
+    full, rest = divmod(raw - 1, 264)
+    stream = b"\x00\x00" + b"\xe0\xff\x00" * full + (bytes([0xE0, rest - 9, 0]) if rest >= 9 else
+                                                       bytes([(rest - 2) << 5, 0]) if rest else b"")
+    header = (f"VERSION 0.7\nFIELDS x y z p\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 {extra_values}\n"
+              f"WIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA binary_compressed\n")
+    return header.encode() + struct.pack("<II", len(stream), raw) + stream
+
+
+def test_pcd_compressed_records_wider_than_128_bytes_are_refused_before_decompressing(tmp_path: Path) -> None:
+    """2,000,000 records of 536 bytes in a 12 MB file: a 1 GB block that pypcd4 decompressed, zeroed and copied
+    (2.4 GiB of server memory for one upload)."""
+    path = tmp_path / "a.pcd"
+    path.write_bytes(compressed_pcd(2_000_000, 131))
+
+    def read() -> None:
+        with pytest.raises(InvalidPointsError, match="records of 536 bytes: at most 128 bytes per point"):
+            read_cloud(path)
+
+    assert peak_bytes(read) < 64 << 20
+
+
+def test_pcd_compressed_records_of_128_bytes_read(tmp_path: Path) -> None:
+    path = tmp_path / "a.pcd"
+    path.write_bytes(compressed_pcd(1000, 29))  # 12 + 116 bytes
+    assert read_cloud(path).shape == (1000, 3)
+
+
+# --- text lines ---------------------------------------------------------------------------------------------------
+
+LONG_ROW = " ".join(["1"] * 1_500_000)  # 3 MB: numpy's text reader kept about 32 bytes per value of a line
+
+
+@pytest.mark.parametrize("name,text", [
+    ("a.xyz", LONG_ROW + "\n"),
+    ("a.xyz", "x y z\n" + "1 2 3\n" * 40 + LONG_ROW + "\n1 2 3\n"),
+    ("a.ply", "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+              "end_header\n" + LONG_ROW + "\n1 2 3\n"),
+    ("a.pcd", "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n" + LONG_ROW + "\n1 2 3\n"),
+], ids=["xyz_one_line", "xyz_after_rows", "ply_ascii", "pcd_ascii"])
+def test_a_text_line_beyond_a_mebibyte_is_refused_before_parsing(tmp_path: Path, name: str, text: str) -> None:
+    """One line of a 256 MiB upload took several GB of server memory to parse (or to split, for the header probe)."""
+    (tmp_path / name).write_text(text)
+
+    def read() -> None:
+        with pytest.raises(PointCloudFormatError, match="a line longer than 1048576 bytes"):
+            read_cloud(tmp_path / name)
+
+    assert peak_bytes(read) < 32 << 20
+
+
+def test_text_rows_of_a_thousand_values_read(tmp_path: Path) -> None:
+    rows = "\n".join(" ".join(f"{v:.6f}" for v in row) for row in np.random.default_rng(0).normal(size=(40, 1000)))
+    (tmp_path / "a.txt").write_text(rows + "\n")
+    assert read_cloud(tmp_path / "a.txt").shape == (40, 3)
+
+
 # --- LAS / LAZ ---------------------------------------------------------------------------------------------------
 
 def las_bytes(version: str, point_format: int, compressed: bool, n: int = 24) -> bytearray:
