@@ -96,7 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=["X-Request-ID", "Retry-After"],
         )
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
-                       max_upload_bytes=settings.max_upload_bytes)
+                       max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

@@ -42,6 +42,9 @@ MULTIPART = "multipart/form-data"
 CLOUD_FIELDS = ("source", "target")
 MAX_FORM_FIELD_BYTES = 64 * 1024
 EXACT_FLOAT_LIMIT = 2.0**63  # orjson reads integer literals beyond 64 bits as floats; json keeps them ints
+# JSON arrays and objects a body may hold beyond one per point: the clouds' own lists, the options, a batch's pairs.
+# A parsed container takes 56-64 bytes however small its text ("{}"), so a 64 MiB body of them took 2.4 GB to parse.
+EXTRA_JSON_CONTAINERS = 4096
 
 
 @dataclass
@@ -83,6 +86,22 @@ async def read_body(request: Request) -> bytearray:
     async for chunk in request.stream():
         body += chunk
     return body
+
+
+def check_json_containers(body: bytes | bytearray, points: int, clouds: str) -> None:
+    """413 where ``body`` holds more JSON arrays and objects (counted as ``[`` and ``{`` bytes, before any parse) than
+    ``points`` rows of ``clouds`` (what the message calls them) and :data:`EXTRA_JSON_CONTAINERS` more need."""
+    allowed = points + EXTRA_JSON_CONTAINERS
+    if len(body) <= 2 * allowed:  # each takes two bytes at least: no need to count
+        return
+    count = body.count(b"[") + body.count(b"{")
+    if count > allowed:
+        raise APIError(413, f"the JSON body holds {count} arrays and objects; {clouds} need at most {allowed}")
+
+
+def two_clouds(max_points: int) -> str:
+    """The clouds of one pair, as :func:`check_json_containers` names them."""
+    return f"two clouds of at most {max_points} points (max_points)"
 
 
 def load_json(body: bytes | bytearray, fast: bool = False) -> Any:
@@ -185,6 +204,7 @@ def _split_pair(body: bytes | bytearray, max_points: int) -> Pair | None:
 
 
 def register_pair_from_json(body: bytes | bytearray, max_points: int) -> Pair:
+    check_json_containers(body, 2 * max_points, two_clouds(max_points))
     pair = _split_pair(body, max_points)
     if pair is not None:
         return pair
@@ -197,27 +217,43 @@ def register_pair_from_json(body: bytes | bytearray, max_points: int) -> Pair:
     return _pair_from_request(req)
 
 
+def _fast_batch(obj: Any, max_points: int, max_batch: int) -> list[Pair] | None:
+    """The batch's :class:`Pair` objects from orjson's parse ``obj`` where each is plain, else ``None`` (413 where the
+    batch or a cloud is too large)."""
+    if type(obj) is not dict:
+        return None
+    _count_batch(obj, max_points, max_batch)
+    items = obj.get("pairs")
+    if type(items) is not list or not items or set(obj) != {"pairs"}:
+        return None
+    pairs = [_fast_pair(item) for item in items]
+    return pairs if all(pair is not None for pair in pairs) else None  # type: ignore[return-value]
+
+
 def _count_batch(obj: dict, max_points: int, max_batch: int) -> None:
+    """413 where the batch has more than ``max_batch`` pairs, a cloud more than ``max_points`` points, or its clouds
+    more than ``2 * max_points`` points in all (what one pair may hold: the batch's memory is bounded as a pair's)."""
     pairs = obj.get("pairs")
     if isinstance(pairs, list):
         if len(pairs) > max_batch:
             raise APIError(413, f"pairs has {len(pairs)} entries; the limit is {max_batch} per batch (max_batch)")
+        total = 0
         for i, pair in enumerate(pairs):
             if isinstance(pair, dict):
                 _count_clouds(pair, max_points, prefix=f"pairs[{i}].")
+                total += sum(len(pair[name]) for name in CLOUD_FIELDS if isinstance(pair.get(name), list))
+        if total > 2 * max_points:
+            raise APIError(413, f"pairs hold {total} points in all; the limit is {2 * max_points} per batch "
+                                "(2 x max_points)")
 
 
 def batch_pairs_from_json(body: bytes | bytearray, max_points: int, max_batch: int) -> list[Pair]:
-    obj = load_json(body, fast=True)
-    if type(obj) is dict:
-        _count_batch(obj, max_points, max_batch)
-        items = obj.get("pairs")
-        if type(items) is list and items and set(obj) == {"pairs"}:
-            pairs = [_fast_pair(item) for item in items]
-            if all(pair is not None for pair in pairs):
-                return pairs  # type: ignore[return-value]
-    del obj
-    obj = _require_object(load_json(body))
+    check_json_containers(body, 2 * max_points, f"a batch's clouds, at most {2 * max_points} points in all "
+                                                "(2 x max_points),")
+    pairs = _fast_batch(load_json(body, fast=True), max_points, max_batch)
+    if pairs is not None:
+        return pairs
+    obj = _require_object(load_json(body))  # the fast path's parse is freed: one parse of the body at a time
     _count_batch(obj, max_points, max_batch)
     try:
         batch = BatchRequest.model_validate(obj, strict=True)

@@ -43,6 +43,12 @@ class BodyTooLargeError(APIError):
         super().__init__(413, f"request body is larger than the limit of {limit} bytes ({setting})")
 
 
+class BodyTimeoutError(APIError):
+    def __init__(self, timeout_s: float):
+        super().__init__(408, f"the request body stalled: no data for {timeout_s:g} s (body_timeout_s)",
+                         headers={"Connection": "close"})
+
+
 def error_response(status: int, message: str, headers: dict[str, str] | None = None, **extra: Any) -> JSONResponse:
     return JSONResponse({"error": message, **extra}, status_code=status, headers=headers)
 
@@ -118,6 +124,7 @@ ERROR_DOCS: dict[int, dict] = {
     400: _doc("Malformed body (JSON syntax, multipart, file that is not a readable .npy)."),
     401: _doc("Missing or wrong API key (only when MFGNET_API_KEY is set)."),
     404: _doc("Unknown model or route."),
+    408: _doc("The request body stalled: no data for body_timeout_s."),
     413: _doc("Body larger than max_body_bytes, a cloud with more than max_points points, or too many pairs."),
     415: _doc("Content type is neither application/json nor multipart/form-data."),
     422: _doc("Validation failed: the message names the field and the problem (shape, dtype, NaN, range)."),

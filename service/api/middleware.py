@@ -3,6 +3,7 @@ and the last-resort JSON 500 (with the traceback in the server log only)."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import re
@@ -12,7 +13,7 @@ import uuid
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.errors import BodyTooLargeError
+from service.api.errors import BodyTimeoutError, BodyTooLargeError
 from service.api.metrics import Metrics
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
@@ -44,11 +45,13 @@ def _content_length(scope: Scope) -> int | None:
 
 
 class RequestContextMiddleware:
-    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None):
+    def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None,
+                 body_timeout_s: float | None = None):
         self.app = app
         self.metrics = metrics
         self.max_body_bytes = max_body_bytes  # JSON and every other body
         self.max_upload_bytes = max_body_bytes if max_upload_bytes is None else max_upload_bytes  # multipart files
+        self.body_timeout_s = body_timeout_s  # longest wait for the next piece of a body (None: no limit)
 
     def _limit(self, scope: Scope) -> tuple[int, str]:
         """The body limit for this request's content type, and the setting that holds it."""
@@ -64,7 +67,7 @@ class RequestContextMiddleware:
         started = time.perf_counter()
         request_id = _request_id(scope)
         scope.setdefault("state", {})["request_id"] = request_id
-        state = {"status": 0, "started": False, "received": 0}
+        state = {"status": 0, "started": False, "received": 0, "body_done": False}
         limit, setting = self._limit(scope)
 
         async def send_with_id(message: Message) -> None:
@@ -74,9 +77,16 @@ class RequestContextMiddleware:
             await send(message)
 
         async def receive_limited() -> Message:
-            message = await receive()
+            if state["body_done"] or self.body_timeout_s is None:  # after the body: the wait for a disconnect
+                return await receive()
+            try:
+                async with asyncio.timeout(self.body_timeout_s):
+                    message = await receive()
+            except TimeoutError:
+                raise BodyTimeoutError(self.body_timeout_s) from None  # a JSON 408; the route's slot is freed
             if message["type"] == "http.request":
                 state["received"] += len(message.get("body", b""))
+                state["body_done"] = not message.get("more_body", False)
                 if state["received"] > limit:
                     raise BodyTooLargeError(limit, setting)  # turned into a JSON 413 by the error handlers
             return message

@@ -85,11 +85,16 @@ class Settings(BaseSettings):
         "answered with 413. The files are spooled to temporary files, not held in memory. 256 MiB holds two "
         "2,000,000-point clouds as float64 .npy (48 MB each) or as %.9g XYZ text (at most about 80 MB each).",
     )
-    max_batch: int = Field(16, ge=1, description="Most pairs in one /v1/register/batch request.")
+    max_batch: int = Field(16, ge=1, description="Most pairs in one /v1/register/batch request; their clouds hold at "
+                           "most 2 x max_points points in all (as one pair may), so a batch's memory is a pair's.")
     max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
     max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")
     timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read; then 504, "
                                 "and its registration stops at its next network call.")
+    body_timeout_s: float = Field(
+        15.0, gt=0, description="Longest wait for the next piece of a request body; then 408 and the request's slot "
+        "is freed (a request takes its slot before its body arrives, so stalled uploads would hold them all).",
+    )
     keep_alive_s: int = Field(
         75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
         "(often 60 s), so the server never closes a connection that a client is about to reuse.",

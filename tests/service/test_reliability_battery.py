@@ -93,6 +93,12 @@ def body(**changes) -> dict:
     return {"source": src.tolist(), "target": tgt.tolist(), **changes}
 
 
+def small_body(**changes) -> dict:
+    """A valid body for the limited server (``SMALL`` points per cloud)."""
+    src, tgt = _pair(SMALL)
+    return {"source": src.tolist(), "target": tgt.tolist(), **changes}
+
+
 def row(value, index: int = 5) -> dict:
     """The valid body with ``source[index]`` replaced by ``value``."""
     out = body()
@@ -321,6 +327,14 @@ BAD_INPUTS: dict[str, Case] = {
                                          "max_file_points", server="limited"),
     "oip_over_max_points": case(lambda: oip(_pair()[0][:BIG], _pair()[1][:SMALL]), 413, "SOURCE", "max_points",
                                 server="limited"),
+    "json_arrays_and_objects_beyond_the_clouds": case(lambda: jpost(small_body(x=[{}] * 6000)), 413,
+                                                      "arrays and objects", "max_points", server="limited"),
+    "batch_arrays_and_objects_beyond_the_clouds": case(lambda: batch(small_body(x=[[]] * 20_000)), 413,
+                                                       "arrays and objects", "max_points", server="limited"),
+    "batch_points_beyond_one_pairs": case(lambda: batch(small_body(), small_body()), 413, "points in all",
+                                          "2 x max_points", server="limited"),
+    "oip_arrays_and_objects_beyond_the_clouds": case(lambda: oip({"shape": [SMALL, 3], "data": [[]] * 6000}), 413,
+                                                     "arrays and objects", "max_points", server="limited"),
     "body_over_max_body_bytes": case(lambda: raw(b"[" * 250_000, "application/json"), 413, "max_body_bytes",
                                      server="limited"),
 }

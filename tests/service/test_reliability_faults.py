@@ -12,10 +12,13 @@ import json
 import re
 import shutil
 import signal
+import socket
 import time
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -115,6 +118,76 @@ def test_a_client_that_goes_away_frees_the_worker_long_before_the_deadline(overl
     assert response.status_code == 200 and response.json()["transform"] == reference
     with overload.client() as c:
         assert 'status="499"' in c.get("/metrics").text  # the access metrics count it as the client's close
+
+
+# -- stalled bodies ---------------------------------------------------------------------------------
+STALLED_BODIES = {  # the start of a 1,000-byte body of each kind
+    "application/json": b'{"source": [[0.1, ',
+    "multipart/form-data; boundary=x": b'--x\r\nContent-Disposition: form-data; name="source"; filename="s.xyz"'
+                                       b"\r\n\r\n0 ",
+}
+
+
+def stalled_request(server: Server, path: str, content_type: str) -> socket.socket:
+    """A connection that sends a request's headers and the start of its 1,000-byte body, then nothing."""
+    url = urlsplit(server.url)
+    sock = socket.create_connection((url.hostname, url.port))
+    sock.sendall(f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: {content_type}\r\n"
+                 "Content-Length: 1000\r\n\r\n".encode() + STALLED_BODIES[content_type])
+    return sock
+
+
+def answer(sock: socket.socket) -> bytes:
+    """What the server sends until it closes the connection (at most 10 s)."""
+    sock.settimeout(10)
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    return data
+
+
+def test_stalled_bodies_are_408_and_free_their_slots_while_slow_ones_finish():
+    """A request takes its slot before its body arrives: clients that stop sending held every slot, and every other
+    request got 503 for as long as they stayed connected. With ``body_timeout_s`` 1 they get 408 and the slots are
+    freed; an upload that keeps sending, if slowly, is not cut."""
+    server = start_subprocess_server("stalled", MFGNET_BODY_TIMEOUT_S="1", MFGNET_MAX_CONCURRENCY="1",
+                                     MFGNET_MAX_QUEUE="1")
+    good = pair_json(modelnet_pair(1), **CHEAP)
+    try:
+        stalled = [stalled_request(server, "/v1/register", "application/json"),
+                   stalled_request(server, "/v1/register", "multipart/form-data; boundary=x")]
+        wait_for(lambda: metric(server, "mfgnet_inference_slots_taken") == 2, what="both slots taken")
+        assert_error(post(server, good), 503, "busy")
+        with server.client() as c:  # the aligned route takes a slot too
+            aligned = c.post("/v1/register/aligned", files={"source": ("s.xyz", b"0 0 0\n" * 40)},
+                             data={"transform": json.dumps(np.eye(4).tolist())})
+        assert_error(aligned, 503, "busy")
+        started = time.monotonic()
+        answers = [answer(sock) for sock in stalled]
+        assert time.monotonic() - started < 5
+        for data in answers:
+            assert data.startswith(b"HTTP/1.1 408"), data[:200]
+            assert b"stalled" in data and b"body_timeout_s" in data, data
+        wait_for(lambda: metric(server, "mfgnet_inference_slots_taken") == 0, timeout=3.0, what="the slots freed")
+        reference = post(server, good)
+        assert reference.status_code == 200, reference.text
+
+        body = json.dumps(good).encode()
+
+        def slowly() -> Iterator[bytes]:  # the whole body over about 3 s, a piece every 0.5 s
+            for piece in np.array_split(np.frombuffer(body, dtype=np.uint8), 6):
+                time.sleep(0.5)
+                yield piece.tobytes()
+
+        with server.client() as c:
+            slow = c.post("/v1/register", content=slowly(), headers={"content-type": "application/json",
+                                                                     "content-length": str(len(body))})
+        assert slow.status_code == 200, slow.text
+        assert slow.json()["transform"] == reference.json()["transform"]
+    finally:
+        for sock in stalled:
+            sock.close()
+        server.stop()
 
 
 # -- memory ---------------------------------------------------------------------------------------

@@ -155,7 +155,7 @@ The body may be sent without a Content-Type, or as application/json or {OCTET_ST
             },
         }
     },
-    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+    responses=error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
     dependencies=[Depends(require_api_key)],
 )
 async def infer(name: str, request: Request) -> Response:

@@ -19,7 +19,6 @@ from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
-from starlette.concurrency import run_in_threadpool
 
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
@@ -108,7 +107,7 @@ def _multipart(schema: dict) -> dict:
     f"format, options as fields). Answers the registration plus at most {DISPLAY_CAP} points per cloud, "
     "float32, for drawing; the aligned source is `source @ rotation.T + translation`.",
     openapi_extra=_multipart(_MULTIPART_SCHEMA),
-    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+    responses=error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
 )
 async def register_view(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
@@ -135,27 +134,29 @@ async def register_view(request: Request) -> RenderedJSON:
     "src_to_tgt matrix (e.g. a registration's `transform`). Answers binary little-endian float32 PLY of "
     "`source @ R.T + t`, every point.",
     openapi_extra=_multipart(_ALIGNED_SCHEMA),
-    responses={200: {"content": {"application/octet-stream": {}}}, **error_docs(400, 401, 413, 415, 422)},
+    responses={200: {"content": {"application/octet-stream": {}}},
+               **error_docs(400, 401, 408, 413, 415, 422, 503, 504)},
 )
 async def register_aligned(request: Request) -> Response:
-    settings = get_settings(request)
+    settings, runner = get_settings(request), get_runner(request)
     bodies.require_media_type(request, bodies.MULTIPART)
-    form = await bodies.read_register_form(request, ("source",))  # the file stays spooled until decoded
-    try:
-        R, t = _aligned_transform(form.fields)
-        upload = form.files["source"]
+    with runner.admit() as slot:  # a 2,000,000-point file decoded and moved: a slot as a registration's
+        form = await bodies.read_register_form(request, ("source",))  # the file stays spooled until decoded
+        try:
+            R, t = _aligned_transform(form.fields)
+            upload = form.files["source"]
 
-        def work() -> bytes:
-            source = bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
-            with np.errstate(over="ignore"):
-                aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
-            if not np.isfinite(aligned).all():
-                raise APIError(422, "invalid request: the moved source leaves the float32 range")
-            return ply_bytes(aligned)
+            def work() -> bytes:
+                source = bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
+                with np.errstate(over="ignore"):
+                    aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
+                if not np.isfinite(aligned).all():
+                    raise APIError(422, "invalid request: the moved source leaves the float32 range")
+                return ply_bytes(aligned)
 
-        content = await run_in_threadpool(work)
-    finally:
-        form.close()
+            content, _ = await runner.run(slot, work, request)
+        finally:
+            form.close()
     stem = PurePath(upload.filename).stem or "source"
     return Response(
         content,

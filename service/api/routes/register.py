@@ -69,7 +69,7 @@ def _request_body(schema_name: str, multipart: bool) -> dict:
     "point-cloud files `source` and `target` (PLY, PCD, LAS/LAZ, NPY/NPZ, XYZ/CSV/TXT) and the options as form "
     "fields.",
     openapi_extra=_request_body("RegisterRequest", multipart=True),
-    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+    responses=error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
 )
 async def register(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
@@ -103,7 +103,7 @@ async def register(request: Request) -> RenderedJSON:
     summary="Register several pairs",
     description="Each pair is checked before any runs; the results equal single /v1/register calls.",
     openapi_extra=_request_body("BatchRequest", multipart=False),
-    responses=error_docs(400, 401, 404, 413, 415, 422, 503, 504),
+    responses=error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
 )
 async def register_batch(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
