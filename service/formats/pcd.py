@@ -56,6 +56,8 @@ def _metadata(pypcd4: ModuleType, f: BinaryIO):
         raw = f.readline(MAX_LINE_BYTES)
         if not raw:
             break
+        if len(raw) == MAX_LINE_BYTES and not raw.endswith(b"\n"):
+            raise PointCloudFormatError(f"invalid PCD header (a line longer than {MAX_LINE_BYTES} bytes)")
         try:
             line = raw.decode("ascii").strip()
         except UnicodeDecodeError:
@@ -64,13 +66,23 @@ def _metadata(pypcd4: ModuleType, f: BinaryIO):
             lines.append(line)
             if line.upper().startswith("DATA"):
                 break
-    else:
-        raise PointCloudFormatError("invalid PCD header (no DATA line)")
+    if not lines or not lines[-1].upper().startswith("DATA"):  # pypcd4 would take binary_compressed for it
+        raise PointCloudFormatError(f"invalid PCD header (no DATA line in its first {MAX_HEADER_LINES} lines)")
+    encodings = [encoding.value for encoding in pypcd4.Encoding]  # ascii, binary, binary_compressed and an alias
+    if lines[-1].split()[1:2] not in [[encoding] for encoding in encodings]:
+        raise PointCloudFormatError(f"invalid PCD header ({lines[-1][:80]!r}: DATA must be one of {encodings})")
     try:
         return pypcd4.MetaData.parse_header(lines)
     except Exception as exc:  # pydantic's ValidationError: a missing or malformed header entry
-        reason = " ".join(str(exc).split())[:300]
-        raise PointCloudFormatError(f"invalid PCD header ({reason})") from None
+        raise PointCloudFormatError(f"invalid PCD header ({_reason(exc)})") from None
+
+
+def _reason(exc: Exception) -> str:
+    """What is wrong, in one line: each pydantic error as ``field: message`` (no pydantic URL), else the message."""
+    errors = getattr(exc, "errors", None)
+    if callable(errors):
+        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'header'}: {e['msg']}" for e in errors())[:300]
+    return " ".join(str(exc).split())[:300]
 
 
 def _record(meta: MetaData) -> np.dtype:

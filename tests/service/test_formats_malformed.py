@@ -148,6 +148,22 @@ def test_pcd_fields_without_a_record_type_are_a_header_error(tmp_path: Path, ent
         read_cloud(tmp_path / "a.pcd")
 
 
+@pytest.mark.parametrize("header,message", [
+    (lambda: pcd_header().replace(b"DATA ascii\n", b""), "no DATA line"),
+    (lambda: pcd_header().replace(b"DATA ascii", b"DATA"), "DATA must be one of"),
+    (lambda: pcd_header().replace(b"DATA ascii", b"DATA text"), "DATA must be one of"),
+    (lambda: pcd_header(fields="x y z " + " ".join(f"f{i}" for i in range(1000))), "a line longer than 4096 bytes"),
+    (lambda: pcd_header().replace(b"WIDTH 24", b"WIDTH many"), "invalid PCD header"),
+], ids=["no_data_line", "bare_data", "unknown_data", "long_line", "width_not_a_number"])
+def test_pcd_header_errors_name_the_problem(tmp_path: Path, header, message: str) -> None:
+    """pypcd4 took a missing or bare DATA line for binary_compressed ("data cut short", "declares 825637174 bytes"),
+    a header line beyond 4,096 bytes was split silently, and pydantic's text and URL reached the message."""
+    (tmp_path / "a.pcd").write_bytes(header() + b"1 2 3\n" * 24)
+    with pytest.raises(PointCloudFormatError, match=message) as caught:
+        read_cloud(tmp_path / "a.pcd")
+    assert "pydantic" not in str(caught.value) and "binary_compressed data" not in str(caught.value)
+
+
 def test_pcd_count_is_bounded_before_pypcd4_names_every_value(tmp_path: Path) -> None:
     """pypcd4 makes a record field per value: COUNT 1 1 100000000 took minutes and gigabytes."""
     (tmp_path / "a.pcd").write_bytes(pcd_header(count="1 1 300000") + b"1 2 3\n")
