@@ -92,11 +92,10 @@ async def _request_validation(request: Request, exc: RequestValidationError) -> 
 
 
 async def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    path = request.scope.get("path", "")  # as sent: the URL would read "//v1/models" as host "v1" and path "/models"
     if exc.status_code == 404:
-        message = f"not found: {request.method} {path}"
+        message = f"not found: {request.method} {request.url.path}"
     elif exc.status_code == 405:
-        message = f"method {request.method} not allowed on {path}"
+        message = f"method {request.method} not allowed on {request.url.path}"
     else:
         message = str(exc.detail)
     return error_response(exc.status_code, message, dict(exc.headers or {}))

@@ -7,8 +7,6 @@ from __future__ import annotations
 import io
 import json
 import pickle
-import socket
-from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
@@ -115,18 +113,6 @@ def test_batch_checks_every_pair_before_running_any(client, still_serves):
     few = {**valid(), "target": [[0.0, 0.0, 0.1 * i] for i in range(40)]}  # collinear is allowed, unknown model not
     response = client.post("/v1/register/batch", json={"pairs": [few, valid(model="nope")]})
     assert_error(response, 404, "nope")
-
-
-def test_an_unknown_path_is_named_as_sent(server):
-    """``GET //v1/models``: the 404 named ``/models`` (the URL parsed ``//v1`` as a host)."""
-    url = urlsplit(server.url)
-    with socket.create_connection((url.hostname, url.port)) as sock:
-        sock.sendall(b"GET //v1/models HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
-        answer = b""
-        while chunk := sock.recv(65536):
-            answer += chunk
-    assert answer.startswith(b"HTTP/1.1 404"), answer[:200]
-    assert b"not found: GET //v1/models" in answer, answer
 
 
 def multipart(source: bytes, target: bytes | None = None, **fields) -> dict:
