@@ -48,3 +48,17 @@ def test_cli_writes_the_report(pairs_file, tmp_path, capsys):
     main(["--pairs", str(pairs_file), "--model", "clean", "--repeats", "1", "--threads", "1", "--json", str(out)])
     assert '"wide_products_ms"' in out.read_text()
     assert '"wide_products_ms"' in capsys.readouterr().out
+
+
+def test_a_registration_counts_the_encoder_once_per_cloud_where_their_sizes_differ(tmp_path):
+    """Clouds of different sizes run the encoder once each: the registration's figures count both calls."""
+    rng = np.random.default_rng(1)
+    source = rng.normal(size=(1, 300, 3)).astype(np.float32)
+    path = tmp_path / "pairs.npz"
+    np.savez(path, source=source, target=source[:, :250] + np.float32(0.05), rotation=np.eye(3)[None],
+             translation=np.zeros((1, 3)))
+    report = run(path, "clean", repeats=2, threads=1)
+    registration, graphs = report["registration"], report["graphs"]
+    assert report["input_shapes"]["encoder"]["points"].startswith("1x") and registration["encoder_calls"] == 2
+    matchers = sum(graphs[f"matcher_{min(i, 3)}"]["products_ms"] for i in range(registration["iterations"]))
+    assert registration["products_ms"] == pytest.approx(2 * graphs["encoder"]["products_ms"] + matchers, abs=2e-3)
