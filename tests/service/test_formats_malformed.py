@@ -402,6 +402,16 @@ def test_npy_header_length_beyond_numpys_limit_is_refused_before_reading(tmp_pat
     assert peak_bytes(read) < 64 << 20
 
 
+def in_container(npy: bytes, container: str) -> bytes:
+    """``npy`` as it is (``"npy"``) or as the member ``points.npy`` of an ``.npz`` archive (``"npz"``)."""
+    if container == "npy":
+        return npy
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w") as archive:
+        archive.writestr("points.npy", npy)
+    return out.getvalue()
+
+
 @pytest.mark.parametrize("shape", [
     (2**62, 4),  # numpy's product of the shape wrapped to 0: ValueError from reshape
     (1, 2**63 - 1),  # OverflowError
@@ -410,12 +420,7 @@ def test_npy_header_length_beyond_numpys_limit_is_refused_before_reading(tmp_pat
 @pytest.mark.parametrize("container", ["npy", "npz"])
 def test_npy_shape_beyond_the_file_is_refused_before_reading(tmp_path: Path, shape: tuple, container: str) -> None:
     data = npy_bytes(f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}")
-    if container == "npz":
-        out = io.BytesIO()
-        with zipfile.ZipFile(out, "w") as archive:
-            archive.writestr("points.npy", data)
-        data = out.getvalue()
-    (tmp_path / f"a.{container}").write_bytes(data)
+    (tmp_path / f"a.{container}").write_bytes(in_container(data, container))
     with pytest.raises(PointCloudFormatError, match=r"truncated \.npy file: shape .* needs"):
         read_cloud(tmp_path / f"a.{container}")  # no max_points (the CLI): 2**62 rows are not refused as too many
 
@@ -426,12 +431,7 @@ def test_npy_empty_shape_beyond_any_array_is_a_format_error(tmp_path: Path, shap
     """A shape with a zero holds no data, so it passes the check against the file, but numpy cannot make an array of
     its other dimensions (its reshape raised outside the reader's errors: a 500)."""
     data = npy_bytes(f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}", body=b"")
-    if container == "npz":
-        out = io.BytesIO()
-        with zipfile.ZipFile(out, "w") as archive:
-            archive.writestr("points.npy", data)
-        data = out.getvalue()
-    (tmp_path / f"a.{container}").write_bytes(data)
+    (tmp_path / f"a.{container}").write_bytes(in_container(data, container))
     with pytest.raises(PointCloudFormatError, match=r"not a valid \.npy file \(shape .* beyond any array's size"):
         read_cloud(tmp_path / f"a.{container}")
 
