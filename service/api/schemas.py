@@ -281,7 +281,9 @@ class BatchRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    pairs: list[RegisterRequest] = Field(min_length=1, description="At most max_batch pairs.")
+    pairs: list[RegisterRequest] = Field(
+        min_length=1, description="At most max_batch pairs, whose clouds hold at most 2 x max_points points in all."
+    )
 
 
 class BatchResponse(BaseModel):
