@@ -17,6 +17,12 @@ from service.result import IterationPose, RegistrationResult
 from service.stages.validate import Request
 
 ANCHOR_ROWS = 65_536  # at most this many rows, spread through the cloud, are averaged for its anchor
+# Where a few points lie far beyond the rest (a glitch at 1e12 in a cloud of metres), their weight drags the mean so far
+# from the cloud that, moved to it, the cloud's own points coincide in float64 and its pose is lost. The anchor is then
+# the median of MEDIAN_ROWS rows spread through the cloud: where the mean lies more than FAR_FACTOR times their median
+# absolute deviation from it (ordinary clouds, skewed or not, stay within a few times it).
+MEDIAN_ROWS = 1024
+FAR_FACTOR = 1e4
 
 
 @dataclass(frozen=True)
@@ -42,10 +48,15 @@ class Anchors:
 
 
 def centroid(points: np.ndarray) -> np.ndarray:
-    """``[3]`` mean of at most ``ANCHOR_ROWS`` rows spread evenly through ``points [N, 3]``."""
+    """``[3]`` mean of at most ``ANCHOR_ROWS`` rows spread evenly through ``points [N, 3]``; their median instead
+    where a few far points drag the mean away from the cloud (:data:`FAR_FACTOR`)."""
     stride = max(1, -(-len(points) // ANCHOR_ROWS))  # ceil(N / ANCHOR_ROWS)
     columns = np.ascontiguousarray(points[::stride].T, dtype=np.float64)  # [3, n]: ~10x faster than a mean over rows
-    return columns.mean(axis=1)
+    mean = columns.mean(axis=1)  # [3]
+    rows = columns[:, :: max(1, columns.shape[1] // MEDIAN_ROWS)]  # [3, <= 2 * MEDIAN_ROWS]
+    median = np.median(rows, axis=1)  # [3]
+    spread = float(np.median(np.abs(rows - median[:, None]), axis=1).max())  # the widest axis's deviation
+    return median if spread > 0 and float(np.abs(mean - median).max()) > FAR_FACTOR * spread else mean
 
 
 def anchor(request: Request) -> tuple[Request, Anchors]:

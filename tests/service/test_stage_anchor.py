@@ -113,3 +113,31 @@ def test_a_room_fragment_kilometres_from_its_frames_origin_registers():
     max_degrees, max_error = thresholds(case.sensor)
     assert degrees < max_degrees and error < max_error, (degrees, error)
     assert result.reliable
+
+
+@pytest.mark.parametrize("make", [
+    lambda rng: rng.normal(size=(5000, 3)),
+    lambda rng: rng.exponential(size=(5000, 3)) * [1.0, 5.0, 0.2],  # skewed: the mean lies off the median
+    lambda rng: np.vstack([rng.normal(size=(4500, 3)), rng.normal(size=(500, 3)) + 200.0]),  # far buildings
+], ids=["normal", "skewed", "two_groups"])
+def test_an_ordinary_cloud_is_anchored_at_its_mean(make):
+    points = make(np.random.default_rng(7))
+    np.testing.assert_allclose(centroid(points), points.mean(axis=0), rtol=0, atol=1e-9)  # not the median
+
+
+@pytest.mark.parametrize("far", [1e12, 1e30])
+def test_a_few_far_points_do_not_drag_the_anchor_off_the_cloud(far):
+    """A glitch at ``far`` in a 300-point cloud of unit size: its mean lies far/300 away, where the cloud's own points
+    coincide in float64 (the result was ``identical``, no pose). The median of the rows anchors it instead, and the
+    registration finds the pose."""
+    skip_without_general()
+    rng = np.random.default_rng(0)
+    target = rng.normal(size=(300, 3))
+    source = target - 0.1
+    source[0] = [far, 0.0, 0.0]
+    anchor_point = centroid(source)
+    assert np.abs(anchor_point).max() < 1.0
+    result = Registrar(GENERAL).register(source, target, refine="icp-plane", rotation_search="auto")
+    np.testing.assert_allclose(result.rotation, np.eye(3), atol=1e-3)
+    np.testing.assert_allclose(result.translation, [0.1, 0.1, 0.1], atol=1e-3)
+    assert result.reliable and not any(w.startswith("source identical") for w in result.warnings)
