@@ -42,9 +42,11 @@ MULTIPART = "multipart/form-data"
 CLOUD_FIELDS = ("source", "target")
 MAX_FORM_FIELD_BYTES = 64 * 1024
 EXACT_FLOAT_LIMIT = 2.0**63  # orjson reads integer literals beyond 64 bits as floats; json keeps them ints
-# JSON arrays and objects a body may hold beyond one per point: the clouds' own lists, the options, a batch's pairs.
-# A parsed container takes 56-64 bytes however small its text ("{}"), so a 64 MiB body of them took 2.4 GB to parse.
-EXTRA_JSON_CONTAINERS = 4096
+# JSON values a body may hold beyond four per point (a point's list and its three numbers): the options, a batch's
+# pairs. A parsed value takes 24-64 bytes however short its text ("{}", "1.5"), so a 64 MiB body of them took 1-3.6 GB
+# to parse, whatever field held them.
+VALUES_PER_POINT = 4
+EXTRA_JSON_VALUES = 4096
 
 
 @dataclass
@@ -88,19 +90,20 @@ async def read_body(request: Request) -> bytearray:
     return body
 
 
-def check_json_containers(body: bytes | bytearray, points: int, clouds: str) -> None:
-    """413 where ``body`` holds more JSON arrays and objects (counted as ``[`` and ``{`` bytes, before any parse) than
-    ``points`` rows of ``clouds`` (what the message calls them) and :data:`EXTRA_JSON_CONTAINERS` more need."""
-    allowed = points + EXTRA_JSON_CONTAINERS
-    if len(body) <= 2 * allowed:  # each takes two bytes at least: no need to count
+def check_json_values(body: bytes | bytearray, points: int, clouds: str) -> None:
+    """413 where ``body`` holds more JSON values (counted from its ``,``, ``[`` and ``{`` bytes, before any parse: at
+    least one per value but the last of each array or object) than ``points`` points of ``clouds`` (what the message
+    calls them, :data:`VALUES_PER_POINT` each) and :data:`EXTRA_JSON_VALUES` more need."""
+    allowed = VALUES_PER_POINT * points + EXTRA_JSON_VALUES
+    if len(body) <= 2 * allowed:  # each takes two bytes at least (a value and its comma, or "[]"): no need to count
         return
-    count = body.count(b"[") + body.count(b"{")
+    count = body.count(b",") + body.count(b"[") + body.count(b"{")
     if count > allowed:
-        raise APIError(413, f"the JSON body holds {count} arrays and objects; {clouds} need at most {allowed}")
+        raise APIError(413, f"the JSON body holds {count} values, arrays and objects; {clouds} need at most {allowed}")
 
 
 def two_clouds(max_points: int) -> str:
-    """The clouds of one pair, as :func:`check_json_containers` names them."""
+    """The clouds of one pair, as :func:`check_json_values` names them."""
     return f"two clouds of at most {max_points} points (max_points)"
 
 
@@ -204,7 +207,7 @@ def _split_pair(body: bytes | bytearray, max_points: int) -> Pair | None:
 
 
 def register_pair_from_json(body: bytes | bytearray, max_points: int) -> Pair:
-    check_json_containers(body, 2 * max_points, two_clouds(max_points))
+    check_json_values(body, 2 * max_points, two_clouds(max_points))
     pair = _split_pair(body, max_points)
     if pair is not None:
         return pair
@@ -248,8 +251,8 @@ def _count_batch(obj: dict, max_points: int, max_batch: int) -> None:
 
 
 def batch_pairs_from_json(body: bytes | bytearray, max_points: int, max_batch: int) -> list[Pair]:
-    check_json_containers(body, 2 * max_points, f"a batch's clouds, at most {2 * max_points} points in all "
-                                                "(2 x max_points),")
+    check_json_values(body, 2 * max_points, f"a batch's clouds, at most {2 * max_points} points in all "
+                                            "(2 x max_points),")
     pairs = _fast_batch(load_json(body, fast=True), max_points, max_batch)
     if pairs is not None:
         return pairs

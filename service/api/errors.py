@@ -126,7 +126,7 @@ ERROR_DOCS: dict[int, dict] = {
     404: _doc("Unknown model or route."),
     408: _doc("The request body stalled: no data for body_timeout_s."),
     413: _doc("Body larger than max_body_bytes, a cloud with more than max_points points, a batch with too many pairs "
-              "or points, or a JSON body with more arrays and objects than its clouds need."),
+              "or points, or a JSON body with more values than its clouds need."),
     415: _doc("Content type is neither application/json nor multipart/form-data."),
     422: _doc("Validation failed: the message names the field and the problem (shape, dtype, NaN, range)."),
     503: _doc("Not ready yet (models loading) or overloaded; see the Retry-After header."),

@@ -21,7 +21,7 @@ from starlette.requests import Request
 from service.api.bodies import (
     JSON,
     Pair,
-    check_json_containers,
+    check_json_values,
     load_json,
     media_type,
     too_many_points,
@@ -270,7 +270,7 @@ def _outputs(req: InferRequest, binary_default: bool) -> tuple[list[str], set[st
 def infer_call(body: bytes | bytearray, length: int | None, max_points: int) -> InferCall:
     """Decode an ``infer`` body whose JSON header is ``length`` bytes long (``None``: the whole body)."""
     head, tail = _split(body, length)
-    check_json_containers(head, 2 * max_points, two_clouds(max_points))
+    check_json_values(head, 2 * max_points, two_clouds(max_points))
     obj = load_json(head)
     if not isinstance(obj, dict):
         raise APIError(422, f"invalid request: the body must be a JSON object, got {type(obj).__name__}")
