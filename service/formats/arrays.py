@@ -17,6 +17,7 @@ from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_colu
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
+BLOCK_BYTES = 1 << 22  # rows of a wide array are read this many bytes at a time, and only x, y, z kept
 
 
 def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np.ndarray:
@@ -38,6 +39,11 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
     if row_bytes > MAX_ROW_BYTES:
         raise InvalidPointsError(f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "
                                  f"bytes per point, e.g. 16 float64 columns")
+    if dtype.names is None and not (shape[-1] == 3 and dtype == np.float64 and not fortran and _has_fileno(f)):
+        try:  # numbers other than float64 [N, 3] in a file: only x, y, z are held, a block of rows at a time
+            return checked(_xyz_table(f, dtype, rows, shape[-1], fortran))
+        except OSError as exc:
+            raise PointCloudFormatError(f"truncated or unreadable .npy file ({exc})") from None
     try:
         array = np.fromfile(f, dtype=dtype, count=count) if _has_fileno(f) else _from_stream(f, dtype, count)
     except (OSError, ValueError) as exc:
@@ -141,6 +147,31 @@ def _has_fileno(f: BinaryIO) -> bool:
     except (OSError, AttributeError, ValueError):
         return False
     return True
+
+
+def _xyz_table(f: BinaryIO, dtype: np.dtype, rows: int, columns: int, fortran: bool) -> np.ndarray:
+    """``[N, 3]`` float64: the first three columns of the numeric ``[N, C]`` (or ``[1, N, C]``) array at ``f``'s
+    position, read a block of ``BLOCK_BYTES`` at a time (C order) or as its first three columns (Fortran order), so
+    that no more than the output and one block are held: an ``.npz`` member of 2,000,000 rows of 16 float64 columns
+    held two copies of its 256 MB."""
+    out = np.empty((rows, 3), dtype=np.float64)  # [N, 3]
+    if fortran:  # column after column: x, y and z are the first 3 N values
+        for axis in range(3):
+            out[:, axis] = _values(f, dtype, rows)
+        return out
+    per_block = max(1, BLOCK_BYTES // (columns * dtype.itemsize))
+    for start in range(0, rows, per_block):
+        n = min(per_block, rows - start)
+        out[start:start + n] = _values(f, dtype, n * columns).reshape(n, columns)[:, :3]
+    return out
+
+
+def _values(f: BinaryIO, dtype: np.dtype, count: int) -> np.ndarray:
+    """The next ``count`` values of ``dtype`` at ``f``'s position (a view of the bytes read), or a format error."""
+    data = f.read(count * dtype.itemsize)
+    if len(data) != count * dtype.itemsize:
+        raise PointCloudFormatError(f"truncated .npy file: {len(data) // dtype.itemsize} of {count} values follow")
+    return np.frombuffer(data, dtype=dtype, count=count)
 
 
 def _from_stream(f: BinaryIO, dtype: np.dtype, count: int) -> np.ndarray:

@@ -51,6 +51,19 @@ def check_line_lengths(f: BinaryIO, what: str) -> None:
                                     f"{too_long_at}); rows of numbers are far shorter")
 
 
+def as_declared(column: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
+    """``column [N]`` (float64, parsed from text) cast to its declared type; an integer field must hold integers in its
+    range, as a typed parse would read them (a cast would turn NaN into a number). Floats beyond float32 become inf,
+    refused later (:func:`checked`). ``what`` names the column in the error: ``"PLY vertex x"``."""
+    if dtype.kind in "iu":
+        info = np.iinfo(dtype)
+        if not (np.isfinite(column).all() and (column == np.round(column)).all()
+                and column.min(initial=info.min) >= info.min and column.max(initial=info.max) <= info.max):
+            raise PointCloudFormatError(f"corrupt data: {what} values that are not {dtype} integers")
+    with np.errstate(over="ignore"):
+        return column.astype(dtype)
+
+
 def xyz_columns(columns: list[np.ndarray]) -> np.ndarray:
     """Three coordinate columns (any numeric dtype) -> checked float64 ``[N, 3]``."""
     for column in columns:

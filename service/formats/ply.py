@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
-from service.formats.checks import check_count, check_line_lengths, xyz_columns
+from service.formats.checks import as_declared, check_count, check_line_lengths, xyz_columns
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -86,19 +86,8 @@ def _ascii_vertices(f: BinaryIO, vertex: PlyElement) -> np.ndarray:
     if len(table) != vertex.count:
         raise PointCloudFormatError(f"corrupt PLY data: {len(table)} vertex rows, the header says {vertex.count}")
     kinds = {prop.name: prop for prop in vertex.properties}
-    return xyz_columns([_as_declared(table[:, k], np.dtype(kinds[axis].dtype()), axis) for k, axis in enumerate("xyz")])
-
-
-def _as_declared(column: np.ndarray, dtype: np.dtype, axis: str) -> np.ndarray:
-    """``column [N]`` (float64) cast to its property's type; an integer property must hold integers in its range, as
-    ``plyfile`` parses it (a cast would turn NaN into a number). Floats beyond float32 become inf, refused later."""
-    if dtype.kind in "iu":
-        info = np.iinfo(dtype)
-        if not (np.isfinite(column).all() and (column == np.round(column)).all()
-                and column.min(initial=info.min) >= info.min and column.max(initial=info.max) <= info.max):
-            raise PointCloudFormatError(f"corrupt PLY data: vertex {axis} values that are not {dtype} integers")
-    with np.errstate(over="ignore"):
-        return column.astype(dtype)
+    return xyz_columns([as_declared(table[:, k], np.dtype(kinds[axis].dtype()), f"PLY vertex {axis}")
+                        for k, axis in enumerate("xyz")])
 
 
 def _check_rows_fit(plyfile: ModuleType, header: PlyData, body: int) -> None:

@@ -240,6 +240,39 @@ def test_pcd_compressed_records_of_128_bytes_read(tmp_path: Path) -> None:
     assert read_cloud(path).shape == (1000, 3)
 
 
+def test_pcd_compressed_block_is_expanded_once_and_only_x_y_z_kept(tmp_path: Path) -> None:
+    """pypcd4 held the expanded block and a zeroed record array of every field: twice the block's 64 MB here."""
+    path = tmp_path / "a.pcd"
+    path.write_bytes(compressed_pcd(500_000, 29))  # 128-byte records
+    points = {}
+
+    def read() -> None:
+        points["xyz"] = read_cloud(path)
+
+    assert peak_bytes(read) < 96 << 20
+    assert points["xyz"].shape == (500_000, 3)
+
+
+def test_pcd_ascii_reads_x_y_z_of_the_rows_the_header_declares(tmp_path: Path) -> None:
+    """pypcd4 parsed every field of every row: 6,000,000 rows under a header of 10 points (36 MB) were all read."""
+    path = tmp_path / "a.pcd"
+    path.write_bytes(pcd_header(points=10).replace(b"SIZE 4 4 4", b"SIZE 8 8 8") + b"1 2 3\n" * 6_000_000)
+    points = {}
+
+    def read() -> None:
+        points["xyz"] = read_cloud(path)
+
+    assert peak_bytes(read) < 32 << 20
+    np.testing.assert_array_equal(points["xyz"], np.tile([1.0, 2.0, 3.0], (10, 1)))
+
+
+def test_pcd_ascii_integer_fields_hold_integers(tmp_path: Path) -> None:
+    path = tmp_path / "a.pcd"
+    path.write_bytes(pcd_header(points=2, type="I I I") + b"1 2 3\n4 5.5 6\n")
+    with pytest.raises(PointCloudFormatError, match="PCD field y values that are not int32 integers"):
+        read_cloud(path)
+
+
 # --- text lines ---------------------------------------------------------------------------------------------------
 
 LONG_ROW = " ".join(["1"] * 1_500_000)  # 3 MB: numpy's text reader kept about 32 bytes per value of a line
@@ -501,6 +534,26 @@ def test_rows_up_to_16_float64_columns_are_read(tmp_path: Path) -> None:
     table = np.random.default_rng(1).normal(size=(50, 16))  # x, y, z and 13 more columns
     np.savez_compressed(tmp_path / "a.npz", points=table)
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.npz"), table[:, :3])
+
+
+@pytest.mark.parametrize("container", ["npy", "npz"])
+@pytest.mark.parametrize("order", ["C", "F"])
+def test_wide_rows_hold_only_x_y_z_while_read(tmp_path: Path, container: str, order: str) -> None:
+    """500,000 rows of 16 float64 columns (64 MB): an .npz member was read whole, then joined (two copies), and every
+    array whole before its first three columns were taken; now only the [N, 3] output and one block are held."""
+    table = np.asfortranarray(np.random.default_rng(2).normal(size=(500_000, 16))) if order == "F" else \
+        np.random.default_rng(2).normal(size=(500_000, 16))
+    if container == "npz":
+        np.savez(tmp_path / "a.npz", points=table)
+    else:
+        np.save(tmp_path / "a.npy", table)
+    points = {}
+
+    def read() -> None:
+        points["xyz"] = read_cloud(tmp_path / f"a.{container}")
+
+    assert peak_bytes(read) < 24 << 20  # the output is 12 MB
+    np.testing.assert_array_equal(points["xyz"], table[:, :3])
 
 
 def test_laz14_xyz_layer_sizes_beyond_the_chunk_are_refused(tmp_path: Path) -> None:
