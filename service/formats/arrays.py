@@ -13,11 +13,10 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns
+from service.formats.checks import BLOCK_BYTES, MAX_ROW_BYTES, check_count, checked, xyz_columns
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
-BLOCK_BYTES = 1 << 22  # rows of a wide array are read this many bytes at a time, and only x, y, z kept
 
 
 def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np.ndarray:

@@ -18,6 +18,7 @@ MAX_ROW_BYTES = 128
 # of a line, so a 256 MiB upload of one line would take several GB; a row of 4,096 values of 16 characters (PCD's
 # MAX_VALUES_PER_POINT) is 64 KiB.
 MAX_TEXT_LINE_BYTES = 1 << 20
+BLOCK_BYTES = 1 << 22  # binary rows wider than x, y, z are read this many bytes at a time, and only x, y, z kept
 _SCAN_BLOCK = 1 << 22
 
 
