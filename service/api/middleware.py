@@ -23,6 +23,10 @@ app_log = logging.getLogger(APP_LOGGER)
 REQUEST_ID_HEADER = "x-request-id"
 _SAFE_ID = re.compile(r"^[A-Za-z0-9._:\-]{1,128}$")
 UNMATCHED_ROUTE = "<unmatched>"
+# The methods the metrics name; any other a client sends counts as OTHER_METHOD (each new label is a new series: 20,000
+# made-up methods grew /metrics from 54 KB to 4 MB).
+KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
+OTHER_METHOD = "other"
 
 
 def _request_id(scope: Scope) -> str:
@@ -111,7 +115,8 @@ class RequestContextMiddleware:
             self.metrics.in_flight.dec()
             elapsed = time.perf_counter() - started
             route = getattr(scope.get("route"), "path", None) or UNMATCHED_ROUTE
-            self.metrics.requests.labels(route=route, method=scope["method"], status=str(state["status"])).inc()
+            method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
+            self.metrics.requests.labels(route=route, method=method, status=str(state["status"])).inc()
             self.metrics.latency.labels(route=route).observe(elapsed)
             access_log.info(
                 "request",

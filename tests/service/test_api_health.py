@@ -93,6 +93,17 @@ def test_metrics_count_requests_and_time_pipeline_stages(client):
     assert 'status="500"' not in text
 
 
+def test_metrics_count_made_up_methods_as_one(client):
+    """Each method a client makes up was a new labelled series: /metrics grew without bound."""
+    before = client.get("/metrics").text
+    for _ in range(5):
+        client.request(f"MADEUP{uuid.uuid4().hex[:8].upper()}", "/v1/models")
+    text = client.get("/metrics").text
+    assert "MADEUP" not in text
+    assert metric(text, "mfgnet_http_requests_total", route="/v1/models", method="other", status="405") - metric(
+        before, "mfgnet_http_requests_total", route="/v1/models", method="other", status="405") == 5
+
+
 def test_metrics_count_unreliable_results_by_warning_kind(client):
     """A spheroid's turn about its axis is free: one unreliable result, one 'weakly constrained' warning."""
     before = client.get("/metrics").text
