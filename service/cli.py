@@ -57,7 +57,7 @@ def serve_command(
     port: Annotated[int | None, typer.Option(help="TCP port (env MFGNET_PORT)")] = None,
     model_dir: ModelDirs = None,
     threads: Annotated[
-        int | None, typer.Option(min=1, help="ONNX Runtime threads per model (env MFGNET_THREADS)")
+        int | None, typer.Option(min=1, max=64, help="ONNX Runtime threads per model (env MFGNET_THREADS)")
     ] = None,
 ) -> None:
     """Run the HTTP service (POST /v1/register, GET /v1/models, GET /v2/health/ready).
@@ -135,7 +135,7 @@ RotationSearchModeOpt = Annotated[
                       "keeping the better of both; timing_ms then has a 'search' key [default: auto, off with --refine "
                       "none; with --server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"),
 ]
-ThreadsOpt = Annotated[int | None, typer.Option(min=1, help="ONNX Runtime threads (in-process)")]
+ThreadsOpt = Annotated[int | None, typer.Option(min=1, max=64, help="ONNX Runtime threads (in-process)")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")]
 
 
@@ -213,6 +213,8 @@ def _read_cloud(path: Path) -> np.ndarray:
     """``[N, 3]`` float64 points of ``path`` (any format :mod:`service.pointcloud_io` reads), or a usage error."""
     from service.pointcloud_io import PointCloudFormatError, read_points
 
+    if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO would block the open() for ever
+        _fail(f"cannot read {path}: not a regular file")
     try:
         return read_points(path).astype(np.float64)
     except PointCloudFormatError as exc:
@@ -248,15 +250,17 @@ def _read_transform(path: Path) -> list:
                 _fail(f"--initial-transform {path.name}: JSON object has no 'transform'")
             T = np.asarray(matrix, dtype=np.float64)
         elif path.suffix.lower() == ".npy":
-            T = np.load(path, allow_pickle=False).astype(np.float64)
+            T = np.load(path, allow_pickle=False, mmap_mode="r")  # mapped: a header's shape allocates nothing
         else:
             _fail(f"--initial-transform {path.name}: expected a .json or .npy file")
+        if not isinstance(T, np.ndarray) or T.shape != (4, 4):
+            shape = list(T.shape) if isinstance(T, np.ndarray) else type(T).__name__
+            _fail(f"--initial-transform {path.name}: expected a 4x4 matrix, got {shape}")
+        T = np.asarray(T, dtype=np.float64)
     except OSError as exc:
         _fail(f"cannot read {path}: {exc.strerror or exc}")
-    except (ValueError, TypeError) as exc:
-        _fail(f"--initial-transform {path.name}: not a 4x4 matrix ({exc})")
-    if T.shape != (4, 4):
-        _fail(f"--initial-transform {path.name}: expected a 4x4 matrix, got shape {list(T.shape)}")
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:  # not numbers, too deep, beyond float64
+        _fail(f"--initial-transform {path.name}: not a 4x4 matrix ({type(exc).__name__}: {str(exc)[:200]})")
     return T.tolist()
 
 
@@ -311,9 +315,13 @@ def _resolve_model_dir(model: str | None, model_dirs: list[Path]) -> Path:
 
 
 def _model_dirs(model_dirs: list[Path]) -> tuple[list[Path], list[Path]]:
-    """``(the model folders under --model-dir that are not bundled, the bundled ones)``."""
+    """``(the model folders under --model-dir that are not bundled, the bundled ones)``; a usage error where a
+    ``--model-dir`` is not a folder (it was ignored)."""
     from service.manifest import discover_model_dirs
 
+    missing = [str(d) for d in model_dirs if not d.is_dir()]
+    if missing:
+        _fail(f"--model-dir {missing[0]}: not a folder")
     bundled = discover_model_dirs([])
     return [d for d in discover_model_dirs(model_dirs) if d not in bundled], bundled
 

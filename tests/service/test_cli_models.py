@@ -105,5 +105,12 @@ def test_exit_code_1_when_no_model_is_usable(tmp_path, monkeypatch) -> None:
     (tmp_path / "bare" / "encoder.onnx").write_bytes(b"\0")
     code, out, _ = list_models("--model-dir", tmp_path)
     assert code == 1 and out.startswith("FAILED bare:")
+    (tmp_path / "empty").mkdir()
     code, out, _ = list_models("--model-dir", tmp_path / "empty")
     assert code == 1 and "no models found" in out
+
+
+def test_a_model_dir_that_is_not_a_folder_is_a_usage_error(tmp_path) -> None:
+    """It was ignored: the bundled models were listed (or used) as if it had not been given."""
+    code, _, err = list_models("--model-dir", tmp_path / "nonexistent")
+    assert code == 2 and "not a folder" in err

@@ -7,6 +7,7 @@ rigid transform and that every file format yields the same pose as the ``.npy`` 
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import struct
 from pathlib import Path
@@ -348,6 +349,41 @@ def test_rejects_a_bad_initial_transform(tmp_path, model_dir, matrix, fragment) 
     init.write_text(json.dumps(matrix.tolist()))
     src, tgt = write_pair(tmp_path, "npy")
     assert_clean_failure(register(src, tgt, "--initial-transform", init, model_dir=model_dir), fragment)
+
+
+def _npy_header(shape: str) -> bytes:
+    header = f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}".encode()
+    header += b" " * (63 - len(header)) + b"\n"
+    return b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header
+
+
+@pytest.mark.parametrize(("name", "content", "fragment"), [
+    ("init.npy", lambda path: np.savez(path.with_suffix(".npz"), a=np.eye(4)) or path.with_suffix(".npz").read_bytes(),
+     "4x4"),  # an .npz named .npy: np.load gave an NpzFile (AttributeError)
+    ("init.json", lambda path: ("[" * 100_000 + "]" * 100_000).encode(), "not a 4x4 matrix"),  # RecursionError
+    ("init.json", lambda path: json.dumps([[10 ** 400, 0, 0, 0], *np.eye(4)[1:].tolist()]).encode(),
+     "not a 4x4 matrix"),  # OverflowError
+    ("init.npy", lambda path: _npy_header("(4, 1000000000000)"), "4x4"),  # np.load allocated 29 TiB (MemoryError)
+], ids=["npz_as_npy", "deep_json", "int_beyond_float", "npy_huge_shape"])
+def test_an_unreadable_initial_transform_is_a_usage_error(tmp_path, model_dir, name, content, fragment) -> None:
+    init = tmp_path / name
+    init.write_bytes(content(init))
+    src, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(src, tgt, "--initial-transform", init, model_dir=model_dir), fragment)
+
+
+def test_a_fifo_is_refused_not_waited_on(tmp_path, model_dir) -> None:
+    """open() of a FIFO with no writer blocked for ever."""
+    fifo = tmp_path / "cloud.npy"
+    os.mkfifo(fifo)
+    _, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(fifo, tgt, model_dir=model_dir), "not a regular file")
+
+
+def test_threads_are_bounded(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--threads", "100000", model_dir=model_dir)
+    assert result.exit_code == 2 and "threads" in result.output
 
 
 def test_rejects_out_of_range_options(tmp_path, model_dir) -> None:
