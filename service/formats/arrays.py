@@ -13,7 +13,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.checks import BLOCK_BYTES, MAX_ROW_BYTES, check_count, checked, xyz_columns
+from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns, xyz_in_blocks
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
@@ -153,19 +153,15 @@ def _xyz_table(f: BinaryIO, dtype: np.dtype, rows: int, columns: int, fortran: b
     position, read a block of ``BLOCK_BYTES`` at a time (C order) or as its first three columns (Fortran order), so
     that no more than the output and one block are held: an ``.npz`` member of 2,000,000 rows of 16 float64 columns
     held two copies of its 256 MB."""
+    if not fortran:
+        return xyz_in_blocks(f, np.dtype((dtype, (columns,))), rows, "truncated .npy file")
     out = np.empty((rows, 3), dtype=np.float64)  # [N, 3]
-    if fortran:  # column after column: x, y and z are the first 3 N values
-        for axis in range(3):
-            out[:, axis] = _values(f, dtype, rows)
-        return out
-    per_block = max(1, BLOCK_BYTES // (columns * dtype.itemsize))
-    for start in range(0, rows, per_block):
-        n = min(per_block, rows - start)
-        out[start:start + n] = _values(f, dtype, n * columns).reshape(n, columns)[:, :3]
+    for axis in range(3):  # column after column: x, y and z are the first 3 N values
+        out[:, axis] = _column(f, dtype, rows)
     return out
 
 
-def _values(f: BinaryIO, dtype: np.dtype, count: int) -> np.ndarray:
+def _column(f: BinaryIO, dtype: np.dtype, count: int) -> np.ndarray:
     """The next ``count`` values of ``dtype`` at ``f``'s position (a view of the bytes read), or a format error."""
     data = f.read(count * dtype.itemsize)
     if len(data) != count * dtype.itemsize:

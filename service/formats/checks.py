@@ -52,6 +52,27 @@ def check_line_lengths(f: BinaryIO, what: str) -> None:
                                     f"{too_long_at}); rows of numbers are far shorter")
 
 
+def xyz_in_blocks(f: BinaryIO, record: np.dtype, count: int, short: str) -> np.ndarray:
+    """``[N, 3]`` float64 x, y, z of the ``count`` binary rows of ``record`` at ``f``'s position, read ``BLOCK_BYTES``
+    at a time so that no more than the output and one block are held: a structured ``record``'s fields ``x``, ``y``,
+    ``z``, or the first three values of a plain one of shape ``(C,)``. A short read is a format error starting with
+    ``short``."""
+    out = np.empty((count, 3), dtype=np.float64)  # [N, 3]
+    per_block = max(1, BLOCK_BYTES // record.itemsize)
+    for begin in range(0, count, per_block):
+        n = min(per_block, count - begin)
+        data = f.read(n * record.itemsize)
+        if len(data) != n * record.itemsize:
+            raise PointCloudFormatError(f"{short}: {begin + len(data) // record.itemsize} of {count} rows follow")
+        rows = np.frombuffer(data, dtype=record, count=n)  # [n] records, or [n, C] values
+        if record.names is None:
+            out[begin:begin + n] = rows[:, :3]
+        else:
+            for axis, name in enumerate("xyz"):
+                out[begin:begin + n, axis] = rows[name]
+    return out
+
+
 def as_declared(column: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
     """``column [N]`` (float64, parsed from text) cast to its declared type; an integer field must hold integers in its
     range, as a typed parse would read them (a cast would turn NaN into a number). Floats beyond float32 become inf,

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
-from service.formats.checks import BLOCK_BYTES, as_declared, check_count, check_line_lengths, checked, xyz_columns
+from service.formats.checks import as_declared, check_count, check_line_lengths, checked, xyz_columns, xyz_in_blocks
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -65,29 +65,12 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
         raise InvalidPointsError(f"binary PLY whose vertex element follows an element of lists ({lists[0]!r}): "
                                  "only files with their vertices before such elements are read")
     f.seek(body + sum(element.count * _record(element, header.byte_order).itemsize for element in before))
-    return _binary_vertices(f, vertex.count, _record(vertex, header.byte_order))
+    return checked(xyz_in_blocks(f, _record(vertex, header.byte_order), vertex.count, "corrupt PLY data: vertex rows"))
 
 
 def _record(element: PlyElement, byte_order: str) -> np.dtype:
     """The numpy record of one row of ``element`` (scalar properties only), in the file's byte order."""
     return np.dtype([(prop.name, prop.dtype(byte_order)) for prop in element.properties])
-
-
-def _binary_vertices(f: BinaryIO, count: int, record: np.dtype) -> np.ndarray:
-    """x, y, z of the ``count`` binary vertex rows of ``record`` at ``f``'s position, read a block at a time (only x,
-    y and z are kept), as float64 ``[N, 3]``."""
-    out = np.empty((count, 3), dtype=np.float64)  # [N, 3]
-    per_block = max(1, BLOCK_BYTES // record.itemsize)
-    for begin in range(0, count, per_block):
-        n = min(per_block, count - begin)
-        data = f.read(n * record.itemsize)
-        if len(data) != n * record.itemsize:
-            raise PointCloudFormatError(f"corrupt PLY data: {begin + len(data) // record.itemsize} of {count} "
-                                        "vertex rows follow the header")
-        rows = np.frombuffer(data, dtype=record, count=n)
-        for axis, name in enumerate("xyz"):
-            out[begin:begin + n, axis] = rows[name]
-    return checked(out)
 
 
 def _ascii_vertices(f: BinaryIO, vertex: PlyElement, skip: int = 0) -> np.ndarray:
