@@ -209,12 +209,17 @@ def _search_option(flag: bool | None, mode: RotationSearchMode | None) -> bool |
         _fail(str(exc))
 
 
+def _require_regular_file(path: Path) -> None:
+    """A usage error where ``path`` is a FIFO, a device or a socket: its ``open()`` could block for ever."""
+    if path.exists() and not path.is_file() and not path.is_dir():
+        _fail(f"cannot read {path}: not a regular file")
+
+
 def _read_cloud(path: Path) -> np.ndarray:
     """``[N, 3]`` float64 points of ``path`` (any format :mod:`service.pointcloud_io` reads), or a usage error."""
     from service.pointcloud_io import PointCloudFormatError, read_points
 
-    if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO would block the open() for ever
-        _fail(f"cannot read {path}: not a regular file")
+    _require_regular_file(path)
     try:
         return read_points(path).astype(np.float64)
     except PointCloudFormatError as exc:
@@ -242,6 +247,7 @@ def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligne
 
 def _read_transform(path: Path) -> list:
     """A 4x4 matrix from ``.json`` (a 4x4 list, or an object with ``transform``) or ``.npy``."""
+    _require_regular_file(path)
     try:
         if path.suffix.lower() == ".json":
             payload = json.loads(path.read_text())

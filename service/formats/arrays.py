@@ -153,6 +153,8 @@ def _xyz_table(f: BinaryIO, dtype: np.dtype, rows: int, columns: int, fortran: b
     position, read a block of ``BLOCK_BYTES`` at a time (C order) or as its first three columns (Fortran order), so
     that no more than the output and one block are held: an ``.npz`` member of 2,000,000 rows of 16 float64 columns
     held two copies of its 256 MB."""
+    if rows == 0:  # however wide its rows (a row of 2 GiB is no numpy dtype): the empty cloud, refused as such
+        return np.empty((0, 3), dtype=np.float64)
     if not fortran:
         return xyz_in_blocks(f, np.dtype((dtype, (columns,))), rows, "truncated .npy file")
     out = np.empty((rows, 3), dtype=np.float64)  # [N, 3]

@@ -16,7 +16,15 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
-from service.formats.checks import MAX_ROW_BYTES, as_declared, check_count, check_line_lengths, xyz_columns
+from service.formats.checks import (
+    MAX_ROW_BYTES,
+    as_declared,
+    check_count,
+    check_line_lengths,
+    checked,
+    xyz_columns,
+    xyz_in_blocks,
+)
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -47,6 +55,8 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
             return _ascii_xyz(f, meta.points, dtype)
         if meta.data == "binary_compressed" and meta.points > 0:
             return _compressed_xyz(f, meta.points, dtype)
+        if meta.data == "binary":  # a block of records at a time, only x, y, z kept
+            return checked(xyz_in_blocks(f, dtype, meta.points, "corrupt PCD data: binary records"))
         table = pypcd4.pypcd4._parse_pc_data(f, meta)  # binary: a view of the bytes after the header parsed above
     except PointCloudFormatError:
         raise

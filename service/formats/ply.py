@@ -75,24 +75,34 @@ def _record(element: PlyElement, byte_order: str) -> np.dtype:
 
 def _ascii_vertices(f: BinaryIO, vertex: PlyElement, skip: int = 0) -> np.ndarray:
     """x, y, z of the ``vertex.count`` ASCII rows at ``f``'s position after ``skip`` rows of the elements before them
-    (``vertex``: plyfile's element of scalar properties), each cast to its property's declared type."""
+    (``vertex``: plyfile's element of scalar properties), each cast to its property's declared type. Blank lines are no
+    rows, and every vertex row must hold one value per property (else a face row could pass for a vertex)."""
     names = [prop.name for prop in vertex.properties]
-    columns = [names.index(axis) for axis in "xyz"]
     text = io.TextIOWrapper(f, encoding="ascii", errors="strict", newline=None)
     try:
+        skipped = 0
+        while skipped < skip:  # the rows of the elements before the vertices, one line each
+            line = text.readline()
+            if not line:
+                raise PointCloudFormatError(f"corrupt PLY data: {skipped} of the {skip} rows before the vertices")
+            skipped += bool(line.strip())
         with warnings.catch_warnings():  # numpy warns of blank lines (not counted as rows) and of no rows at all
             warnings.simplefilter("ignore", UserWarning)
-            table = np.loadtxt(text, dtype=np.float64, usecols=columns, skiprows=skip, max_rows=vertex.count,
-                               ndmin=2, comments=None)
-    except (ValueError, UnicodeDecodeError) as exc:
+            table = np.loadtxt(text, dtype=np.float64, max_rows=vertex.count, ndmin=2, comments=None)  # [N, P]
+    except (ValueError, UnicodeDecodeError) as exc:  # rows of different lengths among them
         raise PointCloudFormatError(f"corrupt PLY data ({exc})") from None
     finally:
         text.detach()  # the caller's file stays open
     if len(table) != vertex.count:
         raise PointCloudFormatError(f"corrupt PLY data: {len(table)} vertex rows, the header says {vertex.count}")
+    if not len(table):
+        table = np.empty((0, len(names)))  # [0, P]: no rows, no columns to count
+    elif table.shape[1] != len(names):
+        raise PointCloudFormatError(f"corrupt PLY data: vertex rows of {table.shape[1]} values, the header declares "
+                                    f"{len(names)} properties")
     kinds = {prop.name: prop for prop in vertex.properties}
-    return xyz_columns([as_declared(table[:, k], np.dtype(kinds[axis].dtype()), f"PLY vertex {axis}")
-                        for k, axis in enumerate("xyz")])
+    return xyz_columns([as_declared(table[:, names.index(axis)], np.dtype(kinds[axis].dtype()), f"PLY vertex {axis}")
+                        for axis in "xyz"])
 
 
 def _check_rows_fit(plyfile: ModuleType, header: PlyData, body: int) -> None:

@@ -380,6 +380,13 @@ def test_a_fifo_is_refused_not_waited_on(tmp_path, model_dir) -> None:
     assert_clean_failure(register(fifo, tgt, model_dir=model_dir), "not a regular file")
 
 
+def test_a_fifo_as_initial_transform_is_refused_not_waited_on(tmp_path, model_dir) -> None:
+    fifo = tmp_path / "init.json"
+    os.mkfifo(fifo)
+    src, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(src, tgt, "--initial-transform", fifo, model_dir=model_dir), "not a regular file")
+
+
 def test_threads_are_bounded(tmp_path, model_dir) -> None:
     src, tgt = write_pair(tmp_path, "npy")
     result = register(src, tgt, "--threads", "100000", model_dir=model_dir)

@@ -322,6 +322,44 @@ def test_ply_vertices_after_other_elements_read(tmp_path: Path, text: bool, byte
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.ply"), xyz)
 
 
+ASCII_PLY_HEAD = ("ply\nformat ascii 1.0\n{before}element vertex {count}\nproperty float x\nproperty float y\n"
+                  "property float z\n{after}end_header\n")
+FACES = "element face 10\nproperty list uchar int vertex_indices\n"
+
+
+@pytest.mark.parametrize("head,rows", [
+    (ASCII_PLY_HEAD.format(before="", count=110, after=FACES),  # 100 vertex rows: the faces were read as vertices
+     "".join(f"{i} {i} {i}\n" for i in range(100)) + "".join(f"3 {i} {i + 1} {i + 2}\n" for i in range(10))),
+    (ASCII_PLY_HEAD.format(before=FACES, count=100, after=""),  # a blank line: one face row was read as a vertex
+     "\n" + "".join(f"3 {i} {i + 1} {i + 2}\n" for i in range(10)) + "".join(f"{i} {i} {i}\n" for i in range(100))),
+], ids=["vertex_count_past_its_rows", "blank_line_before_the_faces"])
+def test_ascii_ply_rows_are_not_taken_for_vertices(tmp_path: Path, head: str, rows: str) -> None:
+    (tmp_path / "a.ply").write_text(head + rows)
+    try:
+        xyz = read_cloud(tmp_path / "a.ply")
+    except PointCloudFormatError as exc:
+        assert "corrupt PLY data" in str(exc)
+    else:
+        np.testing.assert_array_equal(xyz, np.repeat(np.arange(100.0)[:, None], 3, axis=1))
+
+
+def test_binary_pcd_holds_only_x_y_z_while_read(tmp_path: Path) -> None:
+    """pypcd4 read the body whole: 250,000 records of 256 bytes (64 MB) held at once."""
+    n = 250_000
+    records = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("pad", "<f4", (61,))])
+    records["x"] = np.arange(n)
+    header = pcd_header(points=n, data="binary", fields="x y z pad", size="4 4 4 4", type="F F F F",
+                        count="1 1 1 61")
+    (tmp_path / "a.pcd").write_bytes(header + records.tobytes())
+    points = {}
+
+    def read() -> None:
+        points["xyz"] = read_cloud(tmp_path / "a.pcd")
+
+    assert peak_bytes(read) < 16 << 20  # the output is 6 MB
+    np.testing.assert_array_equal(points["xyz"][:, 0], np.arange(n))
+
+
 def test_binary_ply_whose_vertices_follow_lists_is_refused(tmp_path: Path) -> None:
     vertex = vertices()[1]
     (tmp_path / "a.ply").write_bytes(ply_of([lists("face", 30, 3), vertex]))
@@ -523,6 +561,15 @@ def test_npy_empty_shape_beyond_any_array_is_a_format_error(tmp_path: Path, shap
     (tmp_path / f"a.{container}").write_bytes(in_container(data, container))
     with pytest.raises(PointCloudFormatError, match=r"not a valid \.npy file \(shape .* beyond any array's size"):
         read_cloud(tmp_path / f"a.{container}")
+
+
+@pytest.mark.parametrize("header", ["{'descr': '<f8', 'fortran_order': False, 'shape': (0, 268435456), }",
+                                    "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 0, 536870912), }"])
+def test_npy_of_no_rows_however_wide_is_the_empty_cloud(tmp_path: Path, header: str) -> None:
+    """Rows of 2 GiB are no numpy dtype: the block reader's dtype raised (a 500) where the cloud is empty."""
+    (tmp_path / "a.npy").write_bytes(npy_bytes(header, body=b""))
+    with pytest.raises(InvalidPointsError, match="empty"):
+        read_cloud(tmp_path / "a.npy")
 
 
 @pytest.mark.parametrize("shapes", [((2,), (), ()), ((0,), (0,), (0,))], ids=["x_pair", "empty_fields"])
