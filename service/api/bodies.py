@@ -43,7 +43,6 @@ JSON = "application/json"
 MULTIPART = "multipart/form-data"
 CLOUD_FIELDS = ("source", "target")
 MAX_FORM_FIELD_BYTES = 64 * 1024
-MULTIPART_TAIL_BYTES = 1024  # the end of a multipart body kept to find its closing boundary (and a short epilogue)
 EXACT_FLOAT_LIMIT = 2.0**63  # orjson reads integer literals beyond 64 bits as floats; json keeps them ints
 # JSON values a body may hold beyond four per point (a point's list and its three numbers): the options, a batch's
 # pairs. A parsed value takes 24-64 bytes however short its text ("{}", "1.5"), so a 64 MiB body of them took 1-3.6 GB
@@ -296,22 +295,25 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
     """Read the upload (bounded by max_upload_bytes upstream): ``file_fields`` as point-cloud files (all required),
     the rest as short text fields. The files stay spooled (on disk past 1 MiB) and are decoded later, off the loop
     (:func:`register_pair_from_form`, or :func:`decode_upload` and :meth:`RegisterForm.close`)."""
-    tail = bytearray()  # the body's last MULTIPART_TAIL_BYTES
+    boundary = parse_options_header(request.headers.get("content-type", ""))[1].get(b"boundary", b"")
+    closing = b"\r\n--" + boundary + b"--"  # the close delimiter, as the parser reads it (an epilogue may follow)
+    seen = [False]
+    carry = bytearray()  # the end of the body so far, where a delimiter split across chunks begins
 
     async def receive() -> Message:
         message = await request.receive()
-        if message["type"] == "http.request":
-            tail.extend(message.get("body", b""))
-            del tail[:-MULTIPART_TAIL_BYTES]
+        if message["type"] == "http.request" and not seen[0]:
+            carry.extend(message.get("body", b""))
+            seen[0] = closing in carry
+            del carry[:-(len(closing) - 1)]
         return message
 
     form = await Request(request.scope, receive).form(max_files=len(file_fields), max_fields=32,
                                                       max_part_size=MAX_FORM_FIELD_BYTES)
-    closing = b"--" + parse_options_header(request.headers.get("content-type", ""))[1].get(b"boundary", b"") + b"--"
-    if closing not in tail:  # python-multipart takes a body cut short for a whole one, less its last part
+    if not seen[0]:  # python-multipart takes a body cut short for a whole one, less its last part
         await form.close()
-        raise APIError(400, f"multipart body ends before its closing boundary {closing.decode('latin-1')!r}: the "
-                            "upload was cut short")
+        raise APIError(400, f"multipart body ends before its closing boundary {closing.strip().decode('latin-1')!r}: "
+                            "the upload was cut short")
     fields: dict[str, str] = {}
     files: dict[str, Upload] = {}
     try:

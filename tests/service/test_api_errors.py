@@ -213,3 +213,14 @@ def test_degenerate_clouds_get_an_answer_with_warnings(client, still_serves):
         assert response.status_code == 200, response.text
         body = response.json()
         assert body["quality"]["reliable"] is False and body["warnings"]
+
+
+def test_a_multipart_body_with_an_epilogue_after_its_closing_boundary_registers(client, still_serves) -> None:
+    """RFC 2046 allows text after the close delimiter; the check that a body was not cut short looks for the
+    delimiter itself, not for the body's last bytes."""
+    parts = [b'Content-Disposition: form-data; name="source"; filename="s.npy"\r\n\r\n' + npy(PAIR.source),
+             b'Content-Disposition: form-data; name="target"; filename="t.npy"\r\n\r\n' + npy(PAIR.target),
+             b'Content-Disposition: form-data; name="iterations"\r\n\r\n1']
+    content = b"".join(b"--B\r\n" + part + b"\r\n" for part in parts) + b"--B--\r\n" + b"\r\n" * 1000
+    response = client.post("/v1/register", content=content, headers={"content-type": "multipart/form-data; boundary=B"})
+    assert response.status_code == 200, response.text

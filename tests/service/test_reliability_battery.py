@@ -132,14 +132,15 @@ def form(source: bytes | None = None, target: bytes | None = None, **fields) -> 
     return {"method": "POST", "url": "/v1/register", "files": files, "data": fields}
 
 
-def multipart_without_its_closing_boundary() -> dict:
-    """Both clouds and an option, the body ending before ``--B--``: the option part was dropped silently."""
+def multipart_without_its_closing_boundary(ending: bytes = b"") -> dict:
+    """Both clouds and an option, the body ending before ``\\r\\n--B--`` (or with ``ending``): the option part was
+    dropped silently."""
     src, tgt = _pair()
     parts = [b'Content-Disposition: form-data; name="source"; filename="s.npy"\r\n\r\n' + npy(src),
              b'Content-Disposition: form-data; name="target"; filename="t.npy"\r\n\r\n' + npy(tgt),
              b'Content-Disposition: form-data; name="refine"\r\n\r\nnone']
-    content = b"".join(b"--B\r\n" + part + b"\r\n" for part in parts)
-    return {"method": "POST", "url": "/v1/register", "content": content,
+    content = b"".join(b"--B\r\n" + part + (b"\r\n" if i < 2 or not ending else b"") for i, part in enumerate(parts))
+    return {"method": "POST", "url": "/v1/register", "content": content + ending,
             "headers": {"content-type": "multipart/form-data; boundary=B"}}
 
 
@@ -279,6 +280,8 @@ BAD_INPUTS: dict[str, Case] = {
                                              "source", ".npy", "beyond"),
     "multipart_without_its_closing_boundary": case(multipart_without_its_closing_boundary, 400, "closing boundary",
                                                    "cut short"),
+    "multipart_closing_boundary_without_its_crlf": case(lambda: multipart_without_its_closing_boundary(b"--B--\r\n"),
+                                                        400, "closing boundary", "cut short"),
     "npy_version_3": case(lambda: form(source=npy_header("<f8", "(40, 3)", b"\x03\x00")), 400, "source",
                           "version"),
     "npy_pickled_object_array": case(lambda: form(source=npy(np.array([Unpickler()] * 40, dtype=object))), 422,
