@@ -298,7 +298,7 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
     boundary = parse_options_header(request.headers.get("content-type", ""))[1].get(b"boundary", b"")
     closing = b"\r\n--" + boundary + b"--"  # the close delimiter, as the parser reads it (an epilogue may follow)
     seen = [False]
-    carry = bytearray()  # the end of the body so far, where a delimiter split across chunks begins
+    carry = bytearray(b"\r\n")  # the end of the body so far (at first, as if a line ended: a body of no parts)
 
     async def receive() -> Message:
         message = await request.receive()
