@@ -57,7 +57,7 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
             return _compressed_xyz(f, meta.points, dtype)
         if meta.data == "binary":  # a block of records at a time, only x, y, z kept
             return checked(xyz_in_blocks(f, dtype, meta.points, "corrupt PCD data: binary records"))
-        table = pypcd4.pypcd4._parse_pc_data(f, meta)  # binary: a view of the bytes after the header parsed above
+        table = pypcd4.pypcd4._parse_pc_data(f, meta)  # no points, or pypcd4's binaryscompressed spelling
     except PointCloudFormatError:
         raise
     except Exception as exc:  # what numpy, struct and lzf raise on bad data
