@@ -18,8 +18,7 @@ MAX_ROW_BYTES = 128
 # of a line, so a 256 MiB upload of one line would take several GB; a row of 4,096 values of 16 characters (PCD's
 # MAX_VALUES_PER_POINT) is 64 KiB.
 MAX_TEXT_LINE_BYTES = 1 << 20
-BLOCK_BYTES = 1 << 22  # binary rows wider than x, y, z are read this many bytes at a time, and only x, y, z kept
-_SCAN_BLOCK = 1 << 22
+BLOCK_BYTES = 1 << 22  # bodies are scanned, and binary rows wider than x, y, z read, this many bytes at a time
 
 
 def check_count(count: int, max_points: int | None) -> None:
@@ -34,7 +33,7 @@ def check_line_lengths(f: BinaryIO, what: str) -> None:
     start = f.tell()
     line_start = position = start  # where the current line began; bytes scanned so far
     too_long_at = None
-    while too_long_at is None and (block := f.read(_SCAN_BLOCK)):
+    while too_long_at is None and (block := f.read(BLOCK_BYTES)):
         data = np.frombuffer(block, dtype=np.uint8)
         ends = np.flatnonzero((data == 10) | (data == 13)) + position  # [E] absolute offsets of line breaks
         position += len(block)
