@@ -24,7 +24,8 @@ from model.cli import (
     ViewAngle,
     setting_protocol,
 )
-from model.data import load_pairs, make_test_pairs
+from model.cli_inputs import checkpoint_model, output_file, pairs_file, require_shapes
+from model.data import make_test_pairs
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 
@@ -91,11 +92,16 @@ def evaluate(
         search = rotation_search_from_options(rotation_search, rotation_search_mode) or False  # evaluate: off
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
+    for path, option in ((json_out, "--json"), (per_pair, "--per-pair")):
+        if path is not None:
+            output_file(path, option)
+    network = checkpoint_model(checkpoint)[2] if checkpoint is not None else None
     if pairs:
-        data_pairs = load_pairs(pairs)
+        data_pairs = pairs_file(pairs)
     else:
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
                                     view_angle)
+        require_shapes("test", setting, data)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
     if by_label and "label" not in data_pairs:
         raise typer.BadParameter("--by-label needs pairs with a 'label' array")
@@ -110,12 +116,10 @@ def evaluate(
         R, t, secs = run_method(BASELINES[baseline], data_pairs, progress=True)
     else:
         from model.allocator import keep_freed_memory
-        from model.checkpoint import load_model
         from model.inference import predict_poses
 
         keep_freed_memory()  # eager batches re-fault their freed buffers otherwise: ~2.4x slower (model.allocator)
-        R, t, secs = predict_poses(load_model(checkpoint), data_pairs, batch_size, iterations, keypoints,
-                                   progress=True)
+        R, t, secs = predict_poses(network, data_pairs, batch_size, iterations, keypoints, progress=True)
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
     if model is not None:
         from model.metrics import reliability_metrics

@@ -9,6 +9,8 @@ from typing import Annotated
 
 import typer
 
+from model.cli_inputs import fail, short
+
 
 def export(
     checkpoint: Annotated[str, typer.Option(help="checkpoint path or bundled name (clean, noise, ...)")],
@@ -28,14 +30,16 @@ def export(
     """Export a checkpoint to ONNX (encoder + matcher graphs) with a manifest; fails on parity."""
     from export.onnx_export import write_model_folder
     from export.parity import ParityError, check_parity
-    from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint
+    from model.cli_inputs import checkpoint_model, json_file, output_folder, require_shapes
     from model.data import make_test_pairs
     from service.registrar import Registrar
 
-    path = resolve_checkpoint(checkpoint)
-    model = load_model(path)
-    data = read_checkpoint(path)
-    accuracy = json.loads(accuracy_json.read_text()) if accuracy_json else {}
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out}: a file, not a model folder")
+    output_folder(out, "--out")
+    path, data, model = checkpoint_model(checkpoint)
+    accuracy = json_file(accuracy_json, "--accuracy-json") if accuracy_json else {}
+    require_shapes("test", parity_setting, None)  # the parity pairs' shapes
     if not accuracy and "val" in data:
         accuracy = {"metrics": data["val"], "on": "validation pairs held out of the training split"}
     if accuracy_json:
@@ -63,9 +67,21 @@ def import_checkpoint(
     out: Annotated[Path, typer.Option(help="project checkpoint to write (.pt); never commit it")],
 ) -> None:
     """Import an authors' released checkpoint (215 keys) into this project's checkpoint format."""
-    from export.official import import_official
-    from model.checkpoint import save_checkpoint
+    import torch
 
-    model = import_official(source)
+    from export.official import OFFICIAL_CONFIG, convert_state_dict
+    from model.checkpoint import save_checkpoint
+    from model.cli_inputs import load_weights, output_file, torch_file
+    from model.network import MFGNet
+
+    output_file(out, "--out", create_folders=True)
+    official = torch_file(source, "SOURCE")
+    if not isinstance(official, dict) or not all(isinstance(value, torch.Tensor) for value in official.values()):
+        fail(f"SOURCE {source}: not an authors' released checkpoint (not a dict of tensors)")
+    try:
+        weights = convert_state_dict(official)
+    except (ValueError, KeyError) as err:  # the wrong number of tensors, an unknown key, no head.reflect
+        fail(f"SOURCE {source}: not an authors' released checkpoint ({short(err)})")
+    model = load_weights(MFGNet(OFFICIAL_CONFIG), weights, source, "SOURCE").eval()
     save_checkpoint(out, model, source=source.name, imported="authors' released checkpoint (MIT)")
     typer.echo(f"imported {source.name} -> {out} ({model.cfg.iterations} iterations, K = {model.cfg.keypoints})")

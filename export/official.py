@@ -64,8 +64,9 @@ def convert_state_dict(official: dict[str, torch.Tensor]) -> dict[str, torch.Ten
     """Map the authors' 215 tensors onto ``MFGNet`` (1x1 convolutions become linear layers)."""
     if len(official) != EXPECTED_KEYS:
         raise ValueError(f"expected {EXPECTED_KEYS} tensors in an official checkpoint, found {len(official)}")
-    if not torch.allclose(official["head.reflect"].float(), REFLECT):
-        raise ValueError("head.reflect is not diag(1, 1, -1)")
+    reflect = official.get("head.reflect")
+    if reflect is None or reflect.shape != REFLECT.shape or not torch.allclose(reflect.float(), REFLECT):
+        raise ValueError("head.reflect is missing or not diag(1, 1, -1)")
     ours = {}
     for key, value in official.items():
         name = official_key_to_ours(key)

@@ -46,6 +46,25 @@ def load_model(path: str | os.PathLike) -> MFGNet:
     return model.eval()
 
 
+def weights_mismatch(model: torch.nn.Module, weights: dict) -> str | None:
+    """Why ``weights`` would not load into ``model`` (missing or unexpected keys, other shapes), or ``None``."""
+    expected = model.state_dict()
+    missing = [key for key in expected if key not in weights]
+    unexpected = [key for key in weights if key not in expected]
+    reshaped = [key for key in expected if key in weights
+                and (not isinstance(weights[key], torch.Tensor) or weights[key].shape != expected[key].shape)]
+    problems = []
+    if missing:
+        problems.append(f"{len(missing)} weights missing ({missing[0]}, ...)")
+    if unexpected:
+        problems.append(f"{len(unexpected)} unexpected ({unexpected[0]!r}, ...)")
+    if reshaped:
+        key, value = reshaped[0], weights[reshaped[0]]
+        got = list(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+        problems.append(f"{len(reshaped)} of another shape ({key}: {got}, the network's {list(expected[key].shape)})")
+    return "; ".join(problems) or None
+
+
 def file_sha256(path: str | os.PathLike) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:

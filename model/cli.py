@@ -10,6 +10,15 @@ from typing import Annotated
 
 import typer
 
+from model.cli_inputs import (
+    checkpoint_file,
+    checkpoint_model,
+    fail,
+    load_weights,
+    output_file,
+    output_folder,
+    require_shapes,
+)
 from model.data import SETTINGS, PairProtocol, make_test_pairs, protocol_for, save_pairs
 from model.recipes import recipe_draw
 
@@ -63,6 +72,8 @@ def make_pairs(
     """Write seeded registration pairs (source, target, rotation, translation, label) to an npz."""
     protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
                                 view_angle)
+    output_file(out, "--out")
+    require_shapes(split, setting, data)
     try:
         pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
@@ -127,10 +138,14 @@ def train(
     ] = 0,
 ) -> None:
     """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
+    from model.config import MFGNetConfig
+    from model.network import MFGNet
     from model.train import TrainOptions
     from model.train import train as run
 
     setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, None, outliers)  # fail early
+    output_folder(out, "--out")
+    require_shapes("train", setting, data)
     if (views_share is not None or sensor_share is not None) and recipe is None:
         raise typer.BadParameter("--views-share and --sensor-share need --recipe")
     if recipe is not None:
@@ -138,6 +153,15 @@ def train(
             recipe_draw(recipe, max_angle, outliers, views_share, sensor_share)  # fail early, on the recipe's checks
         except ValueError as err:
             raise typer.BadParameter(str(err)) from err
+    if init is not None:  # its weights must fit the network of the options above
+        init_path, init_data = checkpoint_file(init, "--init")
+        load_weights(MFGNet(MFGNetConfig(iterations=iterations, share_weights=share_weights)), init_data["model"],
+                     init_path, "--init")
+    if resume and (out / "last.pt").exists():
+        resume_from, checkpoint, _ = checkpoint_model(out / "last.pt", "--resume")
+        missing = [key for key in ("optimizer", "state") if key not in checkpoint]
+        if missing:
+            fail(f"--resume {resume_from}: no {' or '.join(map(repr, missing))} to resume from")
     opts = TrainOptions(
         setting=setting, out=str(out), epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
         seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,

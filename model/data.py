@@ -211,13 +211,8 @@ def protocol_for(
     return protocol
 
 
-def load_shapes(split: str, setting: str = "clean",
-                path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Points ``float32 [S, P, 3]`` and labels ``int64 [S]`` of a split for a setting.
-
-    ``P = 1024`` (main files) or 4096 (``dense``, test split only, axes mapped to the main files'
-    frame); filtered by label for ``unseen``.
-    """
+def shapes_file(split: str, setting: str = "clean", path: str | os.PathLike | None = None) -> Path:
+    """The ModelNet40 file that holds a split's shapes for a setting (under :func:`data_dir`)."""
     if split not in ("train", "test"):
         raise ValueError(f"split must be 'train' or 'test', got {split!r}")
     if setting not in SETTINGS:
@@ -225,7 +220,18 @@ def load_shapes(split: str, setting: str = "clean",
     dense = setting in DENSE_SETTINGS
     if dense and split != "test":
         raise ValueError(f"setting {setting!r} has a test split only ({DENSE_FILE}), got split {split!r}")
-    file = data_dir(path) / (DENSE_FILE if dense else f"modelnet40_{split}.npz")
+    return data_dir(path) / (DENSE_FILE if dense else f"modelnet40_{split}.npz")
+
+
+def load_shapes(split: str, setting: str = "clean",
+                path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``float32 [S, P, 3]`` and labels ``int64 [S]`` of a split for a setting.
+
+    ``P = 1024`` (main files) or 4096 (``dense``, test split only, axes mapped to the main files'
+    frame); filtered by label for ``unseen``.
+    """
+    file = shapes_file(split, setting, path)
+    dense = setting in DENSE_SETTINGS
     if not file.exists():
         raise FileNotFoundError(f"ModelNet40 file not found: {file} (set --data or ${DATA_ENV})")
     with np.load(file) as d:
@@ -397,7 +403,10 @@ def save_pairs(path: str | os.PathLike, pairs: dict[str, np.ndarray]) -> None:
 
 def load_pairs(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Read and check a pairs file (``target ~= rotation @ source + translation``)."""
-    with np.load(path, allow_pickle=False) as d:
+    archive = np.load(path, allow_pickle=False)
+    if not isinstance(archive, np.lib.npyio.NpzFile):  # an .npy: one array
+        raise ValueError(f"pairs file {path} is one array, not an .npz archive of {list(PAIR_KEYS)}")
+    with archive as d:
         missing = [k for k in PAIR_KEYS if k not in d.files]
         if missing:
             raise ValueError(f"pairs file {path} lacks {missing}")

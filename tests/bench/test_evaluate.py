@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, NOT_AN_NPZ, assert_usage_error, bad_file
 from shapes import sphere_shapes
 from tiny_training import save_tiny_checkpoint
 from typer.testing import CliRunner
@@ -107,3 +108,81 @@ def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
     assert set(metrics) == METRIC_KEYS and metrics["n"] == 2 and metrics["ms_per_pair"] > 0
+
+
+def broken_checkpoint(tiny_checkpoint, tmp_path, kind: str):
+    """The tiny checkpoint with ``kind`` of damage: no 'model', no 'config', a weight missing or reshaped."""
+    import torch
+
+    data = torch.load(tiny_checkpoint, weights_only=True)
+    first = next(iter(data["model"]))
+    if kind in ("no-model", "no-config"):
+        del data[kind.removeprefix("no-")]
+    elif kind == "missing-weight":
+        del data["model"][first]
+    elif kind == "wrong-shape":
+        data["model"][first] = torch.zeros(1)
+    path = tmp_path / f"{kind}.pt"
+    torch.save(data, path)
+    return path
+
+
+@pytest.mark.parametrize("kind", [*NOT_A_FILE, *NOT_A_CHECKPOINT])
+def test_evaluate_rejects_a_file_that_is_not_a_checkpoint(tmp_path, synthetic_pairs, kind) -> None:
+    path = bad_file(tmp_path, kind)
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(path), "--pairs", str(synthetic_pairs)])
+    assert_usage_error(result, "--checkpoint", str(path), {**NOT_A_FILE, **NOT_A_CHECKPOINT}[kind]
+                       if kind != "missing" else "no checkpoint file")
+
+
+@pytest.mark.parametrize(("kind", "problem"), [("no-model", "no 'model'"), ("no-config", "no 'config'"),
+                                               ("missing-weight", "1 weights missing"),
+                                               ("wrong-shape", "1 of another shape")])
+def test_evaluate_rejects_a_checkpoint_that_does_not_fit_the_network(tmp_path, tiny_checkpoint, synthetic_pairs,
+                                                                     kind, problem) -> None:
+    path = broken_checkpoint(tiny_checkpoint, tmp_path, kind)
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(path), "--pairs", str(synthetic_pairs)])
+    assert_usage_error(result, str(path), problem)
+
+
+@pytest.mark.parametrize("kind", [*NOT_A_FILE, *NOT_AN_NPZ])
+def test_evaluate_rejects_a_file_that_is_not_a_pairs_file(tmp_path, tiny_checkpoint, kind) -> None:
+    path = bad_file(tmp_path, kind)
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(path)])
+    assert_usage_error(result, "--pairs", str(path), {**NOT_A_FILE, **NOT_AN_NPZ}[kind])
+
+
+def test_evaluate_rejects_a_pairs_file_without_the_pair_arrays(tmp_path, tiny_checkpoint) -> None:
+    path = tmp_path / "other.npz"
+    np.savez(path, points=np.zeros((2, 3)))
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(path)])
+    assert_usage_error(result, "--pairs", str(path), "lacks")
+
+
+@pytest.mark.parametrize("option", ["--json", "--per-pair"])
+@pytest.mark.parametrize("where", ["no-folder", "file-as-folder", "folder"])
+def test_evaluate_rejects_an_output_it_cannot_write_before_evaluating(tmp_path, tiny_checkpoint, synthetic_pairs,
+                                                                      option, where) -> None:
+    (tmp_path / "a_file").write_text("x")
+    out = {"no-folder": tmp_path / "nowhere" / "out", "file-as-folder": tmp_path / "a_file" / "out",
+           "folder": tmp_path}[where]
+    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs), option, str(out)]
+    problem = {"no-folder": "does not exist", "file-as-folder": "is not a folder", "folder": "a folder, not a file"}
+    assert_usage_error(runner.invoke(app, args), option, str(out), problem[where])
+
+
+@pytest.mark.parametrize("data", ["missing", "empty-folder", "not-npz", "no-points"])
+def test_evaluate_rejects_a_data_folder_without_modelnet(tmp_path, tiny_checkpoint, data, monkeypatch) -> None:
+    folder = tmp_path / "data"
+    if data != "missing":
+        folder.mkdir()
+    if data == "not-npz":
+        (folder / "modelnet40_test.npz").write_text("not an archive")
+    elif data == "no-points":
+        np.savez(folder / "modelnet40_test.npz", labels=np.zeros(2))
+    problem = {"missing": "folder not found", "empty-folder": "file not found", "not-npz": "not an .npz archive",
+               "no-points": "no 'points'"}[data]
+    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--count", "2"]
+    assert_usage_error(runner.invoke(app, [*args, "--data", str(folder)]), str(folder), problem)
+    monkeypatch.setenv("MFGNET_DATA", str(folder))  # the same through the environment
+    assert_usage_error(runner.invoke(app, args), str(folder), problem)

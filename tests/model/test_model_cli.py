@@ -6,7 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from tiny_training import save_tiny_checkpoint
+from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
+from shapes import sphere_shapes
+from tiny_training import save_tiny_checkpoint, tiny_training_data
 from typer.testing import CliRunner
 
 from model.data import data_dir, load_pairs, make_test_pairs
@@ -57,3 +59,70 @@ def test_make_pairs_writes_a_loadable_seeded_pairs_file(tmp_path, tiny_checkpoin
     metrics = json.loads(metrics_path.read_text())
     assert set(metrics) == METRIC_KEYS
     assert metrics["n"] == 4
+
+
+@pytest.mark.parametrize("where", ["no-folder", "file-as-folder", "folder"])
+def test_make_pairs_rejects_an_out_path_it_cannot_write(tmp_path, where) -> None:
+    (tmp_path / "a_file").write_text("x")
+    out = {"no-folder": tmp_path / "nowhere" / "p.npz", "file-as-folder": tmp_path / "a_file" / "p.npz",
+           "folder": tmp_path}[where]
+    problem = {"no-folder": "does not exist", "file-as-folder": "is not a folder", "folder": "a folder, not a file"}
+    result = runner.invoke(app, ["make-pairs", "--out", str(out), "--count", "2", "--data", tiny_test_data(tmp_path)])
+    assert_usage_error(result, "--out", str(out), problem[where])
+
+
+@pytest.mark.parametrize("data", ["missing", "empty-folder", "not-npz", "no-points"])
+def test_make_pairs_rejects_a_data_folder_without_modelnet(tmp_path, data, monkeypatch) -> None:
+    folder = tmp_path / "data"
+    if data != "missing":
+        folder.mkdir()
+    if data == "not-npz":
+        (folder / "modelnet40_test.npz").write_bytes(b"")
+    elif data == "no-points":
+        np.savez(folder / "modelnet40_test.npz", labels=np.zeros(2))
+    problem = {"missing": "folder not found", "empty-folder": "file not found", "not-npz": "(empty)",
+               "no-points": "no 'points'"}[data]
+    args = ["make-pairs", "--out", str(tmp_path / "p.npz"), "--count", "2"]
+    assert_usage_error(runner.invoke(app, [*args, "--data", str(folder)]), str(folder), problem)
+    monkeypatch.setenv("MFGNET_DATA", str(folder))
+    assert_usage_error(runner.invoke(app, args), str(folder), problem)
+    assert not (tmp_path / "p.npz").exists()
+
+
+@pytest.mark.parametrize("kind", [*NOT_A_FILE, *NOT_A_CHECKPOINT])
+def test_train_rejects_an_init_file_that_is_not_a_checkpoint(tmp_path, kind) -> None:
+    path = bad_file(tmp_path, kind)
+    args = ["train", "--out", str(tmp_path / "run"), "--init", str(path), "--data", tiny_training_data(tmp_path)]
+    problem = "no checkpoint file" if kind == "missing" else {**NOT_A_FILE, **NOT_A_CHECKPOINT}[kind]
+    assert_usage_error(runner.invoke(app, args), "--init", str(path), problem)
+    assert not (tmp_path / "run").exists()
+
+
+def test_train_rejects_init_weights_of_another_network(tmp_path, tiny_checkpoint) -> None:
+    args = ["train", "--out", str(tmp_path / "run"), "--init", str(tiny_checkpoint), "--data",
+            tiny_training_data(tmp_path)]  # the tiny network is narrower than the default one
+    assert_usage_error(runner.invoke(app, args), "--init", str(tiny_checkpoint), "do not fit", "of another shape")
+
+
+def test_train_rejects_a_damaged_last_checkpoint_to_resume(tmp_path) -> None:
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "last.pt").write_bytes(b"PK\x03\x04cut short")
+    args = ["train", "--out", str(tmp_path / "run"), "--resume", "--data", tiny_training_data(tmp_path)]
+    assert_usage_error(runner.invoke(app, args), "--resume", "last.pt", "not a PyTorch checkpoint")
+
+
+def test_train_rejects_a_missing_data_folder_and_an_out_under_a_file(tmp_path) -> None:
+    result = runner.invoke(app, ["train", "--out", str(tmp_path / "run"), "--data", str(tmp_path / "none")])
+    assert_usage_error(result, str(tmp_path / "none"), "folder not found")
+    (tmp_path / "a_file").write_text("x")
+    result = runner.invoke(app, ["train", "--out", str(tmp_path / "a_file" / "run"), "--data",
+                                 tiny_training_data(tmp_path)])
+    assert_usage_error(result, "--out", "a_file", "is not a folder")
+
+
+def tiny_test_data(tmp_path) -> str:
+    """A data folder whose test split is 4 random spheres."""
+    folder = tmp_path / "test_data"
+    folder.mkdir(exist_ok=True)
+    np.savez(folder / "modelnet40_test.npz", points=sphere_shapes(4, seed=3).astype(np.float32), labels=np.arange(4))
+    return str(folder)
