@@ -96,7 +96,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             expose_headers=["X-Request-ID", "Retry-After"],
         )
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
-                       max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s)
+                       max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,
+                       body_min_rate=settings.body_min_rate)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 

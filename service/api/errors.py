@@ -49,6 +49,13 @@ class BodyTimeoutError(APIError):
                          headers={"Connection": "close"})
 
 
+class BodyTooSlowError(APIError):
+    def __init__(self, received: int, elapsed_s: float, min_rate: int):
+        super().__init__(408, f"the request body arrived too slowly: {received} bytes in {elapsed_s:.0f} s, below "
+                         f"{min_rate} bytes/s after the first body_timeout_s (body_min_rate)",
+                         headers={"Connection": "close"})
+
+
 def error_response(status: int, message: str, headers: dict[str, str] | None = None, **extra: Any) -> JSONResponse:
     return JSONResponse({"error": message, **extra}, status_code=status, headers=headers)
 
@@ -124,7 +131,7 @@ ERROR_DOCS: dict[int, dict] = {
     400: _doc("Malformed body (JSON syntax, multipart, file that is not a readable .npy)."),
     401: _doc("Missing or wrong API key (only when MFGNET_API_KEY is set)."),
     404: _doc("Unknown model or route."),
-    408: _doc("The request body stalled: no data for body_timeout_s."),
+    408: _doc("The request body stalled (no data for body_timeout_s) or arrived slower than body_min_rate."),
     413: _doc("Body larger than max_body_bytes, a cloud with more than max_points points, a batch with too many pairs "
               "or points, or a JSON body with more values than its clouds need."),
     415: _doc("Content type is neither application/json nor multipart/form-data."),

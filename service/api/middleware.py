@@ -13,7 +13,7 @@ import uuid
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.errors import BodyTimeoutError, BodyTooLargeError
+from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError
 from service.api.metrics import Metrics
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
@@ -50,12 +50,13 @@ def _content_length(scope: Scope) -> int | None:
 
 class RequestContextMiddleware:
     def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None,
-                 body_timeout_s: float | None = None):
+                 body_timeout_s: float | None = None, body_min_rate: int | None = None):
         self.app = app
         self.metrics = metrics
         self.max_body_bytes = max_body_bytes  # JSON and every other body
         self.max_upload_bytes = max_body_bytes if max_upload_bytes is None else max_upload_bytes  # multipart files
         self.body_timeout_s = body_timeout_s  # longest wait for the next piece of a body (None: no limit)
+        self.body_min_rate = body_min_rate  # bytes/s: the whole body is due by body_timeout_s + received / rate
 
     def _limit(self, scope: Scope) -> tuple[int, str]:
         """The body limit for this request's content type, and the setting that holds it."""
@@ -83,11 +84,20 @@ class RequestContextMiddleware:
         async def receive_limited() -> Message:
             if state["body_done"] or self.body_timeout_s is None:  # after the body: the wait for a disconnect
                 return await receive()
+            wait_s, stalled = self.body_timeout_s, True
+            if self.body_min_rate is not None:  # the body's due time grows by a second per body_min_rate bytes
+                due_s = started + self.body_timeout_s + state["received"] / self.body_min_rate - time.perf_counter()
+                wait_s, stalled = min(wait_s, due_s), wait_s <= due_s
             try:
-                async with asyncio.timeout(self.body_timeout_s):
+                if wait_s <= 0:
+                    raise TimeoutError
+                async with asyncio.timeout(wait_s):
                     message = await receive()
-            except TimeoutError:
-                raise BodyTimeoutError(self.body_timeout_s) from None  # a JSON 408; the route's slot is freed
+            except TimeoutError:  # a JSON 408; the route's slot is freed
+                if stalled:
+                    raise BodyTimeoutError(self.body_timeout_s) from None
+                elapsed_s = time.perf_counter() - started
+                raise BodyTooSlowError(state["received"], elapsed_s, self.body_min_rate) from None
             if message["type"] == "http.request":
                 state["received"] += len(message.get("body", b""))
                 state["body_done"] = not message.get("more_body", False)

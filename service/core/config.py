@@ -17,7 +17,8 @@ from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 
-MiB = 1024 * 1024
+KiB = 1024
+MiB = 1024 * KiB
 
 
 def _split(value: object, separators: str) -> object:
@@ -94,6 +95,11 @@ class Settings(BaseSettings):
     body_timeout_s: float = Field(
         15.0, gt=0, description="Longest wait for the next piece of a request body; then 408 and the request's slot "
         "is freed (a request takes its slot before its body arrives, so stalled uploads would hold them all).",
+    )
+    body_min_rate: int = Field(
+        32 * KiB, ge=1, description="Slowest accepted body upload, in bytes per second: a body must arrive within "
+        "body_timeout_s plus one second per body_min_rate bytes received (Apache's mod_reqtimeout MinRate); then 408 "
+        "and the slot is freed, so a client sending a byte now and then cannot hold a slot for hours.",
     )
     keep_alive_s: int = Field(
         75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "

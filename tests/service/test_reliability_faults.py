@@ -146,12 +146,23 @@ def answer(sock: socket.socket) -> bytes:
     return data
 
 
+def trickle(sock: socket.socket, piece: bytes, every_s: float) -> None:
+    """Sends ``piece`` every ``every_s`` until the server closes the connection."""
+    try:
+        while True:
+            time.sleep(every_s)
+            sock.sendall(piece)
+    except OSError:
+        return
+
+
 def test_stalled_bodies_are_408_and_free_their_slots_while_slow_ones_finish():
     """A request takes its slot before its body arrives: clients that stop sending held every slot, and every other
     request got 503 for as long as they stayed connected. With ``body_timeout_s`` 1 they get 408 and the slots are
-    freed; an upload that keeps sending, if slowly, is not cut."""
-    server = start_subprocess_server("stalled", MFGNET_BODY_TIMEOUT_S="1", MFGNET_MAX_CONCURRENCY="1",
-                                     MFGNET_MAX_QUEUE="1")
+    freed, and so does a client that sends a few bytes now and then (below ``body_min_rate``); an upload that keeps
+    sending, if slowly, is not cut."""
+    server = start_subprocess_server("stalled", MFGNET_BODY_TIMEOUT_S="1", MFGNET_BODY_MIN_RATE="1000",
+                                     MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="1")
     good = pair_json(modelnet_pair(1), **CHEAP)
     try:
         stalled = [stalled_request(server, "/v1/register", "application/json"),
@@ -169,6 +180,20 @@ def test_stalled_bodies_are_408_and_free_their_slots_while_slow_ones_finish():
             assert data.startswith(b"HTTP/1.1 408"), data[:200]
             assert b"stalled" in data and b"body_timeout_s" in data, data
         wait_for(lambda: metric(server, "mfgnet_inference_slots_taken") == 0, timeout=3.0, what="the slots freed")
+
+        trickling = stalled_request(server, "/v1/register", "application/json")  # 8 bytes/s, each read within 1 s
+        with ThreadPoolExecutor(1) as pool:
+            pool.submit(trickle, trickling, b"0.1, ", 0.25)
+            started = time.monotonic()
+            try:
+                data = answer(trickling)
+            finally:
+                trickling.close()  # ends the trickle
+        assert time.monotonic() - started < 5
+        assert data.startswith(b"HTTP/1.1 408"), data[:200]
+        assert b"too slowly" in data and b"body_min_rate" in data, data
+        wait_for(lambda: metric(server, "mfgnet_inference_slots_taken") == 0, timeout=3.0, what="the slot freed")
+
         reference = post(server, good)
         assert reference.status_code == 200, reference.text
 

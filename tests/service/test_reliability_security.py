@@ -29,7 +29,7 @@ def test_size_and_time_limits_are_on_by_default():
     settings = isolated_settings()
     assert 0 < settings.max_body_bytes <= 256 * 1024 * 1024
     assert 32 <= settings.max_points <= 1_000_000
-    assert 0 < settings.timeout_s < math.inf and 0 < settings.body_timeout_s <= 60
+    assert 0 < settings.timeout_s < math.inf and 0 < settings.body_timeout_s <= 60 and settings.body_min_rate >= 1024
     assert settings.max_queue < 1_000 and settings.max_batch <= 64
     assert settings.cors_origins == [] and settings.api_key is None  # CORS off; the key is opt-in
 
