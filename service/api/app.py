@@ -14,6 +14,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 
 from service.api.errors import install_error_handlers
+from service.api.head import HeadAsGetMiddleware
 from service.api.limiter import InferenceLimiter
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContextMiddleware
@@ -95,6 +96,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
             expose_headers=["X-Request-ID", "Retry-After"],
         )
+    app.add_middleware(HeadAsGetMiddleware)  # inside the request context: the access log and metrics say HEAD
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,
                        body_min_rate=settings.body_min_rate)

@@ -29,6 +29,17 @@ def test_liveness_and_server_metadata(client):
     assert meta["name"] == "mfgnet" and meta["version"] and isinstance(meta["extensions"], list)
 
 
+def test_head_answers_as_get_without_a_body_on_every_get_route(client):
+    """Load balancers and uptime checkers probe with HEAD; a GET route answered it 405."""
+    for path in ("/v2/health/live", "/v2/health/ready", f"/v2/models/{MODEL}/ready", "/v1/models", "/metrics"):
+        head = client.head(path)
+        assert head.status_code == 200, (path, head.status_code)
+        assert head.content == b"" and int(head.headers["content-length"]) > 0, path
+        assert head.headers["content-type"] == client.get(path).headers["content-type"], path
+    assert client.head("/v2/models/nope/ready").status_code == 404
+    assert client.head("/v1/register").status_code == 405  # a POST route stays POST only
+
+
 def test_model_metadata_follows_the_inference_protocol(client):
     meta = client.get(f"/v2/models/{MODEL}").json()
     assert meta["name"] == MODEL and meta["versions"] and meta["platform"]
