@@ -19,6 +19,7 @@ MAX_ROW_BYTES = 128
 # MAX_VALUES_PER_POINT) is 64 KiB.
 MAX_TEXT_LINE_BYTES = 1 << 20
 BLOCK_BYTES = 1 << 22  # bodies are scanned, and binary rows wider than x, y, z read, this many bytes at a time
+COUNT_BLOCK_BYTES = BLOCK_BYTES // 16  # counting a text block's values holds about 8 bytes per byte of it
 
 
 def check_count(count: int, max_points: int | None) -> None:
@@ -49,6 +50,42 @@ def check_line_lengths(f: BinaryIO, what: str) -> None:
     if too_long_at is not None:
         raise PointCloudFormatError(f"{what}: a line longer than {MAX_TEXT_LINE_BYTES} bytes (from byte "
                                     f"{too_long_at}); rows of numbers are far shorter")
+
+
+def check_row_values(f: BinaryIO, rows: int, values: int, what: str) -> None:
+    """:class:`PointCloudFormatError` where one of the first ``rows`` non-blank text rows from ``f``'s position holds
+    other than ``values`` whitespace-separated values; counted ``COUNT_BLOCK_BYTES`` at a time without parsing a number,
+    so a reader may parse only the columns it keeps. ``f``'s position is kept."""
+    start = f.tell()
+    seen = 0  # non-blank rows checked
+    open_values, in_value = 0, False  # values of the row the last block ended in; whether it ended inside one
+    while seen < rows and (block := f.read(COUNT_BLOCK_BYTES)):
+        data = np.frombuffer(block, dtype=np.uint8)
+        gap = (data == 32) | (data == 9) | (data == 10) | (data == 13)  # [B] separators and line breaks
+        begins = ~gap & np.concatenate(([not in_value], gap[:-1]))  # [B] the first byte of each value
+        before = np.cumsum(begins, dtype=np.int32)  # [B] values begun up to each byte
+        ends = np.flatnonzero((data == 10) | (data == 13))  # [E] line breaks
+        per_row = np.diff(before[ends], prepend=0)  # [E] values of each row that ends in this block
+        if len(ends):
+            per_row[0] += open_values
+            open_values = int(before[-1] - before[ends[-1]])
+        else:
+            open_values += int(before[-1])
+        in_value = not gap[-1]
+        seen = _check_counts(per_row[per_row > 0], seen, rows, values, what)
+    if seen < rows and open_values:  # a last row without a line break
+        _check_counts(np.array([open_values]), seen, rows, values, what)
+    f.seek(start)
+
+
+def _check_counts(per_row: np.ndarray, seen: int, rows: int, values: int, what: str) -> int:
+    """Rows checked after ``per_row`` (values of each non-blank row, following ``seen`` rows), at most ``rows``."""
+    per_row = per_row[:rows - seen]
+    wrong = np.flatnonzero(per_row != values)
+    if len(wrong):
+        raise PointCloudFormatError(f"{what}: row {seen + int(wrong[0]) + 1} holds {int(per_row[wrong[0]])} values; "
+                                    f"the header declares {values} per row")
+    return seen + len(per_row)
 
 
 def xyz_in_blocks(f: BinaryIO, record: np.dtype, count: int, short: str) -> np.ndarray:

@@ -21,6 +21,7 @@ from service.formats.checks import (
     as_declared,
     check_count,
     check_line_lengths,
+    check_row_values,
     checked,
     xyz_columns,
     xyz_in_blocks,
@@ -73,11 +74,12 @@ def _ascii_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
     parse reads them), without the other fields or any row past ``points`` (pypcd4 parsed every field of every row:
     25,000 rows of 4,096 values took 0.8 GB, 40,000,000 rows under a header of 1,000 points 0.9 GB)."""
     columns = [dtype.names.index(axis) for axis in "xyz"]  # each value is a column (COUNT > 1: one per value)
+    check_row_values(f, points, len(dtype.names), "corrupt PCD data")  # only x, y, z are parsed
     text = io.TextIOWrapper(f, encoding="ascii", errors="strict", newline=None)
     try:
         with warnings.catch_warnings():  # numpy warns of no rows at all
             warnings.simplefilter("ignore", UserWarning)
-            table = np.loadtxt(text, dtype=np.float64, delimiter=" ", usecols=columns, max_rows=points, ndmin=2)
+            table = np.loadtxt(text, dtype=np.float64, usecols=columns, max_rows=points, ndmin=2)  # on whitespace
     except (ValueError, UnicodeDecodeError) as exc:
         raise PointCloudFormatError(f"corrupt PCD data ({exc})") from None
     finally:

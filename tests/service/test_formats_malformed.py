@@ -273,6 +273,32 @@ def test_pcd_ascii_integer_fields_hold_integers(tmp_path: Path) -> None:
         read_cloud(path)
 
 
+FOUR_FIELDS = {"fields": "x y z intensity", "size": "4 4 4 4", "type": "F F F F", "count": "1 1 1 1"}
+
+
+@pytest.mark.parametrize(("rows", "row", "values"), [
+    (b"1 2 3 4\n1 2 3\n1 2 3 4\n", 2, 3),
+    (b"1 2 3 4\r\n\r\n1 2 3 4 5\r\n1 2 3 4\r\n", 2, 5),  # CRLF and a blank line
+    (b"1 2 3 4\n" * 700_000 + b"1\t2 3\n" + b"1 2 3 4\n", 700_001, 3),  # past the first 4 MiB block
+    (b"1 2 3 4\n" * 2 + b"1 2  3", 3, 3),  # a last row without a line break
+])
+def test_pcd_ascii_rows_hold_one_value_per_field(tmp_path: Path, rows: bytes, row: int, values: int) -> None:
+    """Only x, y and z are parsed; a row of more or fewer values than the fields is still refused, as pypcd4's typed
+    parse of every field refused it."""
+    path = tmp_path / "a.pcd"
+    path.write_bytes(pcd_header(points=rows.count(b"1 "), **FOUR_FIELDS) + rows)
+    with pytest.raises(PointCloudFormatError, match=f"row {row} holds {values} values; the header declares 4"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("rows", [b"1 2 3 4\n\n 5 6 7 8 \n\t9 10 11 12", b"1 2 3 4\r\n5 6 7 8\r\n9 10 11 12\r\n"
+                                  + b"1 2\n" * 5])  # rows past POINTS are not read
+def test_pcd_ascii_rows_of_the_declared_values_are_read(tmp_path: Path, rows: bytes) -> None:
+    path = tmp_path / "a.pcd"
+    path.write_bytes(pcd_header(points=3, **FOUR_FIELDS) + rows)
+    np.testing.assert_array_equal(read_cloud(path), [[1, 2, 3], [5, 6, 7], [9, 10, 11]])
+
+
 def ply_of(elements: list, text: bool = False, byte_order: str = "<") -> bytes:
     out = io.BytesIO()
     plyfile.PlyData(elements, text=text, byte_order=byte_order).write(out)
