@@ -5,6 +5,7 @@ from __future__ import annotations
 from service.formats.errors import PointCloudFormatError
 
 HEAD_BYTES = 1024  # enough for every magic number and the first lines of a PCD header
+MAX_HEAD_BYTES = 1 << 16  # how far comment lines may put off a PCD header's first keyword
 FORMATS = ("ply", "pcd", "las", "npy", "npz", "text")
 _PCD_KEYS = (b"VERSION", b"FIELDS")
 
@@ -30,6 +31,11 @@ def detect(head: bytes) -> str:
     raise PointCloudFormatError(
         f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, .npy, .npz or XYZ/CSV/TXT file"
     )
+
+
+def only_comments(head: bytes) -> bool:
+    """``head`` holds nothing but ``#`` comment lines and blank ones: whether it is a PCD header or text comes later."""
+    return all(not line.strip() or line.lstrip().startswith(b"#") for line in head.splitlines())
 
 
 def _pcd_header(head: bytes) -> bool:

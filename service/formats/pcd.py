@@ -27,6 +27,7 @@ from service.formats.checks import (
     xyz_in_blocks,
 )
 from service.formats.deps import require
+from service.formats.detect import MAX_HEAD_BYTES
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 if TYPE_CHECKING:
@@ -108,7 +109,8 @@ def _compressed_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
 
 def _metadata(pypcd4: ModuleType, f: BinaryIO):
     lines: list[str] = []
-    for _ in range(MAX_HEADER_LINES):
+    start = f.tell()
+    while len(lines) < MAX_HEADER_LINES and f.tell() - start <= MAX_HEAD_BYTES:  # comments count in bytes only
         raw = f.readline(MAX_LINE_BYTES)
         if not raw:
             break
@@ -123,7 +125,8 @@ def _metadata(pypcd4: ModuleType, f: BinaryIO):
             if line.upper().startswith("DATA"):
                 break
     if not lines or not lines[-1].upper().startswith("DATA"):  # pypcd4 would take binary_compressed for it
-        raise PointCloudFormatError(f"invalid PCD header (no DATA line in its first {MAX_HEADER_LINES} lines)")
+        raise PointCloudFormatError(f"invalid PCD header (no DATA line in its first {MAX_HEADER_LINES} entries and "
+                                    f"{MAX_HEAD_BYTES} bytes)")
     encodings = [encoding.value for encoding in pypcd4.Encoding]  # ascii, binary, binary_compressed and an alias
     if lines[-1].split()[1:2] not in [[encoding] for encoding in encodings]:
         raise PointCloudFormatError(f"invalid PCD header ({lines[-1][:80]!r}: DATA must be one of {encodings})")

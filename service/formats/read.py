@@ -14,7 +14,7 @@ from typing import BinaryIO
 import numpy as np
 
 from service.formats.arrays import read_npy, read_npz
-from service.formats.detect import HEAD_BYTES, detect
+from service.formats.detect import HEAD_BYTES, MAX_HEAD_BYTES, detect, only_comments
 from service.formats.errors import PointCloudFormatError
 from service.formats.las import read_las
 from service.formats.pcd import read_pcd
@@ -52,7 +52,10 @@ def read_cloud(source: str | os.PathLike[str] | bytes | BinaryIO, name: str | No
     name = name or "<cloud>"
     try:
         start = source.tell()
-        kind = detect(source.read(HEAD_BYTES))
+        head = source.read(HEAD_BYTES)
+        while only_comments(head) and len(head) < MAX_HEAD_BYTES and (more := source.read(len(head))):
+            head += more  # a PCD header after many comment lines
+        kind = detect(head)
         source.seek(start)
         if kind in NEEDS_REAL_FILE and not _has_fileno(source):
             with tempfile.TemporaryFile() as spooled:

@@ -121,6 +121,16 @@ def pcd_header(points: int = 24, data: str = "ascii", fields: str = "x y z", siz
     return PCD_HEADER.format(fields=fields, size=size, type=type, count=count, points=points, data=data).encode()
 
 
+def test_pcd_after_many_comment_lines_is_read_as_pcd(tmp_path: Path) -> None:
+    """Comment lines filling the first KiB made the file text, and over 64 lines of them left no room for the header."""
+    comments = b"".join(b"# scanner export, line %d of a long provenance note\n" % i for i in range(300))
+    header = pcd_header(points=2).replace(b"SIZE", b"# between entries\n" * 100 + b"SIZE")
+    (tmp_path / "a.pcd").write_bytes(comments + header + b"1 2 3\n4 5 6\n")
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.pcd"), [[1, 2, 3], [4, 5, 6]])
+    (tmp_path / "a.xyz").write_bytes(comments + b"1 2 3\n4 5 6\n")  # text after as many comments is still text
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.xyz"), [[1, 2, 3], [4, 5, 6]])
+
+
 def test_pcd_without_points_is_an_empty_cloud(tmp_path: Path) -> None:
     """POINTS 0 raised numpy's ValueError (reshape of an empty table)."""
     (tmp_path / "a.pcd").write_bytes(pcd_header(points=0))
