@@ -13,6 +13,7 @@ from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 
+from service.api.body_budget import BodyBudget
 from service.api.errors import install_error_handlers
 from service.api.head import HeadAsGetMiddleware
 from service.api.limiter import InferenceLimiter
@@ -56,6 +57,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for entry in registry.entries.values():
         metrics.model_ready.labels(model=entry.name).set_function(lambda e=entry: float(e.status == "ready"))
     metrics.slots.set_function(lambda: limiter.taken)
+    budget = BodyBudget(settings.max_buffered_bytes)
+    metrics.body_bytes.set_function(lambda: budget.held)
     metrics.running.set_function(lambda: limiter.running)
 
     @asynccontextmanager
@@ -79,7 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.registry = registry
     app.state.limiter = limiter
     app.state.runner = Runner(
-        registry, limiter, metrics, effective_default_model(settings, registry), settings.default_refine,
+        registry, limiter, metrics, budget, effective_default_model(settings, registry), settings.default_refine,
         settings.default_rotation_search,
     )
 

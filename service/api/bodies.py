@@ -29,6 +29,7 @@ from starlette.formparsers import parse_options_header
 from starlette.requests import Request
 from starlette.types import Message
 
+from service.api.body_budget import BodyBudget, BodyHold
 from service.api.errors import APIError, from_pydantic
 from service.api.json_clouds import rows_array, split_register_body
 from service.api.schemas import (
@@ -80,16 +81,48 @@ def too_many_points(name: str, count: int, max_points: int) -> APIError:
 
 
 # -- JSON -------------------------------------------------------------------------------------------
-async def read_body(request: Request) -> bytearray:
-    """The request body, read into one growing buffer (the middleware enforces max_body_bytes).
+class HeldBody:
+    """A request body read within the :class:`BodyBudget`: ``take()`` it once to decode it, then ``release()`` its
+    bytes (from the worker; ``with held:`` releases them in any case)."""
+
+    def __init__(self, data: bytearray, hold: BodyHold):
+        self._data: bytearray | None = data
+        self._hold = hold
+
+    def __enter__(self) -> HeldBody:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    def take(self) -> bytearray:
+        data, self._data = self._data, None
+        if data is None:
+            raise RuntimeError("a body is taken once")
+        return data
+
+    def release(self) -> None:
+        self._data = None
+        self._hold.release()
+
+
+async def read_body(request: Request, budget: BodyBudget, max_body_bytes: int) -> HeldBody:
+    """The request body, read into one growing buffer once the budget holds its Content-Length (or
+    ``max_body_bytes``, which the middleware enforces, when it has none).
 
     Unlike ``await request.body()`` this keeps no list of chunks beside the joined copy and does
     not cache the body on the request, so it can be freed as soon as it is parsed.
     """
-    body = bytearray()
-    async for chunk in request.stream():
-        body += chunk
-    return body
+    declared = request.headers.get("content-length", "")
+    hold = await budget.hold(int(declared) if declared.isdigit() else max_body_bytes)
+    try:
+        body = bytearray()
+        async for chunk in request.stream():
+            body += chunk
+    except BaseException:
+        hold.release()
+        raise
+    return HeldBody(body, hold)
 
 
 def check_json_values(body: bytes | bytearray, points: int, clouds: str) -> None:

@@ -33,6 +33,10 @@ class Metrics:
         self.slots = Gauge(
             "mfgnet_inference_slots_taken", "Registrations being read, waiting or running.", registry=self.registry
         )
+        self.body_bytes = Gauge(
+            "mfgnet_body_bytes_held", "Bytes of JSON and OIP bodies being read or waiting to be decoded "
+            "(at most max_buffered_bytes).", registry=self.registry,
+        )
         self.running = Gauge("mfgnet_inference_running", "Registrations running in a worker.", registry=self.registry)
         self.model_load = Gauge(
             "mfgnet_model_load_seconds", "Time to verify, load and warm up each model.", ["model"],

@@ -72,7 +72,7 @@ class RequestContextMiddleware:
         started = time.perf_counter()
         request_id = _request_id(scope)
         scope.setdefault("state", {})["request_id"] = request_id
-        state = {"status": 0, "started": False, "received": 0, "body_done": False}
+        state = {"status": 0, "started": False, "received": 0, "body_done": False, "body_started": 0.0}
         limit, setting = self._limit(scope)
 
         async def send_with_id(message: Message) -> None:
@@ -84,9 +84,11 @@ class RequestContextMiddleware:
         async def receive_limited() -> Message:
             if state["body_done"] or self.body_timeout_s is None:  # after the body: the wait for a disconnect
                 return await receive()
+            state["body_started"] = state["body_started"] or time.perf_counter()  # the route asks for it: it is due
             wait_s, stalled = self.body_timeout_s, True
             if self.body_min_rate is not None:  # the body's due time grows by a second per body_min_rate bytes
-                due_s = started + self.body_timeout_s + state["received"] / self.body_min_rate - time.perf_counter()
+                due_s = (state["body_started"] + self.body_timeout_s + state["received"] / self.body_min_rate
+                         - time.perf_counter())
                 wait_s, stalled = min(wait_s, due_s), wait_s <= due_s
             try:
                 if wait_s <= 0:
@@ -96,7 +98,7 @@ class RequestContextMiddleware:
             except TimeoutError:  # a JSON 408; the route's slot is freed
                 if stalled:
                     raise BodyTimeoutError(self.body_timeout_s) from None
-                elapsed_s = time.perf_counter() - started
+                elapsed_s = time.perf_counter() - state["body_started"]
                 raise BodyTooSlowError(state["received"], elapsed_s, self.body_min_rate) from None
             if message["type"] == "http.request":
                 state["received"] += len(message.get("body", b""))

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import numpy as np
 
 from service.api.bodies import Pair
+from service.api.body_budget import BodyBudget
 from service.api.errors import APIError
 from service.api.limiter import InferenceLimiter, Slot
 from service.api.metrics import Metrics
@@ -51,12 +52,14 @@ class Runner:
         registry: ModelRegistry,
         limiter: InferenceLimiter,
         metrics: Metrics,
+        body_budget: BodyBudget,
         default_model: str,
         default_refine: str = SERVICE_DEFAULT_REFINE,
         default_rotation_search: str = SERVICE_DEFAULT_ROTATION_SEARCH,
     ):
         self.registry = registry
         self.limiter = limiter
+        self.body_budget = body_budget  # JSON and OIP bodies held at once
         self.metrics = metrics
         self.default_model = default_model
         self.default_refine = default_refine  # applied when a request names no refinement

@@ -81,6 +81,12 @@ class Settings(BaseSettings):
         64 * MiB, ge=1024, description="Largest body of a request that is not a multipart upload (JSON, OIP); "
         "more is answered with 413.",
     )
+    max_buffered_bytes: int = Field(
+        256 * MiB, ge=1024, description="Most bytes of JSON and OIP bodies held in memory at once, from their reading "
+        "until their registration has decoded them (each counted at its Content-Length, else max_body_bytes); a "
+        "request whose body does not fit waits, unread, for earlier ones (in arrival order). Queued requests held "
+        "their whole bodies: 18 of 64 MiB peaked above 1.1 GiB. A body larger than this is read alone.",
+    )
     max_upload_bytes: int = Field(
         256 * MiB, ge=1024, description="Largest multipart upload body (both files and the options); more is "
         "answered with 413. The files are spooled to temporary files, not held in memory. 256 MiB holds two "

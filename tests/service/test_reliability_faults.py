@@ -216,6 +216,42 @@ def test_stalled_bodies_are_408_and_free_their_slots_while_slow_ones_finish():
 
 
 # -- memory ---------------------------------------------------------------------------------------
+def peak_rss_mib(pid: int) -> float:
+    return int(re.search(r"^VmHWM:\s+(\d+) kB", Path(f"/proc/{pid}/status").read_text(), re.MULTILINE).group(1)) / 1024
+
+
+def test_queued_json_bodies_wait_unread_within_max_buffered_bytes():
+    """A request takes its slot before its body is read, and every queued request held its whole body until a worker
+    decoded it (18 of 64 MiB peaked above 1.1 GiB). Eight 40 MiB bodies queued behind three slow registrations: with
+    ``max_buffered_bytes`` 64 MiB one is held at a time and the others wait unread; all are answered."""
+    server = start_subprocess_server("buffered", MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="11",
+                                     MFGNET_MAX_BODY_BYTES=str(48 << 20), MFGNET_MAX_BUFFERED_BYTES=str(64 << 20),
+                                     MFGNET_TIMEOUT_S="120")
+    pid = server.extra["proc"].pid
+    slow = pair_json(modelnet_pair(1), **SLOW)
+    padded = json.dumps(pair_json(modelnet_pair(2), **CHEAP)).encode() + b" " * (40 << 20)  # valid JSON
+    try:
+        assert post(server, slow).status_code == 200  # warm-up
+        before = peak_rss_mib(pid)
+
+        def send(body: bytes) -> int:
+            with server.client() as c:
+                return c.post("/v1/register", content=body, headers={"content-type": "application/json"},
+                              timeout=120).status_code
+
+        with ThreadPoolExecutor(11) as pool:
+            blockers = [pool.submit(send, json.dumps(slow).encode()) for _ in range(3)]
+            wait_for(lambda: metric(server, "mfgnet_inference_running") == 1, what="a slow registration running")
+            big = [pool.submit(send, padded) for _ in range(8)]
+            statuses = [f.result() for f in blockers + big]
+        assert statuses == [200] * 11
+        grown = peak_rss_mib(pid) - before
+        assert grown < 200, f"peak RSS grew {grown:.0f} MiB; eight bodies held at once are 320 MiB"
+        assert metric(server, "mfgnet_body_bytes_held") == 0
+    finally:
+        server.stop()
+
+
 def test_memory_stays_flat_over_144_requests():
     """RSS of the server process over three rounds of 48 requests after a warm-up: registrations and rejected
     bodies of each kind. A leak grows RSS in every round; the allocator's arenas may still grow once, in any round."""

@@ -13,6 +13,7 @@ from fastapi.responses import JSONResponse
 from starlette.responses import Response
 
 from service.api import oip_request
+from service.api.bodies import read_body
 from service.api.deps import get_registry, get_runner, get_settings, require_api_key
 from service.api.errors import APIError, error_docs
 from service.api.oip_request import HEADER_LENGTH, OCTET_STREAM
@@ -164,11 +165,11 @@ async def infer(name: str, request: Request) -> Response:
         raise APIError(404, f"unknown model {name!r}; see GET /v1/models")
     oip_request.check_media_type(request)
     length = oip_request.header_length(request)
-    with runner.admit() as slot:
-        body = await request.body()
+    with runner.admit() as slot, await read_body(request, runner.body_budget, settings.max_body_bytes) as held:
 
         def work():
-            call = oip_request.infer_call(body, length, settings.max_points)
+            with held:  # the body is freed once decoded, before the pipeline runs
+                call = oip_request.infer_call(held.take(), length, settings.max_points)
             entry, result = runner.register_one(call.pair, model=name)
             return call, entry, result
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
+
 from fastapi import APIRouter, Depends, Request
 
 from service.api import bodies
@@ -74,12 +76,14 @@ def _request_body(schema_name: str, multipart: bool) -> dict:
 async def register(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
     kind = bodies.require_media_type(request, bodies.JSON, bodies.MULTIPART)
-    with runner.admit() as slot:
+    with runner.admit() as slot, ExitStack() as held_until_done:
         if kind == bodies.JSON:
-            received = [await bodies.read_body(request)]
+            held = held_until_done.enter_context(
+                await bodies.read_body(request, runner.body_budget, settings.max_body_bytes))
 
-            def decode() -> bodies.Pair:  # pops the body: it is freed once parsed, before the pipeline runs
-                return bodies.register_pair_from_json(received.pop(), settings.max_points)
+            def decode() -> bodies.Pair:  # takes the body: it is freed once parsed, before the pipeline runs
+                with held:
+                    return bodies.register_pair_from_json(held.take(), settings.max_points)
         else:
             form = await bodies.read_register_form(request)
 
@@ -108,11 +112,11 @@ async def register(request: Request) -> RenderedJSON:
 async def register_batch(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
     bodies.require_media_type(request, bodies.JSON)
-    with runner.admit() as slot:
-        received = [await bodies.read_body(request)]
+    with runner.admit() as slot, await bodies.read_body(request, runner.body_budget, settings.max_body_bytes) as held:
 
         def work():
-            pairs = bodies.batch_pairs_from_json(received.pop(), settings.max_points, settings.max_batch)
+            with held:
+                pairs = bodies.batch_pairs_from_json(held.take(), settings.max_points, settings.max_batch)
             return pairs, runner.register_batch(pairs)
 
         (pairs, done), queue_ms = await runner.run(slot, work, request)

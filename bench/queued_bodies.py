@@ -1,0 +1,82 @@
+"""Peak server memory with every slot taken by a JSON request of the largest accepted body (``docs/DEPLOYMENT.md``,
+"Current figures")::
+
+    python -m bench.queued_bodies                         # the manifest's settings
+    python -m bench.queued_bodies --compare-root ../old   # and another checkout's server, in the same run
+
+It starts ``mfgnet``'s HTTP app on 127.0.0.1 with the deployment manifest's settings (every bundled model,
+``MFGNET_THREADS`` 1, ``MFGNET_MAX_CONCURRENCY`` 2, the default ``max_queue`` 16, ``max_body_bytes`` and
+``max_buffered_bytes``), registers one small pair, then sends ``max_concurrency + max_queue`` requests at once, each
+a ``max_points``-point pair (seeded, jittered copies of a ModelNet40 test pair) padded with spaces to
+``max_body_bytes``, and reads the server's peak resident memory (``VmHWM``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+
+from bench.http_latency import Server, rss_mb
+from bench.report_io import emit_report, machine_info
+from bench.server_memory import pairs
+from service.core.config import Settings
+
+THREADS, MAX_CONCURRENCY = 1, 2  # deploy/k8s/deployment.yaml
+
+
+def padded_body(points: int, size: int) -> bytes:
+    """A JSON ``/v1/register`` body of ``points`` points per cloud, padded with spaces to ``size`` bytes."""
+    _, big = pairs(1, points)
+    body = json.dumps(big).encode()
+    if len(body) > size:
+        raise ValueError(f"{points} points take {len(body)} bytes, above {size}")
+    return body + b" " * (size - len(body))
+
+
+def measure(cwd: str | None, body: bytes, small: dict, requests: int) -> dict:
+    """Peak RSS (MiB) after one small request and after ``requests`` of ``body`` at once; their statuses."""
+    with Server(threads=THREADS, max_concurrency=MAX_CONCURRENCY, max_queue=requests - MAX_CONCURRENCY,
+                cwd=cwd, timeout_s=300) as server:
+        with httpx.Client(base_url=server.url, timeout=300) as client:
+            client.post("/v1/register", json=small).raise_for_status()
+        warm = rss_mb(server.proc.pid, "VmHWM")
+
+        def send(_: int) -> int:
+            with httpx.Client(base_url=server.url, timeout=300) as client:
+                return client.post("/v1/register", content=body,
+                                   headers={"content-type": "application/json"}).status_code
+
+        started = time.perf_counter()
+        with ThreadPoolExecutor(requests) as pool:
+            statuses = list(pool.map(send, range(requests)))
+        seconds = time.perf_counter() - started
+        peak = rss_mb(server.proc.pid, "VmHWM")
+    return {"peak_after_warm_up_mib": round(warm, 1), "peak_mib": round(peak, 1), "seconds": round(seconds, 1),
+            "statuses": {str(s): statuses.count(s) for s in sorted(set(statuses))}}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--compare-root", help="also measure the server of the checkout in this folder")
+    parser.add_argument("--json", type=Path, help="also write the report here")
+    args = parser.parse_args(argv)
+    settings = Settings()
+    requests = MAX_CONCURRENCY + settings.max_queue
+    body = padded_body(settings.max_points, settings.max_body_bytes)
+    small, _ = pairs(1, 32)
+    report = {"benchmark": "queued_bodies", "requests": requests, "points": settings.max_points,
+              "body_bytes": len(body), "max_buffered_bytes": settings.max_buffered_bytes,
+              "this": measure(None, body, small[0], requests), "machine": machine_info(THREADS)}
+    if args.compare_root:
+        report["compared"] = measure(args.compare_root, body, small[0], requests)
+    emit_report(report, args.json)
+    return report
+
+
+if __name__ == "__main__":
+    main()
