@@ -24,7 +24,7 @@ from model.cli import (
     ViewAngle,
     setting_protocol,
 )
-from model.cli_inputs import checkpoint_model, output_file, pairs_file, require_shapes
+from model.cli_inputs import checkpoint_model, model_dir, output_file, pairs_file, require_shapes
 from model.data import make_test_pairs
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
@@ -96,6 +96,7 @@ def evaluate(
         if path is not None:
             output_file(path, option)
     network = checkpoint_model(checkpoint)[2] if checkpoint is not None else None
+    model_path = model_dir(model) if model is not None else None
     if pairs:
         data_pairs = pairs_file(pairs)
     else:
@@ -108,7 +109,7 @@ def evaluate(
     if model is not None:
         from bench.runtime_eval import runtime_poses
 
-        run = runtime_poses(model, data_pairs, iterations, keypoints, refine, search, refine_points)
+        run = runtime_poses(model_path, data_pairs, iterations, keypoints, refine, search, refine_points)
         R, t, secs = run.rotation, run.translation, run.seconds
     elif baseline is not None:
         from bench.baselines import run_method

@@ -100,6 +100,8 @@ def bench_torch(model: MFGNet, pairs: dict, repeats: int, iterations: int | None
 def run_bench(
     model_name: str,
     checkpoint: str,
+    model_dir: Path,
+    network: MFGNet,
     repeats: int,
     setting: str,
     seed: int,
@@ -109,16 +111,16 @@ def run_bench(
     classical: bool = True,
     http_requests: int = 0,
 ) -> dict:
+    """The report of ``mfgnet bench``: the model in ``model_dir`` (``--model model_name``) against ``network``, the
+    eager network of the same weights (``--checkpoint checkpoint``)."""
     import torch
 
-    from model.checkpoint import load_model
     from model.data import make_test_pairs
-    from service.manifest import bundled_models_dir
     from service.registrar import Registrar
 
     torch.set_num_threads(threads)
-    registrar = Registrar(bundled_models_dir() / model_name, threads=threads)
-    model = load_model(checkpoint)
+    registrar = Registrar(model_dir, threads=threads)
+    model = network
     pairs = make_test_pairs(setting, "test", count=16, seed=seed)
     report: dict = {
         "machine": {**machine_info(threads), "python": platform.python_version()},
@@ -265,7 +267,7 @@ def flatten(d: dict, prefix: str = "") -> dict[str, float]:
 
 
 def bench(
-    model: Annotated[str, typer.Option(help="bundled model name")] = "clean",
+    model: Annotated[str, typer.Option(help="bundled model name or model folder")] = "clean",
     checkpoint: Annotated[str, typer.Option(help="checkpoint with the same weights (torch eager)")] = "clean",
     repeats: int = 30,
     setting: str = "clean",
@@ -282,9 +284,20 @@ def bench(
 ) -> None:
     """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager, and accuracy and
     time side by side with Open3D FPFH + RANSAC + ICP and FGR on the same seeded pairs."""
+    from model.cli_inputs import checkpoint_model, model_dir, output_file, require_shapes
+
+    if json_out:
+        output_file(json_out, "--json", create_folders=True)
+    baseline = bench_report(compare, "--compare") if compare else None
+    folder = model_dir(model)
+    network = checkpoint_model(checkpoint)[2]
+    for name in (setting, *(accuracy_setting or () if accuracy_count else ())):
+        require_shapes("test", name, None)
     report = run_bench(
         model,
         checkpoint,
+        folder,
+        network,
         repeats,
         setting,
         seed,
@@ -299,10 +312,21 @@ def bench(
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(text + "\n")
     typer.echo(text)
-    if compare:
-        base, now = flatten(json.loads(compare.read_text())), flatten(report)
+    if baseline is not None:
+        base, now = flatten(baseline), flatten(report)
         for key in sorted(set(base) & set(now)):
             if base[key]:
                 typer.echo(
                     f"{key:45s} {base[key]:10.3f} -> {now[key]:10.3f} ({100 * (now[key] / base[key] - 1):+.1f}%)"
                 )
+
+
+def bench_report(path: Path, option: str) -> dict:
+    """The report of an earlier ``mfgnet bench --json`` at ``path``, or a usage error."""
+    from model.cli_inputs import fail, json_file
+
+    report = json_file(path, option)
+    if not isinstance(report, dict) or "pipeline_768" not in report:
+        what = f"a JSON {type(report).__name__}" if not isinstance(report, dict) else "no 'pipeline_768'"
+        fail(f"{option} {path}: not an mfgnet bench report ({what})")
+    return report

@@ -3,18 +3,26 @@
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from model.cli_inputs import fail, short
+from service.manifest import MANIFEST
+
+STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
 
 
 def export(
     checkpoint: Annotated[str, typer.Option(help="checkpoint path or bundled name (clean, noise, ...)")],
-    out: Annotated[Path, typer.Option(help="model directory; its folder name is the model name")],
+    out: Annotated[Path, typer.Option(help="model directory (new, empty, or a model folder to re-export); its folder "
+                                           "name is the model name")],
     version: Annotated[str, typer.Option(help="model version written to the manifest")] = "0.1.0",
     setting: Annotated[str, typer.Option(help="setting of the parity pairs and reference radius")] = "clean",
     parity_pairs: Annotated[int, typer.Option(help="seeded pairs for the parity check (>= 50)")] = 100,
@@ -27,16 +35,19 @@ def export(
     accuracy_json: Annotated[Path | None, typer.Option(help="metrics JSON (mfgnet evaluate --json)")] = None,
     seed: int = 0,
 ) -> None:
-    """Export a checkpoint to ONNX (encoder + matcher graphs) with a manifest; fails on parity."""
+    """Export a checkpoint to ONNX (encoder + matcher graphs) with a manifest; fails on parity.
+
+    The model is written and checked in a staging folder and moved into OUT only once parity passed: a failed or
+    interrupted export leaves OUT as it was. Re-exporting into a model folder replaces its graphs and manifest and
+    keeps every other file there.
+    """
     from export.onnx_export import write_model_folder
     from export.parity import ParityError, check_parity
-    from model.cli_inputs import checkpoint_model, json_file, output_folder, require_shapes
+    from model.cli_inputs import checkpoint_model, json_file, require_shapes
     from model.data import make_test_pairs
     from service.registrar import Registrar
 
-    if out.exists() and not out.is_dir():
-        fail(f"--out {out}: a file, not a model folder")
-    output_folder(out, "--out")
+    check_model_out(out)
     path, data, model = checkpoint_model(checkpoint)
     accuracy = json_file(accuracy_json, "--accuracy-json") if accuracy_json else {}
     require_shapes("test", parity_setting, None)  # the parity pairs' shapes
@@ -44,22 +55,97 @@ def export(
         accuracy = {"metrics": data["val"], "on": "validation pairs held out of the training split"}
     if accuracy_json:
         accuracy = {"metrics": accuracy, "on": str(accuracy_json.name)}
-    out.mkdir(parents=True, exist_ok=True)
-    write_model_folder(out, path, model, data, setting, version, accuracy)
-    registrar = Registrar(out, warmup=False)
-    pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed)
-    try:
-        report = check_parity(model, registrar, pairs, min_compared=min(50, parity_pairs))
-    except ParityError as exc:
-        shutil.rmtree(out)
-        typer.echo(f"export failed, {out} removed: {exc}", err=True)
-        raise typer.Exit(code=1) from None
-    manifest_path = out / "manifest.json"
-    manifest = json.loads(manifest_path.read_text())
-    manifest["parity"] = {**report.to_dict(), "setting": parity_setting, "seed": seed}
-    manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+    with staged_model_folder(out) as stage:
+        write_model_folder(stage, path, model, data, setting, version, accuracy)
+        registrar = Registrar(stage, warmup=False)
+        pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed)
+        try:
+            report = check_parity(model, registrar, pairs, min_compared=min(50, parity_pairs))
+        except ParityError as exc:
+            fail(f"export failed, {out} left as it was: {exc}", code=1)
+        manifest_path = stage / MANIFEST
+        manifest = json.loads(manifest_path.read_text())
+        manifest["parity"] = {**report.to_dict(), "setting": parity_setting, "seed": seed}
+        manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
+        stale = install_model_folder(stage, out)
     typer.echo(json.dumps(manifest["parity"], indent=2))
+    if stale:
+        typer.echo(f"note: {out} still holds graphs of the previous export that its manifest no longer names: "
+                   f"{', '.join(stale)}", err=True)
     typer.echo(f"exported {out.name} to {out}")
+
+
+def check_model_out(out: Path) -> None:
+    """A usage error unless ``out`` is where a model can be exported: a new or empty folder, or a model folder (a
+    manifest or ONNX graphs) to re-export, in a writable place, named as a model."""
+    from model.cli_inputs import output_folder
+    from service.manifest import MODEL_NAME
+
+    if out.exists() and not out.is_dir():
+        fail(f"--out {out}: a file, not a model folder")
+    if not MODEL_NAME.match(out.name):
+        fail(f"--out {out}: {out.name!r} is no model name (the folder's name: up to 64 lowercase letters, digits, "
+             "'_', '.', '-')")
+    output_folder(out, "--out")
+    others = out.is_dir() and any(not path.name.startswith(STAGING_PREFIX) for path in out.iterdir())
+    if others and not is_model_folder(out):  # a staging folder left by a killed export is no reason to refuse
+        fail(f"--out {out}: a folder of other files, not a model folder (name a new or empty folder, or a model "
+             "folder to re-export)")
+
+
+def is_model_folder(folder: Path) -> bool:
+    """``folder`` holds a manifest or ONNX graphs (what ``service.manifest`` discovers as a model)."""
+    return (folder / MANIFEST).is_file() or any(folder.glob("*.onnx"))
+
+
+@contextmanager
+def staged_model_folder(out: Path) -> Iterator[Path]:
+    """A fresh, empty folder named as ``out`` to write the model into, on ``out``'s file system: inside ``out``
+    when it exists (a hidden folder), else beside it. It and everything in it is removed on leaving; so are the
+    folders above ``out`` that were made for it, should the model not be installed."""
+    made = [folder for folder in out.parents if not folder.exists()][::-1]  # the outermost first
+    for folder in made:
+        folder.mkdir()
+    root = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX if out.is_dir() else f".{out.name}{STAGING_PREFIX}",
+                                 dir=out if out.is_dir() else out.parent))
+    try:
+        stage = root / out.name
+        stage.mkdir()
+        yield stage
+    finally:
+        shutil.rmtree(root, ignore_errors=True)  # made above: holds only what this export wrote
+        if not out.exists():
+            for folder in reversed(made):
+                with suppress(OSError):  # only while empty
+                    folder.rmdir()
+
+
+def install_model_folder(stage: Path, out: Path) -> list[str]:
+    """Move the checked model in ``stage`` to ``out``; returns the graph files of a previous export that ``out``
+    still holds and the new manifest does not name.
+
+    A missing ``out`` becomes ``stage`` in one rename. Into an existing folder each file is replaced in one rename
+    (the manifest last, so that it never names a graph not yet there); the folder's other files stay."""
+    if not out.exists():
+        os.rename(stage, out)
+        return []
+    files = sorted((path.name for path in stage.iterdir()), key=lambda name: name == MANIFEST)  # manifest last
+    blocked = [name for name in files if (out / name).is_dir() or (out / name).is_symlink()]
+    if blocked:
+        fail(f"--out {out}: {blocked[0]} there is a folder or a link; nothing was replaced", code=1)
+    old_graphs = previous_graph_files(out)
+    for name in files:
+        os.replace(stage / name, out / name)
+    return sorted(name for name in old_graphs - set(files) if (out / name).is_file())
+
+
+def previous_graph_files(folder: Path) -> set[str]:
+    """The graph files the manifest in ``folder`` names (none where it is missing or unreadable)."""
+    try:
+        graphs = json.loads((folder / MANIFEST).read_text())["graphs"]
+        return {Path(entry["file"]).name for entry in graphs.values()}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return set()
 
 
 def import_checkpoint(

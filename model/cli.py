@@ -19,7 +19,7 @@ from model.cli_inputs import (
     output_folder,
     require_shapes,
 )
-from model.data import SETTINGS, PairProtocol, make_test_pairs, protocol_for, save_pairs
+from model.data import SETTINGS, PairProtocol, make_test_pairs, pairs_path, protocol_for, save_pairs
 from model.recipes import recipe_draw
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
@@ -54,7 +54,7 @@ def setting_protocol(setting: str, source_points: int | None, target_points: int
 
 
 def make_pairs(
-    out: Annotated[Path, typer.Option(help="output .npz")],
+    out: Annotated[Path, typer.Option(help="output .npz (added to a name without it)")],
     setting: Setting = "clean",
     split: Annotated[str, typer.Option(help="train or test")] = "test",
     count: Annotated[int | None, typer.Option(help="number of pairs (default: one per shape)")] = None,
@@ -73,13 +73,14 @@ def make_pairs(
     protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
                                 view_angle)
     output_file(out, "--out")
+    out = output_file(pairs_path(out), "--out")  # the file written: numpy adds .npz to a name without it
     require_shapes(split, setting, data)
     try:
         pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
-    save_pairs(out, pairs)
-    typer.echo(f"wrote {len(pairs['source'])} {setting} pairs to {out}")
+    written = save_pairs(out, pairs)
+    typer.echo(f"wrote {len(pairs['source'])} {setting} pairs to {written}")
 
 
 def train(

@@ -1,8 +1,9 @@
 """The training-side commands' files turned into loaded objects, or a one-line usage error (exit code 2).
 
-Used where the command-line arguments of ``mfgnet train``, ``evaluate``, ``make-pairs``, ``export`` and
-``import-checkpoint`` become checkpoints, networks, pairs and output paths; the messages and the exit code are the
-runtime commands' (``service.cli._fail``). Only the errors a bad file raises are caught, here and nowhere deeper.
+Used where the command-line arguments of ``mfgnet train``, ``evaluate``, ``make-pairs``, ``export``,
+``import-checkpoint`` and ``bench`` become checkpoints, networks, model folders, pairs and output paths; the messages
+and the exit code are the runtime commands' (``service.cli._fail``). Only the errors a bad file raises are caught, here
+and nowhere deeper.
 """
 
 from __future__ import annotations
@@ -167,6 +168,26 @@ def checkpoint_model(name_or_path: str | Path, option: str = "--checkpoint") -> 
     except (TypeError, ValueError) as err:  # a config value of the wrong type
         fail(f"{option} {path}: invalid config ({short(err)})")
     return path, data, load_weights(model, data["model"], path, option).eval()
+
+
+def model_dir(model: str | Path, option: str = "--model") -> Path:
+    """The folder of an ONNX model (a model folder, or the name of a bundled model) whose manifest and graphs check
+    out, else a usage error naming ``option`` and what was given."""
+    from service.manifest import ModelIntegrityError, discover_model_dirs, load_manifest, model_folder
+
+    folder = model_folder(model)
+    if not folder.exists():
+        bundled = ", ".join(path.name for path in discover_model_dirs([])) or "none"
+        fail(f"{option} {model}: no such model folder, nor a bundled model (bundled: {bundled})")
+    if not folder.is_dir():
+        fail(f"{option} {model}: a file, not a model folder")
+    try:
+        load_manifest(folder)
+    except ModelIntegrityError as err:
+        fail(f"{option} {model}: not a usable model folder ({err})")
+    except OSError as err:
+        fail(f"{option} {model}: cannot read ({err.strerror or err})")
+    return folder
 
 
 def pairs_file(path: Path, option: str = "--pairs") -> dict[str, np.ndarray]:

@@ -396,9 +396,17 @@ def make_test_pairs(
 PAIR_KEYS = ("source", "target", "rotation", "translation")
 
 
-def save_pairs(path: str | os.PathLike, pairs: dict[str, np.ndarray]) -> None:
-    """Write a pairs file: source [M,N,3], target [M,N',3], rotation [M,3,3], translation [M,3]."""
-    np.savez_compressed(path, **{k: v for k, v in pairs.items() if v is not None})
+def pairs_path(path: str | os.PathLike) -> Path:
+    """Where :func:`save_pairs` writes ``path``: numpy adds ``.npz`` to a name that does not end with it."""
+    return Path(path) if os.fspath(path).endswith(".npz") else Path(f"{os.fspath(path)}.npz")
+
+
+def save_pairs(path: str | os.PathLike, pairs: dict[str, np.ndarray]) -> Path:
+    """Write a pairs file: source [M,N,3], target [M,N',3], rotation [M,3,3], translation [M,3]; returns the path
+    written (:func:`pairs_path`)."""
+    written = pairs_path(path)
+    np.savez_compressed(written, **{k: v for k, v in pairs.items() if v is not None})
+    return written
 
 
 def load_pairs(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -6,7 +6,7 @@ import json
 
 import numpy as np
 import pytest
-from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, NOT_AN_NPZ, assert_usage_error, bad_file
+from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, NOT_A_MODEL, NOT_AN_NPZ, assert_usage_error, bad_file, bad_model
 from shapes import sphere_shapes
 from tiny_training import save_tiny_checkpoint
 from typer.testing import CliRunner
@@ -186,3 +186,10 @@ def test_evaluate_rejects_a_data_folder_without_modelnet(tmp_path, tiny_checkpoi
     assert_usage_error(runner.invoke(app, [*args, "--data", str(folder)]), str(folder), problem)
     monkeypatch.setenv("MFGNET_DATA", str(folder))  # the same through the environment
     assert_usage_error(runner.invoke(app, args), str(folder), problem)
+
+
+@pytest.mark.parametrize("kind", NOT_A_MODEL)
+def test_evaluate_rejects_a_model_that_is_not_a_model_folder(tmp_path, synthetic_pairs, kind) -> None:
+    model = bad_model(tmp_path, kind)
+    result = runner.invoke(app, ["evaluate", "--model", model, "--pairs", str(synthetic_pairs)])
+    assert_usage_error(result, "--model", model, NOT_A_MODEL[kind])

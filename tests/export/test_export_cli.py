@@ -1,13 +1,19 @@
-"""``mfgnet export`` and ``mfgnet import-checkpoint`` on bad files: a one-line usage error (exit 2), no traceback."""
+"""``mfgnet export`` and ``mfgnet import-checkpoint`` on bad files: a one-line usage error (exit 2), no traceback;
+an export that fails leaves its ``--out`` as it was."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
+import numpy as np
 import pytest
 import torch
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
+from shapes import sphere_shapes
 from tiny_training import save_tiny_checkpoint
 from typer.testing import CliRunner
 
+from export.parity import ParityError
 from service.cli import app
 
 runner = CliRunner()
@@ -78,3 +84,89 @@ def test_import_checkpoint_rejects_an_out_it_cannot_write(tmp_path, tiny_checkpo
     for out, problem in ((tmp_path, "a folder, not a file"), (tmp_path / "a_file" / "o.pt", "is not a folder")):
         result = runner.invoke(app, ["import-checkpoint", str(tiny_checkpoint), "--out", str(out)])
         assert_usage_error(result, "--out", str(out), problem)
+
+
+def tiny_modelnet(tmp_path, monkeypatch) -> None:
+    """``$MFGNET_DATA``: a few spheres as the train and test splits (the reference radius, the parity pairs)."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    for split in ("train", "test"):
+        np.savez(folder / f"modelnet40_{split}.npz", points=sphere_shapes(3, seed=1), labels=np.arange(3))
+    monkeypatch.setenv("MFGNET_DATA", str(folder))
+
+
+def failing_parity(*args, **kwargs):
+    raise ParityError("ONNX parity failed: forced by the test")
+
+
+def passing_parity(*args, **kwargs) -> SimpleNamespace:
+    return SimpleNamespace(to_dict=lambda: {"compared": 2})
+
+
+def export_args(checkpoint, out) -> list[str]:
+    return ["export", "--checkpoint", str(checkpoint), "--out", str(out), "--parity-pairs", "2"]
+
+
+def folder_contents(folder) -> dict[str, bytes]:
+    return {path.name: path.read_bytes() for path in folder.iterdir()}
+
+
+def test_a_failed_export_leaves_an_existing_model_folder_and_its_other_files_as_they_were(
+        tmp_path, tiny_checkpoint, monkeypatch) -> None:
+    tiny_modelnet(tmp_path, monkeypatch)
+    out = tmp_path / "models" / "m"
+    monkeypatch.setattr("export.parity.check_parity", passing_parity)
+    assert runner.invoke(app, export_args(tiny_checkpoint, out)).exit_code == 0
+    (out / "notes.txt").write_text("not the exporter's")
+    before = folder_contents(out)
+    monkeypatch.setattr("export.parity.check_parity", failing_parity)
+    result = runner.invoke(app, export_args(tiny_checkpoint, out))
+    assert out.is_dir() and folder_contents(out) == before  # the unrelated file, the graphs, the manifest: untouched
+    assert result.exit_code == 1 and "forced by the test" in result.stderr and "left as it was" in result.stderr
+    assert sorted(path.name for path in out.parent.iterdir()) == ["m"]  # no staging folder left
+
+
+def test_a_failed_or_interrupted_export_to_a_new_folder_leaves_nothing(tmp_path, tiny_checkpoint, monkeypatch) -> None:
+    tiny_modelnet(tmp_path, monkeypatch)
+    (tmp_path / "models").mkdir()
+    monkeypatch.setattr("export.parity.check_parity", failing_parity)
+    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "models" / "new" / "m"))
+    assert result.exit_code == 1 and "forced by the test" in result.stderr
+    assert list((tmp_path / "models").iterdir()) == []  # neither the model nor the folder made for it
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("export.onnx_export.reference_radius", interrupted)
+    (tmp_path / "models" / "empty").mkdir()
+    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "models" / "empty"))
+    assert result.exit_code != 0
+    assert [path.name for path in (tmp_path / "models").iterdir()] == ["empty"]
+    assert list((tmp_path / "models" / "empty").iterdir()) == []
+
+
+def test_a_re_export_replaces_the_graphs_and_manifest_and_keeps_the_folders_other_files(
+        tmp_path, tiny_checkpoint, monkeypatch) -> None:
+    from service.manifest import load_manifest
+
+    tiny_modelnet(tmp_path, monkeypatch)
+    monkeypatch.setattr("export.parity.check_parity", passing_parity)
+    out = tmp_path / "m"
+    assert runner.invoke(app, export_args(tiny_checkpoint, out)).exit_code == 0
+    (out / "notes.txt").write_text("not the exporter's")
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, out), "--version", "9.9.9"])
+    assert result.exit_code == 0, result.output
+    assert load_manifest(out).version == "9.9.9"
+    assert (out / "notes.txt").read_text() == "not the exporter's"
+    assert sorted(path.name for path in out.iterdir()) == [
+        "encoder.onnx", "manifest.json", "matcher_0.onnx", "matcher_1.onnx", "notes.txt"]
+
+
+def test_export_refuses_a_folder_of_other_files_and_an_out_that_is_no_model_name(tmp_path, tiny_checkpoint) -> None:
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "notes.txt").write_text("x")
+    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "m"))
+    assert_usage_error(result, "--out", str(tmp_path / "m"), "not a model folder")
+    assert [path.name for path in (tmp_path / "m").iterdir()] == ["notes.txt"]
+    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "My Model"))
+    assert_usage_error(result, "--out", "'My Model'", "no model name")

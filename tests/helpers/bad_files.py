@@ -15,6 +15,9 @@ NOT_A_CHECKPOINT = {"random": "not a PyTorch checkpoint", "empty": "not a PyTorc
                     "text": "not a PyTorch checkpoint"}
 NOT_AN_NPZ = {"random": "not an .npz archive", "empty": "empty", "text": "not an .npz archive",
               "npy": "not an .npz archive"}
+NOT_A_MODEL = {"missing": "no such model folder", "unknown-name": "nor a bundled model",
+               "file": "a file, not a model folder", "no-manifest": "manifest.json is missing",
+               "damaged-manifest": "malformed manifest.json"}
 
 
 def bad_file(tmp_path: Path, kind: str) -> Path:
@@ -32,6 +35,25 @@ def bad_file(tmp_path: Path, kind: str) -> Path:
         np.save(path.with_suffix(".npy"), np.zeros((2, 3)))
         path = path.with_suffix(".npy")
     return path
+
+
+def bad_model(tmp_path: Path, kind: str) -> str:
+    """A ``--model`` under ``tmp_path`` that is ``kind``: missing, unknown-name (no bundled model of that name),
+    file, no-manifest (a folder of a graph without one) or damaged-manifest."""
+    if kind == "missing":
+        return str(tmp_path / "none")
+    if kind == "unknown-name":
+        return "nosuch"
+    if kind == "file":
+        (tmp_path / "model.onnx").write_bytes(b"onnx?")
+        return str(tmp_path / "model.onnx")
+    folder = tmp_path / "m"
+    folder.mkdir()
+    if kind == "no-manifest":
+        (folder / "encoder.onnx").write_bytes(b"onnx?")
+    else:
+        (folder / "manifest.json").write_text("{not json")
+    return str(folder)
 
 
 def assert_usage_error(result: object, *words: str) -> str:

@@ -71,6 +71,18 @@ def test_make_pairs_rejects_an_out_path_it_cannot_write(tmp_path, where) -> None
     assert_usage_error(result, "--out", str(out), problem[where])
 
 
+def test_make_pairs_names_the_file_it_wrote_where_npz_is_added(tmp_path) -> None:
+    out = tmp_path / "x"
+    result = runner.invoke(app, ["make-pairs", "--out", str(out), "--count", "2", "--data", tiny_test_data(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert not out.exists() and load_pairs(tmp_path / "x.npz")["source"].shape[0] == 2
+    assert result.output.strip().endswith(f"pairs to {tmp_path / 'x.npz'}"), result.output
+    (tmp_path / "y.npz").mkdir()  # what would be written is a folder
+    result = runner.invoke(app, ["make-pairs", "--out", str(tmp_path / "y"), "--count", "2", "--data",
+                                 tiny_test_data(tmp_path)])
+    assert_usage_error(result, "--out", str(tmp_path / "y.npz"), "a folder, not a file")
+
+
 @pytest.mark.parametrize("data", ["missing", "empty-folder", "not-npz", "no-points"])
 def test_make_pairs_rejects_a_data_folder_without_modelnet(tmp_path, data, monkeypatch) -> None:
     folder = tmp_path / "data"
