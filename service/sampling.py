@@ -47,6 +47,10 @@ VOXEL_ACCEPT = (3.0, 4.0)  # ... and accept a voxel size whose occupancy / size 
 # scattered points sized the grid (too coarse for the surface; the representatives of many surface voxels are
 # scattered points): the grid is made again on the points of the other voxels. Clean real scans keep 0.59-1.0.
 REGRID_SHARE = 0.5
+# Where the sparse voxels' points stretch the bounding box over this many times the extent of the others, they sized
+# the grid, and it is made again without them (_near_rows): a point 1e5 times a 0.2 m scan's size away left 122
+# voxels, 1e6 times 2, and a `collinear` working cloud; 1e4 times still leaves thousands.
+FAR_EXTENT_RATIO = 1000.0
 VOXEL_MAX_TRIES = 6  # voxel-size adjustments (each counts the occupied voxels of N keys once)
 VOXEL_MAX_CELLS_PER_AXIS = 1_000_000  # keeps linear voxel keys far from int64 overflow
 # Voxel keys are counted with a table (np.bincount) while the grid has at most this many cells per point, plus
@@ -81,8 +85,11 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
     n = points.shape[0]
     if n > VOXEL_TRIGGER * size:
         candidates, occupancy, group = _voxel_grid(points, size)
-        if candidates.shape[0] < size:  # too few distinct places (heavy duplication): every distinct point
-            candidates = distinct_rows(points, np.arange(n))
+        if candidates.shape[0] < size:  # too few distinct places: far points sized the grid, or heavy duplication
+            near = _near_rows(points, candidates, sparse_voxels(occupancy), group) if drop_isolated and regrid else None
+            if near is not None:
+                return near[resample_indices(points[near], size, drop_isolated, regrid=False)]
+            candidates = distinct_rows(points, np.arange(n))  # every distinct point
         elif drop_isolated:  # voxels of scattered points hold one or two points, surface voxels many
             sparse = sparse_voxels(occupancy)  # [V]
             candidates = kept_unless_too_few(candidates, sparse)
@@ -100,7 +107,7 @@ def resample_indices(points: np.ndarray, size: int = DEFAULT_SIZE, drop_isolated
     return candidates[picks].astype(np.int64)
 
 
-def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -> np.ndarray:
+def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False, regrid: bool = True) -> np.ndarray:
     """Indices of at most ``size`` well-spread points, in canonical order: a cheaper, less even sample than
     :func:`resample_indices` for large ``size`` (the refinement's clouds, ``refine_points``).
 
@@ -108,19 +115,39 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False) -
     them (:func:`_voxel_grid`), and where that gives more than ``size``, those whose coordinates
     hash lowest (:func:`coordinate_hash`) -- no farthest-point sampling, whose cost grows with ``size`` times
     the candidates (8192 of 200,000 points: 0.8 s). Order-independent like :func:`resample_indices`;
-    ``drop_isolated`` as there.
+    ``drop_isolated`` and ``regrid`` (here: only where far points sized the grid) as there.
     """
     points = _checked(points, size)
     n = points.shape[0]
     if n <= size:
         return resample_indices(points, size, drop_isolated)
-    candidates, occupancy, _ = _voxel_grid(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
+    candidates, occupancy, group = _voxel_grid(points, max(1, int(np.ceil(size / VOXEL_TARGET))))
     if drop_isolated:
-        candidates = kept_unless_too_few(candidates, sparse_voxels(occupancy))
+        sparse = sparse_voxels(occupancy)  # [V]
+        near = _near_rows(points, candidates, sparse, group) if regrid else None
+        if near is not None:
+            return near[spread_indices(points[near], size, drop_isolated, regrid=False)]
+        candidates = kept_unless_too_few(candidates, sparse)
         candidates = kept_unless_too_few(candidates, isolated_points(points[candidates]))
     if candidates.shape[0] > size:
         candidates = candidates[np.argsort(coordinate_hash(points[candidates]), kind="stable")[:size]]
     return candidates[canonical_order(points[candidates])].astype(np.int64)
+
+
+def _near_rows(points: np.ndarray, representatives: np.ndarray, sparse: np.ndarray, group: np.ndarray
+               ) -> np.ndarray | None:
+    """The rows of ``points [N, 3]`` outside the grid's ``sparse [V]`` voxels where those stretch the bounding box over
+    ``FAR_EXTENT_RATIO`` times the rest's extent (measured on the voxels' ``representatives [V]``), else ``None``.
+    A few points that far sized the grid (at most ``VOXEL_MAX_CELLS_PER_AXIS`` cells per axis) so coarse that the
+    whole surface fell in a few voxels, and its sample was the far points and a handful of surface points."""
+    dense = representatives[~sparse]  # [V'] rows
+    if not sparse.any() or len(dense) == 0:
+        return None
+    extent = float(np.ptp(points[representatives], axis=0).max())
+    if extent <= FAR_EXTENT_RATIO * float(np.ptp(points[dense], axis=0).max()):
+        return None
+    near = np.flatnonzero(~sparse[group])  # [N'] rows in voxels that are not sparse
+    return near if len(near) >= MIN_POINTS else None
 
 
 def _checked(points: np.ndarray, size: int) -> np.ndarray:

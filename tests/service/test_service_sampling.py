@@ -289,3 +289,33 @@ def test_scattered_points_that_size_the_voxel_grid_do_not_fill_the_sample(seed: 
     perm = rng.permutation(len(points))
     again = resample_indices(points[perm], DEFAULT_SIZE, drop_isolated=True)
     np.testing.assert_array_equal(points[perm][again], points[kept])
+
+
+@pytest.mark.parametrize("far", [1e5, 1e6, 1e9])
+def test_a_far_point_that_sizes_the_voxel_grid_is_left_out_and_the_surface_sampled(far: float) -> None:
+    """40,000 surface points of unit size and one ``far`` away: the grid (at most VOXEL_MAX_CELLS_PER_AXIS cells per
+    axis) put the surface in a few voxels, the far point was sampled, and the working cloud looked collinear (a real
+    range image came back 172-179 deg off). The grid is made again without the far voxels."""
+    surface = ellipsoid_and_box(40_000, 3)
+    points = np.vstack([surface, surface.mean(axis=0) + np.array([far, 0.0, 0.0])])
+    span = np.ptp(surface, axis=0)  # [3]
+    for kept in (resample_indices(points, DEFAULT_SIZE, drop_isolated=True),
+                 spread_indices(points, 4096, drop_isolated=True)):
+        assert len(points) - 1 not in kept
+        assert len(kept) > 0.9 * (DEFAULT_SIZE if len(kept) <= DEFAULT_SIZE else 4096)
+        np.testing.assert_array_less(0.9 * span, np.ptp(points[kept], axis=0))  # the whole surface, not a patch
+    assert len(points) - 1 in resample_indices(points, DEFAULT_SIZE, drop_isolated=False)  # the caller keeps it
+
+
+def test_points_a_thousand_times_closer_size_the_grid_as_before(monkeypatch) -> None:
+    """Below FAR_EXTENT_RATIO the grid is left as it is: the same samples whether or not the rule exists."""
+    surface = ellipsoid_and_box(40_000, 3)
+    points = np.vstack([surface, surface.mean(axis=0) + np.array([500.0, 0.0, 0.0])])
+    first = resample_indices(points, DEFAULT_SIZE, drop_isolated=True), spread_indices(points, 4096, True)
+    assert len(points) - 1 not in first[0]  # the isolated-point filter leaves it out
+    import service.sampling as sampling
+
+    monkeypatch.setattr(sampling, "FAR_EXTENT_RATIO", np.inf)
+    second = resample_indices(points, DEFAULT_SIZE, drop_isolated=True), spread_indices(points, 4096, True)
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a, b)

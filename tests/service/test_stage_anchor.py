@@ -141,3 +141,17 @@ def test_a_few_far_points_do_not_drag_the_anchor_off_the_cloud(far):
     np.testing.assert_allclose(result.rotation, np.eye(3), atol=1e-3)
     np.testing.assert_allclose(result.translation, [0.1, 0.1, 0.1], atol=1e-3)
     assert result.reliable and not any(w.startswith("source identical") for w in result.warnings)
+
+
+@pytest.mark.parametrize("far", [1e5, 1e6])
+def test_a_far_point_beside_a_real_scan_leaves_its_pose_as_it_was(far):
+    """A range image of the dragon (35,000 points, 0.2 m) with one point ``far`` times its size away: the voxel grid,
+    sized over the bounding box, put the scan in a few voxels, the working cloud looked `collinear`, and the pose came
+    back 172-179 deg off. The grid is made again without the far point (``service.sampling.FAR_EXTENT_RATIO``)."""
+    case = real_case("dragon_24_0", 0, "scanned")
+    size = float(np.ptp(case.source, axis=0).max())
+    source = np.vstack([case.source, case.source.mean(axis=0) + np.array([far * size, 0.0, 0.0])])
+    result, degrees, error = register_with_defaults(dataclasses.replace(case, source=source))
+    max_degrees, max_error = thresholds(case.sensor, 1.0)
+    assert degrees < max_degrees and error < max_error, (degrees, error)
+    assert result.reliable and not any("collinear" in w for w in result.warnings), result.warnings
