@@ -146,9 +146,12 @@
       const response = await fetch("v1/register/aligned", {method: "POST", body: form, headers: headers()});
       if (!response.ok) throw new Error(await errorText(response));
       const blob = await response.blob();
-      const match = /filename="([^"]+)"/.exec(response.headers.get("Content-Disposition") || "");
+      const disposition = response.headers.get("Content-Disposition") || "";
+      const utf8 = /filename\*=UTF-8''([^;]+)/i.exec(disposition);  // RFC 6266: the name as sent, where not ASCII
+      const plain = /filename="([^"]+)"/.exec(disposition);
       const link = Object.assign(document.createElement("a"), {
-        href: URL.createObjectURL(blob), download: match ? match[1] : "aligned_source.ply",
+        href: URL.createObjectURL(blob),
+        download: utf8 ? decodeURIComponent(utf8[1]) : plain ? plain[1] : "aligned_source.ply",
       });
       document.body.append(link);
       link.click();

@@ -80,6 +80,20 @@ def test_aligned_returns_every_source_point_moved_by_the_transform_as_ply(client
     assert np.abs(moved - expected).max() <= 1e-6 * np.abs(expected).max()
 
 
+def test_aligned_names_a_download_of_any_script_in_ascii_and_in_utf_8(client, tmp_path):
+    """HTTP headers are Latin-1: a source named in Cyrillic or CJK made the download a 500 after the whole file was
+    read and moved."""
+    response = client.post(
+        "/v1/register/aligned",
+        files={"source": ("скан 日本.ply", file_bytes(tmp_path, "s.ply", synthetic_pair(seed=6).source))},
+        data={"transform": json.dumps(np.eye(4).tolist())},
+    )
+    assert response.status_code == 200, response.text
+    assert response.headers["content-disposition"] == (
+        "attachment; filename=\"________aligned.ply\"; "
+        "filename*=UTF-8''%D1%81%D0%BA%D0%B0%D0%BD_%E6%97%A5%E6%9C%AC_aligned.ply")
+
+
 def test_bad_uploads_are_4xx_naming_the_problem(client, tmp_path):
     good = file_bytes(tmp_path, "g.ply", synthetic_pair(seed=7).source)
     bad = {"source": ("bad.ply", b"ply\nnot a header"), "target": ("g.ply", good)}

@@ -115,9 +115,9 @@ def ply_files(tmp_path_factory):
     """A seeded partial-to-partial pair written as binary PLY by the project's writer."""
     pair = synthetic_pair(seed=3)
     folder = tmp_path_factory.mktemp("clouds")
-    write_points(folder / "scan_a.ply", pair.source)
+    write_points(folder / "scan_ж.ply", pair.source)  # a name beyond ASCII: the download keeps it
     write_points(folder / "scan_b.ply", pair.target)
-    return pair, folder / "scan_a.ply", folder / "scan_b.ply"
+    return pair, folder / "scan_ж.ply", folder / "scan_b.ply"
 
 
 @pytest.mark.parametrize("renderer", ["webgl", "2d"])
@@ -181,7 +181,7 @@ def test_page_downloads_the_aligned_source_as_ply(browser, server, ply_files):
     assert wait_for(browser, "document.body.dataset.state === 'done'", "the registration")
     transform = np.array(browser.find_element("id", "transform").text.split(), dtype=float).reshape(4, 4)
     browser.find_element("id", "download").click()
-    target = browser.downloads / "scan_a_aligned.ply"
+    target = browser.downloads / "scan_ж_aligned.ply"
     wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
     for _ in range(100):
         if target.is_file() and target.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):

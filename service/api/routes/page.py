@@ -13,6 +13,7 @@ import base64
 import json
 from pathlib import Path, PurePath
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Request
@@ -158,11 +159,18 @@ async def register_aligned(request: Request) -> Response:
         finally:
             form.close()
     stem = PurePath(upload.filename).stem or "source"
-    return Response(
-        content,
-        media_type="application/octet-stream",
-        headers={"Content-Disposition": f'attachment; filename="{_safe(stem)}_aligned.ply"'},
-    )
+    return Response(content, media_type="application/octet-stream",
+                    headers={"Content-Disposition": attachment(f"{_safe(stem)}_aligned.ply")})
+
+
+def attachment(name: str) -> str:
+    """A ``Content-Disposition`` naming the download ``name``: ``filename`` in ASCII (other characters as ``_``: HTTP
+    headers are Latin-1, and a Cyrillic or CJK name was a 500), and where that differs the name itself as RFC 6266's
+    ``filename*`` (UTF-8, percent-encoded), which browsers prefer."""
+    ascii_name = "".join(c if c.isascii() else "_" for c in name)
+    if ascii_name == name:
+        return f'attachment; filename="{name}"'
+    return f"attachment; filename=\"{ascii_name}\"; filename*=UTF-8''{quote(name, safe='')}"
 
 
 def _aligned_transform(fields: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
