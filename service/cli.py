@@ -66,6 +66,7 @@ def serve_command(
     """
     try:
         from service.api.app import run_server
+        from service.api.registry import UnknownModelsError
         from service.core.config import Settings
     except ImportError as exc:
         _fail(f"{SERVE_EXTRA_HINT} ({exc})")
@@ -75,7 +76,10 @@ def serve_command(
         settings = Settings(**{key: value for key, value in overrides.items() if value is not None})
     except ValueError as exc:  # pydantic's ValidationError is a ValueError
         _fail(f"invalid settings: {exc}")
-    run_server(settings)
+    try:
+        run_server(settings)
+    except UnknownModelsError as exc:  # raised while the app is made, before it serves
+        _fail(str(exc))
 
 
 # -------------------------------------------------------------------------------------- register

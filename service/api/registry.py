@@ -35,6 +35,10 @@ class ModelEntry:
     load_seconds: float | None = None
 
 
+class UnknownModelsError(ValueError):
+    """``MFGNET_MODELS`` names a model that no model folder holds."""
+
+
 class ModelRegistry:
     """Model name -> :class:`ModelEntry`; ``start()`` loads them all in a daemon thread."""
 
@@ -68,7 +72,7 @@ class ModelRegistry:
         """Model folders under ``extra_dirs`` (and the bundled ones); ``only``: keep these names.
 
         Raises:
-            ValueError: when ``only`` names a model that was not found.
+            UnknownModelsError: when ``only`` names a model that was not found.
         """
         found = discover_model_dirs(extra_dirs)
         if not bundled:
@@ -77,7 +81,9 @@ class ModelRegistry:
         if only:
             missing = sorted(set(only) - {d.name for d in found})
             if missing:
-                raise ValueError(f"MFGNET_MODELS names models that were not found: {', '.join(missing)}")
+                names = ", ".join(sorted(d.name for d in found)) or "none"
+                raise UnknownModelsError(f"MFGNET_MODELS names models that were not found: {', '.join(missing)} "
+                                         f"(found: {names})")
             found = [d for d in found if d.name in only]
         return cls(found, **kwargs)
 

@@ -110,6 +110,8 @@ def test_bad_uploads_are_4xx_naming_the_problem(client, tmp_path):
     for transform, words in (
         ("[[1, 2]]", ("transform", "4x4")),
         ('[["a", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]', ("transform", "numbers")),
+        ('[["1", 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]', ("transform", "numbers")),  # numpy read "1"
+        ("[[true, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]", ("transform", "numbers")),
         (json.dumps((2 * np.eye(4)).tolist()), ("transform", "rigid")),
         ("not json", ("transform", "json")),
         ("[" * 30_000 + "]" * 30_000, ("transform", "json")),  # nested deeper than json can read

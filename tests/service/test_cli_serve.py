@@ -3,7 +3,9 @@ and of ``mfgnet register --server`` failures that need no server."""
 
 from __future__ import annotations
 
+import os
 import socket
+import subprocess
 import sys
 import types
 from pathlib import Path
@@ -79,6 +81,18 @@ def test_invalid_settings_are_reported_without_a_traceback(monkeypatch) -> None:
     result = runner.invoke(app, ["serve", "--port", "70000"])
     assert result.exit_code == 2
     assert "invalid settings" in result.stderr and "port" in result.stderr
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_models_that_are_not_found_are_reported_without_a_traceback() -> None:
+    """``MFGNET_MODELS`` naming a model no folder holds stopped the server with a traceback."""
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("MFGNET_")}, "MFGNET_MODELS": "general,nosuch",
+           "MFGNET_PORT": "0"}
+    done = subprocess.run([sys.executable, "-c", "from service.cli import main; main()", "serve"], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "MFGNET_MODELS names models that were not found: nosuch (found: " in done.stderr
+    assert "Traceback" not in done.stderr and "general" in done.stderr
 
 
 def test_register_against_an_unreachable_server_exits_1(tmp_path) -> None:

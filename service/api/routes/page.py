@@ -178,12 +178,21 @@ def _aligned_transform(fields: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
     if "transform" not in fields:
         raise APIError(422, "invalid request: transform: missing (a JSON 4x4 array)")
     matrix = _json_field(fields["transform"], "transform")
+    if not _numbers_only(matrix):  # numpy would read "1" and true as numbers; /v1/register's schema does not
+        raise APIError(422, "invalid request: transform: expected a JSON 4x4 array of numbers")
     try:
         return check_transform(matrix)
     except InputError as exc:
         raise APIError(422, f"invalid request: transform: {str(exc).removeprefix('initial_transform ')}") from None
     except (ValueError, TypeError, OverflowError):  # not a numeric array
         raise APIError(422, "invalid request: transform: expected a JSON 4x4 array of numbers") from None
+
+
+def _numbers_only(matrix: Any) -> bool:
+    """Whether ``matrix`` is a JSON list of lists of numbers (``true`` and ``"1"`` are none)."""
+    rows = matrix if isinstance(matrix, list) and all(isinstance(row, list) for row in matrix) else [matrix]
+    return all(isinstance(row, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+               for row in rows)
 
 
 def ply_bytes(xyz: np.ndarray) -> bytes:
