@@ -7,7 +7,11 @@
 
 Every server error (``{"error": "..."}`` with a 4xx/5xx status), and a server that cannot be
 reached, raises :class:`MfgnetError` carrying the status (0 when no response came) and the
-server's message.
+server's message. Clouds may be any array-like of numbers (arrays of any numeric dtype, nested lists,
+lists of numpy rows) and options numpy scalars; what the server refuses (a wrong shape, NaN or
+infinite coordinates) is its 422, not a local error. A cloud with NaN or infinite values is sent as an
+``.npy`` file even without ``binary=True``, because JSON has no such numbers and the server's reader of
+files names how many rows hold them and the first.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ class MfgnetClient:
         if api_key:
             headers["Authorization"] = f"Bearer {api_key}"
         self.base_url = base_url.rstrip("/")
-        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=_plain(timeout), transport=transport)
 
     # -- lifecycle ---------------------------------------------------------------------------
     def close(self) -> None:
@@ -86,7 +90,7 @@ class MfgnetClient:
         """``POST /v1/register``: the pose ``source -> target`` as the server's JSON dict.
 
         Args:
-            source: ``(N, 3)`` points (array or nested lists), or the path of a point-cloud file (PLY, PCD,
+            source: ``(N, 3)`` points (any array-like of numbers), or the path of a point-cloud file (PLY, PCD,
                 LAS/LAZ, NPY/NPZ, XYZ/CSV/TXT), uploaded as it is and read by the server's reader (the CLI's):
                 LAS/UTM coordinates keep their float64 precision, and the pose is in the file's frame.
             target: ``(M, 3)`` points, or a file path.
@@ -96,42 +100,52 @@ class MfgnetClient:
             rotation_search: ``True`` = search over initial rotations covering SO(3) (any relative
                 orientation, much slower); ``"auto"`` = only when the plain result looks wrong (the
                 response's ``timing_ms`` then has a ``search`` key); ``False`` = never; ``None`` (default) =
-                the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``, off unless the operator set it).
+                the server's (``MFGNET_DEFAULT_ROTATION_SEARCH``: ``auto`` unless the operator set it, and
+                never a search with ``refine="none"``).
             refine_points: points per cloud the refinement uses (``None``: the network's working clouds).
             drop_isolated: ``False`` keeps isolated points as sampling candidates (``None``: the server's, true).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds). Coordinates
                 beyond ``LARGE_COORDINATE`` (e.g. UTM) are first moved by one shared offset
                 (:func:`shared_offset`), and the returned pose is moved back: it is in the caller's frame.
+                Without ``binary``, a cloud with NaN or infinite values is sent as a float64 ``.npy`` file, for the
+                server's 422 to name its rows.
 
         Raises:
             MfgnetError: the server refused the request or could not be reached.
+            OSError: a path that cannot be read.
+            ValueError: ``binary=True`` with a cloud that numpy cannot read as numbers.
         """
         options: dict[str, Any] = {
             "model": model,
             "iterations": iterations,
             "keypoints": keypoints,
             "refine": refine,
-            "initial_transform": None if initial_transform is None else np.asarray(initial_transform).tolist(),
+            "initial_transform": None if initial_transform is None else _as_list(_as_array(initial_transform)),
             "return_correspondences": return_correspondences,
             "return_iterations": return_iterations,
             "rotation_search": rotation_search,
             "refine_points": refine_points,
             "drop_isolated": drop_isolated,
         }
-        options = {key: value for key, value in options.items() if value is not None}
-        if binary or _is_path(source) or _is_path(target):
-            offset = None if _is_path(source) or _is_path(target) else shared_offset(source, target)
+        options = {key: _plain(value) for key, value in options.items() if value is not None}
+        source, target = (cloud if _is_path(cloud) else _as_array(cloud) for cloud in (source, target))
+        paths = _is_path(source) or _is_path(target)
+        arrays = isinstance(source, np.ndarray) and isinstance(target, np.ndarray)
+        if binary or paths or (arrays and (_non_finite(source) or _non_finite(target))):
+            offset = None if paths or not binary else shared_offset(source, target)
             if offset is not None:  # float32 would round these coordinates: send both clouds recentred
-                source, target = np.asarray(source, np.float64) - offset, np.asarray(target, np.float64) - offset
+                source, target = _recentred(source, offset), _recentred(target, offset)
                 if "initial_transform" in options:
                     options["initial_transform"] = recentred_transform(options["initial_transform"], offset)
-            files = {name: _upload(name, cloud) for name, cloud in (("source", source), ("target", target))}
+            dtype = np.float32 if binary or paths else np.float64  # a JSON request's non-finite clouds: as given
+            files = {name: _upload(name, cloud, dtype) for name, cloud in (("source", source), ("target", target))}
             form = {key: _form_value(value) for key, value in options.items()}
             response = self._request("POST", REGISTER_PATH, data=form, files=files)
             return response if offset is None else pose_in_caller_frame(response, offset)
         body = {"source": _as_list(source), "target": _as_list(target), **options}
-        return self._request("POST", REGISTER_PATH, json=body)
+        content = json.dumps(body, separators=(",", ":"), default=_json_default)  # NaN literals: the server's 422
+        return self._request("POST", REGISTER_PATH, content=content, headers={"Content-Type": "application/json"})
 
     def models(self) -> list:
         """``GET /v1/models``: the served models (a list of dicts)."""
@@ -149,6 +163,7 @@ class MfgnetClient:
 
     def wait_ready(self, timeout: float = 60.0, interval: float = 0.2) -> None:
         """Poll :meth:`ready` until it is true; ``TimeoutError`` after ``timeout`` seconds."""
+        timeout, interval = float(timeout), float(interval)  # time.sleep takes no numpy float32
         deadline = time.monotonic() + timeout
         while not self.ready():
             if time.monotonic() >= deadline:
@@ -196,11 +211,17 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def shared_offset(source: ArrayLike, target: ArrayLike) -> np.ndarray | None:
     """``None`` when every coordinate of both clouds is within ``LARGE_COORDINATE``, else one offset ``[3]``
-    (the source's centroid, rounded to whole units) that both clouds are moved by before float32."""
-    src, tgt = np.asarray(source, np.float64), np.asarray(target, np.float64)
+    (the source's centroid, rounded to whole units) that both clouds are moved by before float32.
+
+    Only the rows the server can take count (``x, y, z`` finite and within float32's range): a NaN row
+    stays the one row the server names instead of turning the offset, and so every row, into NaN. Clouds
+    that are not ``(N, >=3)`` get ``None``: they are sent as they are, for the server to name their shape."""
+    src, tgt = (_usable_rows(np.asarray(cloud, np.float64)) for cloud in (source, target))  # [N', 3], [M', 3]
+    if src is None or tgt is None:
+        return None
     if max(np.abs(src).max(initial=0.0), np.abs(tgt).max(initial=0.0)) <= LARGE_COORDINATE:
         return None
-    return np.round(src.reshape(-1, 3).mean(0))
+    return np.round((src if len(src) else tgt).mean(0))
 
 
 def recentred_transform(transform: ArrayLike, offset: np.ndarray) -> list:
@@ -223,25 +244,71 @@ def pose_in_caller_frame(response: dict, offset: np.ndarray) -> dict:
     return response
 
 
+def _usable_rows(cloud: np.ndarray) -> np.ndarray | None:
+    """The ``x, y, z`` ``[N', 3]`` of the rows of ``cloud [N, >=3]`` whose three coordinates are finite and
+    within float32's range (the server refuses the others), or ``None`` if ``cloud`` is not ``(N, >=3)``."""
+    if cloud.ndim != 2 or cloud.shape[1] < 3:
+        return None
+    xyz = cloud[:, :3]
+    usable = (np.abs(xyz) <= np.finfo(np.float32).max).all(axis=1)  # [N]; NaN compares false
+    return xyz if usable.all() else xyz[usable]
+
+
+def _recentred(cloud: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """float64 ``cloud [N, >=3]`` with its ``x, y, z`` moved by ``-offset``; further columns as they are."""
+    moved = np.array(cloud, dtype=np.float64)
+    moved[:, :3] -= offset
+    return moved
+
+
+def _as_array(points: ArrayLike) -> ArrayLike:
+    """``points`` as a numpy array if numpy reads it as numbers (any array-like, any numeric dtype), else as
+    given (ragged rows, strings): the server then names the problem."""
+    try:
+        array = np.asarray(points)
+    except ValueError:  # ragged rows
+        return points
+    return array if array.dtype.kind in "biuf" else points
+
+
+def _non_finite(cloud: ArrayLike | str | os.PathLike[str]) -> bool:
+    """A numeric array holding NaN or an infinity."""
+    return isinstance(cloud, np.ndarray) and cloud.dtype.kind == "f" and not np.isfinite(cloud).all()
+
+
 def _as_list(points: ArrayLike) -> list:
-    return np.asarray(points).tolist() if isinstance(points, np.ndarray) else points
+    return points.tolist() if isinstance(points, np.ndarray) else points
+
+
+def _plain(value: Any) -> Any:
+    """numpy scalars and arrays as plain Python (neither ``json`` nor the form fields take numpy types)."""
+    return value.tolist() if isinstance(value, (np.ndarray, np.generic)) else value
+
+
+def _json_default(value: Any) -> Any:
+    """``json.dumps``'s ``default``: numpy values left inside lists (rows of a ragged cloud) as plain Python."""
+    if isinstance(value, (np.ndarray, np.generic)):
+        return value.tolist()
+    raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
 def _is_path(cloud: ArrayLike | str | os.PathLike[str]) -> bool:
     return isinstance(cloud, (str, os.PathLike))
 
 
-def _upload(name: str, cloud: ArrayLike | str | os.PathLike[str]) -> tuple[str, bytes, str]:
-    """A multipart file: a path's bytes under its own name, else the points as float32 ``.npy``."""
+def _upload(name: str, cloud: ArrayLike | str | os.PathLike[str],
+            dtype: type[np.floating] = np.float32) -> tuple[str, bytes, str]:
+    """A multipart file: a path's bytes under its own name, else the points as ``.npy`` of ``dtype``."""
     if _is_path(cloud):
         path = Path(cloud)
         return path.name, path.read_bytes(), "application/octet-stream"
-    return f"{name}.npy", _npy_bytes(cloud), "application/octet-stream"
+    return f"{name}.npy", _npy_bytes(cloud, dtype), "application/octet-stream"
 
 
-def _npy_bytes(points: ArrayLike) -> bytes:
+def _npy_bytes(points: ArrayLike, dtype: type[np.floating] = np.float32) -> bytes:
     buffer = io.BytesIO()
-    np.save(buffer, np.asarray(points, dtype=np.float32), allow_pickle=False)
+    with np.errstate(over="ignore"):  # beyond float32's range: inf, which the server names as such
+        np.save(buffer, np.asarray(points, dtype=dtype), allow_pickle=False)
     return buffer.getvalue()
 
 

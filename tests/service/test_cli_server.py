@@ -128,3 +128,51 @@ def test_client_sees_the_served_model_and_readiness(server) -> None:
         response = client.register(SOURCE, TARGET, iterations=1, keypoints=32)
     assert len(response["correspondences"]) == 32
     assert {"source_index", "target_index", "credibility", "weight"} == set(response["correspondences"][0])
+
+
+def with_non_finite(points: np.ndarray, row: int, value: float = np.nan) -> np.ndarray:
+    """A float64 copy of ``points [N, 3]`` whose ``row`` holds ``value`` in its first coordinate."""
+    bad = np.array(points, dtype=np.float64)
+    bad[row, 0] = value
+    return bad
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_client_nan_cloud_is_the_servers_422_naming_one_row_and_the_first(server, binary) -> None:
+    with MfgnetClient(server) as client, pytest.raises(MfgnetError) as info:
+        client.register(with_non_finite(SOURCE, 3), TARGET, binary=binary)
+    assert info.value.status == 422
+    assert "source" in info.value.message and "1 point(s)" in info.value.message
+    assert "first at index 3" in info.value.message
+
+
+def test_client_infinite_target_in_nested_lists_is_the_servers_422(server) -> None:
+    with MfgnetClient(server) as client, pytest.raises(MfgnetError) as info:
+        client.register(SOURCE.tolist(), with_non_finite(TARGET, 7, -np.inf).tolist())
+    assert info.value.status == 422
+    assert "target" in info.value.message and "1 point(s)" in info.value.message
+    assert "first at index 7" in info.value.message
+
+
+def test_client_nan_initial_transform_is_the_servers_422(server) -> None:
+    transform = np.eye(4)
+    transform[0, 3] = np.nan
+    with MfgnetClient(server) as client, pytest.raises(MfgnetError) as info:
+        client.register(SOURCE, TARGET, initial_transform=transform)
+    assert info.value.status == 422 and "initial_transform" in info.value.message
+
+
+def test_client_takes_lists_of_numpy_rows_and_numpy_scalar_options(server) -> None:
+    with MfgnetClient(server) as client:
+        plain = client.register(SOURCE, TARGET, iterations=1, keypoints=32, refine="none")
+        numpy_typed = client.register(list(SOURCE), list(TARGET.astype(np.float64)), iterations=np.int64(1),
+                                      keypoints=np.int32(32), refine=np.str_("none"),
+                                      return_correspondences=np.bool_(True), initial_transform=list(np.eye(4)))
+    assert np.allclose(numpy_typed["transform"], plain["transform"], atol=1e-5)
+    assert len(numpy_typed["correspondences"]) == 32
+
+
+def test_client_takes_numpy_float32_timeouts(server) -> None:
+    with MfgnetClient(server, timeout=np.float32(30)) as client:
+        client.wait_ready(timeout=np.float32(1), interval=np.float32(0.01))
+        assert client.register(SOURCE, TARGET, iterations=1, keypoints=32)["iterations"] == 1

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from api_server import main_server, modelnet_pair
 
-from service.client import MfgnetClient, pose_from_response, recentred_transform, shared_offset
+from service.client import MfgnetClient, MfgnetError, pose_from_response, recentred_transform, shared_offset
 
 UTM = np.array([512_345.0, 4_123_456.0, 87.0])  # metres: float32 keeps only ~0.25-0.5 m here
 
@@ -37,3 +38,32 @@ def test_utm_arrays_register_like_the_same_clouds_near_the_origin():
     assert angle < 1e-6
     extent = np.ptp(near[0], axis=0).max()
     np.testing.assert_allclose(t1, t0 + UTM - R0 @ UTM, atol=1e-6 * extent + 1e-9 * np.abs(UTM).max())
+
+
+def test_shared_offset_leaves_out_the_rows_the_server_refuses():
+    points = np.random.default_rng(1).normal(size=(50, 3)) + UTM
+    with_bad_rows = np.array(points)
+    with_bad_rows[3, 0], with_bad_rows[9, 2], with_bad_rows[11, 1] = np.nan, -np.inf, 1e39
+    kept = np.delete(with_bad_rows, [3, 9, 11], axis=0)
+    np.testing.assert_array_equal(shared_offset(with_bad_rows, points), shared_offset(kept, points))
+    np.testing.assert_array_equal(shared_offset(list(kept), kept.tolist()), np.round(kept.mean(0)))
+
+
+def test_utm_array_with_a_nan_row_is_refused_naming_that_row():
+    pair = modelnet_pair(3)
+    far = np.asarray(pair.source, np.float64) + UTM
+    far[3, 0] = np.nan
+    with MfgnetClient(main_server().url, timeout=60) as client, pytest.raises(MfgnetError) as info:
+        client.register(far, np.asarray(pair.target, np.float64) + UTM, binary=True)
+    assert info.value.status == 422
+    assert "1 point(s)" in info.value.message and "first at index 3" in info.value.message
+
+
+def test_utm_arrays_with_a_fourth_column_register_on_their_first_three():
+    pair = modelnet_pair(3)
+    far = np.asarray(pair.source, np.float64) + UTM, np.asarray(pair.target, np.float64) + UTM
+    with_intensity = tuple(np.c_[cloud, np.arange(len(cloud))] for cloud in far)  # [N, 4]: the server reads x, y, z
+    with MfgnetClient(main_server().url, timeout=60) as client:
+        expected = client.register(*far, binary=True, rotation_search=False)
+        response = client.register(*with_intensity, binary=True, rotation_search=False)
+    np.testing.assert_allclose(response["transform"], expected["transform"], atol=1e-9)
