@@ -3,18 +3,19 @@ an export that fails leaves its ``--out`` as it was."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
+import shutil
 
 import numpy as np
 import pytest
 import torch
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
+from pair_checks import needs_modelnet
 from shapes import sphere_shapes
 from tiny_training import save_tiny_checkpoint
 from typer.testing import CliRunner
 
-from export.parity import ParityError
 from service.cli import app
+from service.manifest import bundled_models_dir
 
 runner = CliRunner()
 
@@ -95,71 +96,76 @@ def tiny_modelnet(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("MFGNET_DATA", str(folder))
 
 
-def failing_parity(*args, **kwargs):
-    raise ParityError("ONNX parity failed: forced by the test")
+@pytest.fixture
+def diverging_checkpoint(tiny_checkpoint):
+    """The tiny checkpoint with one layer's weights times 1e30: its ONNX graphs and PyTorch part ways, so the real
+    parity check fails."""
+    data = torch.load(tiny_checkpoint, weights_only=False)
+    data["model"]["encoder.blocks.0.edge.linear.weight"] *= 1e30
+    torch.save(data, tiny_checkpoint)
+    return tiny_checkpoint
 
 
-def passing_parity(*args, **kwargs) -> SimpleNamespace:
-    return SimpleNamespace(to_dict=lambda: {"compared": 2})
-
-
-def export_args(checkpoint, out) -> list[str]:
-    return ["export", "--checkpoint", str(checkpoint), "--out", str(out), "--parity-pairs", "2"]
+def export_args(checkpoint, out, pairs: int = 2) -> list[str]:
+    return ["export", "--checkpoint", str(checkpoint), "--out", str(out), "--parity-pairs", str(pairs)]
 
 
 def folder_contents(folder) -> dict[str, bytes]:
     return {path.name: path.read_bytes() for path in folder.iterdir()}
 
 
+def bundled_copy(folder):
+    """A copy of the bundled model folder ``clean`` at ``folder``: an existing model folder to export into."""
+    shutil.copytree(bundled_models_dir() / "clean", folder)
+    return folder
+
+
 def test_a_failed_export_leaves_an_existing_model_folder_and_its_other_files_as_they_were(
-        tmp_path, tiny_checkpoint, monkeypatch) -> None:
+        tmp_path, diverging_checkpoint, monkeypatch) -> None:
     tiny_modelnet(tmp_path, monkeypatch)
-    out = tmp_path / "models" / "m"
-    monkeypatch.setattr("export.parity.check_parity", passing_parity)
-    assert runner.invoke(app, export_args(tiny_checkpoint, out)).exit_code == 0
+    out = bundled_copy(tmp_path / "models" / "clean")
     (out / "notes.txt").write_text("not the exporter's")
     before = folder_contents(out)
-    monkeypatch.setattr("export.parity.check_parity", failing_parity)
-    result = runner.invoke(app, export_args(tiny_checkpoint, out))
+    result = runner.invoke(app, export_args(diverging_checkpoint, out))
     assert out.is_dir() and folder_contents(out) == before  # the unrelated file, the graphs, the manifest: untouched
-    assert result.exit_code == 1 and "forced by the test" in result.stderr and "left as it was" in result.stderr
-    assert sorted(path.name for path in out.parent.iterdir()) == ["m"]  # no staging folder left
+    assert result.exit_code == 1 and "ONNX parity failed" in result.stderr and "left as it was" in result.stderr
+    assert sorted(path.name for path in out.parent.iterdir()) == ["clean"]  # no staging folder left
 
 
-def test_a_failed_or_interrupted_export_to_a_new_folder_leaves_nothing(tmp_path, tiny_checkpoint, monkeypatch) -> None:
+def test_a_failed_or_interrupted_export_to_a_new_folder_leaves_nothing(
+        tmp_path, diverging_checkpoint, monkeypatch) -> None:
     tiny_modelnet(tmp_path, monkeypatch)
     (tmp_path / "models").mkdir()
-    monkeypatch.setattr("export.parity.check_parity", failing_parity)
-    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "models" / "new" / "m"))
-    assert result.exit_code == 1 and "forced by the test" in result.stderr
+    result = runner.invoke(app, export_args(diverging_checkpoint, tmp_path / "models" / "new" / "m"))
+    assert result.exit_code == 1 and "ONNX parity failed" in result.stderr
     assert list((tmp_path / "models").iterdir()) == []  # neither the model nor the folder made for it
 
-    def interrupted(*args, **kwargs):
+    def interrupted(*args, **kwargs):  # Ctrl-C while the graphs are written
         raise KeyboardInterrupt
 
     monkeypatch.setattr("export.onnx_export.reference_radius", interrupted)
     (tmp_path / "models" / "empty").mkdir()
-    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "models" / "empty"))
+    result = runner.invoke(app, export_args(diverging_checkpoint, tmp_path / "models" / "empty"))
     assert result.exit_code != 0
     assert [path.name for path in (tmp_path / "models").iterdir()] == ["empty"]
     assert list((tmp_path / "models" / "empty").iterdir()) == []
 
 
-def test_a_re_export_replaces_the_graphs_and_manifest_and_keeps_the_folders_other_files(
-        tmp_path, tiny_checkpoint, monkeypatch) -> None:
+@needs_modelnet
+def test_a_re_export_replaces_the_graphs_and_manifest_and_keeps_the_folders_other_files(tmp_path) -> None:
+    """The bundled checkpoint ``clean`` exported again into a copy of its model folder, with the real parity check
+    (3 seeded pairs, seed 5: all 3 comparable, as the check then needs)."""
     from service.manifest import load_manifest
 
-    tiny_modelnet(tmp_path, monkeypatch)
-    monkeypatch.setattr("export.parity.check_parity", passing_parity)
-    out = tmp_path / "m"
-    assert runner.invoke(app, export_args(tiny_checkpoint, out)).exit_code == 0
+    out = bundled_copy(tmp_path / "clean")
     (out / "notes.txt").write_text("not the exporter's")
-    result = runner.invoke(app, [*export_args(tiny_checkpoint, out), "--version", "9.9.9"])
+    graphs = sorted(path.name for path in out.iterdir())
+    result = runner.invoke(app, [*export_args("clean", out, pairs=3), "--seed", "5", "--version", "9.9.9"])
     assert result.exit_code == 0, result.output
     assert load_manifest(out).version == "9.9.9"
     assert (out / "notes.txt").read_text() == "not the exporter's"
-    assert sorted(path.name for path in out.iterdir()) == [
-        "encoder.onnx", "manifest.json", "matcher_0.onnx", "matcher_1.onnx", "notes.txt"]
+    assert sorted(path.name for path in out.iterdir()) == graphs
+    assert [path.name for path in tmp_path.iterdir()] == ["clean"]  # no staging folder left
 
 
 def test_export_refuses_a_folder_of_other_files_and_an_out_that_is_no_model_name(tmp_path, tiny_checkpoint) -> None:
