@@ -355,6 +355,12 @@ BAD_INPUTS: dict[str, Case] = {
                                           "values", "max_points", server="limited"),
     "oip_arrays_and_objects_beyond_the_clouds": case(lambda: oip({"shape": [SMALL, 3], "data": [[]] * 6000}), 413,
                                                      "arrays and objects", "max_points", server="limited"),
+    "json_key_text_beyond_the_options": case(lambda: jpost(small_body(**{f"k{i:04d}{'x' * 95}": 1 for i in range(999)})
+                                                           ), 413, "bytes of strings", server="limited"),
+    "json_strings_beyond_the_options": case(lambda: jpost(small_body(x=["a"] * 5000)), 413, "5003 strings", "4096",
+                                            server="limited"),
+    "oip_text_beyond_the_options": case(lambda: oip(_pair(SMALL)[0], _pair(SMALL)[1], id="a" * 70_000), 413,
+                                        "bytes of strings", server="limited"),
     "body_over_max_body_bytes": case(lambda: raw(b"[" * 250_000, "application/json"), 413, "max_body_bytes",
                                      server="limited"),
 }
