@@ -205,17 +205,18 @@ def test_pcd_binary_points_beyond_the_body_are_refused_before_reading(tmp_path: 
 
 
 def test_pcd_compressed_block_that_cannot_expand_to_its_size_is_refused(tmp_path: Path) -> None:
-    """A 4 GB block declared by a 400-byte file: lzf allocated its declared size before decompressing."""
+    """A 120 MB block declared by a 400-byte file (4 GB, the largest a block can declare, before blocks above
+    MAX_COMPRESSED_BLOCK_BYTES were refused): lzf allocated its declared size before decompressing."""
     path = tmp_path / "a.pcd"
     points = np.ones((24, 3), dtype=np.float32)  # compressible: pypcd4 writes binary where LZF gains nothing
     pypcd4.PointCloud.from_xyz_points(points).save(path, encoding=pypcd4.Encoding.BINARY_COMPRESSED)
     data = path.read_bytes()
     start = data.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
     compressed = struct.unpack_from("<I", data, start)[0]
-    points = 357_913_941  # 12 bytes each: 4,294,967,292 bytes, the largest a block can declare
+    points = 10_000_000  # 12 bytes each
     header = data[:start].replace(b"WIDTH 24", b"WIDTH %d" % points).replace(b"POINTS 24", b"POINTS %d" % points)
     path.write_bytes(header + struct.pack("<II", compressed, points * 12) + data[start + 8:])
-    with pytest.raises(PointCloudFormatError, match="cannot expand to the 4294967292 bytes"):
+    with pytest.raises(PointCloudFormatError, match="cannot expand to the 120000000 bytes"):
         read_cloud(path)
 
 
@@ -231,23 +232,28 @@ def compressed_pcd(points: int, extra_values: int) -> bytes:
     return header.encode() + struct.pack("<II", len(stream), raw) + stream
 
 
-def test_pcd_compressed_records_wider_than_128_bytes_are_refused_before_decompressing(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("points", "extra", "expands"), [(2_000_000, 131, 1_072_000_000),
+                                                         (2_000_000, 29, 256_000_000)])
+def test_pcd_compressed_blocks_above_128_mib_are_refused_before_decompressing(tmp_path: Path, points: int, extra: int,
+                                                                               expands: int) -> None:
     """2,000,000 records of 536 bytes in a 12 MB file: a 1 GB block that pypcd4 decompressed, zeroed and copied
-    (2.4 GiB of server memory for one upload)."""
+    (2.4 GiB of server memory for one upload); of 128 bytes, 256 MB expanded took 472 MiB above idle."""
     path = tmp_path / "a.pcd"
-    path.write_bytes(compressed_pcd(2_000_000, 131))
+    path.write_bytes(compressed_pcd(points, extra))
 
     def read() -> None:
-        with pytest.raises(InvalidPointsError, match="records of 536 bytes: at most 128 bytes per point"):
+        with pytest.raises(InvalidPointsError, match=f"expands to {expands} bytes, at most 134217728"):
             read_cloud(path)
 
     assert peak_bytes(read) < 64 << 20
 
 
-def test_pcd_compressed_records_of_128_bytes_read(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("points", "extra"), [(1000, 29), (200_000, 33)])  # 128 bytes; FPFH33 beside x, y, z
+def test_pcd_compressed_records_of_any_width_read_within_the_block_limit(tmp_path: Path, points: int,
+                                                                        extra: int) -> None:
     path = tmp_path / "a.pcd"
-    path.write_bytes(compressed_pcd(1000, 29))  # 12 + 116 bytes
-    assert read_cloud(path).shape == (1000, 3)
+    path.write_bytes(compressed_pcd(points, extra))
+    assert read_cloud(path).shape == (points, 3)
 
 
 def test_pcd_compressed_block_is_expanded_once_and_only_x_y_z_kept(tmp_path: Path) -> None:
