@@ -356,7 +356,11 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
     """Read the upload (bounded by max_upload_bytes upstream): ``file_fields`` as point-cloud files (all required),
     the rest as short text fields. The files stay spooled (on disk past 1 MiB) and are decoded later, off the loop
     (:func:`register_pair_from_form`, or :func:`decode_upload` and :meth:`RegisterForm.close`)."""
-    boundary = parse_options_header(request.headers.get("content-type", ""))[1].get(b"boundary", b"")
+    params = parse_options_header(request.headers.get("content-type", ""))[1]
+    charset = params.get(b"charset", b"utf-8").decode("latin-1")
+    if charset.lower() not in ("utf-8", "utf8", "us-ascii", "ascii"):  # part headers and fields are read as UTF-8
+        raise APIError(415, f"multipart/form-data with charset={charset[:40]!r}: send it as UTF-8")
+    boundary = params.get(b"boundary", b"")
     closing = b"\r\n--" + boundary + b"--"  # the close delimiter, as the parser reads it (an epilogue may follow)
     seen = [False]
     carry = bytearray(b"\r\n")  # the end of the body so far (at first, as if a line ended: a body of no parts)
@@ -382,8 +386,11 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
             if key in fields or key in files:
                 raise APIError(422, f"invalid request: {key}: given more than once")
             if key in file_fields:
-                if not isinstance(value, UploadFile):
-                    raise APIError(422, f"invalid request: {key}: expected a point-cloud file upload, got a text field")
+                if not isinstance(value, UploadFile):  # no filename parameter
+                    raise APIError(422, f"invalid request: {key}: expected a point-cloud file upload, got a text field "
+                                        "(a file's Content-Disposition names it with filename=...; filename* alone "
+                                        "marks no file in multipart/form-data, RFC 7578)")
+                _check_transfer_encoding(key, value)
                 files[key] = Upload(key, (value.filename or "")[:200], value.file)
             elif isinstance(value, UploadFile):
                 raise APIError(422, f"invalid request: {key}: unexpected file; only {' and '.join(file_fields)} "
@@ -397,6 +404,15 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
         await form.close()
         raise
     return RegisterForm(fields, files)
+
+
+def _check_transfer_encoding(key: str, upload: UploadFile) -> None:
+    """415 for a file part sent in a ``Content-Transfer-Encoding`` (base64, quoted-printable): RFC 7578 deprecates it,
+    and its bytes were read as the file's (a base64 ``.npy`` came back "the cloud is empty")."""
+    encoding = upload.headers.get("content-transfer-encoding", "binary").strip().lower()
+    if encoding not in ("binary", "8bit", "7bit"):
+        raise APIError(415, f"{key}: Content-Transfer-Encoding {encoding[:40]!r} is not read (RFC 7578 deprecates "
+                            "it); send the file's own bytes")
 
 
 def decode_upload(upload: Upload, max_points: int) -> np.ndarray:

@@ -224,3 +224,30 @@ def test_a_multipart_body_with_an_epilogue_after_its_closing_boundary_registers(
     content = b"".join(b"--B\r\n" + part + b"\r\n" for part in parts) + b"--B--\r\n" + b"\r\n" * 1000
     response = client.post("/v1/register", content=content, headers={"content-type": "multipart/form-data; boundary=B"})
     assert response.status_code == 200, response.text
+
+
+def multipart(source_headers: bytes, content_type: str = "multipart/form-data; boundary=B") -> dict:
+    """A ``/v1/register`` upload whose source part has the ``Content-Disposition`` and headers ``source_headers``."""
+    parts = [source_headers + b"\r\n\r\n" + npy(PAIR.source),
+             b'Content-Disposition: form-data; name="target"; filename="t.npy"\r\n\r\n' + npy(PAIR.target)]
+    content = b"".join(b"--B\r\n" + part + b"\r\n" for part in parts) + b"--B--\r\n"
+    return {"content": content, "headers": {"content-type": content_type}}
+
+
+def test_multipart_uploads_the_form_parser_would_misread_are_4xx_naming_the_problem(client, still_serves) -> None:
+    """A file named only by RFC 5987's filename* was taken for a text field, a base64 part's text for the file's bytes
+    ("the cloud is empty"), and a body declared as UTF-16 had its part names decoded as UTF-16 (a field "潳牵散")."""
+    disposition = b'Content-Disposition: form-data; name="source"; filename="s.npy"'
+    cases = [
+        (multipart(b"Content-Disposition: form-data; name=\"source\"; filename*=UTF-8''%E6%97%A5.npy"), 422,
+         ("source", "filename=", "RFC 7578")),
+        (multipart(disposition + b"\r\nContent-Transfer-Encoding: base64"), 415,
+         ("source", "Content-Transfer-Encoding", "base64")),
+        (multipart(disposition, "multipart/form-data; boundary=B; charset=utf-16"), 415,
+         ("charset", "utf-16", "UTF-8")),
+    ]
+    for request, status, words in cases:
+        assert_error(client.post("/v1/register", **request), status, *words)
+    fine = client.post("/v1/register", **multipart(disposition + b"\r\nContent-Transfer-Encoding: binary",
+                                                   "multipart/form-data; boundary=B; charset=UTF-8"))
+    assert fine.status_code == 200, fine.text
