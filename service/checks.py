@@ -63,10 +63,16 @@ def check_transform(matrix: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         raise InputError("initial_transform contains NaN or infinite values")
     R, t = T[:3, :3], T[:3, 3]
     deviation = float(np.abs(R @ R.T - np.eye(3)).max())
-    if deviation > ORTHONORMAL_TOLERANCE or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise InputError("initial_transform must be rigid: orthonormal rotation (R R^T within "
-                         f"{ORTHONORMAL_TOLERANCE:g} of the identity; off by {deviation:.3g}) with det +1 and last row "
-                         "0 0 0 1")
+    problems = []  # each names what is wrong, so a right rotation with a wrong last row is not told "off by 0"
+    if deviation > ORTHONORMAL_TOLERANCE:
+        problems.append(f"its rotation must be orthonormal (R R^T within {ORTHONORMAL_TOLERANCE:g} of the identity), "
+                        f"off by {deviation:.3g}")
+    elif np.linalg.det(R) < 0:
+        problems.append(f"its rotation must have det +1, got {np.linalg.det(R):.3g} (a reflection)")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        problems.append(f"its last row must be 0 0 0 1, got {' '.join(f'{v:.6g}' for v in T[3])}")
+    if problems:
+        raise InputError(f"initial_transform must be rigid: {'; '.join(problems)}")
     return (R.copy() if deviation <= EXACT_TOLERANCE else nearest_rotation(R)), t.copy()
 
 

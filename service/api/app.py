@@ -10,9 +10,9 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
-from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.utils import get_openapi
 
+from service.api import cors
 from service.api.body_budget import BodyBudget
 from service.api.errors import install_error_handlers
 from service.api.head import HeadAsGetMiddleware
@@ -92,13 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     page.install(app)
     docs.install(app)
     if settings.cors_origins:
-        app.add_middleware(
-            CORSMiddleware,
-            allow_origins=settings.cors_origins,
-            allow_methods=["GET", "POST"],
-            allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
-            expose_headers=["X-Request-ID", "Retry-After"],
-        )
+        cors.install(app, settings.cors_origins)  # with the OIP binary extension's header; refusals as JSON
     app.add_middleware(HeadAsGetMiddleware)  # inside the request context: the access log and metrics say HEAD
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,

@@ -11,6 +11,7 @@ header (exactly), and the point count against ``max_points``. A binary input is 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from itertools import chain
 
@@ -49,16 +50,17 @@ class InferCall:
     binary_outputs: set[str]
 
 
-def check_media_type(request: Request) -> None:
-    """415 unless the body is JSON as OIP clients send it: no ``Content-Type`` (``tritonclient.http``),
-    ``application/json`` (or ``+json``), or ``application/octet-stream`` (clients sending binary tensors);
-    and unless it is not compressed (``Content-Encoding``)."""
+def check_media_type(request: Request) -> str:
+    """The request's media type (``""`` when none); 415 unless the body is JSON as OIP clients send it: no
+    ``Content-Type`` (``tritonclient.http``), ``application/json`` (or ``+json``), or ``application/octet-stream``
+    (clients sending binary tensors); and unless it is not compressed (``Content-Encoding``)."""
     kind = media_type(request)
     if kind and kind not in (JSON, OCTET_STREAM) and not (kind.startswith("application/") and kind.endswith("+json")):
         raise APIError(415, f"unsupported content type {kind[:80]!r}; use {JSON}, {OCTET_STREAM} or none")
     encoding = request.headers.get("content-encoding", "").strip().lower()
     if encoding not in ("", "identity"):
         raise APIError(415, f"unsupported Content-Encoding {encoding[:40]!r}; send the body uncompressed")
+    return kind
 
 
 def header_length(request: Request) -> int | None:
@@ -139,15 +141,25 @@ def _decode_json_tensor(tensor: InferInputTensor, max_points: int) -> np.ndarray
         array = np.asarray(data)
     except ValueError:
         raise APIError(422, f"invalid request: {name}: data is ragged (rows of different lengths)") from None
+    if array.dtype == object:  # numbers only (checked above), so integers beyond int64 / uint64: 2**64 and more
+        try:
+            array = array.astype(np.float64)
+        except OverflowError:  # beyond float64 (10**400), so beyond FP32 too
+            raise APIError(422, f"invalid request: {name}: data holds a number beyond the FP32 range") from None
     if array.dtype.kind not in "fiu":
         raise APIError(422, f"invalid request: {name}: data must be numbers only")
     if array.size != 3 * n:
         raise APIError(
             422, f"invalid request: {name}: data has {array.size} values; shape {tensor.shape} needs {3 * n}"
         )
+    array = array.reshape(n, 3)
     with np.errstate(over="ignore"):
-        array = array.reshape(n, 3).astype(np.float32)  # FP32 is the declared datatype
-    return _finite_float64(array, name)
+        wire = array.astype(np.float32)  # FP32 is the declared datatype
+    beyond = (np.isinf(wire) & np.isfinite(array)).any(axis=1)  # [N] finite numbers FP32 cannot hold (1e39)
+    if beyond.any():
+        raise APIError(422, f"invalid request: {name}: data holds a number beyond the FP32 range (first at row "
+                            f"{int(np.argmax(beyond))})")
+    return _finite_float64(wire, name)
 
 
 def _decode_transform(tensor: InferInputTensor, raw: memoryview | None) -> list[list[float]]:
@@ -267,11 +279,39 @@ def _outputs(req: InferRequest, binary_default: bool) -> tuple[list[str], set[st
     return names, binary
 
 
-def infer_call(body: bytes | bytearray, length: int | None, max_points: int) -> InferCall:
-    """Decode an ``infer`` body whose JSON header is ``length`` bytes long (``None``: the whole body)."""
+def _json_then_more(body: bytes | bytearray) -> bool:
+    """Whether ``body``, which is no JSON, starts as a JSON object and has more after it: not UTF-8 text (binary
+    data), or one whole JSON object and then something."""
+    if bytes(body[:64]).lstrip()[:1] != b"{":
+        return False
+    try:
+        text = bytes(body).decode()
+    except UnicodeDecodeError:
+        return True
+    try:
+        json.JSONDecoder().raw_decode(text.lstrip())
+    except ValueError:
+        return False  # malformed JSON, no whole object
+    return True  # a whole object, which json.loads refused as a body: something follows it
+
+
+def _load_head(head: bytes | bytearray, length: int | None, octet_stream: bool) -> object:
+    """The parsed JSON header; a 400 about a body sent as binary but without its header length says so."""
+    try:
+        return load_json(head)
+    except APIError as exc:
+        if length is None and (octet_stream or _json_then_more(head)):
+            raise APIError(exc.status, f"{exc.message}; a JSON inference request followed by binary tensor data needs "
+                                       f"the {HEADER_LENGTH} header (the JSON's length in bytes)") from None
+        raise
+
+
+def infer_call(body: bytes | bytearray, length: int | None, max_points: int, octet_stream: bool = False) -> InferCall:
+    """Decode an ``infer`` body whose JSON header is ``length`` bytes long (``None``: the whole body);
+    ``octet_stream``: it was sent as ``application/octet-stream`` (a hint for the error when it is no JSON)."""
     head, tail = _split(body, length)
     check_json_values(head, 2 * max_points, two_clouds(max_points))
-    obj = load_json(head)
+    obj = _load_head(head, length, octet_stream)
     if not isinstance(obj, dict):
         raise APIError(422, f"invalid request: the body must be a JSON object, got {type(obj).__name__}")
     try:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, WrapValidator
+from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, WrapValidator
 from pydantic_core import PydanticCustomError
 
 from service.refine_modes import REFINE_POINTS_RANGE
@@ -344,8 +344,8 @@ class ServerMetadata(BaseModel):
 
 
 class TensorMetadata(BaseModel):
-    name: str = Field(description="Tensor name: inputs SOURCE, TARGET; outputs TRANSFORM, SOURCE_INDEX, "
-                      "TARGET_INDEX, CREDIBILITY.")
+    name: str = Field(description="Tensor name: inputs SOURCE, TARGET, INITIAL_TRANSFORM (optional); outputs "
+                      "TRANSFORM, SOURCE_INDEX, TARGET_INDEX, CREDIBILITY.")
     datatype: str = Field(description="OIP datatype (FP32, INT64).")
     shape: list[int] = Field(description="Shape; -1 for a size that varies (N points, K matches).")
 
@@ -354,7 +354,10 @@ class ModelMetadata(BaseModel):
     name: str = Field(description="Model name.")
     versions: list[str] = Field(description="The model's version (one).")
     platform: str = Field(description="Runtime platform ('mfgnet_onnxruntime').")
-    inputs: list[TensorMetadata] = Field(description="SOURCE and TARGET: FP32 [-1, 3] points, caller's units.")
+    inputs: list[TensorMetadata] = Field(
+        description="SOURCE and TARGET: FP32 [-1, 3] points, caller's units; INITIAL_TRANSFORM (optional): FP32 "
+        "[4, 4], a rigid src_to_tgt guess (row-major, caller's units)."
+    )
     outputs: list[TensorMetadata] = Field(
         description="TRANSFORM FP32 [4, 4] (src_to_tgt, caller's units), SOURCE_INDEX / TARGET_INDEX INT64 [-1] "
         "(rows of the inputs), CREDIBILITY FP32 [-1] (probability 0..1)."
@@ -367,12 +370,13 @@ class ModelReady(BaseModel):
 
 
 class InferInputTensor(BaseModel):
-    name: str = Field(description="SOURCE or TARGET.")
-    shape: list[int] = Field(description="[N, 3] or [1, N, 3].")
+    name: str = Field(description="SOURCE, TARGET or (optional) INITIAL_TRANSFORM.")
+    shape: list[StrictInt] = Field(description="SOURCE, TARGET: [N, 3] or [1, N, 3]; INITIAL_TRANSFORM: [4, 4] or "
+                                   "[1, 4, 4]. Integers (not 3.0 or \"3\").")
     datatype: str = Field(description="FP32.")
     parameters: dict[str, Any] | None = Field(
-        None, description="binary_data_size: the tensor's byte count (N x 3 x 4) when its values follow the JSON as "
-        "binary data (then no 'data')."
+        None, description="binary_data_size: the tensor's byte count (N x 3 x 4; 64 for INITIAL_TRANSFORM) when its "
+        "values follow the JSON as binary data (then no 'data')."
     )
     data: list[Any] | None = Field(
         None, description="Row-major numbers, flat or nested; absent when the tensor is sent as binary data."
@@ -389,7 +393,7 @@ class InferRequestedOutput(BaseModel):
 
 class InferRequest(BaseModel):
     """OIP v2 inference request; options go into ``parameters``: iterations, keypoints, refine, refine_points,
-    rotation_search."""
+    drop_isolated, rotation_search, and binary_data_output (every output as binary data)."""
 
     model_config = ConfigDict(
         json_schema_extra={

@@ -304,7 +304,7 @@ BAD_INPUTS: dict[str, Case] = {
     # OIP v2 infer
     "oip_nan": case(lambda: oip(data_of([float("nan")] * 2100), raw=True), 422, "SOURCE", "nan"),
     "oip_inf": case(lambda: oip(data_of([float("inf")] * 2100), raw=True), 422, "SOURCE", "infinite"),
-    "oip_float32_overflow": case(lambda: oip(_pair()[0] * 1e39), 422, "SOURCE", "infinite"),
+    "oip_float32_overflow": case(lambda: oip(_pair()[0] * 1e39), 422, "SOURCE", "beyond the FP32 range"),
     "oip_empty": case(lambda: oip({"shape": [0, 3], "data": []}), 422, "source", "32"),
     "oip_31_points": case(lambda: oip(_pair()[0][:31]), 422, "source", "32"),
     "oip_shape_2_columns": case(lambda: oip(_pair()[0][:, :2]), 422, "SOURCE", "shape"),

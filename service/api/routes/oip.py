@@ -1,5 +1,6 @@
 """Open Inference Protocol v2 (KServe / Triton): health, metadata and ``infer``, with the binary tensor data
-extension (``binary_tensor_data``) as ``tritonclient.http`` uses it by default.
+extension (``binary_tensor_data``) as ``tritonclient.http`` uses it by default. The model routes are served under
+``/v2/models/{name}/versions/{version}`` too, for the one version each model has (its manifest's).
 
 Readiness is 503 with a JSON reason until every model is verified, loaded and warmed up.
 """
@@ -18,7 +19,7 @@ from service.api.deps import get_registry, get_runner, get_settings, require_api
 from service.api.errors import APIError, error_docs
 from service.api.oip_request import HEADER_LENGTH, OCTET_STREAM
 from service.api.oip_response import infer_response
-from service.api.registry import RETRY_AFTER_LOADING_S
+from service.api.registry import RETRY_AFTER_LOADING_S, ModelEntry
 from service.api.schemas import (
     ErrorResponse,
     InferResponse,
@@ -84,9 +85,17 @@ async def ready(request: Request) -> dict | JSONResponse:
     return {"ready": True, "models": registry.statuses(), **({"errors": errors} if errors else {})}
 
 
-@router.get("/models/{name}", response_model=ModelMetadata, responses=error_docs(404, 503), summary="Model metadata")
-async def model_metadata(name: str, request: Request) -> dict:
+def versioned_entry(request: Request, name: str, version: str) -> ModelEntry:
+    """The model ``name`` if ``version`` is its version (each model serves one: its manifest's); 404 naming the
+    versions otherwise, 404 / 503 as :meth:`ModelRegistry.get` for the name."""
     entry = get_registry(request).get(name)
+    versions = [entry.registrar.manifest.version]  # get() checked it is loaded
+    if version not in versions:
+        raise APIError(404, f"model {name!r} has no version {version[:80]!r}; its versions: {versions}")
+    return entry
+
+
+def _metadata(entry: ModelEntry) -> dict:
     return {
         "name": entry.name,
         "versions": [entry.registrar.manifest.version],
@@ -96,9 +105,31 @@ async def model_metadata(name: str, request: Request) -> dict:
     }
 
 
+@router.get("/models/{name}", response_model=ModelMetadata, responses=error_docs(404, 503), summary="Model metadata")
+async def model_metadata(name: str, request: Request) -> dict:
+    return _metadata(get_registry(request).get(name))
+
+
+@router.get(
+    "/models/{name}/versions/{version}", response_model=ModelMetadata, responses=error_docs(404, 503),
+    summary="Model metadata, of the model's version (404 for another)",
+)
+async def model_version_metadata(name: str, version: str, request: Request) -> dict:
+    return _metadata(versioned_entry(request, name, version))
+
+
 @router.get("/models/{name}/ready", response_model=ModelReady, responses=error_docs(404, 503), summary="Model ready")
 async def model_ready(name: str, request: Request) -> dict:
     entry = get_registry(request).get(name)  # 404 unknown, 503 loading or failed
+    return {"name": entry.name, "ready": True}
+
+
+@router.get(
+    "/models/{name}/versions/{version}/ready", response_model=ModelReady, responses=error_docs(404, 503),
+    summary="Model ready, of the model's version (404 for another)",
+)
+async def model_version_ready(name: str, version: str, request: Request) -> dict:
+    entry = versioned_entry(request, name, version)  # 404 unknown name or version, 503 loading or failed
     return {"name": entry.name, "ready": True}
 
 
@@ -138,12 +169,10 @@ The body may be sent without a Content-Type, or as application/json or {OCTET_ST
 """
 
 
-@router.post(
-    "/models/{name}/infer",
-    response_model=InferResponse,
-    summary="Register SOURCE onto TARGET (OIP v2)",
-    description=INFER_DESCRIPTION,
-    openapi_extra={
+INFER_ROUTE = {
+    "response_model": InferResponse,
+    "description": INFER_DESCRIPTION,
+    "openapi_extra": {
         "requestBody": {
             "required": True,
             "content": {
@@ -156,20 +185,43 @@ The body may be sent without a Content-Type, or as application/json or {OCTET_ST
             },
         }
     },
-    responses=error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
-    dependencies=[Depends(require_api_key)],
-)
+    "responses": {
+        200: {
+            "description": f"The InferResponse as application/json, or, when an output is sent as binary data, as "
+            f"{OCTET_STREAM}: the InferResponse JSON ({HEADER_LENGTH} bytes), then the binary outputs' bytes.",
+            "content": {OCTET_STREAM: {"schema": {"type": "string", "format": "binary"}}},
+        },
+        **error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
+    },
+    "dependencies": [Depends(require_api_key)],
+}
+
+
+@router.post("/models/{name}/infer", summary="Register SOURCE onto TARGET (OIP v2)", **INFER_ROUTE)
 async def infer(name: str, request: Request) -> Response:
-    settings, runner = get_settings(request), get_runner(request)
     if name not in get_registry(request).entries:  # fail fast, before reading the body
         raise APIError(404, f"unknown model {name!r}; see GET /v1/models")
-    oip_request.check_media_type(request)
+    return await _infer(name, request)
+
+
+@router.post(
+    "/models/{name}/versions/{version}/infer",
+    summary="Register SOURCE onto TARGET (OIP v2), with the model's version (404 for another)", **INFER_ROUTE,
+)
+async def infer_version(name: str, version: str, request: Request) -> Response:
+    versioned_entry(request, name, version)  # before reading the body
+    return await _infer(name, request)
+
+
+async def _infer(name: str, request: Request) -> Response:
+    settings, runner = get_settings(request), get_runner(request)
+    kind = oip_request.check_media_type(request)
     length = oip_request.header_length(request)
     with runner.admit() as slot, await read_body(request, runner.body_budget, settings.max_body_bytes) as held:
 
         def work():
             with held:  # the body is freed once decoded, before the pipeline runs
-                call = oip_request.infer_call(held.take(), length, settings.max_points)
+                call = oip_request.infer_call(held.take(), length, settings.max_points, kind == OCTET_STREAM)
             entry, result = runner.register_one(call.pair, model=name)
             return call, entry, result
 
