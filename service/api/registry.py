@@ -59,7 +59,9 @@ class ModelRegistry:
         for directory in directories:
             if directory.name in self.entries:
                 self.duplicates.append(directory.name)
-                log.warning("duplicate model name; keeping the first folder", extra={"model": directory.name})
+                log.warning("two model folders of one name; serving the first", extra={
+                    "model": directory.name, "served": str(self.entries[directory.name].directory),
+                    "not_served": str(directory)})
                 continue
             self.entries[directory.name] = ModelEntry(directory.name, directory)
         self.finished = threading.Event()
@@ -69,15 +71,16 @@ class ModelRegistry:
     def discover(
         cls, extra_dirs: list[str], bundled: bool = True, only: list[str] | None = None, **kwargs
     ) -> ModelRegistry:
-        """Model folders under ``extra_dirs`` (and the bundled ones); ``only``: keep these names.
+        """Model folders under ``extra_dirs``, then the bundled ones (a folder of ``extra_dirs`` takes the place of a
+        bundled model of its name, as ``mfgnet register --model-dir`` does); ``only``: keep these names.
 
         Raises:
             UnknownModelsError: when ``only`` names a model that was not found.
         """
+        root = bundled_models_dir().resolve()
         found = discover_model_dirs(extra_dirs)
-        if not bundled:
-            root = bundled_models_dir().resolve()
-            found = [d for d in found if d.resolve().parent != root]
+        in_bundle = [d for d in found if d.resolve().parent == root]
+        found = [d for d in found if d not in in_bundle] + (in_bundle if bundled else [])
         if only:
             missing = sorted(set(only) - {d.name for d in found})
             if missing:

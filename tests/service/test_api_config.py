@@ -73,6 +73,23 @@ def test_models_restricts_the_served_models(monkeypatch):
         ModelRegistry.discover([], only=["general", "nope"])
 
 
+def test_a_model_folder_of_model_dirs_takes_the_place_of_the_bundled_model_of_its_name(tmp_path):
+    """The server kept the bundled ``clean`` and left a re-exported ``clean`` under MFGNET_MODEL_DIRS unserved (with a
+    log line), while ``mfgnet register --model-dir`` used the re-exported one."""
+    import shutil
+
+    from service.api.registry import ModelRegistry
+    from service.manifest import bundled_models_dir
+
+    if not (bundled_models_dir() / "clean").is_dir():
+        pytest.skip("needs the bundled clean model")
+    shutil.copytree(bundled_models_dir() / "clean", tmp_path / "clean")
+    registry = ModelRegistry.discover([str(tmp_path)])
+    assert registry.entries["clean"].directory == tmp_path / "clean"
+    assert registry.entries["general"].directory.parent == bundled_models_dir()  # the others are still served
+    assert registry.duplicates == ["clean"]
+
+
 def test_the_only_served_model_is_the_default_when_the_configured_one_is_not_served():
     from service.api.app import effective_default_model
     from service.api.registry import ModelRegistry
