@@ -4,14 +4,16 @@ and of ``mfgnet register --server`` failures that need no server."""
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
 import sys
-import types
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from api_server import free_port
 from typer.testing import CliRunner
 
 import service
@@ -21,33 +23,47 @@ runner = CliRunner()
 HAS_API = (Path(service.__file__).parent / "api" / "app.py").exists()
 
 
-@pytest.fixture
-def fake_api(monkeypatch) -> dict:
-    """Stand-ins for ``service.api.app`` and ``service.core.config`` recording what serve passes."""
-    calls: dict = {}
-
-    class Settings:
-        def __init__(self, **overrides):
-            calls["overrides"] = overrides
-
-    def run_server(settings) -> None:
-        calls["settings"] = settings
-
-    monkeypatch.setitem(sys.modules, "service.api.app", types.SimpleNamespace(run_server=run_server))
-    monkeypatch.setitem(sys.modules, "service.core.config", types.SimpleNamespace(Settings=Settings))
-    return calls
+def serve(args: list[str], **env: str) -> subprocess.Popen:
+    """``mfgnet serve ARGS`` in a child process, with only these ``MFGNET_*`` variables."""
+    environ = {**{k: v for k, v in os.environ.items() if not k.startswith("MFGNET_")}, "MFGNET_HOST": "127.0.0.1",
+               "MFGNET_THREADS": "1", **env}
+    return subprocess.Popen([sys.executable, "-c", "from service.cli import main; main()", "serve", *args],
+                            env=environ, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
-def test_serve_passes_only_the_given_options_and_runs_the_server(fake_api) -> None:
-    result = runner.invoke(app, ["serve", "--port", "9100", "--model-dir", "/m/a", "--model-dir", "/m/b"])
-    assert result.exit_code == 0, result.output
-    assert fake_api["overrides"] == {"port": 9100, "model_dirs": ["/m/a", "/m/b"]}  # the rest comes from the env
-    assert "settings" in fake_api
+def served_models(proc: subprocess.Popen, port: int) -> list[str]:
+    """The model names ``/v1/models`` lists on ``port`` once the server there is live; the server is stopped."""
+    import httpx
+
+    try:
+        for _ in range(300):
+            assert proc.poll() is None, f"the server exited with {proc.returncode}"
+            try:
+                models = httpx.get(f"http://127.0.0.1:{port}/v1/models", timeout=2)
+                return sorted(m["name"] for m in models.json()["models"])
+            except httpx.TransportError:
+                time.sleep(0.1)
+        raise AssertionError(f"nothing answered on port {port}")
+    finally:
+        proc.terminate()
+        proc.wait(10)
 
 
-def test_serve_without_options_leaves_everything_to_the_environment(fake_api) -> None:
-    assert runner.invoke(app, ["serve"]).exit_code == 0
-    assert fake_api["overrides"] == {}
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_serve_options_override_the_environment_and_the_rest_comes_from_it(tmp_path) -> None:
+    """``--port`` and ``--model-dir`` win over MFGNET_PORT and MFGNET_MODEL_DIRS; MFGNET_BUNDLED_MODELS, which has no
+    option, comes from the environment; without options the environment says everything."""
+    from service.manifest import bundled_models_dir
+
+    if not (bundled_models_dir() / "clean").is_dir():
+        pytest.skip("needs the bundled clean model")
+    shutil.copytree(bundled_models_dir() / "clean", tmp_path / "mine")
+    env_port, option_port = free_port(), free_port()
+    proc = serve(["--port", str(option_port), "--model-dir", str(tmp_path)], MFGNET_PORT=str(env_port),
+                 MFGNET_MODEL_DIRS="/nowhere", MFGNET_BUNDLED_MODELS="false")
+    assert served_models(proc, option_port) == ["mine"]
+    proc = serve([], MFGNET_PORT=str(env_port), MFGNET_MODEL_DIRS=str(tmp_path), MFGNET_BUNDLED_MODELS="false")
+    assert served_models(proc, env_port) == ["mine"]
 
 
 def test_serve_without_the_http_stack_answers_with_the_install_hint(monkeypatch) -> None:
