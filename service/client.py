@@ -49,7 +49,10 @@ class MfgnetClient:
 
     ``api_key`` is sent as ``Authorization: Bearer <key>`` (the server asks for it when it sets
     ``MFGNET_API_KEY``).
-    ``transport`` (an ``httpx`` transport) is for tests.
+    ``transport``: an ``httpx`` transport for what the defaults do not cover, e.g.
+    ``httpx.HTTPTransport(retries=3)`` to retry failed connections while a server restarts, a Unix socket
+    (``uds=``), a local address or TLS settings. It replaces httpx's default, so ``HTTP(S)_PROXY`` variables
+    are then not read (pass ``proxy=`` to the transport instead).
     """
 
     def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 30.0,
