@@ -229,14 +229,20 @@ def isolated_settings(**values):
 
 def start_thread_server(settings, until_ready: bool = True) -> Server:
     """``create_app(settings)`` served by uvicorn in a thread of the test process."""
-    import uvicorn
-
     from service.api.app import create_app
+
+    return serve_in_thread(create_app(settings), until_ready)
+
+
+def serve_in_thread(app, until_ready: bool = True) -> Server:
+    """``app`` (an ASGI app: a test may add routes to the service's) served by uvicorn in a thread of the test
+    process, on a free port of 127.0.0.1; ``stop()`` it when done (at exit otherwise)."""
+    import uvicorn
 
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
     port = sock.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), log_level="warning", access_log=False))
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
     thread.start()
 

@@ -1,13 +1,13 @@
-"""Specification of the request middleware in isolation (no model, no socket): the last-resort JSON 500,
-request ids and the body limit, driven through httpx's ASGI transport."""
+"""Specification of the request middleware on an app with a route that fails (no model): the last-resort JSON 500,
+request ids and the body limit, over real HTTP to uvicorn in a thread of the test process (so that the test sees
+the server's log records)."""
 
 from __future__ import annotations
 
-import asyncio
 import logging
 
 import httpx
-from api_server import isolated_settings
+from api_server import isolated_settings, serve_in_thread
 
 from service.api.app import create_app
 
@@ -23,12 +23,12 @@ def app_with_failing_route(**settings):
 
 
 def request(app, method: str, path: str, **kwargs) -> httpx.Response:
-    async def go():
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
-            return await client.request(method, path, **kwargs)
-
-    return asyncio.run(go())
+    server = serve_in_thread(app, until_ready=False)
+    try:
+        with httpx.Client(base_url=server.url, timeout=10) as client:
+            return client.request(method, path, **kwargs)
+    finally:
+        server.stop()
 
 
 def test_unexpected_error_is_a_generic_json_500_and_the_traceback_is_logged(caplog):

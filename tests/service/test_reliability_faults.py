@@ -7,7 +7,6 @@ Concurrent results equal sequential ones: ``test_api_register.py::test_concurren
 
 from __future__ import annotations
 
-import asyncio
 import json
 import re
 import shutil
@@ -33,6 +32,7 @@ from api_server import (
     model_root,
     modelnet_pair,
     pair_json,
+    serve_in_thread,
     start_subprocess_server,
     tampered_root,
 )
@@ -401,12 +401,12 @@ def test_strict_readiness_is_503_and_the_body_names_each_broken_model_and_why():
     app = create_app(isolated_settings(model_dirs=[str(broken_root())], bundled_models=False, strict_readiness=True))
     registry: ModelRegistry = app.state.registry
     registry.load_all()
-
-    async def ask() -> httpx.Response:
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as client:
-            return await client.get("/v2/health/ready")
-
-    response = asyncio.run(ask())
+    server = serve_in_thread(app, until_ready=False)
+    try:
+        with server.client() as client:
+            response = client.get("/v2/health/ready")
+    finally:
+        server.stop()
     body = assert_error(response, 503, "not ready", *BROKEN)
     assert response.headers["retry-after"].isdigit()
     for name, words in BROKEN.items():

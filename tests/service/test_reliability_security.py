@@ -9,7 +9,6 @@ response in ``test_reliability_fuzz.py``).
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
 import re
@@ -17,7 +16,7 @@ import re
 import httpx
 import numpy as np
 import pytest
-from api_server import isolated_settings, main_server, modelnet_pair
+from api_server import isolated_settings, main_server, modelnet_pair, serve_in_thread
 
 from service.api import deps
 from service.api.app import create_app
@@ -43,14 +42,17 @@ def test_api_key_is_compared_in_constant_time(monkeypatch):
         return given == expected
 
     monkeypatch.setattr(deps.hmac, "compare_digest", spy)
-    app = create_app(isolated_settings(bundled_models=False, model_dirs=[], api_key="s3cret-key"))
+    server = serve_in_thread(create_app(isolated_settings(bundled_models=False, model_dirs=[], api_key="s3cret-key")),
+                             until_ready=False)  # in this process: the spy sees the server's comparisons
+    try:
+        with server.client() as client:
+            def ask(key: str) -> httpx.Response:
+                return client.post("/v1/register", json={}, headers={"Authorization": f"Bearer {key}"})
 
-    async def ask(key: str) -> httpx.Response:
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as client:
-            return await client.post("/v1/register", json={}, headers={"Authorization": f"Bearer {key}"})
-
-    assert asyncio.run(ask("wrong")).status_code == 401
-    assert asyncio.run(ask("s3cret-key")).status_code != 401
+            assert ask("wrong").status_code == 401
+            assert ask("s3cret-key").status_code != 401
+    finally:
+        server.stop()
     assert calls == [(b"wrong", b"s3cret-key"), (b"s3cret-key", b"s3cret-key")]
 
 
