@@ -6,6 +6,7 @@ Registered as an ``mfgnet.commands`` entry point; the pair options are ``model.c
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
 
@@ -24,17 +25,24 @@ from model.cli import (
     ViewAngle,
     setting_protocol,
 )
-from model.cli_inputs import checkpoint_model, model_dir, output_file, pairs_file, require_shapes
+from model.cli_inputs import checkpoint_model, fail, model_dir, output_file, pairs_file, require_shapes
 from model.data import make_test_pairs
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 
 def evaluate(
+    ctx: typer.Context,
     checkpoint: Annotated[str | None, typer.Option(help="checkpoint path or bundled name")] = None,
-    pairs: Annotated[Path | None, typer.Option(help="pairs .npz (else made from --setting)")] = None,
+    pairs: Annotated[
+        Path | None, typer.Option(help="pairs .npz, evaluated whole (else made from --setting, --count, --seed and "
+                                       "the pair options)")
+    ] = None,
     setting: Setting = "clean",
-    count: int | None = None,
-    seed: int = 0,
+    count: Annotated[
+        int | None, typer.Option(help="pairs to make from --setting: a seeded draw of the test split's shapes "
+                                      "[default: one pair per shape]")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="seed of the pairs made from --setting")] = 0,
     iterations: int | None = None,
     keypoints: int | None = None,
     batch_size: int = 16,
@@ -75,9 +83,13 @@ def evaluate(
         bool, typer.Option(help="add 'by_label': the recalls of each class (pairs with labels; ModelNet40 names)")
     ] = False,
 ) -> None:
-    """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall."""
+    """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall; with them, under
+    'evaluated', what was measured: the pairs, the checkpoint, model or baseline, and the options it ran with."""
+    from model.checkpoint import file_sha256
     from model.metrics import registration_metrics, save_per_pair
 
+    if pairs is not None:
+        refuse_pair_options(ctx)
     if sum(x is not None for x in (checkpoint, model, baseline)) != 1:
         raise typer.BadParameter(
             "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)")
@@ -95,15 +107,27 @@ def evaluate(
     for path, option in ((json_out, "--json"), (per_pair, "--per-pair")):
         if path is not None:
             output_file(path, option)
-    network = checkpoint_model(checkpoint)[2] if checkpoint is not None else None
+    checkpoint_path, _, network = checkpoint_model(checkpoint) if checkpoint is not None else (None, None, None)
     model_path = model_dir(model) if model is not None else None
     if pairs:
         data_pairs = pairs_file(pairs)
+        evaluated: dict = {"pairs": {"file": str(pairs), "sha256": file_sha256(pairs)}}
     else:
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
                                     view_angle)
-        require_shapes("test", setting, data)
+        shapes = require_shapes("test", setting, data)
         data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
+        evaluated = {"pairs": {"setting": setting, "split": "test", "count": count, "seed": seed,
+                               "protocol": asdict(protocol), "shapes": str(shapes)}}
+    if checkpoint_path is not None:
+        evaluated |= {"checkpoint": str(checkpoint_path), "checkpoint_sha256": file_sha256(checkpoint_path),
+                      "iterations": iterations or network.cfg.iterations,
+                      "keypoints": keypoints or network.cfg.keypoints, "batch_size": batch_size}
+    elif model_path is not None:
+        evaluated |= runtime_model_fields(model_path, iterations, keypoints)
+        evaluated |= {"refine": refine, "refine_points": refine_points, "rotation_search": search}
+    else:
+        evaluated["baseline"] = baseline
     if by_label and "label" not in data_pairs:
         raise typer.BadParameter("--by-label needs pairs with a 'label' array")
     if model is not None:
@@ -134,6 +158,7 @@ def evaluate(
 
         metrics["by_label"] = recall_by_label(R, t, data_pairs["rotation"], data_pairs["translation"],
                                               data_pairs["label"], class_names(data))
+    metrics["evaluated"] = evaluated  # what these figures were measured on and with
     text = json.dumps(metrics, indent=2)
     typer.echo(text)
     if json_out:
@@ -141,3 +166,35 @@ def evaluate(
     if per_pair:
         quality = {"reliable": run.reliable, "stability": run.stability} if model is not None else {}
         save_per_pair(per_pair, R, t, data_pairs, **quality)
+
+
+# The options that only make pairs (from --setting); a --pairs file is evaluated whole, as it is.
+PAIR_MAKING_OPTIONS = ("setting", "count", "seed", "source_points", "target_points", "overlap", "noise", "max_angle",
+                       "points", "outliers", "view_angle")
+
+
+def refuse_pair_options(ctx: typer.Context) -> None:
+    """A usage error naming the pair-making options given on the command line beside ``--pairs``.
+
+    ``--count`` does not take the file's first pairs: files made from the whole test split are in class order,
+    so their first pairs are a few classes only (``mfgnet make-pairs --count N --seed S`` makes a seeded subset).
+    """
+    given = [param.opts[0] for param in ctx.command.params if param.name in PAIR_MAKING_OPTIONS
+             and getattr(ctx.get_parameter_source(param.name), "name", None) == "COMMANDLINE"]  # typer's own click
+    if given:
+        fail(f"{', '.join(given)}: cannot apply with --pairs ({'it makes' if len(given) == 1 else 'they make'} "
+             "pairs from --setting; a --pairs file is evaluated whole; for a subset: mfgnet make-pairs --count N "
+             "--seed S)")
+
+
+def runtime_model_fields(folder: Path, iterations: int | None, keypoints: int | None) -> dict:
+    """The ``evaluated`` fields naming the ONNX model in ``folder``: name, version, its manifest's hash and the
+    checkpoint it was exported from, and the iterations and keypoints it ran with."""
+    from service.manifest import load_manifest
+
+    manifest = load_manifest(folder)
+    return {"model": manifest.name, "model_version": manifest.version, "model_directory": str(folder),
+            "manifest_sha256": manifest.sha256,
+            "checkpoint_sha256": manifest.raw.get("source_checkpoint_sha256"),
+            "iterations": iterations or manifest.config.get("iterations"),
+            "keypoints": keypoints or manifest.config.get("keypoints")}

@@ -13,6 +13,7 @@ from typing import Annotated
 
 import typer
 
+from export import MIN_COMPARED
 from model.cli_inputs import fail, short
 from service.manifest import MANIFEST
 
@@ -25,7 +26,14 @@ def export(
                                            "name is the model name")],
     version: Annotated[str, typer.Option(help="model version written to the manifest")] = "0.1.0",
     setting: Annotated[str, typer.Option(help="setting of the parity pairs and reference radius")] = "clean",
-    parity_pairs: Annotated[int, typer.Option(help="seeded pairs for the parity check (>= 50)")] = 100,
+    parity_pairs: Annotated[
+        int, typer.Option(min=1, help="seeded pairs for the parity check; the graphs are compared on all of them, the "
+                                      "final poses on the comparable ones (pairs near a tie are excluded: about half "
+                                      "of them for the bundled clean)")
+    ] = 100,
+    min_comparable: Annotated[
+        int, typer.Option(min=1, help="comparable pairs (not excluded as ties) parity needs; at most --parity-pairs")
+    ] = MIN_COMPARED,
     parity_setting: Annotated[
         str,
         typer.Option(help="pairs for parity; 'noise' by default: in clean pairs source and target share exact "
@@ -47,6 +55,9 @@ def export(
     from model.data import make_test_pairs
     from service.registrar import Registrar
 
+    if min_comparable > parity_pairs:
+        fail(f"--min-comparable {min_comparable}: more than the {parity_pairs} --parity-pairs (about half the pairs "
+             "can be excluded as ties: give at least twice as many pairs)")
     check_model_out(out)
     path, data, model = checkpoint_model(checkpoint)
     accuracy = json_file(accuracy_json, "--accuracy-json") if accuracy_json else {}
@@ -54,13 +65,13 @@ def export(
     if not accuracy and "val" in data:
         accuracy = {"metrics": data["val"], "on": "validation pairs held out of the training split"}
     if accuracy_json:
-        accuracy = {"metrics": accuracy, "on": str(accuracy_json.name)}
+        accuracy = accuracy_section(accuracy, accuracy_json, path)
     with staged_model_folder(out) as stage:
         write_model_folder(stage, path, model, data, setting, version, accuracy)
         registrar = Registrar(stage, warmup=False)
         pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed)
         try:
-            report = check_parity(model, registrar, pairs, min_compared=min(50, parity_pairs))
+            report = check_parity(model, registrar, pairs, min_compared=min_comparable)
         except ParityError as exc:
             fail(f"export failed, {out} left as it was: {exc}", code=1)
         manifest_path = stage / MANIFEST
@@ -73,6 +84,24 @@ def export(
         typer.echo(f"note: {out} still holds graphs of the previous export that its manifest no longer names: "
                    f"{', '.join(stale)}", err=True)
     typer.echo(f"exported {out.name} to {out}")
+
+
+def accuracy_section(metrics: object, accuracy_json: Path, checkpoint: Path) -> dict:
+    """The manifest's ``accuracy`` from ``mfgnet evaluate --json`` output: the metrics, the file's name, and what
+    they were measured on and with (``evaluated``: the pairs, the checkpoint or model, the runtime options), which
+    evaluate writes since it records them; a usage error where that was another checkpoint than the one exported."""
+    from model.checkpoint import file_sha256
+
+    evaluated = metrics.pop("evaluated", None) if isinstance(metrics, dict) else None
+    if not isinstance(evaluated, dict):  # written before evaluate recorded it
+        return {"metrics": metrics, "on": str(accuracy_json.name)}
+    measured = evaluated.get("checkpoint_sha256")
+    if measured != file_sha256(checkpoint):
+        what = (f"baseline {evaluated['baseline']}" if evaluated.get("baseline")
+                else f"another checkpoint (sha256 {measured[:12]}...)" if isinstance(measured, str)
+                else "a model that does not record its checkpoint")
+        fail(f"--accuracy-json {accuracy_json}: measured with {what}, not with --checkpoint {checkpoint}")
+    return {"metrics": metrics, "on": str(accuracy_json.name), "evaluated": evaluated}
 
 
 def check_model_out(out: Path) -> None:
@@ -162,6 +191,9 @@ def import_checkpoint(
 
     output_file(out, "--out", create_folders=True)
     official = torch_file(source, "SOURCE")
+    if isinstance(official, dict) and all(isinstance(official.get(key), dict) for key in ("model", "config")):
+        fail(f"SOURCE {source}: already a checkpoint of this project (its 'model' weights and 'config'), usable "
+             "directly with --checkpoint; nothing to import")
     if not isinstance(official, dict) or not all(isinstance(value, torch.Tensor) for value in official.values()):
         fail(f"SOURCE {source}: not an authors' released checkpoint (not a dict of tensors)")
     try:

@@ -41,10 +41,53 @@ def test_evaluate_writes_every_metric_to_json(tmp_path, tiny_checkpoint, synthet
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
-    assert set(metrics) == METRIC_KEYS
+    assert set(metrics) == METRIC_KEYS | {"evaluated"}
     assert metrics["n"] == 3
-    assert all(np.isfinite(v) for v in metrics.values())
+    assert all(np.isfinite(metrics[key]) for key in METRIC_KEYS)
     assert 0.0 <= metrics["recall_r5_t005"] <= 1.0
+
+
+def test_evaluate_json_records_the_pairs_file_and_the_checkpoint(tmp_path, tiny_checkpoint, synthetic_pairs) -> None:
+    from model.checkpoint import file_sha256, load_model
+
+    out = tmp_path / "metrics.json"
+    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs), "--json", str(out),
+            "--batch-size", "2", "--iterations", "1"]
+    assert runner.invoke(app, args).exit_code == 0
+    evaluated = json.loads(out.read_text())["evaluated"]
+    assert evaluated["pairs"] == {"file": str(synthetic_pairs), "sha256": file_sha256(synthetic_pairs)}
+    assert evaluated["checkpoint"] == str(tiny_checkpoint)
+    assert evaluated["checkpoint_sha256"] == file_sha256(tiny_checkpoint)
+    assert (evaluated["iterations"], evaluated["keypoints"]) == (1, load_model(tiny_checkpoint).cfg.keypoints)
+    assert evaluated["batch_size"] == 2
+
+
+def test_evaluate_json_records_the_setting_count_seed_and_protocol_of_made_pairs(tmp_path, tiny_checkpoint,
+                                                                                 monkeypatch) -> None:
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_test.npz", points=sphere_shapes(4, seed=1), labels=np.arange(4))
+    monkeypatch.setenv("MFGNET_DATA", str(folder))
+    out = tmp_path / "metrics.json"
+    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--setting", "noise", "--count", "2", "--seed", "7",
+            "--noise", "0.02", "--json", str(out), "--batch-size", "2"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    metrics = json.loads(out.read_text())
+    pairs = metrics["evaluated"]["pairs"]
+    assert metrics["n"] == 2
+    assert (pairs["setting"], pairs["split"], pairs["count"], pairs["seed"]) == ("noise", "test", 2, 7)
+    assert pairs["protocol"]["noise_sigma"] == 0.02 and pairs["shapes"] == str(folder / "modelnet40_test.npz")
+
+
+@pytest.mark.parametrize("options", [["--count", "2"], ["--seed", "7"], ["--setting", "noise"], ["--noise", "0.05"],
+                                     ["--setting", "noise", "--count", "2", "--seed", "7", "--noise", "0.05"]])
+def test_evaluate_refuses_pair_making_options_with_a_pairs_file(tiny_checkpoint, synthetic_pairs, options) -> None:
+    """A --pairs file is evaluated whole: --count, --seed, --setting and the pair options would be ignored."""
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs),
+                                 *options])
+    named = [option for option in options if option.startswith("--")]
+    assert_usage_error(result, ", ".join(named) + ": cannot apply with --pairs", "make-pairs --count")
 
 
 def test_evaluate_writes_per_pair_poses_and_errors(tmp_path, tiny_checkpoint, synthetic_pairs) -> None:
@@ -107,7 +150,8 @@ def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
-    assert set(metrics) == METRIC_KEYS and metrics["n"] == 2 and metrics["ms_per_pair"] > 0
+    assert set(metrics) == METRIC_KEYS | {"evaluated"} and metrics["n"] == 2 and metrics["ms_per_pair"] > 0
+    assert metrics["evaluated"]["baseline"] == "fpfh-ransac-icp"
 
 
 def broken_checkpoint(tiny_checkpoint, tmp_path, kind: str):
@@ -193,3 +237,11 @@ def test_evaluate_rejects_a_model_that_is_not_a_model_folder(tmp_path, synthetic
     model = bad_model(tmp_path, kind)
     result = runner.invoke(app, ["evaluate", "--model", model, "--pairs", str(synthetic_pairs)])
     assert_usage_error(result, "--model", model, NOT_A_MODEL[kind])
+
+
+def test_evaluate_help_says_what_count_and_seed_make() -> None:
+    result = runner.invoke(app, ["evaluate", "--help"])
+    text = " ".join(result.output.split())  # as wrapped to the terminal's width
+    assert result.exit_code == 0
+    assert "--count <int> pairs to make from --setting: a seeded draw" in text
+    assert "--seed <int> seed of the pairs made from --setting" in text

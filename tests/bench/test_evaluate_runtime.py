@@ -28,6 +28,12 @@ def test_evaluate_model_through_the_runtime_writes_the_metrics(tmp_path, refine)
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
     assert metrics["n"] == 3 and metrics["ms_per_pair"] > 0 and np.isfinite(metrics["mae_r"])
+    manifest = json.loads((bundled_models_dir() / "clean" / "manifest.json").read_text())
+    evaluated = metrics["evaluated"]  # what was measured: the model, the checkpoint it came from, the options
+    assert (evaluated["model"], evaluated["model_version"]) == ("clean", manifest["version"])
+    assert evaluated["checkpoint_sha256"] == manifest["source_checkpoint_sha256"]
+    assert (evaluated["refine"], evaluated["rotation_search"]) == (refine, False)
+    assert evaluated["iterations"] == manifest["config"]["iterations"]
 
 
 def spy_on_register(monkeypatch, option: str) -> list:

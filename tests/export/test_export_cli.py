@@ -3,6 +3,7 @@ an export that fails leaves its ``--out`` as it was."""
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -72,7 +73,8 @@ def test_import_checkpoint_rejects_a_file_that_is_not_a_checkpoint(tmp_path, kin
 
 def test_import_checkpoint_rejects_a_project_checkpoint_and_wrong_tensors(tmp_path, tiny_checkpoint) -> None:
     result = runner.invoke(app, ["import-checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "o.pt")])
-    assert_usage_error(result, str(tiny_checkpoint), "not an authors' released checkpoint")
+    assert_usage_error(result, str(tiny_checkpoint), "already a checkpoint of this project", "directly with "
+                       "--checkpoint")
     wrong = tmp_path / "wrong.t7"
     torch.save({f"t{i}": torch.zeros(1) for i in range(215)}, wrong)  # the right count, none of the keys
     result = runner.invoke(app, ["import-checkpoint", str(wrong), "--out", str(tmp_path / "o.pt")])
@@ -87,12 +89,12 @@ def test_import_checkpoint_rejects_an_out_it_cannot_write(tmp_path, tiny_checkpo
         assert_usage_error(result, "--out", str(out), problem)
 
 
-def tiny_modelnet(tmp_path, monkeypatch) -> None:
+def tiny_modelnet(tmp_path, monkeypatch, shapes: int = 3) -> None:
     """``$MFGNET_DATA``: a few spheres as the train and test splits (the reference radius, the parity pairs)."""
     folder = tmp_path / "data"
     folder.mkdir()
     for split in ("train", "test"):
-        np.savez(folder / f"modelnet40_{split}.npz", points=sphere_shapes(3, seed=1), labels=np.arange(3))
+        np.savez(folder / f"modelnet40_{split}.npz", points=sphere_shapes(shapes, seed=1), labels=np.arange(shapes))
     monkeypatch.setenv("MFGNET_DATA", str(folder))
 
 
@@ -107,7 +109,9 @@ def diverging_checkpoint(tiny_checkpoint):
 
 
 def export_args(checkpoint, out, pairs: int = 2) -> list[str]:
-    return ["export", "--checkpoint", str(checkpoint), "--out", str(out), "--parity-pairs", str(pairs)]
+    """An export on ``pairs`` parity pairs that needs all of them comparable (fewer than the default minimum)."""
+    return ["export", "--checkpoint", str(checkpoint), "--out", str(out), "--parity-pairs", str(pairs),
+            "--min-comparable", str(pairs)]
 
 
 def folder_contents(folder) -> dict[str, bytes]:
@@ -176,3 +180,90 @@ def test_export_refuses_a_folder_of_other_files_and_an_out_that_is_no_model_name
     assert [path.name for path in (tmp_path / "m").iterdir()] == ["notes.txt"]
     result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "My Model"))
     assert_usage_error(result, "--out", "'My Model'", "no model name")
+
+
+def parity_with_ties(monkeypatch, comparable_share: float = 0.54) -> list[int]:
+    """``check_parity`` as the bundled ``clean`` passes it: the graphs agree, ``comparable_share`` of the pairs are
+    comparable and the others excluded as ties; returns the ``min_compared`` it was called with."""
+    from export.parity import ParityError, ParityReport
+
+    seen = []
+
+    def check_parity(model, registrar, pairs, min_compared):
+        seen.append(min_compared)
+        count = len(pairs["source"])
+        compared = round(comparable_share * count)
+        if compared < min_compared:
+            raise ParityError(f"ONNX parity failed: only {compared} comparable pairs (< {min_compared})")
+        return ParityReport(count, compared, count - compared, 0, 0, 1e-6, 1e-6, 1e-5, 1e-7)
+
+    monkeypatch.setattr("export.parity.check_parity", check_parity)
+    return seen
+
+
+def test_export_passes_parity_when_half_the_pairs_are_ties(tmp_path, tiny_checkpoint, monkeypatch) -> None:
+    """50 parity pairs, 27 comparable (the bundled clean's share): enough; parity does not need every pair."""
+    from export import MIN_COMPARED
+
+    tiny_modelnet(tmp_path, monkeypatch, shapes=50)
+    seen = parity_with_ties(monkeypatch)
+    out = tmp_path / "m"
+    result = runner.invoke(app, ["export", "--checkpoint", str(tiny_checkpoint), "--out", str(out),
+                                 "--parity-pairs", "50"])
+    assert result.exit_code == 0, result.output
+    assert seen == [MIN_COMPARED]
+    parity = json.loads((out / "manifest.json").read_text())["parity"]
+    assert (parity["pairs"], parity["compared"], parity["excluded_ties"]) == (50, 27, 23)
+
+
+def test_export_refuses_fewer_parity_pairs_than_comparable_pairs_it_needs(tmp_path, tiny_checkpoint) -> None:
+    from export import MIN_COMPARED
+
+    result = runner.invoke(app, ["export", "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "m"),
+                                 "--parity-pairs", str(MIN_COMPARED - 1)])
+    assert_usage_error(result, f"--min-comparable {MIN_COMPARED}", f"{MIN_COMPARED - 1} --parity-pairs")
+    assert not (tmp_path / "m").exists()
+
+
+def evaluate_json(path, **evaluated) -> object:
+    """An ``mfgnet evaluate --json`` output on 300 seeded noise pairs, with ``evaluated`` (what was measured: the
+    checkpoint's hash, say); without, as evaluate wrote it before it recorded that."""
+    metrics = {"n": 300, "rmse_r": 1.5, "mae_r": 0.7}
+    if evaluated:
+        metrics["evaluated"] = {"pairs": {"setting": "noise", "split": "test", "count": 300, "seed": 0}, **evaluated}
+    path.write_text(json.dumps(metrics))
+    return path
+
+
+def test_export_carries_what_the_accuracy_was_measured_on_into_the_manifest(tmp_path, tiny_checkpoint,
+                                                                            monkeypatch) -> None:
+    from model.checkpoint import file_sha256
+
+    tiny_modelnet(tmp_path, monkeypatch)
+    parity_with_ties(monkeypatch, comparable_share=1.0)
+    accuracy = evaluate_json(tmp_path / "noise_300.json", checkpoint="tiny.pt",
+                             checkpoint_sha256=file_sha256(tiny_checkpoint), iterations=4)
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--accuracy-json", str(accuracy)])
+    assert result.exit_code == 0, result.output
+    section = json.loads((tmp_path / "m" / "manifest.json").read_text())["accuracy"]
+    assert section["metrics"] == {"n": 300, "rmse_r": 1.5, "mae_r": 0.7} and section["on"] == "noise_300.json"
+    assert section["evaluated"]["pairs"] == {"setting": "noise", "split": "test", "count": 300, "seed": 0}
+    assert section["evaluated"]["checkpoint"] == "tiny.pt" and section["evaluated"]["iterations"] == 4
+
+    older = evaluate_json(tmp_path / "older.json")
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m2"), "--accuracy-json", str(older)])
+    assert result.exit_code == 0, result.output
+    section = json.loads((tmp_path / "m2" / "manifest.json").read_text())["accuracy"]
+    assert section == {"metrics": {"n": 300, "rmse_r": 1.5, "mae_r": 0.7}, "on": "older.json"}
+
+
+@pytest.mark.parametrize(("evaluated", "problem"), [
+    ({"checkpoint_sha256": "0" * 64}, "another checkpoint (sha256 000000000000"),
+    ({"baseline": "fpfh-ransac-icp"}, "baseline fpfh-ransac-icp"),
+    ({"model": "old", "checkpoint_sha256": None}, "a model that does not record its checkpoint"),
+])
+def test_export_refuses_an_accuracy_measured_on_something_else(tmp_path, tiny_checkpoint, evaluated, problem) -> None:
+    path = evaluate_json(tmp_path / "a.json", **evaluated)
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--accuracy-json", str(path)])
+    assert_usage_error(result, f"--accuracy-json {path}", problem, f"not with --checkpoint {tiny_checkpoint}")
+    assert not (tmp_path / "m").exists()
