@@ -5,8 +5,9 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -14,6 +15,7 @@ from model.cli_inputs import (
     checkpoint_file,
     checkpoint_model,
     fail,
+    json_file,
     load_weights,
     output_file,
     output_folder,
@@ -21,6 +23,9 @@ from model.cli_inputs import (
 )
 from model.data import SETTINGS, PairProtocol, make_test_pairs, pairs_path, protocol_for, save_pairs
 from model.recipes import recipe_draw
+
+if TYPE_CHECKING:  # torch is imported only when a command trains
+    from model.train import TrainOptions
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
 SourcePoints = Annotated[int | None, typer.Option(help="source points kept after the crop (default: the crop size)")]
@@ -83,19 +88,77 @@ def make_pairs(
     typer.echo(f"wrote {len(pairs['source'])} {setting} pairs to {written}")
 
 
+RUN_FILES = ("last.pt", "best.pt", "log.jsonl", "snapshots")  # what a run leaves in its folder (config.json: at start)
+# `mfgnet train` options that make a run -> their TrainOptions field (model.train.RUN_OPTIONS): with --resume, one left
+# out takes the run's value and one given must equal it; --iterations / --share-weights must equal the checkpoint's.
+RUN_OPTION_FIELDS = {"setting": "setting", "seed": "seed", "batch_size": "batch_size",
+                     "batches_per_epoch": "max_batches_per_epoch", "lr": "lr", "weight_decay": "weight_decay",
+                     "lr_drop_at": "lr_drop_at", "val_pairs": "val_pairs", "source_points": "source_points",
+                     "target_points": "target_points", "overlap": "overlap", "noise": "noise", "max_angle": "max_angle",
+                     "outliers": "outliers", "recipe": "recipe", "views_share": "views_share",
+                     "sensor_share": "sensor_share", "init": "init"}
+GROWING_OPTIONS = ("epochs", "patience")  # with --resume: given, they extend (or shorten) the run; left out, the run's
+
+
+def resumed_options(ctx: typer.Context, opts: TrainOptions, checkpoint: dict) -> TrainOptions:
+    """``opts`` of ``mfgnet train --resume`` made the run's: each run option left out takes the saved value (its
+    ``config.json``, the network from ``last.pt``); a usage error names those given with another value."""
+    from model.train import RUN_OPTIONS
+
+    out = Path(opts.out)
+    saved = {}
+    if (out / "config.json").exists():
+        config = json_file(out / "config.json", "--resume")
+        if not isinstance(config, dict) or not isinstance(config.get("train"), dict):
+            fail(f"--resume {out / 'config.json'}: not a run's config (no 'train' options)")
+        saved = config["train"]
+    saved = {"setting": checkpoint.get("setting", opts.setting), **saved}
+    given = {name for name in ctx.params  # on the command line (typer's own click: its ParameterSource, by name)
+             if getattr(ctx.get_parameter_source(name), "name", None) in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")}
+    conflicts = []
+    for name, field in RUN_OPTION_FIELDS.items():
+        if field not in saved:
+            continue
+        if name in given and getattr(opts, field) != saved[field]:
+            conflicts.append(f"--{name.replace('_', '-')} {getattr(opts, field)} (the run's: {saved[field]})")
+        setattr(opts, field, saved[field])
+    for field in set(RUN_OPTIONS) - set(RUN_OPTION_FIELDS.values()):  # no command-line option: the run's
+        if field in saved:
+            setattr(opts, field, saved[field])
+    network = checkpoint["config"]
+    for name in ("iterations", "share_weights"):  # the network: the checkpoint's
+        if name in given and opts.config[name] != network.get(name):
+            conflicts.append(f"--{name.replace('_', '-')} {opts.config[name]} (the run's: {network.get(name)})")
+    if conflicts:
+        fail(f"--resume {out}: {', '.join(conflicts)}: a resumed run keeps its options; leave them out, or start a "
+             "new run with another --out")
+    opts.config = dict(network)
+    for field in GROWING_OPTIONS:
+        if field not in given and field in saved:
+            setattr(opts, field, saved[field])
+    return opts
+
+
 def train(
+    ctx: typer.Context,
     setting: Setting = "clean",
     out: Annotated[Path, typer.Option(help="run directory (checkpoints, log.jsonl)")] = Path("runs/clean"),
-    epochs: int = 50,
+    epochs: Annotated[int, typer.Option(help="epochs of the run (with --resume: left out, the run's)")] = 50,
     batch_size: int = 8,
     lr: float = 1e-4,
     weight_decay: float = 1e-3,
     seed: int = 0,
-    resume: Annotated[bool, typer.Option(help="continue from OUT/last.pt")] = False,
+    resume: Annotated[
+        bool, typer.Option(help="continue the run in OUT from its last.pt with its options (a new run where OUT holds "
+                           "none)")
+    ] = False,
     init: Annotated[
         str | None, typer.Option("--init", "--init-from", help="initial weights (fine-tuning): a checkpoint file")
     ] = None,
-    patience: int = 10,
+    patience: Annotated[
+        int, typer.Option(help="epochs without a better validation MAE(R) before stopping (with --resume: left out, "
+                          "the run's)")
+    ] = 10,
     max_minutes: float | None = None,
     checkpoint_minutes: float = 5.0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
@@ -112,7 +175,10 @@ def train(
     batches_per_epoch: Annotated[
         int | None, typer.Option(help="cap on batches per epoch (short epochs: validate and checkpoint more often)")
     ] = None,
-    lr_drop_at: Annotated[float, typer.Option(help="fraction of the epochs after which lr is divided by 10")] = 0.8,
+    lr_drop_at: Annotated[
+        float, typer.Option(help="lr is divided by 10 from epoch floor(LR_DROP_AT x epochs) on, never before epoch 1 "
+                            "(a one-epoch run keeps --lr); 1 or more: never")
+    ] = 0.8,
     recipe: Annotated[
         str | None,
         typer.Option(help="per-batch random training pairs: 'general' (independent sampling, noise, overlap, "
@@ -138,31 +204,16 @@ def train(
                           "scans; 0: only best.pt and last.pt")
     ] = 0,
 ) -> None:
-    """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume."""
+    """Train MFGNet (CPU or CUDA) with periodic checkpoints and resume.
+
+    SIGTERM or SIGINT stops the run after the current step with OUT/last.pt written (--resume continues it) and exits
+    with 128 + the signal's number (143, 130); a run that ends (its epochs, --patience, --max-minutes) exits with 0.
+    """
     from model.config import MFGNetConfig
     from model.network import MFGNet
-    from model.train import TrainOptions
-    from model.train import train as run
+    from model.train import TrainOptions, run_training
 
-    setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, None, outliers)  # fail early
     output_folder(out, "--out")
-    require_shapes("train", setting, data)
-    if (views_share is not None or sensor_share is not None) and recipe is None:
-        raise typer.BadParameter("--views-share and --sensor-share need --recipe")
-    if recipe is not None:
-        try:
-            recipe_draw(recipe, max_angle, outliers, views_share, sensor_share)  # fail early, on the recipe's checks
-        except ValueError as err:
-            raise typer.BadParameter(str(err)) from err
-    if init is not None:  # its weights must fit the network of the options above
-        init_path, init_data = checkpoint_file(init, "--init")
-        load_weights(MFGNet(MFGNetConfig(iterations=iterations, share_weights=share_weights)), init_data["model"],
-                     init_path, "--init")
-    if resume and (out / "last.pt").exists():
-        resume_from, checkpoint, _ = checkpoint_model(out / "last.pt", "--resume")
-        missing = [key for key in ("optimizer", "state") if key not in checkpoint]
-        if missing:
-            fail(f"--resume {resume_from}: no {' or '.join(map(repr, missing))} to resume from")
     opts = TrainOptions(
         setting=setting, out=str(out), epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay,
         seed=seed, resume=resume, init=init, patience=patience, max_minutes=max_minutes,
@@ -172,5 +223,37 @@ def train(
         max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe, views_share=views_share,
         sensor_share=sensor_share, val_pairs=val_pairs, workers=data_workers, snapshot_every=snapshot_every,
     )
-    best = run(opts)
-    typer.echo(f"best checkpoint: {best}")
+    run_files = [name for name in RUN_FILES if (out / name).exists()]
+    if run_files and not resume:
+        fail(f"--out {out}: holds a run already ({', '.join(run_files)}); pass --resume to continue it, or choose "
+             "another --out")
+    if resume and run_files and "last.pt" not in run_files:
+        fail(f"--resume {out}: holds a run ({', '.join(run_files)}) but no last.pt to continue it from; choose "
+             "another --out")
+    if resume and run_files:
+        resume_from, checkpoint, _ = checkpoint_model(out / "last.pt", "--resume")
+        missing = [key for key in ("optimizer", "state") if key not in checkpoint]
+        if missing:
+            fail(f"--resume {resume_from}: no {' or '.join(map(repr, missing))} to resume from")
+        opts = resumed_options(ctx, opts, checkpoint)
+    setting_protocol(opts.setting, opts.source_points, opts.target_points, opts.overlap, opts.noise, opts.max_angle,
+                     None, opts.outliers)  # fail early
+    require_shapes("train", opts.setting, data)
+    if (opts.views_share is not None or opts.sensor_share is not None) and opts.recipe is None:
+        raise typer.BadParameter("--views-share and --sensor-share need --recipe")
+    if opts.recipe is not None:
+        try:  # fail early, on the recipe's checks
+            recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share, opts.sensor_share)
+        except ValueError as err:
+            raise typer.BadParameter(str(err)) from err
+    if init is not None and not (resume and run_files):  # its weights must fit the network of the options above
+        init_path, init_data = checkpoint_file(init, "--init")
+        load_weights(MFGNet(MFGNetConfig(iterations=iterations, share_weights=share_weights)), init_data["model"],
+                     init_path, "--init")
+    outcome = run_training(opts)
+    if outcome.stopped_by:
+        code = 128 + signal.Signals[outcome.stopped_by].value
+        typer.echo(f"mfgnet: stopped on {outcome.stopped_by} before the run's end (exit {code}); "
+                   f"--resume --out {out} continues from {out / 'last.pt'}", err=True)
+        raise typer.Exit(code)
+    typer.echo(f"best checkpoint: {outcome.best}")

@@ -33,7 +33,7 @@ class TrainOptions:
     batch_size: int = 8
     lr: float = 1e-4
     weight_decay: float = 1e-3
-    lr_drop_at: float = 0.8  # fraction of the epochs after which lr is divided by 10
+    lr_drop_at: float = 0.8  # lr / 10 from epoch floor(lr_drop_at x epochs) on, never before epoch 1 (lr_at)
     seed: int = 0
     val_fraction: float = 0.04  # training shapes held out for validation
     val_pairs: int = 256
@@ -100,12 +100,57 @@ def epoch_batches(
     return torch.utils.data.DataLoader(_Epoch(), batch_size=None, num_workers=workers, prefetch_factor=4)
 
 
+# What makes a run: a resumed run must keep these (``resume_conflicts``); the rest are this process's (device, data,
+# threads, workers, prefetch, time limits, snapshots) or may grow a run (epochs, patience).
+RUN_OPTIONS = ("setting", "seed", "batch_size", "max_batches_per_epoch", "lr", "weight_decay", "lr_drop_at",
+               "val_fraction", "val_pairs", "source_points", "target_points", "overlap", "noise", "max_angle",
+               "outliers", "recipe", "views_share", "sensor_share", "init")
+
+
+def resume_conflicts(opts: TrainOptions, saved: dict, saved_network: MFGNetConfig) -> list[str]:
+    """The options of ``opts`` that differ from those of the run being resumed: ``saved`` (its ``config.json``
+    ``train`` options; only the keys it holds are compared) and ``saved_network`` (its checkpoint's network)."""
+    given = asdict(opts)
+    conflicts = [name for name in RUN_OPTIONS if name in saved and saved[name] != given[name]]
+    if MFGNetConfig.from_dict({**MFGNetConfig().to_dict(), **opts.config}) != saved_network:
+        conflicts.append("config")
+    return conflicts
+
+
 def lr_at(opts: TrainOptions, epoch: int) -> float:
-    return opts.lr * (0.1 if epoch >= math.floor(opts.lr_drop_at * opts.epochs) else 1.0)
+    """The learning rate of ``epoch``: ``lr``, divided by 10 from epoch floor(lr_drop_at x epochs) on, but never
+    before epoch 1, so that a one-epoch run trains at ``lr``."""
+    drop = max(1, math.floor(opts.lr_drop_at * opts.epochs))
+    return opts.lr * (0.1 if epoch >= drop else 1.0)
+
+
+def batch_generator(seed: int, epoch: int, batch: int) -> torch.Generator:
+    """The generator of batch ``batch``'s own random draws (its training keypoints), from (seed, epoch, batch) only.
+
+    A CPU generator on every device (``sample_training_keypoints`` draws on the CPU), so a resumed run, a CUDA run
+    and an uninterrupted CPU run draw the same keypoints for the same batch.
+    """
+    state = np.random.SeedSequence([seed, epoch, batch, 15485863]).generate_state(2, np.uint32)
+    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+
+
+@dataclass
+class TrainOutcome:
+    best: Path  # the best checkpoint (best.pt)
+    stopped_by: str | None = None  # the signal (SIGTERM, SIGINT) that stopped the run before its end; --resume goes on
 
 
 def train(opts: TrainOptions) -> Path:
-    """Train (or resume) a model; returns the path of the best checkpoint."""
+    """Train (or resume) a model; returns the path of the best checkpoint (``run_training`` also says how it ended)."""
+    return run_training(opts).best
+
+
+def run_training(opts: TrainOptions) -> TrainOutcome:
+    """Train (or resume) a model: its best checkpoint, and the signal that stopped it early, if one did.
+
+    A stop signal (SIGTERM, SIGINT) ends the run after the step it arrives in, with ``last.pt`` written; a run ended by
+    ``max_minutes`` or ``patience`` ends as asked (``stopped_by`` ``None``).
+    """
     out = Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     if opts.threads:
@@ -131,10 +176,15 @@ def train(opts: TrainOptions) -> Path:
         val_pairs = make_pairs(val_shapes, protocol, np.random.default_rng([opts.seed, 104729]))
 
     last_path, best_path, log_path = out / "last.pt", out / "best.pt", out / "log.jsonl"
-    state = {"epoch": 0, "batch": 0, "best": float("inf"), "best_epoch": -1, "stale": 0}
+    # "partial": the sums of an epoch stopped inside (losses, batches, seconds), so that its record covers all of it
+    state = {"epoch": 0, "batch": 0, "best": float("inf"), "best_epoch": -1, "stale": 0, "partial": None}
     if opts.resume and last_path.exists():
         ckpt = read_checkpoint(last_path)
         cfg = MFGNetConfig.from_dict(ckpt["config"])
+        saved = json.loads((out / "config.json").read_text())["train"] if (out / "config.json").exists() else {}
+        conflicts = resume_conflicts(opts, {"setting": ckpt.get("setting", opts.setting), **saved}, cfg)
+        if conflicts:
+            raise ValueError(f"resuming {out}: {', '.join(conflicts)} differ from the run's; a resumed run keeps them")
         model = MFGNet(cfg).to(device)
         model.load_state_dict(ckpt["model"])
         optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
@@ -142,6 +192,8 @@ def train(opts: TrainOptions) -> Path:
         state.update(ckpt["state"])
         print(f"resumed from {last_path} at epoch {state['epoch']} batch {state['batch']}")
     else:
+        if opts.resume:
+            print(f"no {last_path} to resume from: starting a new run")
         cfg = MFGNetConfig.from_dict({**MFGNetConfig().to_dict(), **opts.config})
         model = MFGNet(cfg).to(device)
         if opts.init:
@@ -151,6 +203,8 @@ def train(opts: TrainOptions) -> Path:
     (out / "config.json").write_text(json.dumps({"model": cfg.to_dict(), "train": asdict(opts)}, indent=2))
 
     def checkpoint(path: Path, **extra) -> None:
+        state["partial"] = ({"sums": dict(sums), "seen": seen, "compute": compute, "seconds": time.time() - epoch_start}
+                            if state["batch"] else None)  # inside an epoch: what its record needs of the batches done
         save_checkpoint(
             path,
             model,
@@ -163,7 +217,7 @@ def train(opts: TrainOptions) -> Path:
 
     begin = time.time()
     last_save = time.time()
-    generator = torch.Generator().manual_seed(opts.seed)
+    stopped_by = None
     prefetch = device.type == "cuda" if opts.prefetch is None else opts.prefetch
     from tqdm import tqdm
 
@@ -178,6 +232,10 @@ def train(opts: TrainOptions) -> Path:
                 n_batches = min(n_batches, opts.max_batches_per_epoch)
             sums = {"keypoint": 0.0, "matching": 0.0, "credibility": 0.0, "total": 0.0}
             seen, epoch_start, compute = 0, time.time(), 0.0
+            partial = state["partial"] if state["batch"] else None
+            if partial:  # resumed inside this epoch: its record covers the batches before the stop too
+                sums, seen, compute = dict(partial["sums"]), partial["seen"], partial["compute"]
+                epoch_start -= partial["seconds"]
             bar = tqdm(total=n_batches, initial=state["batch"], desc=f"epoch {epoch}", unit="batch", mininterval=5)
             batches = epoch_batches(stream, epoch, opts.batch_size, prefetch, state["batch"], opts.workers)
             for b, batch in enumerate(batches, start=state["batch"]):  # resumed inside an epoch: from its batch
@@ -195,7 +253,7 @@ def train(opts: TrainOptions) -> Path:
                     cfg.train_positives,
                     cfg.train_negatives,
                     cfg.match_threshold,
-                    generator if device.type == "cpu" else None,
+                    batch_generator(opts.seed, epoch, b),
                 )
                 outputs = model(src, tgt, src_idx=src_idx, tgt_idx=tgt_idx)
                 losses = registration_losses(outputs, src, tgt, R_gt, t_gt, cfg.match_threshold)
@@ -221,6 +279,7 @@ def train(opts: TrainOptions) -> Path:
                 checkpoint(last_path)
                 why = f"on {stop.requested}" if stop.requested else f"after {opts.max_minutes} min"
                 print(f"stopped {why} at epoch {epoch} batch {state['batch']}; --resume continues there")
+                stopped_by = stop.requested
                 break
             R, t, secs = predict_poses(model, val_pairs, batch_size=16)
             val = registration_metrics(R, t, val_pairs["rotation"], val_pairs["translation"], secs)
@@ -252,9 +311,10 @@ def train(opts: TrainOptions) -> Path:
             if state["stale"] >= opts.patience:
                 print(f"validation plateaued for {opts.patience} epochs; stopping at epoch {epoch}")
                 break
-            if stop.requested:
+            if stop.requested and state["epoch"] < opts.epochs:
                 print(f"stopped on {stop.requested} after epoch {epoch}; --resume continues there")
+                stopped_by = stop.requested
                 break
             if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
                 break
-    return best_path
+    return TrainOutcome(best_path, stopped_by)

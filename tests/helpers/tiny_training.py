@@ -5,6 +5,9 @@ Import as ``from tiny_training import ...`` (``tests/helpers`` is on ``sys.path`
 
 from __future__ import annotations
 
+import os
+import signal
+
 import numpy as np
 from shapes import sphere_shapes
 
@@ -32,3 +35,21 @@ def save_tiny_checkpoint(path) -> None:
     torch.manual_seed(0)
     cfg = MFGNetConfig(iterations=2, keypoints=32, emb_dims=16, encoder_blocks=2, matcher_channels=8, knn=8)
     save_checkpoint(path, MFGNet(cfg))
+
+
+def sigterm_in_step(monkeypatch, step: int) -> None:
+    """Send this process SIGTERM (as ``kill`` would) during training step number ``step`` (from 1) of
+    ``model.train``: a stop at a known batch."""
+    import model.train
+
+    steps = 0
+    losses = model.train.registration_losses
+
+    def counted(*args, **kwargs):
+        nonlocal steps
+        steps += 1
+        if steps == step:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return losses(*args, **kwargs)
+
+    monkeypatch.setattr(model.train, "registration_losses", counted)

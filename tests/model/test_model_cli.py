@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
 from shapes import sphere_shapes
-from tiny_training import save_tiny_checkpoint, tiny_training_data
+from tiny_training import TINY_MODEL, save_tiny_checkpoint, sigterm_in_step, tiny_training_data
 from typer.testing import CliRunner
 
 from model.data import data_dir, load_pairs, make_test_pairs
@@ -130,6 +130,49 @@ def test_train_rejects_a_missing_data_folder_and_an_out_under_a_file(tmp_path) -
     result = runner.invoke(app, ["train", "--out", str(tmp_path / "a_file" / "run"), "--data",
                                  tiny_training_data(tmp_path)])
     assert_usage_error(result, "--out", "a_file", "is not a folder")
+
+
+def test_train_refuses_an_out_folder_that_holds_a_run_unless_resumed(tmp_path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "log.jsonl").write_text('{"epoch": 0}\n')
+    args = ["train", "--out", str(run), "--data", tiny_training_data(tmp_path)]
+    assert_usage_error(runner.invoke(app, args), f"--out {run}: holds a run already (log.jsonl)", "pass --resume",
+                       "another --out")
+    assert (run / "log.jsonl").read_text() == '{"epoch": 0}\n'  # nothing appended, nothing replaced
+    assert not (run / "config.json").exists()
+    assert_usage_error(runner.invoke(app, [*args, "--resume"]), f"--resume {run}", "no last.pt to continue it from")
+
+
+def test_train_resume_keeps_the_run_options_and_exits_143_on_sigterm(tmp_path, monkeypatch) -> None:
+    from model.train import TrainOptions, train
+
+    data = tiny_training_data(tmp_path)
+    run = tmp_path / "run"
+    train(TrainOptions(setting="resampled", out=str(run), data=data, epochs=1, batch_size=2, max_batches_per_epoch=2,
+                       val_pairs=2, device="cpu", config=dict(TINY_MODEL)))
+    resume = ["train", "--out", str(run), "--data", data, "--resume"]
+    line = assert_usage_error(
+        runner.invoke(app, [*resume, "--seed", "9", "--setting", "clean", "--iterations", "3", "--lr", "1e-4"]),
+        "--seed 9 (the run's: 0)", "--setting clean (the run's: resampled)", "--iterations 3 (the run's: 1)",
+        "a resumed run keeps its options")
+    assert "--lr" not in line  # given with the run's value
+
+    sigterm_in_step(monkeypatch, 1)  # inside epoch 1: a signal is no end of the run
+    stopped = runner.invoke(app, [*resume, "--epochs", "3"])  # more epochs: the run grows; the rest is the run's
+    assert stopped.exit_code == 143, stopped.output
+    assert "stopped on SIGTERM before the run's end (exit 143)" in stopped.stderr
+    assert "best checkpoint" not in stopped.stdout
+    saved = json.loads((run / "config.json").read_text())
+    assert (saved["train"]["setting"], saved["train"]["seed"], saved["train"]["epochs"]) == ("resampled", 0, 3)
+    assert saved["train"]["config"] == saved["model"] and saved["model"]["emb_dims"] == TINY_MODEL["emb_dims"]
+    monkeypatch.undo()
+
+    finished = runner.invoke(app, resume)  # --epochs left out: the run's 3
+    assert finished.exit_code == 0, finished.output
+    assert f"best checkpoint: {run / 'best.pt'}" in finished.stdout
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [(r["epoch"], r["batches"]) for r in records] == [(0, 2), (1, 2), (2, 2)]
 
 
 def tiny_test_data(tmp_path) -> str:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from shapes import sphere_shapes
+from tiny_training import sigterm_in_step
 
 from model.checkpoint import load_model, read_checkpoint, resolve_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
@@ -16,7 +17,7 @@ from model.data import PairProtocol, TrainPairStream, make_pairs
 from model.losses import registration_losses, sample_training_keypoints
 from model.network import MFGNet
 from model.recipes import recipe_draw
-from model.train import TrainOptions, epoch_batches, train
+from model.train import TrainOptions, epoch_batches, lr_at, run_training, train
 
 TINY = {"iterations": 2, "keypoints": 32, "emb_dims": 16, "encoder_blocks": 2, "matcher_channels": 8,
         "knn": 8, "train_positives": 16, "train_negatives": 16}
@@ -93,6 +94,7 @@ def test_train_writes_checkpoints_and_log_and_resume_continues(tmp_path, synthet
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in records] == [0]
     assert records[0]["batches"] == 2
+    assert records[0]["lr"] == 1e-4  # a one-epoch run trains at its lr, not at the dropped one
     expected_keys = {"train_total", "train_keypoint", "train_matching", "train_credibility",
                      "val_mae_r", "val_n"}
     assert expected_keys <= set(records[0])
@@ -114,6 +116,65 @@ def test_train_writes_checkpoints_and_log_and_resume_continues(tmp_path, synthet
     changed = [k for k, v in last["model"].items()
                if v.is_floating_point() and not torch.equal(v, first_weights[k])]
     assert changed  # training went on from the saved weights
+
+
+TIMING_KEYS = {"s_per_pair", "epoch_minutes", "time", "val_ms_per_pair"}  # how fast, not what was trained
+
+
+def test_a_run_stopped_inside_an_epoch_and_resumed_ends_as_the_uninterrupted_run(
+    tmp_path, synthetic_modelnet, monkeypatch
+) -> None:
+    run_options = {"epochs": 2, "max_batches_per_epoch": 3, "seed": 5}
+    whole, run = tmp_path / "whole", tmp_path / "run"
+    assert run_training(options(whole, synthetic_modelnet, **run_options)).stopped_by is None
+
+    sigterm_in_step(monkeypatch, 5)  # epoch 1, its second batch
+    stopped = run_training(options(run, synthetic_modelnet, **run_options))
+    assert stopped.stopped_by == "SIGTERM"
+    state = read_checkpoint(run / "last.pt")["state"]
+    assert (state["epoch"], state["batch"]) == (1, 2)
+    monkeypatch.undo()
+    assert run_training(options(run, synthetic_modelnet, resume=True, **run_options)).stopped_by is None
+
+    expected, weights = read_checkpoint(whole / "last.pt"), read_checkpoint(run / "last.pt")
+    assert expected["model"].keys() == weights["model"].keys()
+    for key, value in expected["model"].items():
+        assert torch.equal(value, weights["model"][key]), key  # bitwise: every draw depends on (seed, epoch, batch)
+    assert weights["state"] == expected["state"]
+
+    def records(folder):
+        lines = [json.loads(line) for line in (folder / "log.jsonl").read_text().splitlines()]
+        assert all(set(r) >= TIMING_KEYS for r in lines)
+        return [{k: v for k, v in r.items() if k not in TIMING_KEYS} for r in lines]
+
+    assert records(run) == records(whole)  # the resumed epoch's record covers its batches before the stop too
+    assert records(run)[1]["batches"] == 3
+
+
+def test_resume_starts_a_new_run_where_there_is_none_and_refuses_other_run_options(
+    tmp_path, synthetic_modelnet, capsys
+) -> None:
+    run = tmp_path / "run"
+    train(options(run, synthetic_modelnet, max_batches_per_epoch=1, resume=True))
+    assert f"no {run / 'last.pt'} to resume from: starting a new run" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="seed, lr, config differ from the run's"):
+        train(options(run, synthetic_modelnet, max_batches_per_epoch=1, resume=True, epochs=2, seed=1, lr=1e-3,
+                      config={**TINY, "iterations": 3}))
+    train(options(run, synthetic_modelnet, max_batches_per_epoch=1, resume=True, epochs=2, patience=3))  # may grow
+    assert [json.loads(line)["epoch"] for line in (run / "log.jsonl").read_text().splitlines()] == [0, 1]
+
+
+def test_the_lr_drop_never_falls_on_the_first_epoch() -> None:
+    def schedule(epochs: int, drop_at: float = 0.8) -> list[float]:
+        opts = TrainOptions(lr=1.0, epochs=epochs, lr_drop_at=drop_at)
+        return [lr_at(opts, epoch) for epoch in range(epochs)]
+
+    assert schedule(1) == [1.0]  # was [0.1]: the whole run at a tenth of its lr
+    assert schedule(1, drop_at=0.0) == [1.0]
+    assert schedule(2) == [1.0, 0.1]
+    assert schedule(5) == [1.0, 1.0, 1.0, 1.0, 0.1]
+    assert schedule(50) == [1.0] * 40 + [0.1] * 10
+    assert schedule(5, drop_at=1.0) == [1.0] * 5  # never
 
 
 def assert_same_batches(here: list[dict], there: list[dict]) -> None:

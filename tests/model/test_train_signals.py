@@ -19,11 +19,12 @@ from model.graceful_stop import GracefulStop
 
 TRAIN = f"""
 import sys
-from model.train import TrainOptions, train
+from model.train import TrainOptions, run_training
 opts = TrainOptions(setting="resampled", out=sys.argv[1], data=sys.argv[2], epochs=int(sys.argv[3]), batch_size=2,
                     val_pairs=2, device="cpu", threads=1, config={TINY_MODEL}, checkpoint_minutes=60.0,
                     resume=sys.argv[4] == "resume")
-print("best", train(opts), flush=True)
+outcome = run_training(opts)
+print("best", outcome.best, "stopped by", outcome.stopped_by, flush=True)
 """
 
 
@@ -63,6 +64,7 @@ def test_a_signal_checkpoints_the_run_and_resume_continues_it(tmp_path, sig) -> 
     out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 0, out
     assert f"stopped on {sig.name}" in out and "--resume continues there" in out
+    assert f"stopped by {sig.name}" in out  # a run cut short says so (`mfgnet train` exits 128 + the signal)
     state = read_checkpoint(run / "last.pt")["state"]
     logged = len((run / "log.jsonl").read_text().splitlines())
     assert state["epoch"] == logged >= 2  # the checkpoint is where the log stops (inside an epoch: at its batch)
@@ -71,6 +73,7 @@ def test_a_signal_checkpoints_the_run_and_resume_continues_it(tmp_path, sig) -> 
     out, _ = resumed.communicate(timeout=180)
     assert resumed.returncode == 0, out
     assert f"resumed from {run / 'last.pt'} at epoch {state['epoch']} batch {state['batch']}" in out
+    assert "stopped by None" in out  # it ran to its end
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["epoch"] for r in records] == list(range(state["epoch"] + 1))  # nothing lost, nothing repeated
 
