@@ -57,8 +57,8 @@ def test_make_pairs_writes_a_loadable_seeded_pairs_file(tmp_path, tiny_checkpoin
                                  "--json", str(metrics_path)])
     assert result.exit_code == 0, result.output
     metrics = json.loads(metrics_path.read_text())
-    assert set(metrics) == METRIC_KEYS
-    assert metrics["n"] == 4
+    assert set(metrics) == METRIC_KEYS | {"evaluated"}  # the metrics and what they were measured on
+    assert metrics["n"] == 4 and metrics["evaluated"]["pairs"]["file"] == str(out)
 
 
 @pytest.mark.parametrize("where", ["no-folder", "file-as-folder", "folder"])
