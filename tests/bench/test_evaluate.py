@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, NOT_A_MODEL, NOT_AN_NPZ, assert_usage_error, bad_file, bad_model
 from shapes import sphere_shapes
-from tiny_training import save_tiny_checkpoint
 from typer.testing import CliRunner
 
 from model.data import PairProtocol, make_pairs, save_pairs
@@ -18,13 +17,6 @@ METRIC_KEYS = {"n", "rmse_r", "mae_r", "rmse_t", "mae_t", "iso_r_mean", "iso_r_m
                "iso_t_median", "recall_r1_t001", "recall_r5_t005", "ms_per_pair"}
 
 runner = CliRunner()
-
-
-@pytest.fixture
-def tiny_checkpoint(tmp_path):
-    path = tmp_path / "tiny.pt"
-    save_tiny_checkpoint(path)
-    return path
 
 
 @pytest.fixture

@@ -12,20 +12,12 @@ import torch
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
 from pair_checks import needs_modelnet
 from shapes import sphere_shapes
-from tiny_training import save_tiny_checkpoint
 from typer.testing import CliRunner
 
 from service.cli import app
 from service.manifest import bundled_models_dir
 
 runner = CliRunner()
-
-
-@pytest.fixture
-def tiny_checkpoint(tmp_path):
-    path = tmp_path / "tiny.pt"
-    save_tiny_checkpoint(path)
-    return path
 
 
 @pytest.mark.parametrize("kind", [*NOT_A_FILE, *NOT_A_CHECKPOINT])

@@ -9,6 +9,7 @@ import os
 import signal
 
 import numpy as np
+import pytest
 from shapes import sphere_shapes
 
 TINY_MODEL = {"iterations": 1, "keypoints": 32, "emb_dims": 8, "encoder_blocks": 1, "matcher_channels": 8,
@@ -35,6 +36,14 @@ def save_tiny_checkpoint(path) -> None:
     torch.manual_seed(0)
     cfg = MFGNetConfig(iterations=2, keypoints=32, emb_dims=16, encoder_blocks=2, matcher_channels=8, knn=8)
     save_checkpoint(path, MFGNet(cfg))
+
+
+@pytest.fixture
+def tiny_checkpoint(tmp_path):
+    """A tiny checkpoint (:func:`save_tiny_checkpoint`) in the test's folder; test modules import the fixture."""
+    path = tmp_path / "tiny.pt"
+    save_tiny_checkpoint(path)
+    return path
 
 
 def sigterm_in_step(monkeypatch, step: int) -> None:

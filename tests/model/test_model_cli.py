@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
 from shapes import sphere_shapes
-from tiny_training import TINY_MODEL, save_tiny_checkpoint, sigterm_in_step, tiny_training_data
+from tiny_training import TINY_MODEL, sigterm_in_step, tiny_training_data
 from typer.testing import CliRunner
 
 from model.data import data_dir, load_pairs, make_test_pairs
@@ -23,13 +23,6 @@ needs_modelnet = pytest.mark.skipif(
 )
 
 runner = CliRunner()
-
-
-@pytest.fixture
-def tiny_checkpoint(tmp_path):
-    path = tmp_path / "tiny.pt"
-    save_tiny_checkpoint(path)
-    return path
 
 
 def test_training_commands_are_registered_on_the_mfgnet_app() -> None:
