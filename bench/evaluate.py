@@ -93,6 +93,7 @@ def evaluate(
     if sum(x is not None for x in (checkpoint, model, baseline)) != 1:
         raise typer.BadParameter(
             "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)")
+    refuse_options_of_other_methods(ctx, checkpoint, model, baseline)
     if baseline is not None and baseline not in BASELINES:
         raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
     if model is not None:
@@ -173,18 +174,40 @@ PAIR_MAKING_OPTIONS = ("setting", "count", "seed", "source_points", "target_poin
                        "points", "outliers", "view_angle")
 
 
+# The runtime's options (with --model), PyTorch's batches (with --checkpoint) and the network's (not --baseline).
+RUNTIME_OPTIONS = ("refine", "refine_points", "rotation_search", "rotation_search_mode")
+CHECKPOINT_OPTIONS = ("batch_size",)
+NETWORK_OPTIONS = ("iterations", "keypoints")
+
+
+def given_options(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
+    """The options of ``names`` given on the command line (not defaults), as their flags."""
+    return [param.opts[0] for param in ctx.command.params if param.name in names
+            and getattr(ctx.get_parameter_source(param.name), "name", None) == "COMMANDLINE"]  # typer's own click
+
+
 def refuse_pair_options(ctx: typer.Context) -> None:
     """A usage error naming the pair-making options given on the command line beside ``--pairs``.
 
     ``--count`` does not take the file's first pairs: files made from the whole test split are in class order,
     so their first pairs are a few classes only (``mfgnet make-pairs --count N --seed S`` makes a seeded subset).
     """
-    given = [param.opts[0] for param in ctx.command.params if param.name in PAIR_MAKING_OPTIONS
-             and getattr(ctx.get_parameter_source(param.name), "name", None) == "COMMANDLINE"]  # typer's own click
+    given = given_options(ctx, PAIR_MAKING_OPTIONS)
     if given:
         fail(f"{', '.join(given)}: cannot apply with --pairs ({'it makes' if len(given) == 1 else 'they make'} "
              "pairs from --setting; a --pairs file is evaluated whole; for a subset: mfgnet make-pairs --count N "
              "--seed S)")
+
+
+def refuse_options_of_other_methods(ctx: typer.Context, checkpoint: str | None, model: str | None,
+                                    baseline: str | None) -> None:
+    """A usage error naming options given on the command line that the chosen method would ignore."""
+    for names, applies, where in ((RUNTIME_OPTIONS, model is not None, "only with --model (the runtime)"),
+                                  (CHECKPOINT_OPTIONS, checkpoint is not None, "only with --checkpoint (PyTorch)"),
+                                  (NETWORK_OPTIONS, baseline is None, "to networks, not to --baseline")):
+        given = [] if applies else given_options(ctx, names)
+        if given:
+            fail(f"{', '.join(given)}: {'applies' if len(given) == 1 else 'apply'} {where}")
 
 
 def runtime_model_fields(folder: Path, iterations: int | None, keypoints: int | None) -> dict:

@@ -237,3 +237,18 @@ def test_evaluate_help_says_what_count_and_seed_make() -> None:
     assert result.exit_code == 0
     assert "--count <int> pairs to make from --setting: a seeded draw" in text
     assert "--seed <int> seed of the pairs made from --setting" in text
+
+
+@pytest.mark.parametrize(("method", "options", "words"), [
+    ("checkpoint", ["--refine", "icp"], ("--refine", "only with --model")),
+    ("checkpoint", ["--rotation-search-mode", "on", "--refine-points", "512"],
+     ("--refine-points, --rotation-search-mode", "only with --model")),
+    ("baseline", ["--iterations", "2"], ("--iterations", "not to --baseline")),
+    ("baseline", ["--batch-size", "4"], ("--batch-size", "only with --checkpoint")),
+])
+def test_evaluate_refuses_options_the_method_would_ignore(tiny_checkpoint, synthetic_pairs, method, options,
+                                                          words) -> None:
+    """They were accepted and ignored: --refine icp with --checkpoint evaluated the network alone."""
+    chosen = ["--checkpoint", str(tiny_checkpoint)] if method == "checkpoint" else ["--baseline", "fgr"]
+    result = runner.invoke(app, ["evaluate", "--pairs", str(synthetic_pairs), *chosen, *options])
+    assert_usage_error(result, *words)
