@@ -23,6 +23,7 @@ app = typer.Typer(cls=PluginGroup, help="MFGNet point-cloud registration", no_ar
                   add_completion=False, rich_markup_mode=None)  # plain click help: flag names never cut at 80 columns
 
 SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
+UNRELIABLE_EXIT = 3  # mfgnet register --require-reliable: registered, but quality.reliable is false
 DEFAULT_MODEL = "general"  # trained for independently sampled scans; clean/noise/unseen reproduce the paper
 # What each bundled model is for, shown by `mfgnet models` (a manifest's own "description" wins). The table shows
 # no accuracy figures: each manifest's are on that model's own validation pairs, not comparable across models.
@@ -92,7 +93,8 @@ TargetArg = Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to alig
 ModelOpt = Annotated[
     str | None,
     typer.Option(help=f"model name (bundled or under --model-dir) or a model folder; default {DEFAULT_MODEL!r} "
-                      "in-process, the server's default with --server"),
+                      "in-process (the only model under --model-dir where it holds one), the server's default with "
+                      "--server"),
 ]
 IterationsOpt = Annotated[int | None, typer.Option(help="network iterations (default: the model's)")]
 KeypointsOpt = Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")]
@@ -126,7 +128,13 @@ ServerOpt = Annotated[
     str | None, typer.Option(help="register through a running service at this URL instead of in-process")
 ]
 ApiKeyOpt = Annotated[str | None, typer.Option(envvar="MFGNET_API_KEY", help="API key for --server")]
-BinaryOpt = Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files, not JSON")]
+BinaryOpt = Annotated[bool, typer.Option(help="with --server: upload the clouds as .npy files (file uploads take up "
+                                              "to the server's MFGNET_MAX_FILE_POINTS, 2,000,000 by default), or "
+                                              "with --no-binary as JSON (MFGNET_MAX_POINTS, 200,000)")]
+TimeoutOpt = Annotated[float, typer.Option(min=1, help="with --server: seconds to wait for the answer (the server's "
+                                                      "deadline, MFGNET_TIMEOUT_S, starts once the upload is read)")]
+RequireReliableOpt = Annotated[bool, typer.Option(help="exit 3 when the result is not quality.reliable (the outputs "
+                                                       "are still written)")]
 RotationSearchOpt = Annotated[
     bool | None,
     typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; about 2-3x the "
@@ -159,11 +167,13 @@ def register_command(
     write_aligned: WriteAlignedOpt = None,
     server: ServerOpt = None,
     api_key: ApiKeyOpt = None,
-    binary: BinaryOpt = False,
+    binary: BinaryOpt = True,
+    timeout: TimeoutOpt = 60.0,
     rotation_search: RotationSearchOpt = None,
     rotation_search_mode: RotationSearchModeOpt = None,
     threads: ThreadsOpt = None,
     json_output: JsonOpt = False,
+    require_reliable: RequireReliableOpt = False,
 ) -> None:
     """Register SOURCE onto TARGET and print the 4x4 source->target transform.
 
@@ -171,10 +181,11 @@ def register_command(
 
     \b
     Exit codes:
-    0 done;
+    0 done (whether or not quality.reliable; see --require-reliable);
     2 bad input (unreadable or invalid cloud, bad option, unknown model,
       refused by the server);
-    1 other failures (model integrity, server unreachable or 5xx).
+    1 other failures (model integrity, server unreachable or 5xx);
+    3 with --require-reliable: registered, but not reliable.
     """
     _check_register_flags(write_aligned, server, model_dir)
     search = _search_option(rotation_search, rotation_search_mode)
@@ -188,11 +199,14 @@ def register_command(
     if not drop_isolated:  # sent only when it departs from the default
         options["drop_isolated"] = False
     if server:
-        record = _register_remote(server, api_key, src, tgt, model, options, binary)
+        record = _register_remote(server, api_key, src, tgt, model, options, binary, timeout)
     else:
         record = _register_local(src, tgt, model, model_dir or [], threads, options)
     _write_outputs(record, src, out, write_aligned)
     typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
+    if require_reliable and not record["quality"].get("reliable"):
+        typer.echo("mfgnet: the result is not reliable (--require-reliable)", err=True)
+        raise typer.Exit(UNRELIABLE_EXIT)
 
 
 def _check_register_flags(write_aligned: Path | None, server: str | None, model_dir: list[Path] | None) -> None:
@@ -203,6 +217,8 @@ def _check_register_flags(write_aligned: Path | None, server: str | None, model_
         _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
     if server and model_dir:
         _fail("--model-dir only applies in-process; a server uses its own model folders")
+    if server and not server.lower().startswith(("http://", "https://")):
+        _fail(f"--server {server!r}: a URL starting with http:// or https://")
 
 
 def _search_option(flag: bool | None, mode: RotationSearchMode | None) -> bool | str | None:
@@ -306,12 +322,11 @@ def _register_local(src: np.ndarray, tgt: np.ndarray, model: str | None, model_d
 
 
 def _resolve_model_dir(model: str | None, model_dirs: list[Path]) -> Path:
-    """The folder of ``model`` (a name or a path); without a name: :func:`_default_model_dir`.
-    Folders under ``--model-dir`` win over bundled ones of the same name."""
+    """The folder of ``model`` (a model's name, else a path); without a name: :func:`_default_model_dir`.
+    Folders under ``--model-dir`` win over bundled ones of the same name; a name wins over a folder of that name in
+    the working directory (a training run's ``--out runs/general`` beside it), unless written as a path (``./x``)."""
     from service.manifest import bundled_models_dir
 
-    if model is not None and Path(model).is_dir():
-        return Path(model)
     extra, bundled = _model_dirs(model_dirs)
     if model is None and len(extra) == 1:
         return extra[0]
@@ -319,6 +334,8 @@ def _resolve_model_dir(model: str | None, model_dirs: list[Path]) -> Path:
     for directory in [*extra, *bundled]:
         if directory.name == name:
             return directory
+    if model is not None and Path(model).is_dir():
+        return Path(model)
     names = sorted({d.name for d in [*extra, *bundled]})
     where = ", ".join(str(d) for d in [bundled_models_dir(), *model_dirs])
     _fail(f"model {name!r} not found in {where}; available: {', '.join(names) or 'none'}")
@@ -346,17 +363,19 @@ def _default_model_dir(model_dirs: list[Path]) -> Path | None:
 
 
 def _register_remote(server: str, api_key: str | None, src: np.ndarray, tgt: np.ndarray, model: str | None,
-                     options: dict, binary: bool) -> dict:
+                     options: dict, binary: bool, timeout: float) -> dict:
+    """The pose from ``server``; the float64 clouds go to the client as they are (it re-centres far-away ones before
+    any float32 upload: cast here, map coordinates lost their centimetres, and the pose its degrees)."""
     try:
         from service.client import MfgnetClient, MfgnetError, pose_from_response
     except ImportError as exc:
         _fail(f"--server needs httpx: {SERVE_EXTRA_HINT} ({exc})")
     try:
-        with MfgnetClient(server, api_key=api_key) as client:
-            response = client.register(src.astype(np.float32), tgt.astype(np.float32), model=model,
-                                       return_correspondences=False, binary=binary, **options)
+        with MfgnetClient(server, api_key=api_key, timeout=timeout) as client:
+            response = client.register(src, tgt, model=model, return_correspondences=False, binary=binary, **options)
     except MfgnetError as exc:
-        _fail(f"server: {exc}", code=2 if 400 <= exc.status < 500 else 1)
+        hint = " (--api-key or MFGNET_API_KEY)" if exc.status == 401 else ""
+        _fail(f"server: {exc}{hint}", code=2 if 400 <= exc.status < 500 else 1)
     try:
         R, t = pose_from_response(response)
     except ValueError as exc:

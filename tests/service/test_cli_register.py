@@ -417,3 +417,33 @@ def test_a_corrupted_model_fails_with_exit_code_1(tmp_path, model_dir) -> None:
     result = runner.invoke(app, ["register", str(src), str(tgt), "--model", str(broken), *FAST])
     assert result.exit_code == 1
     assert "sha256 of matcher_1.onnx does not match" in result.stderr and "Traceback" not in result.output
+
+
+def test_a_model_name_wins_over_a_folder_of_that_name_in_the_working_directory(tmp_path, model_dir,
+                                                                             monkeypatch) -> None:
+    """A training run's folder named like a model (``train --out clean``) beside the clouds was taken for the model
+    (``manifest.json is missing``); a path written as one (``./clean``) still names the folder."""
+    src, tgt = write_pair(tmp_path, "npy")
+    (tmp_path / "clean").mkdir()
+    monkeypatch.chdir(tmp_path)
+    result = register(src, tgt, "--model", "clean", "--json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["model"]["name"] == "clean"
+    assert register(src, tgt, "--model", "./clean", model_dir=model_dir).exit_code == 1  # the empty folder
+
+
+def test_require_reliable_exits_3_on_an_unreliable_result_and_still_writes_it(tmp_path, model_dir) -> None:
+    """A script gating on the exit status could not tell an unreliable pose from a reliable one (both 0)."""
+    line = np.linspace(0.0, 1.0, 200)[:, None] * np.array([[1.0, 2.0, 3.0]])  # collinear: never reliable
+    src, tgt = tmp_path / "s.npy", tmp_path / "t.npy"
+    np.save(src, line)
+    np.save(tgt, line + 0.01)
+    out = tmp_path / "pose.json"
+    assert register(src, tgt, model_dir=model_dir).exit_code == 0
+    result = register(src, tgt, "--require-reliable", "--out", out, model_dir=model_dir)
+    assert result.exit_code == 3 and "not reliable" in result.stderr, result.output
+    assert json.loads(out.read_text())["quality"]["reliable"] is False
+    src_ok, tgt_ok = write_pair(tmp_path, "npy")
+    reliable = register(src_ok, tgt_ok, "--json", model_dir=model_dir, fast=False)
+    expected = 0 if json.loads(reliable.stdout)["quality"]["reliable"] else 3
+    assert register(src_ok, tgt_ok, "--require-reliable", model_dir=model_dir, fast=False).exit_code == expected

@@ -90,7 +90,7 @@ def test_server_mode_gives_the_same_transform_as_in_process(server, model_dir, p
     code, local, err = register(src, tgt, "--model-dir", model_dir)
     assert code == 0, err
     aligned = tmp_path / "aligned.npz"
-    extra = ["--binary"] if upload == "binary" else []
+    extra = ["--no-binary"] if upload == "json" else []  # .npy uploads by default
     code, remote, err = register(src, tgt, "--server", server, "--write-aligned", aligned, *extra)
     assert code == 0, err
     assert remote["model"]["sha256"] == local["model"]["sha256"]
@@ -99,6 +99,34 @@ def test_server_mode_gives_the_same_transform_as_in_process(server, model_dir, p
     assert set(remote) == set(local) and "queue" in remote["timing_ms"]
     R, t = np.asarray(remote["rotation"]), np.asarray(remote["translation"])
     assert np.allclose(read_points(aligned), SOURCE.astype(np.float64) @ R.T + t, atol=1e-5)
+
+
+@pytest.mark.parametrize("upload", ["json", "binary"])
+def test_server_mode_keeps_map_coordinates(server, model_dir, tmp_path, upload):
+    """Clouds 4,000 km from the origin (UTM): the command cast them to float32 before the client could re-centre
+    them (0.25-0.5 m steps on a unit-size shape), and the pose came back degrees off, still reliable."""
+    offset = np.array([512_345.0, 4_123_456.0, 150.0])
+    src, tgt = tmp_path / "s.npy", tmp_path / "t.npy"
+    np.save(src, SOURCE.astype(np.float64) + offset)
+    np.save(tgt, TARGET.astype(np.float64) + offset)
+    code, local, err = register(src, tgt, "--model-dir", model_dir)
+    assert code == 0, err
+    code, remote, err = register(src, tgt, "--server", server, *(["--no-binary"] if upload == "json" else []))
+    assert code == 0, err
+    np.testing.assert_allclose(remote["rotation"], local["rotation"], atol=1e-4)
+    np.testing.assert_allclose(remote["translation"], local["translation"], atol=1e-2)
+
+
+def test_server_mode_gives_up_after_its_timeout_and_names_the_url_scheme(tmp_path, pair_files) -> None:
+    with socket.socket() as silent:  # accepts connections, never answers
+        silent.bind(("127.0.0.1", 0))
+        silent.listen()
+        started = time.monotonic()
+        result = runner.invoke(app, ["register", *map(str, pair_files), "--server",
+                                     f"http://127.0.0.1:{silent.getsockname()[1]}", "--timeout", "1"])
+        assert result.exit_code == 1 and time.monotonic() - started < 10, result.output
+    result = runner.invoke(app, ["register", *map(str, pair_files), "--server", "127.0.0.1:8080"])
+    assert result.exit_code == 2 and "http://" in result.stderr
 
 
 def test_server_refusal_exits_2_with_the_servers_message(server, tmp_path, pair_files) -> None:
