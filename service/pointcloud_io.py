@@ -35,5 +35,6 @@ def parse_points(data: bytes, suffix: str = "", name: str = "<bytes>") -> np.nda
 
 
 def write_points(path: str | os.PathLike[str], points: np.ndarray) -> None:
-    """Write ``points (N, 3)`` as float32 in the format of ``path``'s extension (:data:`SUFFIXES`)."""
+    """Write ``points (N, 3)`` in the format of ``path``'s extension (:data:`SUFFIXES`): float32, float64 for map
+    coordinates (:func:`service.formats.write_cloud`)."""
     write_cloud(path, points)

@@ -447,3 +447,21 @@ def test_require_reliable_exits_3_on_an_unreliable_result_and_still_writes_it(tm
     reliable = register(src_ok, tgt_ok, "--json", model_dir=model_dir, fast=False)
     expected = 0 if json.loads(reliable.stdout)["quality"]["reliable"] else 3
     assert register(src_ok, tgt_ok, "--require-reliable", model_dir=model_dir, fast=False).exit_code == expected
+
+
+@pytest.mark.parametrize("fmt", ["ply", "pcd", "xyz", "csv", "npy", "npz"])
+def test_aligned_map_coordinates_are_written_in_float64_and_others_in_float32(tmp_path, model_dir, fmt) -> None:
+    """Every format was written as float32: a scan in UTM coordinates came back moved in steps of up to 0.125 m."""
+    offset = np.array([512_345.0, 4_123_456.0, 150.0])
+    src, tgt = tmp_path / "s.npy", tmp_path / "t.npy"
+    np.save(src, SOURCE.astype(np.float64) + offset)
+    np.save(tgt, TARGET.astype(np.float64) + offset)
+    aligned, out = tmp_path / f"aligned.{fmt}", tmp_path / "pose.json"
+    assert register(src, tgt, "--out", out, "--write-aligned", aligned, model_dir=model_dir).exit_code == 0
+    record = json.loads(out.read_text())
+    expected = np.load(src) @ np.asarray(record["rotation"]).T + np.asarray(record["translation"])
+    np.testing.assert_allclose(read_points(aligned), expected, rtol=0, atol=1e-6)
+    near = tmp_path / f"near.{fmt}"
+    write_points(near, SOURCE.astype(np.float64))
+    far_size, near_size = aligned.stat().st_size, near.stat().st_size
+    assert near_size < far_size  # float32 where it keeps the points: the file of the same points is smaller
