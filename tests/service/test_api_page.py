@@ -80,6 +80,19 @@ def test_aligned_returns_every_source_point_moved_by_the_transform_as_ply(client
     assert np.abs(moved - expected).max() <= 1e-6 * np.abs(expected).max()
 
 
+def test_aligned_keeps_map_coordinates_in_float64(client, tmp_path):
+    """The download was float32 whatever the source: a scan in UTM coordinates came back in steps of 0.25-0.5 m."""
+    source = synthetic_pair(seed=6).source.astype(np.float64) + np.array([512_345.0, 4_123_456.0, 150.0])
+    np.save(tmp_path / "utm.npy", source)
+    T = np.eye(4)
+    T[:3, 3] = [0.125, -0.5, 2.0]
+    response = client.post("/v1/register/aligned", data={"transform": json.dumps(T.tolist())},
+                           files={"source": ("utm.npy", (tmp_path / "utm.npy").read_bytes())})
+    assert response.status_code == 200, response.text
+    moved = parse_points(response.content, ".ply", "aligned.ply")  # [N, 3]
+    np.testing.assert_allclose(moved, source + T[:3, 3], rtol=0, atol=1e-6)
+
+
 def test_aligned_names_a_download_of_any_script_in_ascii_and_in_utf_8(client, tmp_path):
     """HTTP headers are Latin-1: a source named in Cyrillic or CJK made the download a 500 after the whole file was
     read and moved."""

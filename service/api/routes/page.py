@@ -29,6 +29,7 @@ from service.api.routes.register import _MULTIPART_SCHEMA
 from service.api.runner import register_response
 from service.api.schemas import RegisterResponse
 from service.errors import InputError
+from service.formats.write import FLOAT32_EXACT_ENOUGH
 from service.registrar import check_transform
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
@@ -149,10 +150,9 @@ async def register_aligned(request: Request) -> Response:
 
             def work() -> bytes:
                 source = bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
-                with np.errstate(over="ignore"):
-                    aligned = (source @ R.T + t).astype("<f4")  # [N, 3]
+                aligned = source @ R.T + t  # [N, 3] float64
                 if not np.isfinite(aligned).all():
-                    raise APIError(422, "invalid request: the moved source leaves the float32 range")
+                    raise APIError(422, "invalid request: the moved source leaves the float64 range")
                 return ply_bytes(aligned)
 
             content, _ = await runner.run(slot, work, request)
@@ -196,12 +196,15 @@ def _numbers_only(matrix: Any) -> bool:
 
 
 def ply_bytes(xyz: np.ndarray) -> bytes:
-    """Binary little-endian PLY of float32 ``xyz [N, 3]``."""
+    """Binary little-endian PLY of ``xyz [N, 3]``: float32, or float64 (``double``) where a coordinate is beyond
+    ``FLOAT32_EXACT_ENOUGH`` (map coordinates), as the CLI writes clouds."""
+    wide = np.abs(xyz).max() > FLOAT32_EXACT_ENOUGH
+    kind, dtype = ("double", "<f8") if wide else ("float", "<f4")
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment aligned by mfgnet (src_to_tgt applied)\n"
-        f"element vertex {len(xyz)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+        f"element vertex {len(xyz)}\nproperty {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n"
     )
-    return header.encode("ascii") + np.ascontiguousarray(xyz, dtype="<f4").tobytes()
+    return header.encode("ascii") + np.ascontiguousarray(xyz, dtype=dtype).tobytes()
 
 
 def _safe(stem: str) -> str:
