@@ -187,7 +187,7 @@ def register_command(
     1 other failures (model integrity, server unreachable or 5xx);
     3 with --require-reliable: registered, but not reliable.
     """
-    _check_register_flags(write_aligned, server, model_dir)
+    _check_register_flags(write_aligned, server, model_dir, out)
     search = _search_option(rotation_search, rotation_search_mode)
     src, tgt = _read_cloud(source), _read_cloud(target)
     init = _read_transform(initial_transform) if initial_transform is not None else None
@@ -209,9 +209,16 @@ def register_command(
         raise typer.Exit(UNRELIABLE_EXIT)
 
 
-def _check_register_flags(write_aligned: Path | None, server: str | None, model_dir: list[Path] | None) -> None:
-    """Usage errors that need no file read."""
+def _check_register_flags(write_aligned: Path | None, server: str | None, model_dir: list[Path] | None,
+                          out: Path | None = None) -> None:
+    """Usage errors that need no file read, before the registration runs."""
     from service.pointcloud_io import SUFFIXES
+
+    for path, option in ((out, "--out"), (write_aligned, "--write-aligned")):
+        if path is not None and path.is_dir():
+            _fail(f"{option} {path}: a folder, not a file")
+        if path is not None and not path.parent.is_dir():
+            _fail(f"{option} {path}: folder {path.parent} does not exist")
 
     if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
         _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")

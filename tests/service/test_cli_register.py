@@ -409,6 +409,16 @@ def test_rejects_an_unwritable_aligned_format_before_registering(tmp_path, model
     assert_clean_failure(result, "aligned.obj", "unknown extension")
 
 
+@pytest.mark.parametrize("option", ["--out", "--write-aligned"])
+def test_rejects_an_output_in_a_folder_or_a_missing_one_before_registering(tmp_path, model_dir, option) -> None:
+    """--out to a folder failed only after the registration had run."""
+    src, tgt = write_pair(tmp_path, "npy")
+    (tmp_path / "folder.ply").mkdir()
+    assert_clean_failure(register(src, tgt, option, tmp_path / "folder.ply", model_dir=model_dir), "a folder")
+    missing = tmp_path / "nowhere" / "x.ply"
+    assert_clean_failure(register(src, tgt, option, missing, model_dir=model_dir), "does not exist")
+
+
 def test_a_corrupted_model_fails_with_exit_code_1(tmp_path, model_dir) -> None:
     broken = tmp_path / "clean"
     shutil.copytree(model_dir, broken)
