@@ -25,7 +25,15 @@ from model.cli import (
     ViewAngle,
     setting_protocol,
 )
-from model.cli_inputs import checkpoint_model, fail, model_dir, output_file, pairs_file, require_shapes
+from model.cli_inputs import (
+    checkpoint_model,
+    fail,
+    given_options,
+    model_dir,
+    output_file,
+    pairs_file,
+    require_shapes,
+)
 from model.data import make_test_pairs
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
@@ -180,10 +188,10 @@ CHECKPOINT_OPTIONS = ("batch_size",)
 NETWORK_OPTIONS = ("iterations", "keypoints")
 
 
-def given_options(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
-    """The options of ``names`` given on the command line (not defaults), as their flags."""
-    return [param.opts[0] for param in ctx.command.params if param.name in names
-            and getattr(ctx.get_parameter_source(param.name), "name", None) == "COMMANDLINE"]  # typer's own click
+def given_flags(ctx: typer.Context, names: tuple[str, ...]) -> list[str]:
+    """The options of ``names`` the user gave (not defaults), as their flags."""
+    given = given_options(ctx)
+    return [param.opts[0] for param in ctx.command.params if param.name in names and param.name in given]
 
 
 def refuse_pair_options(ctx: typer.Context) -> None:
@@ -192,7 +200,7 @@ def refuse_pair_options(ctx: typer.Context) -> None:
     ``--count`` does not take the file's first pairs: files made from the whole test split are in class order,
     so their first pairs are a few classes only (``mfgnet make-pairs --count N --seed S`` makes a seeded subset).
     """
-    given = given_options(ctx, PAIR_MAKING_OPTIONS)
+    given = given_flags(ctx, PAIR_MAKING_OPTIONS)
     if given:
         fail(f"{', '.join(given)}: cannot apply with --pairs ({'it makes' if len(given) == 1 else 'they make'} "
              "pairs from --setting; a --pairs file is evaluated whole; for a subset: mfgnet make-pairs --count N "
@@ -205,7 +213,7 @@ def refuse_options_of_other_methods(ctx: typer.Context, checkpoint: str | None, 
     for names, applies, where in ((RUNTIME_OPTIONS, model is not None, "only with --model (the runtime)"),
                                   (CHECKPOINT_OPTIONS, checkpoint is not None, "only with --checkpoint (PyTorch)"),
                                   (NETWORK_OPTIONS, baseline is None, "to networks, not to --baseline")):
-        given = [] if applies else given_options(ctx, names)
+        given = [] if applies else given_flags(ctx, names)
         if given:
             fail(f"{', '.join(given)}: {'applies' if len(given) == 1 else 'apply'} {where}")
 

@@ -15,6 +15,7 @@ from model.cli_inputs import (
     checkpoint_file,
     checkpoint_model,
     fail,
+    given_options,
     json_file,
     load_weights,
     output_file,
@@ -113,8 +114,7 @@ def resumed_options(ctx: typer.Context, opts: TrainOptions, checkpoint: dict) ->
             fail(f"--resume {out / 'config.json'}: not a run's config (no 'train' options)")
         saved = config["train"]
     saved = {"setting": checkpoint.get("setting", opts.setting), **saved}
-    given = {name for name in ctx.params  # on the command line (typer's own click: its ParameterSource, by name)
-             if getattr(ctx.get_parameter_source(name), "name", None) in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")}
+    given = given_options(ctx)
     conflicts = []
     for name, field in RUN_OPTION_FIELDS.items():
         if field not in saved:

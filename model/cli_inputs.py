@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import typer
 
 from model.data import DATA_ENV, load_pairs, shapes_file
 from service.cli import _fail as fail
@@ -34,6 +35,13 @@ NPZ_FILE_ERRORS = (ValueError, EOFError, zipfile.BadZipFile)
 
 ZIP_MAGIC = b"PK\x03\x04"  # how an .npz (and a PyTorch checkpoint) starts
 PICKLE_PROTO = b"\x80"  # how a checkpoint of torch's legacy format (a pickle, protocol 2 or later) starts
+
+
+def given_options(ctx: typer.Context) -> set[str]:
+    """The names of the options the user gave (on the command line, or from their environment variable), not
+    defaults (typer's own click: its ParameterSource, by name)."""
+    return {name for name in ctx.params
+            if getattr(ctx.get_parameter_source(name), "name", None) in ("COMMANDLINE", "ENVIRONMENT", "PROMPT")}
 
 
 def short(error: BaseException, width: int = 120) -> str:
