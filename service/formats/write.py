@@ -40,10 +40,14 @@ def write_cloud(path: str | os.PathLike[str], points: np.ndarray) -> None:
         xyz = checked(points.astype(np.float64))  # [N, 3]
     except PointCloudFormatError as exc:
         raise PointCloudFormatError(f"{path.name}: {exc}") from None
-    if np.abs(xyz).max() <= FLOAT32_EXACT_ENOUGH:
-        xyz = xyz.astype(np.float32)
     with open(path, "wb") as f:
-        writer(f, xyz, suffix)
+        writer(f, as_written(xyz), suffix)
+
+
+def as_written(xyz: np.ndarray) -> np.ndarray:
+    """float64 ``xyz [N, 3]`` as a file holds it: float32 where every coordinate is within ``FLOAT32_EXACT_ENOUGH``,
+    else as it is."""
+    return xyz.astype(np.float32) if np.abs(xyz).max() <= FLOAT32_EXACT_ENOUGH else xyz
 
 
 def _write_ply(f: BinaryIO, xyz: np.ndarray, suffix: str) -> None:

@@ -29,7 +29,7 @@ from service.api.routes.register import _MULTIPART_SCHEMA
 from service.api.runner import register_response
 from service.api.schemas import RegisterResponse
 from service.errors import InputError
-from service.formats.write import FLOAT32_EXACT_ENOUGH
+from service.formats.write import as_written
 from service.registrar import check_transform
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
@@ -196,10 +196,10 @@ def _numbers_only(matrix: Any) -> bool:
 
 
 def ply_bytes(xyz: np.ndarray) -> bytes:
-    """Binary little-endian PLY of ``xyz [N, 3]``: float32, or float64 (``double``) where a coordinate is beyond
-    ``FLOAT32_EXACT_ENOUGH`` (map coordinates), as the CLI writes clouds."""
-    wide = np.abs(xyz).max() > FLOAT32_EXACT_ENOUGH
-    kind, dtype = ("double", "<f8") if wide else ("float", "<f4")
+    """Binary little-endian PLY of float64 ``xyz [N, 3]`` in the precision the CLI writes clouds with
+    (:func:`service.formats.write.as_written`: float32, or ``double`` for map coordinates)."""
+    xyz = as_written(xyz)
+    kind, dtype = ("double", "<f8") if xyz.dtype == np.float64 else ("float", "<f4")
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment aligned by mfgnet (src_to_tgt applied)\n"
         f"element vertex {len(xyz)}\nproperty {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n"
