@@ -15,7 +15,7 @@ import typer
 
 from export import MIN_COMPARED
 from model.cli_inputs import fail, short
-from service.manifest import MANIFEST
+from service.manifest import MANIFEST, looks_like_model
 
 STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
 
@@ -117,14 +117,9 @@ def check_model_out(out: Path) -> None:
              "'_', '.', '-')")
     output_folder(out, "--out")
     others = out.is_dir() and any(not path.name.startswith(STAGING_PREFIX) for path in out.iterdir())
-    if others and not is_model_folder(out):  # a staging folder left by a killed export is no reason to refuse
+    if others and not looks_like_model(out):  # a staging folder left by a killed export is no reason to refuse
         fail(f"--out {out}: a folder of other files, not a model folder (name a new or empty folder, or a model "
              "folder to re-export)")
-
-
-def is_model_folder(folder: Path) -> bool:
-    """``folder`` holds a manifest or ONNX graphs (what ``service.manifest`` discovers as a model)."""
-    return (folder / MANIFEST).is_file() or any(folder.glob("*.onnx"))
 
 
 @contextmanager

@@ -128,13 +128,13 @@ def discover_model_dirs(extra_dirs: list[str | Path] | None = None) -> list[Path
     """Bundled model folders, then every model folder inside (or equal to) each extra directory."""
     found: list[Path] = []
     for root in [bundled_models_dir(), *[Path(d) for d in extra_dirs or []]]:
-        if _looks_like_model(root):
+        if looks_like_model(root):
             found.append(root)
         elif root.is_dir():
-            found.extend(sorted(p for p in root.iterdir() if p.is_dir() and _looks_like_model(p)))
+            found.extend(sorted(p for p in root.iterdir() if p.is_dir() and looks_like_model(p)))
     return found
 
 
-def _looks_like_model(path: Path) -> bool:
+def looks_like_model(path: Path) -> bool:
     """A folder with a manifest or ONNX graphs (one without a manifest is reported, not skipped)."""
     return path.is_dir() and ((path / MANIFEST).is_file() or any(path.glob("*.onnx")))
