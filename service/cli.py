@@ -120,7 +120,8 @@ InitialTransformOpt = Annotated[
     Path | None, typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4; "
                               "with a refinement, kept where it fits better than the network's poses")
 ]
-OutOpt = Annotated[Path | None, typer.Option(help="write the pose, quality, model and timing as JSON here")]
+OutOpt = Annotated[Path | None, typer.Option(help="write the pose, quality, model and timing as JSON here ('-': to "
+                                                  "standard output, as --json)")]
 WriteAlignedOpt = Annotated[
     Path | None, typer.Option(help="write the source moved onto the target (R @ p + t); format from extension")
 ]
@@ -187,7 +188,13 @@ def register_command(
     1 other failures (model integrity, server unreachable or 5xx);
     3 with --require-reliable: registered, but not reliable.
     """
+    if out == Path("-"):  # the record on standard output, nothing else there
+        out, json_output = None, True
     _check_register_flags(write_aligned, server, model_dir, out)
+    if server and threads is not None:
+        _fail("--threads only applies in-process; a server uses its MFGNET_THREADS")
+    if refine is not None and refine.value == "none" and refine_points is not None:
+        _fail("--refine-points sets the refinement's clouds; --refine none runs no refinement")
     search = _search_option(rotation_search, rotation_search_mode)
     src, tgt = _read_cloud(source), _read_cloud(target)
     init = _read_transform(initial_transform) if initial_transform is not None else None

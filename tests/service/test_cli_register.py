@@ -475,3 +475,20 @@ def test_aligned_map_coordinates_are_written_in_float64_and_others_in_float32(tm
     write_points(near, SOURCE.astype(np.float64))
     far_size, near_size = aligned.stat().st_size, near.stat().st_size
     assert near_size < far_size  # float32 where it keeps the points: the file of the same points is smaller
+
+
+def test_out_dash_prints_only_the_record_and_writes_no_file(tmp_path, model_dir, monkeypatch) -> None:
+    """``--out -`` made a file named ``-``."""
+    src, tgt = write_pair(tmp_path, "npy")
+    monkeypatch.chdir(tmp_path)
+    result = register(src, tgt, "--out", "-", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    assert set(json.loads(result.stdout)) == RECORD_KEYS and not (tmp_path / "-").exists()
+
+
+def test_rejects_options_that_the_chosen_run_would_ignore(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    assert_clean_failure(register(src, tgt, "--refine", "none", "--refine-points", "512", model_dir=model_dir),
+                         "--refine-points", "--refine none")
+    result = runner.invoke(app, ["register", str(src), str(tgt), "--server", "http://127.0.0.1:1", "--threads", "2"])
+    assert_clean_failure(result, "--threads", "MFGNET_THREADS")
