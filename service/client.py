@@ -291,7 +291,7 @@ def _plain(value: Any) -> Any:
 def _json_default(value: Any) -> Any:
     """``json.dumps``'s ``default``: numpy values left inside lists (rows of a ragged cloud) as plain Python."""
     if isinstance(value, (np.ndarray, np.generic)):
-        return value.tolist()
+        return _plain(value)
     raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
