@@ -396,6 +396,9 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
                 raise APIError(422, f"invalid request: {key}: unexpected file; only {' and '.join(file_fields)} "
                                f"{'are files' if len(file_fields) > 1 else 'is a file'}")
             else:
+                if "\x00" in value:  # the parser reads fields as UTF-8 (else Latin-1): UTF-16 text keeps its NULs
+                    raise APIError(400, f"{key}: the field's value holds a NUL byte; form fields are read as UTF-8 "
+                                        "text (was it sent as UTF-16?)")
                 fields[key] = value
         missing = [name for name in file_fields if name not in files]
         if missing:

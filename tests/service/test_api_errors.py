@@ -226,17 +226,20 @@ def test_a_multipart_body_with_an_epilogue_after_its_closing_boundary_registers(
     assert response.status_code == 200, response.text
 
 
-def multipart(source_headers: bytes, content_type: str = "multipart/form-data; boundary=B") -> dict:
-    """A ``/v1/register`` upload whose source part has the ``Content-Disposition`` and headers ``source_headers``."""
+def multipart(source_headers: bytes, content_type: str = "multipart/form-data; boundary=B", extra: bytes = b"") -> dict:
+    """A ``/v1/register`` upload whose source part has the ``Content-Disposition`` and headers ``source_headers``,
+    and ``extra`` (a whole part: headers, blank line, value) after the target's part."""
     parts = [source_headers + b"\r\n\r\n" + npy(PAIR.source),
              b'Content-Disposition: form-data; name="target"; filename="t.npy"\r\n\r\n' + npy(PAIR.target)]
+    parts += [extra] if extra else []
     content = b"".join(b"--B\r\n" + part + b"\r\n" for part in parts) + b"--B--\r\n"
     return {"content": content, "headers": {"content-type": content_type}}
 
 
 def test_multipart_uploads_the_form_parser_would_misread_are_4xx_naming_the_problem(client, still_serves) -> None:
     """A file named only by RFC 5987's filename* was taken for a text field, a base64 part's text for the file's bytes
-    ("the cloud is empty"), and a body declared as UTF-16 had its part names decoded as UTF-16 (a field "潳牵散")."""
+    ("the cloud is empty"), a body declared as UTF-16 had its part names decoded as UTF-16 (a field "潳牵散"), and a
+    UTF-16 field part got a bare "invalid value"."""
     disposition = b'Content-Disposition: form-data; name="source"; filename="s.npy"'
     cases = [
         (multipart(b"Content-Disposition: form-data; name=\"source\"; filename*=UTF-8''%E6%97%A5.npy"), 422,
@@ -245,6 +248,9 @@ def test_multipart_uploads_the_form_parser_would_misread_are_4xx_naming_the_prob
          ("source", "Content-Transfer-Encoding", "base64")),
         (multipart(disposition, "multipart/form-data; boundary=B; charset=utf-16"), 415,
          ("charset", "utf-16", "UTF-8")),
+        (multipart(disposition, extra=b'Content-Disposition: form-data; name="iterations"\r\n'
+                                      b"Content-Type: text/plain; charset=utf-16\r\n\r\n" + "4".encode("utf-16")),
+         400, ("iterations", "NUL", "UTF-8")),
     ]
     for request, status, words in cases:
         assert_error(client.post("/v1/register", **request), status, *words)
