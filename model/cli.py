@@ -89,7 +89,6 @@ def make_pairs(
     typer.echo(f"wrote {len(pairs['source'])} {setting} pairs to {written}")
 
 
-RUN_FILES = ("last.pt", "best.pt", "log.jsonl", "snapshots")  # what a run leaves in its folder (config.json: at start)
 # `mfgnet train` options that make a run -> their TrainOptions field (model.train.RUN_OPTIONS): with --resume, one left
 # out takes the run's value and one given must equal it; --iterations / --share-weights must equal the checkpoint's.
 RUN_OPTION_FIELDS = {"setting": "setting", "seed": "seed", "batch_size": "batch_size",
@@ -211,7 +210,7 @@ def train(
     """
     from model.config import MFGNetConfig
     from model.network import MFGNet
-    from model.train import TrainOptions, run_training
+    from model.train import RunFolderInUseError, TrainOptions, check_run_folder, run_training
 
     output_folder(out, "--out")
     opts = TrainOptions(
@@ -223,12 +222,13 @@ def train(
         max_batches_per_epoch=batches_per_epoch, lr_drop_at=lr_drop_at, recipe=recipe, views_share=views_share,
         sensor_share=sensor_share, val_pairs=val_pairs, workers=data_workers, snapshot_every=snapshot_every,
     )
-    run_files = [name for name in RUN_FILES if (out / name).exists()]
-    if run_files and not resume:
-        fail(f"--out {out}: holds a run already ({', '.join(run_files)}); pass --resume to continue it, or choose "
-             "another --out")
-    if resume and run_files and "last.pt" not in run_files:
-        fail(f"--resume {out}: holds a run ({', '.join(run_files)}) but no last.pt to continue it from; choose "
+    try:  # the library's check (no --overwrite here: a run is replaced by hand)
+        run_files = check_run_folder(out, resume)
+    except RunFolderInUseError as err:
+        if err.resume:
+            fail(f"--resume {out}: holds a run ({', '.join(err.files)}) but no last.pt to continue it from; choose "
+                 "another --out")
+        fail(f"--out {out}: holds a run already ({', '.join(err.files)}); pass --resume to continue it, or choose "
              "another --out")
     if resume and run_files:
         resume_from, checkpoint, _ = checkpoint_model(out / "last.pt", "--resume")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -41,7 +42,8 @@ class TrainOptions:
     patience: int = 10  # epochs without validation improvement before stopping
     max_minutes: float | None = None  # stop (after a checkpoint) when this much time has passed
     max_batches_per_epoch: int | None = None
-    resume: bool = False
+    resume: bool = False  # continue the run in ``out`` from its last.pt (a new run where ``out`` holds none)
+    overwrite: bool = False  # start a new run in ``out`` even where it holds one, deleting that run's files first
     init: str | None = None  # start from these weights (fine-tuning), fresh optimizer
     device: str = "auto"
     data: str | None = None
@@ -100,6 +102,47 @@ def epoch_batches(
     return torch.utils.data.DataLoader(_Epoch(), batch_size=None, num_workers=workers, prefetch_factor=4)
 
 
+RUN_FILES = ("last.pt", "best.pt", "log.jsonl", "snapshots")  # what a run leaves in its folder (config.json: at start)
+
+
+class RunFolderInUseError(FileExistsError):
+    """Training into ``out`` would overwrite the run it holds (its ``files``, of :data:`RUN_FILES`): a new run
+    (``resume`` false) without ``overwrite``, or a resumed one where there is no ``last.pt`` to continue from."""
+
+    def __init__(self, out: Path, files: list[str], resume: bool) -> None:
+        self.out, self.files, self.resume = out, files, resume
+        if resume:
+            why = (f"{out} holds a run ({', '.join(files)}) but no last.pt to resume it from; choose another out, or "
+                   "pass overwrite (without resume) to replace the run")
+        else:
+            why = (f"{out} holds a run already ({', '.join(files)}); pass resume to continue it, overwrite to replace "
+                   "it, or choose another out")
+        super().__init__(why)
+
+
+def check_run_folder(out: Path, resume: bool, overwrite: bool = False) -> list[str]:
+    """The run files (:data:`RUN_FILES`) that ``out`` holds, where training into it keeps every run: it holds none,
+    or ``resume`` has a ``last.pt`` to continue from; with ``overwrite`` (not with ``resume``) those files are the run
+    to replace. Else :class:`RunFolderInUseError`; ``mfgnet train`` turns it into its usage error (``--resume``)."""
+    if resume and overwrite:
+        raise ValueError(f"training {out}: resume and overwrite exclude each other (continue the run, or replace it)")
+    files = [name for name in RUN_FILES if (Path(out) / name).exists()]
+    if files and not overwrite and (not resume or "last.pt" not in files):
+        raise RunFolderInUseError(Path(out), files, resume)
+    return files
+
+
+def remove_run(out: Path, files: list[str]) -> None:
+    """Delete the run files ``files`` (of :data:`RUN_FILES`) from ``out``: a replaced run leaves no log records,
+    checkpoints or snapshots behind to be taken for the new run's."""
+    for name in files:
+        path = out / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+
+
 # What makes a run: a resumed run must keep these (``resume_conflicts``); the rest are this process's (device, data,
 # threads, workers, prefetch, time limits, snapshots) or may grow a run (epochs, patience).
 RUN_OPTIONS = ("setting", "seed", "batch_size", "max_batches_per_epoch", "lr", "weight_decay", "lr_drop_at",
@@ -141,17 +184,24 @@ class TrainOutcome:
 
 
 def train(opts: TrainOptions) -> Path:
-    """Train (or resume) a model; returns the path of the best checkpoint (``run_training`` also says how it ended)."""
+    """Train (or resume) a model; returns the path of the best checkpoint (``run_training`` also says how it ended).
+
+    Like ``mfgnet train``, it refuses (:class:`RunFolderInUseError`, a ``FileExistsError``) an ``opts.out`` that holds a
+    run, unless ``opts.resume`` continues it or ``opts.overwrite`` replaces it (:func:`check_run_folder`).
+    """
     return run_training(opts).best
 
 
 def run_training(opts: TrainOptions) -> TrainOutcome:
     """Train (or resume) a model: its best checkpoint, and the signal that stopped it early, if one did.
 
+    A folder that holds a run is refused (:class:`RunFolderInUseError`) before anything is read or written, unless
+    ``opts.resume`` continues it or ``opts.overwrite`` replaces it (its files deleted once the new run is set up).
     A stop signal (SIGTERM, SIGINT) ends the run after the step it arrives in, with ``last.pt`` written; a run ended by
     ``max_minutes`` or ``patience`` ends as asked (``stopped_by`` ``None``).
     """
     out = Path(opts.out)
+    run_files = check_run_folder(out, opts.resume, opts.overwrite)  # before anything is read or written
     out.mkdir(parents=True, exist_ok=True)
     if opts.threads:
         torch.set_num_threads(opts.threads)
@@ -200,6 +250,9 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
             model.load_state_dict(read_checkpoint(opts.init)["model"])
             print(f"initialised from {opts.init}")
         optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
+        if run_files:  # overwrite: the run it replaces goes once the new one is ready to start
+            remove_run(out, run_files)
+            print(f"replacing the run in {out}: deleted its {', '.join(run_files)}")
     (out / "config.json").write_text(json.dumps({"model": cfg.to_dict(), "train": asdict(opts)}, indent=2))
 
     def checkpoint(path: Path, **extra) -> None:

@@ -27,7 +27,9 @@ Phase A writes ``$OUT/a/{best.pt, log.jsonl}``, phase B (initialised from A's la
 N-th epoch: simulated validation does not rank real-scan models, 0033). Both validate every 100 batches (the
 ``general`` recipe on the ``resampled`` setting at ``--max-angle``, default 60 degrees; ``real`` on sensor pairs over
 its rotations), so their ``best.pt`` are comparable. If a phase fails with the prefetching worker it is retried once
-without it.
+without it, in the same folder: continuing the failed try's run from its ``last.pt``, or replacing what it left where
+it wrote none (``TrainOptions.resume`` / ``overwrite``; ``train`` refuses a folder that holds a run otherwise, so a
+phase folder left from an earlier run on this machine stops the script instead of being overwritten).
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ def run_phases(args: argparse.Namespace) -> None:
     """Phase A then phase B, each stopped by time; outputs under ``$OUT``."""
     import torch
 
-    from model.train import TrainOptions, train
+    from model.train import RunFolderInUseError, TrainOptions, train
 
     out = Path(os.environ.get("OUT", "/tmp/out"))
     print("torch", torch.__version__, "cuda", torch.cuda.is_available(), flush=True)
@@ -77,11 +79,14 @@ def run_phases(args: argparse.Namespace) -> None:
     def phase(opts: TrainOptions) -> None:
         try:
             train(opts)
-        except Exception:  # one retry without the worker process, then let it fail
+        except RunFolderInUseError:  # a run from before in the phase's folder: kept, not retried over
+            raise
+        except Exception:  # one retry without the worker process, in the same folder, then let it fail
             traceback.print_exc()
             print("retrying without prefetch", flush=True)
             opts.prefetch = False
-            opts.resume = (Path(opts.out) / "last.pt").exists()
+            opts.resume = (Path(opts.out) / "last.pt").exists()  # the failed try's run from its last checkpoint,
+            opts.overwrite = not opts.resume  # else a new run over what it left (a log, best.pt or snapshots)
             train(opts)
 
     def pack_snapshots(folder: Path) -> None:  # one file instead of many (at most 8 come back, 2 folders down)

@@ -17,7 +17,7 @@ from model.data import PairProtocol, TrainPairStream, make_pairs
 from model.losses import registration_losses, sample_training_keypoints
 from model.network import MFGNet
 from model.recipes import recipe_draw
-from model.train import TrainOptions, epoch_batches, lr_at, run_training, train
+from model.train import RUN_FILES, TrainOptions, epoch_batches, lr_at, run_training, train
 
 TINY = {"iterations": 2, "keypoints": 32, "emb_dims": 16, "encoder_blocks": 2, "matcher_channels": 8,
         "knn": 8, "train_positives": 16, "train_negatives": 16}
@@ -162,6 +162,46 @@ def test_resume_starts_a_new_run_where_there_is_none_and_refuses_other_run_optio
                       config={**TINY, "iterations": 3}))
     train(options(run, synthetic_modelnet, max_batches_per_epoch=1, resume=True, epochs=2, patience=3))  # may grow
     assert [json.loads(line)["epoch"] for line in (run / "log.jsonl").read_text().splitlines()] == [0, 1]
+
+
+@pytest.mark.parametrize("left", RUN_FILES)
+def test_train_refuses_a_folder_that_holds_a_run_and_leaves_it_as_it_was(tmp_path, synthetic_modelnet, left) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    if left == "snapshots":
+        (run / left).mkdir()
+    else:
+        (run / left).write_bytes(b"the earlier run's")
+    before = sorted(p.name for p in run.iterdir())
+    with pytest.raises(FileExistsError, match=f"holds a run already \\({left}\\); pass resume"):
+        train(options(run, synthetic_modelnet, max_batches_per_epoch=1))
+    if left != "last.pt":  # resume needs a last.pt to continue from
+        with pytest.raises(FileExistsError, match=f"holds a run \\({left}\\) but no last.pt to resume it from"):
+            train(options(run, synthetic_modelnet, max_batches_per_epoch=1, resume=True))
+    with pytest.raises(ValueError, match="resume and overwrite exclude each other"):
+        train(options(run, synthetic_modelnet, max_batches_per_epoch=1, resume=True, overwrite=True))
+    assert sorted(p.name for p in run.iterdir()) == before  # no config.json written, nothing replaced
+    if left != "snapshots":
+        assert (run / left).read_bytes() == b"the earlier run's"
+
+
+def test_overwrite_replaces_the_run_in_a_folder_leaving_none_of_its_files(
+    tmp_path, synthetic_modelnet, capsys
+) -> None:
+    run = tmp_path / "run"
+    train(options(run, synthetic_modelnet, epochs=2, max_batches_per_epoch=1, snapshot_every=1))
+    assert [json.loads(line)["epoch"] for line in (run / "log.jsonl").read_text().splitlines()] == [0, 1]
+    with pytest.raises(FileExistsError, match="holds a run already"):  # what overwrote it before, without asking
+        train(options(run, synthetic_modelnet, max_batches_per_epoch=1, seed=1))
+    assert read_checkpoint(run / "last.pt")["state"]["epoch"] == 2  # the run is kept
+
+    capsys.readouterr()
+    assert train(options(run, synthetic_modelnet, max_batches_per_epoch=1, seed=1, overwrite=True)) == run / "best.pt"
+    assert "replacing the run in" in capsys.readouterr().out
+    assert [json.loads(line)["epoch"] for line in (run / "log.jsonl").read_text().splitlines()] == [0]  # not appended
+    assert not (run / "snapshots").exists()  # the replaced run's snapshots are not taken for this one's
+    assert read_checkpoint(run / "last.pt")["state"]["epoch"] == 1
+    assert json.loads((run / "config.json").read_text())["train"]["seed"] == 1
 
 
 def test_the_lr_drop_never_falls_on_the_first_epoch() -> None:

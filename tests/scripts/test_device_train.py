@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import os
 import subprocess
 import sys
@@ -9,6 +11,7 @@ import tarfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from shapes import sphere_shapes
 
@@ -54,6 +57,52 @@ def test_subset_and_both_phases_leave_the_files_that_come_back(tmp_path) -> None
     assert (out / "b" / "last.pt").exists() and not (out / "b" / "config.json").exists()
     files = [p for p in out.rglob("*") if p.is_file()]
     assert len(files) <= 8  # what a device run can bring back
+
+
+def load_script():
+    """``scripts/device_train.py`` as a module, to run its ``main`` in this process (``model.train`` patched)."""
+    spec = importlib.util.spec_from_file_location("device_train", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_failed_phase_is_retried_over_what_it_left_and_an_earlier_run_is_kept(tmp_path, monkeypatch) -> None:
+    import model.train
+
+    data = tmp_path / "data"
+    training_file(data, seed=5)
+    real_train, tries, failures = model.train.train, [], [1]
+
+    def failing_once(opts):
+        tries.append((Path(opts.out).name, opts.resume, opts.overwrite))
+        if failures.pop() if failures else 0:  # the worker died after an epoch's record, before any checkpoint
+            Path(opts.out).mkdir(parents=True, exist_ok=True)
+            (Path(opts.out) / "log.jsonl").write_text('{"epoch": 0}\n')
+            raise RuntimeError("DataLoader worker exited unexpectedly")
+        return real_train(opts)
+
+    monkeypatch.setattr(model.train, "train", failing_once)
+    args = ["run", "--data", str(data), "--minutes-a", "0.01", "--minutes-b", "0.01", "--device", "cpu",
+            "--batch-size", "2", "--config", '{"emb_dims": 16, "encoder_blocks": 2}']
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), *args])
+    out = tmp_path / "out"
+    monkeypatch.setenv("OUT", str(out))
+    load_script().main()
+    # phase a, its retry: a new run over the log the failed try left (no last.pt to resume), then phase b
+    assert tries == [("a", False, False), ("a", False, True), ("b", False, False)]
+    log = out / "a" / "log.jsonl"
+    assert not log.exists() or all("train_total" in json.loads(line) for line in log.read_text().splitlines())
+
+    earlier = tmp_path / "earlier"  # a phase folder that holds a run from before: refused, not retried over
+    (earlier / "a").mkdir(parents=True)
+    (earlier / "a" / "log.jsonl").write_text('{"epoch": 7}\n')
+    monkeypatch.setenv("OUT", str(earlier))
+    tries.clear()
+    with pytest.raises(FileExistsError, match="holds a run already"):
+        load_script().main()
+    assert tries == [("a", False, False)]
+    assert (earlier / "a" / "log.jsonl").read_text() == '{"epoch": 7}\n'
 
 
 def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
