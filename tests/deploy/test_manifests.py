@@ -134,12 +134,16 @@ def test_runs_non_root_on_a_read_only_root_filesystem(label, pod, container):
 
 
 @pytest.mark.parametrize(("label", "pod", "container"), WORKLOADS)
-def test_resources_and_graceful_draining(label, pod, container):
+def test_resources_are_requested_and_limited(label, pod, container):
     resources = container["resources"]
     assert set(resources["requests"]) >= {"cpu", "memory"} and set(resources["limits"]) >= {"cpu", "memory"}
-    assert container["lifecycle"]["preStop"]["exec"]["command"][0] == "sleep"
-    if label == "Deployment":
-        assert pod["terminationGracePeriodSeconds"] > int(container["lifecycle"]["preStop"]["exec"]["command"][1])
+
+
+def test_deployment_drains_before_the_grace_period_ends():
+    pod = by_kind("Deployment")["spec"]["template"]["spec"]
+    pre_stop = pod["containers"][0]["lifecycle"]["preStop"]["exec"]["command"]
+    assert pre_stop[0] == "sleep"
+    assert pod["terminationGracePeriodSeconds"] > int(pre_stop[1])
 
 
 def test_hpa_targets_the_deployment_on_cpu():
@@ -162,6 +166,32 @@ def test_service_selects_the_deployment_pods_on_the_http_port():
     container = deployment["spec"]["template"]["spec"]["containers"][0]
     (port,) = service["spec"]["ports"]
     assert container_port(container, port["targetPort"]) == dockerfile_exposed_port()
+
+
+def test_kserve_predictor_in_serverless_mode_sets_only_what_knative_accepts():
+    """KServe's default mode makes a Knative Service of the predictor; Knative's webhook rejects a container
+    ``lifecycle`` (its queue-proxy drains the pod) and, under its default Knative Pod Autoscaler, any scale metric
+    but concurrency and rps (KServe copies ``scaleMetric`` into ``autoscaling.knative.dev/metric``)."""
+    isvc = by_kind("InferenceService")
+    annotations = isvc["metadata"].get("annotations", {})
+    if annotations.get("serving.kserve.io/deploymentMode") in ("RawDeployment", "Standard"):
+        pytest.skip("raw deployment: a plain Deployment and HPA, no Knative")
+    predictor = isvc["spec"]["predictor"]
+    (container,) = predictor["containers"]
+    assert "lifecycle" not in container, "Knative rejects a preStop hook on the user container"
+    knative_class = annotations.get("autoscaling.knative.dev/class", "kpa.autoscaling.knative.dev")
+    if knative_class == "kpa.autoscaling.knative.dev":
+        assert predictor.get("scaleMetric", "concurrency") in ("concurrency", "rps")
+    assert not {"terminationGracePeriodSeconds", "initContainers", "automountServiceAccountToken"} & set(predictor)
+
+
+def test_kserve_concurrency_target_is_the_registrations_a_pod_runs_at_once():
+    predictor = by_kind("InferenceService")["spec"]["predictor"]
+    if predictor.get("scaleMetric") != "concurrency":
+        pytest.skip("not scaled on concurrency")
+    (container,) = predictor["containers"]
+    env = {e["name"]: e.get("value") for e in container["env"]}
+    assert predictor["scaleTarget"] == int(env["MFGNET_MAX_CONCURRENCY"])
 
 
 def test_kserve_predictor_speaks_open_inference_protocol_v2():
