@@ -194,6 +194,46 @@ def test_kserve_concurrency_target_is_the_registrations_a_pod_runs_at_once():
     assert predictor["scaleTarget"] == int(env["MFGNET_MAX_CONCURRENCY"])
 
 
+@pytest.mark.parametrize(("label", "pod", "container"), WORKLOADS)
+def test_environment_names_settings_the_service_reads(label, pod, container):
+    """Every ``MFGNET_*`` variable a manifest sets is a field of ``Settings`` (a typo would be ignored silently:
+    the settings ignore unknown names), and the literal values are valid settings."""
+    config = pytest.importorskip("service.core.config")
+    fields = set(config.Settings.model_fields)
+    env = {e["name"]: e for e in container.get("env", [])}
+    names = [name for name in env if name.startswith("MFGNET_")]
+    assert names, label
+    for name in names:
+        assert name.removeprefix("MFGNET_").lower() in fields, f"{label}: {name} is not a setting"
+    literal = {name.removeprefix("MFGNET_").lower(): env[name]["value"] for name in names if "value" in env[name]}
+    config.Settings(**literal)  # raises on a value the service would refuse at start
+
+
+def comment_blocks(text: str) -> list[str]:
+    """Runs of whole-line ``#`` comments, each joined into one string (inline comments: a block of their own)."""
+    blocks: list[list[str]] = [[]]
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.startswith("#"):
+            blocks[-1].append(stripped.lstrip("#").strip())
+            continue
+        blocks.append([line.split(" # ", 1)[1]] if " # " in line else [])
+        blocks.append([])
+    return [" ".join(block) for block in blocks if block]
+
+
+@pytest.mark.parametrize("path", [*MANIFESTS, ROOT / "Dockerfile"], ids=lambda p: str(p.relative_to(ROOT)))
+def test_comments_pointing_at_deployment_md_name_its_sections(path):
+    """A comment that sends the reader to ``docs/DEPLOYMENT.md, "Section"`` names headings that exist."""
+    headings = set(re.findall(r"^#+\s+(.+?)\s*$", (ROOT / "docs" / "DEPLOYMENT.md").read_text(), flags=re.MULTILINE))
+    for block in comment_blocks(path.read_text()):
+        if "DEPLOYMENT.md" not in block:
+            continue
+        for section in re.findall(r'"([^"]+)"', block):
+            assert any(heading == section or heading.startswith(section + " ") for heading in headings), (
+                f"{path.name} points at DEPLOYMENT.md section {section!r}; its headings: {sorted(headings)}")
+
+
 def test_kserve_predictor_speaks_open_inference_protocol_v2():
     isvc = by_kind("InferenceService")
     assert isvc["apiVersion"] == "serving.kserve.io/v1beta1"
