@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import BinaryIO
 
 import numpy as np
@@ -19,7 +20,7 @@ MAX_ROW_BYTES = 128
 # MAX_VALUES_PER_POINT) is 64 KiB.
 MAX_TEXT_LINE_BYTES = 1 << 20
 BLOCK_BYTES = 1 << 22  # bodies are scanned, and binary rows wider than x, y, z read, this many bytes at a time
-COUNT_BLOCK_BYTES = BLOCK_BYTES // 16  # counting a text block's values holds about 8 bytes per byte of it
+COUNT_BLOCK_BYTES = BLOCK_BYTES // 16  # text bodies are checked in pieces this long: counting holds ~8 bytes per byte
 
 
 def check_count(count: int, max_points: int | None) -> None:
@@ -28,64 +29,71 @@ def check_count(count: int, max_points: int | None) -> None:
         raise TooManyPointsError(f"has {count} points; the limit is {max_points} per cloud", count, max_points)
 
 
-def check_line_lengths(f: BinaryIO, what: str) -> None:
-    """:class:`PointCloudFormatError` where a line from ``f``'s position to its end (split at ``\\n`` or ``\\r``)
-    is longer than ``MAX_TEXT_LINE_BYTES``, before a text reader holds it; ``f``'s position is kept."""
+def check_text_lines(f: BinaryIO, what: str, rows: int = 0, values: int = 0, rows_what: str = "") -> None:
+    """One pass over the text from ``f``'s position to its end, before a text reader holds a line; ``f``'s position is
+    kept. :class:`PointCloudFormatError` starting with ``what`` where a line (split at ``\\n`` or ``\\r``) is longer
+    than ``MAX_TEXT_LINE_BYTES``; else, starting with ``rows_what``, where one of the first ``rows`` non-blank rows
+    holds other than ``values`` values split on whitespace, counted without parsing a number (so a reader may parse
+    only the columns it keeps)."""
     start = f.tell()
     line_start = position = start  # where the current line began; bytes scanned so far
     too_long_at = None
-    while too_long_at is None and (block := f.read(BLOCK_BYTES)):
-        data = np.frombuffer(block, dtype=np.uint8)
-        ends = np.flatnonzero((data == 10) | (data == 13)) + position  # [E] absolute offsets of line breaks
-        position += len(block)
+    seen, wrong = 0, None  # non-blank rows checked; the error of the first row of another count
+    open_values, in_value = 0, False  # values of the row the last piece ended in; whether it ended inside one
+    for data in _pieces(f):  # [B] bytes
+        breaks = (data == 10) | (data == 13)  # [B]
+        ends = np.flatnonzero(breaks)  # [E] offsets of the line breaks in the piece
+        if seen < rows and not wrong:
+            gap = breaks | (data == 32) | (data == 9)  # [B] separators and line breaks
+            begins = ~gap & np.concatenate(([not in_value], gap[:-1]))  # [B] the first byte of each value
+            before = np.cumsum(begins, dtype=np.int32)  # [B] values begun up to each byte
+            per_row = np.diff(before[ends], prepend=0)  # [E] values of each row that ends in this piece
+            if len(ends):
+                per_row[0] += open_values
+                open_values = int(before[-1] - before[ends[-1]])
+            else:
+                open_values += int(before[-1])
+            in_value = not gap[-1]
+            seen, wrong = _check_counts(per_row[per_row > 0], seen, rows, values, rows_what)
         if len(ends):
-            lengths = np.diff(ends, prepend=line_start - 1) - 1  # [E] each line's bytes, its break left out
-            longest = int(np.argmax(lengths))
-            if lengths[longest] > MAX_TEXT_LINE_BYTES:
-                too_long_at = int(ends[longest] - lengths[longest])
-            line_start = int(ends[-1]) + 1
+            lengths = np.diff(ends, prepend=line_start - position - 1) - 1  # [E] each line's bytes, its break left out
+            too_long = np.flatnonzero(lengths > MAX_TEXT_LINE_BYTES)  # [L] which of them are too long
+            if len(too_long):
+                too_long_at = position + int(ends[too_long[0]] - lengths[too_long[0]])
+            line_start = position + int(ends[-1]) + 1
+        position += len(data)
         if too_long_at is None and position - line_start > MAX_TEXT_LINE_BYTES:
             too_long_at = line_start
+        if too_long_at is not None:
+            break
     f.seek(start)
     if too_long_at is not None:
         raise PointCloudFormatError(f"{what}: a line longer than {MAX_TEXT_LINE_BYTES} bytes (from byte "
                                     f"{too_long_at}); rows of numbers are far shorter")
+    if seen < rows and not wrong and open_values:  # a last row without a line break
+        seen, wrong = _check_counts(np.array([open_values]), seen, rows, values, rows_what)
+    if wrong:
+        raise PointCloudFormatError(wrong)
 
 
-def check_row_values(f: BinaryIO, rows: int, values: int, what: str) -> None:
-    """:class:`PointCloudFormatError` where one of the first ``rows`` non-blank text rows from ``f``'s position holds
-    other than ``values`` whitespace-separated values; counted ``COUNT_BLOCK_BYTES`` at a time without parsing a number,
-    so a reader may parse only the columns it keeps. ``f``'s position is kept."""
-    start = f.tell()
-    seen = 0  # non-blank rows checked
-    open_values, in_value = 0, False  # values of the row the last block ended in; whether it ended inside one
-    while seen < rows and (block := f.read(COUNT_BLOCK_BYTES)):
-        data = np.frombuffer(block, dtype=np.uint8)
-        gap = (data == 32) | (data == 9) | (data == 10) | (data == 13)  # [B] separators and line breaks
-        begins = ~gap & np.concatenate(([not in_value], gap[:-1]))  # [B] the first byte of each value
-        before = np.cumsum(begins, dtype=np.int32)  # [B] values begun up to each byte
-        ends = np.flatnonzero((data == 10) | (data == 13))  # [E] line breaks
-        per_row = np.diff(before[ends], prepend=0)  # [E] values of each row that ends in this block
-        if len(ends):
-            per_row[0] += open_values
-            open_values = int(before[-1] - before[ends[-1]])
-        else:
-            open_values += int(before[-1])
-        in_value = not gap[-1]
-        seen = _check_counts(per_row[per_row > 0], seen, rows, values, what)
-    if seen < rows and open_values:  # a last row without a line break
-        _check_counts(np.array([open_values]), seen, rows, values, what)
-    f.seek(start)
+def _pieces(f: BinaryIO) -> Iterator[np.ndarray]:
+    """The bytes from ``f``'s position to its end as views of ``COUNT_BLOCK_BYTES``, read ``BLOCK_BYTES`` at a time
+    (read a piece at a time, a fresh process's heap faulted in new pages for every piece's arrays)."""
+    while block := f.read(BLOCK_BYTES):
+        data = np.frombuffer(block, dtype=np.uint8)  # [BLOCK_BYTES or fewer]
+        for begin in range(0, len(data), COUNT_BLOCK_BYTES):
+            yield data[begin:begin + COUNT_BLOCK_BYTES]
 
 
-def _check_counts(per_row: np.ndarray, seen: int, rows: int, values: int, what: str) -> int:
-    """Rows checked after ``per_row`` (values of each non-blank row, following ``seen`` rows), at most ``rows``."""
+def _check_counts(per_row: np.ndarray, seen: int, rows: int, values: int, what: str) -> tuple[int, str | None]:
+    """Rows checked after ``per_row`` (values of each non-blank row, following ``seen`` rows), at most ``rows``, and
+    the error of the first of them that holds other than ``values`` values, if one does."""
     per_row = per_row[:rows - seen]
     wrong = np.flatnonzero(per_row != values)
     if len(wrong):
-        raise PointCloudFormatError(f"{what}: row {seen + int(wrong[0]) + 1} holds {int(per_row[wrong[0]])} values; "
-                                    f"the header declares {values} per row")
-    return seen + len(per_row)
+        row = seen + int(wrong[0]) + 1
+        return row, f"{what}: row {row} holds {int(per_row[wrong[0]])} values; the header declares {values} per row"
+    return seen + len(per_row), None
 
 
 def xyz_in_blocks(f: BinaryIO, record: np.dtype, count: int, short: str) -> np.ndarray:

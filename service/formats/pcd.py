@@ -19,8 +19,7 @@ import numpy as np
 from service.formats.checks import (
     as_declared,
     check_count,
-    check_line_lengths,
-    check_row_values,
+    check_text_lines,
     checked,
     xyz_columns,
     xyz_in_blocks,
@@ -74,11 +73,11 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
 
 
 def _ascii_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
-    """x, y, z of the ``points`` ASCII rows at ``f``'s position, each cast to its field's type (as pypcd4's typed
-    parse reads them), without the other fields or any row past ``points`` (pypcd4 parsed every field of every row:
-    25,000 rows of 4,096 values took 0.8 GB, 40,000,000 rows under a header of 1,000 points 0.9 GB)."""
+    """x, y, z of the ``points`` ASCII rows at ``f``'s position (each of one value per field, checked by
+    :func:`_check_body`), each cast to its field's type (as pypcd4's typed parse reads them), without the other fields
+    or any row past ``points`` (pypcd4 parsed every field of every row: 25,000 rows of 4,096 values took 0.8 GB,
+    40,000,000 rows under a header of 1,000 points 0.9 GB)."""
     columns = [dtype.names.index(axis) for axis in "xyz"]  # each value is a column (COUNT > 1: one per value)
-    check_row_values(f, points, len(dtype.names), "corrupt PCD data")  # only x, y, z are parsed
     text = io.TextIOWrapper(f, encoding="ascii", errors="strict", newline=None)
     try:
         with warnings.catch_warnings():  # numpy warns of no rows at all
@@ -165,9 +164,10 @@ def _record(meta: MetaData) -> np.dtype:
 
 def _check_body(f: BinaryIO, meta: MetaData, dtype: np.dtype) -> None:
     """The bytes after the header hold the points the header declares (checked before pypcd4 allocates them); ASCII
-    data, no line too long for numpy's text reader."""
+    data, no line too long for numpy's text reader and each declared row of one value per field (counted on whitespace
+    as PCL splits them: only x, y, z are parsed), in one pass."""
     if meta.data == "ascii":
-        check_line_lengths(f, "PCD ascii data")
+        check_text_lines(f, "PCD ascii data", meta.points, len(dtype.names), "corrupt PCD data")
         return
     if meta.points == 0:
         return

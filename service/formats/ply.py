@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
-from service.formats.checks import as_declared, check_count, check_line_lengths, checked, xyz_columns, xyz_in_blocks
+from service.formats.checks import as_declared, check_count, check_text_lines, checked, xyz_columns, xyz_in_blocks
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -57,7 +57,7 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
     before = header.elements[:[element.name for element in header.elements].index("vertex")]
     f.seek(body)
     if header.text:  # one line per row of every element
-        check_line_lengths(f, "PLY ASCII data")
+        check_text_lines(f, "PLY ASCII data")
         return _ascii_vertices(f, vertex, skip=sum(element.count for element in before))
     lists = [element.name for element in before
              if any(isinstance(prop, plyfile.PlyListProperty) for prop in element.properties)]

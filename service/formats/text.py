@@ -12,14 +12,14 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.checks import check_line_lengths, checked
+from service.formats.checks import check_text_lines, checked
 from service.formats.errors import InvalidPointsError, PointCloudFormatError, TooManyPointsError
 
 PROBE_LINES = 64  # lines read to find the header and the separator
 
 
 def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
-    check_line_lengths(f, "text file")
+    check_text_lines(f, "text file")
     stream = io.TextIOWrapper(f, encoding="utf-8-sig", newline=None)
     try:
         return _read(stream, max_points)

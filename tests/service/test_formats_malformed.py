@@ -6,6 +6,7 @@ when an allocation fails, so those files are read in a subprocess here)."""
 from __future__ import annotations
 
 import io
+import re
 import struct
 import subprocess
 import sys
@@ -19,7 +20,7 @@ import plyfile
 import pypcd4
 import pytest
 
-from service.formats import InvalidPointsError, PointCloudFormatError, read_cloud, write_cloud
+from service.formats import InvalidPointsError, PointCloudFormatError, checks, read_cloud, write_cloud
 
 REPO = Path(__file__).resolve().parents[2]
 LIMIT = 2_000_000  # the server's max_file_points
@@ -421,7 +422,9 @@ LONG_ROW = " ".join(["1"] * 1_500_000)  # 3 MB: numpy's text reader kept about 3
               "end_header\n" + LONG_ROW + "\n1 2 3\n"),
     ("a.pcd", "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
               "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n" + LONG_ROW + "\n1 2 3\n"),
-], ids=["xyz_one_line", "xyz_after_rows", "ply_ascii", "pcd_ascii"])
+    ("a.pcd", "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1 2 3\r\n" + LONG_ROW),  # no line break after it
+], ids=["xyz_one_line", "xyz_after_rows", "ply_ascii", "pcd_ascii", "pcd_ascii_last_line"])
 def test_a_text_line_beyond_a_mebibyte_is_refused_before_parsing(tmp_path: Path, name: str, text: str) -> None:
     """One line of a 256 MiB upload took several GB of server memory to parse (or to split, for the header probe)."""
     (tmp_path / name).write_text(text)
@@ -431,6 +434,54 @@ def test_a_text_line_beyond_a_mebibyte_is_refused_before_parsing(tmp_path: Path,
             read_cloud(tmp_path / name)
 
     assert peak_bytes(read) < 32 << 20
+
+
+def test_pcd_ascii_line_too_long_is_refused_before_a_row_of_other_values(tmp_path: Path) -> None:
+    """Lines and values are checked in one pass; a line too long anywhere is still the error given, as when every line
+    was checked before the rows."""
+    (tmp_path / "a.pcd").write_bytes(pcd_header(points=3) + b"1 2\n" + LONG_ROW.encode() + b"\n1 2 3\n")
+    with pytest.raises(PointCloudFormatError, match="PCD ascii data: a line longer than 1048576 bytes"):
+        read_cloud(tmp_path / "a.pcd")
+
+
+def text_lines_error(body: bytes, start: int, rows: int, values: int, limit: int) -> str | None:
+    """The error :func:`checks.check_text_lines` gives for ``body`` (at byte ``start`` of its file), found line by
+    line: the first line longer than ``limit``, else the first of the first ``rows`` non-blank rows of other than
+    ``values`` values."""
+    lines = re.split(rb"[\r\n]", body)
+    for line, offset in zip(lines, np.cumsum([start] + [len(line) + 1 for line in lines[:-1]]), strict=True):
+        if len(line) > limit:
+            return f"L: a line longer than {limit} bytes (from byte {offset}); rows of numbers are far shorter"
+    counts = [len(line.split()) for line in lines if line.split()][:rows]
+    wrong = [row for row, count in enumerate(counts) if count != values]
+    if wrong:
+        return f"R: row {wrong[0] + 1} holds {counts[wrong[0]]} values; the header declares {values} per row"
+    return None
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_text_lines_check_agrees_with_reading_line_by_line(monkeypatch: pytest.MonkeyPatch, seed: int) -> None:
+    """Blocks and pieces of a few bytes, so that lines, values, CR LF pairs and blank rows straddle them; bodies with
+    and without a last line break, lines too long, rows of too few and too many values, rows past those counted."""
+    rng = np.random.default_rng(seed)
+    monkeypatch.setattr(checks, "MAX_TEXT_LINE_BYTES", 24)
+    for _ in range(300):
+        monkeypatch.setattr(checks, "BLOCK_BYTES", int(rng.integers(1, 40)))
+        monkeypatch.setattr(checks, "COUNT_BLOCK_BYTES", int(rng.integers(1, 40)))
+        lines = [b"".join(rng.choice([b" ", b"\t", b"  "]) + rng.choice([b"1", b"-2.5"]) for _ in range(values))
+                 + rng.choice([b"\n", b"\r\n", b"\r", b" \n"])
+                 for values in rng.choice([0, 3, 4, 4, 5, 9], size=rng.integers(0, 10))]  # 9 values: often too long
+        body = b"".join(lines).rstrip(b"\r\n") if rng.random() < 0.3 else b"".join(lines)
+        rows = int(rng.integers(0, 12))
+        f = io.BytesIO(b"DATA ascii\n" + body)
+        f.seek(11)
+        try:
+            checks.check_text_lines(f, "L", rows, 4, "R")
+            found = None
+        except PointCloudFormatError as exc:
+            found = str(exc)
+        assert found == text_lines_error(body, 11, rows, 4, 24), (body, rows)
+        assert f.tell() == 11
 
 
 def test_text_rows_of_a_thousand_values_read(tmp_path: Path) -> None:
