@@ -7,8 +7,10 @@ PLY (``plyfile``)        ascii, binary little/big endian; vertex x, y, z        
 PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z        binary float32
 LAS/LAZ (``laspy``,      scaled x, y, z in float64                               --
 ``lazrs``)
-XYZ/CSV/TXT              whitespace or comma separated, first 3 columns,         ``%.9g`` text
-                         ``#`` comments and one header line skipped
+XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text
+                         a header names x, y, z (else the first 3), values
+                         optionally quoted; ``#`` comments and one header
+                         line (or PTS's point count) skipped
 NPY                      numbers ``(N, >=3)`` (first 3 columns, any int/float    float32 ``(N, 3)``
                          dtype, cast) or fields x, y, z; no pickles
 NPZ                      array ``points``, else the only array                   key ``points``

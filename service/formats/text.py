@@ -1,8 +1,10 @@
-"""XYZ, CSV and TXT: rows of numbers separated by whitespace or commas (numpy's C text reader).
+"""XYZ, CSV and TXT: rows of numbers separated by whitespace, commas or semicolons (numpy's C text reader).
 
-The first three columns are x, y, z; further columns (intensity, colours, normals) are ignored.
-``#`` comments and blank lines are skipped, and so is one header line (a first row that is not
-numbers, e.g. ``x,y,z``).
+The first three columns are x, y, z, or the columns a header line names ``x``, ``y`` and ``z`` (pandas'
+``to_csv`` puts its index first: ``,x,y,z``); further columns (intensity, colours, normals) are ignored.
+``#`` comments and blank lines are skipped, and so is one header line: a first row that is not numbers
+(``x,y,z``, CloudCompare's ``//X,Y,Z``), or a single number (the point count of Leica PTS, which Open3D
+writes). Values may be in double quotes (pandas' ``QUOTE_ALL``).
 """
 
 from __future__ import annotations
@@ -30,23 +32,23 @@ def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
 
 
 def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
-    skip, separator, first = 0, None, True
+    skip, separator, header = 0, None, None
     for number, line in enumerate(stream):
         if number >= PROBE_LINES:
             break
         text = line.strip()
         if not text or text.startswith("#"):
             continue
-        separator = "," if "," in text else None  # from the first data line
-        if first and not _numeric(text, separator):
-            skip, first = number + 1, False  # one header line: skip it and the comments before it
+        separator = _separator(text)  # from the first data line
+        if header is None and (not _numeric(text, separator) or len(text.split(separator)) == 1):
+            skip, header = number + 1, text  # one header line: skip it and the comments before it
             continue
         break
     stream.seek(0)
     try:
         table = np.loadtxt(
-            stream, dtype=np.float64, comments="#", delimiter=separator, skiprows=skip, usecols=(0, 1, 2),
-            ndmin=2, max_rows=None if max_points is None else max_points + 1,
+            stream, dtype=np.float64, comments="#", delimiter=separator, skiprows=skip, quotechar='"',
+            usecols=_xyz_columns(header, separator), ndmin=2, max_rows=None if max_points is None else max_points + 1,
         )  # [N, 3]
     except ValueError as exc:
         raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}") from None
@@ -56,9 +58,20 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
     return checked(table)
 
 
+def _separator(line: str) -> str | None:
+    return ";" if ";" in line else "," if "," in line else None  # else whitespace
+
+
+def _xyz_columns(header: str | None, separator: str | None) -> tuple[int, int, int]:
+    """The columns a header line names x, y and z (any case, quoted or not, CloudCompare's ``//`` before the first),
+    else the first three."""
+    names = [token.strip().strip('"').removeprefix("//").lower() for token in (header or "").split(separator)]
+    return tuple(names.index(axis) for axis in "xyz") if {"x", "y", "z"} <= set(names) else (0, 1, 2)
+
+
 def _numeric(line: str, separator: str | None) -> bool:
     try:
-        [float(token) for token in line.split(separator) if token.strip()]
+        [float(token.strip().strip('"')) for token in line.split(separator) if token.strip()]
     except ValueError:
         return False
     return True

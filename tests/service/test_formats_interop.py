@@ -1,0 +1,55 @@
+"""Files as the field's tools write them (pandas, Open3D, PCL, Leica PTS) read as those tools meant them.
+
+Each input is written here byte for byte as the tool writes it (checked against the tool in a temporary environment:
+pandas 3.1, Open3D 0.19/0.20, pypcd4 1.5), so that these tests need none of them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.formats import read_cloud
+
+XYZ = np.array([[0.5, -1.25, 2.0], [3.0, 4.5, -0.75], [1.0, 0.0, 0.25]])  # [N, 3]
+RGB = np.array([[10, 20, 30], [40, 50, 60], [70, 80, 90]])  # [N, 3]
+
+
+def rows(separator: str, table: np.ndarray, quote: str = "") -> str:
+    return "".join(separator.join(f"{quote}{value:g}{quote}" for value in row) + "\n" for row in table)
+
+
+def test_csv_reads_the_columns_its_header_names_x_y_z(tmp_path: Path) -> None:
+    # pandas' to_csv writes its index first, under an empty name: taking the first three columns read index, x, y
+    index = np.arange(len(XYZ))[:, None]
+    (tmp_path / "pandas.csv").write_text(",x,y,z,r,g,b\n" + rows(",", np.hstack([index, XYZ, RGB])))
+    np.testing.assert_array_equal(read_cloud(tmp_path / "pandas.csv"), XYZ)
+    (tmp_path / "scan.txt").write_text("time intensity X Y Z\n" + rows(" ", np.hstack([index, index, XYZ])))
+    np.testing.assert_array_equal(read_cloud(tmp_path / "scan.txt"), XYZ)
+
+
+def test_a_header_without_x_y_z_names_keeps_the_first_three_columns(tmp_path: Path) -> None:
+    (tmp_path / "cc.txt").write_text("//X,Y,Z,R,G,B\n" + rows(",", np.hstack([XYZ, RGB])))  # CloudCompare's export
+    np.testing.assert_array_equal(read_cloud(tmp_path / "cc.txt"), XYZ)
+    (tmp_path / "a.csv").write_text("east,north,height\n" + rows(",", XYZ))
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.csv"), XYZ)
+
+
+@pytest.mark.parametrize("header", ["x;y;z;r;g;b\n", ""])
+def test_semicolon_separated_text_reads(tmp_path: Path, header: str) -> None:
+    (tmp_path / "a.csv").write_text(header + rows(";", np.hstack([XYZ, RGB])))  # pandas' sep=";", Excel's locales
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.csv"), XYZ)
+
+
+@pytest.mark.parametrize("header", ['"x","y","z"\n', ""])
+def test_quoted_csv_values_read(tmp_path: Path, header: str) -> None:
+    (tmp_path / "a.csv").write_text(header + rows(",", XYZ, quote='"'))  # pandas' quoting=csv.QUOTE_ALL
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.csv"), XYZ)
+
+
+def test_leica_pts_point_count_line_is_skipped(tmp_path: Path) -> None:
+    # Open3D's write_point_cloud("a.pts"): the point count, then x y z intensity r g b
+    intensity = np.zeros((len(XYZ), 1))
+    (tmp_path / "a.pts").write_text(f"{len(XYZ)}\n" + rows(" ", np.hstack([XYZ, intensity, RGB])))
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.pts"), XYZ)
