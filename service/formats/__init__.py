@@ -13,7 +13,8 @@ XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns  
                          line (or PTS's point count) skipped
 NPY                      numbers ``(N, >=3)`` (first 3 columns, any int/float    float32 ``(N, 3)``
                          dtype, cast) or fields x, y, z; no pickles
-NPZ                      array ``points``, else the only array                   key ``points``
+NPZ                      array ``points``, else ``positions`` (Open3D), else     key ``points``
+                         the only array
 =======================  =====================================================  ==================
 
 Colours, intensity, normals and faces are ignored. The PLY, PCD and LAS/LAZ libraries come with the

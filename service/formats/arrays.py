@@ -16,6 +16,7 @@ import numpy as np
 from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns, xyz_in_blocks
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
+NPZ_KEYS = ("points", "positions")  # the arrays of an .npz read, the first found: ours, Open3D's (o3d.t.io)
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
 
 
@@ -59,20 +60,23 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
 
 
 def read_npz(f: BinaryIO, max_points: int | None) -> np.ndarray:
-    """The array ``points`` of the archive, else its only array (read as :func:`read_npy`)."""
+    """The array ``points`` of the archive, else ``positions`` (Open3D's tensor point clouds), else its only array
+    (read as :func:`read_npy`)."""
     try:
         archive = zipfile.ZipFile(f)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:
         raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
     with archive:
         names = [name for name in archive.namelist() if name.endswith(".npy")]
-        if "points.npy" in names:
-            member = "points.npy"
+        named = [name for name in NPZ_KEYS if f"{name}.npy" in names]
+        if named:
+            member = f"{named[0]}.npy"
         elif len(names) == 1:
             member = names[0]
         else:
             keys = [name[:-4] for name in names]
-            raise PointCloudFormatError(f".npz archive has no 'points' array and not exactly one array: {keys}")
+            raise PointCloudFormatError(f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and "
+                                        f"not exactly one array: {keys}")
         try:
             with archive.open(member) as stream:
                 return read_npy(stream, max_points, archive.getinfo(member).file_size)

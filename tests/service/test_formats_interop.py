@@ -53,3 +53,9 @@ def test_leica_pts_point_count_line_is_skipped(tmp_path: Path) -> None:
     intensity = np.zeros((len(XYZ), 1))
     (tmp_path / "a.pts").write_text(f"{len(XYZ)}\n" + rows(" ", np.hstack([XYZ, intensity, RGB])))
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.pts"), XYZ)
+
+
+def test_npz_of_an_open3d_tensor_point_cloud_reads_its_positions(tmp_path: Path) -> None:
+    # o3d.t.io.write_point_cloud("a.npz"): one array per attribute, the points under "positions"
+    np.savez(tmp_path / "a.npz", colors=RGB / 255, normals=-XYZ, intensity=np.ones((len(XYZ), 1)), positions=XYZ)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.npz"), XYZ)
