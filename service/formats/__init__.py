@@ -5,6 +5,7 @@ format                   read (detected from the content)                       
 =======================  =====================================================  ==================
 PLY (``plyfile``)        ascii, binary little/big endian; vertex x, y, z         binary LE float32
 PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z        binary float32
+                         (``VERSION`` ignored, as PCL does)
 LAS/LAZ (``laspy``,      scaled x, y, z in float64                               --
 ``lazrs``)
 XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text

@@ -132,8 +132,8 @@ def _metadata(pypcd4: ModuleType, f: BinaryIO):
     encodings = [encoding.value for encoding in pypcd4.Encoding]  # ascii, binary, binary_compressed and an alias
     if lines[-1].split()[1:2] not in [[encoding] for encoding in encodings]:
         raise PointCloudFormatError(f"invalid PCD header ({lines[-1][:80]!r}: DATA must be one of {encodings})")
-    try:
-        return pypcd4.MetaData.parse_header(lines)
+    try:  # without VERSION, which PCL's reader ignores: pypcd4 takes only 0.7, PCL wrote .5 and .6 headers alike
+        return pypcd4.MetaData.parse_header([line for line in lines if line.split()[0].upper() != "VERSION"])
     except Exception as exc:  # pydantic's ValidationError: a missing or malformed header entry
         raise PointCloudFormatError(f"invalid PCD header ({_reason(exc)})") from None
 

@@ -59,3 +59,12 @@ def test_npz_of_an_open3d_tensor_point_cloud_reads_its_positions(tmp_path: Path)
     # o3d.t.io.write_point_cloud("a.npz"): one array per attribute, the points under "positions"
     np.savez(tmp_path / "a.npz", colors=RGB / 255, normals=-XYZ, intensity=np.ones((len(XYZ), 1)), positions=XYZ)
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.npz"), XYZ)
+
+
+@pytest.mark.parametrize("version", [".6", "0.6", ".5", "0.7", ".7"])
+def test_pcd_of_an_older_version_reads(tmp_path: Path, version: str) -> None:
+    # PCL's reader ignores VERSION; PCL 1.x wrote .5 and .6 headers (no VIEWPOINT) of the same layout
+    header = (f"# .PCD v{version} - Point Cloud Data file format\nVERSION {version}\nFIELDS x y z\nSIZE 4 4 4\n"
+              f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {len(XYZ)}\nHEIGHT 1\nPOINTS {len(XYZ)}\nDATA binary\n")
+    (tmp_path / "a.pcd").write_bytes(header.encode() + XYZ.astype("<f4").tobytes())
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.pcd"), XYZ)
