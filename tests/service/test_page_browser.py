@@ -66,7 +66,8 @@ def browser(tmp_path_factory):
         "--disable-background-networking",
     ):
         options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"performance": "ALL"})  # network events: external_requests()
+    # network events: external_requests(); console messages and uncaught errors: console_errors()
+    options.set_capability("goog:loggingPrefs", {"performance": "ALL", "browser": "ALL"})
     options.add_experimental_option("prefs", {"download.default_directory": str(downloads)})
     driver = webdriver.Chrome(options=options, service=Service(executable_path=CHROMEDRIVER))
     driver.set_page_load_timeout(WAIT_S)
@@ -108,6 +109,41 @@ def external_requests(driver, server_url: str) -> list[str]:
         url for rid, url in sent.items()
         if rid not in blocked and re.match(r"(https?|wss?)://", url) and not url.startswith(server_url + "/")
     ]
+
+
+def console_errors(driver) -> list[str]:
+    """Errors the page's console showed since the last call: uncaught exceptions, ``console.error`` and failed loads
+    (a 4xx answer to the page's own request is one too)."""
+    return [entry["message"] for entry in driver.get_log("browser") if entry["level"] == "SEVERE"]
+
+
+def register(driver, server_url: str, source: Path, target: Path, key: str | None = None) -> str:
+    """Load the page, choose both files (and the API key), press Register; the final state (done / error)."""
+    driver.get(f"{server_url}/")
+    if key is not None:
+        driver.find_element("id", "api_key").send_keys(key)
+    driver.find_element("id", "source").send_keys(str(source))
+    driver.find_element("id", "target").send_keys(str(target))
+    driver.find_element("id", "register").click()
+    return wait_for(driver, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the registration")
+
+
+def status_text(driver) -> str:
+    return driver.execute_script("return document.getElementById('status').textContent")
+
+
+def test_page_registers_with_no_console_errors(browser, server, ply_files):
+    """First in the module, so the browser is fresh: Chrome asks a new page's server for /favicon.ico, and that
+    404 was an error in every user's console."""
+    _, source_file, target_file = ply_files
+    console_errors(browser)
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    assert console_errors(browser) == []
+    assert browser.execute_script("return document.querySelector('link[rel=icon]').href") == "data:,"
+    for button in ("show-before", "show-after", "reset-view"):
+        browser.find_element("id", button).click()
+    assert console_errors(browser) == []
 
 
 @pytest.fixture(scope="module")
