@@ -97,6 +97,8 @@
     viewer.setPose("source", after && last ? last.result.transform : null);
     $("show-after").classList.toggle("active", after);
     $("show-before").classList.toggle("active", !after);
+    $("show-after").setAttribute("aria-pressed", String(after));
+    $("show-before").setAttribute("aria-pressed", String(!after));
   }
 
   $("show-before").addEventListener("click", () => showView(false));

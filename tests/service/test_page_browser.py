@@ -146,6 +146,16 @@ def test_page_registers_with_no_console_errors(browser, server, ply_files):
     assert console_errors(browser) == []
 
 
+def test_the_before_and_after_toggles_say_which_is_pressed(browser, server, ply_files):
+    """Before / After showed their state only as a colour: a screen reader heard two plain buttons."""
+    _, source_file, target_file = ply_files
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    for button, after in (("show-before", False), ("show-after", True)):
+        browser.find_element("id", button).click()
+        pressed = [browser.find_element("id", b).get_attribute("aria-pressed") for b in ("show-before", "show-after")]
+        assert pressed == [str(not after).lower(), str(after).lower()]
+
+
 @pytest.fixture(scope="module")
 def ply_files(tmp_path_factory):
     """A seeded partial-to-partial pair written as binary PLY by the project's writer."""
