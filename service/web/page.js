@@ -66,6 +66,7 @@
     form.append("drop_isolated", $("drop_isolated").checked ? "true" : "false");
     form.append("return_correspondences", "false");
     document.body.dataset.state = "running";
+    clearResult();  // until this pair's answer: never the last pair's pose, view or download under this one's status
     $("register").disabled = true;
     setStatus("Uploading and registering…");
     const started = performance.now();
@@ -86,6 +87,7 @@
       setStatus(`Done in ${Math.round(performance.now() - started)} ms.`);
       document.body.dataset.state = "done";
     } catch (err) {
+      clearResult();
       setStatus(String(err.message || err), true);
       document.body.dataset.state = "error";
     } finally {
@@ -93,10 +95,19 @@
     }
   });
 
+  function clearResult() {
+    last = null;
+    $("result").hidden = true;
+    $("shown").textContent = "";
+    viewer.setClouds([]);
+  }
+
   function showView(after) {
     viewer.setPose("source", after && last ? last.result.transform : null);
     $("show-after").classList.toggle("active", after);
     $("show-before").classList.toggle("active", !after);
+    $("show-after").setAttribute("aria-pressed", String(after));
+    $("show-before").setAttribute("aria-pressed", String(!after));
     $("show-after").setAttribute("aria-pressed", String(after));
     $("show-before").setAttribute("aria-pressed", String(!after));
   }

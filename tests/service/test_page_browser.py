@@ -253,3 +253,56 @@ def test_api_docs_load_with_no_external_requests(browser, server, path, ready):
     title = wait_for(browser, f"{ready} && {ready}.textContent", f"{path} title")
     assert "MFGNet registration service" in title
     assert external_requests(browser, server.url) == []
+
+
+def test_every_control_is_labelled_and_reached_by_tab_in_order(browser, server):
+    browser.get(f"{server.url}/")
+    unlabelled = browser.execute_script(
+        "return [...document.querySelectorAll('input, select, button')].filter(e => !(e.labels && e.labels.length)"
+        " && !e.getAttribute('aria-label') && !e.textContent.trim()).map(e => e.id)")
+    assert unlabelled == []
+    assert browser.find_element("id", "status").get_attribute("role") == "status"  # a polite live region
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    reached = []
+    for _ in range(12):
+        ActionChains(browser).send_keys(Keys.TAB).perform()
+        reached.append(browser.execute_script("return document.activeElement.id"))
+    order = ["source", "target", "refine", "rotation_search", "drop_isolated", "api_key", "register"]
+    assert [i for i in reached if i in order][:len(order)] == order, reached
+
+
+def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_result(browser, server, ply_files,
+                                                                                  tmp_path):
+    """After a good pair, a bad file's error showed under the good pair's pose, view and download button."""
+    _, source_file, target_file = ply_files
+    assert register(browser, server.url, source_file, target_file) == "done"
+    corrupt = tmp_path / "broken.ply"
+    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n")
+    browser.find_element("id", "source").send_keys(str(corrupt))
+    browser.find_element("id", "register").click()
+    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the failed registration") == "error"
+    status = status_text(browser)
+    assert status.startswith("422: ") and "broken.ply" in status and "undefined" not in status, status
+    assert browser.execute_script("return document.getElementById('result').hidden")
+    assert browser.find_element("id", "shown").text == ""
+    assert not browser.find_element("id", "register").get_attribute("disabled")
+    browser.find_element("id", "source").send_keys(str(source_file))  # the user picks the right file: it registers
+    browser.find_element("id", "register").click()
+    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the registration after an error") == "done", status_text(browser)
+    assert not browser.execute_script("return document.getElementById('result').hidden")
+
+
+def test_a_narrow_screen_shows_the_page_without_sideways_scrolling(browser, server, ply_files):
+    _, source_file, target_file = ply_files
+    browser.set_window_size(375, 800)  # a phone
+    try:
+        assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+        width, inner = browser.execute_script("return [document.documentElement.scrollWidth, window.innerWidth]")
+        assert width <= inner
+        assert browser.find_element("id", "canvas").size["width"] <= inner
+    finally:
+        browser.set_window_size(1400, 1000)
