@@ -108,8 +108,6 @@
     $("show-before").classList.toggle("active", !after);
     $("show-after").setAttribute("aria-pressed", String(after));
     $("show-before").setAttribute("aria-pressed", String(!after));
-    $("show-after").setAttribute("aria-pressed", String(after));
-    $("show-before").setAttribute("aria-pressed", String(!after));
   }
 
   $("show-before").addEventListener("click", () => showView(false));
