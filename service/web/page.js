@@ -34,12 +34,18 @@
   }
 
   async function errorText(response) {
+    let text;
     try {
       const body = await response.json();
-      return `${response.status}: ${body.error || JSON.stringify(body)}`;
+      text = `${response.status}: ${body.error || JSON.stringify(body)}`;
     } catch (_) {
-      return `${response.status} ${response.statusText}`;
+      text = `${response.status} ${response.statusText || "error"}`;
     }
+    if (response.status === 401) {  // the server's words name a header: say where a page user gives the key
+      text += "\nEnter the server's API key in the \"API key\" field (Options) and try again.";
+      $("api_key").focus();
+    }
+    return text;
   }
 
   function setStatus(text, isError = false) {

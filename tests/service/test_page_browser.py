@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from api_server import synthetic_pair
+from api_server import LIMITED, limited_server, synthetic_pair
 
 from service.pointcloud_io import read_points, write_points
 
@@ -131,6 +131,10 @@ def register(driver, server_url: str, source: Path, target: Path, key: str | Non
 
 def status_text(driver) -> str:
     return driver.execute_script("return document.getElementById('status').textContent")
+
+
+def shown_transform(driver) -> np.ndarray:
+    return np.array(driver.find_element("id", "transform").text.split(), dtype=float).reshape(4, 4)  # 5 digits
 
 
 def test_page_registers_with_no_console_errors(browser, server, ply_files):
@@ -294,6 +298,52 @@ def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_resu
     assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
                     "the registration after an error") == "done", status_text(browser)
     assert not browser.execute_script("return document.getElementById('result').hidden")
+
+
+def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browser, tmp_path):
+    """The 401 said "send 'Authorization: Bearer <key>'", which a page user cannot; the key's field is named and
+    focused. With the key: the pose and reliability the JSON API answers, the download, and a too large file's 413."""
+    limited = limited_server()  # MFGNET_API_KEY and 400 points per file
+    pair = synthetic_pair(seed=3, keep=300)
+    source_file, target_file = tmp_path / "small_src.ply", tmp_path / "small_tgt.ply"
+    write_points(source_file, pair.source)
+    write_points(target_file, pair.target)
+    assert register(browser, limited.url, source_file, target_file) == "error"
+    status = status_text(browser)
+    assert status.startswith("401: missing or invalid API key") and '"API key" field' in status, status
+    assert browser.execute_script("return document.activeElement.id") == "api_key"
+
+    key = LIMITED["api_key"]
+    assert register(browser, limited.url, source_file, target_file, key=key) == "done", status_text(browser)
+    with limited.client(headers={"Authorization": f"Bearer {key}"}) as client:
+        files = {"source": (source_file.name, source_file.read_bytes()),
+                 "target": (target_file.name, target_file.read_bytes())}
+        answer = client.post("/v1/register", files=files, data={"drop_isolated": "true"})  # the page's options
+    assert answer.status_code == 200, answer.text
+    api = answer.json()
+    T = np.array(api["transform"])
+    np.testing.assert_allclose(shown_transform(browser), T, rtol=1e-4, atol=1e-9)
+    reliable = api["quality"]["reliable"]
+    assert browser.find_element("id", "reliable").text == ("(reliable)" if reliable else "(not reliable)")
+
+    browser.find_element("id", "download").click()  # with the key, as the registration
+    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
+    download = browser.downloads / "small_src_aligned.ply"
+    for _ in range(100):
+        if download.is_file() and download.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
+            break
+        time.sleep(0.05)
+    expected = pair.source.astype(np.float64) @ T[:3, :3].T + T[:3, 3]  # the API's pose at full precision
+    assert np.abs(read_points(download) - expected).max() < 1e-5
+
+    big = tmp_path / "big.npy"
+    np.save(big, np.tile(pair.source, (2, 1)))  # 600 points
+    browser.find_element("id", "source").send_keys(str(big))
+    browser.find_element("id", "register").click()
+    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the too large file") == "error"
+    status = status_text(browser)
+    assert status.startswith("413: ") and "600 points" in status and "max_file_points" in status, status
 
 
 def test_a_narrow_screen_shows_the_page_without_sideways_scrolling(browser, server, ply_files):
