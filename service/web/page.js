@@ -48,6 +48,22 @@
     return text;
   }
 
+  // POST a form; the response, or an Error whose message says what went wrong in the user's words.
+  async function post(url, form, signal) {
+    let response;
+    try {
+      response = await fetch(url, {method: "POST", body: form, headers: headers(), signal});
+    } catch (err) {
+      if (err.name === "AbortError") throw err;
+      // fetch() rejects (a TypeError: "Failed to fetch") only when no answer arrives
+      throw new Error(`No answer from the server (${err.message}): is it running and reachable? Try again.`);
+    }
+    if (!response.ok) throw new Error(await errorText(response));
+    return response;
+  }
+
+  const failureText = (err) => (err && err.name === "AbortError" ? "Cancelled." : String((err && err.message) || err));
+
   function setStatus(text, isError = false) {
     $("status").textContent = text;
     $("status").className = isError ? "error" : "";
@@ -74,11 +90,16 @@
     document.body.dataset.state = "running";
     clearResult();  // until this pair's answer: never the last pair's pose, view or download under this one's status
     $("register").disabled = true;
-    setStatus("Uploading and registering…");
     const started = performance.now();
+    const elapsed = () => `${Math.round((performance.now() - started) / 1000)} s`;
+    setStatus("Uploading and registering…");  // once: a live region that changes every second is read every second
+    const ticker = setInterval(() => { $("elapsed").textContent = `${elapsed()} so far`; }, 1000);
+    const abort = new AbortController();
+    const cancel = () => abort.abort();
+    $("cancel").hidden = false;
+    $("cancel").addEventListener("click", cancel);
     try {
-      const response = await fetch("v1/register/view", {method: "POST", body: form, headers: headers()});
-      if (!response.ok) throw new Error(await errorText(response));
+      const response = await post("v1/register/view", form, abort.signal);
       const body = await response.json();
       last = {result: body.result, files};
       viewer.setClouds([
@@ -94,9 +115,14 @@
       document.body.dataset.state = "done";
     } catch (err) {
       clearResult();
-      setStatus(String(err.message || err), true);
-      document.body.dataset.state = "error";
+      const cancelled = err && err.name === "AbortError";
+      setStatus(failureText(err), !cancelled);
+      document.body.dataset.state = cancelled ? "cancelled" : "error";
     } finally {
+      clearInterval(ticker);
+      $("elapsed").textContent = "";
+      $("cancel").removeEventListener("click", cancel);
+      $("cancel").hidden = true;
       $("register").disabled = false;
     }
   });
@@ -160,8 +186,7 @@
     form.append("transform", JSON.stringify(last.result.transform));
     setStatus("Preparing the aligned source…");
     try {
-      const response = await fetch("v1/register/aligned", {method: "POST", body: form, headers: headers()});
-      if (!response.ok) throw new Error(await errorText(response));
+      const response = await post("v1/register/aligned", form);
       const blob = await response.blob();
       const disposition = response.headers.get("Content-Disposition") || "";
       const utf8 = /filename\*=UTF-8''([^;]+)/i.exec(disposition);  // RFC 6266: the name as sent, where not ASCII
@@ -176,7 +201,7 @@
       setTimeout(() => URL.revokeObjectURL(link.href), 10000);
       setStatus("Aligned source downloaded.");
     } catch (err) {
-      setStatus(String(err.message || err), true);
+      setStatus(failureText(err), true);
     }
   });
 })();

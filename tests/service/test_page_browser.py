@@ -300,6 +300,40 @@ def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_resu
     assert not browser.execute_script("return document.getElementById('result').hidden")
 
 
+def test_a_slow_answer_shows_the_time_and_can_be_cancelled_and_no_answer_is_explained(browser, server, ply_files):
+    """A slow answer showed a still "Uploading and registering…" with Register disabled and no way out but reloading;
+    an unreachable server showed fetch's bare "Failed to fetch"."""
+    _, source_file, target_file = ply_files
+    browser.get(f"{server.url}/")
+    browser.find_element("id", "source").send_keys(str(source_file))
+    browser.find_element("id", "target").send_keys(str(target_file))
+    slow = {"offline": False, "latency": 4000, "downloadThroughput": -1, "uploadThroughput": -1}
+    browser.execute_cdp_cmd("Network.enable", {})
+    try:
+        browser.execute_cdp_cmd("Network.emulateNetworkConditions", slow)
+        browser.find_element("id", "register").click()
+        wait_for(browser, "document.getElementById('elapsed').textContent.includes('1 s')", "the elapsed time")
+        assert browser.find_element("id", "cancel").is_displayed()
+        browser.find_element("id", "cancel").click()
+        assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                        "the cancel") == "cancelled"
+        assert status_text(browser) == "Cancelled."
+        assert not browser.find_element("id", "cancel").is_displayed()
+        assert not browser.find_element("id", "register").get_attribute("disabled")
+
+        browser.execute_cdp_cmd("Network.emulateNetworkConditions", {**slow, "offline": True, "latency": 0})
+        browser.find_element("id", "register").click()
+        assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                        "the unreachable server") == "error"
+        assert status_text(browser).startswith("No answer from the server"), status_text(browser)
+    finally:
+        browser.execute_cdp_cmd("Network.emulateNetworkConditions", {**slow, "latency": 0})
+        browser.execute_cdp_cmd("Network.disable", {})
+    browser.find_element("id", "register").click()  # the server answers again: so does the page
+    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the registration after a cancel") == "done", status_text(browser)
+
+
 def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browser, tmp_path):
     """The 401 said "send 'Authorization: Bearer <key>'", which a page user cannot; the key's field is named and
     focused. With the key: the pose and reliability the JSON API answers, the download, and a too large file's 413."""
