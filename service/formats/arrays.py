@@ -132,6 +132,9 @@ def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
         shape = shape[1:]
     if len(shape) != 2 or shape[1] < 3:
         raise InvalidPointsError(f"expected shape [N, 3] (or [N, >3]: the first three columns), got {list(shape)}")
+    if shape[0] == 3 and shape[1] * dtype.itemsize > MAX_ROW_BYTES:  # wider than any point's row: [3, N]
+        raise InvalidPointsError(f"shape {list(shape)} holds one row per axis; send one row per point, [N, 3] (the "
+                                 "array transposed)")
     return int(shape[0])
 
 

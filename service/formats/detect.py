@@ -28,9 +28,20 @@ def detect(head: bytes) -> str:
         return "pcd"
     if head and b"\0" not in head and _is_utf8(head):
         return "text"
+    if _utf16(head):
+        raise PointCloudFormatError("text in UTF-16 (as Windows PowerShell writes it): save the file as UTF-8")
     raise PointCloudFormatError(
         f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, .npy, .npz or XYZ/CSV/TXT file"
     )
+
+
+def _utf16(head: bytes) -> bool:
+    """``head`` starts with a UTF-16 byte-order mark, or reads as ASCII text in UTF-16 (every other byte NUL)."""
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
+        return True
+    pairs = head[: len(head) // 2 * 2]
+    return len(pairs) >= 8 and any(pairs[k::2].count(0) == len(pairs) // 2 and pairs[1 - k::2].isascii()
+                                   and 0 not in pairs[1 - k::2] for k in (0, 1))
 
 
 def only_comments(head: bytes) -> bool:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from service.formats import read_cloud
+from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
 XYZ = np.array([[0.5, -1.25, 2.0], [3.0, 4.5, -0.75], [1.0, 0.0, 0.25]])  # [N, 3]
 RGB = np.array([[10, 20, 30], [40, 50, 60], [70, 80, 90]])  # [N, 3]
@@ -68,3 +69,18 @@ def test_pcd_of_an_older_version_reads(tmp_path: Path, version: str) -> None:
               f"TYPE F F F\nCOUNT 1 1 1\nWIDTH {len(XYZ)}\nHEIGHT 1\nPOINTS {len(XYZ)}\nDATA binary\n")
     (tmp_path / "a.pcd").write_bytes(header.encode() + XYZ.astype("<f4").tobytes())
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.pcd"), XYZ)
+
+
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-le", "utf-16-be"])  # with a byte-order mark, and without
+def test_utf16_text_is_refused_naming_utf16(tmp_path: Path, encoding: str) -> None:
+    # Windows PowerShell 5's Out-File and > write UTF-16 LE with a byte-order mark
+    (tmp_path / "a.xyz").write_text(rows(" ", XYZ), encoding=encoding)
+    with pytest.raises(PointCloudFormatError, match=r"UTF-16.*UTF-8"):
+        read_cloud(tmp_path / "a.xyz")
+
+
+def test_a_transposed_npy_is_refused_naming_the_shape_it_needs(tmp_path: Path) -> None:
+    points = np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32)  # [N, 3]
+    np.save(tmp_path / "a.npy", np.ascontiguousarray(points.T))  # [3, N]: one row per axis
+    with pytest.raises(InvalidPointsError, match=r"\[3, 500\].*\[N, 3\].*transposed"):
+        read_cloud(tmp_path / "a.npy")
