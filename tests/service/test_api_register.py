@@ -336,7 +336,8 @@ def test_openapi_documents_rotation_search_auto(client):
     assert "'auto'" in schema["description"] and schema["default"] is None
     assert "MFGNET_DEFAULT_ROTATION_SEARCH" in schema["description"]
     form = doc["paths"]["/v1/register"]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]
-    assert {"type": "string", "enum": ["auto"]} in form["properties"]["rotation_search"]["anyOf"]
+    assert {"type": "boolean"} in form["properties"]["rotation_search"]["anyOf"]
+    assert any(s.get("const") == "auto" for s in form["properties"]["rotation_search"]["anyOf"])
     assert "rotation_search" in doc["paths"]["/v2/models/{name}/infer"]["post"]["description"]
     assert InferParameters.model_validate({"rotation_search": "auto"}).rotation_search == "auto"  # OIP parameters
 

@@ -12,15 +12,10 @@ from service.api.errors import error_docs
 from service.api.responses import RenderedJSON
 from service.api.runner import register_response
 from service.api.schemas import (
-    DROP_ISOLATED_DESCRIPTION,
-    REFINE_DESCRIPTION,
-    REFINE_POINTS_DESCRIPTION,
-    ROTATION_SEARCH_DESCRIPTION,
     BatchResponse,
+    RegisterOptions,
     RegisterResponse,
 )
-from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
-from service.registrar import KEYPOINT_RANGE, MAX_ITERATIONS
 
 router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
 
@@ -29,30 +24,42 @@ FILE_DESCRIPTION = (
     "binary_compressed), LAS/LAZ, .npy/.npz (numbers [N, >=3] or fields x, y, z), XYZ/CSV/TXT. The first three "
     "columns or the x, y, z fields are used (colours, intensity, normals ignored); at most max_file_points points."
 )
-_MULTIPART_SCHEMA = {
-    "type": "object",
-    "required": ["source", "target"],
-    "properties": {
-        "source": {"type": "string", "format": "binary", "description": FILE_DESCRIPTION},
-        "target": {"type": "string", "format": "binary", "description": ".npy float32/float64 [M, 3]"},
-        "model": {"type": "string"},
-        "iterations": {"type": "integer", "minimum": 1, "maximum": MAX_ITERATIONS},
-        "keypoints": {"type": "integer", "minimum": KEYPOINT_RANGE[0], "maximum": KEYPOINT_RANGE[1]},
-        "refine": {"type": "string", "enum": list(REFINE_MODES), "description": REFINE_DESCRIPTION},
-        "refine_points": {
-            "type": "integer", "minimum": REFINE_POINTS_RANGE[0], "maximum": REFINE_POINTS_RANGE[1],
-            "description": REFINE_POINTS_DESCRIPTION,
-        },
-        "drop_isolated": {"type": "boolean", "default": True, "description": DROP_ISOLATED_DESCRIPTION},
-        "initial_transform": {"type": "string", "description": "JSON 4x4 array"},
-        "return_correspondences": {"type": "boolean", "default": True},
-        "return_iterations": {"type": "boolean", "default": False},
-        "rotation_search": {
-            "anyOf": [{"type": "boolean"}, {"type": "string", "enum": ["auto"]}],
-            "description": ROTATION_SEARCH_DESCRIPTION,
-        },
-    },
-}
+INITIAL_TRANSFORM_FIELD = (
+    "The JSON option initial_transform (a rigid 4x4 src_to_tgt guess, row-major, in the clouds' units) as JSON text, "
+    "e.g. [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]."
+)
+
+
+def _form_field(prop: dict) -> dict:
+    """One ``RegisterOptions`` property as a form field: the same type, range, enum and description, without the
+    JSON ``null`` (a form field is given or left out)."""
+    field = {k: v for k, v in prop.items() if k not in ("anyOf", "title") and not (k == "default" and v is None)}
+    kinds = [kind for kind in prop.get("anyOf", []) if kind.get("type") != "null"]
+    if len(kinds) == 1:
+        field.update(kinds[0])
+    elif kinds:
+        field["anyOf"] = kinds
+    return field
+
+
+def multipart_schema() -> dict:
+    """The ``multipart/form-data`` body of ``POST /v1/register``: two point-cloud files and the options of
+    :class:`RegisterOptions` as text fields, built from its JSON schema so that both say the same (types, ranges,
+    enums, descriptions); ``initial_transform`` is JSON text. Other fields are refused (422), as in the JSON body."""
+    options = RegisterOptions.model_json_schema()["properties"]
+    properties: dict[str, dict] = {
+        "source": {"type": "string", "format": "binary", "description": f"The source cloud. {FILE_DESCRIPTION}"},
+        "target": {"type": "string", "format": "binary", "description": f"The target cloud. {FILE_DESCRIPTION}"},
+    }
+    for name, prop in options.items():
+        properties[name] = _form_field(prop)
+    properties["initial_transform"] = {"type": "string", "contentMediaType": "application/json",
+                                       "description": INITIAL_TRANSFORM_FIELD}
+    return {"type": "object", "required": ["source", "target"], "properties": properties,
+            "additionalProperties": False}
+
+
+_MULTIPART_SCHEMA = multipart_schema()
 
 
 def _request_body(schema_name: str, multipart: bool) -> dict:
