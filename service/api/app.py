@@ -117,7 +117,9 @@ def _openapi(app: FastAPI) -> dict:
         for path in schema.get("paths", {}).values():
             for operation in path.values():
                 doc = operation.get("responses", {}).get("422")
-                if doc and "HTTPValidationError" in str(doc):
+                if doc and "HTTPValidationError" in str(doc) and _never_invalid(operation):
+                    del operation["responses"]["422"]
+                elif doc and "HTTPValidationError" in str(doc):
                     operation["responses"]["422"] = {
                         "description": "Validation failed",
                         "content": {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}},
@@ -126,6 +128,14 @@ def _openapi(app: FastAPI) -> dict:
             components.pop(name, None)
         app.openapi_schema = schema
     return app.openapi_schema
+
+
+def _never_invalid(operation: dict) -> bool:
+    """Whether FastAPI's automatic 422 can never happen: no body and only string path parameters (the /v2 model
+    routes), which any path segment satisfies."""
+    return "requestBody" not in operation and all(
+        p.get("in") == "path" and p.get("schema", {}).get("type") == "string" for p in operation.get("parameters", [])
+    )
 
 
 def run_server(settings: Settings | None = None) -> None:

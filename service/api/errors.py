@@ -123,20 +123,34 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(Exception, _unexpected)
 
 
-def _doc(description: str) -> dict:
-    return {"model": ErrorResponse, "description": description}
+def _doc(description: str, headers: dict[str, dict] | None = None) -> dict:
+    doc: dict[str, Any] = {"model": ErrorResponse, "description": description}
+    if headers:
+        doc["headers"] = headers
+    return doc
+
+
+def _header(description: str) -> dict:
+    return {"description": description, "schema": {"type": "string"}}
 
 
 ERROR_DOCS: dict[int, dict] = {
-    400: _doc("Malformed body (JSON syntax, multipart, file that is not a readable .npy)."),
-    401: _doc("Missing or wrong API key (only when MFGNET_API_KEY is set)."),
-    404: _doc("Unknown model or route."),
-    408: _doc("The request body stalled (no data for body_timeout_s) or arrived slower than body_min_rate."),
-    413: _doc("Body larger than max_body_bytes, a cloud with more than max_points points, a batch with too many pairs "
-              "or points, or a JSON body with more values than its clouds need."),
-    415: _doc("Content type is neither application/json nor multipart/form-data."),
+    400: _doc("Malformed body: JSON syntax, multipart framing, an unreadable point-cloud file, or (OIP) a bad "
+              "Inference-Header-Content-Length."),
+    401: _doc("Missing or wrong API key (only when MFGNET_API_KEY is set).",
+              {"WWW-Authenticate": _header("Bearer")}),
+    404: _doc("Unknown model (or, on the versioned /v2 routes, version)."),
+    408: _doc("The request body stalled (no data for body_timeout_s) or arrived slower than body_min_rate; the "
+              "connection is closed.", {"Connection": _header("close")}),
+    413: _doc("Body larger than max_body_bytes (max_upload_bytes for multipart uploads), a cloud with more than "
+              "max_points points (max_file_points for a file), a batch with too many pairs or points, or a JSON body "
+              "with more values or strings than its clouds need."),
+    415: _doc("A Content-Type (or Content-Encoding, or a file part's Content-Transfer-Encoding) this route does not "
+              "read; the message names what it takes. Also a point-cloud format whose reader is not installed."),
     422: _doc("Validation failed: the message names the field and the problem (shape, dtype, NaN, range)."),
-    503: _doc("Not ready yet (models loading) or overloaded; see the Retry-After header."),
+    503: _doc("Overloaded (more than max_queue requests waiting), the model still loading (both with Retry-After), "
+              "or the model failed to load.", {"Retry-After": _header("Seconds to wait before retrying (while "
+                                                                     "overloaded or loading).")}),
     504: _doc("The registration did not finish within timeout_s."),
 }
 

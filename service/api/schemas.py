@@ -331,6 +331,15 @@ class ReadyResponse(BaseModel):
     errors: dict[str, str] | None = Field(None, description="Failed model -> why it is not served (if any).")
 
 
+class NotReadyResponse(BaseModel):
+    """``GET /v2/health/ready`` while not ready (503): an error body that also says each model's status."""
+
+    error: str = Field(description="'not ready: ' and why (models loading, or which failed and why).")
+    ready: Literal[False] = Field(description="Always false here.")
+    models: dict[str, str] = Field(description="Model name -> loading | ready | failed.")
+    errors: dict[str, str] | None = Field(None, description="Failed model -> why it is not served (if any).")
+
+
 # -- Open Inference Protocol v2 ---------------------------------------------------------------------
 Parameters = dict[str, bool | int | float | str]
 

@@ -20,6 +20,7 @@ from api_server import (
     tampered_root,
     wait_until_loaded,
 )
+from openapi_check import assert_conforms
 
 KEY = LIMITED["api_key"]
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -118,10 +119,12 @@ def test_overload_gets_503_with_retry_after_and_never_500(server, client):
     statuses = sorted(r.status_code for r in responses)
     assert set(statuses) <= {200, 503}, statuses
     assert 200 in statuses and 503 in statuses, statuses
+    doc = client.get("/openapi.json").json()
     for response in responses:
         if response.status_code == 503:
             assert_error(response, 503, "busy")
             assert int(response.headers["retry-after"]) >= 1
+            assert_conforms(doc, "POST", "/v1/register", response)
     assert client.post("/v1/register", json=small_pair(iterations=1)).status_code == 200
     assert 'status="500"' not in client.get("/metrics").text
 
@@ -163,6 +166,18 @@ def test_tampered_model_is_not_served_and_keeps_the_reason(strict_server):
 def test_past_the_deadline_is_504(strict_server):
     with strict_server.client() as c:
         assert_error(c.post("/v1/register", json=small_pair()), 504, "timeout_s")
+
+
+def test_not_ready_and_deadline_answers_match_the_openapi_document(strict_server):
+    with strict_server.client() as c:
+        doc = c.get("/openapi.json").json()
+        ready = c.get("/v2/health/ready")
+        assert ready.status_code == 503 and ready.json()["models"]["tampered"] == "failed"
+        assert_conforms(doc, "GET", "/v2/health/ready", ready)
+        assert_conforms(doc, "GET", "/v2/models/{name}/ready", c.get("/v2/models/tampered/ready"))  # 503
+        late = c.post("/v1/register", json=small_pair())
+        assert late.status_code == 504
+        assert_conforms(doc, "POST", "/v1/register", late)
 
 
 def test_cors_allows_only_the_configured_origins(strict_server):

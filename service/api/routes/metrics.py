@@ -10,6 +10,10 @@ from service.api.deps import get_metrics
 router = APIRouter(tags=["metrics"])
 
 
-@router.get("/metrics", response_class=Response, summary="Prometheus metrics")
+@router.get(
+    "/metrics", response_class=Response, summary="Prometheus metrics",
+    responses={200: {"description": "The Prometheus text exposition format (version 0.0.4).",
+                     "content": {"text/plain": {"schema": {"type": "string"}}}}},
+)
 async def metrics(request: Request) -> Response:
     return Response(generate_latest(get_metrics(request).registry), media_type=CONTENT_TYPE_LATEST)

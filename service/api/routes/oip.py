@@ -21,11 +21,11 @@ from service.api.oip_request import HEADER_LENGTH, OCTET_STREAM
 from service.api.oip_response import infer_response
 from service.api.registry import RETRY_AFTER_LOADING_S, ModelEntry
 from service.api.schemas import (
-    ErrorResponse,
     InferResponse,
     LiveResponse,
     ModelMetadata,
     ModelReady,
+    NotReadyResponse,
     ReadyResponse,
     ServerMetadata,
 )
@@ -47,7 +47,9 @@ OUTPUTS = [
     {"name": "CREDIBILITY", "datatype": "FP32", "shape": [-1]},
 ]
 EXTENSIONS = ("binary_tensor_data",)
-_NOT_READY = {503: {"model": ErrorResponse, "description": "Not ready; the body says why (Retry-After set)."}}
+_NOT_READY = {503: {"model": NotReadyResponse, "description": "Not ready; the body says why and each model's status.",
+                    "headers": {"Retry-After": {"description": "Seconds to wait before asking again.",
+                                                "schema": {"type": "string"}}}}}
 
 
 def server_version() -> str:

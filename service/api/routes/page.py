@@ -136,7 +136,8 @@ async def register_view(request: Request) -> RenderedJSON:
     "src_to_tgt matrix (e.g. a registration's `transform`). Answers binary little-endian float32 PLY of "
     "`source @ R.T + t`, every point.",
     openapi_extra=_multipart(_ALIGNED_SCHEMA),
-    responses={200: {"content": {"application/octet-stream": {}}},
+    responses={200: {"description": "Binary little-endian PLY of the moved source (Content-Disposition names it).",
+                    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
                **error_docs(400, 401, 408, 413, 415, 422, 503, 504)},
 )
 async def register_aligned(request: Request) -> Response:
