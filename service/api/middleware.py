@@ -11,6 +11,7 @@ import time
 import uuid
 
 from starlette.requests import ClientDisconnect
+from starlette.routing import Match, Mount, Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError
@@ -27,6 +28,10 @@ UNMATCHED_ROUTE = "<unmatched>"
 # made-up methods grew /metrics from 54 KB to 4 MB).
 KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
 OTHER_METHOD = "other"
+# The access line's ``path`` is cut to this many characters: uvicorn takes request lines of over 100 KB, and each made
+# a log line of that size. ``error`` (the JSON error's message of a 4xx/5xx) is cut the same way.
+MAX_LOGGED_CHARS = 256
+MAX_ERROR_BODY_BYTES = 4096  # of an error response, read back for the access line's ``error``
 
 
 def _request_id(scope: Scope) -> str:
@@ -36,6 +41,37 @@ def _request_id(scope: Scope) -> str:
             if _SAFE_ID.match(text):
                 return text
     return uuid.uuid4().hex
+
+
+def _shortened(text: str) -> str:
+    return text if len(text) <= MAX_LOGGED_CHARS else text[:MAX_LOGGED_CHARS] + "..."
+
+
+def _error_message(status: int, body: bytes) -> str | None:
+    """Why a request failed, for its access line: the ``"error"`` of its JSON body, cut short."""
+    if status == 499:
+        return "the client closed the connection before the answer"
+    if status < 400:
+        return None
+    try:
+        message = json.loads(body).get("error")
+    except (ValueError, AttributeError):
+        return None
+    return _shortened(message) if isinstance(message, str) else None
+
+
+def _route_template(scope: Scope, path: str, root_path: str) -> str:
+    """The route's path template; FastAPI routes set ``scope["route"]``, Starlette's plain routes and mounts
+    (``/openapi.json``, the page's and the API pages' assets) do not, so they are matched here again."""
+    route = scope.get("route")
+    if route is not None and getattr(route, "path", None):
+        return route.path
+    app = scope.get("app")
+    probe = {"type": "http", "path": path, "root_path": root_path, "method": scope["method"]}
+    for candidate in getattr(app, "routes", ()):
+        if isinstance(candidate, Route | Mount) and candidate.matches(probe)[0] is not Match.NONE:
+            return candidate.path
+    return UNMATCHED_ROUTE
 
 
 def _content_length(scope: Scope) -> int | None:
@@ -73,12 +109,16 @@ class RequestContextMiddleware:
         request_id = _request_id(scope)
         scope.setdefault("state", {})["request_id"] = request_id
         state = {"status": 0, "started": False, "received": 0, "body_done": False, "body_started": 0.0}
+        path, root_path = scope.get("path", ""), scope.get("root_path", "")  # before routing changes them
+        error_body = bytearray()  # the start of a 4xx/5xx body: its "error" goes into the access line
         limit, setting = self._limit(scope)
 
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
                 state["status"], state["started"] = message["status"], True
                 message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+            elif message["type"] == "http.response.body" and state["status"] >= 400:
+                error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
             await send(message)
 
         async def receive_limited() -> Message:
@@ -118,7 +158,7 @@ class RequestContextMiddleware:
         except ClientDisconnect:
             state["status"] = state["status"] or 499  # the client went away; nothing to answer
         except Exception:
-            app_log.exception("unhandled error", extra={"request_id": request_id, "path": scope.get("path")})
+            app_log.exception("unhandled error", extra={"request_id": request_id, "path": _shortened(path)})
             if not state["started"]:
                 await self._send_error(send_with_id, 500, "internal server error", request_id=request_id)
             else:
@@ -126,23 +166,23 @@ class RequestContextMiddleware:
         finally:
             self.metrics.in_flight.dec()
             elapsed = time.perf_counter() - started
-            route = getattr(scope.get("route"), "path", None) or UNMATCHED_ROUTE
+            route = _route_template(scope, path, root_path)
             method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
             self.metrics.requests.labels(route=route, method=method, status=str(state["status"])).inc()
             self.metrics.latency.labels(route=route).observe(elapsed)
-            access_log.info(
-                "request",
-                extra={
-                    "request_id": request_id,
-                    "method": scope["method"],
-                    "route": route,
-                    "path": scope.get("path"),
-                    "status": state["status"],
-                    "ms": round(1000 * elapsed, 2),
-                    "bytes_in": state["received"],
-                    "client": (scope.get("client") or ("", 0))[0],
-                },
-            )
+            extra = {
+                "request_id": request_id,
+                "method": scope["method"] if method != OTHER_METHOD else _shortened(scope["method"]),
+                "route": route,
+                "path": _shortened(path),
+                "status": state["status"],
+                "ms": round(1000 * elapsed, 2),
+                "bytes_in": state["received"],
+                "client": (scope.get("client") or ("", 0))[0],
+            }
+            if (error := _error_message(state["status"], bytes(error_body))) is not None:
+                extra["error"] = error
+            access_log.info("request", extra=extra)
 
     @staticmethod
     async def _send_error(send: Send, status: int, message: str, **extra) -> None:

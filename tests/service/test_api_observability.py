@@ -3,13 +3,99 @@
 
 from __future__ import annotations
 
+import json
 import random
 import re
+import socket
 import string
+import time
+import uuid
+from urllib.parse import urlsplit
+
+from api_server import pair_json, synthetic_pair
+
+
+def access_line(server, request_id: str) -> tuple[dict, str]:
+    """The one access line of ``request_id`` (parsed and as written), once the server has written it."""
+    deadline = time.monotonic() + 5
+    while True:
+        raw = [line for line in server.log_path.read_text().splitlines() if f'"request_id": "{request_id}"' in line]
+        access = [line for line in raw if json.loads(line)["logger"] == "mfgnet.access"]
+        if access or time.monotonic() > deadline:
+            assert len(access) == 1, raw
+            return json.loads(access[0]), access[0]
+        time.sleep(0.02)
 
 
 def series(text: str) -> set[str]:
     return {line.rsplit(" ", 1)[0] for line in text.splitlines() if line and not line.startswith("#")}
+
+
+def count(text: str, **labels: str) -> float:
+    """``mfgnet_http_requests_total`` of exactly these labels (0 when absent)."""
+    wanted = "mfgnet_http_requests_total{" + ",".join(f'{k}="{v}"' for k, v in sorted(labels.items())) + "}"
+    for line in text.splitlines():
+        if line.startswith(wanted + " "):
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+def test_access_line_of_a_refused_request_says_why_without_a_traceback(server, client):
+    request_id = "why-" + uuid.uuid4().hex
+    body = pair_json(synthetic_pair(0), iterations=1)
+    body["source"][0] = body["source"][0][:2]
+    response = client.post("/v1/register", json=body, headers={"X-Request-ID": request_id})
+    assert response.status_code == 422 and response.headers["x-request-id"] == request_id
+    line, _ = access_line(server, request_id)
+    assert line["level"] == "info" and line["status"] == 422 and "exc" not in line
+    assert line["error"] == response.json()["error"]  # e.g. "invalid request: source[0]: ..."
+    assert "source[0]" in line["error"]
+
+    request_id = "why-" + uuid.uuid4().hex
+    assert client.get("/no-such-route", headers={"X-Request-ID": request_id}).status_code == 404
+    assert access_line(server, request_id)[0]["error"] == "not found: GET /no-such-route"
+
+    request_id = "ok-" + uuid.uuid4().hex
+    assert client.get("/v1/models", headers={"X-Request-ID": request_id}).status_code == 200
+    assert "error" not in access_line(server, request_id)[0]
+
+
+def test_access_line_of_a_client_that_went_away_says_so(server):
+    request_id = "gone-" + uuid.uuid4().hex
+    url = urlsplit(server.url)
+    with socket.create_connection((url.hostname, url.port)) as sock:
+        sock.sendall(f"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                     f"Content-Length: 100000\r\nX-Request-ID: {request_id}\r\n\r\n".encode() + b'{"source": [')
+        time.sleep(0.2)
+    line, _ = access_line(server, request_id)
+    assert line["status"] == 499 and "client closed the connection" in line["error"]
+
+
+def test_access_line_of_a_huge_path_stays_short(server, client):
+    """uvicorn takes request lines of over 100 KB: each was written whole into the access line (and the error)."""
+    request_id = "long-" + uuid.uuid4().hex
+    assert client.get("/" + "a" * 50_000, headers={"X-Request-ID": request_id}).status_code == 404
+    line, raw = access_line(server, request_id)
+    assert line["path"].startswith("/aaaa") and line["path"].endswith("...")
+    assert len(raw) < 1_000
+
+
+def test_metrics_name_the_api_description_and_static_files_by_their_route(client):
+    """Starlette's plain routes and mounts set no FastAPI route: they were counted with the unknown paths."""
+    before = client.get("/metrics").text
+    assert client.get("/openapi.json").status_code == 200
+    assert client.get("/page/page.js").status_code == 200
+    assert client.get("/page/no-such-file.js").status_code == 404
+    after = client.get("/metrics").text
+
+    def delta(**labels: str) -> float:
+        return count(after, **labels) - count(before, **labels)
+
+    assert delta(route="/openapi.json", method="GET", status="200") == 1
+    assert delta(route="/page", method="GET", status="200") == 1
+    assert delta(route="/page", method="GET", status="404") == 1
+    assert delta(route="<unmatched>", method="GET", status="200") == 0
+    assert delta(route="<unmatched>", method="GET", status="404") == 0
 
 
 def test_a_thousand_unknown_paths_add_no_series(client):
