@@ -6,6 +6,7 @@ Every response field says its frame and units in its description (a test walks t
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, WrapValidator
@@ -73,8 +74,15 @@ def _one_rotation_search_error(value: Any, handler: Any) -> Any:
 
 RotationSearch = Annotated[bool | Literal["auto"], WrapValidator(_one_rotation_search_error)]
 
-_EXAMPLE_SOURCE = [[0.1 * i, 0.05 * (i % 7), 0.02 * (i % 5)] for i in range(MIN_POINTS)]
-_EXAMPLE_TARGET = [[x + 0.1, y, z] for x, y, z in _EXAMPLE_SOURCE]
+# The examples' pair: an asymmetric corner (a floor 0.6 x 0.4, a wall along it, a short side wall; MIN_POINTS points)
+# and the same corner turned 10 deg about z and moved by (0.1, 0.05, 0): a pose the defaults find, `reliable`
+# (a shift along a line of points or a symmetric shape would have no single right answer).
+_EXAMPLE_SOURCE = ([[round(0.15 * i, 4), round(0.1 * j, 4), 0.0] for i in range(5) for j in range(1, 5)]
+                   + [[round(0.15 * i + 0.05, 4), 0.0, round(0.1 * k, 4)] for i in range(4) for k in range(1, 3)]
+                   + [[0.0, round(0.1 * j, 4), round(0.15 * k, 4)] for j in range(1, 3) for k in range(1, 3)])
+_EXAMPLE_COS, _EXAMPLE_SIN = math.cos(math.radians(10)), math.sin(math.radians(10))
+_EXAMPLE_TARGET = [[round(_EXAMPLE_COS * x - _EXAMPLE_SIN * y + 0.1, 4),
+                    round(_EXAMPLE_SIN * x + _EXAMPLE_COS * y + 0.05, 4), z] for x, y, z in _EXAMPLE_SOURCE]
 
 
 class ErrorResponse(BaseModel):
@@ -227,15 +235,15 @@ class RegisterResponse(BaseModel):
         json_schema_extra={
             "examples": [
                 {
-                    "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-                    "translation": [0.1, 0, 0],
-                    "transform": [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
-                    "euler_zyx_deg": [0, 0, 0],
-                    "yaw_pitch_roll_deg": [0, 0, 0],
+                    "rotation": [[0.9848, -0.1736, 0], [0.1736, 0.9848, 0], [0, 0, 1]],
+                    "translation": [0.1, 0.05, 0],
+                    "transform": [[0.9848, -0.1736, 0, 0.1], [0.1736, 0.9848, 0, 0.05], [0, 0, 1, 0], [0, 0, 0, 1]],
+                    "euler_zyx_deg": [10, 0, 0],
+                    "yaw_pitch_roll_deg": [10, 0, 0],
                     "correspondences": [{"source_index": 3, "target_index": 3, "credibility": 0.97, "weight": 0.02}],
-                    "quality": {"inlier_ratio": 0.98, "residual_rms": 0.004, "reliable": True, "stability": 0.07},
+                    "quality": {"inlier_ratio": 1.0, "residual_rms": 0.00003, "reliable": True, "stability": 0.07},
                     "warnings": [],
-                    "model": {"name": "clean", "version": "0.1.0", "sha256": "4752cd1a..."},
+                    "model": {"name": "general", "version": "0.2.0", "sha256": "..."},
                     "iterations": 4,
                     "timing_ms": {"queue": 0.1, "preprocess": 30.2, "encoder": 35.0, "total": 110.5},
                 }

@@ -175,9 +175,17 @@ def test_multipart_option_limits_are_where_the_server_refuses(client, doc, files
 
 
 def test_every_example_in_the_document_is_accepted(client, doc):
+    """And the request example's answer is the response example's pose, `reliable`: "Try it out" in /docs shows a
+    right answer (a shift along a line of points had none)."""
     schemas = doc["components"]["schemas"]
+    shown = schemas["RegisterResponse"]["examples"][0]
     for example in schemas["RegisterRequest"]["examples"]:
-        assert client.post("/v1/register", json=example).status_code == 200
+        response = client.post("/v1/register", json=example)
+        assert response.status_code == 200, response.text[:300]
+        body = response.json()
+        np.testing.assert_allclose(body["euler_zyx_deg"], shown["euler_zyx_deg"], atol=0.05)  # the shown rotation
+        np.testing.assert_allclose(body["translation"], shown["translation"], atol=1e-3)
+        assert body["quality"]["reliable"] is True, body["warnings"]
         assert client.post("/v1/register/batch", json={"pairs": [example]}).status_code == 200
     for example in schemas["InferRequest"]["examples"]:
         assert client.post(f"/v2/models/{MODEL}/infer", json=example).status_code == 200
