@@ -47,7 +47,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.http_latency import Server
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, require_checkouts
 from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
 from bench.surface_resample import FUSED_SENSORS, densified
 from service.core.config import Settings
@@ -67,6 +67,24 @@ MAX_FILE_POINTS = Settings.model_fields["max_file_points"].default  # what a def
 def data_dir(path: str | None = None) -> Path:
     """The real-scan set: ``path``, else ``$MFGNET_REAL_DATA``, else ``../shared/data/real`` beside the repo."""
     return Path(path or os.environ.get("MFGNET_REAL_DATA") or DEFAULT_DIR)
+
+
+def scan_set(parser: argparse.ArgumentParser, path: str | Path | None, names: list[str] | None = None,
+             derived: bool = False, option: str = "--pairs") -> Path:
+    """The real-scan set :func:`data_dir` finds, checked before any work: a folder of ``*.npz`` pairs holding every pair
+    of ``names`` (file stems, or with ``derived`` the derived pairs' names); else a usage error of ``parser``."""
+    directory = data_dir(path)
+    if not directory.is_dir():
+        parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
+    if not any(directory.glob("*.npz")):
+        parser.error(f"no real-scan set at {directory}: no *.npz pairs there (set MFGNET_REAL_DATA or pass DIR)")
+    if names:
+        known = {p.name for p in derived_pairs(directory)} if derived else {f.stem for f in directory.glob("*.npz")}
+        unknown = [name for name in names if name not in known]
+        if unknown:
+            parser.error(f"{option}: no {'derived ' if derived else ''}pair {', '.join(unknown)} in {directory} "
+                         f"(there: {', '.join(sorted(known))})")
+    return directory
 
 
 @dataclass(frozen=True)
@@ -370,6 +388,37 @@ def _num(value: float | None) -> str:
     return "-" if value is None else f"{value:.3g}"
 
 
+def register_options(text: str) -> dict:
+    """An argparse ``type`` for ``--options``: a JSON object of the options ``POST /v1/register`` takes, checked by its
+    own schema (an unknown name or a bad value would make every request a 422, measured as failures)."""
+    from pydantic import ValidationError
+
+    from service.api.schemas import RegisterOptions
+
+    try:
+        options = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise argparse.ArgumentTypeError(f"not JSON ({err})") from None
+    if not isinstance(options, dict):
+        raise argparse.ArgumentTypeError(f"not a JSON object of register options: {text}")
+    try:
+        RegisterOptions.model_validate(options)
+    except ValidationError as err:
+        first = err.errors()[0]
+        raise argparse.ArgumentTypeError(f"{'.'.join(map(str, first['loc']))}: {first['msg']}") from None
+    return options
+
+
+def answering(parser: argparse.ArgumentParser, url: str) -> None:
+    """A usage error unless a server at ``url`` says it is ready (``/v2/health/ready``)."""
+    try:
+        status = httpx.get(url.rstrip("/") + "/v2/health/ready", timeout=10).status_code
+    except httpx.HTTPError as err:
+        parser.error(f"--url {url}: no server answers ({err})")
+    if status != 200:
+        parser.error(f"--url {url}: /v2/health/ready answers {status}, not 200")
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("directory", nargs="?", help="the real-scan set (default: $MFGNET_REAL_DATA or ../shared)")
@@ -385,7 +434,7 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the pairs derived from the set instead of its own: scans that no file pairs, ground "
                              "truth chained through shared scans (bench.scan_pairs)")
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
-    parser.add_argument("--options", type=json.loads, default={},
+    parser.add_argument("--options", type=register_options, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
     parser.add_argument("--densify", type=int, metavar="POINTS",
                         help="resample each cloud of the fused RGB-D fragments to POINTS points on its surface (the "
@@ -399,9 +448,6 @@ def main(argv: list[str] | None = None) -> dict:
                         help="also serve this other checkout (its code and bundled models), taking turns case by case")
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
-    directory = data_dir(args.directory)
-    if not directory.is_dir():
-        parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
     if args.turns < 1:
         parser.error(f"--turns must be at least 1, got {args.turns}")
     if args.compare_root and (args.url or args.model_dir):
@@ -410,6 +456,13 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--start-near-truth starts from the clouds' own frames: not with --offset")
     if args.densify is not None and not 1 <= args.densify <= MAX_FILE_POINTS:
         parser.error(f"--densify must be 1 to {MAX_FILE_POINTS:,} points (the service's file limit): {args.densify}")
+    directory = scan_set(parser, args.directory, args.pairs, args.derived)
+    json_destination(args.json, create_folders=True)
+    require_checkouts(parser, args.compare_root)
+    if args.model_dir:
+        from model.cli_inputs import model_dir
+
+        checked(model_dir, args.model_dir, "--model-dir")
     cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived, args.densify)
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
@@ -419,6 +472,8 @@ def main(argv: list[str] | None = None) -> dict:
             thresholds(sensor)
         except ValueError as error:  # before any registration: a new set's sensors named otherwise
             parser.error(str(error))
+    if args.url:
+        answering(parser, args.url)
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
     starts = None if args.start_near_truth is None else near_truth_starts(cases, args.start_near_truth, args.seed)

@@ -1,9 +1,15 @@
-"""How the ``python -m bench.*`` experiments hand back their report: printed, and saved when asked."""
+"""How the ``python -m bench.*`` experiments hand back their report (printed, and saved when asked), and how they
+check their command line before any work: a one-line usage error and exit code 2, never a traceback."""
 
 from __future__ import annotations
 
+import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 def emit_report(report: dict, json_path: Path | None) -> None:
@@ -12,6 +18,65 @@ def emit_report(report: dict, json_path: Path | None) -> None:
     print(text)
     if json_path:
         json_path.write_text(text + "\n")
+
+
+def checked(check: Callable[..., T], *args, **kwargs) -> T:
+    """What ``check`` (one of :mod:`model.cli_inputs`' checks: ``output_file``, ``pairs_file``, ``model_dir``,
+    ``require_shapes``...) returns. Its usage error (the message printed on stderr) ends an argparse bench with the
+    same exit code 2: the ``typer.Exit`` it raises would end in a traceback outside a typer command."""
+    import typer
+
+    try:
+        return check(*args, **kwargs)
+    except typer.Exit as err:
+        raise SystemExit(err.exit_code) from None
+
+
+def json_destination(path: Path | str | None, create_folders: bool = False) -> Path | None:
+    """``--json`` checked before any work (a file that can be written: not a folder, in a writable folder that is
+    there, or is made with ``create_folders``), else a usage error."""
+    if path is None:
+        return None
+    from model.cli_inputs import output_file
+
+    return checked(output_file, Path(path), "--json", create_folders)
+
+
+def npz_arrays(parser: argparse.ArgumentParser, path: Path, keys: tuple[str, ...] = ("source", "target"),
+               option: str = "--pairs") -> dict:
+    """The arrays ``keys`` of the ``.npz`` file ``path`` (a pairs file needs only its clouds here), else a usage error
+    (:mod:`model.cli_inputs`' checks of the file, then of its arrays)."""
+    import numpy as np
+
+    from model.cli_inputs import NPZ_FILE_ERRORS, input_file, require_zip, short
+
+    what = f"an .npz of {', '.join(keys)}"
+    checked(require_zip, checked(input_file, Path(path), option), option, what)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            missing = [key for key in keys if key not in data.files]
+            if not missing:
+                return {key: data[key] for key in keys}
+    except (OSError, *NPZ_FILE_ERRORS) as err:
+        parser.error(f"{option} {path}: not {what} ({short(err)})")
+    parser.error(f"{option} {path}: not {what} (no {', '.join(missing)})")
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type``: a whole number of at least 1 (a count of pairs, rounds, turns, requests...)."""
+    value = int(text)  # a ValueError is argparse's "invalid positive_int value"
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def require_checkouts(parser: argparse.ArgumentParser, roots: list[str | Path] | str | Path | None) -> None:
+    """A usage error unless every ``--compare-root`` is a folder holding this project's server
+    (``service/api/app.py``): another folder would serve this checkout's code from the venv, compared with itself, or
+    never start."""
+    for root in [roots] if isinstance(roots, (str, Path)) else roots or []:
+        if not (Path(root) / "service" / "api" / "app.py").is_file():
+            parser.error(f"--compare-root {root}: not a checkout of this project (no service/api/app.py)")
 
 
 def reliable_totals(rows: list[dict]) -> dict:
