@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.report_io import checked
+from model.cli_inputs import json_file, model_dir, output_file, pairs_file
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 from service.registrar import AUTO_SEARCH_RELATIVE_RATIO
 
@@ -34,10 +36,10 @@ def pose_errors(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.nda
 
 
 def collect(pair_files: list[Path], model: str) -> dict:
-    from service.manifest import bundled_models_dir
+    from service.manifest import model_folder
     from service.registrar import Registrar
 
-    registrar = Registrar(bundled_models_dir() / model)
+    registrar = Registrar(model_folder(model))
     out = {}
     for path in pair_files:
         pairs, rows = load_pairs(path), []
@@ -82,9 +84,9 @@ def attainable_ratios(path: Path, reference_radius: float) -> np.ndarray:
 
 
 def report(results: dict, pair_files: list[Path], model: str) -> dict:
-    from service.manifest import bundled_models_dir, load_manifest
+    from service.manifest import load_manifest, model_folder
 
-    reference = float(load_manifest(bundled_models_dir() / model).normalization["reference_radius"])
+    reference = float(load_manifest(model_folder(model)).normalization["reference_radius"])
     table = {}
     for path in pair_files:
         rows = results[path.stem]
@@ -130,10 +132,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("step", choices=("collect", "report"))
     parser.add_argument("results", type=Path, nargs="?", help="report: the collected JSON")
     parser.add_argument("--pairs", type=Path, action="append", required=True)
-    parser.add_argument("--model", default="general")
+    parser.add_argument("--model", default="general", help="bundled model name or model folder")
     parser.add_argument("--out", type=Path, default=None, help="collect: where to write the per-pair JSON")
     args = parser.parse_args(argv)
+    for path in args.pairs:
+        checked(pairs_file, path)
+    checked(model_dir, args.model)
     if args.step == "collect":
+        if args.out:
+            checked(output_file, args.out, "--out")
         data = collect(args.pairs, args.model)
         text = json.dumps(data)
         if args.out:
@@ -143,7 +150,13 @@ def main(argv: list[str] | None = None) -> None:
         return
     if args.results is None:
         parser.error("report needs the collected JSON")
-    print(json.dumps(report(json.loads(args.results.read_text()), args.pairs, args.model), indent=1))
+    results = checked(json_file, args.results, "results")
+    missing = [path.stem for path in args.pairs] if not isinstance(results, dict) else \
+        [path.stem for path in args.pairs if not isinstance(results.get(path.stem), list)]
+    if missing:
+        parser.error(f"results {args.results}: not what collect wrote for these --pairs "
+                     f"(no rows of {', '.join(missing)})")
+    print(json.dumps(report(results, args.pairs, args.model), indent=1))
 
 
 if __name__ == "__main__":

@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, npz_arrays, positive_int
+from model.cli_inputs import model_dir
 from service.manifest import model_folder
 from service.registrar import Registrar, default_threads, session_options
 
@@ -160,10 +161,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, required=True)
     parser.add_argument("--model", default="general", help="a bundled model's name or a model folder")
-    parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument("--threads", type=int, default=None, help="default: the registrar's")
+    parser.add_argument("--repeats", type=positive_int, default=30)
+    parser.add_argument("--threads", type=positive_int, default=None, help="default: the registrar's")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    npz_arrays(parser, args.pairs)
+    checked(model_dir, args.model)
+    json_destination(args.json)
     emit_report(run(args.pairs, args.model, args.repeats, args.threads), args.json)
 
 

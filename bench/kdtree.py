@@ -18,7 +18,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 import service.kdtree
-from bench.report_io import emit_report
+from bench.report_io import checked, emit_report, json_destination, npz_arrays, positive_int
+from model.cli_inputs import model_dir
+from service.refine_modes import REFINE_MODES
 
 
 class ScipyKDTree:
@@ -43,10 +45,10 @@ def use_backend(tree_class: type) -> None:
 
 
 def run(pairs_path: Path, refine: str, count: int, model: str) -> dict:
-    from service.manifest import bundled_models_dir
+    from service.manifest import model_folder
     from service.registrar import Registrar
 
-    registrar = Registrar(bundled_models_dir() / model)
+    registrar = Registrar(model_folder(model))
     pairs = dict(np.load(pairs_path))  # read once: an NpzFile decompresses an array on every access
     backends = {"pykdtree": service.kdtree.KDTree, "scipy": ScipyKDTree}
     timings: dict[str, list[dict[str, float]]] = {name: [] for name in backends}
@@ -74,11 +76,14 @@ def run(pairs_path: Path, refine: str, count: int, model: str) -> dict:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, required=True)
-    parser.add_argument("--refine", default="icp-plane")
-    parser.add_argument("--count", type=int, default=40)
-    parser.add_argument("--model", default="general")
+    parser.add_argument("--refine", default="icp-plane", choices=REFINE_MODES)
+    parser.add_argument("--count", type=positive_int, default=40)
+    parser.add_argument("--model", default="general", help="bundled model name or model folder")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    npz_arrays(parser, args.pairs)
+    checked(model_dir, args.model)
+    json_destination(args.json)
     report = run(args.pairs, args.refine, args.count, args.model)
     emit_report(report, args.json)
 

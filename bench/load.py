@@ -18,10 +18,12 @@ import json
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from bench.http_latency import CONCURRENCY, Server, run_load
+from bench.report_io import json_destination, npz_arrays, positive_int, require_checkouts
 
 
 @dataclass(frozen=True)
@@ -69,16 +71,18 @@ def compare_load(pairs: dict[str, np.ndarray], specs: list[ServerSpec], requests
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", required=True, help="pairs .npz (mfgnet make-pairs)")
-    parser.add_argument("--compare-root", action="append", default=[], help="another checkout to serve beside this one")
-    parser.add_argument("--requests", type=int, default=40, help="requests per concurrency, server and round")
-    parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--concurrency", type=int, action="append", help="default: 1, 2, 4, 8")
+    parser.add_argument("--compare-root", action="append", default=[],
+                        help="another checkout to serve beside this one")
+    parser.add_argument("--requests", type=positive_int, default=40, help="requests per concurrency, server and round")
+    parser.add_argument("--rounds", type=positive_int, default=2)
+    parser.add_argument("--concurrency", type=positive_int, action="append", help="default: 1, 2, 4, 8")
     parser.add_argument("--settings", type=parse_setting, action="append",
                         help="THREADSxCONCURRENCY of this checkout's server, repeatable (default: 2x2)")
     parser.add_argument("--json", help="also write the rows here")
     args = parser.parse_args(argv)
-    with np.load(args.pairs) as data:
-        pairs = {key: data[key] for key in ("source", "target")}
+    pairs = npz_arrays(parser, Path(args.pairs))
+    json_destination(args.json)
+    require_checkouts(parser, args.compare_root)
     settings = args.settings or [(2, 2)]
     specs = [ServerSpec(None, t, c) for t, c in settings]
     specs += [ServerSpec(root, *settings[0]) for root in args.compare_root]

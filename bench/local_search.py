@@ -20,7 +20,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bench.auto_trigger import pose_errors
-from bench.report_io import emit_report
+from bench.report_io import checked, emit_report, json_destination
+from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
 ICP_DISTANCE = 0.15  # the short ICPs' correspondence cap
@@ -53,11 +54,11 @@ def criteria_scores(src: np.ndarray, tgt: np.ndarray, R_h: np.ndarray, t_h: np.n
 
 def run(pairs_path: Path, model: str, angles: list[float]) -> dict:
     from service.icp import icp_many
-    from service.manifest import bundled_models_dir
+    from service.manifest import model_folder
     from service.multistart import turned_poses
     from service.registrar import Registrar
 
-    registrar = Registrar(bundled_models_dir() / model)
+    registrar = Registrar(model_folder(model))
     pairs = load_pairs(pairs_path)
 
     def right(R: np.ndarray, t: np.ndarray, i: int) -> bool:  # within (5 deg, 5 cm)
@@ -90,14 +91,22 @@ def run(pairs_path: Path, model: str, angles: list[float]) -> dict:
     }
 
 
+def angle_list(text: str) -> list[float]:
+    """An argparse ``type`` for ``--angles``: degrees, comma-separated (a ValueError is argparse's usage error)."""
+    return [float(a) for a in text.split(",")]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, required=True)
-    parser.add_argument("--model", default="general")
-    parser.add_argument("--angles", default="15,30", help="turn angles in degrees, comma-separated")
+    parser.add_argument("--model", default="general", help="bundled model name or model folder")
+    parser.add_argument("--angles", type=angle_list, default="15,30", help="turn angles in degrees, comma-separated")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    report = run(args.pairs, args.model, [float(a) for a in args.angles.split(",")])
+    checked(pairs_file, args.pairs)
+    checked(model_dir, args.model)
+    json_destination(args.json)
+    report = run(args.pairs, args.model, args.angles)
     emit_report(report, args.json)
 
 

@@ -17,7 +17,8 @@ import httpx
 import numpy as np
 
 from bench.http_latency import Server
-from bench.report_io import emit_report
+from bench.report_io import emit_report, json_destination, npz_arrays, positive_int
+from service.manifest import discover_model_dirs
 
 
 def measure(client: httpx.Client, pairs: dict, model: str, count: int, rounds: int) -> dict:
@@ -50,18 +51,23 @@ def measure(client: httpx.Client, pairs: dict, model: str, count: int, rounds: i
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, action="append", required=True, help="pairs file (mfgnet make-pairs)")
-    parser.add_argument("--model", default="general")
-    parser.add_argument("--count", type=int, default=20, help="pairs per file")
-    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--model", default="general", help="a bundled model's name (the server serves those)")
+    parser.add_argument("--count", type=positive_int, default=20, help="pairs per file")
+    parser.add_argument("--rounds", type=positive_int, default=2)
     parser.add_argument("--json", type=Path, default=None, help="write the report here")
     args = parser.parse_args(argv)
+    pairs = {path: npz_arrays(parser, path) for path in args.pairs}
+    bundled = [folder.name for folder in discover_model_dirs([])]
+    if args.model not in bundled:
+        parser.error(f"--model {args.model}: not a bundled model (bundled: {', '.join(bundled)})")
+    json_destination(args.json)
 
     with Server(threads=2) as server, httpx.Client(base_url=server.url, timeout=120) as client:
         report = {
             "date": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()),
             "model": args.model,
             "results": {
-                path.stem: measure(client, dict(np.load(path)), args.model, args.count, args.rounds)
+                path.stem: measure(client, pairs[path], args.model, args.count, args.rounds)
                 for path in args.pairs
             },
         }

@@ -17,6 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.auto_trigger import pose_errors
+from bench.report_io import checked, json_destination
+from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
 # (SEARCH_PRUNE_ITERATIONS, SEARCH_KEEP) of each variant
@@ -25,10 +27,10 @@ VARIANTS = {"full": (1, 24), "p1k4": (1, 4), "p1k6": (1, 6), "p1k8": (1, 8), "p2
 
 def run(pair_files: list[Path], model: str) -> dict:
     import service.rotation_search as search_module
-    from service.manifest import bundled_models_dir
+    from service.manifest import model_folder
     from service.registrar import Registrar
 
-    registrar = Registrar(bundled_models_dir() / model)
+    registrar = Registrar(model_folder(model))
     defaults = search_module.SEARCH_PRUNE_ITERATIONS, search_module.SEARCH_KEEP
     report: dict = {"model": model, "variants": VARIANTS, "files": {}}
     try:
@@ -58,9 +60,13 @@ def run(pair_files: list[Path], model: str) -> dict:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, action="append", required=True)
-    parser.add_argument("--model", default="general")
+    parser.add_argument("--model", default="general", help="bundled model name or model folder")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    for path in args.pairs:
+        checked(pairs_file, path)
+    checked(model_dir, args.model)
+    json_destination(args.json)
     report = run(args.pairs, args.model)
     for path, rows in report["files"].items():
         summary = {name: (round(r["recall_r5_t005"], 3), round(r["search_ms_median"])) for name, r in rows.items()}

@@ -17,6 +17,9 @@ import json
 import tempfile
 from pathlib import Path
 
+from bench.report_io import checked, json_destination
+from model.cli_inputs import checkpoint_file, pairs_file
+
 COLUMNS = ("recall_r5_t005", "recall_r1_t001", "mae_r", "iso_r_median", "reliable_wrong_share")
 
 
@@ -67,6 +70,11 @@ def main(argv: list[str] | None = None) -> None:
 
     if args.refine not in REFINE_MODES:
         parser.error(f"unknown --refine {args.refine!r}; expected one of {', '.join(REFINE_MODES)}")
+    for checkpoint in args.checkpoint:
+        checked(checkpoint_file, checkpoint)
+    for path in args.pairs:
+        checked(pairs_file, path)
+    json_destination(args.json)
     print(" | ".join(["checkpoint", "pairs", *COLUMNS]))
     rows = select(args.checkpoint, args.pairs, args.refine)
     if args.json:

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int
+from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs
 from model.metrics import registration_metrics
 
@@ -34,6 +35,17 @@ def parse_setting(text: str) -> dict:
         raise argparse.ArgumentTypeError(f"--setting must be a JSON object: {err}") from err
     if not isinstance(options, dict):
         raise argparse.ArgumentTypeError(f"--setting must be a JSON object, got {text!r}")
+    from service.errors import InputError
+    from service.registrar import RegistrationOptions
+
+    unknown = sorted(set(options) - RegistrationOptions.names())
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown register option {', '.join(unknown)} (options: "
+                                         f"{', '.join(sorted(RegistrationOptions.names()))})")
+    try:
+        RegistrationOptions.of(**{**DEFAULTS, **options})
+    except InputError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
     return options
 
 
@@ -75,10 +87,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--pairs", type=Path, required=True)
     parser.add_argument("--setting", type=parse_setting, action="append", required=True,
                         help="register options as a JSON object (repeat; '{}' = the defaults)")
-    parser.add_argument("--count", type=int, default=None, help="first COUNT pairs (default: all)")
+    parser.add_argument("--count", type=positive_int, default=None, help="first COUNT pairs (default: all)")
     parser.add_argument("--model", default="general", help="bundled model name or model folder")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    checked(pairs_file, args.pairs)
+    checked(model_dir, args.model)
+    json_destination(args.json)
     emit_report(run(args.pairs, args.setting, args.count, args.model), args.json)
 
 

@@ -21,19 +21,21 @@ from pathlib import Path
 import numpy as np
 
 from bench.baselines import fpfh_ransac_icp
-from bench.report_io import emit_report
+from bench.report_io import checked, emit_report, json_destination, positive_int
+from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 from model.metrics import registration_metrics
+from service.refine_modes import REFINE_MODES
 
 
 def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str, rotation_search: str = "off") -> dict:
-    from service.manifest import bundled_models_dir
+    from service.manifest import model_folder
     from service.registrar import Registrar
     from service.search_mode import rotation_search_from_options
 
     search = rotation_search_from_options(None, rotation_search)
 
-    registrar = Registrar(bundled_models_dir() / model)
+    registrar = Registrar(model_folder(model))
     pairs = load_pairs(pairs_path)
     n = min(count, len(pairs["source"]))
 
@@ -70,13 +72,16 @@ def run(pairs_path: Path, count: int, rounds: int, refine: str, model: str, rota
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=Path, required=True)
-    parser.add_argument("--count", type=int, default=30)
-    parser.add_argument("--rounds", type=int, default=4)
-    parser.add_argument("--refine", default="icp-plane")
-    parser.add_argument("--model", default="general")
+    parser.add_argument("--count", type=positive_int, default=30)
+    parser.add_argument("--rounds", type=positive_int, default=4)
+    parser.add_argument("--refine", default="icp-plane", choices=REFINE_MODES)
+    parser.add_argument("--model", default="general", help="bundled model name or model folder")
     parser.add_argument("--rotation-search", choices=["off", "auto", "on"], default="off")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
+    checked(pairs_file, args.pairs)
+    checked(model_dir, args.model)
+    json_destination(args.json)
     emit_report(run(args.pairs, args.count, args.rounds, args.refine, args.model, args.rotation_search), args.json)
 
 
