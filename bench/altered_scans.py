@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.real_scans import data_dir, turned
+from bench.real_scans import scan_set, turned
+from bench.report_io import json_destination
 from bench.surface_resample import point_spacing
 from bench.variant_runs import general_registrar, registered, report
 
@@ -88,8 +89,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
+    directory = scan_set(parser, args.dir, args.pairs)
+    json_destination(args.json)
     registrar = general_registrar()
-    groups = {kind: registered(cases(data_dir(args.dir), kind, args.scattered, args.pairs), not args.no_fpfh, registrar)
+    groups = {kind: registered(cases(directory, kind, args.scattered, args.pairs), not args.no_fpfh, registrar)
               for kind in args.alterations}
     return report("altered_scans", groups, args.json)
 

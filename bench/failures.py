@@ -26,8 +26,10 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from bench.real_scans import Case, data_dir, judged
+from bench.real_scans import Case, judged, scan_set
+from bench.report_io import checked, json_destination, positive_int
 from bench.search_network import DEFAULTS, cases, registered
+from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 
@@ -79,13 +81,17 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
     parser.add_argument("--model-dir", type=Path, default=None, help="exported model (default: the bundled general)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--turns", type=int, default=10)
+    parser.add_argument("--turns", type=positive_int, default=10)
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
     parser.add_argument("--derived", action="store_true", help="the pairs derived from the set instead of its own")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    all_cases = cases(data_dir(args.data), args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
+    directory = scan_set(parser, args.data, args.pairs, args.derived)
+    if args.model_dir:
+        checked(model_dir, args.model_dir, "--model-dir")
+    json_destination(args.json)
+    all_cases = cases(directory, args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
     report = run(Registrar(args.model_dir or bundled_models_dir() / "general"), all_cases)
     for row in report["rows"]:
         truth = row["from_truth"]

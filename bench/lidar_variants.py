@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.real_scans import data_dir, turned
+from bench.real_scans import scan_set, turned
+from bench.report_io import json_destination
 from bench.variant_runs import registered, report
 
 PAIR = "lidar_small_gicp"
@@ -92,7 +93,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--odometry", nargs=2, type=float, metavar=("DEG", "METRES"),
                         help="send each request an initial_transform this far off the truth, as odometry would")
     args = parser.parse_args(argv)
-    cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(data_dir(args.dir)))
+    directory = scan_set(parser, args.dir)
+    if not (directory / f"{PAIR}.npz").is_file():
+        parser.error(f"no LiDAR pair {PAIR}.npz in the real-scan set {directory}")
+    json_destination(args.json)
+    cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(directory))
     guess = None if args.odometry is None else odometry_guesses(*args.odometry)
     return report("lidar_variants", {"all": registered(cases, fpfh=not args.no_fpfh, guess=guess)}, args.json)
 

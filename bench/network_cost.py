@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.real_scans import data_dir
-from bench.report_io import emit_report, machine_info
+from bench.real_scans import scan_set
+from bench.report_io import emit_report, json_destination, machine_info, positive_int
 from export.onnx_export import write_model_folder
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
@@ -53,16 +53,41 @@ def timed(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> float
     return sum(timing.get(stage, 0.0) for stage in NETWORK_STAGES)
 
 
+def shape_overrides(text: str) -> dict:
+    """An argparse ``type`` for ``--shapes``: a JSON object of ``MFGNetConfig`` fields that makes a network config."""
+    try:
+        shape = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise argparse.ArgumentTypeError(f"not JSON ({err})") from None
+    if not isinstance(shape, dict):
+        raise argparse.ArgumentTypeError(f"not a JSON object of MFGNetConfig fields: {text}")
+    fields = MFGNetConfig().to_dict()
+    unknown = sorted(set(shape) - set(fields))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown MFGNetConfig field {', '.join(unknown)}")
+    wrong = [key for key, value in shape.items()  # a string for a count, say (an int is a float's value too)
+             if type(value) is not type(fields[key]) and not (type(fields[key]) is float and type(value) is int)]
+    if wrong:
+        raise argparse.ArgumentTypeError(f"{', '.join(wrong)}: not of the default's type in {text}")
+    try:
+        MFGNetConfig.from_dict({**fields, **shape})
+    except (TypeError, ValueError) as err:
+        raise argparse.ArgumentTypeError(f"{text}: {err}") from None
+    return shape
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("dir", nargs="?", help="real-scan set (default: $MFGNET_REAL_DATA or ../shared/data/real)")
     parser.add_argument("--pair", default="dragon_168_144", help="the pair registered (a file stem of the set)")
-    parser.add_argument("--shapes", nargs="+", type=json.loads, default=list(DEFAULT_SHAPES),
+    parser.add_argument("--shapes", nargs="+", type=shape_overrides, default=list(DEFAULT_SHAPES),
                         help="MFGNetConfig overrides, one JSON object per shape ({} is the bundled shape)")
-    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--rounds", type=positive_int, default=15)
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
-    with np.load(data_dir(args.dir) / f"{args.pair}.npz") as data:
+    directory = scan_set(parser, args.dir, [args.pair], option="--pair")
+    json_destination(args.json)
+    with np.load(directory / f"{args.pair}.npz") as data:
         source, target = data["source"].astype(np.float32), data["target"].astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
         registrars = [exported(shape, Path(tmp) / str(i)) for i, shape in enumerate(args.shapes)]

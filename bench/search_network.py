@@ -24,8 +24,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from bench.real_scans import Case, data_dir, judged, load_cases
-from bench.report_io import reliable_totals
+from bench.real_scans import Case, judged, load_cases, scan_set
+from bench.report_io import checked, json_destination, positive_int, reliable_totals
+from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
 from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import Registrar
@@ -127,14 +128,18 @@ def main(argv: list[str] | None = None) -> dict:
                         help="exported model(s) whose network runs the rotation search; several: all in one run")
     parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
-    parser.add_argument("--turns", type=int, default=10)
+    parser.add_argument("--turns", type=positive_int, default=10)
     parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
     parser.add_argument("--derived", action="store_true",
                         help="the pairs derived from the set instead of its own (held out: no default chosen on them)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
-    all_cases = cases(data_dir(args.data), args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
+    directory = scan_set(parser, args.data, args.pairs, args.derived)
+    for folder in args.model_dirs:
+        checked(model_dir, folder, "DIR")
+    json_destination(args.json)
+    all_cases = cases(directory, args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
     report = compare(args.model_dirs, all_cases)
     for name, figures in report["totals"].items():
         print(name, json.dumps(figures))

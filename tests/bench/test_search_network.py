@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from bench.real_scans import data_dir, load_cases
@@ -49,9 +50,12 @@ def test_the_search_runs_the_other_registrars_network(monkeypatch):
     assert not seen  # general's own search stage
 
 
-def test_a_model_normalised_otherwise_is_refused():
+def test_a_model_normalised_otherwise_is_refused(tmp_path):
+    cloud = np.zeros((20, 3), np.float32)  # a set of one pair: its cases load, the models' check refuses first
+    np.savez(tmp_path / "a.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
     with pytest.raises(SystemExit, match="reference radius"):
-        main([str(bundled_models_dir() / "unseen"), "--pairs", "none", "--seeds", "0", "--turns", "1"])
+        main([str(bundled_models_dir() / "unseen"), "--data", str(tmp_path), "--pairs", "a", "--seeds", "0",
+              "--turns", "1"])
 
 
 @needs_data
