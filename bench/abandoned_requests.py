@@ -25,7 +25,8 @@ import numpy as np
 
 from bench.default_request import dense_bodies
 from bench.http_latency import Server
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int, require_checkouts
+from model.cli_inputs import require_shapes
 
 HEADERS = {"content-type": "application/json"}
 DEADLINE_S = 3.0
@@ -92,12 +93,16 @@ def compare(roots: list[str | None], requests: int, clients: int, seed: int) -> 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--compare-root", action="append", default=[], help="another checkout (repeatable)")
-    parser.add_argument("--requests", type=int, default=48)
-    parser.add_argument("--clients", type=int, default=8, help="clients at a time")
+    parser.add_argument("--compare-root", action="append", default=[],
+                        help="another checkout (repeatable)")
+    parser.add_argument("--requests", type=positive_int, default=48)
+    parser.add_argument("--clients", type=positive_int, default=8, help="clients at a time")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
+    checked(require_shapes, "test", "dense", None)  # the default requests' pairs
+    json_destination(args.json)
+    require_checkouts(parser, args.compare_root)
     report = compare([None, *args.compare_root], args.requests, args.clients, args.seed)
     emit_report(report, args.json)
     return report

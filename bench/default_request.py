@@ -21,7 +21,8 @@ import httpx
 import numpy as np
 
 from bench.http_latency import Server
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int, require_checkouts
+from model.cli_inputs import require_shapes
 
 
 def dense_bodies(count: int, seed: int = 0) -> list[bytes]:
@@ -72,11 +73,15 @@ def compare(roots: list[str | None], requests: int, pairs: int = 16, threads: in
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--compare-root", action="append", default=[], help="another checkout (repeatable)")
-    parser.add_argument("--requests", type=int, default=40, help="timed rounds")
-    parser.add_argument("--pairs", type=int, default=16, help="distinct seeded dense pairs, cycled")
+    parser.add_argument("--compare-root", action="append", default=[],
+                        help="another checkout (repeatable)")
+    parser.add_argument("--requests", type=positive_int, default=40, help="timed rounds")
+    parser.add_argument("--pairs", type=positive_int, default=16, help="distinct seeded dense pairs, cycled")
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
+    checked(require_shapes, "test", "dense", None)  # the requests' pairs
+    json_destination(args.json)
+    require_checkouts(parser, args.compare_root)
     report = compare([None, *args.compare_root], args.requests, args.pairs)
     emit_report(report, args.json)
     return report

@@ -234,18 +234,24 @@ def bench_overhead(requests: int = 40, big_requests: int = 3, threads: int = 2,
     return report
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     import argparse
     import json
 
+    from bench.report_io import checked, json_destination, positive_int, require_checkouts
+    from model.cli_inputs import require_shapes
+
     parser = argparse.ArgumentParser(description="What HTTP adds to the in-process pipeline (see module docstring).")
-    parser.add_argument("--requests", type=int, default=40, help="timed 768-point rounds")
-    parser.add_argument("--big-requests", type=int, default=3, help="timed rounds per 20k/100k size")
-    parser.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (in process and servers)")
+    parser.add_argument("--requests", type=positive_int, default=40, help="timed 768-point rounds")
+    parser.add_argument("--big-requests", type=positive_int, default=3, help="timed rounds per 20k/100k size")
+    parser.add_argument("--threads", type=positive_int, default=2, help="ONNX Runtime threads (in process and servers)")
     parser.add_argument("--compare-root", action="append", default=[],
                         help="also serve from this checkout, side by side (repeatable)")
     parser.add_argument("--json", help="also write the report here")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    checked(require_shapes, "test", "clean", None)  # the 768-point pairs
+    json_destination(args.json)
+    require_checkouts(parser, args.compare_root)
     report = bench_overhead(args.requests, args.big_requests, args.threads, (None, *args.compare_root))
     text = json.dumps(report, indent=1)
     print(text)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import sys
 from pathlib import Path
 
 
@@ -39,5 +37,21 @@ def plot_report(report: dict, out: Path) -> None:
     fig.savefig(out, dpi=90)
 
 
+def main(argv: list[str] | None = None) -> None:
+    import argparse
+
+    from bench.latency import bench_report
+    from bench.report_io import checked
+    from model.cli_inputs import output_file
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("report", type=Path, help="an mfgnet bench --json report")
+    parser.add_argument("out", type=Path, help="the figure to write (.png)")
+    args = parser.parse_args(argv)
+    report = checked(bench_report, args.report, "REPORT")
+    checked(output_file, args.out, "OUT")
+    plot_report(report, args.out)
+
+
 if __name__ == "__main__":
-    plot_report(json.loads(Path(sys.argv[1]).read_text()), Path(sys.argv[2]))
+    main()

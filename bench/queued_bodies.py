@@ -22,8 +22,9 @@ from pathlib import Path
 import httpx
 
 from bench.http_latency import Server, rss_mb
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, require_checkouts
 from bench.server_memory import pairs
+from model.cli_inputs import require_shapes
 from service.core.config import Settings
 
 THREADS, MAX_CONCURRENCY = 1, 2  # deploy/k8s/deployment.yaml
@@ -65,6 +66,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--compare-root", help="also measure the server of the checkout in this folder")
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
+    checked(require_shapes, "test", "dense", None)  # the small request's pair
+    json_destination(args.json)
+    require_checkouts(parser, args.compare_root)
     settings = Settings()
     requests = MAX_CONCURRENCY + settings.max_queue
     body = padded_body(settings.max_points, settings.max_body_bytes)

@@ -140,24 +140,29 @@ def time_registrations(registrar: Registrar, pairs: dict, repeats: int) -> dict[
 def search_bench(
     json_out: Annotated[Path, typer.Option("--json", help="write the figures here")] = Path("rotation_search.json"),
     model: Annotated[str, typer.Option(help="bundled model name or model directory")] = "clean",
-    count: int = 30,
+    count: Annotated[int, typer.Option(min=1, help="pairs per setting and angle")] = 30,
     seed: int = 0,
     settings: Annotated[list[str] | None, typer.Option("--setting")] = None,
     angles: Annotated[list[float] | None, typer.Option("--max-angle")] = None,
-    repeats: Annotated[int, typer.Option(help="timed registrations per configuration")] = 12,
-    threads: Annotated[int, typer.Option(help="ONNX Runtime threads for the timed runs")] = 2,
-    success_threads: Annotated[int, typer.Option(help="threads for the success-rate runs")] = 1,
+    repeats: Annotated[int, typer.Option(min=1, help="timed registrations per configuration")] = 12,
+    threads: Annotated[int, typer.Option(min=1, help="ONNX Runtime threads for the timed runs")] = 2,
+    success_threads: Annotated[int, typer.Option(min=1, help="threads for the success-rate runs")] = 1,
     skip_success: bool = False,
     skip_cost: bool = False,
 ) -> None:
     """Success rate (pairs per setting and angle) and cost of the rotation search."""
     from tqdm import tqdm
 
+    from model.cli_inputs import model_dir, output_file, require_shapes
     from model.data import make_test_pairs, protocol_for
     from service.manifest import load_manifest, model_folder
     from service.registrar import Registrar
 
     settings = settings or ["dense", "resampled"]
+    output_file(json_out, "--json")  # before any work: the report is first written after the cost stage
+    model_dir(model)
+    for setting in dict.fromkeys(["dense", *settings]):  # the cost stage's pairs, then each setting's
+        require_shapes("test", setting, None)
     angles = angles or [45.0, 90.0, 180.0]
     model_dir = model_folder(model)
     registrar = Registrar(model_dir, threads=threads)

@@ -21,7 +21,8 @@ import numpy as np
 
 from bench.http_latency import Server, rss_mb
 from bench.latency import resize_cloud
-from bench.report_io import emit_report, machine_info
+from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int
+from model.cli_inputs import require_shapes
 
 SMALL_POINTS = 1024
 THREADS = 2
@@ -68,11 +69,21 @@ def measure(models: str | None, small_requests: int = 5, big_points: int = 100_0
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", help="serve only these model names, comma separated (default: every bundled one)")
-    parser.add_argument("--small", type=int, default=5, help="1,024-point registrations before the big one")
-    parser.add_argument("--big-points", type=int, default=100_000, help="points per cloud of the big JSON request")
+    parser.add_argument("--small", type=positive_int, default=5, help="1,024-point registrations before the big one")
+    parser.add_argument("--big-points", type=positive_int, default=100_000,
+                        help="points per cloud of the big JSON request")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
+    if args.models:
+        from service.manifest import discover_model_dirs
+
+        bundled = [folder.name for folder in discover_model_dirs([])]
+        unknown = [name for name in args.models.split(",") if name.strip() not in bundled]
+        if unknown:
+            parser.error(f"--models: no bundled model {', '.join(unknown)} (bundled: {', '.join(bundled)})")
+    checked(require_shapes, "test", "dense", None)  # the requests' pairs
+    json_destination(args.json)
     report = measure(args.models, args.small, args.big_points, args.seed)
     emit_report(report, args.json)
     return report

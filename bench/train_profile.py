@@ -14,7 +14,9 @@ import time
 import numpy as np
 import torch
 
+from bench.report_io import checked, positive_int
 from model.allocator import keep_freed_memory
+from model.cli_inputs import require_shapes
 from model.config import MFGNetConfig
 from model.data import TrainPairStream, load_shapes, protocol_for
 from model.losses import registration_losses, sample_training_keypoints
@@ -23,10 +25,10 @@ from model.network import MFGNet
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=positive_int, default=2)
     parser.add_argument("--setting", default="noise")
-    parser.add_argument("--batch-size", type=int, default=8)
-    parser.add_argument("--steps", type=int, default=4, help="timed steps (after two warm-up steps)")
+    parser.add_argument("--batch-size", type=positive_int, default=8)
+    parser.add_argument("--steps", type=positive_int, default=4, help="timed steps (after two warm-up steps)")
     parser.add_argument("--profile", action="store_true", help="print the torch profiler's op table too")
     parser.add_argument(
         "--compare-eager",
@@ -40,6 +42,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("--data", default=None, help="ModelNet40 folder (default: MFGNET_DATA or ../shared)")
     args = parser.parse_args(argv)
+    checked(require_shapes, "train", args.setting, args.data)
 
     torch.set_num_threads(args.threads)
     allocator = "default" if args.default_allocator or not keep_freed_memory() else "keep freed memory"
