@@ -1,0 +1,145 @@
+"""Every ``python -m bench.*`` command answers a user's mistake with a usage error before any work: exit code 2, a
+one-line message naming the problem, no traceback. Each case replaces the command's work (its registrations, servers,
+data loading) by a function that fails the test, so a check that comes too late, or not at all, fails fast."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import socket
+
+import numpy as np
+import pytest
+import typer
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("the benchmark started its work before checking its command line")
+
+
+@pytest.fixture()
+def files(tmp_path, monkeypatch):
+    """Bad and good inputs: ``{name: path}``; the real-scan set of the tests is a fake one of two pairs."""
+    rng = np.random.default_rng(0)
+    good = tmp_path / "pairs.npz"
+    np.savez(good, source=rng.normal(size=(1, 8, 3)), target=rng.normal(size=(1, 8, 3)),
+             rotation=np.eye(3)[None], translation=np.zeros((1, 3)), label=np.zeros(1))
+    np.savez(tmp_path / "wrong.npz", x=np.zeros(3))
+    (tmp_path / "text.npz").write_text("not an archive")
+    (tmp_path / "list.json").write_text(json.dumps([1]))
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for name in ("dragon_a", "dragon_b"):
+        cloud = rng.normal(size=(20, 3)).astype(np.float32)
+        np.savez(scans / f"{name}.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "checkout").mkdir()  # a folder, but no checkout of the project
+    monkeypatch.setenv("MFGNET_REAL_DATA", str(scans))
+    with socket.socket() as s:  # a port with no server behind it
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    return {"pairs": str(good), "wrong": str(tmp_path / "wrong.npz"), "text": str(tmp_path / "text.npz"),
+            "list": str(tmp_path / "list.json"), "empty": str(tmp_path / "empty"),
+            "missing": str(tmp_path / "missing" / "out.json"), "checkout": str(tmp_path / "checkout"),
+            "scans": str(scans), "url": f"http://127.0.0.1:{port}"}
+
+
+# (module, argv with {file} names, the work replaced, a fragment of the message)
+CASES = [
+    ("kdtree", ["--pairs", "{wrong}"], "run", "not an .npz of source, target (no source, target)"),
+    ("kdtree", ["--pairs", "{pairs}", "--count", "0"], "run", "--count: must be at least 1, got 0"),
+    ("kdtree", ["--pairs", "{pairs}", "--model", "nope"], "run", "--model nope: no such model folder"),
+    ("kdtree", ["--pairs", "{pairs}", "--json", "{empty}"], "run", "a folder, not a file"),
+    ("graph_ops", ["--pairs", "{text}"], "run", "not an .npz archive"),
+    ("graph_ops", ["--pairs", "{pairs}", "--repeats", "0"], "run", "--repeats: must be at least 1"),
+    ("settings", ["--pairs", "{pairs}", "--setting", '{{"bogus": 1}}'], "run", "unknown register option bogus"),
+    ("settings", ["--pairs", "{wrong}", "--setting", "{{}}"], "run", "lacks ['source'"),
+    ("settings", ["--pairs", "{pairs}", "--setting", "{{}}", "--count", "-1"], "run", "--count: must be at least 1"),
+    ("vs_fpfh", ["--pairs", "{pairs}", "--rounds", "0"], "run", "--rounds: must be at least 1"),
+    ("vs_fpfh", ["--pairs", "{pairs}", "--refine", "bogus"], "run", "--refine: invalid choice: 'bogus'"),
+    ("local_search", ["--pairs", "{pairs}", "--angles", "x"], "run", "--angles: invalid"),
+    ("local_search", ["--pairs", "{pairs}", "--model", "{empty}"], "run", "not a usable model folder"),
+    ("search_pruning", ["--pairs", "{missing}"], "run", "no such file"),
+    ("select", ["--checkpoint", "nope", "--pairs", "{pairs}"], "select", "--checkpoint nope: no checkpoint"),
+    ("select", ["--checkpoint", "clean", "--pairs", "{pairs}", "--json", "{missing}"], "select", "does not exist"),
+    ("refine_http", ["--pairs", "{pairs}", "--model", "nope"], "Server", "--model nope: not a bundled model"),
+    ("refine_http", ["--pairs", "{pairs}", "--count", "0"], "Server", "--count: must be at least 1"),
+    ("auto_trigger", ["report", "{list}", "--pairs", "{pairs}"], "report", "not what collect wrote"),
+    ("auto_trigger", ["collect", "--pairs", "{pairs}", "--out", "{missing}"], "collect", "--out"),
+    ("load", ["--pairs", "{wrong}"], "compare_load", "(no source, target)"),
+    ("load", ["--pairs", "{pairs}", "--concurrency", "0"], "compare_load", "--concurrency: must be at least 1"),
+    ("load", ["--pairs", "{pairs}", "--compare-root", "{checkout}"], "compare_load", "not a checkout"),
+    ("load", ["--pairs", "{pairs}", "--json", "{missing}"], "compare_load", "does not exist"),
+    ("scan_reliability", ["--model", "nope"], "seed_rows", "--model nope"),
+    ("scan_reliability", ["--count", "1", "--data", "{empty}"], "seed_rows", "ModelNet40 file not found"),
+    ("train_profile", ["--setting", "bogus"], "load_shapes", "unknown setting 'bogus'"),
+    ("train_profile", ["--steps", "0"], "load_shapes", "--steps: must be at least 1"),
+    ("real_scans", ["--pairs", "nope", "dragon_a"], "load_cases", "--pairs: no pair nope"),
+    ("real_scans", ["--options", "[1]"], "load_cases", "--options: not a JSON object"),
+    ("real_scans", ["--options", '{{"bogus": 1}}'], "load_cases", "--options: bogus"),
+    ("real_scans", ["--model-dir", "{empty}"], "load_cases", "--model-dir"),
+    ("real_scans", ["--compare-root", "{checkout}"], "load_cases", "not a checkout of this project"),
+    ("real_scans", ["--url", "{url}"], "run_service", "no server answers"),
+    ("real_scans", ["--json", "{empty}"], "load_cases", "a folder, not a file"),
+    ("real_scans", ["{empty}"], "load_cases", "no *.npz pairs"),
+    ("failures", ["--turns", "0"], "cases", "--turns: must be at least 1"),
+    ("failures", ["--pairs", "nope"], "cases", "--pairs: no pair nope"),
+    ("failures", ["--data", "{empty}/nowhere"], "cases", "no real-scan set"),
+    ("failures", ["--model-dir", "{empty}"], "cases", "--model-dir"),
+    ("search_network", ["{empty}"], "cases", "not a usable model folder"),
+    ("search_network", ["{empty}", "--pairs", "nope"], "cases", "--pairs: no pair nope"),
+    ("altered_scans", ["{empty}"], "general_registrar", "no *.npz pairs"),
+    ("altered_scans", ["--json", "{missing}"], "general_registrar", "does not exist"),
+    ("lidar_variants", [], "variants", "no LiDAR pair"),
+    ("network_cost", ["--pair", "nope"], "exported", "--pair: no pair nope"),
+    ("network_cost", ["--pair", "dragon_a", "--shapes", '{{"bogus": 3}}'], "exported", "unknown MFGNetConfig field"),
+    ("network_cost", ["--pair", "dragon_a", "--rounds", "0"], "exported", "--rounds: must be at least 1"),
+    ("abandoned_requests", ["--compare-root", "{checkout}"], "compare", "not a checkout"),
+    ("abandoned_requests", ["--requests", "0"], "compare", "--requests: must be at least 1"),
+    ("default_request", ["--pairs", "0"], "compare", "--pairs: must be at least 1"),
+    ("default_request", ["--json", "{empty}"], "compare", "a folder, not a file"),
+    ("queued_bodies", ["--json", "{missing}"], "measure", "does not exist"),
+    ("queued_bodies", ["--compare-root", "{checkout}"], "measure", "--compare-root"),
+    ("server_memory", ["--models", "general,nope"], "measure", "--models: no bundled model nope"),
+    ("http_latency", ["--big-requests", "0"], "bench_overhead", "--big-requests: must be at least 1"),
+    ("http_latency", ["--compare-root", "{checkout}"], "bench_overhead", "not a checkout"),
+    ("plot", ["{list}", "{missing}"], "plot_report", "not an mfgnet bench report"),
+]
+
+
+@pytest.mark.parametrize(("module", "argv", "work", "fragment"), CASES,
+                         ids=[f"{c[0]}:{' '.join(c[1])}" for c in CASES])
+def test_mistake_is_a_usage_error_before_any_work(module, argv, work, fragment, files, monkeypatch, capsys):
+    bench = importlib.import_module(f"bench.{module}")
+    monkeypatch.setattr(bench, work, _no_work)
+    with pytest.raises(SystemExit) as ended:
+        bench.main([arg.format(**files) for arg in argv])
+    assert ended.value.code == 2
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "error: " in message and fragment in message
+
+
+def test_modelnet_data_missing_is_a_usage_error(files, monkeypatch, capsys):
+    from bench import default_request
+
+    monkeypatch.setenv("MFGNET_DATA", files["empty"])
+    monkeypatch.setattr(default_request, "compare", _no_work)
+    with pytest.raises(SystemExit) as ended:
+        default_request.main([])
+    assert ended.value.code == 2
+    assert "ModelNet40 file not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("options", "fragment"), [({"json_out": "missing"}, "does not exist"),
+                                                   ({"settings": ["bogus"]}, "unknown setting 'bogus'")])
+def test_rotation_search_checks_its_options_before_the_cost_stage(options, fragment, files, monkeypatch, capsys):
+    from pathlib import Path
+
+    from bench.rotation_search import search_bench
+
+    monkeypatch.setattr("service.registrar.Registrar", _no_work)
+    options = {k: Path(files[v]) if k == "json_out" else v for k, v in options.items()}
+    with pytest.raises(typer.Exit) as ended:
+        search_bench(**options)
+    assert ended.value.exit_code == 2
+    assert fragment in capsys.readouterr().err
