@@ -98,11 +98,22 @@ async def _request_validation(request: Request, exc: RequestValidationError) -> 
     return error_response(err.status, err.message, **err.extra)
 
 
+# A request's path or method in a log line or an error message is cut to this many characters: uvicorn takes request
+# lines of over 100 KB, and each made a log line (and a 404 body) of that size. The access line's ``error`` too.
+MAX_LOGGED_CHARS = 256
+
+
+def shortened(text: str) -> str:
+    """``text`` cut to :data:`MAX_LOGGED_CHARS` characters (``...`` marks a cut)."""
+    return text if len(text) <= MAX_LOGGED_CHARS else text[:MAX_LOGGED_CHARS] + "..."
+
+
 async def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    method, path = shortened(request.method), shortened(request.url.path)
     if exc.status_code == 404:
-        message = f"not found: {request.method} {request.url.path}"
+        message = f"not found: {method} {path}"
     elif exc.status_code == 405:
-        message = f"method {request.method} not allowed on {request.url.path}"
+        message = f"method {method} not allowed on {path}"
     else:
         message = str(exc.detail)
     return error_response(exc.status_code, message, dict(exc.headers or {}))

@@ -14,7 +14,7 @@ from starlette.requests import ClientDisconnect
 from starlette.routing import Match, Mount, Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError
+from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError, shortened
 from service.api.metrics import Metrics
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
@@ -28,9 +28,6 @@ UNMATCHED_ROUTE = "<unmatched>"
 # made-up methods grew /metrics from 54 KB to 4 MB).
 KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
 OTHER_METHOD = "other"
-# The access line's ``path`` is cut to this many characters: uvicorn takes request lines of over 100 KB, and each made
-# a log line of that size. ``error`` (the JSON error's message of a 4xx/5xx) is cut the same way.
-MAX_LOGGED_CHARS = 256
 MAX_ERROR_BODY_BYTES = 4096  # of an error response, read back for the access line's ``error``
 
 
@@ -43,10 +40,6 @@ def _request_id(scope: Scope) -> str:
     return uuid.uuid4().hex
 
 
-def _shortened(text: str) -> str:
-    return text if len(text) <= MAX_LOGGED_CHARS else text[:MAX_LOGGED_CHARS] + "..."
-
-
 def _error_message(status: int, body: bytes) -> str | None:
     """Why a request failed, for its access line: the ``"error"`` of its JSON body, cut short."""
     if status == 499:
@@ -57,7 +50,7 @@ def _error_message(status: int, body: bytes) -> str | None:
         message = json.loads(body).get("error")
     except (ValueError, AttributeError):
         return None
-    return _shortened(message) if isinstance(message, str) else None
+    return shortened(message) if isinstance(message, str) else None
 
 
 def _route_template(scope: Scope, path: str, root_path: str) -> str:
@@ -158,7 +151,7 @@ class RequestContextMiddleware:
         except ClientDisconnect:
             state["status"] = state["status"] or 499  # the client went away; nothing to answer
         except Exception:
-            app_log.exception("unhandled error", extra={"request_id": request_id, "path": _shortened(path)})
+            app_log.exception("unhandled error", extra={"request_id": request_id, "path": shortened(path)})
             if not state["started"]:
                 await self._send_error(send_with_id, 500, "internal server error", request_id=request_id)
             else:
@@ -172,9 +165,9 @@ class RequestContextMiddleware:
             self.metrics.latency.labels(route=route).observe(elapsed)
             extra = {
                 "request_id": request_id,
-                "method": scope["method"] if method != OTHER_METHOD else _shortened(scope["method"]),
+                "method": scope["method"] if method != OTHER_METHOD else shortened(scope["method"]),
                 "route": route,
-                "path": _shortened(path),
+                "path": shortened(path),
                 "status": state["status"],
                 "ms": round(1000 * elapsed, 2),
                 "bytes_in": state["received"],

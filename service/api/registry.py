@@ -15,7 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from service.api.errors import APIError
+from service.api.errors import APIError, shortened
 from service.core.logging import APP_LOGGER
 from service.manifest import ModelIntegrityError, bundled_models_dir, discover_model_dirs
 from service.registrar import Registrar
@@ -23,6 +23,11 @@ from service.registrar import Registrar
 log = logging.getLogger(APP_LOGGER)
 
 RETRY_AFTER_LOADING_S = 2
+
+
+def unknown_model(name: str) -> APIError:
+    """The 404 for a model name no entry has (the name cut short: a path may be 100 KB)."""
+    return APIError(404, f"unknown model {shortened(name)!r}; see GET /v1/models")
 
 
 @dataclass
@@ -147,7 +152,7 @@ class ModelRegistry:
         """The served model ``name``: 404 if unknown, 503 if still loading or failed."""
         entry = self.entries.get(name)  # a dict lookup only: never a path
         if entry is None:
-            raise APIError(404, f"unknown model {name!r}; see GET /v1/models")
+            raise unknown_model(name)
         if entry.status == "loading":
             raise APIError(
                 503, f"model {name!r} is still loading", headers={"Retry-After": str(RETRY_AFTER_LOADING_S)}

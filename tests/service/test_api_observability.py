@@ -74,10 +74,16 @@ def test_access_line_of_a_client_that_went_away_says_so(server):
 def test_access_line_of_a_huge_path_stays_short(server, client):
     """uvicorn takes request lines of over 100 KB: each was written whole into the access line (and the error)."""
     request_id = "long-" + uuid.uuid4().hex
-    assert client.get("/" + "a" * 50_000, headers={"X-Request-ID": request_id}).status_code == 404
+    response = client.get("/" + "a" * 50_000, headers={"X-Request-ID": request_id})
+    assert response.status_code == 404 and len(response.content) < 1_000  # the 404 named the whole path
+    assert response.json()["error"].endswith("...")
     line, raw = access_line(server, request_id)
     assert line["path"].startswith("/aaaa") and line["path"].endswith("...")
     assert len(raw) < 1_000
+    assert line["error"].startswith("not found: GET /aaaa")  # the 404's message, read back whole
+    for path in ("/v2/models/" + "m" * 50_000, "/v2/models/" + "m" * 50_000 + "/ready"):  # a model name that long
+        response = client.get(path)
+        assert response.status_code == 404 and len(response.content) < 1_000, (path[:40], len(response.content))
 
 
 def test_metrics_name_the_api_description_and_static_files_by_their_route(client):

@@ -19,7 +19,7 @@ from service.api.deps import get_registry, get_runner, get_settings, require_api
 from service.api.errors import APIError, error_docs
 from service.api.oip_request import HEADER_LENGTH, OCTET_STREAM
 from service.api.oip_response import infer_response
-from service.api.registry import RETRY_AFTER_LOADING_S, ModelEntry
+from service.api.registry import RETRY_AFTER_LOADING_S, ModelEntry, unknown_model
 from service.api.schemas import (
     InferResponse,
     LiveResponse,
@@ -202,7 +202,7 @@ INFER_ROUTE = {
 @router.post("/models/{name}/infer", summary="Register SOURCE onto TARGET (OIP v2)", **INFER_ROUTE)
 async def infer(name: str, request: Request) -> Response:
     if name not in get_registry(request).entries:  # fail fast, before reading the body
-        raise APIError(404, f"unknown model {name!r}; see GET /v1/models")
+        raise unknown_model(name)
     return await _infer(name, request)
 
 
