@@ -77,7 +77,17 @@ def require_media_type(request: Request, *allowed: str) -> str:
     if kind not in allowed:
         shown = repr(kind[:80]) if kind else "none"
         raise APIError(415, f"unsupported content type {shown}; use {' or '.join(allowed)}")
+    require_identity_encoding(request)
     return kind
+
+
+def require_identity_encoding(request: Request) -> None:
+    """415 for a compressed body (``Content-Encoding: gzip``...), naming the one coding read (RFC 7694): its bytes
+    were read as JSON or multipart, a 400 "not UTF-8 text" or a form parse error."""
+    encoding = request.headers.get("content-encoding", "").strip().lower()
+    if encoding not in ("", "identity"):
+        raise APIError(415, f"unsupported Content-Encoding {encoding[:40]!r}; send the body uncompressed",
+                       headers={"Accept-Encoding": "identity"})
 
 
 def too_many_points(name: str, count: int, max_points: int) -> APIError:

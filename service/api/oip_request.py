@@ -25,6 +25,7 @@ from service.api.bodies import (
     check_json_values,
     load_json,
     media_type,
+    require_identity_encoding,
     too_many_points,
     two_clouds,
 )
@@ -57,9 +58,7 @@ def check_media_type(request: Request) -> str:
     kind = media_type(request)
     if kind and kind not in (JSON, OCTET_STREAM) and not (kind.startswith("application/") and kind.endswith("+json")):
         raise APIError(415, f"unsupported content type {kind[:80]!r}; use {JSON}, {OCTET_STREAM} or none")
-    encoding = request.headers.get("content-encoding", "").strip().lower()
-    if encoding not in ("", "identity"):
-        raise APIError(415, f"unsupported Content-Encoding {encoding[:40]!r}; send the body uncompressed")
+    require_identity_encoding(request)
     return kind
 
 
