@@ -77,6 +77,12 @@ def _content_length(scope: Scope) -> int | None:
     return None
 
 
+def _differing_content_types(scope: Scope) -> bool:
+    """Whether the request has two Content-Type headers of different values: the routes read the first, a proxy in
+    front may have read the last (h11 refuses two different Content-Lengths itself)."""
+    return len({value.strip().lower() for key, value in scope.get("headers", []) if key == b"content-type"}) > 1
+
+
 class RequestContextMiddleware:
     def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None,
                  body_timeout_s: float | None = None, body_min_rate: int | None = None):
@@ -146,6 +152,9 @@ class RequestContextMiddleware:
             if length is not None and length > limit:  # refuse before reading anything
                 too_large = BodyTooLargeError(limit, setting)
                 await self._send_error(send_with_id, too_large.status, too_large.message)
+            elif _differing_content_types(scope):
+                await self._send_error(send_with_id, 400, "the request has Content-Type headers that differ; send "
+                                                          "one (RFC 9110 5.3)")
             else:
                 await self.app(scope, receive_limited, send_with_id)
         except ClientDisconnect:

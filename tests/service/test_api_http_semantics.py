@@ -7,6 +7,7 @@ from __future__ import annotations
 import gzip
 import io
 import json
+import socket
 
 import httpx
 import numpy as np
@@ -48,3 +49,28 @@ def test_a_compressed_body_is_a_415_naming_content_encoding_on_every_v1_route(cl
     assert response.headers["accept-encoding"] == "identity"
     plain = client.post("/v1/register", json=pair(), headers={"content-encoding": "identity"})
     assert plain.status_code == 200, plain.text
+
+
+def raw_request(server, head: bytes, body: bytes) -> bytes:
+    url = httpx.URL(server.url)
+    with socket.create_connection((url.host, url.port), timeout=30) as sock:
+        sock.sendall(head + b"Content-Length: %d\r\nConnection: close\r\n\r\n" % len(body) + body)
+        reply = b""
+        while chunk := sock.recv(65536):
+            reply += chunk
+    return reply
+
+
+@pytest.mark.parametrize("types", [(b"application/json", b"text/plain"), (b"text/plain", b"application/json")])
+def test_two_different_content_types_are_a_400(server, types):
+    """The server read the first and a proxy may read the last: the same bytes meant two things (RFC 9110 5.3)."""
+    head = b"POST /v1/register HTTP/1.1\r\nHost: test\r\n" + b"".join(b"Content-Type: %s\r\n" % t for t in types)
+    reply = raw_request(server, head, json.dumps(pair()).encode())
+    assert reply.startswith(b"HTTP/1.1 400 "), reply[:300]
+    assert b"Content-Type" in reply and b"application/json" not in reply.split(b"\r\n\r\n", 1)[1]
+
+
+def test_the_same_content_type_twice_is_read(server):
+    head = b"POST /v1/register HTTP/1.1\r\nHost: test\r\n" + b"Content-Type: application/json\r\n" * 2
+    reply = raw_request(server, head, json.dumps(pair()).encode())
+    assert reply.startswith(b"HTTP/1.1 200 "), reply[:300]
