@@ -80,7 +80,12 @@ class Runner:
 
     def prepare(self, pair: Pair, model: str | None = None, prefix: str = "") -> tuple[ModelEntry, dict[str, Any]]:
         """Model entry and ``register`` keyword arguments; every check that can fail runs here (422/404/503)."""
-        entry = self.resolve(model or pair.options.model)
+        try:
+            entry = self.resolve(model or pair.options.model)
+        except APIError as exc:  # unknown, loading or failed: in a batch, which pair named it
+            if prefix:
+                exc.message = f"{prefix}model: {exc.message}"
+            raise
         registrar = entry.registrar
         assert registrar is not None
         o = pair.options

@@ -74,3 +74,8 @@ def test_the_same_content_type_twice_is_read(server):
     head = b"POST /v1/register HTTP/1.1\r\nHost: test\r\n" + b"Content-Type: application/json\r\n" * 2
     reply = raw_request(server, head, json.dumps(pair()).encode())
     assert reply.startswith(b"HTTP/1.1 200 "), reply[:300]
+
+
+def test_a_batch_pairs_unknown_model_is_named_by_its_index(client):
+    response = client.post("/v1/register/batch", json={"pairs": [pair(), pair(model="nope")]})
+    assert_error(response, 404, "pairs[1].model", "unknown model 'nope'")
