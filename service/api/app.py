@@ -76,6 +76,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
         docs_url=None,  # /docs and /redoc come from routes/docs.py, with their assets served locally
         redoc_url=None,
+        redirect_slashes=False,  # a 307 to the path without its slash made clients send a POST's body twice (errors.py)
     )
     app.state.settings = settings
     app.state.metrics = metrics

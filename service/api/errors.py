@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from service.api.schemas import ErrorResponse
 from service.core.logging import APP_LOGGER
@@ -111,12 +112,24 @@ def shortened(text: str) -> str:
 async def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     method, path = shortened(request.method), shortened(request.url.path)
     if exc.status_code == 404:
-        message = f"not found: {method} {path}"
+        message = f"not found: {method} {path}{_slash_hint(request)}"
     elif exc.status_code == 405:
         message = f"method {method} not allowed on {path}"
     else:
         message = str(exc.detail)
     return error_response(exc.status_code, message, dict(exc.headers or {}))
+
+
+def _slash_hint(request: Request) -> str:
+    """Where a path with a trailing slash names a route without it: the server does not redirect (a 307 made clients
+    send a POST's body twice, to a Location built from the Host and scheme it saw)."""
+    path = request.url.path
+    if len(path) < 2 or not path.endswith("/"):
+        return ""
+    probe = {**request.scope, "path": path.rstrip("/") or "/"}
+    if any(route.matches(probe)[0] is not Match.NONE for route in request.app.routes):
+        return f" (the routes take no trailing slash: {shortened(probe['path'])})"
+    return ""
 
 
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:

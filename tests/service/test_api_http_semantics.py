@@ -79,3 +79,18 @@ def test_the_same_content_type_twice_is_read(server):
 def test_a_batch_pairs_unknown_model_is_named_by_its_index(client):
     response = client.post("/v1/register/batch", json={"pairs": [pair(), pair(model="nope")]})
     assert_error(response, 404, "pairs[1].model", "unknown model 'nope'")
+
+
+@pytest.mark.parametrize("path", ["/v1/register/", "/v1/register/batch/", "/v1/models/", "/v2/health/ready/"])
+def test_a_trailing_slash_is_a_404_naming_the_route_not_a_redirect(client, path):
+    """A 307 made clients that follow it (requests, curl -L) send a POST's body twice, to a Location built from the
+    Host header and scheme the server saw (http:// behind a TLS proxy)."""
+    method = "POST" if "register" in path else "GET"
+    response = client.request(method, path, json=pair() if method == "POST" else None)
+    assert "location" not in response.headers
+    assert_error(response, 404, f"not found: {method} {path}", f"take no trailing slash: {path.rstrip('/')}")
+
+
+def test_an_unknown_path_with_a_trailing_slash_gets_no_hint(client):
+    response = client.get("/v1/no-such-route/")
+    assert "trailing slash" not in assert_error(response, 404, "/v1/no-such-route/")["error"]
