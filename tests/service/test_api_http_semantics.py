@@ -8,11 +8,12 @@ import gzip
 import io
 import json
 import socket
+import time
 
 import httpx
 import numpy as np
 import pytest
-from api_server import assert_error, pair_json, synthetic_pair
+from api_server import assert_error, pair_json, start_subprocess_server, synthetic_pair
 
 CHEAP = {"iterations": 1, "keypoints": 16, "refine": "none"}
 
@@ -94,3 +95,30 @@ def test_a_trailing_slash_is_a_404_naming_the_route_not_a_redirect(client, path)
 def test_an_unknown_path_with_a_trailing_slash_gets_no_hint(client):
     response = client.get("/v1/no-such-route/")
     assert "trailing slash" not in assert_error(response, 404, "/v1/no-such-route/")["error"]
+
+
+def _logged_client(server, request_id: str) -> str:
+    """The ``client`` of ``request_id``'s access line, once the server has written it (after its answer)."""
+    deadline = time.monotonic() + 5
+    while True:
+        lines = [line for line in server.log_lines() if line.get("request_id") == request_id]
+        if lines or time.monotonic() > deadline:
+            assert len(lines) == 1, lines
+            return lines[0]["client"]
+        time.sleep(0.02)
+
+
+def test_the_access_log_names_the_forwarded_client_only_behind_a_trusted_proxy(server):
+    """DEPLOYMENT.md, "Logs": X-Forwarded-For names the client when the peer is trusted (127.0.0.1 by default, a
+    sidecar), and uvicorn's FORWARDED_ALLOW_IPS says which peers are."""
+    headers = {"X-Forwarded-For": "203.0.113.7", "X-Request-ID": "forwarded-by-a-sidecar"}
+    with server.client() as c:
+        assert c.get("/v2/health/live", headers=headers).status_code == 200
+    assert _logged_client(server, "forwarded-by-a-sidecar") == "203.0.113.7"
+    elsewhere = start_subprocess_server("proxy-elsewhere", FORWARDED_ALLOW_IPS="192.0.2.1")
+    try:
+        with elsewhere.client() as c:
+            assert c.get("/v2/health/live", headers=headers).status_code == 200
+        assert _logged_client(elsewhere, "forwarded-by-a-sidecar") == "127.0.0.1"
+    finally:
+        elsewhere.stop()
