@@ -2,10 +2,11 @@
 
 Protocol (one pair per shape): 1024 points; ``R = Rx Ry Rz`` with each angle uniform in
 ``[0, max_angle]``; ``t`` uniform in ``[-0.5, 0.5]^3``; ``target = R source + t``; optional Gaussian
-noise (sigma 0.01, clipped at +-0.05) added to each cloud independently, before the crop; both
-clouds cropped to the ``keep`` points nearest to one far point ``U[0,1)^3 + 500 s (1,1,1)``,
-``s = +-1``, the same point for both (applied after moving the target). Target points are
-shuffled so that no index correspondence leaks.
+noise (sigma 0.01, clipped at +-0.05 as in the authors' code; the paper's text says [-0.5, 0.5]) added
+to each cloud independently, before the crop; both clouds cropped to the ``keep`` points nearest to
+one far point ``U[0,1)^3 + 500 s (1,1,1)``, ``s = +-1``, the same point for both (applied after
+moving the target). Target points are shuffled so that no index correspondence leaks (the authors
+shuffle the source too). How this differs from the paper's evaluation: ``docs/ACCURACY.md``.
 
 Settings (:data:`SETTINGS`, :func:`protocol_for`):
 
@@ -38,7 +39,7 @@ Options of every setting (:func:`protocol_for` keywords; ``mfgnet make-pairs`` /
 * ``source_points`` / ``target_points`` -- points per cloud after the crop (at most ``keep``): a
   seeded random subset of the crop (same region, lower density), e.g. 384 vs 768 for a density
   mismatch. Counts are fixed per protocol, so every pair of a file has the same shapes.
-* ``noise`` -- sigma of the Gaussian noise, clipped at +-5 sigma (the paper: 0.01, +-0.05).
+* ``noise`` -- sigma of the Gaussian noise, clipped at +-5 sigma (the authors' code: 0.01, +-0.05).
 * ``max_angle`` -- up to 180 degrees. The rotation stays the paper's per-axis Euler draw (each of
   the three angles uniform in ``[0, max_angle]``, ``R = Rx Ry Rz``), so 45 reproduces the paper
   exactly; beyond 45 the draw is NOT uniform on SO(3) (at 180 the total angle is still spread over
@@ -68,7 +69,7 @@ DENSE_TO_MAIN_AXES = [0, 2, 1]  # (x, y, z) of the dense file -> (x, z, y): the 
 OVERLAP_RANGE = (0.5, 1.0)
 OUTLIER_RANGE = (0.0, 0.5)
 MAX_ANGLE_LIMIT = 180.0
-NOISE_CLIP_SIGMAS = 5.0  # noise is clipped at +-5 sigma (the paper's 0.05 for sigma 0.01)
+NOISE_CLIP_SIGMAS = 5.0  # noise is clipped at +-5 sigma (the authors' code's 0.05 for sigma 0.01)
 
 
 def data_dir(path: str | os.PathLike | None = None) -> Path:

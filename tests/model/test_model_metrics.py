@@ -125,3 +125,45 @@ def test_reliability_metrics_count_trusted_misses_and_doubted_hits_by_hand() -> 
     assert reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) == {
         "reliable_share": 0.5, "reliable_wrong_share": 0.25, "unreliable_right_share": 0.25,
     }
+
+
+def protocol_rotations(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations drawn as the paper's pairs are (``model.data``): angles ``[count, 3]`` (x, y, z) in radians, uniform
+    in [0, 45] degrees, and ``R = Rx Ry Rz`` ``[count, 3, 3]``."""
+    from model.data import euler_xyz_to_matrix
+
+    angles = np.random.default_rng(seed).uniform(0.0, np.pi / 4, size=(count, 3))
+    return angles, euler_xyz_to_matrix(angles)
+
+
+def test_true_euler_angles_are_the_drawn_angles_the_authors_compare_with() -> None:
+    angles, R_gt = protocol_rotations(500, seed=3)
+    # the authors' test code takes the drawn (z, y, x) as the truth; we take scipy's zyx angles of R_gt
+    np.testing.assert_allclose(euler_zyx_deg(R_gt), np.degrees(angles[:, ::-1]), atol=1e-9)
+
+
+@pytest.mark.parametrize("axis", ["x", "y", "z"])
+@pytest.mark.parametrize("side", ["before", "after"])
+@pytest.mark.parametrize("error_deg", [0.05, 3.0, 20.0])
+def test_metrics_match_an_independent_scipy_computation_for_turns_about_each_axis(axis: str, side: str,
+                                                                                   error_deg: float) -> None:
+    angles, R_gt = protocol_rotations(400, seed=7)
+    turn = Rotation.from_euler(axis, error_deg, degrees=True).as_matrix()
+    R_pred = R_gt @ turn if side == "before" else turn @ R_gt  # turned about the axis before or after R_gt
+    rng = np.random.default_rng(11)
+    t_gt = rng.uniform(-0.5, 0.5, size=(400, 3))
+    d_t = rng.normal(0.0, 0.01, size=(400, 3))
+    m = registration_metrics(R_pred.astype(np.float32), (t_gt + d_t).astype(np.float32), R_gt.astype(np.float32),
+                             t_gt.astype(np.float32))
+    # the authors' metric: plain differences of scipy's zyx angles from the drawn ones, pooled over pairs and angles
+    d_euler = Rotation.from_matrix(R_pred).as_euler("zyx", degrees=True) - np.degrees(angles[:, ::-1])
+    tol = 1e-4 * max(error_deg, 1.0)  # float32 inputs
+    assert m["rmse_r"] == pytest.approx(np.sqrt(np.mean(d_euler**2)), abs=tol)
+    assert m["mae_r"] == pytest.approx(np.mean(np.abs(d_euler)), abs=tol)
+    iso = np.degrees((Rotation.from_matrix(R_pred).inv() * Rotation.from_matrix(R_gt)).magnitude())
+    assert iso == pytest.approx(np.full(400, error_deg), abs=1e-9)  # a turn of error_deg, whatever the axis or side
+    assert m["iso_r_mean"] == pytest.approx(error_deg, abs=tol)
+    assert m["iso_r_median"] == pytest.approx(error_deg, abs=tol)
+    assert m["rmse_t"] == pytest.approx(np.sqrt(np.mean(d_t**2)), abs=1e-7)
+    assert m["mae_t"] == pytest.approx(np.mean(np.abs(d_t)), abs=1e-7)
+    assert m["iso_t_mean"] == pytest.approx(np.linalg.norm(d_t, axis=1).mean(), abs=1e-7)
