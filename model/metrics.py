@@ -48,13 +48,17 @@ def registration_metrics(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarra
     Euler differences are wrapped into ``[-180, 180)`` degrees, which the authors' code does not do: the
     two agree wherever every predicted angle is within 180 degrees of the true one (every pair of the
     paper's 45-degree protocol unless the prediction is far off); beyond, only the wrapped one is right.
+    A predicted pose holding NaN or inf counts as infinitely off (its errors ``inf``, never within a recall
+    threshold) and ``non_finite`` counts them, instead of scipy's error ending the evaluation or the training.
     """
     R_pred, R_gt = np.asarray(R_pred, np.float64), np.asarray(R_gt, np.float64)
     t_pred, t_gt = np.asarray(t_pred, np.float64), np.asarray(t_gt, np.float64)
-    d_euler = euler_zyx_deg(R_pred) - euler_zyx_deg(R_gt)  # [M, 3]
-    d_euler = (d_euler + 180.0) % 360.0 - 180.0
-    d_t = t_pred - t_gt  # [M, 3]
-    iso_r = rotation_angle_deg(R_pred, R_gt)  # [M]
+    finite = np.isfinite(R_pred).all(axis=(1, 2)) & np.isfinite(t_pred).all(axis=1)  # [M]
+    d_euler = np.full(t_pred.shape, np.inf)  # [M, 3]; a pose with NaN or inf (a diverged network) is infinitely off
+    d_euler[finite] = euler_zyx_deg(R_pred[finite]) - euler_zyx_deg(R_gt[finite])  # scipy refuses NaN matrices
+    d_euler[finite] = (d_euler[finite] + 180.0) % 360.0 - 180.0
+    d_t = np.where(finite[:, None], t_pred - t_gt, np.inf)  # [M, 3]
+    iso_r = np.where(finite, rotation_angle_deg(R_pred, R_gt), np.inf)  # [M]
     iso_t = np.linalg.norm(d_t, axis=1)  # [M]
     out = {
         "n": len(R_pred),
@@ -68,6 +72,8 @@ def registration_metrics(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarra
         "iso_t_median": float(np.median(iso_t)),
     }
     out.update({key: float(hits.mean()) for key, hits in recall_hits(iso_r, iso_t).items()})
+    if not finite.all():
+        out["non_finite"] = int((~finite).sum())  # poses holding NaN or inf, counted infinitely off
     if seconds is not None:
         out["ms_per_pair"] = 1000.0 * seconds / max(len(R_pred), 1)
     return out

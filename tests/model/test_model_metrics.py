@@ -167,3 +167,18 @@ def test_metrics_match_an_independent_scipy_computation_for_turns_about_each_axi
     assert m["rmse_t"] == pytest.approx(np.sqrt(np.mean(d_t**2)), abs=1e-7)
     assert m["mae_t"] == pytest.approx(np.mean(np.abs(d_t)), abs=1e-7)
     assert m["iso_t_mean"] == pytest.approx(np.linalg.norm(d_t, axis=1).mean(), abs=1e-7)
+
+
+def test_a_pose_with_nan_counts_as_infinitely_off_instead_of_ending_the_evaluation() -> None:
+    """A diverged network answers NaN: scipy's ``Rotation.from_matrix`` raised, ending an evaluation or a training
+    run at its validation."""
+    R_gt = Rotation.from_euler("zyx", [[10, 0, 0], [0, 20, 0], [0, 0, 30]], degrees=True).as_matrix()  # [3, 3, 3]
+    t_gt = np.zeros((3, 3))
+    R_pred, t_pred = R_gt.copy(), t_gt.copy()
+    R_pred[1] = np.nan
+    t_pred[2, 0] = np.inf
+    metrics = registration_metrics(R_pred, t_pred, R_gt, t_gt)
+    assert metrics["non_finite"] == 2 and metrics["n"] == 3
+    assert metrics["recall_r5_t005"] == pytest.approx(1 / 3)  # the one finite pose is exact
+    assert metrics["mae_r"] == np.inf and metrics["iso_r_median"] == np.inf
+    assert "non_finite" not in registration_metrics(R_gt, t_gt, R_gt, t_gt)
