@@ -123,15 +123,17 @@ class Runner:
             raise APIError(422, f"invalid request: {prefix}{exc}") from None
         return entry, kwargs
 
-    def register(self, entry: ModelEntry, pair: Pair, kwargs: dict[str, Any]) -> RegistrationResult:
+    def register(self, entry: ModelEntry, pair: Pair, kwargs: dict[str, Any], which: str = "") -> RegistrationResult:
+        """``which``: the pair's place in a batch (``pairs[2]``), named in a failure."""
         assert entry.registrar is not None
+        failed = f"registration failed for {which}" if which else "registration failed"
         try:
             result = entry.registrar.register(pair.source, pair.target, **kwargs)
         except np.linalg.LinAlgError:  # an SVD that does not converge: extreme or degenerate coordinates
-            raise APIError(422, "registration failed: the numerics did not converge (extreme coordinates?)") from None
+            raise APIError(422, f"{failed}: the numerics did not converge (extreme coordinates?)") from None
         pose = np.concatenate([result.rotation.ravel(), result.translation])
         if not np.isfinite(pose).all():  # e.g. a degenerate cloud the checks let through
-            raise APIError(422, "registration failed: the pose is not finite (degenerate input?)")
+            raise APIError(422, f"{failed}: the pose is not finite (degenerate input?)")
         return result
 
     def register_one(self, pair: Pair, model: str | None = None) -> tuple[ModelEntry, RegistrationResult]:
@@ -141,10 +143,8 @@ class Runner:
     def register_batch(self, pairs: list[Pair]) -> list[tuple[ModelEntry, RegistrationResult]]:
         """All pairs are checked before the first one runs, so a bad pair costs no computation."""
         prepared = [self.prepare(pair, prefix=f"pairs[{i}].") for i, pair in enumerate(pairs)]
-        done = []
-        for pair, (entry, kwargs) in zip(pairs, prepared, strict=True):
-            done.append((entry, self.register(entry, pair, kwargs)))
-        return done
+        return [(entry, self.register(entry, pair, kwargs, f"pairs[{i}]"))
+                for i, (pair, (entry, kwargs)) in enumerate(zip(pairs, prepared, strict=True))]
 
     def observe(self, entry: ModelEntry, result: RegistrationResult, queue_ms: float) -> None:
         self.metrics.observe_timing(entry.name, {"queue": queue_ms, **result.timing_ms})
