@@ -17,14 +17,14 @@ import typer
 
 from service.cli_plugins import PluginGroup
 from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
-from service.search_mode import RotationSearchMode, rotation_search_from_options, service_rotation_search
+from service.request_defaults import DEFAULT_MODEL
+from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 app = typer.Typer(cls=PluginGroup, help="MFGNet point-cloud registration", no_args_is_help=True,
                   add_completion=False, rich_markup_mode=None)  # plain click help: flag names never cut at 80 columns
 
 SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
 UNRELIABLE_EXIT = 3  # mfgnet register --require-reliable: registered, but quality.reliable is false
-DEFAULT_MODEL = "general"  # trained for independently sampled scans; clean/noise/unseen reproduce the paper
 # What each bundled model is for, shown by `mfgnet models` (a manifest's own "description" wins). The table shows
 # no accuracy figures: each manifest's are on that model's own validation pairs, not comparable across models.
 MODEL_PURPOSES = {
@@ -198,11 +198,10 @@ def register_command(
     search = _search_option(rotation_search, rotation_search_mode)
     src, tgt = _read_cloud(source), _read_cloud(target)
     init = _read_transform(initial_transform) if initial_transform is not None else None
-    refine_mode = refine.value if refine is not None else None if server else SERVICE_DEFAULT_REFINE
-    if not server:  # in-process: the service's defaults (with --server the server applies its own)
-        search = service_rotation_search(search, refine_mode)
-    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine_mode, "initial_transform": init,
-               "rotation_search": search, "refine_points": refine_points}
+    # refine and rotation_search not given stay None: the server's defaults apply, in-process the same ones
+    # (service.in_process.LocalRegistrar)
+    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine.value if refine is not None else None,
+               "initial_transform": init, "rotation_search": search, "refine_points": refine_points}
     if not drop_isolated:  # sent only when it departs from the default
         options["drop_isolated"] = False
     if server:
@@ -306,14 +305,17 @@ def _read_transform(path: Path) -> list:
 
 def _register_local(src: np.ndarray, tgt: np.ndarray, model: str | None, model_dirs: list[Path], threads: int | None,
                     options: dict) -> dict:
+    """The record of ``src`` registered onto ``tgt`` in this process, as :class:`service.in_process.LocalRegistrar`
+    registers (the service's defaults for the options left ``None``)."""
     try:
+        from service.in_process import LocalRegistrar
         from service.manifest import ModelIntegrityError
-        from service.registrar import InputError, Registrar
+        from service.registrar import InputError
     except ImportError as exc:
         _fail(f"{SERVE_EXTRA_HINT} ({exc})")
     directory = _resolve_model_dir(model, model_dirs)
     try:
-        registrar = Registrar(directory, threads=threads, warmup=False)
+        registrar = LocalRegistrar(directory, threads=threads, warmup=False)
     except ModelIntegrityError as exc:
         _fail(str(exc), code=1)
     except Exception as exc:  # e.g. ONNX Runtime refusing a graph whose hash matches its manifest

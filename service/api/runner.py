@@ -29,7 +29,8 @@ from service.registrar import (
     check_cloud,
     check_transform,
 )
-from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotation_search
+from service.request_defaults import request_defaults
+from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 
 if TYPE_CHECKING:
     from starlette.requests import Request
@@ -89,7 +90,8 @@ class Runner:
         registrar = entry.registrar
         assert registrar is not None
         o = pair.options
-        refine = o.refine or self.default_refine
+        refine, search = request_defaults(o.refine, o.rotation_search, default_refine=self.default_refine,
+                                          default_rotation_search=self.default_rotation_search)
         kwargs: dict[str, Any] = {
             "iterations": o.iterations,
             "keypoints": o.keypoints,
@@ -105,7 +107,6 @@ class Runner:
             if not supports_option(type(registrar), "refine_points"):
                 raise APIError(422, f"invalid request: {prefix}refine_points: not supported by this server")
             kwargs["refine_points"] = o.refine_points
-        search = service_rotation_search(o.rotation_search, refine, self.default_rotation_search)
         if search and supports_option(type(registrar), "rotation_search"):
             kwargs["rotation_search"] = search  # True or "auto"
         elif search and o.rotation_search:  # asked for explicitly; a server default is simply not applied

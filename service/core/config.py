@@ -15,6 +15,7 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from service.refine_modes import SERVICE_DEFAULT_REFINE
+from service.request_defaults import DEFAULT_MODEL
 from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 
 KiB = 1024
@@ -47,7 +48,8 @@ class Settings(BaseSettings):
         "model holds five ONNX Runtime sessions, so a one-model deployment uses far less memory.",
     )
     default_model: str = Field(
-        "general", description="Model used when a request names none (general: trained on independently sampled pairs)."
+        DEFAULT_MODEL,
+        description="Model used when a request names none (general: trained on independently sampled pairs).",
     )
     default_refine: Literal["none", "icp", "icp-plane", "icp-plane-multistart"] = Field(
         SERVICE_DEFAULT_REFINE,

@@ -1,0 +1,100 @@
+"""Registration inside the caller's process (a ROS node, a scanning app): the answer ``POST /v1/register`` and
+``mfgnet register`` give for the same clouds and options, without HTTP.
+
+    >>> registrar = LocalRegistrar("general")           # loads and warms the model once
+    >>> result = registrar.register(source, target)     # arrays [N, 3] or point-cloud files
+    >>> result.transform                                 # [4, 4] src_to_tgt: target ~= source @ R.T + t
+
+Options left out get the service's request defaults (:func:`service.request_defaults.request_defaults`: ``refine``
+``"icp-plane"``, ``rotation_search`` ``"auto"`` for refined requests), as the server applies them with its default
+settings; the bare :meth:`service.registrar.Registrar.register` runs the paper's pipeline instead (no refinement).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from numpy.typing import ArrayLike
+
+from service.manifest import Manifest, bundled_models_dir
+from service.registrar import Registrar
+from service.request_defaults import DEFAULT_MODEL, request_defaults
+from service.result import RegistrationResult
+
+Cloud = ArrayLike | str | os.PathLike[str]  # an [N, 3] array-like of numbers, or a point-cloud file
+
+
+class LocalRegistrar:
+    """One model loaded (sha256-verified) in this process, registering with the service's request defaults.
+
+    ``model``: a bundled model's name (``"general"``, ``"clean"``, ...), or a model folder (a ``Path``, or a ``str``
+    that names no bundled model). ``threads``: ONNX Runtime threads per graph (default: up to 2, as the server's
+    ``MFGNET_THREADS``); the pose does not depend on it. ``warmup``: register a synthetic pair now, so that the
+    first call does not pay for allocations.
+
+    Thread safety: one instance may be shared by threads, as the server shares one per model among its worker
+    threads; concurrent calls give the results of sequential ones. Build it on the main thread: it sets numpy's BLAS
+    to one thread for the whole process (:mod:`service.blas_threads`), which OpenBLAS only takes from the main thread
+    (built on another, it gives the same poses, more slowly under load; ``OMP_NUM_THREADS=1`` does the same).
+
+    Raises:
+        ValueError: ``model`` names no bundled model and no folder.
+        service.manifest.ModelIntegrityError: the model's files are missing or do not match its manifest.
+    """
+
+    def __init__(self, model: str | Path = DEFAULT_MODEL, *, threads: int | None = None, warmup: bool = True):
+        self.registrar = Registrar(model_directory(model), threads=threads, warmup=warmup)
+
+    @property
+    def manifest(self) -> Manifest:
+        """The loaded model's manifest: ``name``, ``version``, ``sha256`` (as a response's ``model``)."""
+        return self.registrar.manifest
+
+    def register(self, source: Cloud, target: Cloud, **options: Any) -> RegistrationResult:
+        """Register ``source`` onto ``target``: ``result.transform`` is the ``[4, 4]`` ``src_to_tgt`` pose
+        (``target ~= source @ R.T + t``), in the clouds' units; ``result.reliable`` and ``result.warnings`` say
+        whether to trust it, ``result.timing_ms`` how long each stage took.
+
+        ``source`` ``[N, 3]``, ``target`` ``[M, 3]`` (N, M >= 32; any numeric dtype, used as float64), or paths of
+        point-cloud files (``.ply .pcd .las .laz .xyz .txt .csv .npy .npz``, read by
+        :func:`service.pointcloud_io.read_points`). ``options``: the fields of
+        :class:`service.options.RegistrationOptions` (``refine``, ``rotation_search``, ``keypoints``,
+        ``initial_transform`` as a 4x4 ``src_to_tgt``, ...); ``refine`` and ``rotation_search`` left out or ``None``
+        get the service's defaults.
+
+        Raises:
+            service.errors.InputError: a bad cloud or option (the server's 422), naming it.
+            service.pointcloud_io.PointCloudFormatError: an unreadable file; ``OSError``: a file that cannot be
+                opened.
+        """
+        if "options" in options:  # Registrar.register's RegistrationOptions: its refine=None would mean "none"
+            raise TypeError("LocalRegistrar.register takes options as keywords (refine=..., keypoints=...)")
+        refine, rotation_search = request_defaults(options.pop("refine", None), options.pop("rotation_search", None))
+        return self.registrar.register(read_cloud(source), read_cloud(target), refine=refine,
+                                       rotation_search=rotation_search, **options)
+
+
+def model_directory(model: str | Path) -> Path:
+    """The folder of ``model``: a ``Path`` as it is; a ``str`` naming a bundled model, that model's folder (the name
+    wins over a folder of that name in the working directory, as in ``mfgnet register --model``), else a folder."""
+    if isinstance(model, Path):
+        return model
+    bundled = bundled_models_dir()
+    if (bundled / model).is_dir():
+        return bundled / model
+    if Path(model).is_dir():
+        return Path(model)
+    names = sorted(d.name for d in bundled.iterdir() if d.is_dir() and not d.name.startswith(("_", ".")))
+    raise ValueError(f"model {model!r}: no bundled model of that name (bundled: {', '.join(names) or 'none'}) "
+                     "and no folder")
+
+
+def read_cloud(cloud: Cloud) -> ArrayLike:
+    """``cloud`` itself, or the float64 ``[N, 3]`` points of the file it names."""
+    if isinstance(cloud, (str, os.PathLike)):
+        from service.pointcloud_io import read_points  # the format readers load only when a file comes
+
+        return read_points(cloud)
+    return cloud

@@ -1,0 +1,152 @@
+"""``service.in_process.LocalRegistrar``: the in-process API gives the pose ``mfgnet register`` (in process) and a
+real server give for the same real pair and options, and takes arrays or files; one instance serves many threads."""
+
+from __future__ import annotations
+
+import json
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from api_server import start_subprocess_server
+from cli_support import synthetic_pair
+from real_scan_cases import skip_without
+from typer.testing import CliRunner
+
+from bench.real_scans import data_dir, pose_errors
+from service.cli import app
+from service.errors import InputError
+from service.in_process import LocalRegistrar
+from service.manifest import bundled_models_dir
+from service.pointcloud_io import write_points
+from service.registrar import Registrar
+
+PAIR = "dragon_24_0"  # a real range-image pair of the development set; ~35,000 and ~42,000 points
+OPTION_SETS = [{}, {"refine": "none"}, {"refine": "icp"}]  # no option; the rotation search's default follows refine
+
+
+def cli_flags(options: dict) -> list[str]:
+    return [arg for key, value in options.items() for arg in (f"--{key.replace('_', '-')}", str(value))]
+
+
+@pytest.fixture(scope="module")
+def real_pair(tmp_path_factory) -> tuple[np.ndarray, np.ndarray, str, str]:
+    """``PAIR``'s source and target (float64) and the ``.npy`` files holding them (a temporary folder)."""
+    skip_without(PAIR)
+    with np.load(data_dir() / f"{PAIR}.npz") as data:
+        source, target = data["source"].astype(np.float64), data["target"].astype(np.float64)
+    folder = tmp_path_factory.mktemp("real")
+    np.save(folder / "source.npy", source)
+    np.save(folder / "target.npy", target)
+    return source, target, str(folder / "source.npy"), str(folder / "target.npy")
+
+
+@pytest.fixture(scope="module")
+def local() -> LocalRegistrar:
+    if not (bundled_models_dir() / "general" / "manifest.json").exists():
+        pytest.skip("bundled model 'general' absent")
+    return LocalRegistrar()  # the default model, "general"; two ONNX Runtime threads where two cores are
+
+
+@pytest.fixture(scope="module")
+def general_server(real_pair):
+    """A real server (a subprocess, one ONNX Runtime thread) serving only the bundled ``general``, its default."""
+    server = start_subprocess_server("in-process", MFGNET_BUNDLED_MODELS="true", MFGNET_MODELS="general",
+                                     MFGNET_DEFAULT_MODEL="general")
+    yield server
+    server.stop()
+
+
+@pytest.mark.parametrize("options", OPTION_SETS, ids=lambda o: json.dumps(o))
+def test_in_process_cli_and_server_give_one_pose_for_a_real_pair(local, real_pair, general_server, options):
+    source, target, source_file, target_file = real_pair
+    in_process = local.register(source, target, **options)
+
+    cli = CliRunner().invoke(app, ["register", source_file, target_file, "--json", *cli_flags(options)])
+    assert cli.exit_code == 0, cli.output
+    with general_server.client() as client:
+        response = client.post("/v1/register", json={"source": source.tolist(), "target": target.tolist(), **options})
+    assert response.status_code == 200, response.text
+
+    record, body = json.loads(cli.stdout), response.json()
+    assert record["model"] == body["model"] == {"name": "general", "version": local.manifest.version,
+                                                "sha256": local.manifest.sha256}
+    np.testing.assert_allclose(record["transform"], in_process.transform, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(body["transform"], in_process.transform, rtol=0, atol=1e-9)
+    assert record["warnings"] == body["warnings"] == in_process.warnings
+    assert record["quality"]["reliable"] is body["quality"]["reliable"] is in_process.reliable
+    assert ("search" in body["timing_ms"]) is ("search" in in_process.timing_ms)  # the same default search ran
+
+
+def test_no_option_is_the_services_defaults_not_the_bare_registrars(local, real_pair):
+    """What the API is for: ``Registrar.register`` alone runs the paper's pipeline (no refinement), and its pose on a
+    real pair is another, worse one."""
+    source, target, _, _ = real_pair
+    with np.load(data_dir() / f"{PAIR}.npz") as data:
+        truth = data["transform"]
+    served, bare = local.register(source, target), local.registrar.register(source, target)
+    explicit = local.registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    np.testing.assert_allclose(served.transform, explicit.transform, rtol=0, atol=1e-12)
+    served_degrees, _ = pose_errors(served.rotation, served.translation, truth)
+    bare_degrees, _ = pose_errors(bare.rotation, bare.translation, truth)
+    assert served_degrees < 1.0 < bare_degrees, (served_degrees, bare_degrees)
+
+
+def test_files_and_arrays_give_one_pose(local, tmp_path):
+    source, target = synthetic_pair()
+    write_points(tmp_path / "source.ply", source)
+    write_points(tmp_path / "target.pcd", target)
+    from_arrays = local.register(source, target)
+    from_files = local.register(tmp_path / "source.ply", str(tmp_path / "target.pcd"))
+    np.testing.assert_allclose(from_files.transform, from_arrays.transform, rtol=0, atol=1e-9)
+
+
+def test_one_instance_shared_by_threads_gives_the_sequential_results(local):
+    pairs = [synthetic_pair(seed) for seed in (0, 1, 2, 0, 1, 2)]
+    sequential = [local.register(source, target).transform for source, target in pairs]
+    with ThreadPoolExecutor(3) as pool:
+        concurrent = list(pool.map(lambda pair: local.register(*pair).transform, pairs))
+    for one, other in zip(sequential, concurrent, strict=True):
+        np.testing.assert_array_equal(one, other)
+
+
+def test_a_model_folder_loads_like_its_name(local):
+    folder = LocalRegistrar(bundled_models_dir() / "general", warmup=False)
+    assert isinstance(folder.registrar, Registrar) and folder.manifest.sha256 == local.manifest.sha256
+
+
+def test_an_unknown_model_is_a_value_error_naming_the_bundled_ones():
+    with pytest.raises(ValueError, match=r"'nope'.*general"):
+        LocalRegistrar("nope")
+
+
+def test_a_bad_option_is_an_input_error_naming_it(local):
+    source, target = synthetic_pair()
+    with pytest.raises(InputError, match="keypoints"):
+        local.register(source, target, keypoints=4)
+
+
+def test_an_options_object_is_refused_for_keywords(local):
+    from service.options import RegistrationOptions
+
+    source, target = synthetic_pair()
+    with pytest.raises(TypeError, match="keywords"):
+        local.register(source, target, options=RegistrationOptions(refine="icp"))
+
+
+def test_mfgnet_register_runs_through_the_in_process_api(monkeypatch, tmp_path, local):
+    """The CLI's in-process path is :class:`LocalRegistrar`, so that its defaults cannot drift from the API's."""
+    calls = []
+    original = LocalRegistrar.register
+
+    def recording(self, source, target, **options):
+        calls.append(options)
+        return original(self, source, target, **options)
+
+    monkeypatch.setattr(LocalRegistrar, "register", recording)
+    source, target = synthetic_pair()
+    write_points(tmp_path / "a.npy", source)
+    write_points(tmp_path / "b.npy", target)
+    result = CliRunner().invoke(app, ["register", str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), "--json"])
+    assert result.exit_code == 0, result.output
+    assert len(calls) == 1 and calls[0]["refine"] is None and calls[0]["rotation_search"] is None  # left to the API
