@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from bench.real_scans import scan_set
-from bench.report_io import emit_report, json_destination, machine_info, positive_int
+from bench.report_io import emit_report, json_destination, json_object, machine_info, positive_int
 from export.onnx_export import write_model_folder
 from model.checkpoint import read_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
@@ -55,12 +55,7 @@ def timed(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> float
 
 def shape_overrides(text: str) -> dict:
     """An argparse ``type`` for ``--shapes``: a JSON object of ``MFGNetConfig`` fields that makes a network config."""
-    try:
-        shape = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise argparse.ArgumentTypeError(f"not JSON ({err})") from None
-    if not isinstance(shape, dict):
-        raise argparse.ArgumentTypeError(f"not a JSON object of MFGNetConfig fields: {text}")
+    shape = json_object(text, "MFGNetConfig fields")
     fields = MFGNetConfig().to_dict()
     unknown = sorted(set(shape) - set(fields))
     if unknown:

@@ -47,7 +47,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.http_latency import Server
-from bench.report_io import checked, emit_report, json_destination, machine_info, require_checkouts
+from bench.report_io import checked, emit_report, json_destination, json_object, machine_info, require_checkouts
 from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
 from bench.surface_resample import FUSED_SENSORS, densified
 from service.core.config import Settings
@@ -395,12 +395,7 @@ def register_options(text: str) -> dict:
 
     from service.api.schemas import RegisterOptions
 
-    try:
-        options = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise argparse.ArgumentTypeError(f"not JSON ({err})") from None
-    if not isinstance(options, dict):
-        raise argparse.ArgumentTypeError(f"not a JSON object of register options: {text}")
+    options = json_object(text, "register options")
     try:
         RegisterOptions.model_validate(options)
     except ValidationError as err:

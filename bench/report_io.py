@@ -62,6 +62,18 @@ def npz_arrays(parser: argparse.ArgumentParser, path: Path, keys: tuple[str, ...
     parser.error(f"{option} {path}: not {what} (no {', '.join(missing)})")
 
 
+def json_object(text: str, what: str) -> dict:
+    """For an argparse ``type``: ``text`` as a JSON object, else ``ArgumentTypeError`` naming ``what`` it should
+    hold (``register options``, ``MFGNetConfig fields``)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise argparse.ArgumentTypeError(f"not a JSON object of {what} (not JSON: {err})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"not a JSON object of {what}: {text}")
+    return value
+
+
 def positive_int(text: str) -> int:
     """An argparse ``type``: a whole number of at least 1 (a count of pairs, rounds, turns, requests...)."""
     value = int(text)  # a ValueError is argparse's "invalid positive_int value"

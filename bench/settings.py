@@ -12,13 +12,12 @@ at (1 deg, 1 cm) and (5 deg, 5 cm), the median wall time per pair and the median
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int
+from bench.report_io import checked, emit_report, json_destination, json_object, machine_info, positive_int
 from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs
 from model.metrics import registration_metrics
@@ -29,12 +28,7 @@ REPORTED = ("iso_r_mean", "iso_r_median", "recall_r1_t001", "recall_r5_t005")  #
 
 def parse_setting(text: str) -> dict:
     """``--setting`` as register options: a JSON object (``{}`` = the defaults)."""
-    try:
-        options = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise argparse.ArgumentTypeError(f"--setting must be a JSON object: {err}") from err
-    if not isinstance(options, dict):
-        raise argparse.ArgumentTypeError(f"--setting must be a JSON object, got {text!r}")
+    options = json_object(text, "register options")
     from service.errors import InputError
     from service.registrar import RegistrationOptions
 
