@@ -134,6 +134,10 @@ BinaryOpt = Annotated[bool, typer.Option(help="with --server: upload the clouds 
                                               "with --no-binary as JSON (MFGNET_MAX_POINTS, 200,000)")]
 TimeoutOpt = Annotated[float, typer.Option(min=1, help="with --server: seconds to wait for the answer (the server's "
                                                       "deadline, MFGNET_TIMEOUT_S, starts once the upload is read)")]
+BusyRetriesOpt = Annotated[int, typer.Option(min=0, help="with --server: times to send the request again when the "
+                                                         "server answers 503 busy or still loading (with "
+                                                         "Retry-After), after the wait it asks for (at most 10 s, "
+                                                         "within --timeout); 0: fail at once")]
 RequireReliableOpt = Annotated[bool, typer.Option(help="exit 3 when the result is not quality.reliable (the outputs "
                                                        "are still written)")]
 RotationSearchOpt = Annotated[
@@ -170,6 +174,7 @@ def register_command(
     api_key: ApiKeyOpt = None,
     binary: BinaryOpt = True,
     timeout: TimeoutOpt = 60.0,
+    busy_retries: BusyRetriesOpt = 2,
     rotation_search: RotationSearchOpt = None,
     rotation_search_mode: RotationSearchModeOpt = None,
     threads: ThreadsOpt = None,
@@ -205,7 +210,7 @@ def register_command(
     if not drop_isolated:  # sent only when it departs from the default
         options["drop_isolated"] = False
     if server:
-        record = _register_remote(server, api_key, src, tgt, model, options, binary, timeout)
+        record = _register_remote(server, api_key, src, tgt, model, options, binary, timeout, busy_retries)
     else:
         record = _register_local(src, tgt, model, model_dir or [], threads, options)
     _write_outputs(record, src, out, write_aligned)
@@ -379,7 +384,7 @@ def _default_model_dir(model_dirs: list[Path]) -> Path | None:
 
 
 def _register_remote(server: str, api_key: str | None, src: np.ndarray, tgt: np.ndarray, model: str | None,
-                     options: dict, binary: bool, timeout: float) -> dict:
+                     options: dict, binary: bool, timeout: float, busy_retries: int) -> dict:
     """The pose from ``server``; the float64 clouds go to the client as they are (it re-centres far-away ones before
     any float32 upload: cast here, map coordinates lost their centimetres, and the pose its degrees)."""
     try:
@@ -387,7 +392,7 @@ def _register_remote(server: str, api_key: str | None, src: np.ndarray, tgt: np.
     except ImportError as exc:
         _fail(f"--server needs httpx: {SERVE_EXTRA_HINT} ({exc})")
     try:
-        with MfgnetClient(server, api_key=api_key, timeout=timeout) as client:
+        with MfgnetClient(server, api_key=api_key, timeout=timeout, busy_retries=busy_retries) as client:
             response = client.register(src, tgt, model=model, return_correspondences=False, binary=binary, **options)
     except MfgnetError as exc:
         hint = " (--api-key or MFGNET_API_KEY)" if exc.status == 401 else ""

@@ -12,14 +12,23 @@ lists of numpy rows) and options numpy scalars; what the server refuses (a wrong
 infinite coordinates) is its 422, not a local error. A cloud with NaN or infinite values is sent as an
 ``.npy`` file even without ``binary=True``, because JSON has no such numbers and the server's reader of
 files names how many rows hold them and the first.
+
+A 503 with ``Retry-After`` (the server busy: every slot taken and its queue full; or the model still loading) is
+sent again after the wait it asks for, ``busy_retries`` times at most (2 by default; registration is a pure
+function of the request, so sending it again is safe). A 503 without ``Retry-After`` (a model that failed to load),
+any 4xx and a timeout are raised at once.
 """
 
 from __future__ import annotations
 
 import io
 import json
+import math
 import os
+import random
 import time
+from datetime import datetime, timezone
+from email.utils import parsedate_to_datetime
 from pathlib import Path
 from typing import Any, Literal
 
@@ -33,22 +42,41 @@ READY_PATH = "/v2/health/ready"
 # Above this magnitude (caller's units) float32 rounds coordinates by more than ~1/1000 of a unit, so binary
 # uploads of arrays are sent recentred by a shared offset and the pose is mapped back (shared_offset).
 LARGE_COORDINATE = 1.0e4
+BUSY_RETRIES = 2  # MfgnetClient's default: see its docstring
+MAX_RETRY_WAIT_S = 10.0  # the longest wait before a retry, whatever Retry-After asks
+RETRY_JITTER = 0.2  # each wait is Retry-After x U(1, 1.2), so clients refused together do not all return together
 
 
 class MfgnetError(Exception):
-    """The server answered with an error status (or could not be reached: ``status == 0``)."""
+    """The server answered with an error status (or could not be reached: ``status == 0``).
 
-    def __init__(self, status: int, message: str):
+    ``retry_after``: the seconds a 503's ``Retry-After`` asked for (the server busy or loading) when the client gave
+    up on it (``busy_retries`` spent, or a wait past ``timeout``); ``None`` for every other error."""
+
+    def __init__(self, status: int, message: str, retry_after: float | None = None):
         super().__init__(f"HTTP {status}: {message}" if status else message)
         self.status = status
         self.message = message
+        self.retry_after = retry_after
 
 
 class MfgnetClient:
-    """``MfgnetClient(base_url, api_key=None, timeout=30.0)``; usable as a context manager.
+    """``MfgnetClient(base_url, api_key=None, timeout=30.0, busy_retries=2)``; usable as a context manager.
 
     ``api_key`` is sent as ``Authorization: Bearer <key>`` (the server asks for it when it sets
     ``MFGNET_API_KEY``).
+    ``timeout``: seconds httpx waits for each step of one try (connecting, sending, the answer). It also bounds a
+    call's retries: a retry is sent only if its wait ends within ``timeout`` seconds of the call's start, and httpx
+    then waits for it only as long as is left of those seconds (so a 503 is raised at once when Retry-After is
+    longer than ``timeout``).
+    ``busy_retries``: how many times a call sends its request again after a 503 with ``Retry-After`` (the server
+    busy, ``MFGNET_MAX_CONCURRENCY`` registrations running and ``MFGNET_MAX_QUEUE`` waiting; or its model still
+    loading), each after the header's seconds (at most ``MAX_RETRY_WAIT_S``, 10, plus up to 20% random jitter).
+    ``0`` raises the first 503 at once, as ``MfgnetError`` with ``retry_after`` set, for a caller with its own
+    policy. The default, 2, rides out a burst: the server asks for 1 s when busy and 2 s while loading, so it adds
+    at most about 2.4 s (busy) or 4.8 s (loading) to a call, and at most triples what one client sends to a
+    server that stays overloaded, which is then reported within seconds instead of hidden. A 503 without
+    ``Retry-After`` (a model that failed to load), every 4xx and a timeout are never retried.
     ``transport``: an ``httpx`` transport for what the defaults do not cover, e.g.
     ``httpx.HTTPTransport(retries=3)`` to retry failed connections while a server restarts, a Unix socket
     (``uds=``), a local address or TLS settings. It replaces httpx's default, so ``HTTP(S)_PROXY`` variables
@@ -56,12 +84,18 @@ class MfgnetClient:
     """
 
     def __init__(self, base_url: str, api_key: str | None = None, timeout: float = 30.0,
-                 transport: httpx.BaseTransport | None = None):
+                 transport: httpx.BaseTransport | None = None, busy_retries: int = BUSY_RETRIES):
         headers = {"Accept": "application/json"}
         if api_key:
             headers["Authorization"] = f"Bearer {api_key}"
+        busy_retries = _plain(busy_retries)
+        if isinstance(busy_retries, bool) or not isinstance(busy_retries, int) or busy_retries < 0:
+            raise ValueError(f"busy_retries must be an integer >= 0, got {busy_retries!r}")
         self.base_url = base_url.rstrip("/")
-        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=_plain(timeout), transport=transport)
+        self.busy_retries = busy_retries
+        timeout = _plain(timeout)
+        self._budget_s = float(timeout) if isinstance(timeout, (int, float)) else None  # None: no timeout to keep
+        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
 
     # -- lifecycle ---------------------------------------------------------------------------
     def close(self) -> None:
@@ -175,19 +209,45 @@ class MfgnetClient:
 
     # -- plumbing ----------------------------------------------------------------------------
     def _request(self, method: str, path: str, **kwargs) -> Any:
-        try:
-            response = self._http.request(method, path, **kwargs)
-        except httpx.TimeoutException as exc:
-            raise MfgnetError(0, f"no answer from {self.base_url}{path} in time ({exc})") from exc
-        except httpx.HTTPError as exc:
-            raise MfgnetError(0, f"cannot reach {self.base_url}{path} ({exc})") from exc
-        if response.status_code >= 400:
-            raise MfgnetError(response.status_code, _error_message(response))
+        """The JSON answer to a request, sent again after a 503 with ``Retry-After`` (see the class). ``kwargs`` hold
+        the whole body as bytes or text (file uploads are read whole by ``_upload``), so each try sends all of it."""
+        started = time.monotonic()
+        retries = 0
+        while True:
+            response = self._send(method, path, retries, **kwargs)
+            if response.status_code < 400:
+                break
+            retry_after = _retry_after(response) if response.status_code == 503 else None
+            if retry_after is None:
+                raise MfgnetError(response.status_code, _error_message(response))
+            wait_s = min(retry_after, MAX_RETRY_WAIT_S) * random.uniform(1.0, 1.0 + RETRY_JITTER)
+            left_s = None if self._budget_s is None else self._budget_s - (time.monotonic() - started) - wait_s
+            if retries >= self.busy_retries or (left_s is not None and left_s <= 0):
+                why = (f"busy_retries={self.busy_retries}" if retries >= self.busy_retries
+                       else f"a wait of {wait_s:.1f} s would end past the {self._budget_s:g} s timeout")
+                done = f"given up after {retries} retr{'y' if retries == 1 else 'ies'}" if retries else "not retried"
+                header = response.headers["Retry-After"]
+                raise MfgnetError(503, f"{_error_message(response)} (Retry-After: {header}; {done}: {why})",
+                                  retry_after=retry_after)
+            time.sleep(wait_s)
+            retries += 1
+            if left_s is not None:
+                kwargs["timeout"] = left_s  # a retry gets what is left of the call's timeout
         try:
             return response.json()
         except ValueError as exc:
             text = response.text[:200]
             raise MfgnetError(response.status_code, f"the server's answer is not JSON: {text!r}") from exc
+
+    def _send(self, method: str, path: str, retries: int, **kwargs) -> httpx.Response:
+        """One try; no answer raises ``MfgnetError`` with status 0 (never retried: the request may be running)."""
+        after = f" on retry {retries} after a 503 with Retry-After" if retries else ""
+        try:
+            return self._http.request(method, path, **kwargs)
+        except httpx.TimeoutException as exc:
+            raise MfgnetError(0, f"no answer from {self.base_url}{path} in time{after} ({exc})") from exc
+        except httpx.HTTPError as exc:
+            raise MfgnetError(0, f"cannot reach {self.base_url}{path}{after} ({exc})") from exc
 
 
 def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -301,7 +361,8 @@ def _is_path(cloud: ArrayLike | str | os.PathLike[str]) -> bool:
 
 def _upload(name: str, cloud: ArrayLike | str | os.PathLike[str],
             dtype: type[np.floating] = np.float32) -> tuple[str, bytes, str]:
-    """A multipart file: a path's bytes under its own name, else the points as ``.npy`` of ``dtype``."""
+    """A multipart file: a path's bytes under its own name, else the points as ``.npy`` of ``dtype``. Read whole
+    once, so that every try of the request (``busy_retries``) sends all of it."""
     if _is_path(cloud):
         path = Path(cloud)
         return path.name, path.read_bytes(), "application/octet-stream"
@@ -321,6 +382,25 @@ def _form_value(value: bool | int | str | list | dict) -> str:
     if isinstance(value, (list, dict)):
         return json.dumps(value)
     return str(value)
+
+
+def _retry_after(response: httpx.Response) -> float | None:
+    """The seconds a response's ``Retry-After`` asks to wait (delay-seconds or an HTTP-date; 0 for a date past), or
+    ``None`` when it has none that can be read."""
+    value = response.headers.get("Retry-After")
+    if value is None:
+        return None
+    try:
+        seconds = float(value)
+    except ValueError:
+        try:
+            when = parsedate_to_datetime(value)
+        except (TypeError, ValueError, IndexError):
+            return None
+        if when.tzinfo is None:  # an HTTP-date is GMT
+            when = when.replace(tzinfo=timezone.utc)
+        seconds = (when - datetime.now(timezone.utc)).total_seconds()
+    return max(seconds, 0.0) if math.isfinite(seconds) else None
 
 
 def _error_message(response: httpx.Response) -> str:
