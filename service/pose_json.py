@@ -6,6 +6,10 @@ the right-handed rotations about the fixed x, y, z axes acting on column vectors
 * ``euler_zyx_deg = [a, b, c]`` is scipy ``as_euler("zyx")``, lowercase = extrinsic: ``R = Rx(c) Ry(b) Rz(a)``.
 * ``yaw_pitch_roll_deg = [yaw, pitch, roll]`` is scipy ``as_euler("ZYX")``, intrinsic:
   ``R = Rz(yaw) Ry(pitch) Rx(roll)``.
+
+And the unit quaternion ``quaternion_xyzw = [x, y, z, w]`` (scalar last, as ROS ``geometry_msgs/Quaternion``, Eigen's
+``coeffs()`` and scipy ``as_quat()``), with ``w >= 0``: ``q`` and ``-q`` are the same rotation, and one of them is
+given.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from service.procrustes import to_matrix
 
 def pose_fields(rotation: np.ndarray, translation: np.ndarray) -> dict:
     """``rotation`` (3x3), ``translation`` (3), ``transform`` (4x4, source -> target), ``euler_zyx_deg`` and
-    ``yaw_pitch_roll_deg`` (degrees; see the module docstring), as plain float lists."""
+    ``yaw_pitch_roll_deg`` (degrees) and ``quaternion_xyzw`` (see the module docstring), as plain float lists."""
     R = np.asarray(rotation, dtype=np.float64)  # [3, 3]
     t = np.asarray(translation, dtype=np.float64)  # [3]
     turn = Rotation.from_matrix(R)
@@ -28,4 +32,5 @@ def pose_fields(rotation: np.ndarray, translation: np.ndarray) -> dict:
         "transform": to_matrix(R, t).tolist(),
         "euler_zyx_deg": turn.as_euler("zyx", degrees=True).tolist(),
         "yaw_pitch_roll_deg": turn.as_euler("ZYX", degrees=True).tolist(),
+        "quaternion_xyzw": turn.as_quat(canonical=True).tolist(),  # [4] x, y, z, w with w >= 0
     }

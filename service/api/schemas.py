@@ -202,6 +202,13 @@ YAW_PITCH_ROLL_DESCRIPTION = (
     "yaw, roll in [-180, 180], pitch in [-90, 90]: for R = Rz(30) Ry(-20) Rx(15) this is [30, -20, 15]. " + _ELEMENTARY
 )
 
+QUATERNION_DESCRIPTION = (
+    "[x, y, z, w]: the rotation as a unit quaternion, scalar last, as ROS geometry_msgs/Quaternion (tf2), Eigen's "
+    "Quaternion::coeffs() and scipy Rotation.as_quat() take it (rebuild: Rotation.from_quat([x, y, z, w])); "
+    "w >= 0 (q and -q are the same rotation). For R = Rz(30) Ry(-20) Rx(15): [0.1687, -0.1330, 0.2746, 0.9372]."
+)
+Vector4 = Annotated[list[float], Field(min_length=4, max_length=4)]
+
 
 class ModelRef(BaseModel):
     """The model that computed the result."""
@@ -240,6 +247,7 @@ class RegisterResponse(BaseModel):
                     "transform": [[0.9848, -0.1736, 0, 0.1], [0.1736, 0.9848, 0, 0.05], [0, 0, 1, 0], [0, 0, 0, 1]],
                     "euler_zyx_deg": [10, 0, 0],
                     "yaw_pitch_roll_deg": [10, 0, 0],
+                    "quaternion_xyzw": [0, 0, 0.0872, 0.9962],
                     "correspondences": [{"source_index": 3, "target_index": 3, "credibility": 0.97, "weight": 0.02}],
                     "quality": {"inlier_ratio": 1.0, "residual_rms": 0.00003, "reliable": True, "stability": 0.07},
                     "warnings": [],
@@ -259,6 +267,7 @@ class RegisterResponse(BaseModel):
     )
     euler_zyx_deg: Vector3 = Field(description=EULER_ZYX_DESCRIPTION)
     yaw_pitch_roll_deg: Vector3 = Field(description=YAW_PITCH_ROLL_DESCRIPTION)
+    quaternion_xyzw: Vector4 = Field(description=QUATERNION_DESCRIPTION)
     correspondences: list[Correspondence] | None = Field(
         None, description="Keypoint matches (when return_correspondences, the default): one per source keypoint, "
         "indices into the request's arrays; after a refined rotation search with a model that searches a "

@@ -44,6 +44,16 @@ def test_pose_fields_give_the_documented_angles_of_the_example_rotation():
     np.testing.assert_allclose(fields["euler_zyx_deg"], [34.5, -9.0, 23.2], atol=0.05)
     np.testing.assert_allclose(from_euler_zyx_deg(*fields["euler_zyx_deg"]), ISSUE_ROTATION, atol=1e-12)
     np.testing.assert_allclose(fields["yaw_pitch_roll_deg"], [30, -20, 15], atol=1e-9)
+    np.testing.assert_allclose(fields["quaternion_xyzw"], [0.1687, -0.1330, 0.2746, 0.9372], atol=5e-5)  # documented
+
+
+def from_quaternion_xyzw(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """The unit quaternion's rotation matrix, written out (scalar last, as ROS's geometry_msgs/Quaternion)."""
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
 
 
 @pytest.mark.parametrize("seed", range(20))
@@ -60,6 +70,9 @@ def test_both_conventions_rebuild_random_rotations(seed):
     np.testing.assert_allclose(from_euler_zyx_deg(*fields["euler_zyx_deg"]), R, atol=1e-9)
     np.testing.assert_allclose(from_yaw_pitch_roll_deg(*fields["yaw_pitch_roll_deg"]), R, atol=1e-9)
     assert -90 <= fields["euler_zyx_deg"][1] <= 90 and -90 <= fields["yaw_pitch_roll_deg"][1] <= 90
+    q = fields["quaternion_xyzw"]
+    np.testing.assert_allclose(from_quaternion_xyzw(*q), R, atol=1e-9)
+    assert abs(np.linalg.norm(q) - 1) < 1e-12 and q[3] >= 0
 
 
 def test_returned_angles_rebuild_the_returned_rotation_over_http(client):
@@ -75,6 +88,7 @@ def test_returned_angles_rebuild_the_returned_rotation_over_http(client):
     R = np.array(body["rotation"])
     np.testing.assert_allclose(from_euler_zyx_deg(*body["euler_zyx_deg"]), R, atol=1e-9)
     np.testing.assert_allclose(from_yaw_pitch_roll_deg(*body["yaw_pitch_roll_deg"]), R, atol=1e-9)
+    np.testing.assert_allclose(from_quaternion_xyzw(*body["quaternion_xyzw"]), R, atol=1e-9)
     # the same points, exactly moved: the pose is found to well under a degree
     np.testing.assert_allclose(body["yaw_pitch_roll_deg"], [30, -20, 15], atol=0.5)
     np.testing.assert_allclose(body["euler_zyx_deg"], [34.5, -9.0, 23.2], atol=0.5)

@@ -24,8 +24,8 @@ from service.pointcloud_io import read_points, write_points
 
 runner = CliRunner()
 FAST = ("--iterations", "1", "--keypoints", "32")  # one small matcher pass: the tests check plumbing, not accuracy
-RECORD_KEYS = {"rotation", "translation", "transform", "euler_zyx_deg", "yaw_pitch_roll_deg", "quality", "warnings",
-               "model", "iterations", "timing_ms"}
+RECORD_KEYS = {"rotation", "translation", "transform", "euler_zyx_deg", "yaw_pitch_roll_deg", "quaternion_xyzw",
+               "quality", "warnings", "model", "iterations", "timing_ms"}
 SOURCE, TARGET = synthetic_pair()
 
 
