@@ -18,6 +18,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -254,6 +255,16 @@ def serve_in_thread(app, until_ready: bool = True) -> Server:
     atexit.register(stop)
     url = f"http://127.0.0.1:{port}"
     return Server(url, None, _wait(url, until_ready=until_ready), stop)
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float = 30.0, what: str = "condition") -> None:
+    """Until ``predicate()`` holds, polled every 20 ms; ``AssertionError`` naming ``what`` after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
 
 
 def wait_until_loaded(server: Server) -> None:

@@ -20,7 +20,16 @@ from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
-from api_server import Server, free_port, model_root, pair_json, start_subprocess_server, synthetic_pair, tampered_root
+from api_server import (
+    Server,
+    free_port,
+    model_root,
+    pair_json,
+    start_subprocess_server,
+    synthetic_pair,
+    tampered_root,
+    wait_for,
+)
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -54,15 +63,6 @@ def answered(server: Server, status: int) -> float:
     """``POST /v1/register`` requests the server has answered with ``status``."""
     line = rf'^mfgnet_http_requests_total\{{(?=[^}}]*route="/v1/register")(?=[^}}]*status="{status}")[^}}]*\}} (\S+)$'
     return sum(float(value) for value in re.findall(line, metrics(server), re.MULTILINE))
-
-
-def wait_for(predicate, timeout: float = 30.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class SlotHolder:

@@ -35,6 +35,7 @@ from api_server import (
     serve_in_thread,
     start_subprocess_server,
     tampered_root,
+    wait_for,
 )
 
 from service.api.app import create_app
@@ -51,15 +52,6 @@ def metric(server: Server, name: str) -> float:
     with server.client() as c:
         match = re.search(rf"^{name} (\S+)$", c.get("/metrics").text, re.MULTILINE)
     return float(match.group(1)) if match else 0.0
-
-
-def wait_for(predicate, timeout: float = 30.0, what: str = "condition") -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def post(server: Server, body: dict, path: str = "/v1/register") -> httpx.Response:
