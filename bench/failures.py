@@ -27,7 +27,7 @@ from collections import Counter
 from pathlib import Path
 
 from bench.real_scans import Case, judged, scan_set
-from bench.report_io import checked, json_destination, positive_int
+from bench.report_io import checked, json_destination, positive_float, positive_int
 from bench.search_network import DEFAULTS, cases, registered
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--model-dir", type=Path, default=None, help="exported model (default: the bundled general)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--turns", type=positive_int, default=10)
-    parser.add_argument("--scales", type=float, nargs="+", default=[1.0])
+    parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
     parser.add_argument("--derived", action="store_true", help="the pairs derived from the set instead of its own")
     parser.add_argument("--json", type=Path, default=None)

@@ -47,7 +47,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.http_latency import Server
-from bench.report_io import checked, emit_report, json_destination, json_object, machine_info, require_checkouts
+from bench.report_io import (
+    checked,
+    emit_report,
+    json_destination,
+    json_object,
+    machine_info,
+    positive_float,
+    require_checkouts,
+)
 from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
 from bench.surface_resample import FUSED_SENSORS, densified
 from service.core.config import Settings
@@ -423,7 +431,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0, help="seed of the turns and of RANSAC")
     parser.add_argument("--turns", type=int, default=1,
                         help="turned variants per pair (more: figures less tied to one rotation each)")
-    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
+    parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
     parser.add_argument("--pairs", nargs="+", help="only these pairs (file stems; the rotations depend on which)")
     parser.add_argument("--derived", action="store_true",
                         help="the pairs derived from the set instead of its own: scans that no file pairs, ground "

@@ -82,6 +82,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def positive_float(text: str) -> float:
+    """An argparse ``type``: a finite number above 0 (a unit scale, a distance...)."""
+    value = float(text)  # a ValueError is argparse's "invalid positive_float value"
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
+    return value
+
+
 def require_checkouts(parser: argparse.ArgumentParser, roots: list[str | Path] | str | Path | None) -> None:
     """A usage error unless every ``--compare-root`` is a folder holding this project's server
     (``service/api/app.py``): another folder would serve this checkout's code from the venv, compared with itself, or

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from bench.real_scans import Case, judged, load_cases, scan_set
-from bench.report_io import checked, json_destination, positive_int, reliable_totals
+from bench.report_io import checked, json_destination, positive_float, positive_int, reliable_totals
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
 from service.refine_modes import SERVICE_DEFAULT_REFINE
@@ -129,7 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--turns", type=positive_int, default=10)
-    parser.add_argument("--scales", type=float, nargs="+", default=[1.0, 1000.0])
+    parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0, 1000.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
     parser.add_argument("--derived", action="store_true",
                         help="the pairs derived from the set instead of its own (held out: no default chosen on them)")
