@@ -28,6 +28,11 @@ from service.registrar import AUTO_SEARCH_RELATIVE_RATIO
 FIXED = (0.7,)
 RELATIVE = (0.7, 0.75, 0.8, 0.85)
 AUTO_SWITCH_MARGINS = (0.0, 0.02, 0.05, 0.1, 0.15, 0.2)  # replayed with the registrar's trigger
+# The fields of a collected row that report reads, and their JSON types; errors: [rotation deg, translation].
+ROW_FIELDS = {"ratio": "number", "reliable": "bool", "plain": "errors", "auto_always": "errors",
+              "ms_plain": "number", "ms_both": "number"}
+SEARCHED_FIELDS = {"searched": "errors", "searched_ratio": "number", "rms": "number", "searched_rms": "number"}
+KIND_NAMES = {"bool": "true or false", "number": "a number", "errors": "[rotation deg, translation] (two numbers)"}
 
 
 def pose_errors(R: np.ndarray, t: np.ndarray, R_true: np.ndarray, t_true: np.ndarray) -> tuple[float, float]:
@@ -123,6 +128,33 @@ def report(results: dict, pair_files: list[Path], model: str) -> dict:
     return table
 
 
+def rows_problem(rows: list, pairs: int) -> str | None:
+    """What keeps ``rows`` (one file's collected results) from :func:`report`, naming the row and field: a count
+    other than the file's ``pairs``, a row that is no object, a field missing or of the wrong type (a row holding
+    ``searched`` needs what collect writes with it); ``None`` when they will do."""
+    if len(rows) != pairs:
+        return f"has {len(rows)} rows, but its pairs file holds {pairs} pairs"
+    for i, row in enumerate(rows):
+        if not isinstance(row, dict):
+            return f"row {i}: not an object of fields"
+        fields = ROW_FIELDS | (SEARCHED_FIELDS if "searched" in row else {})
+        for field, kind in fields.items():
+            if field not in row:
+                return f"row {i}: no field {field!r}"
+            if not _is(row[field], kind):
+                return f"row {i}: field {field!r} is {json.dumps(row[field])[:40]}, not {KIND_NAMES[kind]}"
+    return None
+
+
+def _is(value: object, kind: str) -> bool:
+    """Whether a JSON ``value`` is of ``kind``: ``bool``, ``number`` (not a bool) or ``errors`` (two numbers)."""
+    if kind == "bool":
+        return isinstance(value, bool)
+    if kind == "number":
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, (list, tuple)) and len(value) == 2 and all(_is(v, "number") for v in value)
+
+
 def _right(errors: Sequence[float]) -> bool:
     return errors[0] < 5 and errors[1] < 0.05
 
@@ -135,8 +167,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--model", default="general", help="bundled model name or model folder")
     parser.add_argument("--out", type=Path, default=None, help="collect: where to write the per-pair JSON")
     args = parser.parse_args(argv)
-    for path in args.pairs:
-        checked(pairs_file, path)
+    counts = [len(checked(pairs_file, path)["source"]) for path in args.pairs]  # pairs per file
     checked(model_dir, args.model)
     if args.step == "collect":
         if args.out:
@@ -156,6 +187,10 @@ def main(argv: list[str] | None = None) -> None:
     if missing:
         parser.error(f"results {args.results}: not what collect wrote for these --pairs "
                      f"(no rows of {', '.join(missing)})")
+    for path, count in zip(args.pairs, counts, strict=True):
+        problem = rows_problem(results[path.stem], count)
+        if problem:
+            parser.error(f"results {args.results}: {path.stem} {problem} (not what collect wrote for --pairs {path})")
     print(json.dumps(report(results, args.pairs, args.model), indent=1))
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -62,3 +64,50 @@ def test_replay_of_switch_margins_counts_the_poses_they_keep_and_lose(tmp_path) 
     assert "relative 0.8, switch margin 0.0" not in report({"two": [
         {key: value for key, value in row.items() if not key.startswith("searched")} for row in rows]},
         [path], "general")["two"]  # files collected before the searched pose was recorded: triggers only
+
+
+COLLECTED = {"ratio": 0.9, "rms": 0.01, "reliable": True, "plain": [0.5, 0.01], "ms_plain": 10.0,
+             "searched": [0.4, 0.01], "searched_ratio": 0.9, "searched_rms": 0.01, "auto_always": [0.5, 0.01],
+             "ms_both": 100.0}  # one row as collect writes it
+
+
+@pytest.mark.parametrize(("rows", "fragment"), [
+    ([{k: v for k, v in COLLECTED.items() if k != "ms_both"}, COLLECTED], "two row 0: no field 'ms_both'"),
+    ([COLLECTED, {k: v for k, v in COLLECTED.items() if k != "ratio"}], "two row 1: no field 'ratio'"),
+    ([{k: v for k, v in COLLECTED.items() if k != "searched_rms"}] * 2, "two row 0: no field 'searched_rms'"),
+    ([COLLECTED, {**COLLECTED, "plain": 3.0}], "two row 1: field 'plain' is 3.0, not [rotation deg, translation]"),
+    ([{**COLLECTED, "reliable": "yes"}] * 2, "two row 0: field 'reliable' is \"yes\", not true or false"),
+    ([COLLECTED, [1, 2]], "two row 1: not an object of fields"),
+    ([COLLECTED], "two has 1 rows, but its pairs file holds 2 pairs"),
+], ids=["missing", "second row", "searched group", "errors type", "bool type", "not an object", "count"])
+def test_report_of_bad_rows_is_a_usage_error_naming_file_row_and_field(rows, fragment, tmp_path, capsys) -> None:
+    from bench.auto_trigger import main
+
+    rng = np.random.default_rng(0)
+    pairs = tmp_path / "two.npz"
+    np.savez(pairs, source=rng.normal(size=(2, 8, 3)), target=rng.normal(size=(2, 8, 3)),
+             rotation=np.stack([np.eye(3)] * 2), translation=np.zeros((2, 3)), label=np.zeros(2))
+    results = tmp_path / "trigger.json"
+    results.write_text(json.dumps({"two": rows}))
+    with pytest.raises(SystemExit) as ended:
+        main(["report", str(results), "--pairs", str(pairs)])
+    assert ended.value.code == 2
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert f"error: results {results}: " in message
+    assert fragment in message and f"--pairs {pairs}" in message
+
+
+def test_report_command_of_a_row_lacking_a_field_ends_without_a_traceback(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    pairs = tmp_path / "one.npz"
+    np.savez(pairs, source=rng.normal(size=(1, 8, 3)), target=rng.normal(size=(1, 8, 3)),
+             rotation=np.eye(3)[None], translation=np.zeros((1, 3)), label=np.zeros(1))
+    results = tmp_path / "trigger.json"
+    results.write_text(json.dumps({"one": [{k: v for k, v in COLLECTED.items() if k != "auto_always"}]}))
+    done = subprocess.run([sys.executable, "-m", "bench.auto_trigger", "report", str(results), "--pairs", str(pairs)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "Traceback" not in done.stderr and done.stdout == ""
+    assert "one row 0: no field 'auto_always'" in done.stderr
