@@ -49,26 +49,43 @@ def searching_with(network: Registrar) -> Callable:
 
 
 def variant_names(model_dirs: list[Path]) -> tuple[str, ...]:
-    """``general`` and one name per candidate: ``search network`` for one, else each directory's name."""
+    """``general`` and one name per candidate: ``search network`` for one, else each directory's name; ``ValueError``
+    for several whose names repeat or are ``general`` (the report's rows are keyed by them)."""
     if len(model_dirs) == 1:
         return VARIANTS
     names = [d.name for d in model_dirs]
     if len(set(names)) != len(names) or "general" in names:
-        raise SystemExit(f"candidates need distinct folder names other than general, got {names}")
+        raise ValueError(f"candidates need distinct folder names other than general, got {names}")
     return ("general", *names)
+
+
+def normalisation_mismatch(model_dirs: list[Path]) -> str | None:
+    """Why a candidate cannot run ``general``'s search (it normalises clouds to another reference radius, read from
+    the manifests before any model loads), else ``None``."""
+    from service.manifest import load_manifest
+
+    def radius(folder: Path) -> float:  # as Registrar reads it
+        return float(load_manifest(folder).normalization.get("reference_radius", 1.0))
+
+    general = radius(bundled_models_dir() / "general")
+    for candidate in model_dirs:
+        if radius(candidate) != general:
+            return (f"{candidate} normalises clouds to a reference radius of {radius(candidate)}, general to "
+                    f"{general}: export it with --setting resampled")
+    return None
 
 
 def registrars(model_dirs: list[Path]) -> dict[str, Registrar]:
     """``general`` as bundled, and ``general`` with each candidate's network in its rotation search."""
     names = variant_names(model_dirs)  # before any model loads
+    mismatch = normalisation_mismatch(model_dirs)
+    if mismatch:
+        raise ValueError(mismatch)
     general = bundled_models_dir() / "general"
     plain = Registrar(general)
     swapped = []
     for candidate in model_dirs:
         network = Registrar(candidate)
-        if network.reference_radius != plain.reference_radius:
-            raise SystemExit(f"{candidate} normalises clouds to a reference radius of {network.reference_radius}, "
-                             f"general to {plain.reference_radius}: export it with --setting resampled")
         swapped.append(Registrar(general, stages=dataclasses.replace(Stages(), search=searching_with(network))))
     return dict(zip(names, (plain, *swapped), strict=True))
 
@@ -136,8 +153,14 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     directory = scan_set(parser, args.data, args.pairs, args.derived)
-    for folder in args.model_dirs:
-        checked(model_dir, folder, "DIR")
+    args.model_dirs = [checked(model_dir, folder, "DIR") for folder in args.model_dirs]  # a bundled name: its folder
+    try:
+        variant_names(args.model_dirs)
+    except ValueError as err:
+        parser.error(f"DIR: {err}")
+    mismatch = normalisation_mismatch(args.model_dirs)
+    if mismatch:
+        parser.error(f"DIR {mismatch}")
     json_destination(args.json)
     all_cases = cases(directory, args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
     report = compare(args.model_dirs, all_cases)

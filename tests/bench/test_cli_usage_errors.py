@@ -122,6 +122,34 @@ def test_mistake_is_a_usage_error_before_any_work(module, argv, work, fragment, 
     assert "error: " in message and fragment in message
 
 
+@pytest.mark.parametrize(("folders", "fragment"), [
+    (["x/candidate", "y/candidate"], "DIR: candidates need distinct folder names other than general"),
+    (["x/general", "y/other"], "DIR: candidates need distinct folder names other than general"),
+    (["unseen"], "normalises clouds to a reference radius of"),
+])
+def test_search_network_candidates_are_checked_before_any_work(folders, fragment, files, tmp_path, monkeypatch,
+                                                                capsys):
+    import shutil
+
+    from bench import search_network
+    from service.manifest import bundled_models_dir
+
+    dirs = []
+    for folder in folders:  # copies of the bundled model under the given names, or a bundled name as it is
+        if "/" in folder:
+            shutil.copytree(bundled_models_dir() / "general", tmp_path / folder)
+            manifest = tmp_path / folder / "manifest.json"  # its name is its folder's
+            manifest.write_text(json.dumps({**json.loads(manifest.read_text()), "name": folder.split("/")[1]}))
+        dirs.append(str(tmp_path / folder) if "/" in folder else folder)
+    for work in ("cases", "compare", "Registrar"):
+        monkeypatch.setattr(search_network, work, _no_work)
+    with pytest.raises(SystemExit) as ended:
+        search_network.main([*dirs, "--pairs", "dragon_a"])
+    assert ended.value.code == 2
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "error: " in message and fragment in message
+
+
 def test_modelnet_data_missing_is_a_usage_error(files, monkeypatch, capsys):
     from bench import default_request
 

@@ -50,12 +50,17 @@ def test_the_search_runs_the_other_registrars_network(monkeypatch):
     assert not seen  # general's own search stage
 
 
-def test_a_model_normalised_otherwise_is_refused(tmp_path):
-    cloud = np.zeros((20, 3), np.float32)  # a set of one pair: its cases load, the models' check refuses first
+def test_a_model_normalised_otherwise_is_refused(tmp_path, capsys):
+    cloud = np.zeros((20, 3), np.float32)  # a set of one pair: the models' check refuses before any case loads
     np.savez(tmp_path / "a.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
-    with pytest.raises(SystemExit, match="reference radius"):
+    with pytest.raises(SystemExit) as ended:
         main([str(bundled_models_dir() / "unseen"), "--data", str(tmp_path), "--pairs", "a", "--seeds", "0",
               "--turns", "1"])
+    assert ended.value.code == 2 and "reference radius" in capsys.readouterr().err
+    from bench.search_network import registrars
+
+    with pytest.raises(ValueError, match="reference radius"):  # called on its own, before any model loads
+        registrars([bundled_models_dir() / "unseen"])
 
 
 @needs_data
@@ -89,5 +94,5 @@ def test_candidates_need_distinct_names(tmp_path):
     from bench.search_network import variant_names
 
     assert variant_names([tmp_path / "a"]) == ("general", "search network")
-    with pytest.raises(SystemExit, match="distinct folder names"):
+    with pytest.raises(ValueError, match="distinct folder names"):
         variant_names([tmp_path / "x" / "a", tmp_path / "y" / "a"])
