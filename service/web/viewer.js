@@ -1,6 +1,7 @@
 "use strict";
 // PointViewer: point clouds on a <canvas>, drawn with WebGL, or projected onto a 2D canvas when WebGL is
-// unavailable (e.g. a browser without GPU access). Orbit camera: drag to turn, wheel to zoom.
+// unavailable (e.g. a browser without GPU access). Orbit camera: drag to turn, wheel to zoom; with the canvas
+// focused, arrow keys turn, + / = and - zoom, Home or 0 resets. The view is mirrored in canvas.dataset.view.
 // Matrices are 4x4, column-major Float32Array(16) as WebGL expects; a cloud is a Float32Array [n * 3].
 (function (global) {
   const VERTEX_SHADER = `
@@ -13,6 +14,13 @@
     uniform vec3 color;
     void main() { gl_FragColor = vec4(color, 1.0); }`;
   const BACKGROUND = [17, 20, 24];
+  const PITCH_LIMIT = 1.55; // rad: just short of straight up/down
+  const KEY_ORBIT = Math.PI / 36; // rad per arrow key press (5 degrees)
+  const KEY_ZOOM = 1.2; // distance factor per + / - press
+  // key -> [yaw step, pitch step] in KEY_ORBIT units; each turns as a drag in the arrow's direction
+  const ORBIT_KEYS = new Map([["ArrowLeft", [-1, 0]], ["ArrowRight", [1, 0]], ["ArrowUp", [0, -1]], ["ArrowDown", [0, 1]]]);
+  const ZOOM_KEYS = new Map([["+", 1 / KEY_ZOOM], ["=", 1 / KEY_ZOOM], ["-", KEY_ZOOM]]); // key -> distance factor
+  const RESET_KEYS = new Set(["Home", "0"]);
 
   function identity() {
     const m = new Float32Array(16);
@@ -173,6 +181,19 @@
       this.draw();
     }
 
+    // Turn the camera by dYaw, dPitch (rad); pitch stays within +-PITCH_LIMIT.
+    orbit(dYaw, dPitch) {
+      this.yaw += dYaw;
+      this.pitch = Math.max(-PITCH_LIMIT, Math.min(PITCH_LIMIT, this.pitch + dPitch));
+      this.draw();
+    }
+
+    // Multiply the camera distance by factor (> 1: farther), within 0.05-50 cloud radii.
+    zoom(factor) {
+      this.distance = Math.max(this.radius * 0.05, Math.min(this.radius * 50, this.distance * factor));
+      this.draw();
+    }
+
     bindControls() {
       const canvas = this.canvas;
       let last = null;
@@ -182,19 +203,27 @@
       });
       canvas.addEventListener("pointermove", (e) => {
         if (!last) return;
-        this.yaw += (e.clientX - last[0]) * 0.01;
-        this.pitch = Math.max(-1.55, Math.min(1.55, this.pitch + (e.clientY - last[1]) * 0.01));
+        this.orbit((e.clientX - last[0]) * 0.01, (e.clientY - last[1]) * 0.01);
         last = [e.clientX, e.clientY];
-        this.draw();
       });
       const release = () => { last = null; };
       canvas.addEventListener("pointerup", release);
       canvas.addEventListener("pointercancel", release);
       canvas.addEventListener("wheel", (e) => {
         e.preventDefault();
-        this.distance = Math.max(this.radius * 0.05, Math.min(this.radius * 50, this.distance * Math.exp(e.deltaY * 0.001)));
-        this.draw();
+        this.zoom(Math.exp(e.deltaY * 0.001));
       }, {passive: false});
+      // Keys reach this listener only while the canvas has focus; browser shortcuts (Ctrl/Alt/Meta) pass through,
+      // and only the keys handled here lose their default (page scrolling).
+      canvas.addEventListener("keydown", (e) => {
+        if (e.ctrlKey || e.altKey || e.metaKey) return;
+        const turn = ORBIT_KEYS.get(e.key);
+        if (turn) this.orbit(turn[0] * KEY_ORBIT, turn[1] * KEY_ORBIT);
+        else if (ZOOM_KEYS.has(e.key)) this.zoom(ZOOM_KEYS.get(e.key));
+        else if (RESET_KEYS.has(e.key)) this.resetView();
+        else return;
+        e.preventDefault();
+      });
     }
 
     viewProjection() {
@@ -207,6 +236,9 @@
     }
 
     draw() {
+      const deg = (rad) => Math.round(rad * 180 / Math.PI * 100) / 100;
+      this.canvas.dataset.view = JSON.stringify({yaw_deg: deg(this.yaw), pitch_deg: deg(this.pitch),
+        distance: Number(this.distance.toPrecision(6))}); // for scripts and tests: the camera as drawn
       if (this.pending) return;
       this.pending = true;
       requestAnimationFrame(() => {

@@ -277,6 +277,97 @@ def test_every_control_is_labelled_and_reached_by_tab_in_order(browser, server):
     assert [i for i in reached if i in order][:len(order)] == order, reached
 
 
+VIEW_JS = "JSON.parse(document.getElementById('canvas').dataset.view)"
+
+
+def view_state(driver) -> dict[str, float]:
+    """The camera the view last drew: ``{"yaw_deg", "pitch_deg", "distance"}`` (``canvas.dataset.view``)."""
+    return driver.execute_script(f"return {VIEW_JS}")
+
+
+def press(driver, *keys: str) -> None:
+    """Send keys to the focused element and wait until the view has drawn them."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    ActionChains(driver).send_keys(*keys).perform()
+    driver.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+
+
+def test_the_view_turns_zooms_and_resets_from_the_keyboard_without_scrolling_the_page(browser, server, ply_files):
+    """WCAG 2.1.1: the 3D view turned and zoomed only with a mouse, and Tab never reached it."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.actions.wheel_input import ScrollOrigin
+    from selenium.webdriver.common.keys import Keys
+
+    _, source_file, target_file = ply_files
+    browser.set_window_size(1400, 700)  # shorter than the page: a key that scrolled it would show
+    try:
+        assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+        canvas = browser.find_element("id", "canvas")
+        assert canvas.get_attribute("role") == "application" and "3D view" in canvas.get_attribute("aria-label")
+        keys_hint = browser.find_element("id", canvas.get_attribute("aria-describedby"))
+        assert keys_hint.is_displayed()
+        for words in ("arrow keys", "+", "-", "Home", "0", "zoom", "reset"):
+            assert words in keys_hint.text, keys_hint.text
+
+        browser.execute_script("document.getElementById('reset-view').focus()")
+        press(browser, Keys.TAB)  # the view comes next in the tab order, with a visible outline
+        assert browser.execute_script("return document.activeElement.id") == "canvas"
+        outline = browser.execute_script(
+            "const s = getComputedStyle(document.activeElement); return [s.outlineStyle, parseFloat(s.outlineWidth)]")
+        assert outline[0] != "none" and outline[1] >= 2, outline
+        browser.execute_script("window.scrollTo(0, 60)")
+        scroll_y = browser.execute_script("return window.scrollY")
+        assert 0 < scroll_y < browser.execute_script("return document.documentElement.scrollHeight - innerHeight")
+
+        start = view_state(browser)
+        before = canvas.screenshot_as_png
+        steps = [  # key, the change it makes to the view
+            (Keys.ARROW_LEFT, {"yaw_deg": -5}), (Keys.ARROW_RIGHT, {"yaw_deg": 0}), (Keys.ARROW_RIGHT, {"yaw_deg": 5}),
+            (Keys.ARROW_UP, {"yaw_deg": 5, "pitch_deg": -5}), (Keys.ARROW_DOWN, {"yaw_deg": 5, "pitch_deg": 0}),
+            (Keys.ARROW_DOWN, {"yaw_deg": 5, "pitch_deg": 5}),
+        ]
+        for key, change in steps:
+            press(browser, key)
+            now = view_state(browser)
+            for name in ("yaw_deg", "pitch_deg"):
+                assert now[name] == pytest.approx(start[name] + change.get(name, 0), abs=0.02), (key, now, start)
+            assert now["distance"] == start["distance"]
+            assert browser.execute_script("return window.scrollY") == scroll_y, key
+        assert canvas.screenshot_as_png != before  # the drawing follows the camera
+        for key, factor in (("+", 1 / 1.2), ("=", 1 / 1.44), ("-", 1 / 1.2)):
+            press(browser, key)
+            assert view_state(browser)["distance"] == pytest.approx(start["distance"] * factor, rel=1e-4), key
+        for key in (Keys.HOME, "0"):
+            press(browser, Keys.ARROW_LEFT, "+")
+            assert view_state(browser) != start
+            press(browser, key)
+            assert view_state(browser) == start, key
+            assert browser.execute_script("return window.scrollY") == scroll_y, key
+
+        ActionChains(browser).key_down(Keys.CONTROL).send_keys(Keys.ARROW_LEFT, "0").key_up(Keys.CONTROL).perform()
+        assert view_state(browser) == start  # browser shortcuts are the browser's
+        press(browser, Keys.PAGE_DOWN)  # a key the view does not handle keeps its default (a smooth scroll)
+        wait_for(browser, f"window.scrollY > {scroll_y}", "Page Down to scroll the page")
+        assert view_state(browser) == start
+
+        api_key = browser.find_element("id", "api_key")  # keys typed in a form field leave the view alone
+        api_key.click()
+        press(browser, Keys.ARROW_LEFT, Keys.ARROW_DOWN, "+", "-", "0", Keys.HOME)
+        assert api_key.get_attribute("value") == "+-0"
+        assert view_state(browser) == start
+
+        scroll_y = browser.execute_script("return window.scrollY")  # the mouse works as before
+        ActionChains(browser).scroll_from_origin(ScrollOrigin.from_element(canvas), 0, 100).perform()
+        wait_for(browser, f"{VIEW_JS}.distance !== {start['distance']}", "the wheel to zoom")
+        assert view_state(browser)["distance"] == pytest.approx(start["distance"] * np.exp(0.1), rel=1e-4)
+        assert browser.execute_script("return window.scrollY") == scroll_y
+        ActionChains(browser).move_to_element(canvas).click_and_hold().move_by_offset(50, 0).release().perform()
+        assert view_state(browser)["yaw_deg"] == pytest.approx(start["yaw_deg"] + np.degrees(0.5), abs=0.02)
+    finally:
+        browser.set_window_size(1400, 1000)
+
+
 def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_result(browser, server, ply_files,
                                                                                   tmp_path):
     """After a good pair, a bad file's error showed under the good pair's pose, view and download button."""
