@@ -20,7 +20,8 @@ def max_abs(values: np.ndarray) -> float:
     return max(float(values.max()), -float(values.min()))
 
 
-# Organized clouds (depth cameras, PCD with is_dense false) mark missing returns with NaN rows: the caller drops them
+# Depth cameras mark missing returns with NaN rows: an organized PCD file's are left out on read
+# (service/formats/pcd.py); in arrays and other files the caller drops them
 LEAVE_NAN_ROWS_OUT = "leave such rows out (e.g. points[np.isfinite(points).all(axis=1)])"
 
 

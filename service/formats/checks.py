@@ -132,13 +132,18 @@ def as_declared(column: np.ndarray, dtype: np.dtype, what: str) -> np.ndarray:
 
 def xyz_columns(columns: list[np.ndarray]) -> np.ndarray:
     """Three coordinate columns (any numeric dtype) -> checked float64 ``[N, 3]``."""
+    return checked(stacked_xyz(columns))
+
+
+def stacked_xyz(columns: list[np.ndarray]) -> np.ndarray:
+    """Three coordinate columns (any numeric dtype) -> a fresh float64 ``[N, 3]``, its values not yet checked."""
     for column in columns:
         if column.dtype.kind not in "fiu":
             raise InvalidPointsError(f"coordinates must be real numbers, got dtype {column.dtype}")
     xyz = np.empty((len(columns[0]), 3), dtype=np.float64)  # [N, 3]
     for axis, column in enumerate(columns):
         xyz[:, axis] = column
-    return checked(xyz)
+    return xyz
 
 
 def checked(xyz: np.ndarray) -> np.ndarray:

@@ -3,6 +3,10 @@
 The header is parsed once, here (``pypcd4.MetaData``), so that the point count, the record type and the
 body's size (the compressed block's declared sizes) are checked before anything is allocated; ``pypcd4``
 then reads the data that follows it. Other fields are ignored.
+
+An organized cloud (``HEIGHT`` > 1: a depth image's grid) marks a pixel without a return by a point whose x, y and
+z are all NaN, as PCL does; such points are left out (``pcl::removeNaNFromPointCloud``), the others keep their order.
+Any other NaN or Inf is refused, as in every other file (``docs/decisions/0067-organized-pcd-missing-returns.md``).
 """
 
 from __future__ import annotations
@@ -17,11 +21,13 @@ from typing import TYPE_CHECKING, BinaryIO
 import numpy as np
 
 from service.formats.checks import (
+    BLOCK_BYTES,
+    FLOAT32_MAX,
     as_declared,
     check_count,
     check_text_lines,
     checked,
-    xyz_columns,
+    stacked_xyz,
     xyz_in_blocks,
 )
 from service.formats.deps import require
@@ -39,6 +45,7 @@ LZF_MAX_RATIO = 88  # an LZF back reference of 3 bytes repeats at most 264
 # (2,000,000 records of 64 bytes, or fewer wider ones: FPFH33 descriptors beside x, y, z are 144 bytes). 2,000,000
 # records of 128 bytes took 472 MiB above idle.
 MAX_COMPRESSED_BLOCK_BYTES = 128 << 20
+ROWS_PER_BLOCK = BLOCK_BYTES // 24  # float64 x, y, z rows an organized cloud's missing returns are left out of at once
 
 
 def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -56,11 +63,11 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     _check_body(f, meta, dtype)
     try:
         if meta.data == "ascii" and meta.points > 0:
-            return _ascii_xyz(f, meta.points, dtype)
+            return _usable(_ascii_xyz(f, meta.points, dtype), meta)
         if meta.data == "binary_compressed" and meta.points > 0:
-            return _compressed_xyz(f, meta.points, dtype)
+            return _usable(_compressed_xyz(f, meta.points, dtype), meta)
         if meta.data == "binary":  # a block of records at a time, only x, y, z kept
-            return checked(xyz_in_blocks(f, dtype, meta.points, "corrupt PCD data: binary records"))
+            return _usable(xyz_in_blocks(f, dtype, meta.points, "corrupt PCD data: binary records"), meta)
         table = pypcd4.pypcd4._parse_pc_data(f, meta)  # no points, or pypcd4's binaryscompressed spelling
     except PointCloudFormatError:
         raise
@@ -69,7 +76,45 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     table = np.atleast_1d(table)
     if len(table) != meta.points:
         raise PointCloudFormatError(f"PCD data holds {len(table)} points; the header says {meta.points}")
-    return xyz_columns([np.asarray(table[axis]).reshape(-1) for axis in "xyz"])
+    return _usable(stacked_xyz([np.asarray(table[axis]).reshape(-1) for axis in "xyz"]), meta)
+
+
+def _usable(xyz: np.ndarray, meta: MetaData) -> np.ndarray:
+    """The checked points of ``xyz [N, 3]`` (a fresh array), an organized cloud's missing returns left out."""
+    if meta.height > 1 and len(xyz):
+        xyz = _without_missing_returns(xyz, meta.width, meta.height)
+    return checked(xyz)
+
+
+def _without_missing_returns(xyz: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``xyz [N, 3]`` without the points whose x, y and z are all NaN, the others in their order: moved up in place,
+    ``ROWS_PER_BLOCK`` rows at a time (no second copy of a multi-million-point cloud), and returned as ``[K, 3]``, a
+    view of ``xyz``. :class:`InvalidPointsError` naming the first other point with a NaN, an Inf or a value beyond
+    float32 (by its index in the file and its place in the ``width`` x ``height`` grid), or where no point is left."""
+    kept, bad, first_bad = 0, 0, -1  # rows kept so far; rows of other non-finite values, the first one's index
+    for begin in range(0, len(xyz), ROWS_PER_BLOCK):
+        block = xyz[begin:begin + ROWS_PER_BLOCK]  # [n, 3] a view
+        missing = np.isnan(block).all(axis=1)  # [n]
+        wrong = ~missing & ~(np.abs(block) <= FLOAT32_MAX).all(axis=1)  # [n] NaN compares false
+        if wrong.any() and first_bad < 0:
+            first_bad = begin + int(np.argmax(wrong))
+        bad += int(wrong.sum())
+        if bad:  # only counted from here on
+            continue
+        if missing.any() or kept < begin:
+            valid = block[~missing] if missing.any() else block  # [v, 3] a copy of the block's points, or the block
+            xyz[kept:kept + len(valid)] = valid  # numpy copies through a buffer where the two overlap
+        kept += len(block) - int(missing.sum())
+    grid = f"the organized cloud ({width} x {height})"
+    if bad:
+        where = f" (row {first_bad // width}, column {first_bad % width})" if width else ""
+        raise InvalidPointsError(
+            f"{bad} point(s) of {grid} with NaN/Inf coordinates or beyond the float32 range, first at index "
+            f"{first_bad}{where}; only points whose x, y and z are all NaN are missing returns, which are left out"
+        )
+    if kept == 0:
+        raise InvalidPointsError(f"{grid} has no valid point: all {len(xyz)} are missing returns (x, y and z NaN)")
+    return xyz[:kept]
 
 
 def _ascii_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
@@ -89,7 +134,7 @@ def _ascii_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
         text.detach()  # the caller's file stays open
     if len(table) != points:
         raise PointCloudFormatError(f"PCD data holds {len(table)} points; the header says {points}")
-    return xyz_columns([as_declared(table[:, k], dtype[axis], f"PCD field {axis}") for k, axis in enumerate("xyz")])
+    return stacked_xyz([as_declared(table[:, k], dtype[axis], f"PCD field {axis}") for k, axis in enumerate("xyz")])
 
 
 def _compressed_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
@@ -106,7 +151,7 @@ def _compressed_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
     for name in dtype.names:  # fields in the record's order, COUNT > 1 as one field per value
         offsets[name] = offset
         offset += dtype[name].itemsize * points
-    return xyz_columns([np.frombuffer(block, dtype=dtype[axis], count=points, offset=offsets[axis]) for axis in "xyz"])
+    return stacked_xyz([np.frombuffer(block, dtype=dtype[axis], count=points, offset=offsets[axis]) for axis in "xyz"])
 
 
 def _metadata(pypcd4: ModuleType, f: BinaryIO):
