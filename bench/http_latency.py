@@ -16,10 +16,13 @@ in-process and the HTTP calls. With ``--compare-root`` the servers run side by s
 
 from __future__ import annotations
 
+import atexit
 import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -29,6 +32,47 @@ import numpy as np
 CONCURRENCY = (1, 2, 4, 8)
 # The network pipeline alone, as the in-process figures it is compared with (the server's default adds icp-plane).
 NETWORK_ONLY = {"refine": "none"}
+
+
+_RUNNING: set[subprocess.Popen] = set()  # the servers this process started and has not stopped yet
+_sigterm_before: list = []  # SIGTERM's handler before the first of them started, while it is replaced
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)  # the shell's status of a process that signal ended
+
+
+def _catch_sigterm() -> None:
+    """While servers run, SIGTERM ends this process as Ctrl-C does, through its ``with`` blocks (which stop them and
+    remove their temporary files), instead of at once, leaving them running. Only from the main thread, and only in
+    place of the default action (never over a handler someone else set)."""
+    if (not _sigterm_before and threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL):
+        _sigterm_before.append(signal.signal(signal.SIGTERM, _exit_on_sigterm))
+
+
+def _release_sigterm() -> None:
+    """SIGTERM's own handler back, once no server of this process runs."""
+    if _sigterm_before and not _RUNNING and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _sigterm_before.pop())
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End ``proc``: SIGTERM (uvicorn's graceful shutdown), SIGKILL after 30 s."""
+    proc.terminate()
+    try:
+        proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    _RUNNING.discard(proc)
+
+
+@atexit.register
+def _stop_running() -> None:
+    """At exit, every server still running (one made but never entered, or one whose start an interrupt cut short)."""
+    for proc in list(_RUNNING):
+        _stop(proc)
 
 
 def free_port() -> int:
@@ -47,7 +91,8 @@ def rss_mb(pid: int, field: str = "VmRSS") -> float:
 
 
 class Server:
-    """``mfgnet``'s HTTP app in a subprocess on a free loopback port (one uvicorn process)."""
+    """``mfgnet``'s HTTP app in a subprocess on a free loopback port (one uvicorn process), stopped when the ``with``
+    block ends, its start fails or is interrupted, and on SIGTERM (:func:`_catch_sigterm`)."""
 
     def __init__(self, threads: int = 2, max_concurrency: int = 2, max_queue: int = 64, cwd: str | None = None,
                  model_dirs: str | None = None, default_model: str | None = None, models: str | None = None,
@@ -66,26 +111,32 @@ class Server:
             env["MFGNET_TIMEOUT_S"] = str(timeout_s)
         if cwd:  # "-c" puts the working directory first on sys.path: that checkout's service package runs
             env["PYTHONPATH"] = cwd
+        _catch_sigterm()
         self.proc = subprocess.Popen([sys.executable, "-c", "from service.api.app import run_server; run_server()"],
                                      env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        _RUNNING.add(self.proc)
         self.url = f"http://127.0.0.1:{self.port}"
 
     def __enter__(self) -> Server:
         deadline = time.time() + 120
-        with httpx.Client(timeout=5) as client:
-            while time.time() < deadline:
-                try:
-                    if client.get(self.url + "/v2/health/ready").status_code == 200:
-                        return self
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.2)
+        try:
+            with httpx.Client(timeout=5) as client:
+                while time.time() < deadline:
+                    try:
+                        if client.get(self.url + "/v2/health/ready").status_code == 200:
+                            return self
+                    except httpx.TransportError:
+                        pass
+                    time.sleep(0.2)
+        except BaseException:  # Ctrl-C or SIGTERM while it starts: no with block will stop it
+            self.__exit__()
+            raise
         self.__exit__()
         raise RuntimeError("benchmark server did not become ready")
 
     def __exit__(self, *exc) -> None:
-        self.proc.terminate()
-        self.proc.wait(timeout=30)
+        _stop(self.proc)
+        _release_sigterm()
 
 
 def run_load(url: str, bodies: list[dict], concurrency: int, requests: int) -> dict:

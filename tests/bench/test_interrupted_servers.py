@@ -1,0 +1,87 @@
+"""A benchmark interrupted (SIGTERM, or Ctrl-C's SIGINT sent to it alone) stops the servers it started: none is left
+running, whether it was still starting them or already measuring."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _servers_of(pid: int) -> list[int]:
+    """The PIDs of the ``run_server`` processes whose parent is ``pid``."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parent = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            if parent == pid and b"run_server" in (stat.parent / "cmdline").read_bytes():
+                found.append(int(stat.parent.name))
+        except (OSError, IndexError, ValueError):  # a process that ended while being read
+            continue
+    return found
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, ended and waiting to be reaped, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _interrupted(command: list[str], signum: int, ready_line: bool, tmp_path: Path) -> tuple[int, str, list[int]]:
+    """Start ``command``, wait for its server (its first stdout line with ``ready_line``, else the server's process
+    appearing), send it ``signum``: its exit status, its stderr and the servers it had started that still run."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    err = tmp_path / "stderr.txt"
+    with err.open("w") as stderr:
+        bench = subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=stderr, text=True)
+    servers: list[int] = []
+    try:
+        deadline = time.time() + 120
+        if ready_line:
+            servers = [int(bench.stdout.readline())]  # the server's pid, printed once it answers
+        while not servers and time.time() < deadline and bench.poll() is None:
+            servers = _servers_of(bench.pid)
+            time.sleep(0.05)
+        assert servers, "the benchmark started no server"
+        bench.send_signal(signum)
+        status = bench.wait(timeout=60)
+        time.sleep(0.5)  # a server it left behind would still be starting or serving
+        return status, err.read_text(), [pid for pid in servers if _alive(pid)]
+    finally:
+        bench.kill()
+        for pid in servers:  # ours: a leaked one must not outlive the test
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_real_scans_interrupted_while_its_server_starts_leaves_no_server(signum, tmp_path):
+    cloud = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32)  # one tiny pair: never registered
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    np.savez(scans / "a.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
+    status, stderr, left = _interrupted([sys.executable, "-m", "bench.real_scans", str(scans), "--no-fpfh",
+                                         "--scales", "1"], signum, False, tmp_path)
+    assert left == [], f"servers left running: {left}"
+    assert status == (128 + signal.SIGTERM if signum == signal.SIGTERM else -signal.SIGINT)
+    if signum == signal.SIGTERM:
+        assert "Traceback" not in stderr
+
+
+def test_sigterm_while_measuring_stops_the_server(tmp_path):
+    script = ("import time\nfrom bench.http_latency import Server\n"
+              "with Server(models='general') as server:\n"
+              "    print(server.proc.pid, flush=True)\n"
+              "    time.sleep(300)\n")
+    status, stderr, left = _interrupted([sys.executable, "-c", script], signal.SIGTERM, True, tmp_path)
+    assert left == [] and status == 128 + signal.SIGTERM and "Traceback" not in stderr
