@@ -52,12 +52,13 @@ def check_parity(
     """Compare per-graph outputs and final poses of ``registrar`` and ``model`` on ``pairs``.
 
     Raises ``ParityError`` when a tolerance is exceeded or fewer than ``min_compared`` pairs are
-    comparable (pairs with near-tied matching scores are excluded and counted). The graph outputs are compared on
-    every pair, ties or not.
+    comparable (pairs with near-tied matching scores are excluded and counted). The outputs of every graph (the
+    encoder and each matcher) are compared on every pair, ties or not.
     """
     model = model.eval()
     n_iter = iterations or model.cfg.iterations
     K = keypoints or model.cfg.keypoints
+    n_matchers = max(len(model.matchers), len(registrar.matchers))  # each index past the last reuses the last
     enc_diff = match_diff = rot_diff = trans_diff = 0.0
     compared = excluded = boundary = knn_ties = 0
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
@@ -89,15 +90,17 @@ def check_parity(
                 src_idx=torch.from_numpy(out.src_kp[None]),
                 tgt_idx=torch.from_numpy(out.tgt_kp[None]),
             )
-        # one matcher call on the same inputs as the first iteration of the reference
-        ps, pt = src[out.src_kp][None], tgt[out.tgt_kp][None]
-        scores, logit = registrar.match(0, ps, pt, e_s[:, out.src_kp], e_t[:, out.tgt_kp])
-        s_ref, l_ref = model.matcher(0)(
-            *(torch.from_numpy(np.ascontiguousarray(a)) for a in (ps, pt, e_s[:, out.src_kp], e_t[:, out.tgt_kp]))
-        )
-        match_diff = max(
-            match_diff, float(np.abs(scores - s_ref.numpy()).max()), float(np.abs(logit - l_ref.numpy()).max())
-        )
+        # every matcher graph (one per weight set) on the same inputs, those of the reference's first iteration:
+        # a later graph is otherwise seen only through the final pose, on the comparable pairs
+        ps, pt = src[out.src_kp][None], tgt[out.tgt_kp][None]  # [1, K, 3], [1, K, 3]
+        es, et = e_s[:, out.src_kp], e_t[:, out.tgt_kp]  # [1, K, D], [1, K, D]
+        ref_inputs = [torch.from_numpy(np.ascontiguousarray(a)) for a in (ps, pt, es, et)]
+        for i in range(n_matchers):
+            scores, logit = registrar.match(i, ps, pt, es, et)  # [1, K, K], [1, K]
+            s_ref, l_ref = model.matcher(i)(*ref_inputs)
+            match_diff = max(
+                match_diff, float(np.abs(scores - s_ref.numpy()).max()), float(np.abs(logit - l_ref.numpy()).max())
+            )
         if out.min_top2_gap < TIE_GAP or out.min_median_gap < SELECTION_GAP or not same_graphs:
             excluded += 1
             continue

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 from pathlib import Path
@@ -162,3 +163,31 @@ def test_runtime_still_runs_graphs_exported_before_their_precomputed_inputs(expo
         inputs = (i, xyz_s, xyz_t, emb_s, emb_t)
         for a, b in zip(old.match(*inputs), new.match(*inputs), strict=True):
             np.testing.assert_allclose(a, b, atol=1e-4)
+
+
+@pytest.mark.skipif(not (BUNDLED / "manifest.json").exists() or not BUNDLED_CKPT.exists(),
+                    reason="bundled clean model or checkpoint not present")
+def test_parity_compares_every_matcher_graph_not_only_the_first(tmp_path):
+    """The bundled ``clean`` folder with its last matcher graph exported from another network (that graph's score
+    layer bias 0.002 off, 20x the graph tolerance) fails parity on that graph's outputs, where the final poses alone
+    stay within their tolerances; the folder as bundled passes on the same pairs."""
+    from export.parity import ParityError
+    from model.checkpoint import file_sha256, load_model
+
+    model = load_model(BUNDLED_CKPT)
+    pairs = synthetic_pairs(8, seed=9, noise=0.01)
+    check_parity(model, Registrar(BUNDLED, warmup=False), pairs, min_compared=1)
+    other = copy.deepcopy(model)
+    with torch.no_grad():
+        other.matchers[-1].feature.out.bias += 0.002
+    export_graphs(other, tmp_path / "other")
+    last = f"matcher_{len(model.matchers) - 1}"
+    swapped = tmp_path / "clean"
+    shutil.copytree(BUNDLED, swapped)
+    shutil.copy(tmp_path / "other" / f"{last}.onnx", swapped / f"{last}.onnx")
+    manifest = json.loads((swapped / "manifest.json").read_text())
+    manifest["graphs"][last]["sha256"] = file_sha256(swapped / f"{last}.onnx")
+    (swapped / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ParityError, match=r"matcher differs by 2\.\d+e-03") as failed:
+        check_parity(model, Registrar(swapped, warmup=False), pairs, min_compared=1)
+    assert "rotation differs" not in str(failed.value) and "translation differs" not in str(failed.value)
