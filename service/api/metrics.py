@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
 
+from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
+from service.stages.search import RETRY_WARNING
+
 # No ``<counter>_created`` / ``<histogram>_created`` series: in the text format Prometheus stores each as one more gauge
 # series per label set (the counters' series doubled), undocumented and unused; rate() needs none of them. The switch
 # is process-wide: the service's registries are the only ones in its process.
@@ -16,6 +19,7 @@ WARNING_KINDS = frozenset({
     "low overlap", "poor fit", "loose fit", "weakly constrained", "ambiguous", "refinement",
     *(f"{cloud} {kind}" for cloud in ("source", "target")
       for kind in ("empty", "identical", "collinear", "few distinct points", "coplanar")),
+    THROUGH_FREE_SPACE, CONFIRMED_BY_FREE_SPACE, RETRY_WARNING.split(":", 1)[0],  # the closing checks'
 })
 
 

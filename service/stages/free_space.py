@@ -36,6 +36,9 @@ CONFIRMS_BELOW = 0.03
 # were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.038 and
 # more, each with another doubt besides).
 SETTLED_DOUBTS = (LOOSE_FIT, RETRY_WARNING)
+# The kinds (the text before the colon) of what this stage adds to the warnings: a doubt, and a note
+THROUGH_FREE_SPACE = "through free space"
+CONFIRMED_BY_FREE_SPACE = "confirmed by free space"
 
 
 def free_space_of(work: Working, result: RegistrationResult) -> float | None:
@@ -67,13 +70,20 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
     if share is None:
         return result
     if result.reliable and share > RELIABLE_FREE_SPACE:
-        warning = (f"through free space: {share:.3f} of one scan's points lie where the other scan's sensor saw "
-                   f"through, > {RELIABLE_FREE_SPACE}; a right pose puts surface only where a sensor saw surface or "
-                   "nothing")
-        return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
+        return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, through_free_space(share)])
     if not result.reliable and share <= CONFIRMS_BELOW:
-        note = (f"confirmed by free space: only {share:.3f} of one scan's points lie where the other scan's sensor saw "
-                f"through, <= {CONFIRMS_BELOW}; range images that overlap in part overlay each other loosely, and a "
-                "pose half a turn off would put surface there")
-        return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, note])
+        return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_by_free_space(share)])
     return result
+
+
+def through_free_space(share: float) -> str:
+    """The warning of a result that puts ``share`` (> ``RELIABLE_FREE_SPACE``) of a scan in a sensor's free space."""
+    return (f"{THROUGH_FREE_SPACE}: {share:.3f} of one scan's points lie where the other scan's sensor saw through, "
+            f"> {RELIABLE_FREE_SPACE}; a right pose puts surface only where a sensor saw surface or nothing")
+
+
+def confirmed_by_free_space(share: float) -> str:
+    """The note of a result made ``reliable`` by leaving at most ``CONFIRMS_BELOW`` (``share``) in free space."""
+    return (f"{CONFIRMED_BY_FREE_SPACE}: only {share:.3f} of one scan's points lie where the other scan's sensor saw "
+            f"through, <= {CONFIRMS_BELOW}; range images that overlap in part overlay each other loosely, and a pose "
+            "half a turn off would put surface there")
