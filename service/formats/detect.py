@@ -16,6 +16,8 @@ def detect(head: bytes) -> str:
     ``las`` covers LAZ (compressed LAS: the same ``LASF`` header). ``text`` is UTF-8 without NUL bytes
     (XYZ, CSV, TXT); whether its rows are numbers is the text reader's to say.
     """
+    if not head:
+        raise PointCloudFormatError("the file is empty (0 bytes)")
     if head.startswith(b"\x93NUMPY"):
         return "npy"
     if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):

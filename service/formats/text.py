@@ -32,9 +32,10 @@ def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
 
 
 def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
-    skip, separator, header = 0, None, None
+    skip, separator, header, rows_follow = 0, None, None, False
     for number, line in enumerate(stream):
         if number >= PROBE_LINES:
+            rows_follow = True  # not known yet: loadtxt reads on
             break
         text = line.strip()
         if not text or text.startswith("#"):
@@ -43,7 +44,10 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
         if header is None and (not _numeric(text, separator) or len(text.split(separator)) == 1):
             skip, header = number + 1, text  # one header line: skip it and the comments before it
             continue
+        rows_follow = True
         break
+    if not rows_follow:  # checked here: numpy's loadtxt would warn on stderr, then return no rows
+        raise InvalidPointsError(_no_rows(header))
     stream.seek(0)
     try:
         table = np.loadtxt(
@@ -52,10 +56,20 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
         )  # [N, 3]
     except ValueError as exc:
         raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}") from None
+    if len(table) == 0:
+        raise InvalidPointsError(_no_rows(header))
     if max_points is not None and len(table) > max_points:
         raise TooManyPointsError(f"has more than {max_points} points; the limit is {max_points} per cloud",
                                  len(table), max_points)
     return checked(table)
+
+
+def _no_rows(header: str | None) -> str:
+    """The error for text with no rows of numbers; ``header``: its one non-comment line, if any."""
+    what = ("only comments or blank lines" if header is None
+            else f"no rows of numbers after its first line {header[:40]!r}")
+    return (f"the cloud is empty: read as XYZ/CSV/TXT text (it starts with no PLY, PCD, LAS/LAZ, .npy or .npz header), "
+            f"it has {what}; expected rows of x y z")
 
 
 def _separator(line: str) -> str | None:

@@ -153,6 +153,8 @@ BAD_UPLOADS = {
     "random": (b"\x00\x01garbage" * 50, 400, ["source (scan.ply)", "unrecognised content"]),
     "truncated_ply": (None, 400, ["source (scan.ply)", "PLY"]),
     "two_columns": (b"1 2\n3 4\n" * 40, 422, ["source (scan.ply)", "at least 3 numbers"]),
+    "words": (b"hello\n", 422, ["source (scan.ply)", "read as XYZ/CSV/TXT text", "no rows of numbers", "'hello'"]),
+    "empty": (b"", 400, ["source (scan.ply)", "the file is empty"]),
     "too_many_points": (b"ply\nformat binary_little_endian 1.0\nelement vertex 2000001\nproperty float x\n"
                         b"property float y\nproperty float z\nend_header\n", 413,
                         ["source (scan.ply)", "2000001", "max_file_points"]),

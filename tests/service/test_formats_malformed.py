@@ -11,6 +11,7 @@ import struct
 import subprocess
 import sys
 import tracemalloc
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -434,6 +435,29 @@ def test_a_text_line_beyond_a_mebibyte_is_refused_before_parsing(tmp_path: Path,
             read_cloud(tmp_path / name)
 
     assert peak_bytes(read) < 32 << 20
+
+
+@pytest.mark.parametrize("text,words", [
+    ("hello\n", "no rows of numbers after its first line 'hello'"),  # a .ply of anything else: read as text
+    ("x,y,z\n", "no rows of numbers after its first line 'x,y,z'"),  # a header and no rows
+    ("# exported\n\n# nothing\n", "only comments or blank lines"),
+], ids=["a_word", "header_only", "comments_only"])
+def test_text_without_rows_of_numbers_names_what_it_holds_and_warns_nothing(tmp_path: Path, text: str,
+                                                                              words: str) -> None:
+    """numpy's "loadtxt: input contained no data" UserWarning reached stderr (the CLI's, the server's log), and the
+    error said only "the cloud is empty", of a file that was not read as the format its name says."""
+    (tmp_path / "scan.ply").write_text(text)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InvalidPointsError, match=re.escape(words)) as caught:
+            read_cloud(tmp_path / "scan.ply")
+    assert "read as XYZ/CSV/TXT text" in str(caught.value)
+
+
+def test_an_empty_file_says_so(tmp_path: Path) -> None:
+    (tmp_path / "scan.ply").write_bytes(b"")
+    with pytest.raises(PointCloudFormatError, match=r"the file is empty \(0 bytes\)"):
+        read_cloud(tmp_path / "scan.ply")
 
 
 def test_pcd_ascii_line_too_long_is_refused_before_a_row_of_other_values(tmp_path: Path) -> None:
