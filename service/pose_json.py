@@ -25,12 +25,20 @@ def pose_fields(rotation: np.ndarray, translation: np.ndarray) -> dict:
     ``yaw_pitch_roll_deg`` (degrees) and ``quaternion_xyzw`` (see the module docstring), as plain float lists."""
     R = np.asarray(rotation, dtype=np.float64)  # [3, 3]
     t = np.asarray(translation, dtype=np.float64)  # [3]
-    turn = Rotation.from_matrix(R)
     return {
         "rotation": R.tolist(),
         "translation": t.tolist(),
         "transform": to_matrix(R, t).tolist(),
-        "euler_zyx_deg": turn.as_euler("zyx", degrees=True).tolist(),
-        "yaw_pitch_roll_deg": turn.as_euler("ZYX", degrees=True).tolist(),
-        "quaternion_xyzw": turn.as_quat(canonical=True).tolist(),  # [4] x, y, z, w with w >= 0
+        **{key: value.tolist() for key, value in rotation_fields(R).items()},
+    }
+
+
+def rotation_fields(rotation: np.ndarray) -> dict[str, np.ndarray]:
+    """``euler_zyx_deg`` [3], ``yaw_pitch_roll_deg`` [3] (degrees) and ``quaternion_xyzw`` [4] (``w >= 0``) of
+    ``rotation`` (3x3), as float64 arrays (see the module docstring)."""
+    turn = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64))
+    return {
+        "euler_zyx_deg": turn.as_euler("zyx", degrees=True),  # [3] a, b, c: R = Rx(c) Ry(b) Rz(a)
+        "yaw_pitch_roll_deg": turn.as_euler("ZYX", degrees=True),  # [3]: R = Rz(yaw) Ry(pitch) Rx(roll)
+        "quaternion_xyzw": turn.as_quat(canonical=True),  # [4] x, y, z, w with w >= 0
     }

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from service.pose_json import rotation_fields
 from service.procrustes import to_matrix
 
 
@@ -36,3 +37,19 @@ class RegistrationResult:
     def transform(self) -> np.ndarray:
         """``[4, 4]`` homogeneous src_to_tgt."""
         return to_matrix(self.rotation, self.translation)
+
+    @property
+    def quaternion_xyzw(self) -> np.ndarray:
+        """``[4]`` the rotation as a unit quaternion, scalar last (ROS ``geometry_msgs/Quaternion``), ``w >= 0``: the
+        response's ``quaternion_xyzw``."""
+        return rotation_fields(self.rotation)["quaternion_xyzw"]
+
+    @property
+    def euler_zyx_deg(self) -> np.ndarray:
+        """``[3]`` ``[a, b, c]`` degrees, extrinsic: ``R = Rx(c) Ry(b) Rz(a)`` (the response's ``euler_zyx_deg``)."""
+        return rotation_fields(self.rotation)["euler_zyx_deg"]
+
+    @property
+    def yaw_pitch_roll_deg(self) -> np.ndarray:
+        """``[3]`` degrees, intrinsic: ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (the response's ``yaw_pitch_roll_deg``)."""
+        return rotation_fields(self.rotation)["yaw_pitch_roll_deg"]

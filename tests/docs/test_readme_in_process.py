@@ -35,3 +35,23 @@ def test_the_in_process_example_runs_and_finds_the_turn(capsys, monkeypatch, tmp
     np.testing.assert_allclose(first.rotation, [[c, -s, 0], [s, c, 0], [0, 0, 1]], atol=1e-6)
     np.testing.assert_allclose(first.translation, [0.1, 0.0, 0.0], atol=1e-6)
     assert namespace["result"].reliable  # the last call, with options
+
+
+def test_the_sequence_example_chains_frames_onto_the_truth_with_an_odometry_prior(capsys, monkeypatch, tmp_path):
+    """README's "Sequences and odometry priors": frame i onto frame i-1 with odometry's prior, chained by matrix
+    products, gives frame 3 in frame 0's coordinates; its printed quaternion is each step's 15 deg turn about z."""
+    if not (bundled_models_dir() / "general" / "manifest.json").exists():
+        pytest.skip("bundled model 'general' absent")
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(section_example("Sequences and odometry priors"), str(README), "exec"), namespace)
+    printed = capsys.readouterr().out.splitlines()
+    assert [line.split()[:2] for line in printed[:3]] == [["1", "True"], ["2", "True"], ["3", "True"]], printed
+    assert printed[0].split()[2:] == ["[0.", "0.", "0.1305", "0.9914]"], printed  # sin, cos of 7.5 deg
+    world = namespace["T_world_sensor"]
+    truth = np.linalg.inv(world[0]) @ world[-1]  # T_0_3
+    np.testing.assert_allclose(namespace["T_0_i"], truth, atol=1e-5)
+    np.testing.assert_allclose(truth, namespace["pose"](45, [0.9, 0.3, 0.0]), atol=1e-12)  # the comment's pose
+    off = np.linalg.inv(np.linalg.inv(world[2]) @ world[3]) @ namespace["prior"]  # the last prior against its truth
+    assert np.degrees(np.arctan2(off[1, 0], off[0, 0])) == pytest.approx(2.0)  # one frame's drift about z
+    assert 0.01 < np.linalg.norm(off[:3, 3]) < 0.1, off

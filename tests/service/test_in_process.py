@@ -73,6 +73,9 @@ def test_in_process_cli_and_server_give_one_pose_for_a_real_pair(local, real_pai
                                                 "sha256": local.manifest.sha256}
     np.testing.assert_allclose(record["transform"], in_process.transform, rtol=0, atol=1e-9)
     np.testing.assert_allclose(body["transform"], in_process.transform, rtol=0, atol=1e-9)
+    for field in ("quaternion_xyzw", "euler_zyx_deg", "yaw_pitch_roll_deg"):  # a ROS node's pose, as the response's
+        np.testing.assert_allclose(getattr(in_process, field), body[field], rtol=0, atol=1e-7, err_msg=field)
+        np.testing.assert_allclose(record[field], body[field], rtol=0, atol=1e-7, err_msg=field)
     assert record["warnings"] == body["warnings"] == in_process.warnings
     assert record["quality"]["reliable"] is body["quality"]["reliable"] is in_process.reliable
     assert ("search" in body["timing_ms"]) is ("search" in in_process.timing_ms)  # the same default search ran
