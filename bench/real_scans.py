@@ -80,12 +80,17 @@ def data_dir(path: str | None = None) -> Path:
 def scan_set(parser: argparse.ArgumentParser, path: str | Path | None, names: list[str] | None = None,
              derived: bool = False, option: str = "--pairs") -> Path:
     """The real-scan set :func:`data_dir` finds, checked before any work: a folder of ``*.npz`` pairs holding every pair
-    of ``names`` (file stems, or with ``derived`` the derived pairs' names); else a usage error of ``parser``."""
+    of ``names`` (file stems, or with ``derived`` the derived pairs' names), each file the run reads a pair
+    (:func:`bench.scan_pairs.read_pair`); else a usage error of ``parser``."""
     directory = data_dir(path)
     if not directory.is_dir():
         parser.error(f"no real-scan set at {directory} (set MFGNET_REAL_DATA or pass DIR)")
     if not any(directory.glob("*.npz")):
         parser.error(f"no real-scan set at {directory}: no *.npz pairs there (set MFGNET_REAL_DATA or pass DIR)")
+    try:  # every file the run reads (derived pairs: all of them), checked as a pair
+        read_pairs(directory, None if derived else names)
+    except ValueError as err:
+        parser.error(str(err))
     if names:
         known = {p.name for p in derived_pairs(directory)} if derived else {f.stem for f in directory.glob("*.npz")}
         unknown = [name for name in names if name not in known]

@@ -34,15 +34,47 @@ class ScanPair:
 
 
 def read_pairs(directory: Path, names: list[str] | None = None) -> list[ScanPair]:
-    """Every ``*.npz`` pair of ``directory`` (or only those whose file stem is in ``names``), in file-name order."""
-    pairs = []
-    for file in sorted(Path(directory).glob("*.npz")):
-        if names and file.stem not in names:
-            continue
-        with np.load(file) as data:
-            pairs.append(ScanPair(file.stem, str(data["sensor"]), data["source"].astype(np.float32),
-                                  data["target"].astype(np.float32), data["transform"].astype(np.float64)))
-    return pairs
+    """Every ``*.npz`` pair of ``directory`` (or only those whose file stem is in ``names``), in file-name order;
+    ``ValueError`` naming the file and what is wrong with it for one that is no pair (:func:`read_pair`)."""
+    return [read_pair(file) for file in sorted(Path(directory).glob("*.npz")) if not names or file.stem in names]
+
+
+def read_pair(file: Path) -> ScanPair:
+    """The pair in ``file``: ``source [N, 3]`` and ``target [M, 3]`` finite points (N, M >= 1), ``transform [4, 4]``
+    finite, ``sensor`` a string (the set's README); else ``ValueError`` naming the file and the problem."""
+    import zipfile
+
+    def refuse(problem: str) -> ValueError:
+        return ValueError(f"{file}: not a scan pair ({problem})")
+
+    try:
+        with open(file, "rb") as head:
+            if head.read(4) != b"PK\x03\x04":  # np.load would take text for a pickle, an .npy for an array
+                raise refuse("not an .npz archive")
+        with np.load(file, allow_pickle=False) as data:
+            missing = [key for key in ("source", "target", "transform", "sensor") if key not in data.files]
+            if missing:
+                raise refuse(f"no {', '.join(missing)}")
+            arrays = {key: data[key] for key in ("source", "target", "transform", "sensor")}
+    except (OSError, zipfile.BadZipFile, EOFError) as err:
+        raise refuse(f"cannot read it: {err}") from None
+    except ValueError as err:  # an object array (np.load refuses pickles); ours name the file already
+        if str(err).startswith(str(file)):
+            raise
+        raise refuse(f"an array it cannot read: {str(err).split('. ')[0]}") from None
+    for key in ("source", "target"):
+        cloud = arrays[key]
+        if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or cloud.dtype.kind not in "fiu":
+            raise refuse(f"{key} is {cloud.dtype} {list(cloud.shape)}, not [N, 3] numbers")
+        if not np.isfinite(cloud).all():
+            raise refuse(f"{key} has {int((~np.isfinite(cloud).all(axis=1)).sum())} rows that are not finite")
+    transform, sensor = arrays["transform"], arrays["sensor"]
+    if transform.shape != (4, 4) or transform.dtype.kind not in "fiu" or not np.isfinite(transform).all():
+        raise refuse(f"transform is {transform.dtype} {list(transform.shape)}, not a finite [4, 4]")
+    if sensor.shape != () or sensor.dtype.kind != "U":
+        raise refuse(f"sensor is {sensor.dtype} {list(sensor.shape)}, not a string")
+    return ScanPair(file.stem, str(sensor), arrays["source"].astype(np.float32), arrays["target"].astype(np.float32),
+                    transform.astype(np.float64))
 
 
 @dataclass(frozen=True)

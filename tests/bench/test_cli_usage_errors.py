@@ -33,6 +33,10 @@ def files(tmp_path, monkeypatch):
         cloud = rng.normal(size=(20, 3)).astype(np.float32)
         np.savez(scans / f"{name}.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
     (tmp_path / "empty").mkdir()
+    for name in ("nopose", "textpair"):  # a real-scan set whose one file is no pair
+        (tmp_path / name).mkdir()
+    np.savez(tmp_path / "nopose" / "a.npz", source=np.ones((20, 3)), target=np.ones((20, 3)), sensor="lidar")
+    (tmp_path / "textpair" / "a.npz").write_text("not an archive")
     (tmp_path / "checkout").mkdir()  # a folder, but no checkout of the project
     monkeypatch.setenv("MFGNET_REAL_DATA", str(scans))
     with socket.socket() as s:  # a port with no server behind it
@@ -41,7 +45,8 @@ def files(tmp_path, monkeypatch):
     return {"pairs": str(good), "wrong": str(tmp_path / "wrong.npz"), "text": str(tmp_path / "text.npz"),
             "list": str(tmp_path / "list.json"), "empty": str(tmp_path / "empty"),
             "missing": str(tmp_path / "missing" / "out.json"), "checkout": str(tmp_path / "checkout"),
-            "scans": str(scans), "url": f"http://127.0.0.1:{port}"}
+            "scans": str(scans), "url": f"http://127.0.0.1:{port}", "nopose": str(tmp_path / "nopose"),
+            "textpair": str(tmp_path / "textpair")}
 
 
 # (module, argv with {file} names, the work replaced, a fragment of the message)
@@ -82,6 +87,9 @@ CASES = [
     ("real_scans", ["--url", "{url}"], "run_service", "no server answers"),
     ("real_scans", ["--json", "{empty}"], "load_cases", "a folder, not a file"),
     ("real_scans", ["{empty}"], "load_cases", "no *.npz pairs"),
+    ("real_scans", ["{nopose}"], "load_cases", "nopose/a.npz: not a scan pair (no transform)"),
+    ("failures", ["--data", "{textpair}"], "cases", "textpair/a.npz: not a scan pair (not an .npz archive)"),
+    ("search_network", ["{empty}", "--data", "{nopose}"], "cases", "not a scan pair (no transform)"),
     ("real_scans", ["--scales", "1", "0"], "load_cases", "--scales: must be a finite number above 0, got 0"),
     ("failures", ["--scales", "-1000"], "cases", "--scales: must be a finite number above 0"),
     ("search_network", ["{empty}", "--scales", "inf"], "cases", "--scales: must be a finite number above 0"),

@@ -105,3 +105,19 @@ def test_the_dragon_scans_give_the_wider_turntable_pairs():
     by_name = {p.name: p.src_to_tgt for p in read_pairs(DATA)}
     chained = by_name["dragon_24_0"] @ by_name["dragon_48_24"] @ by_name["dragon_72_48"]  # another chain, 72 -> 0
     np.testing.assert_allclose(next(p for p in derived if p.name == "dragon_72_0").src_to_tgt, chained, atol=1e-9)
+
+
+@pytest.mark.parametrize(("arrays", "problem"), [
+    ({"source": np.ones((5, 2))}, "source is float64 [5, 2], not [N, 3] numbers"),
+    ({"target": np.ones((0, 3))}, "target is float64 [0, 3], not [N, 3] numbers"),
+    ({"source": np.array([["a", "b", "c"]])}, "not [N, 3] numbers"),
+    ({"target": np.array([[0, 0, 0], [np.nan, 0, 0]])}, "target has 1 rows that are not finite"),
+    ({"transform": np.eye(3)}, "transform is float64 [3, 3], not a finite [4, 4]"),
+    ({"sensor": np.array(3)}, "sensor is int64 [], not a string"),
+], ids=["2d source", "empty target", "text points", "nan", "3x3 pose", "sensor number"])
+def test_a_file_that_is_no_pair_is_refused_naming_it_and_the_problem(arrays, problem, tmp_path):
+    pair = {"source": np.ones((5, 3)), "target": np.ones((5, 3)), "transform": np.eye(4), "sensor": "lidar", **arrays}
+    np.savez(tmp_path / "a_1_0.npz", **pair)
+    with pytest.raises(ValueError, match=r"a_1_0\.npz: not a scan pair") as refused:
+        read_pairs(tmp_path)
+    assert problem in str(refused.value)
