@@ -12,6 +12,9 @@ MIN_POINTS = 32
 # decimals is within 1.7e-3 (the most over 100,000 random rotations); a scale of 1.001 or more is refused.
 ORTHONORMAL_TOLERANCE = 2e-3
 EXACT_TOLERANCE = 1e-12  # orthonormal to float64 rounding: taken as it is, not projected
+# A Python float: compared with one, a float64 stays float64 (NumPy 2 compared it with np.float32's max in float32,
+# whose cast of 1e39 overflowed with a RuntimeWarning on the caller's stderr)
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def max_abs(values: np.ndarray) -> float:
@@ -44,8 +47,10 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
         bad = ~np.isfinite(arr).all(axis=1)  # [N]
         raise InputError(f"{name}: contains NaN or infinite coordinates in {int(bad.sum())} of {len(arr)} rows, first "
                          f"at row {int(np.argmax(bad))}; {LEAVE_NAN_ROWS_OUT}")
-    if max_abs(arr) > np.finfo(np.float32).max:
-        raise InputError(f"{name}: coordinates overflow float32")
+    if max_abs(arr) > FLOAT32_MAX:
+        beyond = (np.abs(arr) > FLOAT32_MAX).any(axis=1)  # [N]
+        raise InputError(f"{name}: coordinates overflow float32 (|value| > {FLOAT32_MAX:.4g}) in {int(beyond.sum())} "
+                         f"of {len(arr)} rows, first at row {int(np.argmax(beyond))}; {LEAVE_NAN_ROWS_OUT}")
     return arr
 
 

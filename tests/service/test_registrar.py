@@ -7,6 +7,7 @@ import json
 import shutil
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +102,19 @@ def test_rejects_out_of_range_options(registrar, kwargs, message):
 def test_rejects_bad_clouds_with_a_clear_message(registrar, cloud, message):
     with pytest.raises(InputError, match=message):
         registrar.register(cloud, bumpy_ellipsoid(100))
+
+
+def test_a_cloud_beyond_float32_names_its_rows_and_warns_nothing(registrar):
+    """NumPy 2 compared the largest value with np.float32's max in float32: 1e39 overflowed in that cast, a
+    RuntimeWarning on an in-process caller's stderr, and the error named no row."""
+    cloud = np.random.default_rng(0).normal(size=(100, 3))  # [N, 3]
+    cloud[[7, 9], 1] = [1e39, -1e300]
+    expected = r"source: coordinates overflow float32 .* in 2 of 100 rows, first at row 7;"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match=expected):
+            registrar.register(cloud, cloud[::-1])
+
 
 
 def test_nan_rows_are_counted_located_and_the_fix_named(registrar):
