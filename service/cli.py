@@ -103,7 +103,7 @@ RefineOpt = Annotated[
     typer.Option(help="refine the network's pose: icp = point-to-point ICP, icp-plane = wide robust "
                       "symmetric stage, then point-to-plane ICP (best for two independently sampled scans), "
                       "icp-plane-multistart = icp-plane, then 12 turned restarts kept by a two-way fit (sparse "
-                      "clouds; ~2x the refinement time), "
+                      "clouds; 4.0-5.5x the refinement time, about twice a registration's), "
                       f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
                       "server's MFGNET_DEFAULT_REFINE with --server]"),
 ]

@@ -37,7 +37,8 @@ REFINE_DESCRIPTION = (
     "'icp-plane' = a wide robust symmetric point-to-plane stage, then point-to-plane ICP with target normals "
     "(closer and more often right for two independently sampled scans); 'icp-plane-multistart' = icp-plane, then "
     "12 turns of the pose (+-15 and +-30 deg about each axis) refined and compared by a two-way point-to-plane fit "
-    "(more often right on sparse or ambiguous clouds, ~2x the refinement time). Default: the server's "
+    "(more often right on sparse or ambiguous clouds; 4.0-5.5x the refinement time, about twice a registration's). "
+    "Default: the server's "
     "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
 )
 

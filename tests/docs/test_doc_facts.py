@@ -210,3 +210,22 @@ def test_deployment_names_every_use_of_scipy():
     assert used, "service/ imports no scipy module: the pattern is wrong"
     missing = sorted(m for m in used if not any(m == n or m.endswith("." + n) or m.startswith(n + ".") for n in named))
     assert not missing, f"service/ uses {missing}, which DEPLOYMENT.md's licence note does not name"
+
+
+MULTISTART_COST = re.compile(r"(\d[\d.]*(?:-\d[\d.]*)?x) the refinement time")
+
+
+def test_the_multistart_cost_is_stated_alike_in_docs_help_and_schema():
+    """``icp-plane-multistart``'s cost, as DESIGN's refinement table states it (with its command), is what
+    DEPLOYMENT, ``mfgnet register --help`` and the request schema (``/docs``) say."""
+    from service.cli import RefineOpt
+
+    design = {row[0]: row[1] for row in table(ROOT / "docs" / "DESIGN.md", "Refinement", "`refine`")}
+    stated = MULTISTART_COST.findall(design["`icp-plane-multistart`"])
+    assert len(stated) == 1, design["`icp-plane-multistart`"]
+    settings = {row[0]: row[2] for row in table(ROOT / "docs" / "DEPLOYMENT.md", "Settings", "variable")}
+    deployment = settings["`MFGNET_DEFAULT_REFINE`"]
+    texts = {"DEPLOYMENT.md": deployment, "mfgnet register --refine": RefineOpt.__metadata__[0].help,
+             "RegisterRequest.refine": schemas.REFINE_DESCRIPTION}
+    for where, text in texts.items():
+        assert MULTISTART_COST.findall(text) == stated, f"{where}: {text}"
