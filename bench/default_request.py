@@ -21,7 +21,15 @@ import httpx
 import numpy as np
 
 from bench.http_latency import Server
-from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int, require_checkouts
+from bench.report_io import (
+    checked,
+    emit_report,
+    json_destination,
+    machine_info,
+    positive_int,
+    provenance,
+    require_checkouts,
+)
 from model.cli_inputs import require_shapes
 
 
@@ -38,6 +46,7 @@ def compare(roots: list[str | None], requests: int, pairs: int = 16, threads: in
     """p50 / p95 client ms of default requests per server (``None``: this checkout), rounds taking turns."""
     from service.manifest import bundled_models_dir
 
+    made_by = provenance([bundled_models_dir() / "general"])  # this checkout's; --compare-root ones: their roots
     models = Path(tempfile.mkdtemp(prefix="mfgnet-default-request-"))
     shutil.copytree(bundled_models_dir() / "general", models / "general")
     bodies = dense_bodies(pairs)
@@ -65,7 +74,7 @@ def compare(roots: list[str | None], requests: int, pairs: int = 16, threads: in
              "p95_ms": round(float(np.percentile(t, 95)), 2), "searched": searched[k]}
             for k, (root, t) in enumerate(zip(roots, times, strict=True))]
     report = {"benchmark": "default_request", "requests": requests, "pairs": pairs, "servers": rows,
-              "machine": machine_info(threads)}
+              "machine": machine_info(threads), "provenance": made_by}
     if len(rows) > 1:
         report["p50_ratio_to_first_compared"] = round(rows[0]["p50_ms"] / rows[1]["p50_ms"], 3)
     return report

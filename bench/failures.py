@@ -27,7 +27,7 @@ from collections import Counter
 from pathlib import Path
 
 from bench.real_scans import Case, judged, scan_set
-from bench.report_io import checked, json_destination, positive_float, positive_int
+from bench.report_io import checked, json_destination, positive_float, positive_int, provenance
 from bench.search_network import DEFAULTS, cases, registered
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
@@ -92,7 +92,13 @@ def main(argv: list[str] | None = None) -> dict:
         checked(model_dir, args.model_dir, "--model-dir")
     json_destination(args.json)
     all_cases = cases(directory, args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
-    report = run(Registrar(args.model_dir or bundled_models_dir() / "general"), all_cases)
+    model = args.model_dir or bundled_models_dir() / "general"
+    made_by = provenance([model])  # before the run: the shared checkout may move on during it
+    report = {**run(Registrar(model), all_cases), "data": str(directory), "seeds": args.seeds, "turns": args.turns,
+              "scales": args.scales, "pairs": args.pairs, "derived": args.derived,
+              "units": "rotation errors in degrees; translation errors in the case's unit (x1: metres, x1000: "
+                       "millimetres); seconds",
+              "provenance": made_by}
     for row in report["rows"]:
         truth = row["from_truth"]
         print(f"{row['case']:<40} {row['class']:<13} {row['rotation_error_deg']:7.2f} deg"

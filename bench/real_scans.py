@@ -54,6 +54,7 @@ from bench.report_io import (
     json_object,
     machine_info,
     positive_float,
+    provenance,
     require_checkouts,
 )
 from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
@@ -373,8 +374,11 @@ def precision_where_both_right(cases: list[Case], service: list[dict], fpfh: lis
 
 
 def print_table(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -> None:
+    """One line per case: rotation error (deg), translation error (err_t, in the case's unit: m or mm), success,
+    ``reliable``, client ms; the same for FPFH beside it."""
     head = f"{'pair':22} {'variant':9} {'unit':5} | {'deg':>7} {'err_t':>8} ok rel {'ms':>6}"
-    print(head + (f" | {'deg':>7} {'err_t':>8} ok {'ms':>6}" if fpfh else ""))
+    print(head + (f" | {'deg':>7} {'err_t':>8} ok {'ms':>6}" if fpfh else "")
+          + "   (deg: rotation error; err_t: translation error in the unit's m or mm)")
     for i, case in enumerate(cases):
         s = service[i]
         line = (f"{case.name:22} {case.variant:9} {'m' if case.scale == 1 else 'mm':5} | "
@@ -485,6 +489,8 @@ def main(argv: list[str] | None = None) -> dict:
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
     starts = None if args.start_near_truth is None else near_truth_starts(cases, args.start_near_truth, args.seed)
+    # the model a request naming none gets: --model-dir's, else the default of a server this run starts
+    made_by = provenance([] if args.url else [args.model_dir or Settings().default_model])
     compared = None
     if args.url:
         service = run_service(cases, args.url, args.options, starts)
@@ -504,7 +510,9 @@ def main(argv: list[str] | None = None) -> dict:
               "options": args.options,
               "offset": args.offset,
               "start_near_truth_deg": args.start_near_truth,
-              "machine": machine_info(2),
+              "machine": machine_info(2), "url": args.url, "provenance": made_by,
+              "units": "rotation errors in degrees; translation errors and offset in the case's unit (scale 1: "
+                       "metres, 1000: millimetres); seconds",
               "totals": summarise(cases, service, fpfh), "pairs": rows}
     printed = {"totals": report["totals"]}
     if compared is not None:

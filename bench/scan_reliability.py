@@ -16,7 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.report_io import checked, json_destination, positive_int, reliable_totals
+from bench.report_io import checked, json_destination, positive_int, provenance, reliable_totals
 from bench.runtime_eval import runtime_poses
 from model.cli_inputs import model_dir, require_shapes
 from model.data import class_names, make_test_pairs, protocol_for
@@ -70,11 +70,15 @@ def main(argv: list[str] | None = None) -> dict:
     checked(model_dir, args.model)
     checked(require_shapes, "test", "scans", args.data)
     json_destination(args.json)
+    made_by = provenance([args.model])  # before the run: the shared checkout may move on during it
     rows: list[dict] = []
     for seed in args.seeds:
         rows += seed_rows(args.model, seed, args.count, args.data)
         print(f"seed {seed}", json.dumps(reliable_totals([r for r in rows if r["seed"] == seed])), flush=True)
-    out = report(rows, class_names(args.data))
+    out = {**report(rows, class_names(args.data)), "seeds": args.seeds, "count": args.count,
+           "units": "rotation errors in degrees; translation errors in the shapes' unit (ModelNet40: about the unit "
+                    "sphere)",
+           "provenance": made_by}
     print("all", json.dumps(out["totals"]))
     for name, figures in out["by_class"].items():
         print(f"  {name}", json.dumps(figures))

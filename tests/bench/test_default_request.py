@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
+from provenance_check import assert_made_by_this_checkout
 
 from bench.default_request import main
 from model.data import data_dir
@@ -26,3 +27,4 @@ def test_both_servers_answer_every_default_request(tmp_path) -> None:
     for row in report["servers"]:
         assert 0 < row["p50_ms"] <= row["p95_ms"] and 0 <= row["searched"] <= 3
     assert report["p50_ratio_to_first_compared"] > 0
+    assert_made_by_this_checkout(report["provenance"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+from provenance_check import assert_made_by_this_checkout
 
 from bench.failures import CLASSES, failure_class, main
 from bench.real_scans import data_dir, thresholds
@@ -38,4 +39,7 @@ def test_only_wrong_results_are_examined_and_each_gets_its_class(tmp_path) -> No
         stayed = truth["rotation_error_deg"] < max_deg and truth["translation_error"] < max_error
         assert row["class"] == failure_class(stayed, truth["inlier_ratio"], row["inlier_ratio"])
         assert row["class"] in CLASSES
-    assert json.loads(out.read_text())["classes"] == report["classes"]
+    written = json.loads(out.read_text())
+    assert written["classes"] == report["classes"]
+    assert written["seeds"] == [0] and written["turns"] == 1 and written["scales"] == [1.0]  # how to rerun it
+    assert_made_by_this_checkout(written["provenance"]) and "degrees" in written["units"]

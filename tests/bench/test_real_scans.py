@@ -4,6 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from provenance_check import assert_made_by_this_checkout
 from scipy.spatial.transform import Rotation
 
 from bench import real_scans
@@ -124,6 +125,8 @@ def test_service_half_registers_a_real_pair_over_http(tmp_path):
         assert 0 < stages["preprocess"] < stages["total"] <= report["totals"][scale]["service_seconds"]
     # the same pair in millimetres is judged with thresholds x1000: errors scale, success does not change
     assert rows[2]["service"]["success"] == scanned["success"]
+    assert_made_by_this_checkout(report["provenance"])  # which code and model, and the units of the errors
+    assert "millimetres" in report["units"] and "degrees" in report["units"]
 
 
 @needs_data

@@ -6,6 +6,7 @@ import json
 
 import pytest
 from pair_checks import needs_dense
+from provenance_check import assert_made_by_this_checkout
 
 from bench.report_io import reliable_totals as totals
 from bench.scan_reliability import kind, main, report
@@ -47,3 +48,5 @@ def test_the_benchmark_registers_seeded_scans_through_the_runtime(tmp_path):
     assert all(r["success"] == (r["rotation_error_deg"] < 5 and r["translation_error"] < 0.05) for r in rows)
     assert sum(f["cases"] for f in written["by_class"].values()) == 4
     assert out["totals"]["successes"] >= 2  # the defaults register most of these at any orientation
+    assert written["seeds"] == [5] and written["count"] == 4 and "degrees" in written["units"]
+    assert_made_by_this_checkout(written["provenance"])
