@@ -229,3 +229,23 @@ def test_the_multistart_cost_is_stated_alike_in_docs_help_and_schema():
              "RegisterRequest.refine": schemas.REFINE_DESCRIPTION}
     for where, text in texts.items():
         assert MULTISTART_COST.findall(text) == stated, f"{where}: {text}"
+
+
+def paragraph(path: Path, start: str) -> str:
+    """The paragraph of ``path`` that begins with ``start``, its lines joined."""
+    text = path.read_text()
+    return " ".join(text[text.index(start):].split("\n\n", 1)[0].split())
+
+
+def test_readme_names_every_field_of_the_response():
+    named = set(names(paragraph(README, "The response holds")))
+    for model in (schemas.RegisterResponse, schemas.Quality, schemas.Correspondence):
+        assert set(model.model_fields) <= named, (model.__name__, sorted(set(model.model_fields) - named))
+
+
+def test_design_names_the_fields_of_the_pages_view_response():
+    from service.api.routes.page import ViewResponse
+
+    text = paragraph(ROOT / "docs" / "DESIGN.md", "- **The page**")
+    view = re.search(r"`POST /v1/register/view` returns (.*?) \(at most", text)
+    assert view and set(names(view.group(1))) - {"/v1/register"} == set(ViewResponse.model_fields), view
