@@ -25,6 +25,7 @@ app = typer.Typer(cls=PluginGroup, help="MFGNet point-cloud registration", no_ar
 
 SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
 UNRELIABLE_EXIT = 3  # mfgnet register --require-reliable: registered, but quality.reliable is false
+TRANSFORM_TEXT_BYTES = 1 << 16  # an --initial-transform .txt: 16 numbers with comments fit many times over
 # What each bundled model is for, shown by `mfgnet models` (a manifest's own "description" wins). The table shows
 # no accuracy figures: each manifest's are on that model's own validation pairs, not comparable across models.
 MODEL_PURPOSES = {
@@ -117,8 +118,9 @@ DropIsolatedOpt = Annotated[
     bool, typer.Option(help="leave out isolated points (flying pixels, sparse clutter) before sampling the clouds")
 ]
 InitialTransformOpt = Annotated[
-    Path | None, typer.Option(help="initial source->target guess: .json (a 4x4 list, or a --out file) or .npy 4x4; "
-                              "with a refinement, kept where it fits better than the network's poses")
+    Path | None, typer.Option(help="initial source->target guess (T_target_source, e.g. from odometry): .json (a "
+                              "4x4 list, or a --out file), .npy 4x4 or .txt (4 rows of 4 numbers); with a refinement, "
+                              "kept where it fits better than the network's poses")
 ]
 OutOpt = Annotated[Path | None, typer.Option(help="write the pose, quality, model and timing as JSON here ('-': to "
                                                   "standard output, as --json)")]
@@ -284,19 +286,26 @@ def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligne
 
 
 def _read_transform(path: Path) -> list:
-    """A 4x4 matrix from ``.json`` (a 4x4 list, or an object with ``transform``) or ``.npy``."""
+    """A 4x4 matrix from ``.json`` (a 4x4 list, or an object with ``transform``), ``.npy`` or ``.txt`` (four rows of
+    four numbers, as ``np.savetxt`` and other registration tools write a pose; commas allowed, ``#`` comments)."""
     _require_regular_file(path)
     try:
         if path.suffix.lower() == ".json":
             payload = json.loads(path.read_text())
             matrix = payload.get("transform") if isinstance(payload, dict) else payload
             if matrix is None:
-                _fail(f"--initial-transform {path.name}: JSON object has no 'transform'")
+                _fail(f"--initial-transform {path.name}: JSON object has no 'transform' (expected a 4x4 list, or an "
+                      "object with 'transform' as an --out file holds)")
             T = np.asarray(matrix, dtype=np.float64)
         elif path.suffix.lower() == ".npy":
             T = np.load(path, allow_pickle=False, mmap_mode="r")  # mapped: a header's shape allocates nothing
+        elif path.suffix.lower() == ".txt":
+            if path.stat().st_size > TRANSFORM_TEXT_BYTES:
+                _fail(f"--initial-transform {path.name}: over {TRANSFORM_TEXT_BYTES} bytes, not a 4x4 matrix")
+            rows = [line.split("#", 1)[0].replace(",", " ").split() for line in path.read_text().splitlines()]
+            T = np.asarray([[float(value) for value in row] for row in rows if row], dtype=np.float64)  # [4, 4]
         else:
-            _fail(f"--initial-transform {path.name}: expected a .json or .npy file")
+            _fail(f"--initial-transform {path.name}: expected a .json, .npy or .txt file")
         if not isinstance(T, np.ndarray) or T.shape != (4, 4):
             shape = list(T.shape) if isinstance(T, np.ndarray) else type(T).__name__
             _fail(f"--initial-transform {path.name}: expected a 4x4 matrix, got {shape}")

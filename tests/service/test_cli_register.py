@@ -198,8 +198,8 @@ def test_json_flag_prints_only_the_record(tmp_path, model_dir, reference) -> Non
     assert np.allclose(record["transform"], reference["transform"], atol=1e-5)
 
 
-@pytest.mark.parametrize("kind", ["json-list", "npy", "previous-out-file"])
-def test_initial_transform_is_read_from_json_npy_or_a_previous_out_file(tmp_path, model_dir, reference, kind):
+@pytest.mark.parametrize("kind", ["json-list", "npy", "txt", "txt-commented-csv", "previous-out-file"])
+def test_initial_transform_is_read_from_json_npy_txt_or_a_previous_out_file(tmp_path, model_dir, reference, kind):
     src, tgt = write_pair(tmp_path, "npy")
     if kind == "json-list":
         init = tmp_path / "init.json"
@@ -207,6 +207,12 @@ def test_initial_transform_is_read_from_json_npy_or_a_previous_out_file(tmp_path
     elif kind == "npy":
         init = tmp_path / "init.npy"
         np.save(init, np.eye(4))
+    elif kind == "txt":  # a pose as np.savetxt and other registration tools write it
+        init = tmp_path / "T_target_source.txt"
+        np.savetxt(init, np.eye(4))
+    elif kind == "txt-commented-csv":
+        init = tmp_path / "init.txt"
+        init.write_text("# T_target_source\n" + "".join(", ".join(map(str, row)) + "\n" for row in np.eye(4)))
     else:
         init = tmp_path / "pose.json"
         init.write_text(json.dumps(reference))
@@ -364,7 +370,14 @@ def _npy_header(shape: str) -> bytes:
     ("init.json", lambda path: json.dumps([[10 ** 400, 0, 0, 0], *np.eye(4)[1:].tolist()]).encode(),
      "not a 4x4 matrix"),  # OverflowError
     ("init.npy", lambda path: _npy_header("(4, 1000000000000)"), "4x4"),  # np.load allocated 29 TiB (MemoryError)
-], ids=["npz_as_npy", "deep_json", "int_beyond_float", "npy_huge_shape"])
+    ("init.json", lambda path: json.dumps({"rotation": np.eye(3).tolist(), "translation": [0, 0, 0]}).encode(),
+     "an object with 'transform'"),  # said only "JSON object has no 'transform'"
+    ("init.txt", lambda path: b"1 0 0 0\n0 1 0 0\n0 0 1 0\n", "got [3, 4]"),
+    ("init.txt", lambda path: b"1 0 0 0\n0 1 0\n0 0 1 0\n0 0 0 1\n", "not a 4x4 matrix"),  # a short row
+    ("init.txt", lambda path: b"a b c d\n" * 4, "not a 4x4 matrix"),
+    ("init.txt", lambda path: b"#" * (1 << 17), "not a 4x4 matrix"),  # over 64 KiB: not read
+], ids=["npz_as_npy", "deep_json", "int_beyond_float", "npy_huge_shape", "json_without_transform", "txt_3x4",
+        "txt_short_row", "txt_words", "txt_huge"])
 def test_an_unreadable_initial_transform_is_a_usage_error(tmp_path, model_dir, name, content, fragment) -> None:
     init = tmp_path / name
     init.write_bytes(content(init))
