@@ -24,6 +24,7 @@ from service.api.routes import docs, models, oip, page, register
 from service.api.routes import metrics as metrics_routes
 from service.api.runner import Runner
 from service.api.schemas import BatchRequest, InferRequest, RegisterRequest
+from service.api.security_headers import SecurityHeadersMiddleware
 from service.blas_threads import use_one_blas_thread
 from service.core.config import Settings
 from service.core.logging import configure_logging
@@ -98,6 +99,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,
                        body_min_rate=settings.body_min_rate)
+    app.add_middleware(SecurityHeadersMiddleware)  # outermost: on the request context's own 413s and 500s too
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 
@@ -143,6 +145,8 @@ def run_server(settings: Settings | None = None) -> None:
     """Serve on ``settings.host:settings.port`` in this process until interrupted."""
     import uvicorn
 
+    from service.api.http_protocol import h11_protocol
+
     settings = settings or Settings()
     configure_logging(settings.log_level)
     uvicorn.run(
@@ -150,6 +154,7 @@ def run_server(settings: Settings | None = None) -> None:
         host=settings.host,
         port=settings.port,
         workers=1,
+        http=h11_protocol(settings.header_timeout_s),  # uvicorn's h11, with a deadline on the request headers
         access_log=False,  # one JSON line per request comes from RequestContextMiddleware
         log_config=None,  # keep the JSON handlers configure_logging installed
         server_header=False,

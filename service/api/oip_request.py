@@ -289,7 +289,7 @@ def _json_then_more(body: bytes | bytearray) -> bool:
         return True
     try:
         json.JSONDecoder().raw_decode(text.lstrip())
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: nested too deep, as load_json's 400 said
         return False  # malformed JSON, no whole object
     return True  # a whole object, which json.loads refused as a body: something follows it
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt, ValidationError, WrapValidator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictInt, ValidationError, WrapValidator
 from pydantic_core import PydanticCustomError
 
 from service.refine_modes import REFINE_POINTS_RANGE
@@ -26,6 +26,20 @@ Cloud = Annotated[
     list[Point],
     Field(min_length=MIN_POINTS, description=f"Points [N, 3] (x, y, z), N >= {MIN_POINTS}, at most max_points."),
 ]
+
+def _writable_text(value: str) -> str:
+    """``value`` if UTF-8 can encode it: a JSON string escape of a lone surrogate (``"\\ud800"``) parses to a str that
+    no JSON response can hold; pydantic's own error for it, as the length-limited string fields give."""
+    try:
+        value.encode("utf-8")
+    except UnicodeEncodeError:
+        raise PydanticCustomError(
+            "string_unicode", "Input should be a valid string, unable to parse raw data as a unicode string"
+        ) from None
+    return value
+
+
+UnicodeText = Annotated[str, AfterValidator(_writable_text)]
 Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
 Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4)]
 Vector3 = Annotated[list[float], Field(min_length=3, max_length=3)]
@@ -437,7 +451,7 @@ class InferRequest(BaseModel):
         }
     )
 
-    id: str | None = None
+    id: UnicodeText | None = None  # echoed in the response: text that UTF-8 can write
     parameters: dict[str, Any] | None = None
     inputs: list[InferInputTensor] = Field(min_length=1)
     outputs: list[InferRequestedOutput] | None = None

@@ -109,6 +109,11 @@ class Settings(BaseSettings):
         "body_timeout_s plus one second per body_min_rate bytes received (Apache's mod_reqtimeout MinRate); then 408 "
         "and the slot is freed, so a client sending a byte now and then cannot hold a slot for hours.",
     )
+    header_timeout_s: float = Field(
+        15.0, gt=0, description="Longest time from a request's first byte to the end of its headers; then 408 and the "
+        "connection is closed (slowloris: uvicorn alone waits for ever). A new connection that sends nothing is "
+        "closed after keep_alive_s, as an idle one between requests is.",
+    )
     keep_alive_s: int = Field(
         75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
         "(often 60 s), so the server never closes a connection that a client is about to reuse.",

@@ -15,11 +15,15 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html, get_swagge
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
+from service.api.security_headers import page_policy
+
 ASSETS_URL = "/docs-assets"
 ASSETS_DIR = files("fastapi_offline") / "static"  # swagger-ui-bundle.js, swagger-ui.css, redoc.standalone.js
-SELF_ONLY = {  # inline: the bootstrap scripts FastAPI writes into both pages; blob: ReDoc's search worker
-    "Content-Security-Policy": "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' "
-    "'unsafe-inline'; img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'"
+SELF_ONLY = {  # inline: the bootstrap scripts FastAPI writes into the pages; blob: ReDoc's search worker
+    "Content-Security-Policy": page_policy(
+        "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; img-src 'self' "
+        "data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'"
+    )
 }
 
 
@@ -44,7 +48,9 @@ def install(app: FastAPI, docs_url: str = "/docs", redoc_url: str = "/redoc") ->
 
     @app.get(redirect_url, include_in_schema=False)
     async def swagger_ui_redirect() -> HTMLResponse:
-        return get_swagger_ui_oauth2_redirect_html()
+        page = get_swagger_ui_oauth2_redirect_html()
+        page.headers.update(SELF_ONLY)  # its inline script runs (the default policy would block it)
+        return page
 
     @app.get(redoc_url, include_in_schema=False)
     async def redoc(request: Request) -> HTMLResponse:

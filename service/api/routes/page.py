@@ -28,6 +28,7 @@ from service.api.responses import RenderedJSON
 from service.api.routes.register import _MULTIPART_SCHEMA
 from service.api.runner import register_response
 from service.api.schemas import RegisterResponse
+from service.api.security_headers import page_policy
 from service.errors import InputError
 from service.formats.write import as_written
 from service.registrar import check_transform
@@ -35,7 +36,8 @@ from service.registrar import check_transform
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
 DISPLAY_CAP = 100_000  # points per cloud sent to the page
 DISPLAY_SEED = 0
-PAGE_POLICY = {"Content-Security-Policy": "default-src 'self'; img-src 'self' data: blob:"}  # nothing from elsewhere
+# Nothing loaded from elsewhere, and no other site frames the page.
+PAGE_POLICY = {"Content-Security-Policy": page_policy("default-src 'self'; img-src 'self' data: blob:")}
 
 page_router = APIRouter(include_in_schema=False)
 router = APIRouter(prefix="/v1", tags=["page"], dependencies=[Depends(require_api_key)])
