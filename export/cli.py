@@ -14,7 +14,7 @@ from typing import Annotated
 import typer
 
 from export import MIN_COMPARED
-from model.cli_inputs import fail, short
+from model.cli_inputs import fail, require_shapes, short
 from service.manifest import MANIFEST, looks_like_model
 
 STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
@@ -25,7 +25,12 @@ def export(
     out: Annotated[Path, typer.Option(help="model directory (new, empty, or a model folder to re-export); its folder "
                                            "name is the model name")],
     version: Annotated[str, typer.Option(help="model version written to the manifest")] = "0.1.0",
-    setting: Annotated[str, typer.Option(help="setting of the parity pairs and reference radius")] = "clean",
+    setting: Annotated[
+        str | None,
+        typer.Option(help="setting whose training shapes give the reference radius the runtime scales clouds to "
+                          "(one of clean, noise, unseen, resampled) [default: the setting the checkpoint was trained "
+                          "on, else clean]"),
+    ] = None,
     parity_pairs: Annotated[
         int, typer.Option(min=1, help="seeded pairs for the parity check; the graphs are compared on all of them, the "
                                       "final poses on the comparable ones (pairs near a tie are excluded: about half "
@@ -51,7 +56,7 @@ def export(
     """
     from export.onnx_export import write_model_folder
     from export.parity import ParityError, check_parity
-    from model.cli_inputs import checkpoint_model, json_file, require_shapes
+    from model.cli_inputs import checkpoint_model, json_file
     from model.data import make_test_pairs
     from service.registrar import Registrar
 
@@ -60,6 +65,7 @@ def export(
              "can be excluded as ties: give at least twice as many pairs)")
     check_model_out(out)
     path, data, model = checkpoint_model(checkpoint)
+    setting = radius_setting(setting, data, path)
     accuracy = json_file(accuracy_json, "--accuracy-json") if accuracy_json else {}
     require_shapes("test", parity_setting, None)  # the parity pairs' shapes
     if not accuracy and "val" in data:
@@ -84,6 +90,27 @@ def export(
         typer.echo(f"note: {out} still holds graphs of the previous export that its manifest no longer names: "
                    f"{', '.join(stale)}", err=True)
     typer.echo(f"exported {out.name} to {out}")
+
+
+def radius_setting(setting: str | None, checkpoint: dict, path: Path) -> str:
+    """The setting whose training shapes give the reference radius: ``setting`` where given, else the one the
+    checkpoint was trained on (``clean`` where it records none); a usage error unless it is a setting with a training
+    split whose ModelNet40 file is there."""
+    from model.data import DENSE_SETTINGS, SETTINGS
+
+    trainable = [name for name in SETTINGS if name not in DENSE_SETTINGS]
+    if setting is None:
+        trained = checkpoint.get("setting")
+        setting = trained if isinstance(trained, str) else "clean"
+        if setting not in trainable:
+            fail(f"--checkpoint {path}: trained on setting {setting!r}, which has no training shapes to measure the "
+                 f"reference radius on; give --setting (one of {', '.join(trainable)})")
+    elif setting not in trainable:
+        what = "a test-only setting" if setting in SETTINGS else "unknown setting"
+        fail(f"--setting {setting}: {what}; the reference radius is measured on a setting's training shapes (one of "
+             f"{', '.join(trainable)})")
+    require_shapes("train", setting, None)
+    return setting
 
 
 def accuracy_section(metrics: object, accuracy_json: Path, checkpoint: Path) -> dict:

@@ -259,3 +259,28 @@ def test_export_refuses_an_accuracy_measured_on_something_else(tmp_path, tiny_ch
     result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--accuracy-json", str(path)])
     assert_usage_error(result, f"--accuracy-json {path}", problem, f"not with --checkpoint {tiny_checkpoint}")
     assert not (tmp_path / "m").exists()
+
+
+@pytest.mark.parametrize(("setting", "problem"), [("bogus", "unknown setting"), ("dense", "a test-only setting"),
+                                                  ("scans", "a test-only setting")])
+def test_export_rejects_a_setting_without_training_shapes(tmp_path, tiny_checkpoint, setting, problem) -> None:
+    """The reference radius is measured on the setting's training shapes: a setting without any is a usage error
+    before anything is exported, not a traceback after the graphs were written."""
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--setting", setting])
+    assert_usage_error(result, f"--setting {setting}", problem, "clean, noise, unseen, resampled")
+    assert not (tmp_path / "m").exists()
+
+
+@needs_modelnet
+def test_export_measures_the_reference_radius_on_the_setting_the_checkpoint_was_trained_on(tmp_path) -> None:
+    """The bundled ``unseen`` checkpoint exported without --setting gets the bundled ``unseen`` model's reference
+    radius (its training shapes are categories 0-19 only), not ``clean``'s (real parity on 3 seeded pairs, one of
+    them comparable)."""
+    out = tmp_path / "unseen"
+    result = runner.invoke(app, ["export", "--checkpoint", "unseen", "--out", str(out), "--parity-pairs", "3",
+                                 "--min-comparable", "1", "--seed", "5"])
+    assert result.exit_code == 0, result.output
+    radius = json.loads((out / "manifest.json").read_text())["normalization"]["reference_radius"]
+    bundled = {name: json.loads((bundled_models_dir() / name / "manifest.json").read_text())["normalization"]
+               ["reference_radius"] for name in ("unseen", "clean")}
+    assert radius == pytest.approx(bundled["unseen"], rel=1e-9) and radius != pytest.approx(bundled["clean"], rel=1e-3)
