@@ -27,6 +27,7 @@ Cloud = Annotated[
     Field(min_length=MIN_POINTS, description=f"Points [N, 3] (x, y, z), N >= {MIN_POINTS}, at most max_points."),
 ]
 
+
 def _writable_text(value: str) -> str:
     """``value`` if UTF-8 can encode it: a JSON string escape of a lone surrogate (``"\\ud800"``) parses to a str that
     no JSON response can hold; pydantic's own error for it, as the length-limited string fields give."""
