@@ -249,3 +249,12 @@ def test_design_names_the_fields_of_the_pages_view_response():
     text = paragraph(ROOT / "docs" / "DESIGN.md", "- **The page**")
     view = re.search(r"`POST /v1/register/view` returns (.*?) \(at most", text)
     assert view and set(names(view.group(1))) - {"/v1/register"} == set(ViewResponse.model_fields), view
+
+
+def test_reliability_states_the_json_body_counts():
+    from service.api.bodies import EXTRA_JSON_VALUES, MAX_JSON_STRINGS, MAX_JSON_TEXT_BYTES, VALUES_PER_POINT
+
+    text = paragraph(ROOT / "docs" / "RELIABILITY.md", "- **Limits**")
+    words = {4: "four"}
+    assert (f"({words[VALUES_PER_POINT]} per point of 2 x `max_points`, and {EXTRA_JSON_VALUES:,} more)" in text)
+    assert f"against {MAX_JSON_STRINGS:,} strings and {MAX_JSON_TEXT_BYTES // 1024} KiB of text" in text
