@@ -149,6 +149,9 @@ def checkpoint_file(name_or_path: str | Path, option: str = "--checkpoint") -> t
     if not isinstance(data, dict):
         fail(f"{option} {path}: not a checkpoint (a {type(data).__name__}, not a dict with 'model' and 'config')")
     missing = [key for key in ("model", "config") if not isinstance(data.get(key), dict)]
+    if missing and data and all(type(value).__name__ in ("Tensor", "Parameter") for value in data.values()):
+        fail(f"{option} {path}: bare weights (a state_dict) without this project's 'model' and 'config'; an authors' "
+             f"released checkpoint is converted first: mfgnet import-checkpoint {path} --out CHECKPOINT.pt")
     if missing:
         fail(f"{option} {path}: not a checkpoint of this project (no {' or '.join(map(repr, missing))} dict)")
     return path, data

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -284,3 +285,30 @@ def test_export_measures_the_reference_radius_on_the_setting_the_checkpoint_was_
     bundled = {name: json.loads((bundled_models_dir() / name / "manifest.json").read_text())["normalization"]
                ["reference_radius"] for name in ("unseen", "clean")}
     assert radius == pytest.approx(bundled["unseen"], rel=1e-9) and radius != pytest.approx(bundled["clean"], rel=1e-3)
+
+
+OFFICIAL = Path(__file__).resolve().parents[3] / "shared" / "weights" / "official" / "model_clean.t7"
+
+
+def test_export_names_import_checkpoint_for_bare_weights(tmp_path, tiny_checkpoint) -> None:
+    """A state_dict without this project's config (as the authors' ``model_*.t7`` are) is a usage error that names
+    the command converting it."""
+    bare = tmp_path / "bare.t7"
+    torch.save(torch.load(tiny_checkpoint, weights_only=True)["model"], bare)
+    result = runner.invoke(app, export_args(bare, tmp_path / "m"))
+    assert_usage_error(result, f"--checkpoint {bare}", "bare weights", f"mfgnet import-checkpoint {bare}")
+    assert not (tmp_path / "m").exists()
+
+
+@pytest.mark.skipif(not OFFICIAL.is_file(), reason=f"the authors' released weights are not at {OFFICIAL}")
+def test_the_authors_checkpoint_is_refused_by_export_and_imported_by_import_checkpoint(tmp_path) -> None:
+    result = runner.invoke(app, export_args(OFFICIAL, tmp_path / "m"))
+    assert_usage_error(result, "bare weights", f"mfgnet import-checkpoint {OFFICIAL}")
+    imported = tmp_path / "official_clean.pt"
+    result = runner.invoke(app, ["import-checkpoint", str(OFFICIAL), "--out", str(imported)])
+    assert result.exit_code == 0, result.output
+    assert "(3 iterations, K = 256)" in result.stdout
+    from model.cli_inputs import checkpoint_model
+
+    _, data, model = checkpoint_model(imported)
+    assert data["source"] == OFFICIAL.name and (model.cfg.iterations, model.cfg.keypoints) == (3, 256)
