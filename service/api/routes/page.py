@@ -72,7 +72,8 @@ def display_cloud(points: np.ndarray) -> dict[str, Any]:
 
 
 class DisplayCloud(BaseModel):
-    points: int = Field(description="Points in the uploaded cloud.")
+    points: int = Field(
+        description="Points read from the uploaded cloud (an organized PCD's missing returns left out).")
     shown: int = Field(description=f"Points sent for display: all, or {DISPLAY_CAP} chosen at random.")
     xyz: str = Field(description="base64 of float32 little-endian [shown, 3] rows, caller's units and frame.")
 
