@@ -18,6 +18,7 @@ from model.cli_inputs import fail, require_shapes, short
 from service.manifest import MANIFEST, looks_like_model
 
 STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
+DESCRIPTION_CHARS = 60  # longest manifest description: one cell of the 100-column `mfgnet models` table
 
 
 def export(
@@ -47,6 +48,11 @@ def export(
     ] = "noise",
     accuracy_json: Annotated[Path | None, typer.Option(help="metrics JSON (mfgnet evaluate --json)")] = None,
     seed: int = 0,
+    description: Annotated[
+        str | None,
+        typer.Option(help=f"what the model is for, one line of at most {DESCRIPTION_CHARS} characters: the FOR column "
+                          "of `mfgnet models` [default: a re-exported folder's own, else none]"),
+    ] = None,
 ) -> None:
     """Export a checkpoint to ONNX (encoder + matcher graphs) with a manifest; fails on parity.
 
@@ -64,6 +70,7 @@ def export(
         fail(f"--min-comparable {min_comparable}: more than the {parity_pairs} --parity-pairs (about half the pairs "
              "can be excluded as ties: give at least twice as many pairs)")
     check_model_out(out)
+    description = model_description(description, out)
     path, data, model = checkpoint_model(checkpoint)
     setting = radius_setting(setting, data, path)
     accuracy = json_file(accuracy_json, "--accuracy-json") if accuracy_json else {}
@@ -83,6 +90,8 @@ def export(
         manifest_path = stage / MANIFEST
         manifest = json.loads(manifest_path.read_text())
         manifest["parity"] = {**report.to_dict(), "setting": parity_setting, "seed": seed}
+        if description:
+            manifest["description"] = description
         manifest_path.write_text(json.dumps(manifest, indent=2) + "\n")
         stale = install_model_folder(stage, out)
     typer.echo(json.dumps(manifest["parity"], indent=2))
@@ -90,6 +99,18 @@ def export(
         typer.echo(f"note: {out} still holds graphs of the previous export that its manifest no longer names: "
                    f"{', '.join(stale)}", err=True)
     typer.echo(f"exported {out.name} to {out}")
+
+
+def model_description(description: str | None, out: Path) -> str | None:
+    """The manifest's ``description``: ``description`` where given (a usage error unless it is one line of at most
+    :data:`DESCRIPTION_CHARS` printable characters), else the one of the model folder ``out`` re-exports, if any."""
+    if description is None:
+        previous = previous_manifest(out).get("description")
+        return previous if isinstance(previous, str) else None
+    if not description.strip() or not description.isprintable() or len(description) > DESCRIPTION_CHARS:
+        fail(f"--description {description!r}: give one line of 1 to {DESCRIPTION_CHARS} printable characters "
+             f"(got {len(description)})")
+    return description.strip()
 
 
 def radius_setting(setting: str | None, checkpoint: dict, path: Path) -> str:
@@ -190,12 +211,20 @@ def install_model_folder(stage: Path, out: Path) -> list[str]:
     return sorted(name for name in old_graphs - set(files) if (out / name).is_file())
 
 
+def previous_manifest(folder: Path) -> dict:
+    """The manifest in ``folder`` (empty where it is missing, unreadable or not a JSON object)."""
+    try:
+        manifest = json.loads((folder / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return {}
+    return manifest if isinstance(manifest, dict) else {}
+
+
 def previous_graph_files(folder: Path) -> set[str]:
     """The graph files the manifest in ``folder`` names (none where it is missing or unreadable)."""
     try:
-        graphs = json.loads((folder / MANIFEST).read_text())["graphs"]
-        return {Path(entry["file"]).name for entry in graphs.values()}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {Path(entry["file"]).name for entry in previous_manifest(folder)["graphs"].values()}
+    except (KeyError, TypeError, AttributeError):
         return set()
 
 

@@ -312,3 +312,27 @@ def test_the_authors_checkpoint_is_refused_by_export_and_imported_by_import_chec
 
     _, data, model = checkpoint_model(imported)
     assert data["source"] == OFFICIAL.name and (model.cfg.iterations, model.cfg.keypoints) == (3, 256)
+
+
+@needs_modelnet
+def test_export_writes_the_description_that_mfgnet_models_shows_and_a_re_export_keeps_it(tmp_path) -> None:
+    """``--description`` is the manifest's ``description``, the FOR column of ``mfgnet models`` (real exports of the
+    bundled ``clean`` on 3 seeded pairs)."""
+    out = tmp_path / "clean_v2"
+    args = [*export_args("clean", out, pairs=3), "--seed", "5"]
+    result = runner.invoke(app, [*args, "--description", "clean, fine-tuned on scans"])
+    assert result.exit_code == 0, result.output
+    for _ in range(2):  # exported, then re-exported without --description
+        listed = runner.invoke(app, ["models", "--json", "--model-dir", str(out)])
+        entry = next(e for e in json.loads(listed.stdout) if e["name"] == "clean_v2")
+        assert entry["purpose"] == "clean, fine-tuned on scans"
+        assert "clean, fine-tuned on scans" in runner.invoke(app, ["models", "--model-dir", str(out)]).stdout
+        result = runner.invoke(app, args)
+        assert result.exit_code == 0, result.output
+
+
+@pytest.mark.parametrize("description", ["", "two\nlines", "x" * 61])
+def test_export_rejects_a_description_that_is_not_one_short_line(tmp_path, tiny_checkpoint, description) -> None:
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--description", description])
+    assert_usage_error(result, "--description", "one line of 1 to 60 printable characters")
+    assert not (tmp_path / "m").exists()
