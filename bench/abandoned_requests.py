@@ -25,7 +25,15 @@ import numpy as np
 
 from bench.default_request import dense_bodies
 from bench.http_latency import Server
-from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int, require_checkouts
+from bench.report_io import (
+    checked,
+    emit_report,
+    json_destination,
+    machine_info,
+    non_negative_int,
+    positive_int,
+    require_checkouts,
+)
 from model.cli_inputs import require_shapes
 
 HEADERS = {"content-type": "application/json"}
@@ -97,7 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
                         help="another checkout (repeatable)")
     parser.add_argument("--requests", type=positive_int, default=48)
     parser.add_argument("--clients", type=positive_int, default=8, help="clients at a time")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
     checked(require_shapes, "test", "dense", None)  # the default requests' pairs

@@ -50,7 +50,7 @@ def evaluate(
         int | None, typer.Option(help="pairs to make from --setting: a seeded draw of the test split's shapes "
                                       "[default: one pair per shape]")
     ] = None,
-    seed: Annotated[int, typer.Option(help="seed of the pairs made from --setting")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the pairs made from --setting")] = 0,
     iterations: int | None = None,
     keypoints: int | None = None,
     batch_size: int = 16,

@@ -26,8 +26,8 @@ import json
 from collections import Counter
 from pathlib import Path
 
-from bench.real_scans import Case, judged, scan_set
-from bench.report_io import checked, json_destination, positive_float, positive_int, provenance
+from bench.real_scans import Case, judged, require_thresholds, scan_set
+from bench.report_io import checked, json_destination, non_negative_int, positive_float, positive_int, provenance
 from bench.search_network import DEFAULTS, cases, registered
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
     parser.add_argument("--model-dir", type=Path, default=None, help="exported model (default: the bundled general)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--seeds", type=non_negative_int, nargs="+", default=[0, 1])
     parser.add_argument("--turns", type=positive_int, default=10)
     parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
@@ -92,6 +92,7 @@ def main(argv: list[str] | None = None) -> dict:
         checked(model_dir, args.model_dir, "--model-dir")
     json_destination(args.json)
     all_cases = cases(directory, args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
+    require_thresholds(parser, all_cases)  # judged() would refuse a sensor of no class after its first registration
     model = args.model_dir or bundled_models_dir() / "general"
     made_by = provenance([model])  # before the run: the shared checkout may move on during it
     report = {**run(Registrar(model), all_cases), "data": str(directory), "seeds": args.seeds, "turns": args.turns,

@@ -271,7 +271,7 @@ def bench(
     checkpoint: Annotated[str, typer.Option(help="checkpoint with the same weights (torch eager)")] = "clean",
     repeats: int = 30,
     setting: str = "clean",
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the test pairs")] = 0,
     threads: int = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the report here")] = None,
     compare: Annotated[Path | None, typer.Option(help="baseline report: print the change per figure")] = None,

@@ -53,6 +53,7 @@ from bench.report_io import (
     json_destination,
     json_object,
     machine_info,
+    non_negative_int,
     positive_float,
     provenance,
     require_checkouts,
@@ -127,6 +128,16 @@ def thresholds(sensor: str, scale: float = 1.0) -> tuple[float, float]:
         raise ValueError(f"sensor {sensor!r} is of no class with success thresholds (cyberware-range, kinect-*, "
                          "xtion-*, lidar: the data README's)")
     return degrees, metres * scale
+
+
+def require_thresholds(parser: argparse.ArgumentParser, cases: list[Case]) -> None:
+    """A usage error of ``parser`` unless every sensor of ``cases`` has success thresholds (:func:`thresholds`):
+    checked before any registration, since :func:`judged` refuses the first result of a sensor of no class."""
+    for sensor in sorted({case.sensor for case in cases}):
+        try:
+            thresholds(sensor)
+        except ValueError as error:  # a new set's sensors named otherwise
+            parser.error(str(error))
 
 
 def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -437,7 +448,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--url", help="an already running server (default: start one on 127.0.0.1)")
     parser.add_argument("--model-dir", type=Path,
                         help="serve only this exported model (its folder name) instead of the bundled default")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the turns and of RANSAC")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the turns and of RANSAC")
     parser.add_argument("--turns", type=int, default=1,
                         help="turned variants per pair (more: figures less tied to one rotation each)")
     parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0, 1000.0], help="units: 1 m, 1000 mm")
@@ -479,11 +490,7 @@ def main(argv: list[str] | None = None) -> dict:
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
                      + (f" named {args.pairs}" if args.pairs else ""))
-    for sensor in sorted({c.sensor for c in cases}):
-        try:
-            thresholds(sensor)
-        except ValueError as error:  # before any registration: a new set's sensors named otherwise
-            parser.error(str(error))
+    require_thresholds(parser, cases)
     if args.url:
         answering(parser, args.url)
     if args.offset:

@@ -82,6 +82,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    """An argparse ``type``: a whole number of at least 0 (a seed: NumPy's generators take no negative one)."""
+    value = int(text)  # a ValueError is argparse's "invalid non_negative_int value"
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be at least 0, got {value}")
+    return value
+
+
 def positive_float(text: str) -> float:
     """An argparse ``type``: a finite number above 0 (a unit scale, a distance...)."""
     value = float(text)  # a ValueError is argparse's "invalid positive_float value"

@@ -141,7 +141,7 @@ def search_bench(
     json_out: Annotated[Path, typer.Option("--json", help="write the figures here")] = Path("rotation_search.json"),
     model: Annotated[str, typer.Option(help="bundled model name or model directory")] = "clean",
     count: Annotated[int, typer.Option(min=1, help="pairs per setting and angle")] = 30,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the test pairs")] = 0,
     settings: Annotated[list[str] | None, typer.Option("--setting")] = None,
     angles: Annotated[list[float] | None, typer.Option("--max-angle")] = None,
     repeats: Annotated[int, typer.Option(min=1, help="timed registrations per configuration")] = 12,

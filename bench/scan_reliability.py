@@ -16,7 +16,7 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.report_io import checked, json_destination, positive_int, provenance, reliable_totals
+from bench.report_io import checked, json_destination, non_negative_int, positive_int, provenance, reliable_totals
 from bench.runtime_eval import runtime_poses
 from model.cli_inputs import model_dir, require_shapes
 from model.data import class_names, make_test_pairs, protocol_for
@@ -62,7 +62,7 @@ def report(rows: list[dict], names: list[str] | None) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="general", help="bundled model name or model folder")
-    parser.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    parser.add_argument("--seeds", type=non_negative_int, nargs="+", default=list(SEEDS))
     parser.add_argument("--count", type=positive_int, default=170, help="pairs per seed")
     parser.add_argument("--data", default=None, help="ModelNet40 directory (default: $MFGNET_DATA, then ../shared)")
     parser.add_argument("--json", type=Path, default=None)

@@ -11,8 +11,9 @@ Several ``DIR`` (the checkpoints of one run, say) get one registrar each in the 
 one ``general``.
 
 It prints and writes (``--json``) each registrar's successes (the data README's thresholds), ``reliable`` results
-given and wrong, precision, coverage (the share of successes given ``reliable``) and seconds, and every case whose
-success or ``reliable`` flag differs between them.
+given and wrong, precision, coverage (the share of successes given ``reliable``) and seconds, every case whose
+success or ``reliable`` flag differs between them, and what made the report (:func:`bench.report_io.provenance`: the
+commit, and ``general`` and each candidate as their manifests name them).
 """
 
 from __future__ import annotations
@@ -24,8 +25,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from bench.real_scans import Case, judged, load_cases, scan_set
-from bench.report_io import checked, json_destination, positive_float, positive_int, reliable_totals
+from bench.real_scans import Case, judged, load_cases, require_thresholds, scan_set
+from bench.report_io import (
+    checked,
+    json_destination,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    provenance,
+    reliable_totals,
+)
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
 from service.refine_modes import SERVICE_DEFAULT_REFINE
@@ -144,7 +153,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("model_dirs", type=Path, nargs="+", metavar="DIR",
                         help="exported model(s) whose network runs the rotation search; several: all in one run")
     parser.add_argument("--data", type=Path, default=None, help="real-scan set (default: bench.real_scans.data_dir)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--seeds", type=non_negative_int, nargs="+", default=[0, 1])
     parser.add_argument("--turns", type=positive_int, default=10)
     parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0, 1000.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
@@ -163,7 +172,10 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error(f"DIR {mismatch}")
     json_destination(args.json)
     all_cases = cases(directory, args.seeds, args.turns, tuple(args.scales), args.pairs, args.derived)
-    report = compare(args.model_dirs, all_cases)
+    require_thresholds(parser, all_cases)  # judged() would refuse a sensor of no class after its first registration
+    # general and each candidate, before the run: the shared checkout may move on during it
+    made_by = provenance([bundled_models_dir() / "general", *args.model_dirs])
+    report = {**compare(args.model_dirs, all_cases), "provenance": made_by}
     for name, figures in report["totals"].items():
         print(name, json.dumps(figures))
     for row in report["differ"]:

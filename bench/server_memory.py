@@ -21,7 +21,7 @@ import numpy as np
 
 from bench.http_latency import Server, rss_mb
 from bench.latency import resize_cloud
-from bench.report_io import checked, emit_report, json_destination, machine_info, positive_int
+from bench.report_io import checked, emit_report, json_destination, machine_info, non_negative_int, positive_int
 from model.cli_inputs import require_shapes
 
 SMALL_POINTS = 1024
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--small", type=positive_int, default=5, help="1,024-point registrations before the big one")
     parser.add_argument("--big-points", type=positive_int, default=100_000,
                         help="points per cloud of the big JSON request")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
     if args.models:

@@ -37,6 +37,9 @@ def files(tmp_path, monkeypatch):
         (tmp_path / name).mkdir()
     np.savez(tmp_path / "nopose" / "a.npz", source=np.ones((20, 3)), target=np.ones((20, 3)), sensor="lidar")
     (tmp_path / "textpair" / "a.npz").write_text("not an archive")
+    (tmp_path / "unjudged").mkdir()  # a real-scan set whose one pair's sensor has no success thresholds
+    cloud = rng.normal(size=(20, 3)).astype(np.float32)
+    np.savez(tmp_path / "unjudged" / "a.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="sonar")
     (tmp_path / "checkout").mkdir()  # a folder, but no checkout of the project
     monkeypatch.setenv("MFGNET_REAL_DATA", str(scans))
     with socket.socket() as s:  # a port with no server behind it
@@ -46,7 +49,7 @@ def files(tmp_path, monkeypatch):
             "list": str(tmp_path / "list.json"), "empty": str(tmp_path / "empty"),
             "missing": str(tmp_path / "missing" / "out.json"), "checkout": str(tmp_path / "checkout"),
             "scans": str(scans), "url": f"http://127.0.0.1:{port}", "nopose": str(tmp_path / "nopose"),
-            "textpair": str(tmp_path / "textpair")}
+            "textpair": str(tmp_path / "textpair"), "unjudged": str(tmp_path / "unjudged")}
 
 
 # (module, argv with {file} names, the work replaced, a fragment of the message)
@@ -90,6 +93,15 @@ CASES = [
     ("real_scans", ["{nopose}"], "load_cases", "nopose/a.npz: not a scan pair (no transform)"),
     ("failures", ["--data", "{textpair}"], "cases", "textpair/a.npz: not a scan pair (not an .npz archive)"),
     ("search_network", ["{empty}", "--data", "{nopose}"], "cases", "not a scan pair (no transform)"),
+    ("real_scans", ["{unjudged}"], "Server", "sensor 'sonar' is of no class with success thresholds"),
+    ("failures", ["--data", "{unjudged}"], "Registrar", "sensor 'sonar' is of no class with success thresholds"),
+    ("search_network", ["general", "--data", "{unjudged}"], "compare", "sensor 'sonar' is of no class"),
+    ("real_scans", ["--seed", "-1"], "load_cases", "--seed: must be at least 0, got -1"),
+    ("failures", ["--seeds", "0", "-1"], "cases", "--seeds: must be at least 0, got -1"),
+    ("search_network", ["{empty}", "--seeds", "-1"], "cases", "--seeds: must be at least 0, got -1"),
+    ("scan_reliability", ["--seeds", "-1"], "seed_rows", "--seeds: must be at least 0, got -1"),
+    ("server_memory", ["--seed", "-1"], "measure", "--seed: must be at least 0, got -1"),
+    ("abandoned_requests", ["--seed", "-1"], "compare", "--seed: must be at least 0, got -1"),
     ("real_scans", ["--scales", "1", "0"], "load_cases", "--scales: must be a finite number above 0, got 0"),
     ("failures", ["--scales", "-1000"], "cases", "--scales: must be a finite number above 0"),
     ("search_network", ["{empty}", "--scales", "inf"], "cases", "--scales: must be a finite number above 0"),
@@ -182,3 +194,23 @@ def test_rotation_search_checks_its_options_before_the_cost_stage(options, fragm
         search_bench(**options)
     assert ended.value.exit_code == 2
     assert fragment in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [
+    ["evaluate", "--checkpoint", "nope"],  # mfgnet evaluate
+    ["bench", "--model", "nope"],  # mfgnet bench (bench.latency)
+    ["rotation_search", "--model", "nope"],  # python -m bench.rotation_search
+], ids=lambda command: command[0])
+def test_negative_seed_of_a_typer_bench_is_a_usage_error(command):
+    """The seed is checked as the command line is parsed, before the command's own checks (here: a missing model)."""
+    from typer.testing import CliRunner
+
+    from bench.rotation_search import search_bench
+    from service.cli import app
+
+    if command[0] == "rotation_search":
+        app, command = typer.Typer(), command[1:]
+        app.command()(search_bench)
+    result = CliRunner().invoke(app, [*command, "--seed", "-1"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "Invalid value for '--seed'" in result.output, result.output

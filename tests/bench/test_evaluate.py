@@ -236,7 +236,7 @@ def test_evaluate_help_says_what_count_and_seed_make() -> None:
     text = " ".join(result.output.split())  # as wrapped to the terminal's width
     assert result.exit_code == 0
     assert "--count <int> pairs to make from --setting: a seeded draw" in text
-    assert "--seed <int> seed of the pairs made from --setting" in text
+    assert "--seed <int range> seed of the pairs made from --setting [default: 0; x>=0]" in text  # NumPy's seeds
 
 
 @pytest.mark.parametrize(("method", "options", "words"), [

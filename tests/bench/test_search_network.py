@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from provenance_check import assert_made_by_this_checkout
 
 from bench.real_scans import data_dir, load_cases
 from bench.search_network import main
@@ -26,7 +27,9 @@ def test_general_as_its_own_search_network_changes_nothing(tmp_path):
     assert {k: v for k, v in plain.items() if k != "seconds"} == {k: v for k, v in swapped.items() if k != "seconds"}
     for a, b in zip(report["rows"]["general"], report["rows"]["search network"], strict=True):
         assert a["rotation_error_deg"] == b["rotation_error_deg"]
-    assert json.loads(out.read_text())["search_model"].endswith("general")
+    written = json.loads(out.read_text())
+    assert written["search_model"].endswith("general")
+    assert_made_by_this_checkout(written["provenance"], "general", bundled_models_dir() / "general")  # both roles
 
 
 @needs_data
@@ -86,6 +89,7 @@ def test_several_candidates_take_turns_beside_one_general(tmp_path):
     report = main([*candidates, "--pairs", PAIR, "--seeds", "0", "--turns", "1", "--scales", "1"])
     assert list(report["totals"]) == ["general", "first", "second"] and report["differ"] == []
     assert report["search_model"] == candidates
+    assert_made_by_this_checkout(report["provenance"], "general", *candidates)  # named "first", "second"
     for rows in zip(*report["rows"].values(), strict=True):
         assert len({row["rotation_error_deg"] for row in rows}) == 1
 
