@@ -356,6 +356,7 @@ class Registrar:
         result = stages.free_space(work, result, request.options, timing)  # reliable: no surface through free space
         result = stages.symmetry(work, result, request.options, timing)  # reliable: no half turn fits as well
         result = anchors.result_to_caller(result)
+        result = stages.guess_check(work, result, request, self.reference_radius)  # a warning far from the guess
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
 
 from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
+from service.stages.guess_check import FAR_FROM_GUESS
 from service.stages.search import RETRY_WARNING
 
 # No ``<counter>_created`` / ``<histogram>_created`` series: in the text format Prometheus stores each as one more gauge
@@ -20,6 +21,7 @@ WARNING_KINDS = frozenset({
     *(f"{cloud} {kind}" for cloud in ("source", "target")
       for kind in ("empty", "identical", "collinear", "few distinct points", "coplanar")),
     THROUGH_FREE_SPACE, CONFIRMED_BY_FREE_SPACE, RETRY_WARNING.split(":", 1)[0],  # the closing checks'
+    FAR_FROM_GUESS,  # a result far from the caller's initial_transform (service.stages.guess_check)
 })
 
 

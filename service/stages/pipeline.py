@@ -16,6 +16,7 @@ from service.stages.fine import fine
 from service.stages.flip import flip
 from service.stages.free_space import free_space
 from service.stages.guess import guess_candidate
+from service.stages.guess_check import guess_check
 from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.refine import refine
@@ -44,3 +45,4 @@ class Stages:
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same
+    guess_check: Callable = guess_check  # (Working, RegistrationResult, caller frames, Request, reference_radius)

@@ -15,6 +15,7 @@ from service.stages.free_space import (
     confirmed_by_free_space,
     through_free_space,
 )
+from service.stages.guess_check import GuessGap, far_from_guess
 from service.stages.search import RETRY_WARNING
 
 # The warnings of the closing checks, as the stages write them (the others' kinds are listed in metrics.WARNING_KINDS)
@@ -22,6 +23,7 @@ CLOSING_WARNINGS = {
     "through free space": through_free_space(RELIABLE_FREE_SPACE + 0.05),
     "confirmed by free space": confirmed_by_free_space(CONFIRMS_BELOW / 2),
     "found by the second, denser rotation search only (the first fitted poorly)": RETRY_WARNING,
+    "far from initial transform": far_from_guess(GuessGap(40.0, 0.01), 0.1, GuessGap(0.5, 0.001)),
 }
 
 
