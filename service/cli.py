@@ -144,8 +144,8 @@ RequireReliableOpt = Annotated[bool, typer.Option(help="exit 3 when the result i
                                                        "are still written)")]
 RotationSearchOpt = Annotated[
     bool | None,
-    typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; about 2-3x the "
-                      "time with a refinement, 10-20x without); = --rotation-search-mode on"),
+    typer.Option(help="always start from 24 rotations covering SO(3) (any relative orientation; 1.5-2.6x the "
+                      "time with a refinement, 12-18x without); = --rotation-search-mode on"),
 ]
 RotationSearchModeOpt = Annotated[
     RotationSearchMode | None,

@@ -258,3 +258,46 @@ def test_reliability_states_the_json_body_counts():
     words = {4: "four"}
     assert (f"({words[VALUES_PER_POINT]} per point of 2 x `max_points`, and {EXTRA_JSON_VALUES:,} more)" in text)
     assert f"against {MAX_JSON_STRINGS:,} strings and {MAX_JSON_TEXT_BYTES // 1024} KiB of text" in text
+
+
+FACTOR = r"(\d[\d.]*(?:-\d[\d.]*)?)x"
+SEARCH_COST = re.compile(FACTOR + r" the time with a refinement, " + FACTOR + " without")
+SEARCH_COST_RUNS = ("search_cost_dense170.json", "search_cost_dense180_s21.json", "search_cost_real_scans.json")
+
+
+def _states_the_range_of(stated: str, ratios: list[float]) -> bool:
+    """``stated`` ("1.5-2.6" or "12") is the lowest and highest of ``ratios`` at its own number of decimals."""
+    low, _, high = stated.partition("-")
+    high = high or low
+
+    def rounded(value: float, like: str) -> float:
+        return round(value, len(like.partition(".")[2]))
+
+    return rounded(min(ratios), low) == float(low) and rounded(max(ratios), high) == float(high)
+
+
+def test_the_rotation_search_cost_is_stated_alike_in_docs_help_and_schema():
+    """The rotation search's cost (forced on against off, with a refinement and without), as ROTATION_SEARCH.md
+    states it beside its command, is the range of the stored runs' ratios and what ``mfgnet register
+    --rotation-search --help`` and the request schema (``/docs``) say."""
+    import json
+
+    from service.cli import RotationSearchOpt
+
+    doc = " ".join((ROOT / "docs" / "ROTATION_SEARCH.md").read_text().split())
+    stated = SEARCH_COST.findall(doc)
+    assert len(stated) == 1, stated
+    assert "python -m bench.settings --scans" in doc and "search_cost_$f.json" in doc  # the command beside it
+    refined, plain = [], []  # per stored run: time with the search on over off (medians per pair)
+    for name in SEARCH_COST_RUNS:
+        rows = json.loads((ROOT / "results" / "general-0.2.0" / name).read_text())["settings"]
+        ms = {(row["options"]["refine"], row["options"]["rotation_search"]): row["ms_per_pair_median"] for row in rows}
+        refined.append(ms["icp-plane", True] / ms["icp-plane", False])
+        plain.append(ms["none", True] / ms["none", False])
+    with_refinement, without = stated[0]
+    assert _states_the_range_of(with_refinement, refined), (with_refinement, refined)
+    assert _states_the_range_of(without, plain), (without, plain)
+    texts = {"mfgnet register --rotation-search": RotationSearchOpt.__metadata__[0].help,
+             "RegisterRequest.rotation_search": schemas.ROTATION_SEARCH_DESCRIPTION}
+    for where, text in texts.items():
+        assert SEARCH_COST.findall(" ".join(text.split())) == stated, f"{where}: {text}"
