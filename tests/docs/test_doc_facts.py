@@ -217,7 +217,7 @@ MULTISTART_COST = re.compile(r"(\d[\d.]*(?:-\d[\d.]*)?x) the refinement time")
 
 def test_the_multistart_cost_is_stated_alike_in_docs_help_and_schema():
     """``icp-plane-multistart``'s cost, as DESIGN's refinement table states it (with its command), is what
-    DEPLOYMENT, ``mfgnet register --help`` and the request schema (``/docs``) say."""
+    DEPLOYMENT, README's options table, ``mfgnet register --help`` and the request schema (``/docs``) say."""
     from service.cli import RefineOpt
 
     design = {row[0]: row[1] for row in table(ROOT / "docs" / "DESIGN.md", "Refinement", "`refine`")}
@@ -225,7 +225,9 @@ def test_the_multistart_cost_is_stated_alike_in_docs_help_and_schema():
     assert len(stated) == 1, design["`icp-plane-multistart`"]
     settings = {row[0]: row[2] for row in table(ROOT / "docs" / "DEPLOYMENT.md", "Settings", "variable")}
     deployment = settings["`MFGNET_DEFAULT_REFINE`"]
-    texts = {"DEPLOYMENT.md": deployment, "mfgnet register --refine": RefineOpt.__metadata__[0].help,
+    readme = next(line for line in README.read_text().splitlines() if line.startswith("| `refine` / `--refine`"))
+    texts = {"DEPLOYMENT.md": deployment, "README.md options table": readme,
+             "mfgnet register --refine": RefineOpt.__metadata__[0].help,
              "RegisterRequest.refine": schemas.REFINE_DESCRIPTION}
     for where, text in texts.items():
         assert MULTISTART_COST.findall(text) == stated, f"{where}: {text}"
