@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
 MANIFEST = "manifest.json"
+FORMAT = 1  # the manifest format this runtime reads (``mfgnet export`` writes it as "format")
 MODEL_NAME = re.compile(r"^[a-z0-9][a-z0-9_.-]{0,63}$")
 
 
@@ -82,6 +84,12 @@ def load_manifest(directory: str | Path) -> Manifest:
         raise ModelIntegrityError(f"model {directory.name!r}: malformed {MANIFEST} ({exc})") from None
     if name != directory.name or not MODEL_NAME.match(name):
         raise ModelIntegrityError(f"model folder {directory.name!r} does not match manifest name {name!r}")
+    if raw.get("format", FORMAT) != FORMAT:  # written by an export newer (or other) than this runtime
+        raise ModelIntegrityError(f"model {name!r}: manifest format {raw['format']!r}; this runtime reads {FORMAT}")
+    radius = normalization.get("reference_radius") if isinstance(normalization, dict) else None
+    if type(radius) not in (int, float) or not math.isfinite(radius) or radius <= 0:
+        raise ModelIntegrityError(f"model {name!r}: normalization.reference_radius is {radius!r}, not a number "
+                                  "above 0 (the radius the runtime scales clouds to)")
     verified: dict[str, Path] = {}
     for role, entry in graphs.items():
         file = directory / Path(entry["file"]).name  # never leave the model directory

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -289,6 +290,29 @@ def test_a_malformed_search_section_is_refused(tmp_path, section):
     (model / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ModelIntegrityError, match="malformed search section"):
         load_manifest(model)
+
+
+@pytest.mark.parametrize(
+    ("change", "problem"),
+    [({"format": 2}, "manifest format 2; this runtime reads 1"), ({"format": "1"}, "manifest format '1'"),
+     ({"normalization": {"center": "per_cloud_centroid"}}, "reference_radius is None"),
+     ({"normalization": {"reference_radius": 0}}, "reference_radius is 0, not a number above 0"),
+     ({"normalization": {"reference_radius": -0.5}}, "reference_radius is -0.5"),
+     ({"normalization": {"reference_radius": "0.5"}}, "reference_radius is '0.5'"),
+     ({"normalization": {"reference_radius": True}}, "reference_radius is True"),
+     ({"normalization": [0.5]}, "reference_radius is None")],
+)
+def test_a_manifest_of_another_format_or_without_a_reference_radius_is_refused(tmp_path, change, problem):
+    """Refused when loaded, naming the field: a missing radius would otherwise scale every cloud to 1.0 (about twice
+    the bundled models' 0.5), a string fail deep in the registrar."""
+    model = _copy_model(tmp_path)
+    manifest = json.loads((model / "manifest.json").read_text())
+    (model / "manifest.json").write_text(json.dumps({**manifest, **change}))
+    with pytest.raises(ModelIntegrityError, match=re.escape(problem)):
+        load_manifest(model)
+    manifest.pop("format")  # written before the field existed: read as format 1
+    (model / "manifest.json").write_text(json.dumps(manifest))
+    assert load_manifest(model).normalization["reference_radius"] == manifest["normalization"]["reference_radius"]
 
 
 def test_runtime_never_imports_torch():
