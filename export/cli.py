@@ -235,9 +235,10 @@ def import_checkpoint(
     """Import an authors' released checkpoint (215 keys) into this project's checkpoint format."""
     import torch
 
-    from export.official import OFFICIAL_CONFIG, convert_state_dict
+    from export.official import convert_state_dict
     from model.checkpoint import save_checkpoint
     from model.cli_inputs import load_weights, output_file, torch_file
+    from model.config import OFFICIAL_CONFIG
     from model.network import MFGNet
 
     output_file(out, "--out", create_folders=True)

@@ -7,13 +7,9 @@ the files or anything derived from them.
 
 from __future__ import annotations
 
-import os
 import re
 
 import torch
-
-from model.config import OFFICIAL_CONFIG, MFGNetConfig
-from model.network import MFGNet
 
 EXPECTED_KEYS = 215
 REFLECT = torch.diag(torch.tensor([1.0, 1.0, -1.0]))
@@ -76,12 +72,3 @@ def convert_state_dict(official: dict[str, torch.Tensor]) -> dict[str, torch.Ten
             value = value.reshape(value.shape[0], value.shape[1])
         ours[name] = value.clone()
     return ours
-
-
-def import_official(path: str | os.PathLike, config: MFGNetConfig = OFFICIAL_CONFIG) -> MFGNet:
-    """Load an official ``.t7`` checkpoint into an ``MFGNet`` (eval mode); every key is checked."""
-    official = torch.load(path, map_location="cpu", weights_only=True)
-    model = MFGNet(config)
-    missing, unexpected = model.load_state_dict(convert_state_dict(official), strict=True), None
-    del missing, unexpected
-    return model.eval()
