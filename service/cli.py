@@ -1,4 +1,4 @@
-"""The ``mfgnet`` command. Runtime sub-commands (serve, register, models) live here; training-side ones
+"""The ``mfgnet`` command. Runtime sub-commands (serve, register, sequence, models) live here; training-side ones
 (train, evaluate, make-pairs, export, ...) come from the ``mfgnet.commands`` entry points, loaded only when run
 (``service.cli_plugins``), so a runtime command never imports torch, ``model``, ``export`` or ``bench``.
 
@@ -8,9 +8,12 @@ so ``mfgnet --help`` stays fast and works with the base install.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import sys
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated, NoReturn, TextIO
 
 import numpy as np
 import typer
@@ -19,6 +22,10 @@ from service.cli_plugins import PluginGroup
 from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
 from service.request_defaults import DEFAULT_MODEL
 from service.search_mode import RotationSearchMode, rotation_search_from_options
+
+if TYPE_CHECKING:  # onnxruntime loads only in the commands that register
+    from service.in_process import LocalRegistrar
+    from service.sequence import Step
 
 app = typer.Typer(cls=PluginGroup, help="MFGNet point-cloud registration", no_args_is_help=True,
                   add_completion=False, rich_markup_mode=None)  # plain click help: flag names never cut at 80 columns
@@ -227,18 +234,22 @@ def _check_register_flags(write_aligned: Path | None, server: str | None, model_
     """Usage errors that need no file read, before the registration runs."""
     from service.pointcloud_io import SUFFIXES
 
-    for path, option in ((out, "--out"), (write_aligned, "--write-aligned")):
-        if path is not None and path.is_dir():
-            _fail(f"{option} {path}: a folder, not a file")
-        if path is not None and not path.parent.is_dir():
-            _fail(f"{option} {path}: folder {path.parent} does not exist")
-
+    _check_output_path(out, "--out")
+    _check_output_path(write_aligned, "--write-aligned")
     if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
         _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
     if server and model_dir:
         _fail("--model-dir only applies in-process; a server uses its own model folders")
     if server and not server.lower().startswith(("http://", "https://")):
         _fail(f"--server {server!r}: a URL starting with http:// or https://")
+
+
+def _check_output_path(path: Path | None, option: str) -> None:
+    """A usage error where the output ``path`` of ``option`` is a folder or lies in a folder that does not exist."""
+    if path is not None and path.is_dir():
+        _fail(f"{option} {path}: a folder, not a file")
+    if path is not None and not path.parent.is_dir():
+        _fail(f"{option} {path}: folder {path.parent} does not exist")
 
 
 def _search_option(flag: bool | None, mode: RotationSearchMode | None) -> bool | str | None:
@@ -321,23 +332,36 @@ def _register_local(src: np.ndarray, tgt: np.ndarray, model: str | None, model_d
                     options: dict) -> dict:
     """The record of ``src`` registered onto ``tgt`` in this process, as :class:`service.in_process.LocalRegistrar`
     registers (the service's defaults for the options left ``None``)."""
+    from service.errors import InputError
+
+    registrar = _load_registrar(model, model_dirs, threads)
+    try:
+        return _local_record(registrar, src, tgt, options)
+    except InputError as exc:
+        _fail(str(exc))
+
+
+def _load_registrar(model: str | None, model_dirs: list[Path], threads: int | None) -> LocalRegistrar:
+    """The :class:`service.in_process.LocalRegistrar` of ``model`` (see :func:`_resolve_model_dir`), not warmed up;
+    exit 1 when its files fail their check or ONNX Runtime refuses them."""
     try:
         from service.in_process import LocalRegistrar
         from service.manifest import ModelIntegrityError
-        from service.registrar import InputError
     except ImportError as exc:
         _fail(f"{SERVE_EXTRA_HINT} ({exc})")
     directory = _resolve_model_dir(model, model_dirs)
     try:
-        registrar = LocalRegistrar(directory, threads=threads, warmup=False)
+        return LocalRegistrar(directory, threads=threads, warmup=False)
     except ModelIntegrityError as exc:
         _fail(str(exc), code=1)
     except Exception as exc:  # e.g. ONNX Runtime refusing a graph whose hash matches its manifest
         _fail(f"cannot load the model in {directory}: {exc}", code=1)
-    try:
-        result = registrar.register(src, tgt, **options)
-    except InputError as exc:
-        _fail(str(exc))
+
+
+def _local_record(registrar: LocalRegistrar, src: np.ndarray, tgt: np.ndarray, options: dict) -> dict:
+    """The ``mfgnet register`` record of ``src`` onto ``tgt`` by ``registrar``; raises
+    :class:`service.errors.InputError` for a bad cloud or option."""
+    result = registrar.register(src, tgt, **options)
     manifest = registrar.manifest
     return pose_record(
         result.rotation, result.translation,
@@ -455,6 +479,189 @@ def _write_text(path: Path, text: str) -> None:
         path.write_text(text)
     except OSError as exc:
         _fail(f"cannot write {path}: {exc.strerror or exc}", code=1)
+
+
+# -------------------------------------------------------------------------------------- sequence
+
+
+FramesArg = Annotated[
+    list[Path], typer.Argument(metavar="FRAME", show_default=False,
+                               help="two or more scans in order (.ply .pcd .las .laz .xyz .txt .csv .npy .npz); "
+                                    "frame i is registered onto frame i-1")
+]
+SequenceOutOpt = Annotated[
+    Path | None, typer.Option(help="write one JSON line per step here ('-': standard output, the default): index, "
+                                   "source, target, the pair's `register --json` record, initial_transform and "
+                                   "accumulated_transform (T_0_i)")
+]
+KittiOpt = Annotated[
+    Path | None, typer.Option(help="write the accumulated poses T_0_i in the KITTI odometry format: one line per "
+                                   "frame, frame 0's identity first, 12 numbers ([R|t] row-major)")
+]
+ConstantVelocityOpt = Annotated[
+    bool, typer.Option(help="pass each step's relative pose as the next step's initial transform (the sensor "
+                            "keeps moving as it moved; a result far from it carries a warning); without it no guess")
+]
+SequenceReliableOpt = Annotated[bool, typer.Option(help="exit 3 when any step is not quality.reliable (every step is "
+                                                        "still written)")]
+
+
+@app.command("sequence")
+def sequence_command(
+    frames: FramesArg,
+    out: SequenceOutOpt = None,
+    kitti: KittiOpt = None,
+    constant_velocity: ConstantVelocityOpt = False,
+    require_reliable: SequenceReliableOpt = False,
+    model: ModelOpt = None,
+    model_dir: ModelDirs = None,
+    iterations: IterationsOpt = None,
+    keypoints: KeypointsOpt = None,
+    refine: RefineOpt = None,
+    refine_points: RefinePointsOpt = None,
+    drop_isolated: DropIsolatedOpt = True,
+    rotation_search: RotationSearchOpt = None,
+    rotation_search_mode: RotationSearchModeOpt = None,
+    threads: ThreadsOpt = None,
+) -> None:
+    """Register a sequence of scans in one process: each FRAME onto the one before it.
+
+    The model loads once. Each step gives the relative pose T_{i-1}_i (source
+    frame i -> target frame i-1, as `mfgnet register` gives it) and the
+    accumulated T_0_i = T_0_{i-1} @ T_{i-1}_i (frame i in frame 0's
+    coordinates). Every frame is checked (exists, a regular file, a known
+    extension) before the first registration; one short progress line per
+    step goes to standard error. A path may repeat (a frame registered onto
+    itself gives about the identity).
+
+    \b
+    Exit codes:
+    0 done (whether or not every step is reliable; see --require-reliable);
+    2 bad input (fewer than two frames, a missing or unreadable frame, a bad
+      option, an unknown model); the steps before an unreadable frame are
+      written;
+    1 other failures (model integrity, an output that cannot be written);
+    3 with --require-reliable: every step registered, one or more not reliable.
+    """
+    from service.sequence import frame_problem, kitti_line, register_sequence
+
+    if out == Path("-"):
+        out = None
+    if len(frames) < 2:
+        _fail(f"a sequence needs at least two frames, got {len(frames)}")
+    for index, path in enumerate(frames):
+        problem = frame_problem(path)
+        if problem:
+            _fail(f"frame {index} {path}: {problem}")
+    _check_sequence_outputs(frames, out, kitti)
+    if refine is not None and refine.value == "none" and refine_points is not None:
+        _fail("--refine-points sets the refinement's clouds; --refine none runs no refinement")
+    search = _search_option(rotation_search, rotation_search_mode)
+    options = {"iterations": iterations, "keypoints": keypoints, "refine": refine.value if refine is not None else None,
+               "rotation_search": search, "refine_points": refine_points}
+    if not drop_isolated:
+        options["drop_isolated"] = False
+    registrar = _load_registrar(model, model_dir or [], threads)
+
+    def register_pair(src: np.ndarray, tgt: np.ndarray, guess: list | None) -> dict:
+        return _local_record(registrar, src, tgt, {**options, "initial_transform": guess})
+
+    steps = register_sequence(frames, _read_frame, register_pair, constant_velocity=constant_velocity)
+    unreliable: list[int] = []  # indices of the steps that are not quality.reliable
+    with _open_output(out) as lines, _open_output(kitti, to_stdout=False) as poses:
+        if poses is not None:
+            _write_line(poses, kitti_line(np.eye(4)), kitti)  # frame 0: the origin of the map
+        for step in _steps_or_fail(steps, frames):
+            _write_line(lines, step.json_line(), out)
+            if poses is not None:
+                _write_line(poses, kitti_line(step.accumulated), kitti)
+            typer.echo(_step_progress(step, len(frames) - 1), err=True)
+            if not step.reliable:
+                unreliable.append(step.index)
+    written = ", ".join(str(path) for path in (out, kitti) if path is not None)
+    typer.echo(f"{len(frames) - 1} steps, {len(unreliable)} not reliable" + (f"; wrote {written}" if written else ""),
+               err=True)
+    if require_reliable and unreliable:
+        which = f"step{'s' if len(unreliable) > 1 else ''} {', '.join(map(str, unreliable))}"
+        typer.echo(f"mfgnet: {which} not reliable (--require-reliable)", err=True)
+        raise typer.Exit(UNRELIABLE_EXIT)
+
+
+def _check_sequence_outputs(frames: list[Path], out: Path | None, kitti: Path | None) -> None:
+    """Usage errors of ``--out`` and ``--kitti`` before any registration: a folder, a missing folder, the same file
+    twice, or one of the frames (it would be overwritten)."""
+    _check_output_path(out, "--out")
+    _check_output_path(kitti, "--kitti")
+    if kitti == Path("-"):
+        _fail("--kitti -: standard output holds the JSON lines; name a file")
+    if out is not None and kitti is not None and out.resolve() == kitti.resolve():
+        _fail(f"--out and --kitti are the same file, {out}")
+    inputs = {frame.resolve() for frame in frames}
+    for path, option in ((out, "--out"), (kitti, "--kitti")):
+        if path is not None and path.resolve() in inputs:
+            _fail(f"{option} {path} is one of the frames; it would be overwritten")
+
+
+def _read_frame(index: int, path: Path) -> np.ndarray:
+    """``[N, 3]`` float64 points of frame ``index``, or exit 2 naming the frame."""
+    from service.pointcloud_io import PointCloudFormatError, read_points
+
+    try:
+        return read_points(path).astype(np.float64)
+    except PointCloudFormatError as exc:
+        _fail(f"frame {index} {path}: {exc}")
+    except OSError as exc:
+        _fail(f"frame {index} {path}: cannot read it: {exc.strerror or exc}")
+
+
+def _steps_or_fail(steps: Iterator[Step], frames: list[Path]) -> Iterator[Step]:
+    """``steps`` as they come; a pair the pipeline refuses (too few points, ...) is exit 2 naming both frames."""
+    from service.errors import InputError
+
+    index = 1  # the step being registered: frame index onto frame index - 1
+    while True:
+        try:
+            step = next(steps)
+        except StopIteration:
+            return
+        except InputError as exc:
+            _fail(f"frame {index} {frames[index]} onto frame {index - 1} {frames[index - 1]}: {exc}")
+        yield step
+        index += 1
+
+
+@contextlib.contextmanager
+def _open_output(path: Path | None, to_stdout: bool = True) -> Iterator[TextIO | None]:
+    """``path`` opened for writing (exit 1 where it cannot be); without a path standard output, or ``None`` where
+    ``to_stdout`` is false."""
+    if path is None:
+        yield sys.stdout if to_stdout else None
+        return
+    try:
+        handle = path.open("w")
+    except OSError as exc:
+        _fail(f"cannot write {path}: {exc.strerror or exc}", code=1)
+    with handle:
+        yield handle
+
+
+def _write_line(handle: TextIO, line: str, path: Path | None) -> None:
+    """``line`` and a newline, flushed at once: a long run's steps can be followed, and survive a later failure."""
+    try:
+        handle.write(line + "\n")
+        handle.flush()
+    except OSError as exc:
+        _fail(f"cannot write {path or 'standard output'}: {exc.strerror or exc}", code=1)
+
+
+def _step_progress(step: Step, count: int) -> str:
+    """One short line per step for standard error: the pair, reliable or not, the turn, the shift and the time."""
+    turn = np.degrees(2 * np.arccos(min(1.0, abs(step.record["quaternion_xyzw"][3]))))
+    shift = float(np.linalg.norm(step.record["translation"]))
+    total = step.record["timing_ms"].get("total")
+    state = "reliable" if step.reliable else "NOT reliable"
+    return (f"[{step.index}/{count}] {step.source.name} -> {step.target.name}: {state}, turn {turn:.2f} deg, "
+            f"shift {shift:.4g}, {_number(total, '.0f')} ms")
 
 
 # ---------------------------------------------------------------------------------------- models

@@ -1,0 +1,89 @@
+"""A sequence of scans (odometry, a turntable) registered pair by pair: frame i (source) onto frame i-1 (target), the
+relative poses ``T_{i-1}_i`` chained into frame 0's coordinates, ``T_0_i = T_0_{i-1} @ T_{i-1}_i``.
+
+``mfgnet sequence`` (:mod:`service.cli`) runs it with one loaded model. Here: the frame checks made before any
+registration, the chaining loop (one frame read at a time, the previous one kept as the next target) and the two
+output formats, a JSON line per step and a KITTI odometry pose line per frame. Numpy only: the registration itself
+comes in as a callable.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from service.formats import READ_SUFFIXES
+
+# (frame index, path) -> [N, 3] points; raises on an unreadable file
+ReadFrame = Callable[[int, Path], np.ndarray]
+# (source [N, 3], target [M, 3], initial_transform [4, 4] list or None) -> the record of `mfgnet register --json`
+RegisterPair = Callable[[np.ndarray, np.ndarray, list | None], dict]
+
+
+def frame_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be a frame (missing, not a regular file, an extension no reader is named by), or ``None``.
+    The content decides the format when the file is read; the extension is checked first so that a typo in a long
+    list fails before the first registration instead of at its frame."""
+    if not path.exists():
+        return "no such file"
+    if not path.is_file():
+        return "a folder, not a file" if path.is_dir() else "not a regular file"
+    if path.suffix.lower() not in READ_SUFFIXES:
+        return f"unknown extension {path.suffix!r}; expected one of {' '.join(READ_SUFFIXES)}"
+    return None
+
+
+@dataclass(frozen=True)
+class Step:
+    """One registration of the sequence: frame ``index`` (source) onto frame ``index - 1`` (target)."""
+
+    index: int
+    source: Path
+    target: Path
+    record: dict  # the `mfgnet register --json` record of the pair: "transform" is T_{i-1}_i
+    initial_transform: list | None  # [4, 4] the guess passed (--constant-velocity), else None
+    accumulated: np.ndarray  # [4, 4] T_0_i: frame i in frame 0's coordinates
+
+    @property
+    def reliable(self) -> bool:
+        return bool(self.record["quality"].get("reliable"))
+
+    def json_line(self) -> str:
+        """The step as one compact JSON line: ``index``, ``source``, ``target``, the pair's record, then
+        ``initial_transform`` and ``accumulated_transform``."""
+        line = {"index": self.index, "source": str(self.source), "target": str(self.target), **self.record,
+                "initial_transform": self.initial_transform, "accumulated_transform": self.accumulated.tolist()}
+        return json.dumps(line, separators=(",", ":"))
+
+
+def register_sequence(frames: Sequence[Path], read: ReadFrame, register: RegisterPair,
+                      constant_velocity: bool = False) -> Iterator[Step]:
+    """Register each frame onto the one before it, yielding each :class:`Step` as soon as it is done.
+
+    Each frame is read once, when it first becomes the source (a path repeated next to itself is not read again: the
+    pair is a frame onto itself). ``constant_velocity``: the previous step's relative pose is the next step's
+    ``initial_transform`` (the usual odometry prior: the sensor keeps moving as it moved); the first step gets none.
+    """
+    if len(frames) < 2:
+        raise ValueError(f"a sequence needs at least two frames, got {len(frames)}")
+    target_points = read(0, frames[0])  # [M, 3]
+    T_0_target = np.eye(4)  # [4, 4] T_0_{i-1}
+    previous: list | None = None  # [4, 4] T_{i-2}_{i-1}, the last step's relative pose
+    for index in range(1, len(frames)):
+        same = frames[index] == frames[index - 1]
+        source_points = target_points if same else read(index, frames[index])  # [N, 3]
+        guess = previous if constant_velocity else None
+        record = register(source_points, target_points, guess)
+        T_0_source = T_0_target @ np.asarray(record["transform"], dtype=np.float64)  # T_0_i = T_0_{i-1} @ T_{i-1}_i
+        yield Step(index, frames[index], frames[index - 1], record, guess, T_0_source)
+        target_points, T_0_target, previous = source_points, T_0_source, record["transform"]
+
+
+def kitti_line(T_0_i: np.ndarray) -> str:
+    """The KITTI odometry pose line of ``T_0_i`` ``[4, 4]``: the 3x4 ``[R | t]`` row-major, 12 numbers (as KITTI's
+    ``poses/XX.txt``, evo and the KITTI devkit read them)."""
+    return " ".join(f"{value:.12e}" for value in np.asarray(T_0_i, dtype=np.float64)[:3].ravel())

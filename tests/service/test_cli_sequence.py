@@ -1,0 +1,239 @@
+"""Specification of ``mfgnet sequence``: frame i registered onto frame i-1 in one process, the relative poses chained
+into frame 0's coordinates, written as JSON lines and as KITTI odometry poses; usage errors before any registration.
+
+The frames are independent samples of one asymmetric shape, each seen from a sensor moved by a known small motion
+(one step turns back, as a robot reversing does), written as ``.npy`` files; the model is a verified copy of the
+bundled ``general``, run with the service's defaults."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_support import python_without_torch, snapshot_model
+from scipy.spatial.transform import Rotation
+from shapes import asymmetric_blob, unit_directions
+from typer.testing import CliRunner
+
+from service.cli import app
+
+runner = CliRunner()
+RECORD_KEYS = {"rotation", "translation", "transform", "euler_zyx_deg", "yaw_pitch_roll_deg", "quaternion_xyzw",
+               "quality", "warnings", "model", "iterations", "timing_ms"}  # `mfgnet register --json`
+STEP_KEYS = {"index", "source", "target", *RECORD_KEYS, "initial_transform", "accumulated_transform"}
+MAX_DEG, MAX_SHIFT = 1.0, 0.01  # chained pose against the truth (the shape's radius is about 1)
+
+
+def pose(rotvec_deg: list[float], shift: list[float]) -> np.ndarray:
+    """``[4, 4]``: a turn (rotation vector, degrees) and a shift."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix(), shift
+    return T
+
+
+# T_{i-1}_i of each step: the sensor turns 10-12 deg about z a frame, then turns back 25 deg, then on again
+MOTIONS = [pose([2, -3, 10], [0.05, 0.02, 0.0]), pose([-1, 2, 12], [0.04, -0.03, 0.01]),
+           pose([3, 1, -25], [0.06, 0.0, -0.02]), pose([0, -2, 11], [0.03, 0.04, 0.0])]
+
+
+def world_poses() -> list[np.ndarray]:
+    """``T_0_i`` of every frame: the motions chained."""
+    poses = [np.eye(4)]
+    for motion in MOTIONS:
+        poses.append(poses[-1] @ motion)
+    return poses
+
+
+def gap(T: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """(degrees, shift) between two ``[4, 4]`` poses."""
+    off = np.linalg.inv(truth) @ np.asarray(T)
+    return float(np.degrees(Rotation.from_matrix(off[:3, :3]).magnitude())), float(np.linalg.norm(off[:3, 3]))
+
+
+def sequence(*args, model_dir: Path):
+    """``mfgnet sequence ARGS --model-dir MODEL_DIR``."""
+    return runner.invoke(app, ["sequence", *map(str, args), "--model-dir", str(model_dir)])
+
+
+def steps_of(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines()]
+
+
+def assert_usage_error(result, *fragments: str) -> None:
+    """Exit 2 with the message on stderr, no traceback, and no step registered."""
+    assert result.exit_code == 2, result.output
+    assert not isinstance(result.exception, Exception), result.exception  # SystemExit only
+    assert "Traceback" not in result.output and "[1/" not in result.stderr and not result.stdout
+    for fragment in fragments:
+        assert fragment in result.stderr, result.stderr
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    return snapshot_model(tmp_path_factory.mktemp("models"), "general")
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory) -> list[Path]:
+    """``frame_i.npy``: 1500 points of the shape drawn anew for each frame, in frame i's sensor coordinates."""
+    folder = tmp_path_factory.mktemp("frames")
+    paths = []
+    for index, T_0_i in enumerate(world_poses()):
+        path = folder / f"frame_{index}.npy"
+        np.save(path, (asymmetric_blob(1500, seed=10 + index) - T_0_i[:3, 3]) @ T_0_i[:3, :3])  # [N, 3]
+        paths.append(path)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def plain_run(tmp_path_factory, frames, model_dir) -> dict:
+    """The whole sequence without a guess, with ``--out`` and ``--kitti``."""
+    folder = tmp_path_factory.mktemp("plain")
+    out, kitti = folder / "poses.jsonl", folder / "poses.txt"
+    result = sequence(*frames, "--out", out, "--kitti", kitti, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    return {"result": result, "steps": steps_of(out.read_text()), "kitti": kitti.read_text()}
+
+
+def test_chained_poses_follow_the_known_motion(plain_run, frames) -> None:
+    steps, truth = plain_run["steps"], world_poses()
+    assert [step["index"] for step in steps] == [1, 2, 3, 4]
+    for step in steps:
+        i = step["index"]
+        assert (step["source"], step["target"]) == (str(frames[i]), str(frames[i - 1]))
+        degrees, shift = gap(step["transform"], MOTIONS[i - 1])  # T_{i-1}_i
+        assert degrees < MAX_DEG and shift < MAX_SHIFT, (i, degrees, shift)
+        degrees, shift = gap(step["accumulated_transform"], truth[i])  # T_0_i
+        assert degrees < MAX_DEG and shift < MAX_SHIFT, (i, degrees, shift)
+        assert step["quality"]["reliable"] and step["warnings"] == [] and step["initial_transform"] is None
+
+
+def test_each_line_is_the_register_record_of_its_pair_and_the_product_so_far(plain_run, frames, model_dir) -> None:
+    T_0_i = np.eye(4)
+    for step in plain_run["steps"]:
+        assert set(step) == STEP_KEYS
+        i = step["index"]
+        single = runner.invoke(app, ["register", str(frames[i]), str(frames[i - 1]), "--json",
+                                     "--model-dir", str(model_dir)])
+        assert single.exit_code == 0, single.output
+        record = json.loads(single.stdout)
+        assert {key: step[key] for key in RECORD_KEYS - {"timing_ms"}} == {
+            key: record[key] for key in RECORD_KEYS - {"timing_ms"}}, i
+        assert step["timing_ms"]["total"] > 0
+        T_0_i = T_0_i @ np.asarray(step["transform"])
+        np.testing.assert_allclose(step["accumulated_transform"], T_0_i, rtol=0, atol=1e-12)
+
+
+def test_the_kitti_file_holds_a_line_of_12_numbers_per_frame(plain_run) -> None:
+    lines = plain_run["kitti"].splitlines()
+    assert len(lines) == 5 and all(len(line.split()) == 12 for line in lines)
+    poses = np.loadtxt(plain_run["kitti"].splitlines()).reshape(5, 3, 4)  # as evo and the KITTI devkit read it
+    np.testing.assert_array_equal(poses[0], np.eye(4)[:3])
+    for step in plain_run["steps"]:
+        np.testing.assert_allclose(poses[step["index"]], np.asarray(step["accumulated_transform"])[:3],
+                                   rtol=0, atol=1e-11)
+
+
+def test_progress_goes_to_stderr_one_line_per_step(plain_run) -> None:
+    result = plain_run["result"]
+    assert result.stdout == ""  # the lines went to --out
+    progress = [line for line in result.stderr.splitlines() if line.startswith("[")]
+    assert [line.split()[0] for line in progress] == ["[1/4]", "[2/4]", "[3/4]", "[4/4]"]
+    assert all("-> frame_" in line and ": reliable," in line for line in progress), progress
+
+
+def test_constant_velocity_passes_the_last_step_as_the_guess(plain_run, frames, model_dir) -> None:
+    """The guess is the step before's relative pose; where the sensor turns back, the result departs from it (with
+    the warning) and still follows the motion."""
+    result = sequence(*frames, "--constant-velocity", model_dir=model_dir)  # JSON lines on standard output
+    assert result.exit_code == 0, result.output
+    steps = steps_of(result.stdout)
+    assert len(steps) == 4 and steps[0]["initial_transform"] is None
+    for before, step in itertools.pairwise(steps):
+        assert step["initial_transform"] == before["transform"]
+    far = [step["index"] for step in steps if any(w.startswith("far from initial transform") for w in step["warnings"])]
+    assert far == [3, 4]  # +12 deg guessed, -25 turned; then -25 guessed, +11 turned
+    assert not any(w.startswith("far from") for step in plain_run["steps"] for w in step["warnings"])  # no guess
+    for step in steps:
+        degrees, shift = gap(step["transform"], MOTIONS[step["index"] - 1])
+        assert degrees < MAX_DEG and shift < MAX_SHIFT, (step["index"], degrees, shift)
+
+
+def test_a_repeated_frame_is_registered_onto_itself_as_the_identity(plain_run, frames, model_dir) -> None:
+    result = sequence(frames[0], frames[0], frames[1], model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    same, step = steps_of(result.stdout)
+    np.testing.assert_allclose(same["transform"], np.eye(4), rtol=0, atol=1e-6)
+    assert step["transform"] == plain_run["steps"][0]["transform"]  # frame 1 onto frame 0, as in the plain run
+    np.testing.assert_allclose(step["accumulated_transform"], plain_run["steps"][0]["transform"], rtol=0, atol=1e-6)
+
+
+def test_require_reliable_exits_3_on_spheres_and_still_writes_every_step(tmp_path, model_dir) -> None:
+    """Samples of a sphere: any turn fits, so no step is reliable."""
+    paths = []
+    for index in range(3):
+        paths.append(tmp_path / f"sphere_{index}.npy")
+        np.save(paths[-1], unit_directions(np.random.default_rng(index), 1000))
+    out = tmp_path / "poses.jsonl"
+    assert sequence(*paths, model_dir=model_dir).exit_code == 0
+    result = sequence(*paths, "--require-reliable", "--out", out, model_dir=model_dir)
+    assert result.exit_code == 3, result.output
+    assert "steps 1, 2 not reliable (--require-reliable)" in result.stderr
+    assert [step["quality"]["reliable"] for step in steps_of(out.read_text())] == [False, False]
+
+
+def test_a_frame_unreadable_midway_exits_2_naming_it_after_the_steps_before(tmp_path, frames, model_dir) -> None:
+    bad = tmp_path / "frame_2.npy"
+    np.save(bad, np.full((100, 3), np.nan))
+    out, kitti = tmp_path / "poses.jsonl", tmp_path / "poses.txt"
+    result = sequence(frames[0], frames[1], bad, frames[3], "--out", out, "--kitti", kitti, model_dir=model_dir)
+    assert result.exit_code == 2, result.output
+    assert f"frame 2 {bad}:" in result.stderr and "Traceback" not in result.output
+    assert "[1/3]" in result.stderr and "[2/3]" not in result.stderr
+    assert len(out.read_text().splitlines()) == 1 and len(kitti.read_text().splitlines()) == 2
+
+
+def test_a_pair_the_pipeline_refuses_exits_2_naming_both_frames(tmp_path, frames, model_dir) -> None:
+    few = tmp_path / "few.npy"
+    np.save(few, asymmetric_blob(10))  # fewer points than the pipeline takes
+    result = sequence(frames[0], few, model_dir=model_dir)
+    assert result.exit_code == 2, result.output
+    assert f"frame 1 {few} onto frame 0 {frames[0]}:" in result.stderr and "Traceback" not in result.output
+
+
+@pytest.mark.parametrize("case", ["one-frame", "missing", "extension", "folder", "output-is-a-frame", "kitti-folder",
+                                  "same-outputs", "kitti-on-stdout"])
+def test_usage_errors_exit_2_before_any_registration(tmp_path, frames, model_dir, case) -> None:
+    out = tmp_path / "poses.jsonl"
+    f0, f1, f2 = map(str, frames[:3])
+    args, fragments = {
+        "one-frame": ([f0], ["at least two frames, got 1"]),
+        "missing": ([f0, f1, tmp_path / "nope.ply", f2], [f"frame 2 {tmp_path / 'nope.ply'}: no such file"]),
+        "extension": ([f0, f1, tmp_path / "scan.bin"], ["frame 2", "unknown extension '.bin'", ".ply"]),
+        "folder": ([f0, tmp_path], [f"frame 1 {tmp_path}: a folder"]),
+        "output-is-a-frame": ([f0, f1, "--kitti", f1], ["--kitti", "is one of the frames"]),
+        "kitti-folder": ([f0, f1, "--kitti", tmp_path / "no" / "poses.txt"], ["--kitti", "does not exist"]),
+        "same-outputs": ([f0, f1, "--kitti", out], ["--out and --kitti are the same file"]),
+        "kitti-on-stdout": ([f0, f1, "--kitti", "-"], ["--kitti -", "name a file"]),
+    }[case]
+    (tmp_path / "scan.bin").write_bytes(np.zeros((100, 3), np.float32).tobytes())
+    before = frames[1].read_bytes()
+    assert_usage_error(sequence(*args, "--out", out, model_dir=model_dir), *fragments)
+    assert not out.exists() and frames[1].read_bytes() == before
+
+
+def test_help_runs_without_torch(tmp_path) -> None:
+    """``mfgnet sequence --help`` in a real subprocess of a Python that cannot import torch, as in the container."""
+    argv, env = python_without_torch(tmp_path)
+    code = ("import sys; from service.cli import main; sys.argv = ['mfgnet', 'sequence', '--help']\n"
+            "try:\n    main()\nfinally:\n"
+            "    print('LEAKED', sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('torch', 'model', 'export', 'bench')), file=sys.stderr)")
+    run = subprocess.run([*argv, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "Usage: mfgnet sequence" in run.stdout and "--constant-velocity" in run.stdout
+    assert "--kitti" in run.stdout and "--require-reliable" in run.stdout and "LEAKED []" in run.stderr
