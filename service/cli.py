@@ -23,7 +23,8 @@ from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Re
 from service.request_defaults import DEFAULT_MODEL
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
-if TYPE_CHECKING:  # onnxruntime loads only in the commands that register
+if TYPE_CHECKING:  # onnxruntime and httpx load only in the commands that register
+    from service.client import MfgnetClient
     from service.in_process import LocalRegistrar
     from service.sequence import Step
 
@@ -100,9 +101,9 @@ SourceArg = Annotated[
 TargetArg = Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to align it to (same formats)")]
 ModelOpt = Annotated[
     str | None,
-    typer.Option(help=f"model name (bundled or under --model-dir) or a model folder; default {DEFAULT_MODEL!r} "
-                      "in-process (the only model under --model-dir where it holds one), the server's default with "
-                      "--server"),
+    typer.Option(help="in-process, a bundled model's name, one under --model-dir, or a model folder [default: "
+                      f"{DEFAULT_MODEL!r}; the only model under --model-dir where it holds one]; with --server, the "
+                      "name of a model the server serves [default: its MFGNET_DEFAULT_MODEL]"),
 ]
 IterationsOpt = Annotated[int | None, typer.Option(help="network iterations (default: the model's)")]
 KeypointsOpt = Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")]
@@ -204,9 +205,8 @@ def register_command(
     """
     if out == Path("-"):  # the record on standard output, nothing else there
         out, json_output = None, True
-    _check_register_flags(write_aligned, server, model_dir, out)
-    if server and threads is not None:
-        _fail("--threads only applies in-process; a server uses its MFGNET_THREADS")
+    _check_register_flags(write_aligned, out)
+    _check_server_flags(server, model_dir, threads)
     if refine is not None and refine.value == "none" and refine_points is not None:
         _fail("--refine-points sets the refinement's clouds; --refine none runs no refinement")
     search = _search_option(rotation_search, rotation_search_mode)
@@ -229,19 +229,24 @@ def register_command(
         raise typer.Exit(UNRELIABLE_EXIT)
 
 
-def _check_register_flags(write_aligned: Path | None, server: str | None, model_dir: list[Path] | None,
-                          out: Path | None = None) -> None:
-    """Usage errors that need no file read, before the registration runs."""
+def _check_register_flags(write_aligned: Path | None, out: Path | None = None) -> None:
+    """Usage errors of ``register``'s outputs, before the registration runs."""
     from service.pointcloud_io import SUFFIXES
 
     _check_output_path(out, "--out")
     _check_output_path(write_aligned, "--write-aligned")
     if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
         _fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
+
+
+def _check_server_flags(server: str | None, model_dir: list[Path] | None, threads: int | None) -> None:
+    """Usage errors of ``--server`` (register, sequence): a URL without its scheme, or in-process options with it."""
     if server and model_dir:
         _fail("--model-dir only applies in-process; a server uses its own model folders")
     if server and not server.lower().startswith(("http://", "https://")):
         _fail(f"--server {server!r}: a URL starting with http:// or https://")
+    if server and threads is not None:
+        _fail("--threads only applies in-process; a server uses its MFGNET_THREADS")
 
 
 def _check_output_path(path: Path | None, option: str) -> None:
@@ -420,20 +425,49 @@ def _register_remote(server: str, api_key: str | None, src: np.ndarray, tgt: np.
                      options: dict, binary: bool, timeout: float, busy_retries: int) -> dict:
     """The pose from ``server``; the float64 clouds go to the client as they are (it re-centres far-away ones before
     any float32 upload: cast here, map coordinates lost their centimetres, and the pose its degrees)."""
+    with _server_client(server, api_key, timeout, busy_retries) as client:
+        try:
+            return _remote_record(client, src, tgt, model, options, binary)
+        except ServerError as exc:
+            _fail(str(exc), code=exc.code)
+
+
+class ServerError(Exception):
+    """A registration through ``--server`` that failed, with the exit status it means: ``code`` 2 where the server
+    refused the request, 1 where no answer came, a 5xx or an answer without a pose (``mfgnet sequence`` adds which
+    frames it was)."""
+
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+@contextlib.contextmanager
+def _server_client(server: str, api_key: str | None, timeout: float, busy_retries: int) -> Iterator[MfgnetClient]:
+    """The :class:`service.client.MfgnetClient` of ``--server`` (one connection for every request made with it)."""
     try:
-        from service.client import MfgnetClient, MfgnetError, pose_from_response
+        from service.client import MfgnetClient
     except ImportError as exc:
         _fail(f"--server needs httpx: {SERVE_EXTRA_HINT} ({exc})")
+    with MfgnetClient(server, api_key=api_key, timeout=timeout, busy_retries=busy_retries) as client:
+        yield client
+
+
+def _remote_record(client: MfgnetClient, src: np.ndarray, tgt: np.ndarray, model: str | None, options: dict,
+                   binary: bool) -> dict:
+    """The ``mfgnet register`` record of ``src [N, 3]`` onto ``tgt [M, 3]`` from one ``POST /v1/register`` (no
+    correspondences asked for); raises :class:`ServerError`."""
+    from service.client import MfgnetError, pose_from_response
+
     try:
-        with MfgnetClient(server, api_key=api_key, timeout=timeout, busy_retries=busy_retries) as client:
-            response = client.register(src, tgt, model=model, return_correspondences=False, binary=binary, **options)
+        response = client.register(src, tgt, model=model, return_correspondences=False, binary=binary, **options)
     except MfgnetError as exc:
         hint = " (--api-key or MFGNET_API_KEY)" if exc.status == 401 else ""
-        _fail(f"server: {exc}{hint}", code=2 if 400 <= exc.status < 500 else 1)
+        raise ServerError(f"server: {exc}{hint}", code=2 if 400 <= exc.status < 500 else 1) from exc
     try:
         R, t = pose_from_response(response)
     except ValueError as exc:
-        _fail(f"server: unexpected answer ({exc})", code=1)
+        raise ServerError(f"server: unexpected answer ({exc})", code=1) from exc
     keys = ("quality", "warnings", "model", "iterations", "timing_ms")
     return pose_record(R, t, **{key: response.get(key) for key in keys})
 
@@ -520,30 +554,37 @@ def sequence_command(
     refine: RefineOpt = None,
     refine_points: RefinePointsOpt = None,
     drop_isolated: DropIsolatedOpt = True,
+    server: ServerOpt = None,
+    api_key: ApiKeyOpt = None,
+    timeout: TimeoutOpt = 60.0,
+    busy_retries: BusyRetriesOpt = 2,
     rotation_search: RotationSearchOpt = None,
     rotation_search_mode: RotationSearchModeOpt = None,
     threads: ThreadsOpt = None,
 ) -> None:
-    """Register a sequence of scans in one process: each FRAME onto the one before it.
+    """Register a sequence of scans: each FRAME onto the one before it.
 
-    The model loads once. Each step gives the relative pose T_{i-1}_i (source
-    frame i -> target frame i-1, as `mfgnet register` gives it) and the
-    accumulated T_0_i = T_0_{i-1} @ T_{i-1}_i (frame i in frame 0's
-    coordinates). Every frame is checked (exists, a regular file, a known
-    extension) before the first registration; one short progress line per
-    step goes to standard error. A path may repeat (a frame registered onto
-    itself gives about the identity).
+    In one process with the model loaded once, or through a running service
+    with --server (the frames read here and uploaded, one request per step).
+    Each step gives the relative pose T_{i-1}_i (source frame i -> target
+    frame i-1, as `mfgnet register` gives it) and the accumulated
+    T_0_i = T_0_{i-1} @ T_{i-1}_i (frame i in frame 0's coordinates). Every
+    frame is checked (exists, a regular file, a known extension) before the
+    first registration; one short progress line per step goes to standard
+    error. A path may repeat (a frame registered onto itself gives about the
+    identity).
 
     \b
     Exit codes:
     0 done (whether or not every step is reliable; see --require-reliable);
     2 bad input (fewer than two frames, a missing or unreadable frame, a bad
-      option, an unknown model); the steps before an unreadable frame are
-      written;
-    1 other failures (model integrity, an output that cannot be written);
+      option, an unknown model, a step refused by the server); the steps
+      before the frame that failed are written;
+    1 other failures (model integrity, an output that cannot be written,
+      server unreachable or 5xx);
     3 with --require-reliable: every step registered, one or more not reliable.
     """
-    from service.sequence import frame_problem, kitti_line, register_sequence
+    from service.sequence import frame_problem, register_sequence
 
     if out == Path("-"):
         out = None
@@ -554,6 +595,7 @@ def sequence_command(
         if problem:
             _fail(f"frame {index} {path}: {problem}")
     _check_sequence_outputs(frames, out, kitti)
+    _check_server_flags(server, model_dir, threads)
     if refine is not None and refine.value == "none" and refine_points is not None:
         _fail("--refine-points sets the refinement's clouds; --refine none runs no refinement")
     search = _search_option(rotation_search, rotation_search_mode)
@@ -561,13 +603,35 @@ def sequence_command(
                "rotation_search": search, "refine_points": refine_points}
     if not drop_isolated:
         options["drop_isolated"] = False
-    registrar = _load_registrar(model, model_dir or [], threads)
+    with contextlib.ExitStack() as stack:
+        if server:  # one connection for every step; .npy uploads, as register's default --binary
+            client = stack.enter_context(_server_client(server, api_key, timeout, busy_retries))
 
-    def register_pair(src: np.ndarray, tgt: np.ndarray, guess: list | None) -> dict:
-        return _local_record(registrar, src, tgt, {**options, "initial_transform": guess})
+            def register_pair(src: np.ndarray, tgt: np.ndarray, guess: list | None) -> dict:
+                return _remote_record(client, src, tgt, model, {**options, "initial_transform": guess}, True)
+        else:
+            registrar = _load_registrar(model, model_dir or [], threads)
 
-    steps = register_sequence(frames, _read_frame, register_pair, constant_velocity=constant_velocity)
-    unreliable: list[int] = []  # indices of the steps that are not quality.reliable
+            def register_pair(src: np.ndarray, tgt: np.ndarray, guess: list | None) -> dict:
+                return _local_record(registrar, src, tgt, {**options, "initial_transform": guess})
+
+        steps = register_sequence(frames, _read_frame, register_pair, constant_velocity=constant_velocity)
+        unreliable = _write_steps(steps, frames, out, kitti)
+    written = ", ".join(str(path) for path in (out, kitti) if path is not None)
+    typer.echo(f"{len(frames) - 1} steps, {len(unreliable)} not reliable" + (f"; wrote {written}" if written else ""),
+               err=True)
+    if require_reliable and unreliable:
+        which = f"step{'s' if len(unreliable) > 1 else ''} {', '.join(map(str, unreliable))}"
+        typer.echo(f"mfgnet: {which} not reliable (--require-reliable)", err=True)
+        raise typer.Exit(UNRELIABLE_EXIT)
+
+
+def _write_steps(steps: Iterator[Step], frames: list[Path], out: Path | None, kitti: Path | None) -> list[int]:
+    """Each step's JSON line (``out``, else standard output), KITTI line (``kitti``) and progress line as it comes;
+    the indices of the steps that are not quality.reliable."""
+    from service.sequence import kitti_line
+
+    unreliable: list[int] = []
     with _open_output(out) as lines, _open_output(kitti, to_stdout=False) as poses:
         if poses is not None:
             _write_line(poses, kitti_line(np.eye(4)), kitti)  # frame 0: the origin of the map
@@ -578,13 +642,7 @@ def sequence_command(
             typer.echo(_step_progress(step, len(frames) - 1), err=True)
             if not step.reliable:
                 unreliable.append(step.index)
-    written = ", ".join(str(path) for path in (out, kitti) if path is not None)
-    typer.echo(f"{len(frames) - 1} steps, {len(unreliable)} not reliable" + (f"; wrote {written}" if written else ""),
-               err=True)
-    if require_reliable and unreliable:
-        which = f"step{'s' if len(unreliable) > 1 else ''} {', '.join(map(str, unreliable))}"
-        typer.echo(f"mfgnet: {which} not reliable (--require-reliable)", err=True)
-        raise typer.Exit(UNRELIABLE_EXIT)
+    return unreliable
 
 
 def _check_sequence_outputs(frames: list[Path], out: Path | None, kitti: Path | None) -> None:
@@ -615,7 +673,8 @@ def _read_frame(index: int, path: Path) -> np.ndarray:
 
 
 def _steps_or_fail(steps: Iterator[Step], frames: list[Path]) -> Iterator[Step]:
-    """``steps`` as they come; a pair the pipeline refuses (too few points, ...) is exit 2 naming both frames."""
+    """``steps`` as they come; a pair the pipeline or the server refuses (too few points, ...) is exit 2 naming both
+    frames, a server unreachable or failing exit 1 naming them too."""
     from service.errors import InputError
 
     index = 1  # the step being registered: frame index onto frame index - 1
@@ -624,8 +683,9 @@ def _steps_or_fail(steps: Iterator[Step], frames: list[Path]) -> Iterator[Step]:
             step = next(steps)
         except StopIteration:
             return
-        except InputError as exc:
-            _fail(f"frame {index} {frames[index]} onto frame {index - 1} {frames[index - 1]}: {exc}")
+        except (InputError, ServerError) as exc:
+            _fail(f"frame {index} {frames[index]} onto frame {index - 1} {frames[index - 1]}: {exc}",
+                  code=exc.code if isinstance(exc, ServerError) else 2)
         yield step
         index += 1
 

@@ -10,10 +10,12 @@ from __future__ import annotations
 import itertools
 import json
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+from api_server import free_port, start_subprocess_server
 from cli_support import python_without_torch, snapshot_model
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, unit_directions
@@ -146,12 +148,18 @@ def test_progress_goes_to_stderr_one_line_per_step(plain_run) -> None:
     assert all("-> frame_" in line and ": reliable," in line for line in progress), progress
 
 
-def test_constant_velocity_passes_the_last_step_as_the_guess(plain_run, frames, model_dir) -> None:
+@pytest.fixture(scope="module")
+def velocity_run(frames, model_dir) -> list[dict]:
+    """The whole sequence with ``--constant-velocity``, its JSON lines on standard output."""
+    result = sequence(*frames, "--constant-velocity", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    return steps_of(result.stdout)
+
+
+def test_constant_velocity_passes_the_last_step_as_the_guess(plain_run, velocity_run) -> None:
     """The guess is the step before's relative pose; where the sensor turns back, the result departs from it (with
     the warning) and still follows the motion."""
-    result = sequence(*frames, "--constant-velocity", model_dir=model_dir)  # JSON lines on standard output
-    assert result.exit_code == 0, result.output
-    steps = steps_of(result.stdout)
+    steps = velocity_run
     assert len(steps) == 4 and steps[0]["initial_transform"] is None
     for before, step in itertools.pairwise(steps):
         assert step["initial_transform"] == before["transform"]
@@ -161,6 +169,96 @@ def test_constant_velocity_passes_the_last_step_as_the_guess(plain_run, frames, 
     for step in steps:
         degrees, shift = gap(step["transform"], MOTIONS[step["index"] - 1])
         assert degrees < MAX_DEG and shift < MAX_SHIFT, (step["index"], degrees, shift)
+
+
+@pytest.fixture(scope="module")
+def server(model_dir) -> Iterator[str]:
+    """Base URL of a real server (uvicorn in a subprocess on 127.0.0.1) serving the same copy of ``general``."""
+    served = start_subprocess_server("sequence", MFGNET_MODEL_DIRS=str(model_dir.parent),
+                                     MFGNET_DEFAULT_MODEL=model_dir.name)
+    yield served.url
+    served.stop()
+
+
+def assert_same_steps_but_timing(remote: list[dict], local: list[dict]) -> None:
+    """The JSON lines of ``--server`` and in-process: the same keys, frames, guesses passed, model, warnings and
+    reliability; the numbers within float32 rounding of the uploaded clouds; only ``timing_ms`` differs."""
+    assert len(remote) == len(local)
+    for there, here in zip(remote, local, strict=True):
+        assert set(there) == set(here) == STEP_KEYS
+        for key in ("index", "source", "target", "model", "iterations", "warnings"):
+            assert there[key] == here[key], (here["index"], key)
+        assert there["quality"]["reliable"] == here["quality"]["reliable"]
+        for key in ("inlier_ratio", "residual_rms", "stability"):
+            np.testing.assert_allclose(there["quality"][key], here["quality"][key], rtol=1e-5, atol=1e-8)
+        for key in ("rotation", "translation", "transform", "quaternion_xyzw", "accumulated_transform"):
+            np.testing.assert_allclose(there[key], here[key], rtol=0, atol=1e-6, err_msg=f"{here['index']} {key}")
+        for key in ("euler_zyx_deg", "yaw_pitch_roll_deg"):
+            np.testing.assert_allclose(there[key], here[key], rtol=0, atol=1e-4, err_msg=f"{here['index']} {key}")
+        if here["initial_transform"] is None:
+            assert there["initial_transform"] is None
+        else:
+            np.testing.assert_allclose(there["initial_transform"], here["initial_transform"], rtol=0, atol=1e-6)
+        assert "queue" in there["timing_ms"] and "queue" not in here["timing_ms"]  # the server's own stage
+
+
+def test_server_lines_and_kitti_poses_equal_the_in_process_ones_but_timing(server, plain_run, frames,
+                                                                          tmp_path) -> None:
+    out, kitti = tmp_path / "poses.jsonl", tmp_path / "poses.txt"
+    result = runner.invoke(app, ["sequence", *map(str, frames), "--server", server, "--out", str(out),
+                                 "--kitti", str(kitti)])
+    assert result.exit_code == 0, result.output
+    steps = steps_of(out.read_text())
+    assert_same_steps_but_timing(steps, plain_run["steps"])
+    poses = np.loadtxt(kitti.read_text().splitlines()).reshape(5, 3, 4)
+    np.testing.assert_array_equal(poses[0], np.eye(4)[:3])
+    for step in steps:
+        np.testing.assert_allclose(poses[step["index"]], np.asarray(step["accumulated_transform"])[:3],
+                                   rtol=0, atol=1e-11)
+    np.testing.assert_allclose(poses, np.loadtxt(plain_run["kitti"].splitlines()).reshape(5, 3, 4), rtol=0, atol=1e-4)
+    progress = [line.split()[0] for line in result.stderr.splitlines() if line.startswith("[")]
+    assert progress == ["[1/4]", "[2/4]", "[3/4]", "[4/4]"]
+
+
+def test_server_constant_velocity_sends_the_last_step_as_the_guess(server, velocity_run, frames) -> None:
+    result = runner.invoke(app, ["sequence", *map(str, frames), "--server", server, "--constant-velocity"])
+    assert result.exit_code == 0, result.output
+    steps = steps_of(result.stdout)
+    assert_same_steps_but_timing(steps, velocity_run)
+    for before, step in itertools.pairwise(steps):
+        assert step["initial_transform"] == before["transform"]
+
+
+def test_a_step_the_server_refuses_exits_2_naming_both_frames_after_the_steps_before(server, frames,
+                                                                                    tmp_path) -> None:
+    few = tmp_path / "few.npy"
+    np.save(few, asymmetric_blob(10))  # fewer points than the server takes
+    out = tmp_path / "poses.jsonl"
+    result = runner.invoke(app, ["sequence", str(frames[0]), str(frames[1]), str(few), "--server", server,
+                                 "--out", str(out)])
+    assert result.exit_code == 2, result.output
+    assert f"frame 2 {few} onto frame 1 {frames[1]}: server: HTTP 422" in result.stderr, result.stderr
+    assert "Traceback" not in result.output and len(out.read_text().splitlines()) == 1
+
+
+def test_an_unreachable_server_exits_1_naming_the_first_step(frames, tmp_path) -> None:
+    out = tmp_path / "poses.jsonl"
+    url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    result = runner.invoke(app, ["sequence", *map(str, frames[:3]), "--server", url, "--out", str(out),
+                                 "--busy-retries", "0", "--timeout", "5"])
+    assert result.exit_code == 1, result.output
+    assert f"frame 1 {frames[1]} onto frame 0 {frames[0]}: server: cannot reach {url}" in result.stderr
+    assert "Traceback" not in result.output and out.read_text() == ""
+
+
+@pytest.mark.parametrize("case", ["model-dir", "threads", "no-scheme"])
+def test_server_usage_errors_exit_2_before_any_request(tmp_path, frames, model_dir, case) -> None:
+    args, fragment = {
+        "model-dir": (["--server", "http://127.0.0.1:9", "--model-dir", str(model_dir)], "--model-dir only applies"),
+        "threads": (["--server", "http://127.0.0.1:9", "--threads", "2"], "--threads only applies in-process"),
+        "no-scheme": (["--server", "127.0.0.1:8080"], "http://"),
+    }[case]
+    assert_usage_error(runner.invoke(app, ["sequence", *map(str, frames[:2]), *args]), fragment)
 
 
 def test_a_repeated_frame_is_registered_onto_itself_as_the_identity(plain_run, frames, model_dir) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -13,7 +14,8 @@ from cli_support import REPO_ROOT, snapshot_model
 
 from service.manifest import bundled_models_dir
 
-# Prints {command: {"help": its --help text, "flags": its option names}} for every `mfgnet` command.
+# Prints {command: {"help": its --help text, "flags": its option names, "texts": its own and its options' help
+# texts as written, unwrapped}} for every `mfgnet` command.
 EVERY_HELP = """
 import contextlib, io, json, typer
 from service.cli import app
@@ -23,9 +25,10 @@ for name in ["", *group.list_commands(None)]:
     text = io.StringIO()
     with contextlib.redirect_stdout(text), contextlib.suppress(SystemExit):
         app([name, "--help"] if name else ["--help"], prog_name="mfgnet")
-    params = group.get_command(None, name).params if name else group.params
-    flags = [flag for p in params for flag in (*p.opts, *p.secondary_opts) if flag.startswith("-")]
-    out[name or "mfgnet"] = {"help": text.getvalue(), "flags": flags}
+    command = group.get_command(None, name) if name else group
+    flags = [flag for p in command.params for flag in (*p.opts, *p.secondary_opts) if flag.startswith("-")]
+    texts = [command.help or "", *(getattr(p, "help", None) or "" for p in command.params)]
+    out[name or "mfgnet"] = {"help": text.getvalue(), "flags": flags, "texts": texts}
 print(json.dumps(out))
 """
 
@@ -55,10 +58,15 @@ def test_models_fits_100_columns_and_marks_the_default(tmp_path) -> None:
     assert marked[0][:2] == ["*", "general"] and marked[0][-1] == "bundled"  # the bundled default
 
 
-def test_every_help_fits_80_columns_with_whole_flag_names() -> None:
+@pytest.fixture(scope="module")
+def helps() -> dict:
+    """What ``EVERY_HELP`` prints, from one subprocess at ``COLUMNS=80``."""
     run = mfgnet(code=EVERY_HELP)
     assert run.returncode == 0, run.stderr
-    helps = json.loads(run.stdout)
+    return json.loads(run.stdout)
+
+
+def test_every_help_fits_80_columns_with_whole_flag_names(helps) -> None:
     assert {"mfgnet", "serve", "register", "models"} <= set(helps)
     for name, page in helps.items():
         widest = max(page["help"].splitlines(), key=len)
@@ -67,3 +75,16 @@ def test_every_help_fits_80_columns_with_whole_flag_names() -> None:
         for flag in page["flags"]:
             assert flag in page["help"].split() or f"{flag}," in page["help"], f"{name}: {flag} cut"
     assert "--rotation-search-mode" in helps["register"]["help"].split()
+
+
+def test_every_flag_a_help_names_is_one_of_its_commands(helps) -> None:
+    """Option types are shared between commands (register and sequence): a help text names only flags of the command
+    it is shown by. Another command's flags are named after that command (`register --json`, mfgnet evaluate
+    --json)."""
+    commands = "|".join(name for name in helps if name != "mfgnet")
+    for name, page in helps.items():
+        own = {*page["flags"], "--help"}
+        for text in page["texts"]:
+            text = re.sub(rf"\b(?:{commands})(?: --?[a-z][\w-]*)+", "", text)  # another command's flags
+            named = set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", text))
+            assert named <= own, f"{name}: {sorted(named - own)} in {text!r}"
