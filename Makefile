@@ -14,7 +14,14 @@ $(BIN)/python:
 install-serve: $(BIN)/python
 	$(BIN)/pip install -q -e ".[serve]"
 
+# torch first, from PyTorch's CPU index: PyPI's Linux torch wheel is the CUDA build (it requires cuda-toolkit and
+# nvidia-* packages). The extras then find it installed (TORCH is pyproject.toml's pin; a test checks they agree).
+# `make test TORCH_INDEX=<another PyTorch index>` installs another build (a CUDA one).
+TORCH ?= torch==2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+
 install-dev: $(BIN)/python
+	$(BIN)/pip install -q --no-deps --index-url $(TORCH_INDEX) "$(TORCH)"
 	$(BIN)/pip install -q -e ".[train,dev]"
 
 # Headless Chromium and its driver for the page's browser test (Debian packages; quick when present).

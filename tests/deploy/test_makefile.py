@@ -1,0 +1,48 @@
+"""The README's set-up commands as ``make`` runs them: ``make test`` installs torch's CPU build.
+
+PyPI's Linux ``torch`` wheel is the CUDA build (its metadata requires ``cuda-toolkit`` and ``nvidia-*`` packages),
+so ``pip install -e ".[train,dev]"`` alone installs CUDA torch on a clean Linux machine. The Makefile
+installs the pinned torch from PyTorch's CPU index first; the extras then find it installed. ``make -n`` prints the
+commands without running them.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+CPU_INDEX = "https://download.pytorch.org/whl/cpu"
+
+
+def make_commands(target: str, venv: Path) -> list[list[str]]:
+    """The commands ``make TARGET`` would run for a venv that does not exist yet (continuations joined)."""
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    printed = subprocess.run(["make", "-n", "-C", str(ROOT), target, f"VENV={venv}"], capture_output=True,
+                             text=True, timeout=60, check=True).stdout
+    return [shlex.split(line) for line in printed.replace("\\\n", " ").splitlines() if line.strip()]
+
+
+def pinned_torch() -> str:
+    """The ``train`` extra's torch requirement in ``pyproject.toml`` (``torch==X.Y.Z``)."""
+    pins = re.findall(r'^\s*"(torch==[^"]+)"', (ROOT / "pyproject.toml").read_text(), flags=re.M)
+    assert len(pins) == 1, pins
+    return pins[0]
+
+
+def test_make_test_installs_the_pinned_torch_from_the_cpu_index_before_the_extras(tmp_path) -> None:
+    commands = make_commands("install-dev", tmp_path / "venv")
+    pip = [i for i, argv in enumerate(commands) if argv[0].endswith("/pip") and argv[1] == "install"]
+    torch = [i for i in pip if pinned_torch() in commands[i]]
+    extras = [i for i in pip if any(arg.startswith(".[train") for arg in commands[i])]
+    assert torch and extras, commands
+    argv = commands[torch[0]]
+    assert argv[argv.index("--index-url") + 1] == CPU_INDEX, argv  # not PyPI's CUDA build
+    assert "--no-deps" in argv, argv  # torch's own dependencies come from PyPI with the extras
+    assert torch[0] < extras[0], commands  # else the extras' resolver takes torch from PyPI
