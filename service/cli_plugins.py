@@ -16,7 +16,9 @@ import typer
 from typer.core import TyperGroup
 
 PLUGIN_GROUP = "mfgnet.commands"
-TRAIN_EXTRA_HINT = "this command needs the training side: pip install 'mfgnet[train]'"
+# Not `pip install 'mfgnet[train]'`: on Linux that takes PyPI's torch, the CUDA build (README, Set-up).
+TRAIN_EXTRA_HINT = ("this command needs the training side (the train extra): make install-dev in a source checkout, "
+                    "which takes torch from PyTorch's CPU index")
 STUB_SETTINGS = {"allow_extra_args": True, "ignore_unknown_options": True}  # a stub accepts any options
 
 
