@@ -3,7 +3,8 @@
 PyPI's Linux ``torch`` wheel is the CUDA build (its metadata requires ``cuda-toolkit`` and ``nvidia-*`` packages),
 so ``pip install -e ".[train,dev]"`` alone installs CUDA torch on a clean Linux machine. The Makefile
 installs the pinned torch from PyTorch's CPU index first; the extras then find it installed. ``make -n`` prints the
-commands without running them.
+commands without running them. A doc that installs an extra holding torch (``train``, ``bench``) does it after
+``make install-dev``, so that the extra finds the CPU build installed.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]  # not docs/decisions/: historical records
 CPU_INDEX = "https://download.pytorch.org/whl/cpu"
 
 
@@ -46,3 +48,10 @@ def test_make_test_installs_the_pinned_torch_from_the_cpu_index_before_the_extra
     assert argv[argv.index("--index-url") + 1] == CPU_INDEX, argv  # not PyPI's CUDA build
     assert "--no-deps" in argv, argv  # torch's own dependencies come from PyPI with the extras
     assert torch[0] < extras[0], commands  # else the extras' resolver takes torch from PyPI
+
+
+def test_docs_install_the_torch_extras_after_make_install_dev() -> None:
+    bare = [f"{doc.name}:{number}: {line.strip()}" for doc in DOCS
+            for number, line in enumerate(doc.read_text().splitlines(), 1)
+            if re.search(r"pip install .*\[[^\]]*\b(train|bench)\b", line) and "make install-dev" not in line]
+    assert not bare, bare
