@@ -66,16 +66,22 @@ def _interrupted(command: list[str], signum: int, ready_line: bool, tmp_path: Pa
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
 def test_real_scans_interrupted_while_its_server_starts_leaves_no_server(signum, tmp_path):
-    cloud = np.random.default_rng(0).normal(size=(200, 3)).astype(np.float32)  # one tiny pair: never registered
+    # enough pairs that the run cannot end before the signal even where a loaded machine delays this test
+    rng = np.random.default_rng(0)
     scans = tmp_path / "scans"
     scans.mkdir()
-    np.savez(scans / "a.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
+    for i in range(40):
+        cloud = rng.normal(size=(2000, 3)).astype(np.float32)
+        np.savez(scans / f"p{i:02d}.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="cyberware-range")
     status, stderr, left = _interrupted([sys.executable, "-m", "bench.real_scans", str(scans), "--no-fpfh",
                                          "--scales", "1"], signum, False, tmp_path)
     assert left == [], f"servers left running: {left}"
-    assert status == (128 + signal.SIGTERM if signum == signal.SIGTERM else -signal.SIGINT)
     if signum == signal.SIGTERM:
-        assert "Traceback" not in stderr
+        assert status == 128 + signal.SIGTERM and "Traceback" not in stderr
+    elif status != -signal.SIGINT:
+        # Python swallows a KeyboardInterrupt raised inside a __del__ or another callback ("Exception ignored"), which
+        # a loaded machine can time the signal into; the benchmark then runs on and must still stop its server
+        assert status == 0 and "KeyboardInterrupt" in stderr, (status, stderr[-2000:])
 
 
 def test_sigterm_while_measuring_stops_the_server(tmp_path):
