@@ -42,11 +42,11 @@ from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
 from service.stages.features import DESCRIBE_BELOW, describable, feature_confirmed
-from service.stages.guess import keeps_guess
+from service.stages.guess import better_than_unguessed, keeps_guess, same_basin
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
-from service.stages.refine import CANDIDATE_ITERATIONS
+from service.stages.refine import CANDIDATE_ITERATIONS, icp_distance
 from service.stages.search import (
     AUTO_SEARCH_RELATIVE_RATIO,
     SEARCH_AHEAD_BELOW,
@@ -343,12 +343,16 @@ class Registrar:
                     more = stages.features(self, work, found, request.iterations, request.keypoints, timing)
                     if len(more.poses) > len(found.poses):
                         found, result = more, self.solve(work, request, None, timing, found=more)
+                strayed = False  # a result that does not keep the caller's guess and that the unguessed pose denies
+                if request.options.initial_transform is not None and not keeps_guess(work, result):
+                    result, strayed = self.beside_unguessed(work, request, result, timing)
                 if mode == "auto":  # the search only when the plain result looks wrong
                     solve = searched_ahead(partial(self.solve, work, request), ahead)
                     guided = request.options.initial_transform is not None and keeps_guess(work, result)
                     result = stages.auto_search(solve, work, result, request.hypotheses, timing,
                                                 retry_points(self.manifest.search_subsample),
-                                                confirmed=feature_confirmed(work, found, result), guided=guided)
+                                                confirmed=feature_confirmed(work, found, result), guided=guided,
+                                                strayed=strayed)
             finally:
                 if ahead is not None:
                     ahead.cancel()  # no-op when its result was taken
@@ -364,6 +368,32 @@ class Registrar:
         """The plain network's pose (stage ``network``) and, where the caller gave one, the guess (``with_guess``)."""
         return self.with_guess(work, request, self.stages.network(self, work, request.iterations, request.keypoints,
                                                                   timing))
+
+    def beside_unguessed(self, work: Working, request: Request, result: RegistrationResult,
+                         timing: dict[str, float]) -> tuple[RegistrationResult, bool]:
+        """The plain ``result`` of a request whose guess it does not keep, against the network's pose from the
+        caller's own frame (stage ``unguessed``: the request's start without the guess), refined and assessed alone
+        as that request's plain pass does, unless ``result`` lies in its basin
+        (:func:`service.stages.guess.better_than_unguessed`); and whether ``auto`` should search the result kept
+        although it may look right: it is the guessed one, that pose lies elsewhere, and it looks wrong
+        (:func:`service.stages.search.looks_wrong`), so the request without the guess searches; nothing but a wrong
+        guess led to the result (``docs/decisions/0068-the-unguessed-start-competes.md``)."""
+        o = request.options
+        if o.refine_mode == "none":
+            return result, False
+        found = self.stages.unguessed(self, work, request.iterations, request.keypoints, timing)
+        distance, pose = icp_distance(work, o), (result.rotation, result.translation)
+        if found is None or same_basin(work, to_caller(work, found.poses[0].rotation, found.poses[0].translation), pose,
+                                       distance):
+            return result, False
+        alone_timing: dict[str, float] = {}
+        alone = self.solve(work, request, None, alone_timing, found=found)
+        for stage in ("refine", "postprocess"):  # its refinement and assessment, beside the plain pass's
+            timing[stage] = timing.get(stage, 0.0) + alone_timing.get(stage, 0.0)
+        kept, unconfirmed = better_than_unguessed(work, result, alone, distance)
+        if kept is alone:
+            kept.timing_ms = timing
+        return kept, unconfirmed and looks_wrong(work, alone)  # where the request without the guess searches
 
     def with_guess(self, work: Working, request: Request, found: Candidates) -> Candidates:
         """``found`` (the plain network's or the search's candidates) and, where the caller gave an

@@ -15,7 +15,7 @@ from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
 from service.stages.free_space import free_space
-from service.stages.guess import guess_candidate
+from service.stages.guess import guess_candidate, unguessed_candidate
 from service.stages.guess_check import guess_check
 from service.stages.network import network
 from service.stages.normalise import normalise
@@ -35,13 +35,16 @@ class Stages:
     normalise: Callable = normalise  # (Sampled, reference_radius) -> Working
     network: Callable = network  # (registrar, Working, iterations, keypoints, timing) -> Candidates
     guess: Callable = guess_candidate  # (Working, Candidates) -> more; where the caller gave an initial_transform
+    # (registrar, Working, iterations, keypoints, timing) -> Candidates or None; where the result strayed from the guess
+    unguessed: Callable = unguessed_candidate
     features: Callable = feature_candidates  # (registrar, Working, Candidates, iterations, keypoints, timing) -> more
     search: Callable = search  # (registrar, Working, hypotheses, iterations, keypoints, refine, timing, points=None)
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
     slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined
     flip: Callable = flip  # (Working, Refined, RegistrationOptions) -> Refined; after a search only
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
-    auto_search: Callable = auto_search  # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided)
+    # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided, strayed) -> RegistrationResult
+    auto_search: Callable = auto_search
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same

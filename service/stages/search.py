@@ -158,7 +158,7 @@ def looks_wrong(work: Working, plain: RegistrationResult, guided: bool = False) 
 
 def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: RegistrationResult,
                 hypotheses: np.ndarray, timing: dict[str, float], retry_points: int | None = None,
-                confirmed: bool = False, guided: bool = False) -> RegistrationResult:
+                confirmed: bool = False, guided: bool = False, strayed: bool = False) -> RegistrationResult:
     """``plain`` unless, on non-degenerate clouds, it may be wrong (:func:`looks_wrong`): it fits poorly
     (:func:`needs_search`) and is not a partial view's (:func:`service.stages.partial.looks_partial`); or it lies off a
     dense target's surface
@@ -172,9 +172,13 @@ def auto_search(solve: Callable[..., RegistrationResult], work: Working, plain: 
     ``solve(hypotheses, {}, points=retry_points)`` searches again on that many points per cloud, and its pose, should
     it rank first, comes back not ``reliable`` with ``RETRY_WARNING``. A ``confirmed`` result (a feature pose agrees
     with it, :func:`service.stages.features.feature_confirmed`) is not searched, nor a ``guided`` one (it keeps the
-    caller's guess, :func:`service.stages.guess.keeps_guess`) for being a room's alone.
+    caller's guess, :func:`service.stages.guess.keeps_guess`) for being a room's alone; a ``strayed`` one is searched
+    whatever its fit: it does not keep the caller's guess, and the network's pose from the caller's own frame, refined
+    alone, lies elsewhere, fits worse and looks wrong, so the request without the guess would search
+    (``Registrar.beside_unguessed``): a wrong basin reached from a wrong guess can fit well enough to pass the tests
+    above (``docs/decisions/0068-the-unguessed-start-competes.md``).
     Records ``timing`` ``search`` (the whole second pass) and ``search_per_hypothesis`` when it searched."""
-    if not work.searchable or confirmed or not looks_wrong(work, plain, guided):
+    if not work.searchable or confirmed or not (strayed or looks_wrong(work, plain, guided)):
         return plain
     started = time.perf_counter()
     result = better_of(work, plain, solve(hypotheses, {}), timing)
