@@ -285,6 +285,21 @@ def view_state(driver) -> dict[str, float]:
     return driver.execute_script(f"return {VIEW_JS}")
 
 
+def settled_scroll(driver, still_s: float = 0.3) -> int:
+    """``window.scrollY`` once it has not moved for ``still_s`` (a smooth scroll, such as Page Down's, runs on after
+    its first step)."""
+    deadline = time.monotonic() + WAIT_S
+    last, since = driver.execute_script("return window.scrollY"), time.monotonic()
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+        now = driver.execute_script("return window.scrollY")
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= still_s:
+            return now
+    raise AssertionError("the page kept scrolling")
+
+
 def press(driver, *keys: str) -> None:
     """Send keys to the focused element and wait until the view has drawn them."""
     from selenium.webdriver.common.action_chains import ActionChains
@@ -357,7 +372,7 @@ def test_the_view_turns_zooms_and_resets_from_the_keyboard_without_scrolling_the
         assert api_key.get_attribute("value") == "+-0"
         assert view_state(browser) == start
 
-        scroll_y = browser.execute_script("return window.scrollY")  # the mouse works as before
+        scroll_y = settled_scroll(browser)  # the mouse works as before (Page Down's smooth scroll has ended)
         ActionChains(browser).scroll_from_origin(ScrollOrigin.from_element(canvas), 0, 100).perform()
         wait_for(browser, f"{VIEW_JS}.distance !== {start['distance']}", "the wheel to zoom")
         assert view_state(browser)["distance"] == pytest.approx(start["distance"] * np.exp(0.1), rel=1e-4)
