@@ -149,12 +149,14 @@ def run_server(settings: Settings | None = None) -> None:
 
     settings = settings or Settings()
     configure_logging(settings.log_level)
+    app = create_app(settings)
     uvicorn.run(
-        create_app(settings),
+        app,
         host=settings.host,
         port=settings.port,
         workers=1,
-        http=h11_protocol(settings.header_timeout_s),  # uvicorn's h11, with a deadline on the request headers
+        # uvicorn's h11, with a deadline on the request headers; its 408s counted in the app's metrics
+        http=h11_protocol(settings.header_timeout_s, app.state.metrics),
         access_log=False,  # one JSON line per request comes from RequestContextMiddleware
         log_config=None,  # keep the JSON handlers configure_logging installed
         server_header=False,

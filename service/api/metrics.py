@@ -33,6 +33,12 @@ class Metrics:
             "HTTP requests answered (or given up by their client: status 499) by route template, method and status.",
             ["route", "method", "status"], registry=self.registry,
         )
+        self.header_timeouts = Counter(
+            "mfgnet_http_header_timeouts",
+            "Connections answered 408 and closed because a request's line and headers did not arrive within "
+            "header_timeout_s of its first byte (slow or stalled clients, slowloris).",
+            registry=self.registry,
+        )
         self.latency = Histogram(
             "mfgnet_http_request_duration_seconds",
             "Seconds from a request's arrival to its last response byte, by route template.",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import threading
@@ -212,3 +213,46 @@ def test_kept_alive_connections_and_headers_within_the_deadline_still_work(slow_
         time.sleep(HEADER_TIMEOUT_S * 1.5)  # idle between requests: the keep-alive timeout's, not the header one's
         sock.sendall(request)
         assert read_response(sock).startswith(b"HTTP/1.1 200")
+
+
+def header_timeouts(server) -> float:
+    """``mfgnet_http_header_timeouts_total`` on the server's ``/metrics``."""
+    with server.client() as client:
+        match = re.search(r"^mfgnet_http_header_timeouts_total (\S+)$", client.get("/metrics").text, re.MULTILINE)
+    assert match, "mfgnet_http_header_timeouts_total is not exported"
+    return float(match.group(1))
+
+
+def stall_headers(server) -> bytes:
+    """A request line and one header, then nothing: the server's answer once it closes the connection."""
+    with connect(server) as sock:
+        sock.sendall(b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\n")
+        answer = read_response(sock)
+        assert sock.recv(1) == b""
+    return answer
+
+
+def test_each_header_timeout_is_counted_once_and_written_as_an_access_line(slow_headers_server):
+    """They were a warning line only: neither /metrics nor the access log showed them."""
+    before = header_timeouts(slow_headers_server)
+    answers: list[bytes] = []
+    stalled = [threading.Thread(target=lambda: answers.append(stall_headers(slow_headers_server))) for _ in range(2)]
+    for thread in stalled:
+        thread.start()
+    with slow_headers_server.client() as client:  # normal requests meanwhile, a kept-alive connection's among them
+        for _ in range(3):
+            assert client.get("/v2/health/live").status_code == 200
+    for thread in stalled:
+        thread.join(KEEP_ALIVE_S + 10)
+    assert [answer[:12] for answer in answers] == [b"HTTP/1.1 408"] * 2
+    assert header_timeouts(slow_headers_server) == before + 2
+    assert header_timeouts(slow_headers_server) == before + 2  # the scrapes themselves add nothing
+
+    ids = {re.search(rb"x-request-id: (\w+)", answer).group(1).decode() for answer in answers}
+    lines = {line.get("request_id"): line for line in slow_headers_server.log_lines()
+             if line.get("logger") == "mfgnet.access" and line.get("status") == 408}
+    assert ids <= set(lines), (ids, lines)
+    for request_id in ids:
+        line = lines[request_id]
+        assert line["msg"] == "request" and line["client"] == "127.0.0.1" and "header_timeout_s" in line["error"]
+        assert HEADER_TIMEOUT_S * 1000 <= line["ms"] < (HEADER_TIMEOUT_S + 3) * 1000, line
