@@ -86,7 +86,8 @@ def export(
         try:
             report = check_parity(model, registrar, pairs, min_compared=min_comparable)
         except ParityError as exc:
-            fail(f"export failed, {out} left as it was: {exc}", code=1)
+            advice = untrained_advice(checkpoint, data) if exc.nearly_identical_embeddings else ""
+            fail(f"export failed, {out} left as it was: {exc}{advice}", code=1)
         manifest_path = stage / MANIFEST
         manifest = json.loads(manifest_path.read_text())
         manifest["parity"] = {**report.to_dict(), "setting": parity_setting, "seed": seed}
@@ -99,6 +100,21 @@ def export(
         typer.echo(f"note: {out} still holds graphs of the previous export that its manifest no longer names: "
                    f"{', '.join(stale)}", err=True)
     typer.echo(f"exported {out.name} to {out}")
+
+
+def untrained_advice(checkpoint: str, data: dict) -> str:
+    """What to do about a parity failure of an untrained network (``data``: the checkpoint's contents, whose
+    training amount is quoted where it records one). Parity stays as it is: there is no export without it."""
+    state, val = data.get("state"), data.get("val")
+    recorded = []
+    if isinstance(state, dict) and isinstance(state.get("epoch"), int):
+        recorded.append(f"{state['epoch']} epoch{'s' if state['epoch'] != 1 else ''}")
+    if isinstance(val, dict) and isinstance(val.get("mae_r"), int | float):
+        recorded.append(f"validation MAE(R) {val['mae_r']:.1f} deg")
+    trained = f" (this checkpoint records {', '.join(recorded)})" if recorded else ""
+    return (f". What to do: train longer{trained}; a smoke run of a few batches only checks the set-up. The bundled "
+            f"checkpoints (clean, noise, unseen, general) export cleanly; `mfgnet evaluate --checkpoint {checkpoint}` "
+            "measures this one in PyTorch without an export")
 
 
 def model_description(description: str | None, out: Path) -> str | None:

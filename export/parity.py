@@ -11,17 +11,25 @@ from export import MIN_COMPARED
 from model.metrics import rotation_angle_deg
 from model.network import MFGNet, RegistrationOutput, knn_indices
 from service.network_loop import NetworkOutput
-from service.registrar import Registrar
+from service.registrar import Registrar, embedding_distance
 
 GRAPH_TOL = 1e-4  # per graph output: absolute up to a largest |value| of 1, relative to that largest |value| above
 ROTATION_TOL_DEG = 1e-3
 TRANSLATION_TOL = 1e-5
 TIE_GAP = 1e-5  # pairs whose best two matching scores are closer than this may flip argmax
 SELECTION_GAP = GRAPH_TOL  # significance / credibility near-ties within the graph tolerance
+# below this embedding spread (median keypoint embedding distance / median embedding size) the embeddings are nearly
+# identical, as an untrained network's are: the README's 3-batch smoke run gives 6e-5, the bundled models 0.49-0.72
+EMBEDDING_SPREAD_MIN = 1e-2
 
 
 class ParityError(AssertionError):
-    """The exported graphs do not reproduce the PyTorch model."""
+    """The exported graphs do not reproduce the PyTorch model; ``nearly_identical_embeddings`` where the keypoint
+    embeddings hardly differ (an untrained network's signature, :data:`EMBEDDING_SPREAD_MIN`)."""
+
+    def __init__(self, message: str, nearly_identical_embeddings: bool = False):
+        super().__init__(message)
+        self.nearly_identical_embeddings = nearly_identical_embeddings
 
 
 @dataclass
@@ -35,6 +43,7 @@ class ParityReport:
     max_matcher_diff: float
     max_rotation_diff_deg: float
     max_translation_diff: float
+    embedding_spread: float | None = None  # median over pairs of :func:`embedding_spread` of the keypoints
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -61,6 +70,7 @@ def check_parity(
     n_matchers = max(len(model.matchers), len(registrar.matchers))  # each index past the last reuses the last
     enc_diff = match_diff = rot_diff = trans_diff = 0.0
     compared = excluded = boundary = knn_ties = 0
+    spreads = []
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
         src_t, tgt_t = torch.from_numpy(src[None]), torch.from_numpy(tgt[None])
         nb_s, nb_t = registrar.neighbours(src[None]), registrar.neighbours(tgt[None])
@@ -92,6 +102,7 @@ def check_parity(
         # a later graph is otherwise seen only through the final pose, on the comparable pairs
         ps, pt = src[out.src_kp][None], tgt[out.tgt_kp][None]  # [1, K, 3], [1, K, 3]
         es, et = e_s[:, out.src_kp], e_t[:, out.tgt_kp]  # [1, K, D], [1, K, D]
+        spreads.append(embedding_spread(es[0], et[0]))
         ref_inputs = [torch.from_numpy(np.ascontiguousarray(a)) for a in (ps, pt, es, et)]
         for i in range(n_matchers):
             scores, logit = registrar.match(i, ps, pt, es, et)  # [1, K, K], [1, K]
@@ -103,10 +114,12 @@ def check_parity(
         compared += 1
         rot_diff = max(rot_diff, float(rotation_angle_deg(out.rotation[None], ref.rotation.double().numpy())[0]))
         trans_diff = max(trans_diff, float(np.abs(out.translation - ref.translation[0].double().numpy()).max()))
+    spread = float(np.median(spreads)) if spreads else None
     report = ParityReport(
-        len(pairs["source"]), compared, excluded, boundary, knn_ties, enc_diff, match_diff, rot_diff, trans_diff
+        len(pairs["source"]), compared, excluded, boundary, knn_ties, enc_diff, match_diff, rot_diff, trans_diff, spread
     )
     problems = []
+    collapsed = spread is not None and spread < EMBEDDING_SPREAD_MIN
     if enc_diff > GRAPH_TOL:
         problems.append(f"encoder differs by {enc_diff:.2e} > {GRAPH_TOL}")
     if match_diff > GRAPH_TOL:
@@ -116,11 +129,34 @@ def check_parity(
     if trans_diff > TRANSLATION_TOL:
         problems.append(f"translation differs by {trans_diff:.2e} > {TRANSLATION_TOL}")
     if compared < min_compared:
+        more = "" if collapsed else " (more pairs give more comparable ones)"
         problems.append(f"only {compared} comparable pairs (< {min_compared}); {excluded} of {len(pairs['source'])} "
-                        "excluded as ties (more pairs give more comparable ones)")
+                        f"excluded as ties{more}")
     if problems:
-        raise ParityError("ONNX parity failed: " + "; ".join(problems) + f" ({report.to_dict()})")
+        cause = _collapsed_cause(spread, match_diff > GRAPH_TOL, compared < min_compared) if collapsed else ""
+        raise ParityError("ONNX parity failed: " + "; ".join(problems) + f" ({report.to_dict()})" + cause, collapsed)
     return report
+
+
+def embedding_spread(emb_a: np.ndarray, emb_b: np.ndarray) -> float:
+    """How far apart the keypoint embeddings ``emb_a [K, D]``, ``emb_b [L, D]`` of a pair lie, relative to their
+    size: median ``||a_i - b_j||`` over the ``K x L`` pairs / median ``||e||`` over all ``K + L`` embeddings."""
+    dist = embedding_distance(emb_a[None], emb_b[None])  # [1, K, L]
+    size = np.median(np.linalg.norm(np.concatenate([emb_a, emb_b]).astype(np.float64), axis=-1))  # no overflow
+    return float(np.median(dist) / max(float(size), np.finfo(np.float64).tiny))
+
+
+def _collapsed_cause(spread: float, matcher_differs: bool, too_few_compared: bool) -> str:
+    """The likely cause of a failure whose keypoint embeddings are nearly identical (``spread``)."""
+    effects = []
+    if matcher_differs:
+        effects.append("the export's pair layer, inv * pa - inv * pb with inv = 1 / ||a - b|| (docs/decisions/"
+                       "0005-export-only-graph-rewrites.md), then cancels to float32 rounding")
+    if too_few_compared:
+        effects.append("its matching scores nearly tie, so the pairs are excluded as ties")
+    return (f". Likely cause: the keypoint embeddings are nearly identical (median distance {spread:.1e} of their "
+            f"size, < {EMBEDDING_SPREAD_MIN}), as an untrained or barely trained network's are"
+            + (": " + "; ".join(effects) if effects else ""))
 
 
 def _graph_diff(out: np.ndarray, ref: torch.Tensor) -> float:

@@ -13,6 +13,7 @@ import torch
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, assert_usage_error, bad_file
 from pair_checks import needs_modelnet
 from shapes import sphere_shapes
+from tiny_training import tiny_training_data
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -152,6 +153,7 @@ def test_a_failed_or_interrupted_export_to_a_new_folder_leaves_nothing(
 def test_a_re_export_replaces_the_graphs_and_manifest_and_keeps_the_folders_other_files(tmp_path) -> None:
     """The bundled checkpoint ``clean`` exported again into a copy of its model folder, with the real parity check
     (3 seeded pairs, seed 5: all 3 comparable, as the check then needs)."""
+    from export.parity import EMBEDDING_SPREAD_MIN
     from service.manifest import load_manifest
 
     out = bundled_copy(tmp_path / "clean")
@@ -160,9 +162,36 @@ def test_a_re_export_replaces_the_graphs_and_manifest_and_keeps_the_folders_othe
     result = runner.invoke(app, [*export_args("clean", out, pairs=3), "--seed", "5", "--version", "9.9.9"])
     assert result.exit_code == 0, result.output
     assert load_manifest(out).version == "9.9.9"
+    assert "Likely cause" not in result.output
+    spread = json.loads((out / "manifest.json").read_text())["parity"]["embedding_spread"]
+    assert spread > 10 * EMBEDDING_SPREAD_MIN  # a trained network's embeddings: far from the untrained signature
     assert (out / "notes.txt").read_text() == "not the exporter's"
     assert sorted(path.name for path in out.iterdir()) == graphs
     assert [path.name for path in tmp_path.iterdir()] == ["clean"]  # no staging folder left
+
+
+def test_export_of_a_barely_trained_network_fails_parity_and_says_why_and_what_to_do(tmp_path, monkeypatch) -> None:
+    """The README's smoke run, smaller (one batch of 2 sphere pairs), then its export: parity fails (exit 1) as it
+    must, and the message names the untrained network's nearly identical embeddings and what to do instead."""
+    (tmp_path / "train").mkdir()
+    run = tmp_path / "run"
+    trained = runner.invoke(app, ["train", "--setting", "resampled", "--recipe", "general", "--out", str(run),
+                                  "--epochs", "1", "--batches-per-epoch", "1", "--batch-size", "2", "--val-pairs", "2",
+                                  "--data", tiny_training_data(tmp_path / "train"), "--threads", "1"])
+    assert trained.exit_code == 0, trained.output
+    tiny_modelnet(tmp_path, monkeypatch)
+    out = tmp_path / "smoke"
+    result = runner.invoke(app, export_args(run / "best.pt", out))
+    assert result.exit_code == 1, result.output
+    message = " ".join(result.stderr.split())
+    assert "ONNX parity failed: matcher differs by" in message  # the failure itself, as before
+    assert "Likely cause: the keypoint embeddings are nearly identical" in message
+    assert "untrained or barely trained network" in message and "cancels to float32 rounding" in message
+    assert "What to do: train longer (this checkpoint records 1 epoch, validation MAE(R)" in message
+    assert "bundled checkpoints (clean, noise, unseen, general) export cleanly" in message
+    assert f"mfgnet evaluate --checkpoint {run / 'best.pt'}" in message
+    assert "more pairs give more comparable ones" not in message  # they would not: the scores tie
+    assert not out.exists()
 
 
 def test_export_refuses_a_folder_of_other_files_and_an_out_that_is_no_model_name(tmp_path, tiny_checkpoint) -> None:
