@@ -7,7 +7,8 @@ them hold every file descriptor the process may open. Here:
 - a new connection that sends nothing is closed after the keep-alive timeout, as an idle one between requests is;
 - once a request's first bytes arrive, its request line and headers are due within ``header_timeout_s``; then the
   connection gets a JSON 408 and is closed (nginx's ``client_header_timeout``, Apache's ``mod_reqtimeout``), counted in
-  ``mfgnet_http_header_timeouts_total`` and written as an access line (status 408, the peer's address).
+  ``mfgnet_http_header_timeouts_total`` and written as an access line (status 408, the peer's address). Written
+  below the ASGI layer, the 408 carries the hardening headers of ``security_headers.py`` itself.
 
 Bodies have their own limits (``body_timeout_s``, ``body_min_rate``: ``middleware.py``).
 """
@@ -23,6 +24,7 @@ import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.api.metrics import Metrics
+from service.api.security_headers import CSP, HEADERS, NOTHING_ALLOWED
 from service.core.logging import ACCESS_LOGGER
 
 access_log = logging.getLogger(ACCESS_LOGGER)
@@ -63,9 +65,10 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         message = f"the request headers did not arrive within {self.header_timeout_s:g} s (header_timeout_s)"
         body = json.dumps({"error": message}).encode()
         request_id = uuid.uuid4().hex  # as the request context's for a request without a usable X-Request-ID
+        hardening = b"".join(b"%s: %s\r\n" % pair for pair in (*HEADERS, (CSP, NOTHING_ALLOWED.encode())))
         self.transport.write(  # h11 sends no response before a request: the bytes are written as they are
             b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\ncontent-length: %d\r\n"
-            b"x-request-id: %s\r\nconnection: close\r\n\r\n%s" % (len(body), request_id.encode(), body)
+            b"x-request-id: %s\r\n%sconnection: close\r\n\r\n%s" % (len(body), request_id.encode(), hardening, body)
         )
         self.transport.close()
         if self.metrics is not None:

@@ -194,6 +194,12 @@ def test_headers_sent_a_line_at_a_time_get_a_408_and_the_connection_is_closed(sl
     assert head.startswith(b"HTTP/1.1 408"), answer[:200]
     assert "header_timeout_s" in json.loads(body)["error"]
     assert HEADER_TIMEOUT_S <= elapsed < HEADER_TIMEOUT_S + 3, elapsed
+    # Written below the ASGI layer, past the security headers' middleware: the 408 carries them itself.
+    headers = dict(line.decode().lower().split(": ", 1) for line in head.split(b"\r\n")[1:])
+    assert headers["x-content-type-options"] == "nosniff", headers
+    assert headers["x-frame-options"] == "deny", headers
+    assert headers["referrer-policy"] == "no-referrer", headers
+    assert headers["content-security-policy"] == "default-src 'none'; frame-ancestors 'none'", headers
 
 
 def test_a_connection_that_sends_nothing_is_closed_after_the_keep_alive_timeout(slow_headers_server):
