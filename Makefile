@@ -24,14 +24,21 @@ install-dev: $(BIN)/python
 	$(BIN)/pip install -q --no-deps --index-url $(TORCH_INDEX) "$(TORCH)"
 	$(BIN)/pip install -q -e ".[train,dev]"
 
-# Headless Chromium and its driver for the page's browser test (Debian packages; quick when present).
-# Without root or apt the test skips and says why.
+# Headless Chromium and its driver for the page's browser test (Debian packages; quick when present), and axe-core
+# (npm, into $(VENV)/node_modules) for its accessibility check. Without root or apt, or npm, those tests skip and say why.
+AXE_CORE ?= 4.11.0
 install-browser:
 	@if command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1; then :; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
 			chromium chromium-driver >/dev/null; \
 	else echo "install-browser: chromium + chromium-driver absent and not root with apt; the browser tests will skip"; fi
+	@if [ -f $(VENV)/node_modules/axe-core/package.json ] && grep -q '"version": "$(AXE_CORE)"' \
+		$(VENV)/node_modules/axe-core/package.json; then :; \
+	elif command -v npm >/dev/null 2>&1; then \
+		npm install -s --prefix $(VENV) --no-save --no-package-lock --no-audit --no-fund axe-core@$(AXE_CORE) \
+			|| echo "install-browser: npm could not install axe-core; the page's accessibility test will skip"; \
+	else echo "install-browser: npm absent, axe-core not installed; the page's accessibility test will skip"; fi
 
 serve: install-serve
 	$(BIN)/mfgnet serve --host $(HOST) --port $(PORT)

@@ -12,6 +12,7 @@ import json
 import os
 import re
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -40,6 +41,8 @@ def _find(env: str, *names: str) -> str | None:
 
 CHROMIUM = _find("MFGNET_CHROMIUM", "chromium", "chromium-browser", "google-chrome")
 CHROMEDRIVER = _find("MFGNET_CHROMEDRIVER", "chromedriver", "/usr/lib/chromium/chromedriver")
+# axe-core's browser bundle: `make install-browser` puts it in the venv (npm); MFGNET_AXE_JS names another copy
+AXE_JS = Path(os.environ.get("MFGNET_AXE_JS") or Path(sys.prefix) / "node_modules" / "axe-core" / "axe.min.js")
 
 pytestmark = pytest.mark.skipif(
     CHROMIUM is None or CHROMEDRIVER is None,
@@ -496,3 +499,44 @@ def test_a_narrow_screen_shows_the_page_without_sideways_scrolling(browser, serv
         assert browser.find_element("id", "canvas").size["width"] <= inner
     finally:
         browser.set_window_size(1400, 1000)
+
+
+# the WCAG 2.1 A and AA rules, and axe's best practices (landmarks, heading order, one main, ...)
+AXE_TAGS = ["wcag2a", "wcag2aa", "wcag21a", "wcag21aa", "best-practice"]
+
+
+def axe_violations(driver) -> list[str]:
+    """axe-core's violations of ``AXE_TAGS`` on the page as it is now: ``"rule-id: help (target, ...)"`` each."""
+    if not driver.execute_script("return !!window.axe"):
+        driver.execute_script(AXE_JS.read_text(encoding="utf-8"))
+    return driver.execute_async_script(
+        "const done = arguments[arguments.length - 1];"
+        "axe.run(document, {runOnly: {type: 'tag', values: arguments[0]}, resultTypes: ['violations']})"
+        ".then(r => done(r.violations.map(v => `${v.id}: ${v.help} (` +"
+        " v.nodes.map(n => n.target.join(' ')).join(', ') + ')')), e => done(['axe failed: ' + e]))",
+        AXE_TAGS,
+    )
+
+
+def test_axe_finds_no_violations_initially_with_a_result_and_with_an_error(browser, server, ply_files, tmp_path):
+    """axe-core's WCAG 2.1 A/AA rules and best practices on the page as loaded, with a registration's view and result
+    shown, and with a failed registration's error shown. The renderer's name (#777 on white) failed color-contrast."""
+    if not AXE_JS.is_file():
+        pytest.skip(f"axe-core not installed ({AXE_JS}; `make install-browser` installs it with npm)")
+    _, source_file, target_file = ply_files
+    browser.set_script_timeout(WAIT_S)
+    browser.get(f"{server.url}/")
+    found = {"initial": axe_violations(browser)}
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    assert not browser.execute_script("return document.getElementById('result').hidden")
+    found["with a result"] = axe_violations(browser)
+    corrupt = tmp_path / "broken.ply"
+    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n")
+    browser.find_element("id", "source").send_keys(str(corrupt))
+    browser.find_element("id", "register").click()
+    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the failed registration") == "error"
+    assert status_text(browser).startswith("422: ")
+    found["with an error"] = axe_violations(browser)
+    failing = {state: violations for state, violations in found.items() if violations}
+    assert not failing, json.dumps(failing, indent=1)
