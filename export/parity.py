@@ -72,7 +72,7 @@ def check_parity(
     compared = excluded = boundary = knn_ties = 0
     spreads = []
     for src, tgt in zip(pairs["source"], pairs["target"], strict=True):
-        src_t, tgt_t = torch.from_numpy(src[None]), torch.from_numpy(tgt[None])
+        src_t, tgt_t = _tensor(src[None]), _tensor(tgt[None])
         nb_s, nb_t = registrar.neighbours(src[None]), registrar.neighbours(tgt[None])
         # the runtime's KD-tree and the model's float32 distances can only disagree at distance ties
         same_graphs = all(
@@ -95,15 +95,15 @@ def check_parity(
                 tgt_t,
                 iterations=n_iter,
                 keypoints=K,
-                src_idx=torch.from_numpy(out.src_kp[None]),
-                tgt_idx=torch.from_numpy(out.tgt_kp[None]),
+                src_idx=_tensor(out.src_kp[None]),
+                tgt_idx=_tensor(out.tgt_kp[None]),
             )
         # every matcher graph (one per weight set) on the same inputs, those of the reference's first iteration:
         # a later graph is otherwise seen only through the final pose, on the comparable pairs
         ps, pt = src[out.src_kp][None], tgt[out.tgt_kp][None]  # [1, K, 3], [1, K, 3]
         es, et = e_s[:, out.src_kp], e_t[:, out.tgt_kp]  # [1, K, D], [1, K, D]
         spreads.append(embedding_spread(es[0], et[0]))
-        ref_inputs = [torch.from_numpy(np.ascontiguousarray(a)) for a in (ps, pt, es, et)]
+        ref_inputs = [_tensor(a) for a in (ps, pt, es, et)]
         for i in range(n_matchers):
             scores, logit = registrar.match(i, ps, pt, es, et)  # [1, K, K], [1, K]
             s_ref, l_ref = model.matcher(i)(*ref_inputs)
@@ -157,6 +157,12 @@ def _collapsed_cause(spread: float, matcher_differs: bool, too_few_compared: boo
     return (f". Likely cause: the keypoint embeddings are nearly identical (median distance {spread:.1e} of their "
             f"size, < {EMBEDDING_SPREAD_MIN}), as an untrained or barely trained network's are"
             + (": " + "; ".join(effects) if effects else ""))
+
+
+def _tensor(array: np.ndarray) -> torch.Tensor:
+    """A tensor copy of ``array``, which may be a read-only view (the runtime's target keypoints of a single pair are
+    a broadcast view; the caller's pairs may be memory-mapped): ``torch.from_numpy`` of one warns."""
+    return torch.tensor(array)
 
 
 def _graph_diff(out: np.ndarray, ref: torch.Tensor) -> float:

@@ -211,3 +211,23 @@ def test_parity_tolerates_float32_rounding_of_large_matcher_outputs():
     report = check_parity(load_model(BUNDLED_CKPT.with_name("noise.pt")), Registrar(BUNDLED_NOISE, warmup=False),
                           pairs, min_compared=1)
     assert report.max_matcher_diff <= GRAPH_TOL and report.compared >= 1
+
+
+@pytest.mark.filterwarnings("error::UserWarning")
+@pytest.mark.skipif(not (BUNDLED / "manifest.json").exists() or not BUNDLED_CKPT.exists(),
+                    reason="bundled clean model or checkpoint not present")
+def test_parity_at_keypoint_boundary_ties_on_read_only_pairs_raises_no_warning():
+    """Every point twice: the twins' scores tie exactly, so an odd K splits a pair of twins and the model's top-K and
+    the runtime's pick different twins; parity then reruns the model on the runtime's keypoints, whose target
+    indices are a read-only view (one pair: a broadcast), as are pairs memory-mapped from a file here. PyTorch's
+    "NumPy array is not writable" UserWarning came from ``torch.from_numpy`` of them (once per process)."""
+    from model.checkpoint import load_model
+
+    pairs = {key: np.repeat(value[:, :512], 2, axis=1)  # [2, 1024, 3], points 2i and 2i + 1 the same
+             for key, value in synthetic_pairs(2, seed=9, noise=0.01).items() if key in ("source", "target")}
+    for value in pairs.values():
+        value.setflags(write=False)
+    report = check_parity(load_model(BUNDLED_CKPT), Registrar(BUNDLED, warmup=False), pairs, keypoints=63,
+                          min_compared=0)
+    assert report.keypoint_boundary_ties == 2  # the rerun on the runtime's keypoints happened
+    assert report.max_encoder_diff <= 1e-4 and report.max_matcher_diff <= 1e-4
