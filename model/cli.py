@@ -97,6 +97,7 @@ RUN_OPTION_FIELDS = {"setting": "setting", "seed": "seed", "batch_size": "batch_
                      "target_points": "target_points", "overlap": "overlap", "noise": "noise", "max_angle": "max_angle",
                      "outliers": "outliers", "recipe": "recipe", "views_share": "views_share",
                      "sensor_share": "sensor_share", "init": "init"}
+TRAIN_FLAGS = {"max_batches_per_epoch": "batches_per_epoch", "workers": "data_workers"}  # field -> option, if unlike
 GROWING_OPTIONS = ("epochs", "patience")  # with --resume: given, they extend (or shorten) the run; left out, the run's
 
 
@@ -143,27 +144,35 @@ def train(
     setting: Setting = "clean",
     out: Annotated[Path, typer.Option(help="run directory (checkpoints, log.jsonl)")] = Path("runs/clean"),
     epochs: Annotated[int, typer.Option(help="epochs of the run (with --resume: left out, the run's)")] = 50,
-    batch_size: int = 8,
-    lr: float = 1e-4,
-    weight_decay: float = 1e-3,
-    seed: int = 0,
+    batch_size: Annotated[int, typer.Option(help="pairs per training batch")] = 8,
+    lr: Annotated[float, typer.Option(help="Adam's learning rate (divided by 10 at --lr-drop-at)")] = 1e-4,
+    weight_decay: Annotated[float, typer.Option(help="Adam's weight decay")] = 1e-3,
+    seed: Annotated[
+        int, typer.Option(help="seeds the initial weights, the validation split and pairs, and every batch")
+    ] = 0,
     resume: Annotated[
         bool, typer.Option(help="continue the run in OUT from its last.pt with its options (a new run where OUT holds "
                            "none)")
     ] = False,
     init: Annotated[
-        str | None, typer.Option("--init", "--init-from", help="initial weights (fine-tuning): a checkpoint file")
+        str | None,
+        typer.Option("--init", "--init-from", help="initial weights (fine-tuning): a checkpoint file or bundled name"),
     ] = None,
     patience: Annotated[
         int, typer.Option(help="epochs without a better validation MAE(R) before stopping (with --resume: left out, "
                           "the run's)")
     ] = 10,
-    max_minutes: float | None = None,
-    checkpoint_minutes: float = 5.0,
+    max_minutes: Annotated[
+        float | None, typer.Option(help="stop after the step that passes this many minutes of this process, with "
+                                   "OUT/last.pt written (exit 0; --resume continues)")
+    ] = None,
+    checkpoint_minutes: Annotated[
+        float, typer.Option(help="write OUT/last.pt every this many minutes inside an epoch (and after each epoch)")
+    ] = 5.0,
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
-    data: str | None = None,
-    threads: int | None = None,
-    iterations: int = 4,
+    data: Annotated[str | None, typer.Option(help="ModelNet40 directory ($MFGNET_DATA)")] = None,
+    threads: Annotated[int | None, typer.Option(help="torch CPU threads (default: torch's)")] = None,
+    iterations: Annotated[int, typer.Option(help="network iterations (matching + SVD)")] = 4,
     share_weights: bool = False,
     source_points: SourcePoints = None,
     target_points: TargetPoints = None,
@@ -210,7 +219,7 @@ def train(
     """
     from model.config import MFGNetConfig
     from model.network import MFGNet
-    from model.train import RunFolderInUseError, TrainOptions, check_run_folder, run_training
+    from model.train import RunFolderInUseError, TrainOptions, check_run_folder, option_problems, run_training
 
     output_folder(out, "--out")
     opts = TrainOptions(
@@ -236,6 +245,9 @@ def train(
         if missing:
             fail(f"--resume {resume_from}: no {' or '.join(map(repr, missing))} to resume from")
         opts = resumed_options(ctx, opts, checkpoint)
+    problems = option_problems(opts)  # values out of range: a usage error naming each, not a traceback or empty run
+    if problems:
+        fail("; ".join(f"--{TRAIN_FLAGS.get(name, name).replace('_', '-')} {why}" for name, why in problems.items()))
     setting_protocol(opts.setting, opts.source_points, opts.target_points, opts.overlap, opts.noise, opts.max_angle,
                      None, opts.outliers)  # fail early
     require_shapes("train", opts.setting, data)

@@ -69,6 +69,52 @@ class TrainOptions:
                             overlap=self.overlap, noise=self.noise, max_angle=self.max_angle, outliers=self.outliers)
 
 
+def option_problems(opts: TrainOptions) -> dict[str, str]:
+    """The options of ``opts`` out of range, each field's name (``config`` ones as ``iterations``) -> what it must be.
+
+    Empty where every option is valid; checked before a run reads or writes anything, so that a bad value is an error
+    naming it, not a traceback from Adam, a division by zero, or a run that trains no batch and writes no ``best.pt``.
+    """
+
+    def number(value: object) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and not math.isnan(value)
+
+    def at_least(value: object, low: float, above: bool = False, finite: bool = False) -> bool:
+        return number(value) and (value > low if above else value >= low) and (not finite or value < math.inf)
+
+    checks = {  # field -> (value, valid, what it must be)
+        "epochs": (opts.epochs, at_least(opts.epochs, 1), "1 or more"),
+        "batch_size": (opts.batch_size, at_least(opts.batch_size, 1), "1 or more"),
+        "lr": (opts.lr, at_least(opts.lr, 0, above=True, finite=True), "a finite number above 0"),
+        "weight_decay": (opts.weight_decay, at_least(opts.weight_decay, 0, finite=True), "a finite number, 0 or more"),
+        "lr_drop_at": (opts.lr_drop_at, at_least(opts.lr_drop_at, 0), "0 or more (1 or more: never)"),
+        "patience": (opts.patience, at_least(opts.patience, 1), "1 or more"),
+        "val_pairs": (opts.val_pairs, at_least(opts.val_pairs, 1), "1 or more"),
+        "val_fraction": (opts.val_fraction, at_least(opts.val_fraction, 0, above=True) and opts.val_fraction < 1,
+                         "between 0 and 1"),
+        "checkpoint_minutes": (opts.checkpoint_minutes, at_least(opts.checkpoint_minutes, 0), "0 or more"),
+        "max_minutes": (opts.max_minutes, opts.max_minutes is None or at_least(opts.max_minutes, 0, above=True),
+                        "above 0"),
+        "max_batches_per_epoch": (opts.max_batches_per_epoch, opts.max_batches_per_epoch is None
+                                  or at_least(opts.max_batches_per_epoch, 1), "1 or more"),
+        "threads": (opts.threads, opts.threads is None or at_least(opts.threads, 1), "1 or more"),
+        "workers": (opts.workers, at_least(opts.workers, 1), "1 or more"),
+        "snapshot_every": (opts.snapshot_every, at_least(opts.snapshot_every, 0), "0 or more"),
+    }
+    iterations = opts.config.get("iterations", MFGNetConfig.iterations)
+    checks["iterations"] = (iterations, at_least(iterations, 1), "1 or more")
+    problems = {name: f"{value}: must be {rule}" for name, (value, ok, rule) in checks.items() if not ok}
+    try:
+        device = torch.device("cpu" if opts.device == "auto" else opts.device)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        problems["device"] = f"{opts.device}: must be auto, cpu or cuda (cuda:N)"
+    elif device.type == "cuda" and not torch.cuda.is_available():
+        problems["device"] = f"{opts.device}: no CUDA device here (auto or cpu)"
+    return problems
+
+
 def pick_device(name: str) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -195,13 +241,17 @@ def train(opts: TrainOptions) -> Path:
 def run_training(opts: TrainOptions) -> TrainOutcome:
     """Train (or resume) a model: its best checkpoint, and the signal that stopped it early, if one did.
 
-    A folder that holds a run is refused (:class:`RunFolderInUseError`) before anything is read or written, unless
-    ``opts.resume`` continues it or ``opts.overwrite`` replaces it (its files deleted once the new run is set up).
+    Before anything is read or written, options out of range (:func:`option_problems`) are a ``ValueError`` naming
+    them, and a folder that holds a run is refused (:class:`RunFolderInUseError`) unless ``opts.resume`` continues it
+    or ``opts.overwrite`` replaces it (its files deleted once the new run is set up).
     A stop signal (SIGTERM, SIGINT) ends the run after the step it arrives in, with ``last.pt`` written; a run ended by
     ``max_minutes`` or ``patience`` ends as asked (``stopped_by`` ``None``).
     """
+    problems = option_problems(opts)  # before anything is read or written
+    if problems:
+        raise ValueError(f"training {opts.out}: " + "; ".join(f"{name} {why}" for name, why in problems.items()))
     out = Path(opts.out)
-    run_files = check_run_folder(out, opts.resume, opts.overwrite)  # before anything is read or written
+    run_files = check_run_folder(out, opts.resume, opts.overwrite)
     out.mkdir(parents=True, exist_ok=True)
     if opts.threads:
         torch.set_num_threads(opts.threads)

@@ -174,3 +174,16 @@ def tiny_test_data(tmp_path) -> str:
     folder.mkdir(exist_ok=True)
     np.savez(folder / "modelnet40_test.npz", points=sphere_shapes(4, seed=3).astype(np.float32), labels=np.arange(4))
     return str(folder)
+
+
+@pytest.mark.parametrize(("option", "value", "rule"), [
+    ("--batch-size", "0", "1 or more"), ("--batch-size", "-3", "1 or more"), ("--epochs", "0", "1 or more"),
+    ("--lr", "-1.0", "above 0"), ("--lr", "0.0", "above 0"), ("--lr", "nan", "above 0"), ("--lr", "inf", "finite"),
+    ("--weight-decay", "-1.0", "0 or more"), ("--lr-drop-at", "-1.0", "0 or more"), ("--patience", "0", "1 or more"),
+    ("--iterations", "0", "1 or more"), ("--threads", "0", "1 or more"), ("--threads", "-1", "1 or more"),
+    ("--max-minutes", "-1.0", "above 0"), ("--batches-per-epoch", "0", "1 or more"), ("--device", "foo", "auto, cpu"),
+])
+def test_train_rejects_an_option_out_of_range_before_writing_anything(tmp_path, option, value, rule) -> None:
+    args = ["train", "--out", str(tmp_path / "run"), "--data", tiny_training_data(tmp_path), option, value]
+    assert_usage_error(runner.invoke(app, args), f"{option} {value}: must be", rule)
+    assert not (tmp_path / "run").exists()

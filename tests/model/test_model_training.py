@@ -317,3 +317,10 @@ def test_a_training_step_keeps_every_tensor_on_the_model_device(device: str) -> 
     total = registration_losses(out, src, tgt, R, t, cfg.match_threshold).total
     assert total.device.type == device
     total.backward()
+
+
+def test_run_training_names_options_out_of_range_before_writing_anything(tmp_path) -> None:
+    opts = TrainOptions(out=str(tmp_path / "run"), epochs=0, batch_size=0, lr=float("nan"), device="cpu")
+    with pytest.raises(ValueError, match=r"epochs 0: must be 1 or more; batch_size 0: must be 1 or more; lr nan"):
+        run_training(opts)
+    assert not (tmp_path / "run").exists()
