@@ -13,7 +13,7 @@ import threading
 import time
 from collections.abc import Awaitable, Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from starlette.requests import ClientDisconnect
 
@@ -103,31 +103,48 @@ class Slot:
     def __exit__(self, *exc) -> None:
         self.release()
 
-    async def run(self, fn: Callable[[], T], disconnected: Callable[[], Awaitable[bool]] | None = None
-                  ) -> tuple[T, float]:
+    async def run(self, fn: Callable[..., T], disconnected: Callable[[], Awaitable[bool]] | None = None,
+                  decode: Callable[[], Any] | None = None) -> tuple[T, float]:
         """``(fn(), ms waited for a worker)``, run in the pool within ``timeout_s``; ``disconnected``: asked every
         ``DISCONNECT_POLL_S`` while the job waits or runs, ``True`` once the client has gone (the job is cancelled and
         Starlette's ``ClientDisconnect`` raised, which the access middleware records as 499 as it does for a body
-        cut short)."""
+        cut short).
+
+        ``decode`` (the request's body into clouds): the job is ``fn(decode())`` and the deadline stops while
+        ``decode`` runs, so a body it refuses from its size (413 over max_points) is refused whatever ``timeout_s``;
+        the wait for a worker and ``fn`` count. Its time is bounded by the body's size limits."""
         if self._future is not None:
             raise RuntimeError("a slot runs one job")
         submitted = time.perf_counter()
         started: list[float] = []
+        decoding: list[float] = []  # decode's start, then its end
         cancellation = Cancellation()
 
         def timed() -> T:
             started.append(time.perf_counter())
             with cancellable(cancellation):
-                return fn()
+                if decode is None:
+                    return fn()
+                decoding.append(time.perf_counter())
+                try:
+                    decoded = decode()
+                finally:
+                    decoding.append(time.perf_counter())
+                return fn(decoded)
 
         self._future = self._limiter._submit(timed)
         job = asyncio.wrap_future(self._future)
-        deadline = submitted + self._limiter.timeout_s
+        timeout_s = self._limiter.timeout_s
         while not job.done():
-            left = deadline - time.perf_counter()
-            if left <= 0:
-                self._drop(job, cancellation)
-                raise DeadlineExceededError(self._limiter.timeout_s)
+            marks = list(decoding)  # one look: the worker appends to it
+            if len(marks) == 1:  # decoding: the clock stands, looked at again within the deadline's length
+                left = min(DISCONNECT_POLL_S, timeout_s)
+            else:
+                paused = marks[1] - marks[0] if marks else 0.0
+                left = submitted + paused + timeout_s - time.perf_counter()
+                if left <= 0:
+                    self._drop(job, cancellation)
+                    raise DeadlineExceededError(timeout_s)
             await asyncio.wait({job}, timeout=min(left, DISCONNECT_POLL_S) if disconnected else left)
             if not job.done() and disconnected is not None and await disconnected():
                 self._drop(job, cancellation)

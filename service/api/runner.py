@@ -70,10 +70,12 @@ class Runner:
     def admit(self) -> Slot:
         return self.limiter.admit()
 
-    async def run(self, slot: Slot, work: Callable[[], T], request: Request | None = None) -> tuple[T, float]:
+    async def run(self, slot: Slot, work: Callable[..., T], request: Request | None = None,
+                  decode: Callable[[], Any] | None = None) -> tuple[T, float]:
         """``work()`` in a worker within the deadline -> ``(result, ms spent waiting for a worker)``; with the HTTP
-        ``request``, cancelled when its client goes away."""
-        return await slot.run(work, request.is_disconnected if request is not None else None)
+        ``request``, cancelled when its client goes away; with ``decode``, ``work(decode())``, the deadline stopped
+        while ``decode`` reads the body (:meth:`Slot.run`: a 413 for its size whatever the deadline)."""
+        return await slot.run(work, request.is_disconnected if request is not None else None, decode)
 
     # -- the pipeline (worker threads) -------------------------------------------------------------
     def resolve(self, name: str | None) -> ModelEntry:

@@ -98,8 +98,9 @@ class Settings(BaseSettings):
                            "most 2 x max_points points in all (as one pair may), so a batch's memory is a pair's.")
     max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
     max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")
-    timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read; then 504, "
-                                "and its registration stops at its next network call.")
+    timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read, not "
+                                "counting the decoding of its clouds (a body over a size limit is a 413 whatever the "
+                                "deadline); then 504, and its registration stops at its next network call.")
     body_timeout_s: float = Field(
         15.0, gt=0, description="Longest wait for the next piece of a request body; then 408 and the request's slot "
         "is freed (a request takes its slot before its body arrives, so stalled uploads would hold them all).",

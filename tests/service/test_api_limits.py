@@ -4,6 +4,7 @@ Retry-After, never 500), deadline (504), and readiness when a model is tampered 
 from __future__ import annotations
 
 import io
+import json
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -16,6 +17,7 @@ from api_server import (
     limited_server,
     model_root,
     modelnet_pair,
+    pair_json,
     start_thread_server,
     tampered_root,
     wait_until_loaded,
@@ -166,6 +168,45 @@ def test_tampered_model_is_not_served_and_keeps_the_reason(strict_server):
 def test_past_the_deadline_is_504(strict_server):
     with strict_server.client() as c:
         assert_error(c.post("/v1/register", json=small_pair()), 504, "timeout_s")
+
+
+SHORT_DEADLINE_S = 0.02  # the short-deadline server's: time to start a worker, but not to parse the clouds below
+SHORT_DEADLINE_POINTS = 100_000  # its max_points: a cloud one over takes over 0.1 s to parse
+
+
+@pytest.fixture(scope="module")
+def short_deadline_server():
+    """In-process server whose deadline is shorter than reading a cloud over its max_points out of a body."""
+    settings = isolated_settings(model_dirs=[str(model_root())], bundled_models=False, threads=1,
+                                 timeout_s=SHORT_DEADLINE_S, max_points=SHORT_DEADLINE_POINTS,
+                                 max_file_points=SHORT_DEADLINE_POINTS)
+    server = start_thread_server(settings)
+    yield server
+    server.stop()
+
+
+def test_too_many_points_is_413_whatever_the_deadline(short_deadline_server):
+    """A cloud over max_points was counted while the deadline ran: with a deadline shorter than the parse it was a
+    504. Each body is refused from its size (413 naming the cloud) on every route; a registration within the limits
+    still meets the deadline (504)."""
+    rng = np.random.default_rng(0)
+    big = rng.normal(size=(SHORT_DEADLINE_POINTS + 1, 3)).astype(np.float32)
+    small = rng.normal(size=(SMALL, 3)).astype(np.float32)
+    pair = {"source": big.tolist(), "target": small.tolist()}
+    infer = {"inputs": [
+        {"name": "SOURCE", "shape": list(big.shape), "datatype": "FP32", "data": big.ravel().tolist()},
+        {"name": "TARGET", "shape": list(small.shape), "datatype": "FP32", "data": small.ravel().tolist()},
+    ]}
+    with short_deadline_server.client() as c:
+        assert_error(c.post("/v1/register", json=pair), 413, "source", str(SHORT_DEADLINE_POINTS))
+        assert_error(c.post("/v1/register/batch", json={"pairs": [pair]}), 413, "pairs[0].source")
+        files = {"source": ("s.npy", npy(small)), "target": ("t.npy", npy(big))}
+        assert_error(c.post("/v1/register", files=files), 413, "target")
+        assert_error(c.post("/v1/register/view", files=files), 413, "target")
+        aligned = {"transform": json.dumps(np.eye(4).tolist())}
+        assert_error(c.post("/v1/register/aligned", files={"source": files["target"]}, data=aligned), 413, "source")
+        assert_error(c.post(f"/v2/models/{MODEL}/infer", json=infer), 413, "SOURCE")
+        assert_error(c.post("/v1/register", json=pair_json(modelnet_pair(1))), 504, "timeout_s")
 
 
 def test_not_ready_and_deadline_answers_match_the_openapi_document(strict_server):

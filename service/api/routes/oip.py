@@ -221,13 +221,15 @@ async def _infer(name: str, request: Request) -> Response:
     length = oip_request.header_length(request)
     with runner.admit() as slot, await read_body(request, runner.body_budget, settings.max_body_bytes) as held:
 
-        def work():
+        def decode() -> oip_request.InferCall:
             with held:  # the body is freed once decoded, before the pipeline runs
-                call = oip_request.infer_call(held.take(), length, settings.max_points, kind == OCTET_STREAM)
+                return oip_request.infer_call(held.take(), length, settings.max_points, kind == OCTET_STREAM)
+
+        def work(call: oip_request.InferCall):
             entry, result = runner.register_one(call.pair, model=name)
             return call, entry, result
 
-        (call, entry, result), queue_ms = await runner.run(slot, work, request)
+        (call, entry, result), queue_ms = await runner.run(slot, work, request, decode)
     runner.observe(entry, result, queue_ms)
     head = {"model_name": entry.name, "model_version": entry.registrar.manifest.version}
     if call.request_id is not None:  # OIP: id only when the request had one

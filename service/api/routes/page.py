@@ -120,13 +120,15 @@ async def register_view(request: Request) -> RenderedJSON:
     with runner.admit() as slot:
         form = await bodies.read_register_form(request)  # the same reader and limits as POST /v1/register
 
-        def work():
-            pair = bodies.register_pair_from_form(form, settings.max_file_points)
+        def decode() -> bodies.Pair:
+            return bodies.register_pair_from_form(form, settings.max_file_points)
+
+        def work(pair: bodies.Pair):
             entry, result = runner.register_one(pair)
             display = {"cap": DISPLAY_CAP, "source": display_cloud(pair.source), "target": display_cloud(pair.target)}
             return entry, pair, result, display
 
-        (entry, pair, result, display), queue_ms = await runner.run(slot, work, request)
+        (entry, pair, result, display), queue_ms = await runner.run(slot, work, request, decode)
     runner.observe(entry, result, queue_ms)
     return RenderedJSON({"result": register_response(entry, pair, result, queue_ms), "display": display})
 
@@ -152,14 +154,16 @@ async def register_aligned(request: Request) -> Response:
             R, t = _aligned_transform(form.fields)
             upload = form.files["source"]
 
-            def work() -> bytes:
-                source = bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
+            def decode() -> np.ndarray:
+                return bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
+
+            def work(source: np.ndarray) -> bytes:
                 aligned = source @ R.T + t  # [N, 3] float64
                 if not np.isfinite(aligned).all():
                     raise APIError(422, "invalid request: the moved source leaves the float64 range")
                 return ply_bytes(aligned)
 
-            content, _ = await runner.run(slot, work, request)
+            content, _ = await runner.run(slot, work, request, decode)
         finally:
             form.close()
     stem = PurePath(upload.filename).stem or "source"

@@ -97,12 +97,11 @@ async def register(request: Request) -> RenderedJSON:
             def decode() -> bodies.Pair:
                 return bodies.register_pair_from_form(form, settings.max_file_points)
 
-        def work():
-            pair = decode()
+        def work(pair: bodies.Pair):
             entry, result = runner.register_one(pair)
             return entry, pair, result
 
-        (entry, pair, result), queue_ms = await runner.run(slot, work, request)
+        (entry, pair, result), queue_ms = await runner.run(slot, work, request, decode)
     runner.observe(entry, result, queue_ms)
     return RenderedJSON(register_response(entry, pair, result, queue_ms))  # response_model: for the docs only
 
@@ -121,12 +120,14 @@ async def register_batch(request: Request) -> RenderedJSON:
     bodies.require_media_type(request, bodies.JSON)
     with runner.admit() as slot, await bodies.read_body(request, runner.body_budget, settings.max_body_bytes) as held:
 
-        def work():
+        def decode() -> list[bodies.Pair]:
             with held:
-                pairs = bodies.batch_pairs_from_json(held.take(), settings.max_points, settings.max_batch)
+                return bodies.batch_pairs_from_json(held.take(), settings.max_points, settings.max_batch)
+
+        def work(pairs: list[bodies.Pair]):
             return pairs, runner.register_batch(pairs)
 
-        (pairs, done), queue_ms = await runner.run(slot, work, request)
+        (pairs, done), queue_ms = await runner.run(slot, work, request, decode)
     for entry, result in done:
         runner.observe(entry, result, queue_ms)
     results = [register_response(e, p, r, queue_ms) for p, (e, r) in zip(pairs, done, strict=True)]
