@@ -132,6 +132,17 @@ def register(driver, server_url: str, source: Path, target: Path, key: str | Non
                     "the registration")
 
 
+def register_a_broken_source(driver, folder: Path) -> str:
+    """On the loaded page, choose a truncated PLY (``folder/broken.ply``) as the source and press Register again;
+    the final state (error, for a 422)."""
+    corrupt = folder / "broken.ply"
+    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n")
+    driver.find_element("id", "source").send_keys(str(corrupt))
+    driver.find_element("id", "register").click()
+    return wait_for(driver, "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                    "the failed registration")
+
+
 def status_text(driver) -> str:
     return driver.execute_script("return document.getElementById('status').textContent")
 
@@ -391,12 +402,7 @@ def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_resu
     """After a good pair, a bad file's error showed under the good pair's pose, view and download button."""
     _, source_file, target_file = ply_files
     assert register(browser, server.url, source_file, target_file) == "done"
-    corrupt = tmp_path / "broken.ply"
-    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n")
-    browser.find_element("id", "source").send_keys(str(corrupt))
-    browser.find_element("id", "register").click()
-    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the failed registration") == "error"
+    assert register_a_broken_source(browser, tmp_path) == "error"
     status = status_text(browser)
     assert status.startswith("422: ") and "broken.ply" in status and "undefined" not in status, status
     assert browser.execute_script("return document.getElementById('result').hidden")
@@ -530,12 +536,7 @@ def test_axe_finds_no_violations_initially_with_a_result_and_with_an_error(brows
     assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
     assert not browser.execute_script("return document.getElementById('result').hidden")
     found["with a result"] = axe_violations(browser)
-    corrupt = tmp_path / "broken.ply"
-    corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n")
-    browser.find_element("id", "source").send_keys(str(corrupt))
-    browser.find_element("id", "register").click()
-    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the failed registration") == "error"
+    assert register_a_broken_source(browser, tmp_path) == "error"
     assert status_text(browser).startswith("422: ")
     found["with an error"] = axe_violations(browser)
     failing = {state: violations for state, violations in found.items() if violations}
