@@ -12,12 +12,10 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from model.cli_inputs import (
-    checkpoint_file,
     checkpoint_model,
     fail,
     given_options,
     json_file,
-    load_weights,
     output_file,
     output_folder,
     require_shapes,
@@ -172,8 +170,12 @@ def train(
     device: Annotated[str, typer.Option(help="auto, cpu or cuda")] = "auto",
     data: Annotated[str | None, typer.Option(help="ModelNet40 directory ($MFGNET_DATA)")] = None,
     threads: Annotated[int | None, typer.Option(help="torch CPU threads (default: torch's)")] = None,
-    iterations: Annotated[int, typer.Option(help="network iterations (matching + SVD)")] = 4,
-    share_weights: bool = False,
+    iterations: Annotated[
+        int, typer.Option(help="network iterations (matching + SVD); with --init or --resume: the checkpoint's")
+    ] = 4,
+    share_weights: Annotated[
+        bool, typer.Option(help="one matcher set for every iteration; with --init or --resume: the checkpoint's")
+    ] = False,
     source_points: SourcePoints = None,
     target_points: TargetPoints = None,
     overlap: Overlap = None,
@@ -217,9 +219,14 @@ def train(
     SIGTERM or SIGINT stops the run after the current step with OUT/last.pt written (--resume continues it) and exits
     with 128 + the signal's number (143, 130); a run that ends (its epochs, --patience, --max-minutes) exits with 0.
     """
-    from model.config import MFGNetConfig
-    from model.network import MFGNet
-    from model.train import RunFolderInUseError, TrainOptions, check_run_folder, option_problems, run_training
+    from model.train import (
+        RunFolderInUseError,
+        TrainOptions,
+        check_run_folder,
+        init_config,
+        option_problems,
+        run_training,
+    )
 
     output_folder(out, "--out")
     opts = TrainOptions(
@@ -258,14 +265,24 @@ def train(
             recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share, opts.sensor_share)
         except ValueError as err:
             raise typer.BadParameter(str(err)) from err
-    if init is not None and not (resume and run_files):  # its weights must fit the network of the options above
-        init_path, init_data = checkpoint_file(init, "--init")
-        load_weights(MFGNet(MFGNetConfig(iterations=iterations, share_weights=share_weights)), init_data["model"],
-                     init_path, "--init")
+    if init is not None and not (resume and run_files):  # fine-tuning continues the checkpoint's network
+        init_path, init_data, _ = checkpoint_model(init, "--init")  # its weights fit its own config
+        given = given_options(ctx)
+        _, conflicts = init_config({name: opts.config[name] for name in ("iterations", "share_weights")
+                                    if name in given}, init_data["config"])
+        if conflicts:
+            fail(f"--init {init_path}: " + ", ".join(f"--{c.replace('_', '-', 1)}" for c in conflicts)
+                 + ": fine-tuning keeps the checkpoint's network; leave these out or give its values")
+        opts.config = dict(init_data["config"])
     outcome = run_training(opts)
     if outcome.stopped_by:
         code = 128 + signal.Signals[outcome.stopped_by].value
         typer.echo(f"mfgnet: stopped on {outcome.stopped_by} before the run's end (exit {code}); "
                    f"--resume --out {out} continues from {out / 'last.pt'}", err=True)
         raise typer.Exit(code)
+    if outcome.best is None:  # a failed run: nothing to fine-tune, export or evaluate from
+        why = (f"none of its {outcome.epochs} epochs had a finite validation MAE(R) (NaN or inf)" if outcome.epochs
+               else "it stopped before its first validation")
+        typer.echo(f"mfgnet: no best checkpoint: {why}; no {out / 'best.pt'} was written", err=True)
+        raise typer.Exit(1)
     typer.echo(f"best checkpoint: {outcome.best}")

@@ -206,6 +206,18 @@ def resume_conflicts(opts: TrainOptions, saved: dict, saved_network: MFGNetConfi
     return conflicts
 
 
+def init_config(overrides: dict, saved: dict) -> tuple[MFGNetConfig, list[str]]:
+    """The network of a run fine-tuned from a checkpoint whose config is ``saved``: that network, and the
+    ``overrides`` (``TrainOptions.config`` entries) that contradict it, each as ``name value (the checkpoint's: x)``.
+
+    Fine-tuning continues the checkpoint's network; an override may only repeat the checkpoint's value.
+    """
+    cfg = MFGNetConfig.from_dict({**MFGNetConfig().to_dict(), **saved})
+    conflicts = [f"{name} {value} (the checkpoint's: {getattr(cfg, name, None)})" for name, value in overrides.items()
+                 if getattr(cfg, name, None) != value]
+    return cfg, conflicts
+
+
 def lr_at(opts: TrainOptions, epoch: int) -> float:
     """The learning rate of ``epoch``: ``lr``, divided by 10 from epoch floor(lr_drop_at x epochs) on, but never
     before epoch 1, so that a one-epoch run trains at ``lr``."""
@@ -225,12 +237,14 @@ def batch_generator(seed: int, epoch: int, batch: int) -> torch.Generator:
 
 @dataclass
 class TrainOutcome:
-    best: Path  # the best checkpoint (best.pt)
+    best: Path | None  # the best checkpoint (best.pt); None where no epoch had a finite validation MAE(R)
     stopped_by: str | None = None  # the signal (SIGTERM, SIGINT) that stopped the run before its end; --resume goes on
+    epochs: int = 0  # epochs the run has finished (validated), its earlier tries' included
 
 
-def train(opts: TrainOptions) -> Path:
-    """Train (or resume) a model; returns the path of the best checkpoint (``run_training`` also says how it ended).
+def train(opts: TrainOptions) -> Path | None:
+    """Train (or resume) a model; returns the path of the best checkpoint, ``None`` where no epoch had a finite
+    validation MAE(R) (``run_training`` also says how it ended).
 
     Like ``mfgnet train``, it refuses (:class:`RunFolderInUseError`, a ``FileExistsError``) an ``opts.out`` that holds a
     run, unless ``opts.resume`` continues it or ``opts.overwrite`` replaces it (:func:`check_run_folder`).
@@ -294,11 +308,19 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
     else:
         if opts.resume:
             print(f"no {last_path} to resume from: starting a new run")
-        cfg = MFGNetConfig.from_dict({**MFGNetConfig().to_dict(), **opts.config})
+        init = read_checkpoint(opts.init) if opts.init else None
+        if init is None:
+            cfg = MFGNetConfig.from_dict({**MFGNetConfig().to_dict(), **opts.config})
+        else:  # fine-tuning continues the checkpoint's network (its config), not the defaults'
+            cfg, conflicts = init_config(opts.config, init["config"])
+            if conflicts:
+                raise ValueError(f"training {out} from {opts.init}: {', '.join(conflicts)}: fine-tuning keeps the "
+                                 "checkpoint's network; leave these out or give its values")
+            opts.config = cfg.to_dict()
         model = MFGNet(cfg).to(device)
-        if opts.init:
-            model.load_state_dict(read_checkpoint(opts.init)["model"])
-            print(f"initialised from {opts.init}")
+        if init is not None:
+            model.load_state_dict(init["model"])
+            print(f"initialised from {opts.init} (its network: {cfg.to_dict()})")
         optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
         if run_files:  # overwrite: the run it replaces goes once the new one is ready to start
             remove_run(out, run_files)
@@ -420,4 +442,6 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
                 break
             if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
                 break
-    return TrainOutcome(best_path, stopped_by)
+    if state["best_epoch"] < 0:  # no epoch validated, or every validation MAE(R) NaN or inf: no best.pt written
+        return TrainOutcome(None, stopped_by, state["epoch"])
+    return TrainOutcome(best_path, stopped_by, state["epoch"])

@@ -104,9 +104,83 @@ def test_train_rejects_an_init_file_that_is_not_a_checkpoint(tmp_path, kind) -> 
 
 
 def test_train_rejects_init_weights_of_another_network(tmp_path, tiny_checkpoint) -> None:
+    import torch
+
+    data = torch.load(tiny_checkpoint, weights_only=True)
+    data["config"]["emb_dims"] = 64  # the weights are those of a narrower network than its config says
+    torch.save(data, tiny_checkpoint)
     args = ["train", "--out", str(tmp_path / "run"), "--init", str(tiny_checkpoint), "--data",
-            tiny_training_data(tmp_path)]  # the tiny network is narrower than the default one
+            tiny_training_data(tmp_path)]
     assert_usage_error(runner.invoke(app, args), "--init", str(tiny_checkpoint), "do not fit", "of another shape")
+
+
+def save_init_checkpoint(path) -> dict:
+    """A tiny checkpoint whose network differs from the defaults beyond its weight shapes (as an import of the
+    authors' weights does: target_minus_source, unweighted centroid, other keypoints, clamp, threshold); its config."""
+    import torch
+
+    from model.checkpoint import save_checkpoint
+    from model.config import MFGNetConfig
+    from model.network import MFGNet
+
+    torch.manual_seed(0)
+    cfg = MFGNetConfig.from_dict({**TINY_MODEL, "iterations": 2, "keypoints": 24, "feature_diff": "target_minus_source",
+                                  "centroid": "unweighted", "clamp": 10.0, "match_threshold": 0.08})
+    save_checkpoint(path, MFGNet(cfg))
+    return cfg.to_dict()
+
+
+def test_train_init_fine_tunes_the_checkpoints_own_network(tmp_path) -> None:
+    network = save_init_checkpoint(tmp_path / "init.pt")
+    run = tmp_path / "run"
+    args = ["train", "--out", str(run), "--init-from", str(tmp_path / "init.pt"), "--data",
+            tiny_training_data(tmp_path), "--epochs", "1", "--batch-size", "2", "--batches-per-epoch", "1",
+            "--val-pairs", "2", "--device", "cpu"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert json.loads((run / "config.json").read_text())["model"] == network  # not the defaults' settings
+    from model.checkpoint import read_checkpoint
+
+    assert read_checkpoint(run / "best.pt")["config"] == network
+
+
+@pytest.mark.parametrize(("flags", "named"), [
+    (["--iterations", "4"], "--iterations 4 (the checkpoint's: 2)"),
+    (["--share-weights"], "--share-weights True (the checkpoint's: False)"),
+])
+def test_train_init_refuses_flags_that_contradict_the_checkpoints_network(tmp_path, flags, named) -> None:
+    save_init_checkpoint(tmp_path / "init.pt")
+    args = ["train", "--out", str(tmp_path / "run"), "--init", str(tmp_path / "init.pt"), "--data",
+            tiny_training_data(tmp_path), *flags]
+    assert_usage_error(runner.invoke(app, args), named, "fine-tuning keeps the checkpoint's network")
+    assert not (tmp_path / "run" / "config.json").exists()
+    same = runner.invoke(app, [*args[:-len(flags)], "--iterations", "2", "--epochs", "1", "--batch-size", "2",
+                               "--batches-per-epoch", "1", "--val-pairs", "2", "--device", "cpu"])
+    assert same.exit_code == 0, same.output  # the checkpoint's own value may be given
+
+
+def test_train_without_a_finite_validation_error_writes_no_best_and_fails(tmp_path, monkeypatch) -> None:
+    """Every validation pose NaN, as a GPU SVD that does not raise returns for a broken batch. On the CPU no real
+    cheap run gets there (a diverged network, lr 1e6, still gives finite poses; non-finite points make the SVD
+    raise), so the validation's poses are replaced; training itself runs for real."""
+    import numpy as np
+
+    import model.train
+
+    def nan_poses(model, pairs, batch_size=16):
+        n = len(pairs["source"])
+        return np.full((n, 3, 3), np.nan), np.full((n, 3), np.nan), 0.0
+
+    monkeypatch.setattr(model.train, "predict_poses", nan_poses)
+    run = tmp_path / "run"
+    result = runner.invoke(app, ["train", "--out", str(run), "--data", tiny_training_data(tmp_path), "--epochs", "2",
+                                 "--batch-size", "2", "--batches-per-epoch", "1", "--val-pairs", "2", "--device",
+                                 "cpu", "--iterations", "1"])
+    assert result.exit_code == 1, result.output
+    assert "best checkpoint:" not in result.stdout
+    assert "none of its 2 epochs had a finite validation MAE(R)" in result.stderr
+    assert f"no {run / 'best.pt'} was written" in result.stderr
+    assert not (run / "best.pt").exists() and (run / "last.pt").exists()
 
 
 def test_train_rejects_a_damaged_last_checkpoint_to_resume(tmp_path) -> None:
