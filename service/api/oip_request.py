@@ -38,6 +38,10 @@ OIP_INPUTS = {"SOURCE": "source", "TARGET": "target"}
 GUESS_INPUT = "INITIAL_TRANSFORM"  # optional: FP32 [4, 4], the /v1/register option initial_transform
 OIP_OUTPUTS = ("TRANSFORM", "SOURCE_INDEX", "TARGET_INDEX", "CREDIBILITY")
 FP32_WIRE = np.dtype("<f4")  # binary FP32: little-endian float32
+# Triton extensions a client may ask for in a tensor's parameters that this server does not implement (GET /v2
+# lists binary_tensor_data only): refused by name, since answering with plain data would leave the client reading
+# its shared memory region or expecting class labels
+SHARED_MEMORY = ("shared_memory_region", "shared_memory_byte_size", "shared_memory_offset")
 MAX_HEADER_DIGITS = 19  # any int64; more digits cannot be a header length
 
 
@@ -254,6 +258,20 @@ def _split(body: bytes | bytearray, length: int | None) -> tuple[bytes | bytearr
     return bytes(view[:length]), view[length:]
 
 
+def refuse_extensions(where: str, parameters: dict | None, send: str) -> None:
+    """422 when a tensor's ``parameters`` ask for an extension this server does not implement (shared memory,
+    classification), naming the parameter and ``send``: what to do instead."""
+    parameters = parameters or {}
+    for key in (*SHARED_MEMORY, "classification"):
+        if key in parameters:
+            extension = "classification" if key == "classification" else "shared memory"
+            raise APIError(
+                422,
+                f"invalid request: {where}: parameters.{key}: the {extension} extension is not supported (GET /v2 "
+                f"lists the extensions served); {send}",
+            )
+
+
 def _outputs(req: InferRequest, binary_default: bool) -> tuple[list[str], set[str]]:
     """Names of the outputs to return (all when none are named) and those to send as binary data."""
     if not req.outputs:
@@ -267,6 +285,11 @@ def _outputs(req: InferRequest, binary_default: bool) -> tuple[list[str], set[st
             )
         if output.name in names:
             raise APIError(422, f"invalid request: outputs: {output.name} asked for more than once")
+        refuse_extensions(
+            f"outputs: {output.name}",
+            output.parameters,
+            "ask for the output as data or as binary data (parameters.binary_data)",
+        )
         flag = (output.parameters or {}).get("binary_data", binary_default)
         if type(flag) is not bool:
             raise APIError(
@@ -325,6 +348,9 @@ def infer_call(body: bytes | bytearray, length: int | None, max_points: int, oct
                                 f"(and optionally {GUESS_INPUT})")
         if tensor.name in by_name:
             raise APIError(422, f"invalid request: inputs: {tensor.name} given more than once")
+        refuse_extensions(
+            tensor.name, tensor.parameters, "send the values in data or as binary data (binary_data_size)"
+        )
         by_name[tensor.name] = tensor
     missing = [name for name in OIP_INPUTS if name not in by_name]
     if missing:

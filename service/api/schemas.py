@@ -429,7 +429,8 @@ class InferRequestedOutput(BaseModel):
     name: str = Field(description="TRANSFORM, SOURCE_INDEX, TARGET_INDEX or CREDIBILITY.")
     parameters: dict[str, Any] | None = Field(
         None, description="binary_data: true to get this output as binary data after the JSON (overrides the "
-        "request's binary_data_output)."
+        "request's binary_data_output). Triton's shared_memory_* and classification parameters are not served "
+        "(422)."
     )
 
 

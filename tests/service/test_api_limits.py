@@ -165,6 +165,23 @@ def test_tampered_model_is_not_served_and_keeps_the_reason(strict_server):
         # worker starts late, as under two test workers): tests/service/test_reliability_faults.py checks it
 
 
+def test_oip_clients_read_the_not_ready_answers_as_false(strict_server):
+    """tritonclient reads readiness as ``status == 200`` (KServe's client raises on any non-2xx, as Kubernetes
+    probes fail on one): the not-ready 503 is False, not an error, and a 200 saying ``ready: false`` would be
+    True to it."""
+    import tritonclient.http as httpclient  # the dev extra's stock OIP client
+
+    triton = httpclient.InferenceServerClient(strict_server.url.removeprefix("http://"))
+    try:
+        assert triton.is_server_live()
+        assert triton.is_server_ready() is False
+        assert triton.is_model_ready("tampered") is False
+        assert triton.is_model_ready("no-such-model") is False
+        assert triton.is_model_ready(MODEL) is True
+    finally:
+        triton.close()
+
+
 def test_past_the_deadline_is_504(strict_server):
     with strict_server.client() as c:
         assert_error(c.post("/v1/register", json=small_pair()), 504, "timeout_s")

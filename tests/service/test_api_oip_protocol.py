@@ -73,6 +73,58 @@ def test_tritonclient_with_a_model_version(server, version):
         client.close()
 
 
+# -- Triton extensions this server does not implement ------------------------------------------------
+def triton_inputs() -> list:
+    inputs = []
+    for name, points in (("SOURCE", PAIR.source), ("TARGET", PAIR.target)):
+        inputs.append(httpclient.InferInput(name, list(points.shape), "FP32"))
+        inputs[-1].set_data_from_numpy(points.astype(np.float32))
+    return inputs
+
+
+def shared_memory_output() -> httpclient.InferRequestedOutput:
+    output = httpclient.InferRequestedOutput("TRANSFORM")
+    output.set_shared_memory("transform-region", 64)  # parameters only: the region need not exist to be refused
+    return output
+
+
+def shared_memory_input() -> list:
+    inputs = triton_inputs()
+    inputs[0].set_shared_memory("source-region", PAIR.source.size * 4)
+    return inputs
+
+
+@pytest.mark.parametrize(
+    ("inputs", "outputs", "words"),
+    [
+        (
+            triton_inputs,
+            lambda: [httpclient.InferRequestedOutput("CREDIBILITY", class_count=3)],
+            ["outputs: CREDIBILITY", "classification", "not supported"],
+        ),
+        (
+            triton_inputs,
+            lambda: [shared_memory_output()],
+            ["outputs: TRANSFORM", "shared_memory_region", "not supported"],
+        ),
+        (shared_memory_input, lambda: None, ["SOURCE", "shared_memory_region", "not supported"]),
+    ],
+    ids=["classification", "output-in-shared-memory", "input-in-shared-memory"],
+)
+def test_tritonclient_extensions_not_served_are_refused_by_name(server, inputs, outputs, words):
+    """Not silently answered as plain JSON or binary data (where the client would read its shared memory region
+    or expect class labels): a 422 naming the parameter, raised by tritonclient with the server's message."""
+    client = httpclient.InferenceServerClient(server.url.removeprefix("http://"), network_timeout=120)
+    try:
+        with pytest.raises(InferenceServerException) as raised:
+            client.infer(MODEL, inputs(), outputs=outputs(), parameters=CHEAP)
+        assert raised.value.status() == "422", raised.value
+        for word in words:
+            assert word in raised.value.message(), raised.value.message()
+    finally:
+        client.close()
+
+
 # -- outputs FP32 cannot hold -------------------------------------------------------------------------
 FAR = np.random.default_rng(0).normal(size=(64, 3))  # the clouds 6e38 apart: each fits FP32, their offset does not
 

@@ -2,7 +2,8 @@
 extension (``binary_tensor_data``) as ``tritonclient.http`` uses it by default. The model routes are served under
 ``/v2/models/{name}/versions/{version}`` too, for the one version each model has (its manifest's).
 
-Readiness is 503 with a JSON reason until every model is verified, loaded and warmed up.
+Readiness is 503 with a JSON reason until every model is verified, loaded and warmed up (not the 4xx of the OIP
+text: every consumer reads 503 as not ready, Kubernetes probes and ``tritonclient`` included; docs/DEPLOYMENT.md).
 """
 
 from __future__ import annotations
@@ -145,7 +146,9 @@ better than the network's poses.
 
 **Request parameters** (all optional): iterations, keypoints, refine ({', '.join(REFINE_MODES)}), refine_points,
 drop_isolated, rotation_search (true, false or 'auto'), binary_data_output (true: every output as binary data
-unless the output's own `binary_data` says otherwise). Others are ignored.
+unless the output's own `binary_data` says otherwise). Others are ignored. Triton's shared memory
+(`shared_memory_region`, ... on an input or output) and classification (`classification` on an output) extensions
+are not served: a 422 naming the parameter.
 
 **Outputs** (all four when `outputs` is absent, else those named, in that order):
 - TRANSFORM, FP32 [4, 4]: the homogeneous rigid transform src_to_tgt, row-major, in the caller's units
