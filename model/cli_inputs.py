@@ -2,8 +2,8 @@
 
 Used where the command-line arguments of ``mfgnet train``, ``evaluate``, ``make-pairs``, ``export``,
 ``import-checkpoint`` and ``bench`` become checkpoints, networks, model folders, pairs and output paths; the messages
-and the exit code are the runtime commands' (``service.cli._fail``). Only the errors a bad file raises are caught, here
-and nowhere deeper.
+and the exit code are the runtime commands' (``service.cli.common.fail``). Only the errors a bad file raises are
+caught, here and nowhere deeper.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 import typer
 
 from model.data import DATA_ENV, load_pairs, shapes_file
-from service.cli import _fail as fail
+from service.cli.common import fail
 
 if TYPE_CHECKING:  # torch is imported only by the commands that read checkpoints (make-pairs does not)
     from model.network import MFGNet

@@ -218,7 +218,7 @@ MULTISTART_COST = re.compile(r"(\d[\d.]*(?:-\d[\d.]*)?x) the refinement time")
 def test_the_multistart_cost_is_stated_alike_in_docs_help_and_schema():
     """``icp-plane-multistart``'s cost, as DESIGN's refinement table states it (with its command), is what
     DEPLOYMENT, README's options table, ``mfgnet register --help`` and the request schema (``/docs``) say."""
-    from service.cli import RefineOpt
+    from service.cli.options import RefineOpt
 
     design = {row[0]: row[1] for row in table(ROOT / "docs" / "DESIGN.md", "Refinement", "`refine`")}
     stated = MULTISTART_COST.findall(design["`icp-plane-multistart`"])
@@ -284,7 +284,7 @@ def test_the_rotation_search_cost_is_stated_alike_in_docs_help_and_schema():
     --rotation-search --help`` and the request schema (``/docs``) say."""
     import json
 
-    from service.cli import RotationSearchOpt
+    from service.cli.options import RotationSearchOpt
 
     doc = " ".join((ROOT / "docs" / "ROTATION_SEARCH.md").read_text().split())
     stated = SEARCH_COST.findall(doc)

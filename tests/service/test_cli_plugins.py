@@ -14,7 +14,7 @@ import typer
 from cli_support import python_without_torch
 from typer.testing import CliRunner
 
-from service.cli_plugins import TRAIN_EXTRA_HINT, missing_command
+from service.cli.plugins import TRAIN_EXTRA_HINT, missing_command
 
 # Runs `mfgnet ARGS`, then reports on stderr whether a training-side module got imported anyway.
 MFGNET = """

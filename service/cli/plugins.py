@@ -1,8 +1,8 @@
 """The training-side commands of ``mfgnet`` (train, evaluate, make-pairs, export, ...), found through the
 ``mfgnet.commands`` entry-point group and loaded only when one of them is run or help lists them.
 
-A runtime command (serve, register, models) therefore never imports ``model``, ``export`` or ``bench``, even in an
-install that has them; where torch is absent, a training command answers with the install hint instead.
+A runtime command (serve, register, sequence, models) therefore never imports ``model``, ``export`` or ``bench``,
+even in an install that has them; where torch is absent, a training command answers with the install hint instead.
 """
 
 from __future__ import annotations
@@ -17,8 +17,10 @@ from typer.core import TyperGroup
 
 PLUGIN_GROUP = "mfgnet.commands"
 # Not `pip install 'mfgnet[train]'`: on Linux that takes PyPI's torch, the CUDA build (README, Set-up).
-TRAIN_EXTRA_HINT = ("this command needs the training side (the train extra): make install-dev in a source checkout, "
-                    "which takes torch from PyTorch's CPU index")
+TRAIN_EXTRA_HINT = (
+    "this command needs the training side (the train extra): make install-dev in a source checkout, "
+    "which takes torch from PyTorch's CPU index"
+)
 STUB_SETTINGS = {"allow_extra_args": True, "ignore_unknown_options": True}  # a stub accepts any options
 
 

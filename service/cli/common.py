@@ -1,0 +1,60 @@
+"""What every runtime ``mfgnet`` command shares: the usage-error exit, reading a cloud, checking an output path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NoReturn
+
+import numpy as np
+import typer
+
+SERVE_EXTRA_HINT = "this command needs the runtime extra: pip install 'mfgnet[serve]'"
+UNRELIABLE_EXIT = 3  # --require-reliable: registered, but quality.reliable is false
+
+
+def fail(message: str, code: int = 2) -> NoReturn:
+    """Print ``message`` on stderr and exit with ``code`` (2: bad input or usage, 1: anything else)."""
+    typer.echo(f"mfgnet: error: {message}", err=True)
+    raise typer.Exit(code=code)
+
+
+def check_output_path(path: Path | None, option: str) -> None:
+    """A usage error where the output ``path`` of ``option`` is a folder or lies in a folder that does not exist."""
+    if path is not None and path.is_dir():
+        fail(f"{option} {path}: a folder, not a file")
+    if path is not None and not path.parent.is_dir():
+        fail(f"{option} {path}: folder {path.parent} does not exist")
+
+
+def require_regular_file(path: Path) -> None:
+    """A usage error where ``path`` is a FIFO, a device or a socket: its ``open()`` could block for ever."""
+    if path.exists() and not path.is_file() and not path.is_dir():
+        fail(f"cannot read {path}: not a regular file")
+
+
+def read_cloud(path: Path, name: str | None = None) -> np.ndarray:
+    """``[N, 3]`` float64 points of ``path`` (any format :mod:`service.pointcloud_io` reads), or a usage error
+    (prefixed with ``name``, e.g. ``frame 3 a.ply``, where given)."""
+    from service.pointcloud_io import PointCloudFormatError, read_points
+
+    require_regular_file(path)
+    try:
+        return read_points(path).astype(np.float64)
+    except PointCloudFormatError as exc:
+        fail(f"{name}: {exc}" if name else str(exc))
+    except OSError as exc:
+        reason = exc.strerror or exc
+        fail(f"{name}: cannot read it: {reason}" if name else f"cannot read {path}: {reason}")
+
+
+def write_text(path: Path, text: str) -> None:
+    """``text`` into ``path``, or exit 1 naming why it cannot be written."""
+    try:
+        path.write_text(text)
+    except OSError as exc:
+        fail(f"cannot write {path}: {exc.strerror or exc}", code=1)
+
+
+def number(value: float | None, spec: str = ".4g") -> str:
+    """``value`` formatted for a summary line, ``?`` where it is missing."""
+    return "?" if value is None else format(float(value), spec)

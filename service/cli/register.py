@@ -1,0 +1,243 @@
+"""``mfgnet register``: one pair, in process or through a running service, printed or written as JSON, and the
+source written moved onto the target."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from service.cli.common import (
+    UNRELIABLE_EXIT,
+    check_output_path,
+    fail,
+    number,
+    read_cloud,
+    require_regular_file,
+    write_text,
+)
+from service.cli.model_lookup import load_registrar
+from service.cli.options import (
+    ApiKeyOpt,
+    BusyRetriesOpt,
+    DropIsolatedOpt,
+    IterationsOpt,
+    KeypointsOpt,
+    ModelDirs,
+    ModelOpt,
+    RefineOpt,
+    RefinePointsOpt,
+    RotationSearchModeOpt,
+    RotationSearchOpt,
+    ServerOpt,
+    ThreadsOpt,
+    TimeoutOpt,
+    check_server_flags,
+    registration_options,
+)
+from service.cli.records import ServerError, local_record, remote_record, server_client
+
+TRANSFORM_TEXT_BYTES = 1 << 16  # an --initial-transform .txt: 16 numbers with comments fit many times over
+
+SourceArg = Annotated[
+    Path, typer.Argument(metavar="SOURCE", help="cloud to move (.ply .pcd .las .laz .xyz .txt .csv .npy .npz)")
+]
+TargetArg = Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to align it to (same formats)")]
+InitialTransformOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="initial source->target guess (T_target_source, e.g. from odometry): .json (a "
+        "4x4 list, or a --out file), .npy 4x4 or .txt (4 rows of 4 numbers); with a refinement, "
+        "kept where it fits better than the network's poses"
+    ),
+]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option(help="write the pose, quality, model and timing as JSON here ('-': to standard output, as --json)"),
+]
+WriteAlignedOpt = Annotated[
+    Path | None, typer.Option(help="write the source moved onto the target (R @ p + t); format from extension")
+]
+BinaryOpt = Annotated[
+    bool,
+    typer.Option(
+        help="with --server: upload the clouds as .npy files (file uploads take up "
+        "to the server's MFGNET_MAX_FILE_POINTS, 2,000,000 by default), or "
+        "with --no-binary as JSON (MFGNET_MAX_POINTS, 200,000)"
+    ),
+]
+RequireReliableOpt = Annotated[
+    bool, typer.Option(help="exit 3 when the result is not quality.reliable (the outputs are still written)")
+]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")]
+
+
+def register_command(
+    source: SourceArg,
+    target: TargetArg,
+    model: ModelOpt = None,
+    model_dir: ModelDirs = None,
+    iterations: IterationsOpt = None,
+    keypoints: KeypointsOpt = None,
+    refine: RefineOpt = None,
+    refine_points: RefinePointsOpt = None,
+    drop_isolated: DropIsolatedOpt = True,
+    initial_transform: InitialTransformOpt = None,
+    out: OutOpt = None,
+    write_aligned: WriteAlignedOpt = None,
+    server: ServerOpt = None,
+    api_key: ApiKeyOpt = None,
+    binary: BinaryOpt = True,
+    timeout: TimeoutOpt = 60.0,
+    busy_retries: BusyRetriesOpt = 2,
+    rotation_search: RotationSearchOpt = None,
+    rotation_search_mode: RotationSearchModeOpt = None,
+    threads: ThreadsOpt = None,
+    json_output: JsonOpt = False,
+    require_reliable: RequireReliableOpt = False,
+) -> None:
+    """Register SOURCE onto TARGET and print the 4x4 source->target transform.
+
+    Runs in-process on a bundled or --model-dir model, or through a running service with --server.
+
+    \b
+    Exit codes:
+    0 done (whether or not quality.reliable; see --require-reliable);
+    2 bad input (unreadable or invalid cloud, bad option, unknown model,
+      refused by the server);
+    1 other failures (model integrity, server unreachable or 5xx);
+    3 with --require-reliable: registered, but not reliable.
+    """
+    if out == Path("-"):  # the record on standard output, nothing else there
+        out, json_output = None, True
+    _check_register_flags(write_aligned, out)
+    check_server_flags(server, model_dir, threads)
+    options = registration_options(
+        iterations, keypoints, refine, refine_points, drop_isolated, rotation_search, rotation_search_mode
+    )
+    src, tgt = read_cloud(source), read_cloud(target)
+    options["initial_transform"] = _read_transform(initial_transform) if initial_transform is not None else None
+    if server:
+        record = _register_remote(server, api_key, src, tgt, model, options, binary, timeout, busy_retries)
+    else:
+        record = _register_local(src, tgt, model, model_dir or [], threads, options)
+    _write_outputs(record, src, out, write_aligned)
+    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
+    if require_reliable and not record["quality"].get("reliable"):
+        typer.echo("mfgnet: the result is not reliable (--require-reliable)", err=True)
+        raise typer.Exit(UNRELIABLE_EXIT)
+
+
+def _check_register_flags(write_aligned: Path | None, out: Path | None = None) -> None:
+    """Usage errors of ``register``'s outputs, before the registration runs."""
+    from service.pointcloud_io import SUFFIXES
+
+    check_output_path(out, "--out")
+    check_output_path(write_aligned, "--write-aligned")
+    if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
+        fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
+
+
+def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligned: Path | None) -> None:
+    """``--out`` (the JSON record) and ``--write-aligned`` (the source moved by the pose)."""
+    from service.pointcloud_io import PointCloudFormatError, write_points
+
+    R = np.asarray(record["rotation"], dtype=np.float64)  # [3, 3]
+    t = np.asarray(record["translation"], dtype=np.float64)  # [3]
+    if out is not None:
+        write_text(out, json.dumps(record, indent=2) + "\n")
+        typer.echo(f"wrote {out}", err=True)
+    if write_aligned is not None:
+        try:
+            write_points(write_aligned, src @ R.T + t)
+        except (PointCloudFormatError, OSError) as exc:
+            fail(f"cannot write {write_aligned}: {exc}", code=1)
+        typer.echo(f"wrote {write_aligned}", err=True)
+
+
+def _read_transform(path: Path) -> list:
+    """A 4x4 matrix from ``.json`` (a 4x4 list, or an object with ``transform``), ``.npy`` or ``.txt`` (four rows of
+    four numbers, as ``np.savetxt`` and other registration tools write a pose; commas allowed, ``#`` comments)."""
+    require_regular_file(path)
+    try:
+        if path.suffix.lower() == ".json":
+            payload = json.loads(path.read_text())
+            matrix = payload.get("transform") if isinstance(payload, dict) else payload
+            if matrix is None:
+                fail(
+                    f"--initial-transform {path.name}: JSON object has no 'transform' (expected a 4x4 list, or an "
+                    "object with 'transform' as an --out file holds)"
+                )
+            T = np.asarray(matrix, dtype=np.float64)
+        elif path.suffix.lower() == ".npy":
+            T = np.load(path, allow_pickle=False, mmap_mode="r")  # mapped: a header's shape allocates nothing
+        elif path.suffix.lower() == ".txt":
+            if path.stat().st_size > TRANSFORM_TEXT_BYTES:
+                fail(f"--initial-transform {path.name}: over {TRANSFORM_TEXT_BYTES} bytes, not a 4x4 matrix")
+            rows = [line.split("#", 1)[0].replace(",", " ").split() for line in path.read_text().splitlines()]
+            T = np.asarray([[float(value) for value in row] for row in rows if row], dtype=np.float64)  # [4, 4]
+        else:
+            fail(f"--initial-transform {path.name}: expected a .json, .npy or .txt file")
+        if not isinstance(T, np.ndarray) or T.shape != (4, 4):
+            shape = list(T.shape) if isinstance(T, np.ndarray) else type(T).__name__
+            fail(f"--initial-transform {path.name}: expected a 4x4 matrix, got {shape}")
+        T = np.asarray(T, dtype=np.float64)
+    except OSError as exc:
+        fail(f"cannot read {path}: {exc.strerror or exc}")
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:  # not numbers, too deep, beyond float64
+        fail(f"--initial-transform {path.name}: not a 4x4 matrix ({type(exc).__name__}: {str(exc)[:200]})")
+    return T.tolist()
+
+
+def _register_local(
+    src: np.ndarray, tgt: np.ndarray, model: str | None, model_dirs: list[Path], threads: int | None, options: dict
+) -> dict:
+    """The record of ``src`` registered onto ``tgt`` in this process, as :class:`service.in_process.LocalRegistrar`
+    registers (the service's defaults for the options left ``None``)."""
+    from service.errors import InputError
+
+    registrar = load_registrar(model, model_dirs, threads)
+    try:
+        return local_record(registrar, src, tgt, options)
+    except InputError as exc:
+        fail(str(exc))
+
+
+def _register_remote(
+    server: str,
+    api_key: str | None,
+    src: np.ndarray,
+    tgt: np.ndarray,
+    model: str | None,
+    options: dict,
+    binary: bool,
+    timeout: float,
+    busy_retries: int,
+) -> dict:
+    """The pose from ``server``; the float64 clouds go to the client as they are (it re-centres far-away ones before
+    any float32 upload: cast here, map coordinates lost their centimetres, and the pose its degrees)."""
+    with server_client(server, api_key, timeout, busy_retries) as client:
+        try:
+            return remote_record(client, src, tgt, model, options, binary)
+        except ServerError as exc:
+            fail(str(exc), code=exc.code)
+
+
+def _summary(record: dict) -> str:
+    T = np.asarray(record["transform"])
+    matrix = np.array2string(T, precision=6, suppress_small=True, floatmode="fixed", sign=" ")
+    model, quality = record["model"], record["quality"]
+    total = record["timing_ms"].get("total")
+    lines = [
+        "transform (source -> target):",
+        *("  " + line.strip() for line in matrix.replace("[[", "[").replace("]]", "]").splitlines()),
+        f"model        {model.get('name', '?')} {model.get('version', '')}".rstrip(),
+        f"inlier ratio {number(quality.get('inlier_ratio'))}   residual rms {number(quality.get('residual_rms'))}",
+        f"reliable     {'yes' if quality.get('reliable') else 'no'}   stability {number(quality.get('stability'))}",
+        f"warnings     {'; '.join(record['warnings']) or 'none'}",
+        f"total        {number(total, '.1f')} ms",
+    ]
+    return "\n".join(lines)
