@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8080
 
-.PHONY: serve test test-all lint install-serve install-dev install-browser clean
+.PHONY: serve test test-all lint dist install-serve install-dev install-browser clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +56,13 @@ test-all: install-dev install-browser
 
 lint: install-dev
 	$(BIN)/ruff check .
+
+# The sdist, and the wheel built from it, into dist/, checked as the package index checks them. build/ and the
+# egg-info go first: setuptools reads an old egg-info's SOURCES.txt back into a new sdist.
+dist: install-dev
+	rm -rf build dist *.egg-info
+	$(BIN)/python -m build --outdir dist .
+	$(BIN)/twine check --strict dist/*
 
 clean:
 	rm -rf build dist *.egg-info .pytest_cache .ruff_cache
