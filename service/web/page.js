@@ -7,6 +7,7 @@
   const params = new URLSearchParams(location.search);
   const viewer = new PointViewer($("canvas"), {renderer: params.get("renderer") || "webgl"});
   let last = null; // {result, files}
+  let running = false;
   $("renderer").textContent = viewer.renderer;
   document.body.dataset.renderer = viewer.renderer;
 
@@ -28,6 +29,11 @@
     });
   }
 
+  $("api_key").addEventListener("input", () => {
+    $("api_key").removeAttribute("aria-invalid");
+    $("api_key").removeAttribute("aria-describedby");
+  });
+
   function headers() {
     const key = $("api_key").value.trim();
     return key ? {Authorization: "Bearer " + key} : {};
@@ -43,6 +49,8 @@
     }
     if (response.status === 401) {  // the server's words name a header: say where a page user gives the key
       text += "\nEnter the server's API key in the \"API key\" field (Options) and try again.";
+      $("api_key").setAttribute("aria-invalid", "true");  // the field in error, described by the message
+      $("api_key").setAttribute("aria-describedby", "status");
       $("api_key").focus();
     }
     return text;
@@ -79,6 +87,7 @@
 
   $("form").addEventListener("submit", async (e) => {
     e.preventDefault();
+    if (running) return;  // Enter again on Register or in a field while this pair runs
     const files = {source: $("source").files[0], target: $("target").files[0]};
     if (!files.source || !files.target) return setStatus("Choose a source and a target file.", true);
     const form = new FormData();
@@ -88,8 +97,10 @@
     form.append("drop_isolated", $("drop_isolated").checked ? "true" : "false");
     form.append("return_correspondences", "false");
     document.body.dataset.state = "running";
+    running = true;
     clearResult();  // until this pair's answer: never the last pair's pose, view or download under this one's status
-    $("register").disabled = true;
+    // aria-disabled, not disabled: a disabled button loses the keyboard focus (to the page's start)
+    $("register").setAttribute("aria-disabled", "true");
     const started = performance.now();
     const elapsed = () => `${Math.round((performance.now() - started) / 1000)} s`;
     setStatus("Uploading and registering…");  // once: a live region that changes every second is read every second
@@ -111,7 +122,9 @@
       const d = body.display;
       $("shown").textContent = `Shown: source ${d.source.shown} of ${d.source.points} points, target ` +
         `${d.target.shown} of ${d.target.points} (at most ${d.cap} per cloud).`;
-      setStatus(`Done in ${Math.round(performance.now() - started)} ms.`);
+      const q = body.result.quality, count = body.result.warnings.length;  // the live region says what came
+      setStatus(`Done in ${Math.round(performance.now() - started)} ms: ${q.reliable ? "reliable" : "not reliable"}, ` +
+        `${count ? count + (count === 1 ? " warning" : " warnings") : "no warnings"}.`);
       document.body.dataset.state = "done";
     } catch (err) {
       clearResult();
@@ -123,7 +136,8 @@
       $("elapsed").textContent = "";
       $("cancel").removeEventListener("click", cancel);
       $("cancel").hidden = true;
-      $("register").disabled = false;
+      $("register").removeAttribute("aria-disabled");
+      running = false;
     }
   });
 

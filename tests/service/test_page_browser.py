@@ -461,6 +461,10 @@ def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browse
     status = status_text(browser)
     assert status.startswith("401: missing or invalid API key") and '"API key" field' in status, status
     assert browser.execute_script("return document.activeElement.id") == "api_key"
+    api_key = browser.find_element("id", "api_key")  # the field in error, described by the message (WCAG 3.3.1)
+    assert (api_key.get_attribute("aria-invalid"), api_key.get_attribute("aria-describedby")) == ("true", "status")
+    api_key.send_keys("x")  # typing a key clears the mark
+    assert (api_key.get_attribute("aria-invalid"), api_key.get_attribute("aria-describedby")) == (None, None)
 
     key = LIMITED["api_key"]
     assert register(browser, limited.url, source_file, target_file, key=key) == "done", status_text(browser)
@@ -495,16 +499,120 @@ def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browse
     assert status.startswith("413: ") and "600 points" in status and "max_file_points" in status, status
 
 
-def test_a_narrow_screen_shows_the_page_without_sideways_scrolling(browser, server, ply_files):
+def narrow_screen(driver, width: int, height: int, scale: float = 1) -> None:
+    """Show the page ``width`` x ``height`` CSS px large at ``scale`` device px per CSS px (what browser zoom does to
+    the layout), until ``Emulation.clearDeviceMetricsOverride``."""
+    driver.execute_cdp_cmd(
+        "Emulation.setDeviceMetricsOverride",
+        {"width": width, "height": height, "deviceScaleFactor": scale, "mobile": False},
+    )
+
+
+@pytest.mark.parametrize(
+    ("width", "height", "scale"),
+    [
+        (360, 740, 1),  # a phone
+        (320, 640, 1),  # WCAG 1.4.10 (reflow): 1280 CSS px at 400% zoom
+        (640, 500, 2),  # 1280 at 200% zoom
+    ],
+)
+def test_a_narrow_screen_shows_the_page_without_sideways_scrolling(browser, server, ply_files, width, height, scale):
+    """Nothing but the pose matrix reaches past the screen's edge, and where the matrix scrolls sideways it is a tab
+    stop: keys scroll only what has the focus, so at 320 px a keyboard user could not read its right-hand column."""
     _, source_file, target_file = ply_files
-    browser.set_window_size(375, 800)  # a phone
+    narrow_screen(browser, width, height, scale)
     try:
         assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
-        width, inner = browser.execute_script("return [document.documentElement.scrollWidth, window.innerWidth]")
-        assert width <= inner
-        assert browser.find_element("id", "canvas").size["width"] <= inner
+        assert browser.execute_script("return innerWidth") == width
+        assert browser.execute_script("return document.documentElement.scrollWidth") <= width
+        past_the_edge = browser.execute_script(
+            "return [...document.querySelectorAll('body *')].filter(e => e.getBoundingClientRect().right > innerWidth)"
+            ".map(e => e.id || e.tagName)"
+        )
+        assert past_the_edge == []
+        assert browser.find_element("id", "canvas").size["width"] <= width
+        scrolls, tab_stop = browser.execute_script(
+            "const t = document.getElementById('transform'); return [t.scrollWidth > t.clientWidth, t.tabIndex >= 0]"
+        )
+        assert tab_stop or not scrolls, "the pose matrix scrolls sideways but the keyboard cannot reach it"
     finally:
-        browser.set_window_size(1400, 1000)
+        browser.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
+
+
+def focus_is_shown(driver, element) -> bool:
+    """Whether the focused ``element`` and the 6 px around it look different once it loses the focus (an outline,
+    a ring, a colour change: any visible focus indicator, WCAG 2.4.7). Leaves the focus where it was."""
+    x, y, width, height = driver.execute_script(
+        "const r = arguments[0].getBoundingClientRect(); return [r.left + scrollX, r.top + scrollY, r.width, r.height]",
+        element,
+    )
+    clip = {"x": x - 6, "y": y - 6, "width": width + 12, "height": height + 12, "scale": 1}
+
+    def shot() -> str:
+        return driver.execute_cdp_cmd("Page.captureScreenshot", {"format": "png", "clip": clip})["data"]
+
+    focused = shot()
+    driver.execute_script("arguments[0].blur()", element)
+    blurred = shot()
+    driver.execute_script("arguments[0].focus()", element)
+    return focused != blurred
+
+
+def test_the_page_registers_from_the_keyboard_alone_with_the_focus_shown_and_the_result_announced(
+    browser, server, ply_files
+):
+    """WCAG 2.1.1, 2.4.3, 2.4.7 and 4.1.3 end to end: Tab reaches both file inputs, the options and Register, each
+    with a visible focus indicator; keys set the options; Enter on Register registers (Enter again while it runs
+    sends nothing more). Register was disabled while a pair ran, and a disabled button drops the focus to the page's
+    start; the status line, the live region, said only "Done in N ms." and not what came."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    _, source_file, target_file = ply_files
+    browser.get(f"{server.url}/")
+    controls = ["source", "target", "refine", "rotation_search", "drop_isolated", "api_key", "register"]
+    keys = {"refine": [Keys.ARROW_DOWN, Keys.ARROW_DOWN], "drop_isolated": [Keys.SPACE]}  # icp; keep isolated points
+    reached, unshown = [], []
+    for _ in range(12):
+        press(browser, Keys.TAB)
+        focused = browser.switch_to.active_element
+        name = focused.get_attribute("id")
+        reached.append(name)
+        if name not in controls:
+            continue
+        if not focus_is_shown(browser, focused):
+            unshown.append(name)
+        if name in ("source", "target"):  # what a file chooser opened by Space would give
+            focused.send_keys(str(source_file if name == "source" else target_file))
+        press(browser, *keys.get(name, []))
+        if name == "register":
+            break
+    assert [i for i in reached if i in controls] == controls, reached
+    assert unshown == [], f"no visible focus indicator on {unshown}"
+    assert browser.execute_script(
+        "return [document.getElementById('refine').value, document.getElementById('drop_isolated').checked]"
+    ) == ["icp", False]
+
+    press(browser, Keys.ENTER, Keys.ENTER)
+    state = wait_for(
+        browser, "document.body.dataset.state !== 'running' && document.body.dataset.state", "the registration"
+    )
+    assert state == "done", status_text(browser)
+    sent = "performance.getEntriesByType('resource').filter(e => e.name.endsWith('/v1/register/view')).length"
+    assert browser.execute_script(f"return {sent}") == 1
+    assert browser.execute_script("return document.activeElement.id") == "register", "the focus was lost"
+    status = browser.find_element("id", "status")
+    assert status.get_attribute("role") == "status"
+    reliable = browser.find_element("id", "reliable").text  # "(reliable)" or "(not reliable)"
+    assert re.fullmatch(rf"Done in \d+ ms: {reliable[1:-1]}, (no|\d+) warnings?\.", status.text), status.text
+
+    after = []
+    for _ in range(10):  # on from Register: the view, the pose matrix, the download
+        ActionChains(browser).send_keys(Keys.TAB).perform()
+        after.append(browser.execute_script("return document.activeElement.id"))
+        if after[-1] == "download":
+            break
+    assert [i for i in after if i in ("canvas", "transform", "download")] == ["canvas", "transform", "download"], after
 
 
 # the WCAG 2.1 A and AA rules, and axe's best practices (landmarks, heading order, one main, ...)
@@ -524,20 +632,70 @@ def axe_violations(driver) -> list[str]:
     )
 
 
-def test_axe_finds_no_violations_initially_with_a_result_and_with_an_error(browser, server, ply_files, tmp_path):
-    """axe-core's WCAG 2.1 A/AA rules and best practices on the page as loaded, with a registration's view and result
-    shown, and with a failed registration's error shown. The renderer's name (#777 on white) failed color-contrast."""
+def skip_without_axe() -> None:
     if not AXE_JS.is_file():
         pytest.skip(f"axe-core not installed ({AXE_JS}; `make install-browser` installs it with npm)")
+
+
+def test_axe_finds_no_violations_initially_while_running_with_a_result_and_with_an_error(
+    browser, server, ply_files, tmp_path
+):
+    """axe-core's WCAG 2.1 A/AA rules and best practices on the page as loaded, while a registration runs, with a
+    registration's view and result shown, and with a failed registration's error shown. The renderer's name (#777 on
+    white) failed color-contrast."""
+    skip_without_axe()
     _, source_file, target_file = ply_files
     browser.set_script_timeout(WAIT_S)
     browser.get(f"{server.url}/")
     found = {"initial": axe_violations(browser)}
+
+    browser.find_element("id", "source").send_keys(str(source_file))
+    browser.find_element("id", "target").send_keys(str(target_file))
+    slow = {"offline": False, "latency": 3000, "downloadThroughput": -1, "uploadThroughput": -1}
+    browser.execute_cdp_cmd("Network.enable", {})
+    try:
+        browser.execute_cdp_cmd("Network.emulateNetworkConditions", slow)  # the answer comes 3 s late
+        browser.find_element("id", "register").click()
+        found["running"] = axe_violations(browser)
+        assert browser.execute_script("return document.body.dataset.state") == "running"  # axe saw that state
+        # nothing moves while it runs (the seconds are text): nothing for prefers-reduced-motion to stop
+        assert browser.execute_script("return document.getAnimations().length") == 0
+        browser.find_element("id", "cancel").click()
+    finally:
+        browser.execute_cdp_cmd("Network.emulateNetworkConditions", {**slow, "latency": 0})
+        browser.execute_cdp_cmd("Network.disable", {})
+
     assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
     assert not browser.execute_script("return document.getElementById('result').hidden")
     found["with a result"] = axe_violations(browser)
     assert register_a_broken_source(browser, tmp_path) == "error"
     assert status_text(browser).startswith("422: ")
     found["with an error"] = axe_violations(browser)
+    failing = {state: violations for state, violations in found.items() if violations}
+    assert not failing, json.dumps(failing, indent=1)
+
+
+def test_axe_finds_no_violations_on_a_320_px_screen_and_on_a_401(browser, server, ply_files, tmp_path):
+    """axe-core's rules (as above) with a result on a 320 CSS px wide screen (WCAG 1.4.10's reflow width), and with
+    the 401 of a server that needs an API key. At 320 px the pose matrix scrolled sideways without being a tab stop
+    (scrollable-region-focusable)."""
+    skip_without_axe()
+    _, source_file, target_file = ply_files
+    browser.set_script_timeout(WAIT_S)
+    found = {}
+    narrow_screen(browser, 320, 640)
+    try:
+        assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+        found["320 px wide, with a result"] = axe_violations(browser)
+    finally:
+        browser.execute_cdp_cmd("Emulation.clearDeviceMetricsOverride", {})
+
+    limited = limited_server()  # MFGNET_API_KEY set
+    pair = synthetic_pair(seed=3, keep=300)
+    write_points(tmp_path / "small_src.ply", pair.source)
+    write_points(tmp_path / "small_tgt.ply", pair.target)
+    assert register(browser, limited.url, tmp_path / "small_src.ply", tmp_path / "small_tgt.ply") == "error"
+    assert status_text(browser).startswith("401: ")
+    found["a 401 asking for the API key"] = axe_violations(browser)
     failing = {state: violations for state, violations in found.items() if violations}
     assert not failing, json.dumps(failing, indent=1)
