@@ -28,6 +28,7 @@ from model.cli import (
 from model.cli_inputs import (
     checkpoint_model,
     fail,
+    finite_shapes,
     given_options,
     model_dir,
     output_file,
@@ -55,7 +56,9 @@ def evaluate(
     keypoints: int | None = None,
     batch_size: int = 16,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
-    data: str | None = None,
+    data: Annotated[
+        str | None, typer.Option(help="ModelNet40 directory of --setting's test shapes ($MFGNET_DATA)")
+    ] = None,
     source_points: SourcePoints = None,
     target_points: TargetPoints = None,
     overlap: Overlap = None,
@@ -125,7 +128,8 @@ def evaluate(
         protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
                                     view_angle)
         shapes = require_shapes("test", setting, data)
-        data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
+        with finite_shapes():
+            data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
         evaluated = {"pairs": {"setting": setting, "split": "test", "count": count, "seed": seed,
                                "protocol": asdict(protocol), "shapes": str(shapes)}}
     if checkpoint_path is not None:

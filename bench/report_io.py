@@ -120,25 +120,17 @@ def reliable_totals(rows: list[dict]) -> dict:
 
 def provenance(models: list[str | Path]) -> dict:
     """Which code and models made a report: this checkout's commit (``None`` outside git) and whether files it tracks
-    differ from that commit (the report then measured uncommitted code), and each model of ``models`` (bundled name
-    or folder) as its manifest names it: ``name``, ``version``, ``folder``."""
-    import subprocess
-
+    differ from that commit (the report then measured uncommitted code; :func:`model.provenance.checkout`, which
+    training runs record too), and each model of ``models`` (bundled name or folder) as its manifest names it:
+    ``name``, ``version``, ``folder``."""
+    from model.provenance import checkout
     from service.manifest import load_manifest, model_folder
 
-    root = Path(__file__).resolve().parent.parent
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
-                                timeout=30).stdout.strip() or None
-        changed = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                                 capture_output=True, text=True, timeout=30).stdout.strip() != "" if commit else None
-    except (OSError, subprocess.SubprocessError):  # no git here (an installed package, a container)
-        commit, changed = None, None
     described = []
     for model in models:
         manifest = load_manifest(model_folder(model))
         described.append({"name": manifest.name, "version": manifest.version, "folder": str(model_folder(model))})
-    return {"commit": commit, "uncommitted_changes": changed, "models": described}
+    return {**checkout(), "models": described}
 
 
 VECTOR_EXTENSIONS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "amx_tile")  # what GEMM speed hangs on

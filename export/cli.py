@@ -14,7 +14,7 @@ from typing import Annotated
 import typer
 
 from export import MIN_COMPARED
-from model.cli_inputs import fail, require_shapes, short
+from model.cli_inputs import fail, finite_shapes, require_shapes, short
 from service.manifest import MANIFEST, looks_like_model
 
 STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
@@ -48,6 +48,10 @@ def export(
     ] = "noise",
     accuracy_json: Annotated[Path | None, typer.Option(help="metrics JSON (mfgnet evaluate --json)")] = None,
     seed: int = 0,
+    shapes_folder: Annotated[
+        str | None, typer.Option("--data", help="ModelNet40 directory: the reference radius' training shapes and the "
+                                                "parity pairs' test shapes ($MFGNET_DATA)")
+    ] = None,
     description: Annotated[
         str | None,
         typer.Option(help=f"what the model is for, one line of at most {DESCRIPTION_CHARS} characters: the FOR column "
@@ -72,17 +76,18 @@ def export(
     check_model_out(out)
     description = model_description(description, out)
     path, data, model = checkpoint_model(checkpoint)
-    setting = radius_setting(setting, data, path)
+    setting = radius_setting(setting, data, path, shapes_folder)
     accuracy = json_file(accuracy_json, "--accuracy-json") if accuracy_json else {}
-    require_shapes("test", parity_setting, None)  # the parity pairs' shapes
+    require_shapes("test", parity_setting, shapes_folder)  # the parity pairs' shapes
     if not accuracy and "val" in data:
         accuracy = {"metrics": data["val"], "on": "validation pairs held out of the training split"}
     if accuracy_json:
         accuracy = accuracy_section(accuracy, accuracy_json, path)
     with staged_model_folder(out) as stage:
-        write_model_folder(stage, path, model, data, setting, version, accuracy)
+        with finite_shapes():  # the reference radius' training shapes, the parity pairs' test shapes
+            write_model_folder(stage, path, model, data, setting, version, accuracy, shapes_folder)
+            pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed, path=shapes_folder)
         registrar = Registrar(stage, warmup=False)
-        pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed)
         try:
             report = check_parity(model, registrar, pairs, min_compared=min_comparable)
         except ParityError as exc:
@@ -129,10 +134,10 @@ def model_description(description: str | None, out: Path) -> str | None:
     return description.strip()
 
 
-def radius_setting(setting: str | None, checkpoint: dict, path: Path) -> str:
+def radius_setting(setting: str | None, checkpoint: dict, path: Path, shapes_folder: str | None = None) -> str:
     """The setting whose training shapes give the reference radius: ``setting`` where given, else the one the
     checkpoint was trained on (``clean`` where it records none); a usage error unless it is a setting with a training
-    split whose ModelNet40 file is there."""
+    split whose ModelNet40 file is there (in ``shapes_folder``, else :func:`model.data.data_dir`'s)."""
     from model.data import DENSE_SETTINGS, SETTINGS
 
     trainable = [name for name in SETTINGS if name not in DENSE_SETTINGS]
@@ -146,7 +151,7 @@ def radius_setting(setting: str | None, checkpoint: dict, path: Path) -> str:
         what = "a test-only setting" if setting in SETTINGS else "unknown setting"
         fail(f"--setting {setting}: {what}; the reference radius is measured on a setting's training shapes (one of "
              f"{', '.join(trainable)})")
-    require_shapes("train", setting, None)
+    require_shapes("train", setting, shapes_folder)
     return setting
 
 

@@ -207,12 +207,13 @@ def export_graphs(model: MFGNet, out_dir: Path) -> dict[str, str]:
     return files
 
 
-def reference_radius(setting: str = "clean", count: int = 512, seed: int = 0) -> float:
-    """Median robust radius of training-protocol source clouds: the runtime scales inputs to it."""
+def reference_radius(setting: str = "clean", count: int = 512, seed: int = 0, data: str | None = None) -> float:
+    """Median robust radius of training-protocol source clouds (the ModelNet40 folder ``data``, default
+    :func:`model.data.data_dir`'s): the runtime scales inputs to it."""
     from model.data import load_shapes, make_pairs, protocol_for
     from service.normalization import rms_radius
 
-    shapes, _ = load_shapes("train", setting)
+    shapes, _ = load_shapes("train", setting, data)
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(shapes), size=min(count, len(shapes)), replace=False)
     pairs = make_pairs(shapes[pick], protocol_for(setting), rng)
@@ -230,21 +231,32 @@ def search_section(protocol: dict | None) -> dict | None:
 
 
 def write_model_folder(out_dir: Path, checkpoint_path: Path, model: MFGNet, checkpoint: dict, setting: str,
-                       version: str, accuracy: dict | None) -> None:
+                       version: str, accuracy: dict | None, data: str | None = None) -> None:
     """A servable model folder from ``model`` (loaded from ``checkpoint_path``, whose contents are ``checkpoint``):
-    the graphs and the manifest, with the reference radius of ``setting``. No parity check."""
+    the graphs and the manifest, with the reference radius of ``setting`` (its shapes in the ModelNet40 folder
+    ``data``) and the checkpoint's training provenance
+    (``mfgnet train`` records it; none in checkpoints written before it did, or not by a run). No parity check."""
     from model.checkpoint import file_sha256
 
     files = export_graphs(model, out_dir)
     write_manifest(out_dir, out_dir.name, model, files, file_sha256(checkpoint_path), accuracy,
-                   reference_radius(setting), version, source=checkpoint_path.name,
-                   search=search_section(checkpoint.get("protocol")))
+                   reference_radius(setting, data=data), version, source=checkpoint_path.name,
+                   search=search_section(checkpoint.get("protocol")), training=training_section(checkpoint))
+
+
+def training_section(checkpoint: dict) -> dict | None:
+    """The manifest's optional ``training``: what made the checkpoint's run (its ``provenance``: the start's commit,
+    data file, command line, options and versions, and each resume's), or ``None`` where it records none."""
+    made_by = checkpoint.get("provenance")
+    return made_by if isinstance(made_by, dict) else None
 
 
 def write_manifest(out_dir: Path, name: str, model: MFGNet, files: dict[str, str], checkpoint_sha256: str,
-                   accuracy: dict | None, radius: float, version: str, source: str, search: dict | None = None) -> Path:
-    """``manifest.json``: name, version, config, opset, graph hashes, source hash, accuracy, and the rotation
-    search's subsample (``search``, :func:`search_section`) when there is one."""
+                   accuracy: dict | None, radius: float, version: str, source: str, search: dict | None = None,
+                   training: dict | None = None) -> Path:
+    """``manifest.json``: name, version, config, opset, graph hashes, source hash, accuracy, and, when there are, the
+    rotation search's subsample (``search``, :func:`search_section`) and what trained the checkpoint (``training``,
+    :func:`training_section`)."""
     from model.checkpoint import file_sha256
 
     manifest = {
@@ -262,6 +274,8 @@ def write_manifest(out_dir: Path, name: str, model: MFGNet, files: dict[str, str
     }
     if search:
         manifest["search"] = search
+    if training:
+        manifest["training"] = training
     path = out_dir / "manifest.json"
     path.write_text(json.dumps(manifest, indent=2) + "\n")
     return path

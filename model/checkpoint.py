@@ -74,14 +74,14 @@ def file_sha256(path: str | os.PathLike) -> str:
 
 
 def bundle_checkpoint(run_dir: str | os.PathLike, name: str, which: str = "best.pt") -> Path:
-    """Copy a run's weights (no optimizer state), config and log into ``model/checkpoints/<name>.*``."""
+    """Copy a run's weights (no optimizer state), config, provenance and log into ``model/checkpoints/<name>.*``."""
     import json
     import math
     import shutil
 
     run_dir = Path(run_dir)
     data = torch.load(run_dir / which, map_location="cpu", weights_only=True)
-    keep = {k: data[k] for k in ("model", "config", "state", "protocol", "setting", "val") if k in data}
+    keep = {k: data[k] for k in ("model", "config", "state", "protocol", "setting", "val", "provenance") if k in data}
     BUNDLED_DIR.mkdir(parents=True, exist_ok=True)
     target = BUNDLED_DIR / f"{name}.pt"
     torch.save(keep, target)
@@ -89,7 +89,7 @@ def bundle_checkpoint(run_dir: str | os.PathLike, name: str, which: str = "best.
              for k, v in (data.get("state") or {}).items()}  # strict JSON: no Infinity
     (BUNDLED_DIR / f"{name}.json").write_text(
         json.dumps({"config": data["config"], "from": f"{run_dir.name}/{which}", "state": state,
-                    "val": data.get("val")}, indent=2) + "\n")
+                    "val": data.get("val"), "provenance": data.get("provenance")}, indent=2) + "\n")
     if (run_dir / "log.jsonl").exists():
         shutil.copyfile(run_dir / "log.jsonl", BUNDLED_DIR / f"{name}.log.jsonl")
     return target

@@ -14,6 +14,7 @@ import typer
 from model.cli_inputs import (
     checkpoint_model,
     fail,
+    finite_shapes,
     given_options,
     json_file,
     output_file,
@@ -80,7 +81,8 @@ def make_pairs(
     out = output_file(pairs_path(out), "--out")  # the file written: numpy adds .npz to a name without it
     require_shapes(split, setting, data)
     try:
-        pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
+        with finite_shapes():
+            pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
     written = save_pairs(out, pairs)
@@ -274,7 +276,8 @@ def train(
             fail(f"--init {init_path}: " + ", ".join(f"--{c.replace('_', '-', 1)}" for c in conflicts)
                  + ": fine-tuning keeps the checkpoint's network; leave these out or give its values")
         opts.config = dict(init_data["config"])
-    outcome = run_training(opts)
+    with finite_shapes():  # checked as run_training loads them, before its first batch
+        outcome = run_training(opts)
     if outcome.stopped_by:
         code = 128 + signal.Signals[outcome.stopped_by].value
         typer.echo(f"mfgnet: stopped on {outcome.stopped_by} before the run's end (exit {code}); "

@@ -12,13 +12,15 @@ import json
 import os
 import pickle
 import zipfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
 
-from model.data import DATA_ENV, load_pairs, shapes_file
+from model.data import DATA_ENV, NonFiniteShapesError, load_pairs, shapes_file
 from service.cli.common import fail
 
 if TYPE_CHECKING:  # torch is imported only by the commands that read checkpoints (make-pairs does not)
@@ -240,3 +242,13 @@ def require_shapes(split: str, setting: str, data: str | None) -> Path:
         fail(f"ModelNet40 file {file}: not a ModelNet40 .npz (no {' or '.join(map(repr, missing))})")
     return file
 
+
+@contextmanager
+def finite_shapes() -> Iterator[None]:
+    """Runs the body that loads ModelNet40 shapes (:func:`model.data.load_shapes`): a file holding a shape with NaN or
+    infinite coordinates is a usage error naming the file and the shapes' indices, before any pair is made or any
+    batch trained (the shapes are checked as they are loaded, not read twice)."""
+    try:
+        yield
+    except NonFiniteShapesError as err:
+        fail(str(err))

@@ -224,12 +224,24 @@ def shapes_file(split: str, setting: str = "clean", path: str | os.PathLike | No
     return data_dir(path) / (DENSE_FILE if dense else f"modelnet40_{split}.npz")
 
 
+class NonFiniteShapesError(ValueError):
+    """A ModelNet40 file holds shapes with NaN or infinite coordinates (``rows``: their indices in the file)."""
+
+    def __init__(self, file: Path, rows: np.ndarray, names: np.ndarray | None = None) -> None:
+        self.file, self.rows = file, rows
+        shown = ", ".join(f"{row} ({names[row]})" if names is not None else str(row) for row in rows[:5])
+        more = f" and {len(rows) - 5} more" if len(rows) > 5 else ""
+        super().__init__(f"ModelNet40 file {file}: {len(rows)} shape{'s' if len(rows) != 1 else ''} with NaN or "
+                         f"infinite coordinates, at index {shown}{more}; remove or repair them")
+
+
 def load_shapes(split: str, setting: str = "clean",
                 path: str | os.PathLike | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Points ``float32 [S, P, 3]`` and labels ``int64 [S]`` of a split for a setting.
 
     ``P = 1024`` (main files) or 4096 (``dense``, test split only, axes mapped to the main files'
-    frame); filtered by label for ``unseen``.
+    frame); filtered by label for ``unseen``. A file holding a shape with a NaN or infinite coordinate is refused
+    (:class:`NonFiniteShapesError`, naming its index in the file), not trained or evaluated on.
     """
     file = shapes_file(split, setting, path)
     dense = setting in DENSE_SETTINGS
@@ -237,6 +249,10 @@ def load_shapes(split: str, setting: str = "clean",
         raise FileNotFoundError(f"ModelNet40 file not found: {file} (set --data or ${DATA_ENV})")
     with np.load(file) as d:
         points, labels = d["points"].astype(np.float32), d["labels"].astype(np.int64)
+        bad = np.flatnonzero(~np.isfinite(points).all(axis=tuple(range(1, points.ndim))))  # [S] -> rows
+        if len(bad):
+            names = d["names"] if "names" in d.files and len(d["names"]) == len(points) else None
+            raise NonFiniteShapesError(file, bad, names)
     if dense:
         points = np.ascontiguousarray(points[..., DENSE_TO_MAIN_AXES])
     if setting == "unseen":

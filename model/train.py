@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -14,14 +15,15 @@ import numpy as np
 import torch
 
 from model.allocator import keep_freed_memory
-from model.checkpoint import read_checkpoint, save_checkpoint
+from model.checkpoint import file_sha256, read_checkpoint, resolve_checkpoint, save_checkpoint
 from model.config import MFGNetConfig
-from model.data import PairProtocol, TrainPairStream, load_shapes, make_pairs, protocol_for
+from model.data import PairProtocol, TrainPairStream, load_shapes, make_pairs, protocol_for, shapes_file
 from model.graceful_stop import GracefulStop
 from model.inference import predict_poses
 from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
 from model.network import MFGNet
+from model.provenance import run_record
 from model.recipes import SEARCH, recipe_draw
 from model.sensor_pairs import validation_pairs as sensor_validation_pairs
 
@@ -276,11 +278,15 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
 
     protocol = opts.pair_protocol()
     shapes, _ = load_shapes("train", opts.setting, opts.data)
+    data_file = shapes_file("train", opts.setting, opts.data)
     train_idx, val_idx = split_validation(len(shapes), opts.val_fraction, opts.seed)
     draw = (recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share, opts.sensor_share)
             if opts.recipe else protocol)
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     val_shapes = shapes[val_idx][: opts.val_pairs]
+    if len(val_shapes) < opts.val_pairs:  # one pair per held-out shape: a small data folder holds out few
+        print(f"validating on {len(val_shapes)} pairs, not {opts.val_pairs} (val_pairs): one per held-out shape, "
+              f"{len(val_idx)} of the {len(shapes)} training shapes (val_fraction {opts.val_fraction})")
     if opts.recipe == "real":  # checkpoints chosen on simulated sensor pairs over the training rotations
         val_pairs = sensor_validation_pairs(val_shapes, opts.seed, max_angle_deg=opts.max_angle or 180.0)
     elif opts.recipe == "search":  # ... at the search's rows per cloud and rotations
@@ -304,6 +310,16 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
         optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
         optimizer.load_state_dict(ckpt["optimizer"])
         state.update(ckpt["state"])
+        # the run's start as recorded (None: a run that predates the record), then each resume's, this one's last
+        made_by = ckpt.get("provenance") or {"run": None, "resumes": []}
+        made_by = {"run": made_by.get("run"), "resumes": [*made_by.get("resumes", []), run_record(
+            asdict(opts), data_file, at={"epoch": state["epoch"], "batch": state["batch"]})]}
+        before = [r["data"] for r in (made_by["run"], *made_by["resumes"][:-1]) if r and "data" in r]
+        now = made_by["resumes"][-1]["data"]
+        if before and before[-1]["sha256"] != now["sha256"]:  # the data folder is this process's: said, not refused
+            print(f"note: resuming on other data than the run's so far: {now['folder']}/{now['file']} "
+                  f"(sha256 {now['sha256'][:12]}), not {before[-1]['folder']}/{before[-1]['file']} "
+                  f"(sha256 {before[-1]['sha256'][:12]}); its validation split and shapes differ", file=sys.stderr)
         print(f"resumed from {last_path} at epoch {state['epoch']} batch {state['batch']}")
     else:
         if opts.resume:
@@ -321,11 +337,16 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
         if init is not None:
             model.load_state_dict(init["model"])
             print(f"initialised from {opts.init} (its network: {cfg.to_dict()})")
+        init_file = resolve_checkpoint(opts.init).resolve() if opts.init else None
+        made_by = {"run": run_record(asdict(opts), data_file, init=init_file and {
+            "checkpoint": str(init_file), "sha256": file_sha256(init_file),
+            "provenance": init.get("provenance")}), "resumes": []}
         optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
         if run_files:  # overwrite: the run it replaces goes once the new one is ready to start
             remove_run(out, run_files)
             print(f"replacing the run in {out}: deleted its {', '.join(run_files)}")
-    (out / "config.json").write_text(json.dumps({"model": cfg.to_dict(), "train": asdict(opts)}, indent=2))
+    (out / "config.json").write_text(json.dumps({"model": cfg.to_dict(), "train": asdict(opts),
+                                                 "provenance": made_by}, indent=2))
 
     def checkpoint(path: Path, **extra) -> None:
         state["partial"] = ({"sums": dict(sums), "seen": seen, "compute": compute, "seconds": time.time() - epoch_start}
@@ -337,6 +358,7 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
             state=dict(state),
             protocol=asdict(protocol),
             setting=opts.setting,
+            provenance=made_by,
             **extra,
         )
 
@@ -430,7 +452,7 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
                 state["stale"] += 1
             if opts.snapshot_every and epoch % opts.snapshot_every == 0:  # weights only, chosen later elsewhere
                 save_checkpoint(out / "snapshots" / f"epoch_{epoch:04d}.pt", model, state=dict(state), val=val,
-                                setting=opts.setting)
+                                setting=opts.setting, provenance=made_by)
             checkpoint(last_path)
             last_save = time.time()
             if state["stale"] >= opts.patience:

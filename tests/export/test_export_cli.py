@@ -279,6 +279,48 @@ def test_export_carries_what_the_accuracy_was_measured_on_into_the_manifest(tmp_
     assert section == {"metrics": {"n": 300, "rmse_r": 1.5, "mae_r": 0.7}, "on": "older.json"}
 
 
+def test_export_carries_the_checkpoints_training_provenance_into_the_manifest(tmp_path, tiny_checkpoint,
+                                                                             monkeypatch) -> None:
+    """``training``: what ``mfgnet train`` recorded in the checkpoint; a manifest without it (a checkpoint that
+    records none) loads as before."""
+    from service.manifest import load_manifest
+
+    tiny_modelnet(tmp_path, monkeypatch)
+    parity_with_ties(monkeypatch, comparable_share=1.0)
+    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "plain"))
+    assert result.exit_code == 0, result.output
+    assert "training" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())
+    made_by = {"run": {"commit": "a" * 40, "uncommitted_changes": False, "command": ["mfgnet", "train"],
+                       "data": {"folder": "/data", "file": "modelnet40_train.npz", "bytes": 5, "sha256": "b" * 64}},
+               "resumes": [{"commit": None, "uncommitted_changes": None, "at": {"epoch": 3, "batch": 0}}]}
+    data = torch.load(tiny_checkpoint, weights_only=True)
+    torch.save({**data, "provenance": made_by}, tiny_checkpoint)
+    result = runner.invoke(app, export_args(tiny_checkpoint, tmp_path / "trained"))
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "trained" / "manifest.json").read_text())["training"] == made_by
+    for name in ("plain", "trained"):
+        assert load_manifest(tmp_path / name).name == name
+
+
+def test_export_reads_its_shapes_from_data_and_refuses_shapes_with_nan_points(tmp_path, tiny_checkpoint,
+                                                                              monkeypatch) -> None:
+    """``--data`` (as train, evaluate and make-pairs take it; export had only ``$MFGNET_DATA``, yet its error said
+    "set --data"): the reference radius' and the parity pairs' shapes; a shape with a NaN point there is a usage
+    error."""
+    tiny_modelnet(tmp_path, monkeypatch)
+    parity_with_ties(monkeypatch, comparable_share=1.0)
+    data = str(tmp_path / "data")
+    monkeypatch.setenv("MFGNET_DATA", str(tmp_path / "nowhere"))
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--data", data])
+    assert result.exit_code == 0, result.output
+    points = sphere_shapes(3, seed=1)
+    points[2, 0, 0] = np.nan
+    np.savez(tmp_path / "data" / "modelnet40_train.npz", points=points, labels=np.arange(3))
+    result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m2"), "--data", data])
+    assert_usage_error(result, f"{data}/modelnet40_train.npz", "NaN or infinite", "index 2")
+    assert not (tmp_path / "m2").exists()
+
+
 @pytest.mark.parametrize(("evaluated", "problem"), [
     ({"checkpoint_sha256": "0" * 64}, "another checkpoint (sha256 000000000000"),
     ({"baseline": "fpfh-ransac-icp"}, "baseline fpfh-ransac-icp"),

@@ -261,3 +261,32 @@ def test_train_rejects_an_option_out_of_range_before_writing_anything(tmp_path, 
     args = ["train", "--out", str(tmp_path / "run"), "--data", tiny_training_data(tmp_path), option, value]
     assert_usage_error(runner.invoke(app, args), f"{option} {value}: must be", rule)
     assert not (tmp_path / "run").exists()
+
+
+def poisoned_data(tmp_path, value: float) -> str:
+    """A data folder whose train and test splits are 12 spheres, shape 7 with one coordinate ``value`` (NaN, inf)."""
+    folder = tmp_path / "poisoned"
+    folder.mkdir()
+    points = sphere_shapes(12, seed=3).astype(np.float16)
+    points[7, 5, 1] = value
+    for split in ("train", "test"):
+        np.savez(folder / f"modelnet40_{split}.npz", points=points, labels=np.arange(12) % 4)
+    return str(folder)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("command", ["train", "make-pairs", "evaluate"])
+def test_training_commands_reject_shapes_with_nan_or_infinite_points_naming_them(tmp_path, tiny_checkpoint, command,
+                                                                                value) -> None:
+    """Before: train trained on (the crop mostly hid the point), make-pairs and evaluate dropped it silently."""
+    data = poisoned_data(tmp_path, value)
+    out = tmp_path / "out"
+    args = {"train": ["train", "--out", str(out), "--epochs", "1", "--batch-size", "2", "--batches-per-epoch", "1",
+                      "--val-pairs", "2", "--iterations", "1", "--device", "cpu"],
+            "make-pairs": ["make-pairs", "--out", str(tmp_path / "p.npz")],
+            "evaluate": ["evaluate", "--checkpoint", str(tiny_checkpoint), "--json", str(tmp_path / "m.json")]}[command]
+    split = "train" if command == "train" else "test"
+    assert_usage_error(runner.invoke(app, [*args, "--data", data]), f"{data}/modelnet40_{split}.npz",
+                       "1 shape with NaN or infinite coordinates", "index 7")
+    assert not (out / "config.json").exists() and not (out / "last.pt").exists()
+    assert not (tmp_path / "p.npz").exists() and not (tmp_path / "m.json").exists()

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from shapes import sphere_shapes
 
 from model.data import (
+    NonFiniteShapesError,
     PairProtocol,
     data_dir,
     euler_xyz_to_matrix,
@@ -268,6 +269,19 @@ def test_data_dir_prefers_an_explicit_path_then_the_environment(monkeypatch, tmp
 def test_load_shapes_names_the_missing_file(tmp_path) -> None:
     with pytest.raises(FileNotFoundError, match=r"modelnet40_test\.npz"):
         load_shapes("test", path=tmp_path)
+
+
+def test_load_shapes_refuses_shapes_with_nan_or_infinite_points_naming_their_rows_in_the_file(tmp_path) -> None:
+    """The rows are the file's, also for ``unseen``, which keeps some labels only; named where the file names shapes."""
+    points = sphere_shapes(30, seed=3).astype(np.float16)
+    points[[4, 25], 0, 2] = np.nan, -np.inf
+    names = np.array([f"sphere_{i:04d}" for i in range(30)])
+    np.savez(tmp_path / "modelnet40_train.npz", points=points, labels=np.arange(30) % 40, names=names)
+    for setting in ("clean", "unseen"):
+        with pytest.raises(NonFiniteShapesError, match=r"modelnet40_train\.npz: 2 shapes with NaN or infinite "
+                           r"coordinates, at index 4 \(sphere_0004\), 25 \(sphere_0025\)") as caught:
+            load_shapes("train", setting, tmp_path)
+        assert caught.value.rows.tolist() == [4, 25]
 
 
 # --- the real ModelNet40 files --------------------------------------------------------------------
