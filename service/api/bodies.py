@@ -24,6 +24,7 @@ from typing import Any, BinaryIO
 import numpy as np
 import orjson
 from pydantic import ValidationError
+from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.formparsers import parse_options_header
 from starlette.requests import Request
@@ -38,6 +39,7 @@ from service.api.schemas import (
     RegisterRequest,
 )
 from service.formats import PointCloudFormatError, read_cloud
+from service.formats.read import check_declared_count
 from service.registrar import MIN_POINTS
 
 JSON = "application/json"
@@ -416,7 +418,7 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
     except BaseException:
         await form.close()
         raise
-    return RegisterForm(fields, files)
+    return RegisterForm(fields, {name: files[name] for name in file_fields})  # in order: the first is refused first
 
 
 def _check_transfer_encoding(key: str, upload: UploadFile) -> None:
@@ -438,12 +440,38 @@ def decode_upload(upload: Upload, max_points: int) -> np.ndarray:
         upload.file.seek(0)
         return read_cloud(upload.file, upload.label, max_points)
     except PointCloudFormatError as exc:
-        message = str(exc)
-        if exc.status == 422:
-            message = f"invalid request: {message}"
-        elif exc.status == 413:
-            message = f"{message} (max_file_points)"
-        raise APIError(exc.status, message) from None
+        raise _upload_error(exc) from None
+
+
+def _upload_error(exc: PointCloudFormatError) -> APIError:
+    message = str(exc)
+    if exc.status == 422:
+        message = f"invalid request: {message}"
+    elif exc.status == 413:
+        message = f"{message} (max_file_points)"
+    return APIError(exc.status, message)
+
+
+async def refuse_oversized_uploads(form: RegisterForm, max_points: int) -> None:
+    """The 413 :func:`decode_upload` would answer for an upload whose header declares more than ``max_points``
+    points (PLY, PCD, LAS/LAZ, .npy, .npz: :func:`service.formats.read.check_declared_count`), before the request
+    waits for a worker, the form then closed: a busy server answered it with a 504 once the deadline passed in the
+    queue. It reads the headers only, in a thread (off the event loop); the decoder stays the authority (text formats,
+    and a header that declares fewer points than its data holds, are refused there)."""
+    try:
+        await run_in_threadpool(_check_declared_counts, form, max_points)
+    except BaseException:
+        form.close()
+        raise
+
+
+def _check_declared_counts(form: RegisterForm, max_points: int) -> None:
+    for upload in form.files.values():
+        try:
+            upload.file.seek(0)
+            check_declared_count(upload.file, upload.label, max_points)
+        except PointCloudFormatError as exc:
+            raise _upload_error(exc) from None
 
 
 def register_pair_from_form(form: RegisterForm, max_points: int) -> Pair:

@@ -9,12 +9,15 @@ import struct
 import tokenize
 import zipfile
 import zlib
-from typing import BinaryIO
+from collections.abc import Callable
+from typing import BinaryIO, TypeVar
 
 import numpy as np
 
 from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns, xyz_in_blocks
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
+
+T = TypeVar("T")
 
 NPZ_KEYS = ("points", "positions")  # the arrays of an .npz read, the first found: ours, Open3D's (o3d.t.io)
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
@@ -62,6 +65,24 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
 def read_npz(f: BinaryIO, max_points: int | None) -> np.ndarray:
     """The array ``points`` of the archive, else ``positions`` (Open3D's tensor point clouds), else its only array
     (read as :func:`read_npy`)."""
+    return _with_member(f, lambda stream, size: read_npy(stream, max_points, size))
+
+
+def npy_count(f: BinaryIO) -> int:
+    """The points (rows) the ``.npy`` header at ``f``'s position declares, with :func:`read_npy`'s header checks and
+    errors; no data is read."""
+    shape, _, dtype = _header(f)
+    return _rows(shape, dtype)
+
+
+def npz_count(f: BinaryIO) -> int:
+    """The points the header of the ``.npz`` member :func:`read_npz` reads declares (:func:`npy_count`)."""
+    return _with_member(f, lambda stream, size: npy_count(stream))
+
+
+def _with_member(f: BinaryIO, use: Callable[[BinaryIO, int], T]) -> T:
+    """``use(stream, size)`` of the archive's member that :func:`read_npz` reads (its bytes, uncompressed), the
+    archive's errors as :class:`PointCloudFormatError`."""
     try:
         archive = zipfile.ZipFile(f)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:
@@ -79,7 +100,7 @@ def read_npz(f: BinaryIO, max_points: int | None) -> np.ndarray:
                                         f"not exactly one array: {keys}")
         try:
             with archive.open(member) as stream:
-                return read_npy(stream, max_points, archive.getinfo(member).file_size)
+                return use(stream, archive.getinfo(member).file_size)
         except PointCloudFormatError:
             raise
         except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error, lzma.LZMAError, NotImplementedError,

@@ -14,6 +14,9 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
+from types import ModuleType
 from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
@@ -38,29 +41,56 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
     start = f.tell()
     size = f.seek(0, os.SEEK_END) - start
     f.seek(start)
+    with _las_errors(), _open(laspy, f, size) as reader:
+        header = reader.header
+        count = int(header.point_count)
+        check_count(count, max_points)
+        if header.are_points_compressed:
+            if not laspy.LazBackend.detect_available():
+                raise MissingReaderError("reading LAZ files needs the 'lazrs' package, which is not installed: "
+                                         "pip install 'mfgnet[formats]'")
+            _check_laz_items(header)
+            _check_chunk_table(f, start + header.offset_to_point_data, start + size)
+            _check_xyz_layers(f, header, start + header.offset_to_point_data)
+        elif count * header.point_format.size > size - header.offset_to_point_data:
+            raise PointCloudFormatError(
+                f"LAS header declares {count} points of {header.point_format.size} bytes; the file holds "
+                f"{max(0, size - header.offset_to_point_data)} bytes of points"
+            )
+        batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
+    read = sum(len(batch) for batch in batches)
+    if read != count:
+        raise PointCloudFormatError(f"LAS data holds {read} points; the header says {count}")
+    return checked(np.concatenate(batches) if batches else np.empty((0, 3)))
+
+
+def las_count(f: BinaryIO) -> int:
+    """The points the LAS/LAZ header at ``f``'s position declares, read as :func:`read_las` reads it (the header and
+    its VLRs, with the same errors); no points are read."""
+    laspy = require("laspy", "reading LAS/LAZ files")
+    start = f.tell()
+    size = f.seek(0, os.SEEK_END) - start
+    f.seek(start)
+    with _las_errors(), _open(laspy, f, size) as reader:
+        return int(reader.header.point_count)
+
+
+def _open(laspy: ModuleType, f: BinaryIO, size: int) -> LasReader:
+    """``laspy``'s reader of the file at ``f``'s position (``size`` bytes from there): its header and VLRs read, once
+    their counts are checked against ``size`` (:func:`_check_header`); its points not yet."""
     _check_header(f, size)
+    # read_evlrs=False: EVLRs are not used here, and laspy reads one per count, past the file's end; LAZ 1.4 layers
+    # other than x, y, z are skipped unread (lazrs allocates each layer's declared size)
+    xyz = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
+    return laspy.open(f, closefd=False, read_evlrs=False, laz_backend=laspy.LazBackend.Lazrs,
+                      decompression_selection=xyz)
+
+
+@contextmanager
+def _las_errors() -> Iterator[None]:
+    """What ``laspy`` and ``lazrs`` raise on bad data, as :class:`PointCloudFormatError`."""
     try:
-        # read_evlrs=False: EVLRs are not used here, and laspy reads one per count, past the file's end; LAZ 1.4
-        # layers other than x, y, z are skipped unread (lazrs allocates each layer's declared size)
-        xyz = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
-        with laspy.open(f, closefd=False, read_evlrs=False, laz_backend=laspy.LazBackend.Lazrs,
-                        decompression_selection=xyz) as reader:
-            header = reader.header
-            count = int(header.point_count)
-            check_count(count, max_points)
-            if header.are_points_compressed:
-                if not laspy.LazBackend.detect_available():
-                    raise MissingReaderError("reading LAZ files needs the 'lazrs' package, which is not installed: "
-                                             "pip install 'mfgnet[formats]'")
-                _check_laz_items(header)
-                _check_chunk_table(f, start + header.offset_to_point_data, start + size)
-                _check_xyz_layers(f, header, start + header.offset_to_point_data)
-            elif count * header.point_format.size > size - header.offset_to_point_data:
-                raise PointCloudFormatError(
-                    f"LAS header declares {count} points of {header.point_format.size} bytes; the file holds "
-                    f"{max(0, size - header.offset_to_point_data)} bytes of points"
-                )
-            batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
+        yield
     except PointCloudFormatError:
         raise
     except Exception as exc:  # laspy's LaspyException, or what numpy and the LAZ backend raise on bad data
@@ -69,10 +99,6 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
         if type(exc).__name__ != "PanicException":  # pyo3's, for a panic in lazrs: not an Exception
             raise
         raise PointCloudFormatError(f"corrupt LAS/LAZ data (lazrs panicked: {exc})") from None
-    read = sum(len(batch) for batch in batches)
-    if read != count:
-        raise PointCloudFormatError(f"LAS data holds {read} points; the header says {count}")
-    return checked(np.concatenate(batches) if batches else np.empty((0, 3)))
 
 
 def _read_xyz(reader: LasReader, count: int, batch: int) -> list[np.ndarray]:

@@ -79,6 +79,12 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     return _usable(stacked_xyz([np.asarray(table[axis]).reshape(-1) for axis in "xyz"]), meta)
 
 
+def pcd_count(f: BinaryIO) -> int:
+    """The points (``POINTS``) the PCD header at ``f``'s position declares, with :func:`read_pcd`'s header errors; no
+    data is read."""
+    return _metadata(require("pypcd4", "reading PCD files"), f).points
+
+
 def _usable(xyz: np.ndarray, meta: MetaData) -> np.ndarray:
     """The checked points of ``xyz [N, 3]`` (a fresh array), an organized cloud's missing returns left out."""
     if meta.height > 1 and len(xyz):

@@ -31,17 +31,7 @@ MAX_HEADER_BYTES = 256 * 1024  # plyfile parses a header one byte at a time (abo
 
 def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
     plyfile = require("plyfile", "reading PLY files")
-    start = f.tell()
-    head = io.BytesIO(f.read(MAX_HEADER_BYTES))
-    try:
-        header = plyfile.PlyData._parse_header(head)  # the header only: the counts before any allocation
-    except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as exc:
-        if len(head.getbuffer()) == MAX_HEADER_BYTES and "early end-of-file" in str(exc):
-            raise PointCloudFormatError(f"invalid PLY header (no end_header in its first {MAX_HEADER_BYTES} bytes)") \
-                from None
-        raise PointCloudFormatError(f"invalid PLY header ({exc})") from None
-    if "vertex" not in header:
-        raise InvalidPointsError("PLY file has no vertex element")
+    header, body = _header(plyfile, f)  # body: where the elements' rows begin
     vertex = header["vertex"]
     check_count(vertex.count, max_points)
     kinds = {prop.name: prop for prop in vertex.properties}
@@ -52,7 +42,6 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
         raise InvalidPointsError("PLY vertex x, y, z must be scalar properties, not lists")
     if any(isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties):
         raise InvalidPointsError("PLY vertex element with list properties: only scalar vertex properties are read")
-    body = start + head.tell()  # where the elements' rows begin
     _check_rows_fit(plyfile, header, f.seek(0, os.SEEK_END) - body)
     before = header.elements[:[element.name for element in header.elements].index("vertex")]
     f.seek(body)
@@ -66,6 +55,29 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
                                  "only files with their vertices before such elements are read")
     f.seek(body + sum(element.count * _record(element, header.byte_order).itemsize for element in before))
     return checked(xyz_in_blocks(f, _record(vertex, header.byte_order), vertex.count, "corrupt PLY data: vertex rows"))
+
+
+def ply_count(f: BinaryIO) -> int:
+    """The vertices the PLY header at ``f``'s position declares, with :func:`read_ply`'s header errors; no rows are
+    read."""
+    return _header(require("plyfile", "reading PLY files"), f)[0]["vertex"].count
+
+
+def _header(plyfile: ModuleType, f: BinaryIO) -> tuple[PlyData, int]:
+    """``plyfile``'s header at ``f``'s position (parsed from its first :data:`MAX_HEADER_BYTES` at most; it has a
+    vertex element) and the offset of the first row after it."""
+    start = f.tell()
+    head = io.BytesIO(f.read(MAX_HEADER_BYTES))
+    try:
+        header = plyfile.PlyData._parse_header(head)  # the header only: the counts before any allocation
+    except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as exc:
+        if len(head.getbuffer()) == MAX_HEADER_BYTES and "early end-of-file" in str(exc):
+            raise PointCloudFormatError(f"invalid PLY header (no end_header in its first {MAX_HEADER_BYTES} bytes)") \
+                from None
+        raise PointCloudFormatError(f"invalid PLY header ({exc})") from None
+    if "vertex" not in header:
+        raise InvalidPointsError("PLY file has no vertex element")
+    return header, start + head.tell()
 
 
 def _record(element: PlyElement, byte_order: str) -> np.dtype:

@@ -13,18 +13,26 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.arrays import read_npy, read_npz
+from service.formats.arrays import npy_count, npz_count, read_npy, read_npz
+from service.formats.checks import check_count
 from service.formats.detect import HEAD_BYTES, MAX_HEAD_BYTES, detect, only_comments
-from service.formats.errors import PointCloudFormatError
-from service.formats.las import read_las
-from service.formats.pcd import read_pcd
-from service.formats.ply import read_ply
+from service.formats.errors import PointCloudFormatError, TooManyPointsError
+from service.formats.las import las_count, read_las
+from service.formats.pcd import pcd_count, read_pcd
+from service.formats.ply import ply_count, read_ply
 from service.formats.text import read_text
 
 Reader = Callable[[BinaryIO, "int | None"], np.ndarray]
 READERS: dict[str, Reader] = {
     "ply": read_ply, "pcd": read_pcd, "las": read_las, "npy": read_npy, "npz": read_npz, "text": read_text,
 }
+# The point count each format's header declares, from the readers' own header parsing (text: known only once read).
+HEADER_COUNTS: dict[str, Callable[[BinaryIO], int]] = {
+    "ply": ply_count, "pcd": pcd_count, "las": las_count, "npy": npy_count, "npz": npz_count,
+}
+# What check_declared_count reads of a file, its header within it (an .npz is read from the file: its directory is at
+# its end)
+PRECHECK_BYTES = MAX_HEAD_BYTES
 NEEDS_REAL_FILE = {"ply"}  # plyfile memory-maps binary data only from a file with a descriptor
 READ_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".npy", ".npz", ".xyz", ".txt", ".csv")  # conventional names
 
@@ -52,10 +60,7 @@ def read_cloud(source: str | os.PathLike[str] | bytes | BinaryIO, name: str | No
     name = name or "<cloud>"
     try:
         start = source.tell()
-        head = source.read(HEAD_BYTES)
-        while only_comments(head) and len(head) < MAX_HEAD_BYTES and (more := source.read(len(head))):
-            head += more  # a PCD header after many comment lines
-        kind = detect(head)
+        kind = _detect(source)
         source.seek(start)
         if kind in NEEDS_REAL_FILE and not _has_fileno(source):
             with tempfile.TemporaryFile() as spooled:
@@ -65,6 +70,39 @@ def read_cloud(source: str | os.PathLike[str] | bytes | BinaryIO, name: str | No
         return READERS[kind](source, max_points)
     except PointCloudFormatError as exc:
         raise _named(exc, name) from None
+
+
+def check_declared_count(source: BinaryIO, name: str, max_points: int) -> None:
+    """:class:`TooManyPointsError` (named as :func:`read_cloud` names it) where the header of the cloud at ``source``
+    declares more than ``max_points`` points: PLY's vertex count, PCD's ``POINTS``, the LAS/LAZ point count, an
+    ``.npy``'s shape, an ``.npz`` member's. Only the header is read (from the first :data:`PRECHECK_BYTES`; an
+    ``.npz``'s directory and member header from the file), ``source``'s position is kept, and nothing else is
+    refused here: text formats (counted only while read), a header this cannot read whole, and every other problem
+    are :func:`read_cloud`'s to find, which stays the authority: it checks the count again, and reads no more points
+    than the header declares (a header declaring fewer than its data holds gives that many)."""
+    start = source.tell()
+    try:
+        kind = _detect(source)
+        count_of = HEADER_COUNTS.get(kind)
+        if count_of is None:
+            return
+        source.seek(start)
+        count = count_of(source if kind == "npz" else io.BytesIO(source.read(PRECHECK_BYTES)))
+        check_count(count, max_points)
+    except TooManyPointsError as exc:
+        raise _named(exc, name) from None
+    except PointCloudFormatError:
+        return  # read_cloud says what is wrong, and in what order
+    finally:
+        source.seek(start)
+
+
+def _detect(source: BinaryIO) -> str:
+    """The format of the file at ``source``'s position (:func:`detect`), from its first bytes (read, not put back)."""
+    head = source.read(HEAD_BYTES)
+    while only_comments(head) and len(head) < MAX_HEAD_BYTES and (more := source.read(len(head))):
+        head += more  # a PCD header after many comment lines
+    return detect(head)
 
 
 def _named(exc: PointCloudFormatError, name: str) -> PointCloudFormatError:

@@ -119,6 +119,7 @@ async def register_view(request: Request) -> RenderedJSON:
     bodies.require_media_type(request, bodies.MULTIPART)
     with runner.admit() as slot:
         form = await bodies.read_register_form(request)  # the same reader and limits as POST /v1/register
+        await bodies.refuse_oversized_uploads(form, settings.max_file_points)
 
         def decode() -> bodies.Pair:
             return bodies.register_pair_from_form(form, settings.max_file_points)
@@ -150,6 +151,7 @@ async def register_aligned(request: Request) -> Response:
     bodies.require_media_type(request, bodies.MULTIPART)
     with runner.admit() as slot:  # a 2,000,000-point file decoded and moved: a slot as a registration's
         form = await bodies.read_register_form(request, ("source",))  # the file stays spooled until decoded
+        await bodies.refuse_oversized_uploads(form, settings.max_file_points)
         try:
             R, t = _aligned_transform(form.fields)
             upload = form.files["source"]

@@ -93,6 +93,7 @@ async def register(request: Request) -> RenderedJSON:
                     return bodies.register_pair_from_json(held.take(), settings.max_points)
         else:
             form = await bodies.read_register_form(request)
+            await bodies.refuse_oversized_uploads(form, settings.max_file_points)  # 413 before the wait for a worker
 
             def decode() -> bodies.Pair:
                 return bodies.register_pair_from_form(form, settings.max_file_points)
