@@ -58,7 +58,7 @@ class LocalRegistrar:
         whether to trust it, ``result.timing_ms`` how long each stage took.
 
         ``source`` ``[N, 3]``, ``target`` ``[M, 3]`` (N, M >= 32; any numeric dtype, used as float64), or paths of
-        point-cloud files (``.ply .pcd .las .laz .xyz .txt .csv .npy .npz``, read by
+        point-cloud files (``.ply .pcd .las .laz .e57 .xyz .txt .csv .pts .ptx .npy .npz``, read by
         :func:`service.pointcloud_io.read_points`). ``options``: the fields of
         :class:`service.options.RegistrationOptions` (``refine``, ``rotation_search``, ``keypoints``,
         ``initial_transform`` as a 4x4 ``src_to_tgt``, ...); ``refine`` and ``rotation_search`` left out or ``None``

@@ -43,7 +43,10 @@ from service.cli.records import ServerError, local_record, remote_record, server
 TRANSFORM_TEXT_BYTES = 1 << 16  # an --initial-transform .txt: 16 numbers with comments fit many times over
 
 SourceArg = Annotated[
-    Path, typer.Argument(metavar="SOURCE", help="cloud to move (.ply .pcd .las .laz .xyz .txt .csv .npy .npz)")
+    Path,
+    typer.Argument(
+        metavar="SOURCE", help="cloud to move (.ply .pcd .las .laz .e57 .xyz .txt .csv .pts .ptx .npy .npz)"
+    ),
 ]
 TargetArg = Annotated[Path, typer.Argument(metavar="TARGET", help="cloud to align it to (same formats)")]
 InitialTransformOpt = Annotated[

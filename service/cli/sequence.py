@@ -42,7 +42,7 @@ FramesArg = Annotated[
     typer.Argument(
         metavar="FRAME",
         show_default=False,
-        help="two or more scans in order (.ply .pcd .las .laz .xyz .txt .csv .npy .npz); "
+        help="two or more scans in order (.ply .pcd .las .laz .e57 .xyz .txt .csv .pts .ptx .npy .npz); "
         "frame i is registered onto frame i-1",
     ),
 ]

@@ -8,17 +8,23 @@ PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z       
                          (``VERSION`` ignored, as PCL does)
 LAS/LAZ (``laspy``,      scaled x, y, z in float64                               --
 ``lazrs``)
+E57 (``pye57``)          every scan moved into the file's frame by its pose,     --
+                         appended; spherical converted; invalid points left out
 XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text
                          a header names x, y, z (else the first 3), values
                          optionally quoted; ``#`` comments and one header
-                         line (or PTS's point count) skipped
+                         line skipped
+PTS                      blocks of a point count line and that many rows         --
+                         ``x y z [i [r g b]]``; each count checked
+PTX                      scans of a 10-line header and columns x rows rows,      --
+                         each moved by its 4x4; ``0 0 0`` rows left out
 NPY                      numbers ``(N, >=3)`` (first 3 columns, any int/float    float32 ``(N, 3)``
                          dtype, cast) or fields x, y, z; no pickles
 NPZ                      array ``points``, else ``positions`` (Open3D), else     key ``points``
                          the only array
 =======================  =====================================================  ==================
 
-Colours, intensity, normals and faces are ignored. The PLY, PCD and LAS/LAZ libraries come with the
+Colours, intensity, normals and faces are ignored. The PLY, PCD, LAS/LAZ and E57 libraries come with the
 ``formats`` extra (part of ``serve``); without one, reading that format raises
 :class:`MissingReaderError` (HTTP 415) naming the extra.
 """

@@ -6,15 +6,17 @@ from service.formats.errors import PointCloudFormatError
 
 HEAD_BYTES = 1024  # enough for every magic number and the first lines of a PCD header
 MAX_HEAD_BYTES = 1 << 16  # how far comment lines may put off a PCD header's first keyword
-FORMATS = ("ply", "pcd", "las", "npy", "npz", "text")
+FORMATS = ("ply", "pcd", "las", "e57", "npy", "npz", "pts", "ptx", "text")
 _PCD_KEYS = (b"VERSION", b"FIELDS")
 
 
 def detect(head: bytes) -> str:
     """One of :data:`FORMATS` for a file starting with ``head``, or :class:`PointCloudFormatError`.
 
-    ``las`` covers LAZ (compressed LAS: the same ``LASF`` header). ``text`` is UTF-8 without NUL bytes
-    (XYZ, CSV, TXT); whether its rows are numbers is the text reader's to say.
+    ``las`` covers LAZ (compressed LAS: the same ``LASF`` header). Text is UTF-8 without NUL bytes: ``ptx``
+    where its first lines are two single integers (columns, rows) and a line of three numbers, ``pts`` where its
+    first line is a single integer (the point count) and the next one a row of at least 3 numbers, else ``text``
+    (XYZ, CSV, TXT); whether its rows are numbers is each reader's to say.
     """
     if not head:
         raise PointCloudFormatError("the file is empty (0 bytes)")
@@ -24,17 +26,38 @@ def detect(head: bytes) -> str:
         return "npz"
     if head.startswith(b"LASF"):
         return "las"
+    if head.startswith(b"ASTM-E57"):
+        return "e57"
     if head.startswith(b"ply") and head[3:4] in (b"\n", b"\r"):
         return "ply"
     if _pcd_header(head):
         return "pcd"
     if head and b"\0" not in head and _is_utf8(head):
-        return "text"
+        return _leica(head) or "text"
     if _utf16(head):
         raise PointCloudFormatError("text in UTF-16 (as Windows PowerShell writes it): save the file as UTF-8")
     raise PointCloudFormatError(
-        f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, .npy, .npz or XYZ/CSV/TXT file"
+        f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, E57, .npy, .npz or "
+        "XYZ/CSV/TXT/PTS/PTX file"
     )
+
+
+def _leica(head: bytes) -> str | None:
+    """``ptx`` or ``pts`` for text starting as Leica's ASCII formats do, else ``None``."""
+    lines = [line.split() for line in head.splitlines()[:3]]
+    if len(lines) < 2 or len(lines[0]) != 1 or not lines[0][0].isdigit():
+        return None
+    if len(lines[1]) == 1 and lines[1][0].isdigit() and len(lines) == 3 and len(lines[2]) == 3:
+        return "ptx"
+    return "pts" if len(lines[1]) >= 3 and _numbers(lines[1]) else None
+
+
+def _numbers(tokens: list[bytes]) -> bool:
+    try:
+        [float(token) for token in tokens]
+    except ValueError:
+        return False
+    return True
 
 
 def _utf16(head: bytes) -> bool:

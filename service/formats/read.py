@@ -16,15 +16,18 @@ import numpy as np
 from service.formats.arrays import npy_count, npz_count, read_npy, read_npz
 from service.formats.checks import check_count
 from service.formats.detect import HEAD_BYTES, MAX_HEAD_BYTES, detect, only_comments
+from service.formats.e57 import read_e57
 from service.formats.errors import PointCloudFormatError, TooManyPointsError
 from service.formats.las import las_count, read_las
+from service.formats.leica import read_pts, read_ptx
 from service.formats.pcd import pcd_count, read_pcd
 from service.formats.ply import ply_count, read_ply
 from service.formats.text import read_text
 
 Reader = Callable[[BinaryIO, "int | None"], np.ndarray]
 READERS: dict[str, Reader] = {
-    "ply": read_ply, "pcd": read_pcd, "las": read_las, "npy": read_npy, "npz": read_npz, "text": read_text,
+    "ply": read_ply, "pcd": read_pcd, "las": read_las, "e57": read_e57, "npy": read_npy, "npz": read_npz,
+    "pts": read_pts, "ptx": read_ptx, "text": read_text,
 }
 # The point count each format's header declares, from the readers' own header parsing (text: known only once read).
 HEADER_COUNTS: dict[str, Callable[[BinaryIO], int]] = {
@@ -34,7 +37,9 @@ HEADER_COUNTS: dict[str, Callable[[BinaryIO], int]] = {
 # its end)
 PRECHECK_BYTES = MAX_HEAD_BYTES
 NEEDS_REAL_FILE = {"ply"}  # plyfile memory-maps binary data only from a file with a descriptor
-READ_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".npy", ".npz", ".xyz", ".txt", ".csv")  # conventional names
+READ_SUFFIXES = (  # conventional names
+    ".ply", ".pcd", ".las", ".laz", ".e57", ".npy", ".npz", ".xyz", ".txt", ".csv", ".pts", ".ptx",
+)
 
 
 def read_cloud(source: str | os.PathLike[str] | bytes | BinaryIO, name: str | None = None,

@@ -3,8 +3,9 @@
 The first three columns are x, y, z, or the columns a header line names ``x``, ``y`` and ``z`` (pandas'
 ``to_csv`` puts its index first: ``,x,y,z``); further columns (intensity, colours, normals) are ignored.
 ``#`` comments and blank lines are skipped, and so is one header line: a first row that is not numbers
-(``x,y,z``, CloudCompare's ``//X,Y,Z``), or a single number (the point count of Leica PTS, which Open3D
-writes). Values may be in double quotes (pandas' ``QUOTE_ALL``).
+(``x,y,z``, CloudCompare's ``//X,Y,Z``), or a single number (a point count before rows that are not whitespace-
+separated; a count before such rows is Leica PTS, read and checked by :mod:`service.formats.leica`). Values may be in
+double quotes (pandas' ``QUOTE_ALL``).
 """
 
 from __future__ import annotations

@@ -21,8 +21,9 @@ router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(requir
 
 FILE_DESCRIPTION = (
     "A point-cloud file, its format found from its content: PLY (ascii, binary), PCD (ascii, binary, "
-    "binary_compressed), LAS/LAZ, .npy/.npz (numbers [N, >=3] or fields x, y, z), XYZ/CSV/TXT. The first three "
-    "columns or the x, y, z fields are used (colours, intensity, normals ignored); at most max_file_points points."
+    "binary_compressed), LAS/LAZ, E57, .npy/.npz (numbers [N, >=3] or fields x, y, z), XYZ/CSV/TXT, Leica PTS/PTX. "
+    "The first three columns or the x, y, z fields are used (colours, intensity, normals ignored); at most "
+    "max_file_points points."
 )
 INITIAL_TRANSFORM_FIELD = (
     "The JSON option initial_transform (a rigid 4x4 src_to_tgt guess, row-major, in the clouds' units) as JSON text, "
@@ -75,8 +76,8 @@ def _request_body(schema_name: str, multipart: bool) -> dict:
     response_model_exclude_none=True,
     summary="Register source onto target",
     description="The rigid pose src_to_tgt. Send JSON (RegisterRequest) or multipart/form-data with two "
-    "point-cloud files `source` and `target` (PLY, PCD, LAS/LAZ, NPY/NPZ, XYZ/CSV/TXT) and the options as form "
-    "fields.",
+    "point-cloud files `source` and `target` (PLY, PCD, LAS/LAZ, E57, NPY/NPZ, XYZ/CSV/TXT, PTS/PTX) and the options "
+    "as form fields.",
     openapi_extra=_request_body("RegisterRequest", multipart=True),
     responses=error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
 )

@@ -1,0 +1,266 @@
+"""Terrestrial laser scanner files: E57 (written by pye57 / libE57Format) and Leica PTS / PTX text, read by
+``read_cloud`` and uploaded to a real server: scans brought into the file's frame by their poses, points without a
+return left out, the point limit from the header, and damaged files a 4xx naming the problem."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pye57
+import pytest
+from api_server import LIMITED, MODEL, assert_error, limited_server, synthetic_pair
+from pye57 import libe57
+
+from service.formats import PointCloudFormatError, TooManyPointsError, read_cloud
+from service.formats import e57 as e57_reader
+from service.sequence import frame_problem
+
+PAIR = synthetic_pair(5)
+# float32 values: pye57 stores coordinates in single precision, so these read back exactly
+SOURCE, TARGET = PAIR.source.astype(np.float32).astype(np.float64), PAIR.target.astype(np.float32).astype(np.float64)
+OPTIONS = {"model": MODEL, "rotation_search": "false"}
+QUARTER_TURN_Z = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])  # w, x, y, z: 90 degrees about z
+
+
+def write_e57(path: Path, scans: list[dict]) -> None:
+    """Scans of ``{"xyz": [n, 3], "invalid": [n] or None, "rotation": wxyz, "translation": [3]}`` via pye57's writer."""
+    with pye57.E57(str(path), mode="w") as e57:
+        for scan in scans:
+            data = {f"cartesian{axis}": np.ascontiguousarray(scan["xyz"][:, k]) for k, axis in enumerate("XYZ")}
+            if scan.get("invalid") is not None:
+                data["cartesianInvalidState"] = scan["invalid"].astype(np.int8)
+            e57.write_scan_raw(
+                data,
+                rotation=scan.get("rotation", np.array([1.0, 0, 0, 0])),
+                translation=scan.get("translation", np.zeros(3)),
+            )
+
+
+def write_spherical_e57(path: Path, rae: np.ndarray, invalid: np.ndarray) -> None:
+    """One scan of range, azimuth, elevation (double) and sphericalInvalidState, through libE57Format's nodes (pye57's
+    writer writes cartesian fields only)."""
+    e57 = pye57.E57(str(path), mode="w")
+    imf = e57.image_file
+    scan = libe57.StructureNode(imf)
+    scan.set("guid", libe57.StringNode(imf, "{spherical-scan}"))
+    prototype = libe57.StructureNode(imf)
+    for name in ("sphericalRange", "sphericalAzimuth", "sphericalElevation"):
+        prototype.set(name, libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE))
+    prototype.set("sphericalInvalidState", libe57.IntegerNode(imf, 0, 0, 2))
+    points = libe57.CompressedVectorNode(imf, prototype, libe57.VectorNode(imf, True))
+    scan.set("points", points)
+    e57.data3d.append(scan)
+    columns = [np.ascontiguousarray(rae[:, k]) for k in range(3)] + [invalid.astype(np.int8)]
+    names = ["sphericalRange", "sphericalAzimuth", "sphericalElevation", "sphericalInvalidState"]
+    buffers = libe57.VectorSourceDestBuffer()
+    for name, column in zip(names, columns, strict=True):
+        buffers.append(libe57.SourceDestBuffer(imf, name, column, len(column), True, True))
+    writer = points.writer(buffers)
+    writer.write(len(rae))
+    writer.close()
+    e57.close()
+
+
+def pts_text(xyz: np.ndarray) -> str:
+    """Open3D's / Cyclone's PTS: the count, then x y z intensity r g b."""
+    return f"{len(xyz)}\n" + "".join(f"{x:.17g} {y:.17g} {z:.17g} 0.5 10 20 30\n" for x, y, z in xyz)
+
+
+def ptx_text(xyz_scanner: np.ndarray, matrix: np.ndarray, columns: int) -> str:
+    """One PTX scan: its header (the 4x4 ``matrix`` in PTX's row-vector layout) and ``x y z intensity`` rows."""
+    rows = len(xyz_scanner) // columns
+    header = [str(columns), str(rows)] + [" ".join(f"{v:.17g}" for v in matrix[k, :3]) for k in (3, 0, 1, 2)]
+    header += [" ".join(f"{v:.17g}" for v in matrix[k]) for k in range(4)]
+    return "\n".join(header) + "\n" + "".join(f"{x:.17g} {y:.17g} {z:.17g} 0.25\n" for x, y, z in xyz_scanner)
+
+
+def rotation_z(degrees: float) -> np.ndarray:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+# ------------------------------------------------------------------------------------------------------------- E57
+
+
+def test_e57_scans_are_moved_by_their_poses_and_invalid_points_are_left_out(tmp_path) -> None:
+    first, second = SOURCE[:300], SOURCE[300:]
+    invalid = np.zeros(len(first), dtype=np.int8)
+    invalid[::7] = 2  # no return
+    invalid[3::7] = 1  # a direction only
+    translation = np.array([10.0, -2.0, 0.5])
+    write_e57(
+        tmp_path / "two.e57",
+        [
+            {"xyz": first, "invalid": invalid, "rotation": QUARTER_TURN_Z, "translation": translation},
+            {"xyz": second},
+        ],
+    )
+    expected = np.vstack([first[invalid == 0] @ rotation_z(90).T + translation, second])
+    from_path = read_cloud(tmp_path / "two.e57")
+    np.testing.assert_allclose(from_path, expected, atol=1e-9)
+    from_bytes = read_cloud((tmp_path / "two.e57").read_bytes(), "two.e57")  # the upload path: a temporary copy
+    np.testing.assert_array_equal(from_bytes, from_path)
+
+
+def test_e57_spherical_coordinates_are_converted_as_the_standard_defines(tmp_path) -> None:
+    rae = np.array([[2.0, 0.0, 0.0], [3.0, np.pi / 2, 0.0], [4.0, 0.3, np.pi / 2], [5.0, 1.0, 0.2], [6.0, 2.0, 0.1]])
+    write_spherical_e57(tmp_path / "s.e57", rae, invalid=np.array([0, 0, 0, 0, 2]))
+    xyz = read_cloud(tmp_path / "s.e57")
+    r, azimuth, elevation = rae[:4].T
+    expected = np.stack(
+        [r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth), r * np.sin(elevation)],
+        axis=1,
+    )
+    np.testing.assert_allclose(xyz, expected, atol=1e-12)
+    np.testing.assert_allclose(xyz[:3], [[2, 0, 0], [0, 3, 0], [0, 0, 4]], atol=1e-12)
+
+
+def test_e57_point_limit_comes_from_the_headers_before_any_point_is_read(tmp_path, monkeypatch) -> None:
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE[:200]}, {"xyz": SOURCE[200:450]}])
+    monkeypatch.setattr(e57_reader, "_read_scan", lambda *args: pytest.fail("points read past the limit"))
+    with pytest.raises(TooManyPointsError, match=r"a\.e57: has 450 points; the limit is 449") as caught:
+        read_cloud(tmp_path / "a.e57", max_points=449)
+    assert (caught.value.count, caught.value.limit) == (450, 449)
+
+
+def test_e57_with_only_invalid_points_is_a_422_saying_so(tmp_path) -> None:
+    write_spherical_e57(tmp_path / "a.e57", np.ones((10, 3)), invalid=np.full(10, 2))  # pye57 refuses to write it
+    with pytest.raises(PointCloudFormatError, match="all 10 points of the E57 file are marked invalid") as caught:
+        read_cloud(tmp_path / "a.e57")
+    assert caught.value.status == 422
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped byte"])
+def test_damaged_e57_is_a_400_naming_the_problem(tmp_path, damage) -> None:
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    data = bytearray((tmp_path / "a.e57").read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    else:
+        data[len(data) // 2] ^= 0xFF
+    with pytest.raises(PointCloudFormatError) as caught:
+        read_cloud(bytes(data), "a.e57")
+    assert caught.value.status == 400
+    words = "size in file header not same as actual" if damage == "truncated" else "checksum mismatch"
+    assert str(caught.value).startswith("a.e57: ") and words in str(caught.value)
+    assert "/tmp" not in str(caught.value)  # the temporary copy's name stays out of the message
+
+
+# ------------------------------------------------------------------------------------------------------ PTS / PTX
+
+
+def test_pts_blocks_are_read_and_their_counts_checked() -> None:
+    text = pts_text(SOURCE[:5]) + pts_text(SOURCE[5:8])
+    np.testing.assert_array_equal(read_cloud(text.encode(), "a.pts"), SOURCE[:8])
+    with pytest.raises(PointCloudFormatError, match=r"a\.pts: PTS line 1 declares 6 points; 5 rows follow") as short:
+        read_cloud(("6" + pts_text(SOURCE[:5])[1:]).encode(), "a.pts")
+    assert short.value.status == 400
+    with pytest.raises(PointCloudFormatError, match="PTS line 1 declares 4 points; more rows follow them"):
+        read_cloud(("4" + pts_text(SOURCE[:5])[1:]).encode(), "a.pts")
+
+
+def test_pts_point_limit_comes_from_the_count_line() -> None:
+    with pytest.raises(TooManyPointsError, match=r"a\.pts: has 1000000000 points; the limit is 400"):
+        read_cloud(("1000000000" + pts_text(SOURCE[:5])[1:]).encode(), "a.pts", max_points=400)
+
+
+def test_ptx_applies_the_row_vector_transform_and_leaves_out_missing_returns() -> None:
+    # LAStools' sample PTX; CloudCompare and LAStools read its first point as 2.156 10.553 2.685
+    matrix = np.array(
+        [
+            [-0.955179, 0.296021, -0.002106, 0],
+            [-0.296023, -0.955180, 0.001152, 0],
+            [-0.001670, 0.001724, 0.999997, 0],
+            [3.847211, 12.235314, -0.425777, 1],
+        ]
+    )
+    scanner = np.array([[1.111111, 2.111111, 3.111], [0, 0, 0], [1.333333, 2.333333, 3.333], [0, 0, 0]])
+    xyz = read_cloud(ptx_text(scanner, matrix, columns=2).encode(), "a.ptx")
+    np.testing.assert_allclose(xyz, scanner[[0, 2]] @ matrix[:3, :3] + matrix[3, :3])
+    np.testing.assert_allclose(xyz[0], [2.156, 10.553, 2.685], atol=1e-3)
+
+
+def test_ptx_scans_follow_each_other_each_with_its_transform() -> None:
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation_z(30).T  # row-vector layout of a 30 degree turn
+    matrix[3, :3] = [5.0, 6.0, 7.0]
+    text = ptx_text(SOURCE[:20], np.eye(4), columns=4) + ptx_text(SOURCE[20:50], matrix, columns=5)
+    xyz = read_cloud(text.encode(), "two.ptx")
+    np.testing.assert_allclose(xyz, np.vstack([SOURCE[:20], SOURCE[20:50] @ rotation_z(30).T + [5, 6, 7]]))
+
+
+def test_ptx_with_a_short_header_or_missing_rows_is_a_400() -> None:
+    full = ptx_text(SOURCE[:6], np.eye(4), columns=3)
+    lines = full.splitlines()
+    with pytest.raises(PointCloudFormatError, match=r"a.ptx: PTX scan 1 \(line 1\) header line 6: expected 3 numbers"):
+        read_cloud("\n".join(lines[:3] + lines[4:]).encode(), "a.ptx")  # the scanner's X axis left out
+    with pytest.raises(PointCloudFormatError, match=r"the header of 10 lines .* ends at line 8"):
+        read_cloud("\n".join(lines[:8]).encode(), "a.ptx")
+    with pytest.raises(PointCloudFormatError, match=r"declares 3 x 2 = 6 points; 5 rows follow its header"):
+        read_cloud("\n".join(full.splitlines()[:-1]).encode(), "a.ptx")
+
+
+def test_sequence_frames_take_the_new_extensions(tmp_path) -> None:
+    for suffix in (".e57", ".pts", ".ptx"):
+        (tmp_path / f"f{suffix}").write_text("x")
+        assert frame_problem(tmp_path / f"f{suffix}") is None
+
+
+# ------------------------------------------------------------------------------------------------------------ HTTP
+
+
+def upload(client, files: dict[str, tuple[str, bytes]]):
+    return client.post("/v1/register", files=files, data=OPTIONS, timeout=120)
+
+
+def test_e57_pts_and_ptx_uploads_give_the_npy_pose(client, tmp_path) -> None:
+    def npy(xyz):
+        np.save(tmp_path / "c.npy", xyz)
+        return (tmp_path / "c.npy").read_bytes()
+
+    def e57(xyz):
+        write_e57(tmp_path / "c.e57", [{"xyz": xyz}])
+        return (tmp_path / "c.e57").read_bytes()
+
+    def pts(xyz):
+        return pts_text(xyz).encode()
+
+    def ptx(xyz):
+        return ptx_text(xyz[: len(xyz) // 10 * 10], np.eye(4), columns=10).encode()
+
+    source, target = SOURCE[:690], TARGET[:690]
+    records = {}
+    for name, encode in {"npy": npy, "e57": e57, "pts": pts, "ptx": ptx}.items():
+        response = upload(client, {"source": (f"s.{name}", encode(source)), "target": (f"t.{name}", encode(target))})
+        assert response.status_code == 200, (name, response.text)
+        records[name] = response.json()
+    for name in ("e57", "pts", "ptx"):
+        np.testing.assert_allclose(records[name]["rotation"], records["npy"]["rotation"], atol=1e-6)
+        np.testing.assert_allclose(records[name]["translation"], records["npy"]["translation"], atol=1e-6)
+
+
+def test_damaged_tls_uploads_are_4xx_naming_the_file(client, tmp_path) -> None:
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    good = ("t.pts", pts_text(TARGET).encode())
+    cases = {
+        ("cut.e57", (tmp_path / "a.e57").read_bytes()[:3000]): (400, "cut.e57", "size in file header"),
+        ("count.pts", ("9" + pts_text(SOURCE[:5])[1:]).encode()): (400, "count.pts", "declares 9 points; 5 rows"),
+        ("short.ptx", b"3\n2\n0 0 0\n1 0 0\n"): (400, "short.ptx", "header of 10 lines"),
+    }
+    for (name, data), (status, *words) in cases.items():
+        assert_error(upload(client, {"source": (name, data), "target": good}), status, *words)
+
+
+def test_e57_over_the_file_point_limit_is_a_413_from_its_header(tmp_path) -> None:
+    server = limited_server()
+    count = LIMITED["max_file_points"] + 1
+    write_e57(tmp_path / "big.e57", [{"xyz": SOURCE[:300]}, {"xyz": TARGET[: count - 300]}])
+    write_e57(tmp_path / "small.e57", [{"xyz": TARGET[:300]}])
+    files = {
+        "source": ("big.e57", (tmp_path / "big.e57").read_bytes()),
+        "target": ("small.e57", (tmp_path / "small.e57").read_bytes()),
+    }
+    with server.client(headers={"Authorization": f"Bearer {LIMITED['api_key']}"}) as client:
+        response = upload(client, files)
+    assert_error(response, 413, "big.e57", str(count), str(LIMITED["max_file_points"]))
