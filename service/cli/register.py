@@ -16,7 +16,6 @@ from service.cli.common import (
     fail,
     number,
     read_cloud,
-    require_regular_file,
     write_text,
 )
 from service.cli.model_lookup import load_registrar
@@ -39,8 +38,6 @@ from service.cli.options import (
     registration_options,
 )
 from service.cli.records import ServerError, local_record, remote_record, server_client
-
-TRANSFORM_TEXT_BYTES = 1 << 16  # an --initial-transform .txt: 16 numbers with comments fit many times over
 
 SourceArg = Annotated[
     Path,
@@ -162,37 +159,13 @@ def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligne
 
 
 def _read_transform(path: Path) -> list:
-    """A 4x4 matrix from ``.json`` (a 4x4 list, or an object with ``transform``), ``.npy`` or ``.txt`` (four rows of
-    four numbers, as ``np.savetxt`` and other registration tools write a pose; commas allowed, ``#`` comments)."""
-    require_regular_file(path)
+    """``--initial-transform``'s 4x4 matrix (:func:`service.transform_file.read_transform`), or a usage error."""
+    from service.transform_file import TransformFileError, read_transform
+
     try:
-        if path.suffix.lower() == ".json":
-            payload = json.loads(path.read_text())
-            matrix = payload.get("transform") if isinstance(payload, dict) else payload
-            if matrix is None:
-                fail(
-                    f"--initial-transform {path.name}: JSON object has no 'transform' (expected a 4x4 list, or an "
-                    "object with 'transform' as an --out file holds)"
-                )
-            T = np.asarray(matrix, dtype=np.float64)
-        elif path.suffix.lower() == ".npy":
-            T = np.load(path, allow_pickle=False, mmap_mode="r")  # mapped: a header's shape allocates nothing
-        elif path.suffix.lower() == ".txt":
-            if path.stat().st_size > TRANSFORM_TEXT_BYTES:
-                fail(f"--initial-transform {path.name}: over {TRANSFORM_TEXT_BYTES} bytes, not a 4x4 matrix")
-            rows = [line.split("#", 1)[0].replace(",", " ").split() for line in path.read_text().splitlines()]
-            T = np.asarray([[float(value) for value in row] for row in rows if row], dtype=np.float64)  # [4, 4]
-        else:
-            fail(f"--initial-transform {path.name}: expected a .json, .npy or .txt file")
-        if not isinstance(T, np.ndarray) or T.shape != (4, 4):
-            shape = list(T.shape) if isinstance(T, np.ndarray) else type(T).__name__
-            fail(f"--initial-transform {path.name}: expected a 4x4 matrix, got {shape}")
-        T = np.asarray(T, dtype=np.float64)
-    except OSError as exc:
-        fail(f"cannot read {path}: {exc.strerror or exc}")
-    except (ValueError, TypeError, OverflowError, RecursionError) as exc:  # not numbers, too deep, beyond float64
-        fail(f"--initial-transform {path.name}: not a 4x4 matrix ({type(exc).__name__}: {str(exc)[:200]})")
-    return T.tolist()
+        return read_transform(path).tolist()
+    except TransformFileError as exc:
+        fail(f"--initial-transform {path.name}: {exc}")
 
 
 def _register_local(
