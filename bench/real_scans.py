@@ -16,9 +16,13 @@ clouds in the same run::
     python -m bench.real_scans --no-fpfh --compare-root /tmp/before   # beside another checkout, taking turns
     python -m bench.real_scans --no-fpfh --offset 1000 -2000 500   # both clouds 2 km from their frames' origin
     python -m bench.real_scans --start-near-truth 10 --options '{"rotation_search": false}'   # the speed bound
+    python -m bench.real_scans my_pairs --scales 1 --thresholds vlp16=5,0.5   # your own pairs (bench.make_pair)
 
-Success follows the data README's thresholds per sensor class. ``reliable`` precision is the share of results
-given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
+Success follows the thresholds per sensor class (``docs/REAL_SCANS.md``); ``--thresholds SENSOR=DEG,DIST`` (DIST
+in the pair files' unit, scaled with ``--scales``), else a pair file's own ``rotation_threshold_deg`` and
+``translation_threshold``, come before them, and a set with a sensor of none is refused before any registration.
+A folder of a user's own pairs (``python -m bench.make_pair``) is read as the set is. ``reliable`` precision is the
+share of results given ``reliable: true`` that are right; its coverage the share of the service's successes given it.
 ``--compare-root`` also serves another checkout (its code and its bundled models); the two servers take turns case
 by case, so that a machine whose speed drifts between runs weighs on both alike, and the report adds that
 checkout's totals and this checkout's time over its. ``--offset X Y Z`` moves both clouds of every case by that
@@ -58,7 +62,7 @@ from bench.report_io import (
     provenance,
     require_checkouts,
 )
-from bench.scan_pairs import ScanPair, derived_pairs, read_pairs
+from bench.scan_pairs import THRESHOLD_FIELDS, ScanPair, derived_pairs, read_pairs
 from bench.surface_resample import FUSED_SENSORS, densified
 from service.core.config import Settings
 
@@ -114,6 +118,7 @@ class Case:
     target: np.ndarray  # [M, 3] float32
     src_to_tgt: np.ndarray  # [4, 4] ground truth, in the clouds' own frames
     offset: np.ndarray | None = None  # [3] both clouds moved by it (moved_away); poses are judged without it
+    limits: tuple[float, float] | None = None  # its own success thresholds (deg, the case's unit), else its sensor's
 
 
 def thresholds(sensor: str, scale: float = 1.0) -> tuple[float, float]:
@@ -130,14 +135,71 @@ def thresholds(sensor: str, scale: float = 1.0) -> tuple[float, float]:
     return degrees, metres * scale
 
 
-def require_thresholds(parser: argparse.ArgumentParser, cases: list[Case]) -> None:
-    """A usage error of ``parser`` unless every sensor of ``cases`` has success thresholds (:func:`thresholds`):
-    checked before any registration, since :func:`judged` refuses the first result of a sensor of no class."""
-    for sensor in sorted({case.sensor for case in cases}):
+def case_thresholds(case: Case) -> tuple[float, float]:
+    """The success thresholds (rotation deg, translation in the case's unit) that judge ``case``: its own
+    (``--thresholds`` or its pair file's, :func:`load_cases`), else its sensor class's (:func:`thresholds`)."""
+    return case.limits if case.limits is not None else thresholds(case.sensor, case.scale)
+
+
+def require_thresholds(parser: argparse.ArgumentParser, cases: list[Case], option: str | None = None) -> None:
+    """A usage error of ``parser`` unless every case of ``cases`` has success thresholds (:func:`case_thresholds`):
+    checked before any registration, since :func:`judged` refuses the first result of a sensor of no class. The error
+    names the pair-file fields that give thresholds, and ``option`` (``--thresholds``) where the command takes it."""
+    for sensor in sorted({case.sensor for case in cases if case.limits is None}):
         try:
             thresholds(sensor)
         except ValueError as error:  # a new set's sensors named otherwise
-            parser.error(str(error))
+            fields = f"{' and '.join(THRESHOLD_FIELDS)} in its pair files"
+            hint = f"{option} '{sensor}=DEG,DIST' or {fields}" if option else fields
+            parser.error(f"{error}; give them with {hint}")
+
+
+def sensor_threshold(text: str) -> tuple[str, tuple[float, float]]:
+    """An argparse ``type`` for ``--thresholds SENSOR=DEG,DIST``: a sensor name, and its success thresholds (rotation
+    in degrees, translation in the pair files' unit), both positive."""
+    sensor, equals, values = text.rpartition("=")
+    parts = values.split(",")
+    if not equals or not sensor or len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected SENSOR=DEG,DIST (e.g. lidar=5,2)")
+    try:
+        degrees, distance = (float(part) for part in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be numbers (e.g. lidar=5,2)") from None
+    if not (np.isfinite(degrees) and np.isfinite(distance) and degrees > 0 and distance > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be positive")
+    return sensor, (degrees, distance)
+
+
+def given_thresholds(parser: argparse.ArgumentParser, given: list[tuple[str, tuple[float, float]]] | None
+                     ) -> dict[str, tuple[float, float]]:
+    """``--thresholds``' pairs as ``{sensor: (deg, distance)}``; a usage error for a sensor given twice."""
+    chosen: dict[str, tuple[float, float]] = {}
+    for sensor, limits in given or []:
+        if sensor in chosen:
+            parser.error(f"--thresholds: sensor {sensor!r} given twice")
+        chosen[sensor] = limits
+    return chosen
+
+
+def require_threshold_sensors(parser: argparse.ArgumentParser, chosen: dict[str, tuple[float, float]],
+                              cases: list[Case]) -> None:
+    """A usage error where ``--thresholds`` names a sensor that no case has: a misspelt name would leave the pairs it
+    meant to their sensor class, or to the refusal."""
+    sensors = {case.sensor for case in cases}
+    for sensor in chosen:
+        if sensor not in sensors:
+            parser.error(f"--thresholds {sensor}=...: no pair of the run has sensor {sensor!r} "
+                         f"(there: {', '.join(sorted(sensors))})")
+
+
+def threshold_lines(cases: list[Case]) -> list[str]:
+    """One line per sensor and thresholds judging ``cases``, in the files' unit (the case's over its scale)."""
+    seen = {}
+    for case in cases:
+        degrees, distance = case_thresholds(case)
+        seen.setdefault((case.sensor, degrees, distance / case.scale), None)
+    return [f"success for {sensor}: rotation error < {degrees:g} deg and translation error < {distance:g} "
+            "(the files' unit, times the scale)" for sensor, degrees, distance in seen]
 
 
 def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -151,12 +213,16 @@ def turned(source: np.ndarray, src_to_tgt: np.ndarray, rotation: np.ndarray) -> 
 
 def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0),
                names: list[str] | None = None, turns: int = 1, derived: bool = False,
-               densify: int | None = None) -> list[Case]:
+               densify: int | None = None, sensor_thresholds: dict[str, tuple[float, float]] | None = None
+               ) -> list[Case]:
     """Every pair of ``directory`` (or only ``names``) as scanned and turned by ``turns`` seeded Haar-uniform rotations
     (variants ``turned``, ``turned-2``, ...), per scale; ``derived``: the pairs derived from the set instead of its
     own (:func:`bench.scan_pairs.derived_pairs`: scans no file pairs, ground truth chained through shared scans).
     ``densify``: each cloud of the fused fragments resampled to that many points on its surface (:func:`densified`,
     seeded by ``seed`` and the pair), as full-resolution fragments hold; the other sensors' clouds as they are.
+    ``sensor_thresholds``: ``{sensor: (deg, distance in the files' unit)}``, the success thresholds of that sensor's
+    pairs before a pair file's own (``rotation_threshold_deg``, ``translation_threshold``) and its sensor class's;
+    the distance is scaled with each case (``Case.limits``).
 
     The rotations are drawn pair after pair from ``seed``: a pair's ``turned`` is the same whatever ``turns`` is, but
     ``turned-2`` onwards depend on ``turns``, and every rotation on which pairs are loaded (``names``): compare cases
@@ -172,12 +238,14 @@ def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0,
         variants = {"scanned": (pair.source, pair.src_to_tgt)}
         for k, rotation in enumerate(rotations, start=1):
             variants["turned" if k == 1 else f"turned-{k}"] = turned(pair.source, pair.src_to_tgt, rotation)
+        own = (sensor_thresholds or {}).get(pair.sensor, pair.limits)  # (deg, distance in the files' unit) or None
         for scale in scales:
+            limits = None if own is None else (own[0], own[1] * scale)
             for variant, (src, T) in variants.items():
                 T_scaled = T.copy()
                 T_scaled[:3, 3] *= scale
                 cases.append(Case(pair.name, pair.sensor, variant, scale, (src * scale).astype(np.float32),
-                                  (pair.target * scale).astype(np.float32), T_scaled))
+                                  (pair.target * scale).astype(np.float32), T_scaled, limits=limits))
     return cases
 
 
@@ -286,7 +354,7 @@ def judged(case: Case, rotation: np.ndarray | None, translation: np.ndarray | No
     if case.offset is not None:  # y + o = R (x + o) + t  ->  y = R x + t + R o - o
         translation = translation + rotation @ case.offset - case.offset
     r_err, t_err = pose_errors(rotation, translation, case.src_to_tgt)
-    max_deg, max_t = thresholds(case.sensor, case.scale)
+    max_deg, max_t = case_thresholds(case)
     return {"rotation_error_deg": round(r_err, 3), "translation_error": float(f"{t_err:.4g}"),
             "success": r_err < max_deg and t_err < max_t}
 
@@ -378,21 +446,21 @@ def precision_where_both_right(cases: list[Case], service: list[dict], fpfh: lis
     entry: dict = {"both_right": len(both)}
     for name, rows in (("service", service), ("fpfh", fpfh)):
         degrees = [rows[i]["rotation_error_deg"] for i in both]
-        shares = [rows[i]["translation_error"] / thresholds(cases[i].sensor, cases[i].scale)[1] for i in both]
+        shares = [rows[i]["translation_error"] / case_thresholds(cases[i])[1] for i in both]
         entry[f"{name}_median_rotation_error_deg"] = round(float(np.median(degrees)), 3) if both else None
         entry[f"{name}_median_translation_share"] = round(float(np.median(shares)), 4) if both else None
     return entry
 
 
 def print_table(cases: list[Case], service: list[dict], fpfh: list[dict] | None) -> None:
-    """One line per case: rotation error (deg), translation error (err_t, in the case's unit: m or mm), success,
-    ``reliable``, client ms; the same for FPFH beside it."""
-    head = f"{'pair':22} {'variant':9} {'unit':5} | {'deg':>7} {'err_t':>8} ok rel {'ms':>6}"
+    """One line per case: rotation error (deg), translation error (err_t, in the case's unit: the files' unit times
+    the scale, ``x1`` or ``x1000``), success, ``reliable``, client ms; the same for FPFH beside it."""
+    head = f"{'pair':22} {'variant':9} {'scale':5} | {'deg':>7} {'err_t':>8} ok rel {'ms':>6}"
     print(head + (f" | {'deg':>7} {'err_t':>8} ok {'ms':>6}" if fpfh else "")
-          + "   (deg: rotation error; err_t: translation error in the unit's m or mm)")
+          + "   (deg: rotation error; err_t: translation error in the files' unit times the scale)")
     for i, case in enumerate(cases):
         s = service[i]
-        line = (f"{case.name:22} {case.variant:9} {'m' if case.scale == 1 else 'mm':5} | "
+        line = (f"{case.name:22} {case.variant:9} {f'x{case.scale:g}':5} | "
                 f"{_num(s['rotation_error_deg']):>7} {_num(s['translation_error']):>8} "
                 f"{'Y' if s['success'] else '.':2} {'Y' if s['reliable'] else '.':3} {1000 * s['seconds']:6.0f}")
         if fpfh:
@@ -457,6 +525,10 @@ def main(argv: list[str] | None = None) -> dict:
                         help="the pairs derived from the set instead of its own: scans that no file pairs, ground "
                              "truth chained through shared scans (bench.scan_pairs)")
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
+    parser.add_argument("--thresholds", type=sensor_threshold, action="append", metavar="SENSOR=DEG,DIST",
+                        help="success thresholds of SENSOR's pairs: rotation error < DEG degrees and translation error "
+                             "< DIST in the pair files' unit (scaled with --scales); before a pair file's own and the "
+                             "sensor classes' (repeatable)")
     parser.add_argument("--options", type=register_options, default={},
                         help="register options as JSON, e.g. '{\"rotation_search\": false}' (default: none, as a user)")
     parser.add_argument("--densify", type=int, metavar="POINTS",
@@ -486,11 +558,14 @@ def main(argv: list[str] | None = None) -> dict:
         from model.cli_inputs import model_dir
 
         checked(model_dir, args.model_dir, "--model-dir")
-    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived, args.densify)
+    chosen = given_thresholds(parser, args.thresholds)
+    cases = load_cases(directory, args.seed, tuple(args.scales), args.pairs, args.turns, args.derived, args.densify,
+                       chosen)
     if not cases:
         parser.error(f"no {'derived ' if args.derived else ''}pairs to register in {directory}"
                      + (f" named {args.pairs}" if args.pairs else ""))
-    require_thresholds(parser, cases)
+    require_threshold_sensors(parser, chosen, cases)
+    require_thresholds(parser, cases, "--thresholds")
     if args.url:
         answering(parser, args.url)
     if args.offset:
@@ -509,17 +584,21 @@ def main(argv: list[str] | None = None) -> dict:
         with Server(model_dirs=dirs, default_model=name) as server:
             service = run_service(cases, server.url, args.options, starts)
     fpfh = None if args.no_fpfh else run_fpfh(cases, args.seed)
+    print("\n".join(threshold_lines(cases)))
     print_table(cases, service, fpfh)
-    rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale, "service": service[i],
-             **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
+    rows = [{"pair": c.name, "sensor": c.sensor, "variant": c.variant, "scale": c.scale,
+             "thresholds": dict(zip(("rotation_deg", "translation"), case_thresholds(c), strict=True)),
+             "service": service[i], **({"fpfh": fpfh[i]} if fpfh else {})} for i, c in enumerate(cases)]
     report = {"benchmark": "real_scans", "seed": args.seed, "turns": args.turns, "derived": args.derived,
               "densify": args.densify,
               "options": args.options,
               "offset": args.offset,
+              "thresholds": {sensor: list(limits) for sensor, limits in chosen.items()},
               "start_near_truth_deg": args.start_near_truth,
               "machine": machine_info(2), "url": args.url, "provenance": made_by,
-              "units": "rotation errors in degrees; translation errors and offset in the case's unit (scale 1: "
-                       "metres, 1000: millimetres); seconds",
+              "units": "rotation errors in degrees; translation errors, offset and a row's translation threshold in "
+                       "the case's unit (the pair files' unit times the scale; the set's files are in metres: scale "
+                       "1 metres, 1000 millimetres); --thresholds' distances in the files' unit; seconds",
               "totals": summarise(cases, service, fpfh), "pairs": rows}
     printed = {"totals": report["totals"]}
     if compared is not None:

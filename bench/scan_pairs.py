@@ -31,6 +31,10 @@ class ScanPair:
     source: np.ndarray  # [N, 3] float32
     target: np.ndarray  # [M, 3] float32
     src_to_tgt: np.ndarray  # [4, 4] float64
+    limits: tuple[float, float] | None = None  # the file's own success thresholds: (rotation deg, translation)
+
+
+THRESHOLD_FIELDS = ("rotation_threshold_deg", "translation_threshold")  # optional in a pair file, both or neither
 
 
 def read_pairs(directory: Path, names: list[str] | None = None) -> list[ScanPair]:
@@ -41,7 +45,9 @@ def read_pairs(directory: Path, names: list[str] | None = None) -> list[ScanPair
 
 def read_pair(file: Path) -> ScanPair:
     """The pair in ``file``: ``source [N, 3]`` and ``target [M, 3]`` finite points (N, M >= 1), ``transform [4, 4]``
-    finite, ``sensor`` a string (the set's README); else ``ValueError`` naming the file and the problem."""
+    finite, ``sensor`` a string (the set's README), and optionally both ``rotation_threshold_deg`` and
+    ``translation_threshold`` (positive numbers; the latter in the clouds' unit) as the pair's success thresholds;
+    else ``ValueError`` naming the file and the problem."""
     import zipfile
 
     def refuse(problem: str) -> ValueError:
@@ -55,7 +61,8 @@ def read_pair(file: Path) -> ScanPair:
             missing = [key for key in ("source", "target", "transform", "sensor") if key not in data.files]
             if missing:
                 raise refuse(f"no {', '.join(missing)}")
-            arrays = {key: data[key] for key in ("source", "target", "transform", "sensor")}
+            arrays = {key: data[key] for key in ("source", "target", "transform", "sensor", *THRESHOLD_FIELDS)
+                      if key in data.files}
     except (OSError, zipfile.BadZipFile, EOFError) as err:
         raise refuse(f"cannot read it: {err}") from None
     except ValueError as err:  # an object array (np.load refuses pickles); ours name the file already
@@ -73,8 +80,16 @@ def read_pair(file: Path) -> ScanPair:
         raise refuse(f"transform is {transform.dtype} {list(transform.shape)}, not a finite [4, 4]")
     if sensor.shape != () or sensor.dtype.kind != "U":
         raise refuse(f"sensor is {sensor.dtype} {list(sensor.shape)}, not a string")
+    given = [key for key in THRESHOLD_FIELDS if key in arrays]
+    if len(given) == 1:
+        raise refuse(f"{given[0]} without {next(k for k in THRESHOLD_FIELDS if k not in arrays)}: give both or neither")
+    for key in given:
+        value = arrays[key]
+        if value.shape != () or value.dtype.kind not in "fiu" or not np.isfinite(value) or value <= 0:
+            raise refuse(f"{key} is {value.dtype} {list(value.shape)} {value!s:.40}, not a positive number")
+    limits = (float(arrays[THRESHOLD_FIELDS[0]]), float(arrays[THRESHOLD_FIELDS[1]])) if given else None
     return ScanPair(file.stem, str(sensor), arrays["source"].astype(np.float32), arrays["target"].astype(np.float32),
-                    transform.astype(np.float64))
+                    transform.astype(np.float64), limits)
 
 
 @dataclass(frozen=True)
@@ -93,6 +108,7 @@ def derived_pairs(directory: Path) -> list[ScanPair]:
     docstring), by prefix and then by source and target label."""
     clouds: dict[_Scan, np.ndarray] = {}
     sensors: dict[str, str] = {}
+    limits: dict[str, set[tuple[float, float] | None]] = {}  # prefix -> its files' own thresholds
     moves: dict[_Scan, list[tuple[_Scan, np.ndarray]]] = {}  # scan -> [(neighbour, scan_to_neighbour [4, 4])]
     for pair in read_pairs(directory):
         named = PAIR_NAME.match(pair.name)
@@ -102,6 +118,7 @@ def derived_pairs(directory: Path) -> list[ScanPair]:
         target = _scan(named["prefix"], named["target"], pair.target)
         clouds[source], clouds[target] = pair.source, pair.target
         sensors[named["prefix"]] = pair.sensor
+        limits.setdefault(named["prefix"], set()).add(pair.limits)
         moves.setdefault(source, []).append((target, pair.src_to_tgt))
         moves.setdefault(target, []).append((source, np.linalg.inv(pair.src_to_tgt)))
     derived: list[tuple[tuple[str, int, int], ScanPair]] = []
@@ -115,8 +132,9 @@ def derived_pairs(directory: Path) -> list[ScanPair]:
             for i in in_first:
                 if i.label >= j.label or any(other == i for other, _ in moves[j]):
                     continue  # the larger label is the source; a pair the set holds is not derived
+                own = limits[j.prefix]  # the files' thresholds where they all give the same
                 pair = ScanPair(f"{j.prefix}_{j.label}_{i.label}", sensors[j.prefix], clouds[j], clouds[i],
-                                np.linalg.inv(in_first[i]) @ in_first[j])
+                                np.linalg.inv(in_first[i]) @ in_first[j], next(iter(own)) if len(own) == 1 else None)
                 derived.append(((j.prefix, j.label, i.label), pair))
     return [pair for _, pair in sorted(derived, key=lambda item: item[0])]
 
