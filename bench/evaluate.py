@@ -169,8 +169,10 @@ def evaluate(
         from model.data import class_names
         from model.metrics import recall_by_label
 
+        names = ([str(name) for name in data_pairs["class_names"]] if "class_names" in data_pairs  # make-pairs'
+                 else class_names(data))
         metrics["by_label"] = recall_by_label(R, t, data_pairs["rotation"], data_pairs["translation"],
-                                              data_pairs["label"], class_names(data))
+                                              data_pairs["label"], names)
     metrics["evaluated"] = evaluated  # what these figures were measured on and with
     text = json.dumps(metrics, indent=2)
     typer.echo(text)

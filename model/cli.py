@@ -1,4 +1,5 @@
-"""Training-side ``mfgnet`` sub-commands (loaded by ``service.cli`` through entry points): train, make-pairs.
+"""Training-side ``mfgnet`` sub-commands (loaded by ``service.cli`` through entry points): train, make-pairs,
+make-dataset.
 
 ``mfgnet evaluate`` lives in ``bench.evaluate``; the pair options below are shared with it.
 """
@@ -9,6 +10,7 @@ import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
+import numpy as np
 import typer
 
 from model.cli_inputs import (
@@ -16,12 +18,13 @@ from model.cli_inputs import (
     fail,
     finite_shapes,
     given_options,
+    input_file,
     json_file,
     output_file,
     output_folder,
     require_shapes,
 )
-from model.data import SETTINGS, PairProtocol, make_test_pairs, pairs_path, protocol_for, save_pairs
+from model.data import SETTINGS, PairProtocol, class_names, make_test_pairs, pairs_path, protocol_for, save_pairs
 from model.recipes import recipe_draw
 
 if TYPE_CHECKING:  # torch is imported only when a command trains
@@ -85,8 +88,92 @@ def make_pairs(
             pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
+    names = class_names(data)  # the data folder's: evaluate --by-label names the classes of the file's labels
+    if names is not None:
+        pairs["class_names"] = np.asarray(names, dtype=np.str_)
     written = save_pairs(out, pairs)
     typer.echo(f"wrote {len(pairs['source'])} {setting} pairs to {written}")
+
+
+def make_dataset(
+    ctx: typer.Context,
+    src: Annotated[Path, typer.Argument(help="folder of shapes: one subfolder per class, or the shape files of one "
+                                             "class; meshes (.obj .stl .off, .ply with faces) or point clouds")],
+    out: Annotated[Path, typer.Option(help="data folder to write: what --data / $MFGNET_DATA of train, make-pairs, "
+                                           "evaluate and export then name")],
+    points: Annotated[int, typer.Option(min=1, help="points per shape (ModelNet40's files: 1024, what the settings' "
+                                                    "defaults need)")] = 1024,
+    dense_points: Annotated[int, typer.Option(min=0, help="points per test shape in the dense file (the dense and "
+                                                          "scans settings need 4096); 0: no dense file")] = 4096,
+    test_fraction: Annotated[float, typer.Option(help="share of each class's shapes held out for the test split, "
+                                                      "drawn with --seed")] = 0.2,
+    split_file: Annotated[Path | None, typer.Option(help="text file naming the test shapes, one per line, as paths "
+                                                         "below SRC (e.g. chair/a.obj); instead of --test-fraction")
+                          ] = None,
+    seed: Annotated[int, typer.Option(min=0, help="seeds the surface samples, the subsets of clouds and the split")
+                    ] = 0,
+    dtype: Annotated[str, typer.Option(help="storage: float32 (exact) or float16 (half the size; ModelNet40's, "
+                                            "within 2.5e-4 in the unit ball)")] = "float32",
+    subsample: Annotated[str, typer.Option(help="clouds of more points than asked: random (a seeded subset, as "
+                                                "ModelNet40's build) or fps (farthest-point sampling)")] = "random",
+    skip_bad: Annotated[bool, typer.Option(help="leave unreadable or degenerate shapes out (counted and listed in "
+                                                "OUT/dataset.json) instead of stopping")] = False,
+    overwrite: Annotated[bool, typer.Option(help="replace the data files of a folder made before")] = False,
+) -> None:
+    """Make a data folder from your own shapes: each shape sampled (meshes: uniformly on the surface; clouds: a
+    subset), centred and scaled into the unit ball as ModelNet40's, split into train and test per class."""
+    from model import dataset as ds
+
+    if dtype not in ds.DTYPES:
+        fail(f"--dtype {dtype}: expected one of {', '.join(ds.DTYPES)}")
+    if subsample not in ds.SUBSAMPLINGS:
+        fail(f"--subsample {subsample}: expected one of {', '.join(ds.SUBSAMPLINGS)}")
+    if split_file is not None and "test_fraction" in given_options(ctx):
+        fail("--split-file and --test-fraction: give one (the split file names the test shapes)")
+    if not 0 < test_fraction < 1:
+        fail(f"--test-fraction {test_fraction}: must be above 0 and below 1 (each class needs train and test shapes)")
+    if split_file is not None:
+        input_file(split_file, "--split-file")
+    if src.is_dir() and out.resolve().is_relative_to(src.resolve()):
+        fail(f"--out {out}: inside SRC {src}, whose shapes it would then hold; choose a folder outside it")
+    output_folder(out, "--out")
+    existing = [name for name in ds.OUTPUT_FILES if (out / name).exists()]
+    if existing and not overwrite:
+        fail(f"--out {out}: holds a data folder already ({', '.join(existing)}); pass --overwrite to replace it, or "
+             "choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    for name in existing:  # a dense file of an earlier set must not outlive it
+        (out / name).unlink()
+
+    def progress(items: list, what: str) -> object:
+        from tqdm import tqdm
+
+        return tqdm(items, desc=what, unit="shape", disable=None, mininterval=2)
+
+    try:
+        made = ds.build_dataset(src, out, points=points, dense_points=dense_points, seed=seed,
+                                test_fraction=None if split_file is not None else test_fraction,
+                                split_file=split_file, dtype=dtype, subsample=subsample, skip_bad=skip_bad,
+                                progress=progress)
+    except ds.DatasetError as err:
+        fail(str(err))
+    typer.echo(f"{len(made.classes)} class{'es' if len(made.classes) != 1 else ''} ({', '.join(made.classes[:8])}"
+               f"{' ...' if len(made.classes) > 8 else ''}): {len(made.train)} train and {len(made.test)} test shapes "
+               f"of {points} points")
+    if dense_points:
+        left = len(made.test) - len(made.dense)
+        typer.echo(f"dense test file: {len(made.dense)} shape{'s' if len(made.dense) != 1 else ''} of {dense_points} "
+                   "points"
+                   + (f" ({left} clouds of fewer points left out)" if left else "")
+                   + ("" if made.dense else ": none, so no dense file (the dense and scans settings need one)"))
+    if made.skipped:
+        first = next(iter(made.skipped.items()))
+        typer.echo(f"skipped {len(made.skipped)} unusable shape{'s' if len(made.skipped) != 1 else ''} "
+                   f"(e.g. {first[0]}: {first[1]}); all listed in {out / 'dataset.json'}", err=True)
+    if made.ignored:
+        typer.echo(f"left alone {made.ignored} file{'s' if made.ignored != 1 else ''} of other suffixes", err=True)
+    typer.echo(f"unseen setting: {ds.unseen_note(made.classes)}")
+    typer.echo(f"wrote {out}: use it as --data {out} (or MFGNET_DATA={out})")
 
 
 # `mfgnet train` options that make a run -> their TrainOptions field (model.train.RUN_OPTIONS): with --resume, one left

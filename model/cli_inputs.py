@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import typer
 
-from model.data import DATA_ENV, NonFiniteShapesError, load_pairs, shapes_file
+from model.data import DATA_ENV, UNSEEN_SPLIT_LABEL, NonFiniteShapesError, load_pairs, shapes_file
 from service.cli.common import fail
 
 if TYPE_CHECKING:  # torch is imported only by the commands that read checkpoints (make-pairs does not)
@@ -238,8 +238,16 @@ def require_shapes(split: str, setting: str, data: str | None) -> Path:
         fail(f"ModelNet40 file {file}: one array, not an .npz of 'points' and 'labels'")
     with archive:
         missing = [key for key in ("points", "labels") if key not in archive.files]
-    if missing:
-        fail(f"ModelNet40 file {file}: not a ModelNet40 .npz (no {' or '.join(map(repr, missing))})")
+        if missing:
+            fail(f"ModelNet40 file {file}: not a ModelNet40 .npz (no {' or '.join(map(repr, missing))})")
+        if setting == "unseen":  # its category split: labels below UNSEEN_SPLIT_LABEL train, the others test
+            labels = np.asarray(archive["labels"])
+            chosen = labels < UNSEEN_SPLIT_LABEL if split == "train" else labels >= UNSEEN_SPLIT_LABEL
+            if not chosen.any():
+                held = f"labels {labels.min()}-{labels.max()}" if len(labels) else "no shapes"
+                fail(f"ModelNet40 file {file}: no shapes for setting 'unseen', whose {split} split is the labels "
+                     f"{'below' if split == 'train' else 'from'} {UNSEEN_SPLIT_LABEL} (it holds {held}); the unseen "
+                     f"setting needs more than {UNSEEN_SPLIT_LABEL} classes")
     return file
 
 

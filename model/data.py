@@ -78,9 +78,10 @@ def data_dir(path: str | os.PathLike | None = None) -> Path:
 
 
 def class_names(path: str | os.PathLike | None = None) -> list[str] | None:
-    """ModelNet40's 40 class names in label order, or ``None`` where the data directory lacks them."""
+    """The class names in label order (ModelNet40's 40, or a ``mfgnet make-dataset`` folder's: one per line, so a name
+    may hold spaces), or ``None`` where the data directory lacks them."""
     file = data_dir(path) / "modelnet40_shape_names.txt"
-    return file.read_text().split() if file.exists() else None
+    return [line.strip() for line in file.read_text().splitlines() if line.strip()] if file.exists() else None
 
 
 @dataclass(frozen=True)
