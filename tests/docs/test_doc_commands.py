@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parents[2]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]  # not docs/decisions/: historical records
 COMMAND = re.compile(r"^(?:python3? -m bench\.\w+|mfgnet [a-z]|make [a-z]"
                      r"|(?:python3? )?(?:scripts|tests/helpers)/\w+\.py\b)")
-PLACEHOLDERS = {"S": "0", "I": "4", "K": "128", "M": "clean", "N": "1"}  # --seed S, --iterations I, ...
+PLACEHOLDERS = {"S": "0", "I": "4", "K": "128", "M": "clean", "N": "1",  # --seed S, --iterations I, ...
+                "DEG,DIST": "5,0.01"}  # bench.make_pair --thresholds DEG,DIST
 
 
 def _spans(text: str) -> list[tuple[int, str]]:
