@@ -15,6 +15,14 @@ appended in the file's order of scans, so a registered project of several scans 
 
 libE57Format opens files by path only: a stream that is not a file on disk (an HTTP upload held in memory)
 is copied to a temporary file, deleted after reading; the service's upload limit bounds its size.
+
+The XML section is checked before libE57Format's parser (Xerces-C) reads it (:func:`check_xml`). Refused: a DTD
+(E57 files have none; Xerces expands the entities a DTD declares without a limit and fetches external ones, files
+and URLs), an XML Schema instance attribute (Xerces fetches the schema an ``xsi:schemaLocation`` names), an XML
+section beyond :data:`MAX_XML_BYTES`, more than :data:`MAX_XML_ELEMENTS` elements, nesting deeper than
+:data:`MAX_XML_DEPTH`, and a structure of more than :data:`MAX_STRUCTURE_CHILDREN` children (libE57Format's tree
+takes about 160 bytes an element, and a structure's children take time quadratic in their number: 100,000 children of
+one structure took 136 s).
 """
 
 from __future__ import annotations
@@ -23,7 +31,9 @@ import contextlib
 import os
 import re
 import shutil
+import struct
 import tempfile
+import xml.parsers.expat
 from collections.abc import Iterator
 from typing import Any, BinaryIO
 
@@ -36,12 +46,20 @@ from service.formats.errors import InvalidPointsError, PointCloudFormatError
 BLOCK_POINTS = 1 << 18  # points read per call of libE57Format's reader (8 MiB of float64 x, y, z)
 CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
+PAGE_BYTES, PAGE_DATA_BYTES = 1024, 1020  # libE57Format's pages: 1,020 bytes of data, then a CRC-32C
+HEADER = struct.Struct("<8sIIQQQQ")  # signature, version major, minor, file length, XML offset, XML length, page size
+MAX_XML_BYTES = 16 << 20  # a scan's XML is a few KB; 16 MiB of it took libE57Format 51 MiB
+MAX_XML_ELEMENTS = 100_000  # about 60 a scan (pye57's), 30 an image
+MAX_XML_DEPTH = 64  # a scan's coordinate field is 6 deep
+MAX_STRUCTURE_CHILDREN = 256  # a scan has about 20
+XSI = "http://www.w3.org/2001/XMLSchema-instance"  # xsi:schemaLocation: a URL or path Xerces loads a schema from
 
 
 def read_e57(f: BinaryIO, max_points: int | None) -> np.ndarray:
     pye57 = require("pye57", "reading E57 files")
     libe57 = pye57.libe57
     with _on_disk(f) as path:
+        check_xml(path)
         try:
             image = libe57.ImageFile(path, "r")
         except Exception as exc:  # libE57Format's E57Exception: a bad signature, length, checksum or XML section
@@ -54,6 +72,87 @@ def read_e57(f: BinaryIO, max_points: int | None) -> np.ndarray:
             raise PointCloudFormatError(f"corrupt E57 data ({_reason(exc)})") from None
         finally:
             image.close()
+
+
+def check_xml(path: str) -> None:
+    """:class:`PointCloudFormatError` where the XML section of the E57 file at ``path`` has a DTD, is not UTF-8, is
+    not well formed or is beyond the limits above (parsed by expat, element by element, before Xerces reads it), or
+    where the header puts it outside the file."""
+    with open(path, "rb") as f:
+        header = f.read(HEADER.size)
+        if len(header) < HEADER.size or not header.startswith(b"ASTM-E57"):
+            return
+        _, _, _, _, offset, length, _ = HEADER.unpack(header)
+        if length > MAX_XML_BYTES:
+            raise PointCloudFormatError(
+                f"the E57 file's XML section has {length} bytes; at most {MAX_XML_BYTES} are "
+                "read (a scan's takes a few KB)"
+            )
+        f.seek(offset - offset % PAGE_BYTES)
+        pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
+    data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out
+    text = data[offset % PAGE_BYTES :][:length]
+    if len(text) < length or offset % PAGE_BYTES >= PAGE_DATA_BYTES:
+        raise PointCloudFormatError(
+            f"the E57 file's header puts its XML section of {length} bytes at byte {offset}: the file of "
+            f"{os.path.getsize(path)} bytes does not hold it there"
+        )
+    _parse_xml(text)
+
+
+def _parse_xml(text: bytes) -> None:
+    """Parse the XML section ``text`` with expat, refusing a DTD, another encoding than UTF-8 and the limits."""
+    if b"\0" in text:  # UTF-16 or UTF-32, which Xerces would read and the byte checks here would not
+        raise PointCloudFormatError("the E57 file's XML section is not UTF-8 text (it holds NUL bytes)")
+    parser = xml.parsers.expat.ParserCreate(namespace_separator=" ")  # names as "namespace-URI local-name"
+    children = [0]  # elements so far at each open level; [0]: the document's
+    structures = [False]  # whether each open element is a Structure
+    elements = 0
+
+    def refuse(reason: str) -> None:
+        raise PointCloudFormatError(f"the E57 file's XML section {reason}")
+
+    def declaration(version: str, encoding: str | None, standalone: int) -> None:
+        if encoding is not None and encoding.lower().replace("_", "-") not in ("utf-8", "utf8"):
+            refuse(f"declares the encoding {encoding[:40]!r}; E57 XML is UTF-8")
+
+    def doctype(*_: Any) -> None:
+        refuse(
+            "has a document type declaration (<!DOCTYPE>), which E57 files do not have (its entities could expand "
+            "without bound, or name files and URLs to read)"
+        )
+
+    def start(name: str, attributes: dict[str, str]) -> None:
+        nonlocal elements
+        elements += 1
+        children[-1] += 1
+        if elements > MAX_XML_ELEMENTS:
+            refuse(f"has more than {MAX_XML_ELEMENTS} elements")
+        if len(children) > MAX_XML_DEPTH:
+            refuse(f"nests elements more than {MAX_XML_DEPTH} deep")
+        if structures[-1] and children[-1] > MAX_STRUCTURE_CHILDREN:
+            refuse(f"has a structure of more than {MAX_STRUCTURE_CHILDREN} children")
+        schema = [key.split()[1] for key in attributes if key.startswith(f"{XSI} ")]
+        if schema:
+            refuse(f"has the XML Schema instance attribute {schema[0]!r}: schemas named there are not fetched")
+        children.append(0)
+        structures.append(attributes.get("type") == "Structure")
+
+    def end(name: str) -> None:
+        children.pop()
+        structures.pop()
+
+    parser.XmlDeclHandler = declaration
+    parser.StartDoctypeDeclHandler = doctype
+    parser.StartElementHandler = start
+    parser.EndElementHandler = end
+    try:
+        parser.Parse(text, True)
+    except xml.parsers.expat.ExpatError as exc:
+        refuse(
+            f"is not well-formed XML ({xml.parsers.expat.errors.messages[exc.code]} at line {exc.lineno}, "
+            f"column {exc.offset})"
+        )
 
 
 def _read(libe57: Any, image: Any, max_points: int | None) -> np.ndarray:

@@ -1,0 +1,137 @@
+"""E57 XML sections that libE57Format's parser (Xerces-C) must never read: a DTD (entity expansion, external
+entities), XML Schema locations (Xerces fetches them), a section that is not UTF-8, and XML whose size, element count,
+depth or structure width would take libE57Format unbounded memory or time. Each is a 400 naming the problem, found
+before libE57Format opens the file; files within the limits still read."""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import pye57
+import pytest
+from e57_xml import with_xml, xml_of
+
+from service.formats import PointCloudFormatError, read_cloud
+from service.formats import e57 as e57_reader
+
+XYZ = np.random.default_rng(0).normal(size=(50, 3)).astype(np.float32).astype(np.float64)
+SPOT = b'<coordinateMetadata type="String"/>'  # an element of the root structure pye57 writes
+DECLARATION = b'<?xml version="1.0" encoding="UTF-8"?>'
+DEPTH, WIDTH, ELEMENTS = 64, 256, 100_000  # e57_reader.MAX_XML_DEPTH, MAX_STRUCTURE_CHILDREN, MAX_XML_ELEMENTS
+
+
+@pytest.fixture(scope="module")
+def e57(tmp_path_factory) -> bytes:
+    path = tmp_path_factory.mktemp("e57") / "a.e57"
+    with pye57.E57(str(path), mode="w") as e57:
+        e57.write_scan_raw({f"cartesian{axis}": np.ascontiguousarray(XYZ[:, k]) for k, axis in enumerate("XYZ")})
+    return path.read_bytes()
+
+
+def edited(data: bytes, old: bytes, new: bytes) -> bytes:
+    xml = xml_of(data)
+    assert old in xml
+    return with_xml(data, xml.replace(old, new, 1))
+
+
+def refused(data: bytes, *words: str) -> str:
+    started = time.perf_counter()
+    with pytest.raises(PointCloudFormatError) as caught:
+        read_cloud(data, "a.e57", max_points=2_000_000)
+    assert time.perf_counter() - started < 2
+    assert caught.value.status == 400
+    message = str(caught.value)
+    assert message.startswith("a.e57: the E57 file's XML section"), message
+    for word in words:
+        assert word in message, message
+    return message
+
+
+def test_the_limits_are_those_the_reader_states() -> None:
+    assert (e57_reader.MAX_XML_DEPTH, e57_reader.MAX_STRUCTURE_CHILDREN, e57_reader.MAX_XML_ELEMENTS) == (
+        DEPTH,
+        WIDTH,
+        ELEMENTS,
+    )
+    assert e57_reader.MAX_XML_BYTES == 16 << 20
+
+
+def test_rewritten_xml_within_the_limits_still_reads(e57) -> None:
+    np.testing.assert_array_equal(read_cloud(with_xml(e57, xml_of(e57)), "a.e57"), XYZ)  # the helper's rebuild
+    within = edited(
+        e57, SPOT, b'<extra type="Structure">' + b"".join(b'<e%d type="Integer"/>' % k for k in range(9)) + b"</extra>"
+    )
+    np.testing.assert_array_equal(read_cloud(within, "a.e57"), XYZ)
+
+
+def test_a_dtd_is_refused_before_its_entities_expand(e57) -> None:
+    # ten entities of ten references each: 10 ** 5 copies of "AAAAAAAAAA" where a scan's description was
+    entities = b'<!ENTITY a0 "AAAAAAAAAA">' + b"".join(
+        b'<!ENTITY a%d "%s">' % (k, b"&a%d;" % (k - 1) * 10) for k in range(1, 6)
+    )
+    # every element and attribute declared: Xerces validates the document by its DTD
+    names, attributes = (sorted(set(re.findall(pattern, xml_of(e57)))) for pattern in (rb"<(\w+)[\s/>]", rb" (\w+)=\""))
+    listed = b" ".join(b"%s CDATA #IMPLIED" % name for name in attributes)
+    declared = b"".join(b"<!ELEMENT %s ANY><!ATTLIST %s %s>" % (name, name, listed) for name in names)
+    bomb = edited(e57, DECLARATION, DECLARATION + b"<!DOCTYPE e57Root [" + declared + entities + b"]>")
+    bomb = with_xml(bomb, xml_of(bomb).replace(b"<![CDATA[pye57 v", b"&a5;<![CDATA[pye57 v", 1))
+    refused(bomb, "document type declaration (<!DOCTYPE>)")
+    external = edited(e57, DECLARATION, DECLARATION + b'<!DOCTYPE e57Root SYSTEM "file:///etc/hostname">')
+    refused(external, "document type declaration")
+
+
+@pytest.mark.parametrize("attribute", [b"schemaLocation", b"noNamespaceSchemaLocation"])
+def test_a_schema_location_is_refused_not_fetched(e57, attribute: bytes) -> None:
+    # a port nothing listens on: Xerces tried to connect to it ("unable to connect socket for URL")
+    url = b"http://127.0.0.1:9/e57.xsd"
+    value = b"http://www.astm.org/COMMIT/E57/2010-e57-v1.0 " + url if attribute == b"schemaLocation" else url
+    root = b'<e57Root type="Structure"'
+    schema = b' xmlns:s="http://www.w3.org/2001/XMLSchema-instance" s:%s="%s"' % (attribute, value)
+    message = refused(edited(e57, root, root + schema), f"Schema instance attribute '{attribute.decode()}'")
+    assert "127.0.0.1" not in message
+
+
+def test_xml_in_another_encoding_than_utf8_is_refused(e57) -> None:
+    xml = xml_of(e57).replace(DECLARATION, b'<?xml version="1.0" encoding="UTF-16"?>', 1)
+    refused(with_xml(e57, xml.decode("utf-8").encode("utf-16")), "not UTF-8", "NUL bytes")
+    latin = xml_of(e57).replace(DECLARATION, b'<?xml version="1.0" encoding="ISO-8859-1"?>', 1)
+    refused(with_xml(e57, latin), "declares the encoding 'ISO-8859-1'")
+
+
+def test_xml_nested_too_deep_is_refused(e57) -> None:
+    depth = DEPTH
+    within = edited(e57, SPOT, b'<d type="Structure">' * (depth - 3) + b"</d>" * (depth - 3))  # the spot is 2 deep
+    assert len(read_cloud(within, "a.e57")) == len(XYZ)
+    # 100,000 levels took libE57Format 17 s
+    refused(edited(e57, SPOT, b'<d type="Structure">' * depth + b"</d>" * depth), f"more than {depth} deep")
+
+
+def test_a_structure_of_too_many_children_is_refused(e57) -> None:
+    # 100,000 children of one structure took libE57Format 136 s
+    width = WIDTH + 1
+    wide = b'<w type="Structure">' + b"".join(b'<c%d type="Integer"/>' % k for k in range(width)) + b"</w>"
+    refused(edited(e57, SPOT, wide), f"a structure of more than {width - 1} children")
+    vector = b'<v type="Vector" allowHeterogeneousChildren="1">' + b'<c type="Integer"/>' * width + b"</v>"
+    assert len(read_cloud(edited(e57, SPOT, vector), "a.e57")) == len(XYZ)  # a vector's children are not named
+
+
+def test_xml_of_too_many_elements_or_bytes_is_refused(e57) -> None:
+    count = ELEMENTS
+    many = b'<v type="Vector" allowHeterogeneousChildren="1">' + b'<c type="Integer"/>' * count + b"</v>"
+    refused(edited(e57, SPOT, many), f"more than {count} elements")
+    big = edited(
+        e57,
+        SPOT,
+        b'<coordinateMetadata type="String"><![CDATA[%s]]></coordinateMetadata>' % (b"a" * (16 << 20)),
+    )
+    refused(big, f"at most {16 << 20} are read")
+
+
+def test_an_xml_section_outside_the_file_is_refused(e57, tmp_path: Path) -> None:
+    data = bytearray(e57)
+    data[32:40] = (len(e57) * 4).to_bytes(8, "little")  # xmlLogicalLength beyond the file
+    with pytest.raises(PointCloudFormatError, match="does not hold it there"):
+        read_cloud(bytes(data), "a.e57")
