@@ -87,6 +87,8 @@ def check_xml(path: str) -> None:
                 f"the E57 file's XML section has {length} bytes; at most {MAX_XML_BYTES} are "
                 "read (a scan's takes a few KB)"
             )
+        if offset >= os.fstat(f.fileno()).st_size:
+            return  # beyond the file's end (the header's own page, checked by libE57Format first, is damaged)
         f.seek(offset - offset % PAGE_BYTES)
         pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
     data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out

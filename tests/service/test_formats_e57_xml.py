@@ -127,3 +127,12 @@ def test_xml_of_too_many_elements_or_bytes_is_refused(e57) -> None:
         b'<coordinateMetadata type="String"><![CDATA[%s]]></coordinateMetadata>' % (b"a" * (16 << 20)),
     )
     refused(big, f"at most {16 << 20} are read")
+
+
+@pytest.mark.parametrize("offset", [2**63, 2**64 - 1, 10**12])
+def test_an_xml_offset_beyond_the_file_is_libe57formats_to_refuse(e57, offset: int) -> None:
+    data = bytearray(e57)
+    data[24:32] = offset.to_bytes(8, "little")  # xmlPhysicalOffset (page 0's checksum now wrong)
+    with pytest.raises(PointCloudFormatError, match="checksum mismatch") as caught:
+        read_cloud(bytes(data), "a.e57")
+    assert caught.value.status == 400
