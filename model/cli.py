@@ -99,8 +99,8 @@ def make_dataset(
     ctx: typer.Context,
     src: Annotated[Path, typer.Argument(help="folder of shapes: one subfolder per class, or the shape files of one "
                                              "class; meshes (.obj .stl .off, .ply with faces) or point clouds")],
-    out: Annotated[Path, typer.Option(help="data folder to write: what --data / $MFGNET_DATA of train, make-pairs, "
-                                           "evaluate and export then name")],
+    out: Annotated[Path, typer.Option(help="data folder to write, for train --data (and make-pairs, evaluate, "
+                                           "export), or $MFGNET_DATA")],
     points: Annotated[int, typer.Option(min=1, help="points per shape (ModelNet40's files: 1024, what the settings' "
                                                     "defaults need)")] = 1024,
     dense_points: Annotated[int, typer.Option(min=0, help="points per test shape in the dense file (the dense and "
