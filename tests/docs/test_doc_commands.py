@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]  # not docs/decisions/: historical records
+DOCS = [ROOT / "README.md", ROOT / "PACKAGE.md", *sorted((ROOT / "docs").glob("*.md"))]  # not docs/decisions/
 COMMAND = re.compile(r"^(?:python3? -m bench\.\w+|mfgnet [a-z]|make [a-z]"
                      r"|(?:python3? )?(?:scripts|tests/helpers)/\w+\.py\b)")
 PLACEHOLDERS = {"S": "0", "I": "4", "K": "128", "M": "clean", "N": "1",  # --seed S, --iterations I, ...
