@@ -78,36 +78,55 @@ def check_xml(path: str) -> None:
     """:class:`PointCloudFormatError` where the XML section of the E57 file at ``path`` has a DTD, is not UTF-8, is
     not well formed or is beyond the limits above (parsed by expat, element by element, before Xerces reads it)."""
     with open(path, "rb") as f:
-        header = f.read(HEADER.size)
-        if len(header) < HEADER.size or not header.startswith(b"ASTM-E57"):
-            return
-        _, _, _, _, offset, length, _ = HEADER.unpack(header)
-        if length > MAX_XML_BYTES:
-            raise PointCloudFormatError(
-                f"the E57 file's XML section has {length} bytes; at most {MAX_XML_BYTES} are "
-                "read (a scan's takes a few KB)"
-            )
-        if offset >= os.fstat(f.fileno()).st_size:
-            return  # beyond the file's end (the header's own page, checked by libE57Format first, is damaged)
-        f.seek(offset - offset % PAGE_BYTES)
-        pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
-    data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out
-    text = data[offset % PAGE_BYTES :][:length]
+        text = _xml_section(f)
+    if text is not None:
+        _parse_xml(text)
+
+
+def e57_count(f: BinaryIO) -> int:
+    """The points the scans of the E57 file at ``f``'s position declare (the ``recordCount`` of each
+    ``/data3D/*/points``), from its XML section as :func:`check_xml` parses it, with its errors; no point is read,
+    and libE57Format is not used. :class:`PointCloudFormatError` where the XML section cannot be found."""
+    text = _xml_section(f)
+    if text is None:
+        raise PointCloudFormatError("the E57 file's XML section is not in the file")
+    return _parse_xml(text)
+
+
+def _xml_section(f: BinaryIO) -> bytes | None:
+    """The XML section of the E57 file at ``f``'s position (its pages' CRCs left out), ``None`` where the file does
+    not hold it (a file cut short: libE57Format, which reads no XML then, names the damage)."""
+    start = f.tell()
+    header = f.read(HEADER.size)
+    if len(header) < HEADER.size or not header.startswith(b"ASTM-E57"):
+        return None
+    _, _, _, _, offset, length, _ = HEADER.unpack(header)
+    if length > MAX_XML_BYTES:
+        raise PointCloudFormatError(
+            f"the E57 file's XML section has {length} bytes; at most {MAX_XML_BYTES} are read (a scan's takes a few KB)"
+        )
+    size = f.seek(0, os.SEEK_END) - start
+    if offset >= size:
+        return None  # beyond the file's end (the header's own page, checked by libE57Format first, is damaged)
     if offset % PAGE_BYTES >= PAGE_DATA_BYTES:  # no writer puts it among a page's CRC bytes
         raise PointCloudFormatError(f"the E57 file's header puts its XML section at byte {offset}, a page's checksum")
-    if len(text) < length:
-        return  # the file ends before it: libE57Format, which reads no XML then, says that the file is cut short
-    _parse_xml(text)
+    f.seek(start + offset - offset % PAGE_BYTES)
+    pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
+    data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out
+    text = data[offset % PAGE_BYTES :][:length]
+    return text if len(text) == length else None
 
 
-def _parse_xml(text: bytes) -> None:
-    """Parse the XML section ``text`` with expat, refusing a DTD, another encoding than UTF-8 and the limits."""
+def _parse_xml(text: bytes) -> int:
+    """Parse the XML section ``text`` with expat, refusing a DTD, another encoding than UTF-8 and the limits; the
+    sum of the scans' record counts (those that are integers: libE57Format judges the others)."""
     if b"\0" in text:  # UTF-16 or UTF-32, which Xerces would read and the byte checks here would not
         raise PointCloudFormatError("the E57 file's XML section is not UTF-8 text (it holds NUL bytes)")
     parser = xml.parsers.expat.ParserCreate(namespace_separator=" ")  # names as "namespace-URI local-name"
     children = [0]  # elements so far at each open level; [0]: the document's
     structures = [False]  # whether each open element is a Structure
-    elements = 0
+    names: list[str] = []  # the open elements' local names
+    elements = records = 0
 
     def refuse(reason: str) -> None:
         raise PointCloudFormatError(f"the E57 file's XML section {reason}")
@@ -123,7 +142,7 @@ def _parse_xml(text: bytes) -> None:
         )
 
     def start(name: str, attributes: dict[str, str]) -> None:
-        nonlocal elements
+        nonlocal elements, records
         elements += 1
         children[-1] += 1
         if elements > MAX_XML_ELEMENTS:
@@ -135,12 +154,17 @@ def _parse_xml(text: bytes) -> None:
         schema = [key.split()[1] for key in attributes if key.startswith(f"{XSI} ")]
         if schema:
             refuse(f"has the XML Schema instance attribute {schema[0]!r}: schemas named there are not fetched")
+        names.append(name.rsplit(" ", 1)[-1])
+        count = attributes.get("recordCount", "")
+        if len(names) == 4 and names[1:] == ["data3D", "vectorChild", "points"] and count.isdigit():
+            records += int(count)
         children.append(0)
         structures.append(attributes.get("type") == "Structure")
 
     def end(name: str) -> None:
         children.pop()
         structures.pop()
+        names.pop()
 
     parser.XmlDeclHandler = declaration
     parser.StartDoctypeDeclHandler = doctype
@@ -153,6 +177,7 @@ def _parse_xml(text: bytes) -> None:
             f"is not well-formed XML ({xml.parsers.expat.errors.messages[exc.code]} at line {exc.lineno}, "
             f"column {exc.offset})"
         )
+    return records
 
 
 def _read(libe57: Any, image: Any, max_points: int | None) -> np.ndarray:

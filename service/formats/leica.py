@@ -45,6 +45,30 @@ def read_ptx(f: BinaryIO, max_points: int | None) -> np.ndarray:
     return _as_text(f, "PTX file", max_points, _read_ptx)
 
 
+def pts_count(f: BinaryIO) -> int:
+    """The points the first block of the PTS file at ``f``'s position declares (its first line; later blocks' counts
+    are checked as they are read), with :func:`read_pts`'s error for a line that is no count; no row is read."""
+    line = _first_lines(f, 1)[0]
+    return _integer(line, "PTS line 1", "a point count")
+
+
+def ptx_count(f: BinaryIO) -> int:
+    """The points (columns x rows) the first scan of the PTX file at ``f``'s position declares, with
+    :func:`read_ptx`'s errors for lines that are no counts; no row is read."""
+    columns, rows = _first_lines(f, 2)
+    what = "PTX scan 1 (line 1) header"
+    return _integer(columns, what, "the number of columns") * _integer(rows, what, "the number of rows")
+
+
+def _first_lines(f: BinaryIO, count: int) -> list[str]:
+    """The first ``count`` non-blank lines of the text at ``f``'s position (at most its first 64 KiB), stripped."""
+    text = f.read(1 << 16).decode("utf-8-sig", errors="replace")
+    lines = [line.strip() for line in text.splitlines() if line.strip()][:count]
+    if len(lines) < count:
+        raise PointCloudFormatError(f"fewer than {count} lines in the first 64 KiB")
+    return lines
+
+
 def _as_text(
     f: BinaryIO, what: str, max_points: int | None, read: Callable[[_Lines, int | None], np.ndarray]
 ) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Specification of the early refusal of oversized uploads: a file whose header declares more points than
-``max_file_points`` (PLY, PCD, LAS/LAZ, .npy, .npz) is a 413 before the request waits for a worker, the same 413 the
-decoder answers, so a busy server refuses it at once instead of a 504 when its deadline passes in the queue; files
-within the limit, and text files (counted only while read), still queue and are decoded by a worker, which stays the
-authority (``service.formats.read.check_declared_count``).
+``max_file_points`` (PLY, PCD, LAS/LAZ, E57, PTS, PTX, .npy, .npz) is a 413 before the request waits for a worker, the
+same 413 the decoder answers, so a busy server refuses it at once instead of a 504 when its deadline passes in the
+queue; files within the limit, and text files (counted only while read), still queue and are decoded by a worker,
+which stays the authority (``service.formats.read.check_declared_count``).
 
 The server is real (uvicorn in a thread of this process, the bundled model, real HTTP) with one worker and a short
 deadline; a route added to the app holds that worker (a job that waits on an event, its deadline stopped as a decode's
@@ -32,7 +32,7 @@ from service.formats.read import HEADER_COUNTS, check_declared_count
 
 LIMIT = 1_000  # the server's max_file_points
 DEADLINE_S = 0.5  # its timeout_s: a request that waits for the held worker is a 504 after this long
-HEADER_FORMATS = (".npy", ".npz", ".ply", ".pcd", ".las", ".laz")
+HEADER_FORMATS = (".npy", ".npz", ".ply", ".pcd", ".las", ".laz", ".e57", ".pts", ".ptx")
 FAST = {"iterations": "1", "keypoints": "16"}
 RNG = np.random.default_rng(0)
 SMALL = RNG.normal(size=(300, 3))  # [300, 3]
@@ -40,9 +40,20 @@ BIG = RNG.normal(size=(LIMIT + 1, 3))  # [1001, 3]
 
 
 def cloud_file(points: np.ndarray, suffix: str, folder: Path) -> bytes:
-    """``points [N, 3]`` as a file of ``suffix`` (LAS/LAZ through laspy, the others through ``write_cloud``)."""
+    """``points [N, 3]`` as a file of ``suffix`` (LAS/LAZ through laspy, E57 through pye57, PTS and PTX as text, the
+    others through ``write_cloud``)."""
     path = folder / f"cloud{suffix}"
-    if suffix in (".las", ".laz"):
+    rows = "".join(f"{x:.17g} {y:.17g} {z:.17g} 0.5\n" for x, y, z in points)
+    if suffix == ".pts":
+        path.write_text(f"{len(points)}\n{rows}")
+    elif suffix == ".ptx":  # a scan of one row
+        path.write_text(f"{len(points)}\n1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n{rows}")
+    elif suffix == ".e57":
+        import pye57
+
+        with pye57.E57(str(path), mode="w") as e57:
+            e57.write_scan_raw({f"cartesian{axis}": np.ascontiguousarray(points[:, k]) for k, axis in enumerate("XYZ")})
+    elif suffix in (".las", ".laz"):
         import laspy
 
         header = laspy.LasHeader(point_format=3, version="1.2")
