@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import io
 import itertools
+import sys
 from collections.abc import Callable
 from typing import BinaryIO
 
@@ -100,7 +101,7 @@ class _Lines:
         """``[n, 3]`` float64 x, y, z of the next ``count`` lines (blank ones skipped by numpy, so counted short)."""
         if count == 0:
             return np.empty((0, 3), dtype=np.float64)
-        lines = itertools.islice(self.stream, count)
+        lines = itertools.islice(self.stream, min(count, sys.maxsize))  # a count beyond it: the rows run short
         first = self.number + 1
         try:
             table = np.loadtxt(lines, dtype=np.float64, comments=None, usecols=(0, 1, 2), ndmin=2)  # [n, 3]

@@ -123,3 +123,18 @@ def test_mutated_files_of_every_format_raise_only_format_errors(seeds) -> None:
 
     check()
     assert {400, 422} <= statuses  # the mutations reach the readers' checks, not only detection
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "9223372036854775808\n1 2 3\n",  # a PTS count beyond sys.maxsize
+        "99999999999999999999\n99999999999\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n1 2 3 0\n",
+    ],
+    ids=["pts", "ptx"],
+)
+def test_leica_counts_beyond_sys_maxsize_are_format_errors_without_a_limit(text: str) -> None:
+    """Found by the long run: without a point limit (the CLI reads so), a count beyond ``sys.maxsize`` reached
+    ``itertools.islice`` as its stop and raised ValueError."""
+    with pytest.raises(PointCloudFormatError, match=r"points; 1 rows follow"):
+        read_cloud(text.encode(), "a")
