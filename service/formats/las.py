@@ -47,8 +47,9 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
         check_count(count, max_points)
         if header.are_points_compressed:
             if not laspy.LazBackend.detect_available():
-                raise MissingReaderError("reading LAZ files needs the 'lazrs' package, which is not installed: "
-                                         "pip install 'mfgnet[formats]'")
+                raise MissingReaderError(
+                    "reading LAZ files needs the 'lazrs' package, which is not installed: pip install 'mfgnet[formats]'"
+                )
             _check_laz_items(header)
             _check_chunk_table(f, start + header.offset_to_point_data, start + size)
             _check_xyz_layers(f, header, start + header.offset_to_point_data)
@@ -82,8 +83,9 @@ def _open(laspy: ModuleType, f: BinaryIO, size: int) -> LasReader:
     # read_evlrs=False: EVLRs are not used here, and laspy reads one per count, past the file's end; LAZ 1.4 layers
     # other than x, y, z are skipped unread (lazrs allocates each layer's declared size)
     xyz = laspy.DecompressionSelection.XY_RETURNS_CHANNEL | laspy.DecompressionSelection.Z
-    return laspy.open(f, closefd=False, read_evlrs=False, laz_backend=laspy.LazBackend.Lazrs,
-                      decompression_selection=xyz)
+    return laspy.open(
+        f, closefd=False, read_evlrs=False, laz_backend=laspy.LazBackend.Lazrs, decompression_selection=xyz
+    )
 
 
 @contextmanager
@@ -141,8 +143,9 @@ def _check_laz_items(header: LasHeader) -> None:
         raise PointCloudFormatError(f"LAZ VLR cut short ({len(data)} bytes)")
     size = sum(size for _, size, _ in _laz_items(data))
     if size != header.point_format.size:
-        raise PointCloudFormatError(f"LAZ VLR describes points of {size} bytes; the header says "
-                                    f"{header.point_format.size}")
+        raise PointCloudFormatError(
+            f"LAZ VLR describes points of {size} bytes; the header says {header.point_format.size}"
+        )
 
 
 def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
@@ -171,38 +174,50 @@ def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
 
 def _check_xyz_layers(f: BinaryIO, header: LasHeader, data: int) -> None:
     """In a LAZ 1.4 file of layered chunks, the x/y and z layer sizes of every chunk fit in the chunk (lazrs allocates
-    them, zero-filled, before reading: 4 GB each from a damaged size). Other layers are skipped unread."""
+    them, zero-filled, before reading: 4 GB each from a damaged size). Other layers are skipped unread. Without a
+    readable chunk table (lazrs reads on without one), each chunk is taken to end where its layer sizes say, as lazrs
+    takes it, and its x, y and z layers must fit in the rest of the file."""
     lazrs = require("lazrs", "reading LAZ files")
     record = header.vlrs.get("LasZipVlr")[0].record_data
     items = _laz_items(record)
-    if not items or items[0][0] != POINT14 or items[0][2] < 3 or any(
-            kind not in LAYERS and kind != BYTE14 for kind, _, _ in items):
+    if (
+        not items
+        or items[0][0] != POINT14
+        or items[0][2] < 3
+        or any(kind not in LAYERS and kind != BYTE14 for kind, _, _ in items)
+    ):
         return  # not layered (LAZ 1.0-1.3 items are read point by point)
     layers = sum(LAYERS.get(kind, size) for kind, size, _ in items)  # Byte14: ``size`` layers
     point = header.point_format.size
     position = f.tell()
     try:
+        end = f.seek(0, os.SEEK_END)
         f.seek(data)
         try:
             chunks = lazrs.read_chunk_table(f, lazrs.LazVlr(record))
-        except BaseException as exc:  # no readable table (pyo3's PanicException is no Exception): lazrs's reading
-            if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":  # says what is wrong
+        except BaseException as exc:  # no readable table (pyo3's PanicException is no Exception)
+            if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":
                 raise
-            return
-        if not chunks:
-            return
-        at = data + 8  # the chunks follow the chunk table's offset
-        for k, (_, length) in enumerate(chunks):
+            chunks = None
+        chunks = chunks or None  # an empty table (a damaged count) is none
+        at, k = data + 8, 0  # the chunks follow the chunk table's offset
+        while chunks is None or k < len(chunks):
             f.seek(at + point + 4)  # after the first point and the point count
-            raw = f.read(8)
+            raw = f.read(4 * layers)
             if len(raw) < 8:
                 break  # lazrs says the chunk is cut short
-            xy, z = struct.unpack("<II", raw)
-            room = length - point - 4 - 4 * layers
+            sizes = struct.unpack(f"<{len(raw) // 4}I", raw[: len(raw) // 4 * 4])
+            xy, z = sizes[:2]
+            length = chunks[k][1] if chunks is not None else point + 4 + 4 * layers + sum(sizes)
+            room = min(length, end - at) - point - 4 - 4 * layers
             if xy + z > room:
-                raise PointCloudFormatError(f"LAZ chunk {k} declares x, y and z layers of {xy + z} bytes; it holds "
-                                            f"{max(0, room)} bytes of layers")
-            at += length
+                raise PointCloudFormatError(
+                    f"LAZ chunk {k} declares x, y and z layers of {xy + z} bytes; it holds "
+                    f"{max(0, room)} bytes of layers"
+                )
+            at, k = at + length, k + 1
+            if chunks is None and at >= end:
+                break
     finally:
         f.seek(position)
 

@@ -56,11 +56,18 @@ def read_in_subprocess(path: Path, memory_mib: int = 3000) -> subprocess.Complet
         "except PointCloudFormatError as exc:\n"
         "    print('error', exc)\n"
     )
-    return subprocess.run([sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=120,
-                          cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    return subprocess.run(
+        [sys.executable, "-c", script, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+        env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"},
+    )
 
 
 # --- PLY ---------------------------------------------------------------------------------------------------------
+
 
 def ply_bytes(xyz: np.ndarray, text: bool, extra: int = 0) -> bytes:
     fields = [(axis, "f8") for axis in "xyz"] + [(f"p{i}", "f8") for i in range(extra)]
@@ -85,8 +92,9 @@ def test_ply_huge_count_of_another_element_is_refused_before_allocating(tmp_path
     """Only the vertex count was checked against max_points: an ASCII face count made plyfile allocate an array
     of that many rows (MemoryError, a 500)."""
     data = ply_bytes(cloud().astype(np.float64), text=True)
-    data = data.replace(b"end_header", b"element face 1000000000000000\nproperty list uchar int vertex_indices\n"
-                                       b"end_header")
+    data = data.replace(
+        b"end_header", b"element face 1000000000000000\nproperty list uchar int vertex_indices\nend_header"
+    )
     (tmp_path / "a.ply").write_bytes(data)
     with pytest.raises(PointCloudFormatError, match="declares 1000000000000000 'face' rows") as caught:
         read_cloud(tmp_path / "a.ply", max_points=LIMIT)
@@ -114,12 +122,20 @@ def test_ply_header_without_end_header_is_refused_after_its_first_256_kib(tmp_pa
 
 # --- PCD ---------------------------------------------------------------------------------------------------------
 
-PCD_HEADER = ("VERSION 0.7\nFIELDS {fields}\nSIZE {size}\nTYPE {type}\nCOUNT {count}\nWIDTH {points}\nHEIGHT 1\n"
-              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n")
+PCD_HEADER = (
+    "VERSION 0.7\nFIELDS {fields}\nSIZE {size}\nTYPE {type}\nCOUNT {count}\nWIDTH {points}\nHEIGHT 1\n"
+    "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA {data}\n"
+)
 
 
-def pcd_header(points: int = 24, data: str = "ascii", fields: str = "x y z", size: str = "4 4 4",
-               type: str = "F F F", count: str = "1 1 1") -> bytes:
+def pcd_header(
+    points: int = 24,
+    data: str = "ascii",
+    fields: str = "x y z",
+    size: str = "4 4 4",
+    type: str = "F F F",
+    count: str = "1 1 1",
+) -> bytes:
     return PCD_HEADER.format(fields=fields, size=size, type=type, count=count, points=points, data=data).encode()
 
 
@@ -148,11 +164,15 @@ def test_pcd_xyz_with_count_above_one_is_refused(tmp_path: Path) -> None:
         read_cloud(tmp_path / "a.pcd")
 
 
-@pytest.mark.parametrize("entries", [
-    {"size": "2 2 2"},  # no 2-byte float: KeyError
-    {"size": "4 4"},  # fewer sizes than fields: IndexError
-    {"fields": "x y z x", "size": "4 4 4 4", "type": "F F F F", "count": "1 1 1 1"},  # numpy's ValueError
-], ids=["float16", "short_size", "field_twice"])
+@pytest.mark.parametrize(
+    "entries",
+    [
+        {"size": "2 2 2"},  # no 2-byte float: KeyError
+        {"size": "4 4"},  # fewer sizes than fields: IndexError
+        {"fields": "x y z x", "size": "4 4 4 4", "type": "F F F F", "count": "1 1 1 1"},  # numpy's ValueError
+    ],
+    ids=["float16", "short_size", "field_twice"],
+)
 def test_pcd_fields_without_a_record_type_are_a_header_error(tmp_path: Path, entries: dict) -> None:
     """The binary_compressed size check built pypcd4's record type outside any error handling."""
     (tmp_path / "a.pcd").write_bytes(pcd_header(data="binary_compressed", **entries) + bytes(8))
@@ -160,13 +180,17 @@ def test_pcd_fields_without_a_record_type_are_a_header_error(tmp_path: Path, ent
         read_cloud(tmp_path / "a.pcd")
 
 
-@pytest.mark.parametrize("header,message", [
-    (lambda: pcd_header().replace(b"DATA ascii\n", b""), "no DATA line"),
-    (lambda: pcd_header().replace(b"DATA ascii", b"DATA"), "DATA must be one of"),
-    (lambda: pcd_header().replace(b"DATA ascii", b"DATA text"), "DATA must be one of"),
-    (lambda: pcd_header(fields="x y z " + " ".join(f"f{i}" for i in range(1000))), "a line longer than 4096 bytes"),
-    (lambda: pcd_header().replace(b"WIDTH 24", b"WIDTH many"), "invalid PCD header"),
-], ids=["no_data_line", "bare_data", "unknown_data", "long_line", "width_not_a_number"])
+@pytest.mark.parametrize(
+    "header,message",
+    [
+        (lambda: pcd_header().replace(b"DATA ascii\n", b""), "no DATA line"),
+        (lambda: pcd_header().replace(b"DATA ascii", b"DATA"), "DATA must be one of"),
+        (lambda: pcd_header().replace(b"DATA ascii", b"DATA text"), "DATA must be one of"),
+        (lambda: pcd_header(fields="x y z " + " ".join(f"f{i}" for i in range(1000))), "a line longer than 4096 bytes"),
+        (lambda: pcd_header().replace(b"WIDTH 24", b"WIDTH many"), "invalid PCD header"),
+    ],
+    ids=["no_data_line", "bare_data", "unknown_data", "long_line", "width_not_a_number"],
+)
 def test_pcd_header_errors_name_the_problem(tmp_path: Path, header, message: str) -> None:
     """pypcd4 took a missing or bare DATA line for binary_compressed ("data cut short", "declares 825637174 bytes"),
     a header line beyond 4,096 bytes was split silently, and pydantic's text and URL reached the message."""
@@ -217,7 +241,7 @@ def test_pcd_compressed_block_that_cannot_expand_to_its_size_is_refused(tmp_path
     compressed = struct.unpack_from("<I", data, start)[0]
     points = 10_000_000  # 12 bytes each
     header = data[:start].replace(b"WIDTH 24", b"WIDTH %d" % points).replace(b"POINTS 24", b"POINTS %d" % points)
-    path.write_bytes(header + struct.pack("<II", compressed, points * 12) + data[start + 8:])
+    path.write_bytes(header + struct.pack("<II", compressed, points * 12) + data[start + 8 :])
     with pytest.raises(PointCloudFormatError, match="cannot expand to the 120000000 bytes"):
         read_cloud(path)
 
@@ -227,17 +251,24 @@ def compressed_pcd(points: int, extra_values: int) -> bytes:
     LZF stream of one literal byte and back references of 264 bytes, about 88 times smaller than what it expands to."""
     raw = points * (12 + 4 * extra_values)
     full, rest = divmod(raw - 1, 264)
-    stream = b"\x00\x00" + b"\xe0\xff\x00" * full + (bytes([0xE0, rest - 9, 0]) if rest >= 9 else
-                                                       bytes([(rest - 2) << 5, 0]) if rest else b"")
-    header = (f"VERSION 0.7\nFIELDS x y z p\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 {extra_values}\n"
-              f"WIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA binary_compressed\n")
+    stream = (
+        b"\x00\x00"
+        + b"\xe0\xff\x00" * full
+        + (bytes([0xE0, rest - 9, 0]) if rest >= 9 else bytes([(rest - 2) << 5, 0]) if rest else b"")
+    )
+    header = (
+        f"VERSION 0.7\nFIELDS x y z p\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 {extra_values}\n"
+        f"WIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {points}\nDATA binary_compressed\n"
+    )
     return header.encode() + struct.pack("<II", len(stream), raw) + stream
 
 
-@pytest.mark.parametrize(("points", "extra", "expands"), [(2_000_000, 131, 1_072_000_000),
-                                                         (2_000_000, 29, 256_000_000)])
-def test_pcd_compressed_blocks_above_128_mib_are_refused_before_decompressing(tmp_path: Path, points: int, extra: int,
-                                                                               expands: int) -> None:
+@pytest.mark.parametrize(
+    ("points", "extra", "expands"), [(2_000_000, 131, 1_072_000_000), (2_000_000, 29, 256_000_000)]
+)
+def test_pcd_compressed_blocks_above_128_mib_are_refused_before_decompressing(
+    tmp_path: Path, points: int, extra: int, expands: int
+) -> None:
     """2,000,000 records of 536 bytes in a 12 MB file: a 1 GB block that pypcd4 decompressed, zeroed and copied
     (2.4 GiB of server memory for one upload); of 128 bytes, 256 MB expanded took 472 MiB above idle."""
     path = tmp_path / "a.pcd"
@@ -251,8 +282,9 @@ def test_pcd_compressed_blocks_above_128_mib_are_refused_before_decompressing(tm
 
 
 @pytest.mark.parametrize(("points", "extra"), [(1000, 29), (200_000, 33)])  # 128 bytes; FPFH33 beside x, y, z
-def test_pcd_compressed_records_of_any_width_read_within_the_block_limit(tmp_path: Path, points: int,
-                                                                        extra: int) -> None:
+def test_pcd_compressed_records_of_any_width_read_within_the_block_limit(
+    tmp_path: Path, points: int, extra: int
+) -> None:
     path = tmp_path / "a.pcd"
     path.write_bytes(compressed_pcd(points, extra))
     assert read_cloud(path).shape == (points, 3)
@@ -294,12 +326,15 @@ def test_pcd_ascii_integer_fields_hold_integers(tmp_path: Path) -> None:
 FOUR_FIELDS = {"fields": "x y z intensity", "size": "4 4 4 4", "type": "F F F F", "count": "1 1 1 1"}
 
 
-@pytest.mark.parametrize(("rows", "row", "values"), [
-    (b"1 2 3 4\n1 2 3\n1 2 3 4\n", 2, 3),
-    (b"1 2 3 4\r\n\r\n1 2 3 4 5\r\n1 2 3 4\r\n", 2, 5),  # CRLF and a blank line
-    (b"1 2 3 4\n" * 700_000 + b"1\t2 3\n" + b"1 2 3 4\n", 700_001, 3),  # past the first 4 MiB block
-    (b"1 2 3 4\n" * 2 + b"1 2  3", 3, 3),  # a last row without a line break
-])
+@pytest.mark.parametrize(
+    ("rows", "row", "values"),
+    [
+        (b"1 2 3 4\n1 2 3\n1 2 3 4\n", 2, 3),
+        (b"1 2 3 4\r\n\r\n1 2 3 4 5\r\n1 2 3 4\r\n", 2, 5),  # CRLF and a blank line
+        (b"1 2 3 4\n" * 700_000 + b"1\t2 3\n" + b"1 2 3 4\n", 700_001, 3),  # past the first 4 MiB block
+        (b"1 2 3 4\n" * 2 + b"1 2  3", 3, 3),  # a last row without a line break
+    ],
+)
 def test_pcd_ascii_rows_hold_one_value_per_field(tmp_path: Path, rows: bytes, row: int, values: int) -> None:
     """Only x, y and z are parsed; a row of more or fewer values than the fields is still refused, as pypcd4's typed
     parse of every field refused it."""
@@ -309,8 +344,9 @@ def test_pcd_ascii_rows_hold_one_value_per_field(tmp_path: Path, rows: bytes, ro
         read_cloud(path)
 
 
-@pytest.mark.parametrize("rows", [b"1 2 3 4\n\n 5 6 7 8 \n\t9 10 11 12", b"1 2 3 4\r\n5 6 7 8\r\n9 10 11 12\r\n"
-                                  + b"1 2\n" * 5])  # rows past POINTS are not read
+@pytest.mark.parametrize(
+    "rows", [b"1 2 3 4\n\n 5 6 7 8 \n\t9 10 11 12", b"1 2 3 4\r\n5 6 7 8\r\n9 10 11 12\r\n" + b"1 2\n" * 5]
+)  # rows past POINTS are not read
 def test_pcd_ascii_rows_of_the_declared_values_are_read(tmp_path: Path, rows: bytes) -> None:
     path = tmp_path / "a.pcd"
     path.write_bytes(pcd_header(points=3, **FOUR_FIELDS) + rows)
@@ -366,17 +402,31 @@ def test_ply_vertices_after_other_elements_read(tmp_path: Path, text: bool, byte
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.ply"), xyz)
 
 
-ASCII_PLY_HEAD = ("ply\nformat ascii 1.0\n{before}element vertex {count}\nproperty float x\nproperty float y\n"
-                  "property float z\n{after}end_header\n")
+ASCII_PLY_HEAD = (
+    "ply\nformat ascii 1.0\n{before}element vertex {count}\nproperty float x\nproperty float y\n"
+    "property float z\n{after}end_header\n"
+)
 FACES = "element face 10\nproperty list uchar int vertex_indices\n"
 
 
-@pytest.mark.parametrize("head,rows", [
-    (ASCII_PLY_HEAD.format(before="", count=110, after=FACES),  # 100 vertex rows: the faces were read as vertices
-     "".join(f"{i} {i} {i}\n" for i in range(100)) + "".join(f"3 {i} {i + 1} {i + 2}\n" for i in range(10))),
-    (ASCII_PLY_HEAD.format(before=FACES, count=100, after=""),  # a blank line: one face row was read as a vertex
-     "\n" + "".join(f"3 {i} {i + 1} {i + 2}\n" for i in range(10)) + "".join(f"{i} {i} {i}\n" for i in range(100))),
-], ids=["vertex_count_past_its_rows", "blank_line_before_the_faces"])
+@pytest.mark.parametrize(
+    "head,rows",
+    [
+        (
+            ASCII_PLY_HEAD.format(
+                before="", count=110, after=FACES
+            ),  # 100 vertex rows: the faces were read as vertices
+            "".join(f"{i} {i} {i}\n" for i in range(100)) + "".join(f"3 {i} {i + 1} {i + 2}\n" for i in range(10)),
+        ),
+        (
+            ASCII_PLY_HEAD.format(before=FACES, count=100, after=""),  # a blank line: one face row was read as a vertex
+            "\n"
+            + "".join(f"3 {i} {i + 1} {i + 2}\n" for i in range(10))
+            + "".join(f"{i} {i} {i}\n" for i in range(100)),
+        ),
+    ],
+    ids=["vertex_count_past_its_rows", "blank_line_before_the_faces"],
+)
 def test_ascii_ply_rows_are_not_taken_for_vertices(tmp_path: Path, head: str, rows: str) -> None:
     (tmp_path / "a.ply").write_text(head + rows)
     try:
@@ -392,8 +442,7 @@ def test_binary_pcd_holds_only_x_y_z_while_read(tmp_path: Path) -> None:
     n = 250_000
     records = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("pad", "<f4", (61,))])
     records["x"] = np.arange(n)
-    header = pcd_header(points=n, data="binary", fields="x y z pad", size="4 4 4 4", type="F F F F",
-                        count="1 1 1 61")
+    header = pcd_header(points=n, data="binary", fields="x y z pad", size="4 4 4 4", type="F F F F", count="1 1 1 61")
     (tmp_path / "a.pcd").write_bytes(header + records.tobytes())
     points = {}
 
@@ -416,16 +465,29 @@ def test_binary_ply_whose_vertices_follow_lists_is_refused(tmp_path: Path) -> No
 LONG_ROW = " ".join(["1"] * 1_500_000)  # 3 MB: numpy's text reader kept about 32 bytes per value of a line
 
 
-@pytest.mark.parametrize("name,text", [
-    ("a.xyz", LONG_ROW + "\n"),
-    ("a.xyz", "x y z\n" + "1 2 3\n" * 40 + LONG_ROW + "\n1 2 3\n"),
-    ("a.ply", "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
-              "end_header\n" + LONG_ROW + "\n1 2 3\n"),
-    ("a.pcd", "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
-              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n" + LONG_ROW + "\n1 2 3\n"),
-    ("a.pcd", "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
-              "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1 2 3\r\n" + LONG_ROW),  # no line break after it
-], ids=["xyz_one_line", "xyz_after_rows", "ply_ascii", "pcd_ascii", "pcd_ascii_last_line"])
+@pytest.mark.parametrize(
+    "name,text",
+    [
+        ("a.xyz", LONG_ROW + "\n"),
+        ("a.xyz", "x y z\n" + "1 2 3\n" * 40 + LONG_ROW + "\n1 2 3\n"),
+        (
+            "a.ply",
+            "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+            "end_header\n" + LONG_ROW + "\n1 2 3\n",
+        ),
+        (
+            "a.pcd",
+            "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+            "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n" + LONG_ROW + "\n1 2 3\n",
+        ),
+        (
+            "a.pcd",
+            "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\n"
+            "VIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1 2 3\r\n" + LONG_ROW,
+        ),  # no line break after it
+    ],
+    ids=["xyz_one_line", "xyz_after_rows", "ply_ascii", "pcd_ascii", "pcd_ascii_last_line"],
+)
 def test_a_text_line_beyond_a_mebibyte_is_refused_before_parsing(tmp_path: Path, name: str, text: str) -> None:
     """One line of a 256 MiB upload took several GB of server memory to parse (or to split, for the header probe)."""
     (tmp_path / name).write_text(text)
@@ -437,13 +499,18 @@ def test_a_text_line_beyond_a_mebibyte_is_refused_before_parsing(tmp_path: Path,
     assert peak_bytes(read) < 32 << 20
 
 
-@pytest.mark.parametrize("text,words", [
-    ("hello\n", "no rows of numbers after its first line 'hello'"),  # a .ply of anything else: read as text
-    ("x,y,z\n", "no rows of numbers after its first line 'x,y,z'"),  # a header and no rows
-    ("# exported\n\n# nothing\n", "only comments or blank lines"),
-], ids=["a_word", "header_only", "comments_only"])
-def test_text_without_rows_of_numbers_names_what_it_holds_and_warns_nothing(tmp_path: Path, text: str,
-                                                                              words: str) -> None:
+@pytest.mark.parametrize(
+    "text,words",
+    [
+        ("hello\n", "no rows of numbers after its first line 'hello'"),  # a .ply of anything else: read as text
+        ("x,y,z\n", "no rows of numbers after its first line 'x,y,z'"),  # a header and no rows
+        ("# exported\n\n# nothing\n", "only comments or blank lines"),
+    ],
+    ids=["a_word", "header_only", "comments_only"],
+)
+def test_text_without_rows_of_numbers_names_what_it_holds_and_warns_nothing(
+    tmp_path: Path, text: str, words: str
+) -> None:
     """numpy's "loadtxt: input contained no data" UserWarning reached stderr (the CLI's, the server's log), and the
     error said only "the cloud is empty", of a file that was not read as the format its name says."""
     (tmp_path / "scan.ply").write_text(text)
@@ -492,9 +559,11 @@ def test_text_lines_check_agrees_with_reading_line_by_line(monkeypatch: pytest.M
     for _ in range(300):
         monkeypatch.setattr(checks, "BLOCK_BYTES", int(rng.integers(1, 40)))
         monkeypatch.setattr(checks, "COUNT_BLOCK_BYTES", int(rng.integers(1, 40)))
-        lines = [b"".join(rng.choice([b" ", b"\t", b"  "]) + rng.choice([b"1", b"-2.5"]) for _ in range(values))
-                 + rng.choice([b"\n", b"\r\n", b"\r", b" \n"])
-                 for values in rng.choice([0, 3, 4, 4, 5, 9], size=rng.integers(0, 10))]  # 9 values: often too long
+        lines = [
+            b"".join(rng.choice([b" ", b"\t", b"  "]) + rng.choice([b"1", b"-2.5"]) for _ in range(values))
+            + rng.choice([b"\n", b"\r\n", b"\r", b" \n"])
+            for values in rng.choice([0, 3, 4, 4, 5, 9], size=rng.integers(0, 10))
+        ]  # 9 values: often too long
         body = b"".join(lines).rstrip(b"\r\n") if rng.random() < 0.3 else b"".join(lines)
         rows = int(rng.integers(0, 12))
         f = io.BytesIO(b"DATA ascii\n" + body)
@@ -515,6 +584,7 @@ def test_text_rows_of_a_thousand_values_read(tmp_path: Path) -> None:
 
 
 # --- LAS / LAZ ---------------------------------------------------------------------------------------------------
+
 
 def las_bytes(version: str, point_format: int, compressed: bool, n: int = 24) -> bytearray:
     header = laspy.LasHeader(point_format=point_format, version=version)
@@ -618,17 +688,22 @@ def test_laz_panic_in_lazrs_is_a_format_error(tmp_path: Path) -> None:
 
 # --- NPY / NPZ ---------------------------------------------------------------------------------------------------
 
+
 def npy_bytes(header: str, body: bytes = bytes(48)) -> bytes:
     text = header.encode("latin1") + b"\n"
     return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(text)) + text + body
 
 
-@pytest.mark.parametrize("header", [
-    "{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3, }",  # tokenize.TokenError
-    "{[]: 1}",  # TypeError: unhashable
-    "{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3), 1: 1}",  # TypeError: keys sorted for the message
-    "{'descr': '<f4', 'fortran_order': False, 'shape': (True, 3)}",  # a bool passes numpy's check of the shape
-], ids=["unclosed", "list_key", "int_key", "bool_dim"])
+@pytest.mark.parametrize(
+    "header",
+    [
+        "{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3, }",  # tokenize.TokenError
+        "{[]: 1}",  # TypeError: unhashable
+        "{'descr': '<f4', 'fortran_order': False, 'shape': (4, 3), 1: 1}",  # TypeError: keys sorted for the message
+        "{'descr': '<f4', 'fortran_order': False, 'shape': (True, 3)}",  # a bool passes numpy's check of the shape
+    ],
+    ids=["unclosed", "list_key", "int_key", "bool_dim"],
+)
 def test_npy_unreadable_header_is_a_format_error(tmp_path: Path, header: str) -> None:
     (tmp_path / "a.npy").write_bytes(npy_bytes(header))
     with pytest.raises(PointCloudFormatError, match=r"not a valid \.npy file"):
@@ -656,11 +731,15 @@ def in_container(npy: bytes, container: str) -> bytes:
     return out.getvalue()
 
 
-@pytest.mark.parametrize("shape", [
-    (2**62, 4),  # numpy's product of the shape wrapped to 0: ValueError from reshape
-    (1, 2**63 - 1),  # OverflowError
-    (5, 10**9),  # 5 rows: 40 GB allocated (MemoryError)
-], ids=["wraps", "overflows", "wide"])
+@pytest.mark.parametrize(
+    "shape",
+    [
+        (2**62, 4),  # numpy's product of the shape wrapped to 0: ValueError from reshape
+        (1, 2**63 - 1),  # OverflowError
+        (5, 10**9),  # 5 rows: 40 GB allocated (MemoryError)
+    ],
+    ids=["wraps", "overflows", "wide"],
+)
 @pytest.mark.parametrize("container", ["npy", "npz"])
 def test_npy_shape_beyond_the_file_is_refused_before_reading(tmp_path: Path, shape: tuple, container: str) -> None:
     data = npy_bytes(f"{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}")
@@ -680,8 +759,13 @@ def test_npy_empty_shape_beyond_any_array_is_a_format_error(tmp_path: Path, shap
         read_cloud(tmp_path / f"a.{container}")
 
 
-@pytest.mark.parametrize("header", ["{'descr': '<f8', 'fortran_order': False, 'shape': (0, 268435456), }",
-                                    "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 0, 536870912), }"])
+@pytest.mark.parametrize(
+    "header",
+    [
+        "{'descr': '<f8', 'fortran_order': False, 'shape': (0, 268435456), }",
+        "{'descr': '<f4', 'fortran_order': False, 'shape': (1, 0, 536870912), }",
+    ],
+)
 def test_npy_of_no_rows_however_wide_is_the_empty_cloud(tmp_path: Path, header: str) -> None:
     """Rows of 2 GiB are no numpy dtype: the block reader's dtype raised (a 500) where the cloud is empty."""
     (tmp_path / "a.npy").write_bytes(npy_bytes(header, body=b""))
@@ -761,8 +845,11 @@ def test_rows_up_to_16_float64_columns_are_read(tmp_path: Path) -> None:
 def test_wide_rows_hold_only_x_y_z_while_read(tmp_path: Path, container: str, order: str) -> None:
     """500,000 rows of 16 float64 columns (64 MB): an .npz member was read whole, then joined (two copies), and every
     array whole before its first three columns were taken; now only the [N, 3] output and one block are held."""
-    table = np.asfortranarray(np.random.default_rng(2).normal(size=(500_000, 16))) if order == "F" else \
-        np.random.default_rng(2).normal(size=(500_000, 16))
+    table = (
+        np.asfortranarray(np.random.default_rng(2).normal(size=(500_000, 16)))
+        if order == "F"
+        else np.random.default_rng(2).normal(size=(500_000, 16))
+    )
     if container == "npz":
         np.savez(tmp_path / "a.npz", points=table)
     else:
@@ -797,5 +884,22 @@ def test_laz14_of_several_chunks_reads_as_laspy_reads_it(tmp_path: Path, point_f
     las.x, las.y, las.z = points.T
     las.write(tmp_path / "a.laz", do_compress=True, laz_backend=laspy.LazBackend.Lazrs)  # chunks of 50,000 points
     back = laspy.read(tmp_path / "a.laz")
-    np.testing.assert_array_equal(read_cloud(tmp_path / "a.laz"),
-                                  np.stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)], axis=1))
+    np.testing.assert_array_equal(
+        read_cloud(tmp_path / "a.laz"), np.stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)], axis=1)
+    )
+
+
+def test_laz14_xyz_layer_sizes_are_checked_under_a_chunk_table_of_no_chunks(tmp_path: Path) -> None:
+    """Found by fuzzing (a LAZ 1.4 file with 411 of its own bytes inserted in its first chunk, so that its chunk table's
+    offset pointed at a table of no chunks): the x/y and z layer sizes went unchecked, and lazrs, which reads on
+    without chunk entries, allocated and zero-filled a 4 GB z layer (4.2 GB of RSS from a 1,352-byte file; an abort
+    under a memory limit)."""
+    data = las_bytes("1.4", 6, compressed=True)
+    start = struct.unpack_from("<I", data, 96)[0]  # the points: the chunk table's offset, then the first chunk
+    struct.pack_into("<q", data, start, len(data))  # a table of version 0 and no chunks, appended
+    data += bytes(8)
+    struct.pack_into("<I", data, start + 8 + 30 + 4 + 4, 0xF0000000)  # the first point, the count, x/y's size, z's
+    (tmp_path / "a.laz").write_bytes(data)
+    out = read_in_subprocess(tmp_path / "a.laz", memory_mib=1000)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("error a.laz: LAZ chunk 0 declares x, y and z layers of"), out.stdout
