@@ -34,14 +34,17 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
     count = math.prod(shape)
     needed, held = count * dtype.itemsize, _bytes_left(f, size)
     if needed > held:  # before numpy allocates the array
-        raise PointCloudFormatError(f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, "
-                                    f"{held} follow the header")
+        raise PointCloudFormatError(
+            f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, {held} follow the header"
+        )
     if math.prod(n for n in shape if n) * dtype.itemsize > np.iinfo(np.intp).max:  # empty, as (0, 2**63)
         raise PointCloudFormatError(f"not a valid .npy file (shape {list(shape)} is beyond any array's size)")
     row_bytes = count * dtype.itemsize // rows if rows else 0
     if row_bytes > MAX_ROW_BYTES:
-        raise InvalidPointsError(f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "
-                                 f"bytes per point, e.g. 16 float64 columns")
+        raise InvalidPointsError(
+            f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "
+            f"bytes per point, e.g. 16 float64 columns"
+        )
     if dtype.names is None and not (shape[-1] == 3 and dtype == np.float64 and not fortran and _has_fileno(f)):
         try:  # numbers other than float64 [N, 3] in a file: only x, y, z are held, a block of rows at a time
             return checked(_xyz_table(f, dtype, rows, shape[-1], fortran))
@@ -85,7 +88,7 @@ def _with_member(f: BinaryIO, use: Callable[[BinaryIO, int], T]) -> T:
     archive's errors as :class:`PointCloudFormatError`."""
     try:
         archive = zipfile.ZipFile(f)
-    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:  # a zip version beyond 6.3
         raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
     with archive:
         names = [name for name in archive.namelist() if name.endswith(".npy")]
@@ -96,17 +99,25 @@ def _with_member(f: BinaryIO, use: Callable[[BinaryIO, int], T]) -> T:
             member = names[0]
         else:
             keys = [name[:-4] for name in names]
-            raise PointCloudFormatError(f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and "
-                                        f"not exactly one array: {keys}")
+            raise PointCloudFormatError(
+                f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and not exactly one array: {keys}"
+            )
         try:
             with archive.open(member) as stream:
                 return use(stream, archive.getinfo(member).file_size)
         except PointCloudFormatError:
             raise
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error, lzma.LZMAError, NotImplementedError,
-                RuntimeError) as exc:  # a CRC error, a cut-off or corrupt member, a compression or encryption
-            raise PointCloudFormatError(f"corrupt or unsupported .npz archive ({type(exc).__name__}: {exc})") \
-                from None
+        except (
+            zipfile.BadZipFile,
+            EOFError,
+            OSError,
+            ValueError,
+            zlib.error,
+            lzma.LZMAError,
+            NotImplementedError,
+            RuntimeError,
+        ) as exc:  # a CRC error, a cut-off or corrupt member, a compression or encryption
+            raise PointCloudFormatError(f"corrupt or unsupported .npz archive ({type(exc).__name__}: {exc})") from None
 
 
 def _header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:
@@ -154,8 +165,9 @@ def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
     if len(shape) != 2 or shape[1] < 3:
         raise InvalidPointsError(f"expected shape [N, 3] (or [N, >3]: the first three columns), got {list(shape)}")
     if shape[0] == 3 and shape[1] * dtype.itemsize > MAX_ROW_BYTES:  # wider than any point's row: [3, N]
-        raise InvalidPointsError(f"shape {list(shape)} holds one row per axis; send one row per point, [N, 3] (the "
-                                 "array transposed)")
+        raise InvalidPointsError(
+            f"shape {list(shape)} holds one row per axis; send one row per point, [N, 3] (the array transposed)"
+        )
     return int(shape[0])
 
 
