@@ -32,6 +32,7 @@ from bench.search_network import DEFAULTS, cases, registered
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
+from service.result import RegistrationResult
 
 CLASSES = ("truth leaves", "fits worse", "not reached")
 
@@ -48,8 +49,12 @@ def examine(registrar: Registrar, case: Case) -> dict | None:
     """``None`` where the defaults register ``case`` right; else the failure's row."""
     result, seconds = registered(registrar, case)
     returned = judged(case, result.rotation, result.translation)
-    if returned["success"]:
-        return None
+    return None if returned["success"] else failure_row(registrar, case, result, returned, seconds)
+
+
+def failure_row(registrar: Registrar, case: Case, result: RegistrationResult, returned: dict, seconds: float) -> dict:
+    """The row of a wrong ``result`` of ``case`` (``returned``: its :func:`judged` errors; ``seconds``: its time),
+    classed after ``registrar`` registers the case again from its true pose (module docstring)."""
     from_truth = registrar.register(case.source, case.target, refine=DEFAULTS["refine"], rotation_search=False,
                                     initial_transform=case.src_to_tgt)
     stayed = judged(case, from_truth.rotation, from_truth.translation)

@@ -231,6 +231,13 @@ def load_cases(directory: Path, seed: int = 0, scales: tuple[float, ...] = (1.0,
         else read_pairs(directory, names)
     if densify is not None:
         pairs = [densified_pair(pair, densify, seed) for pair in pairs]
+    return pair_cases(pairs, seed, scales, turns, sensor_thresholds)
+
+
+def pair_cases(pairs: list[ScanPair], seed: int = 0, scales: tuple[float, ...] = (1.0, 1000.0), turns: int = 1,
+               sensor_thresholds: dict[str, tuple[float, float]] | None = None) -> list[Case]:
+    """The cases of ``pairs`` (read from files or made in memory) as :func:`load_cases` describes them: each pair as
+    scanned and turned by ``turns`` seeded rotations (drawn pair after pair from ``seed``), per scale."""
     rng, more = np.random.default_rng(seed), np.random.default_rng([seed, 1])  # the first turns, the others
     cases = []
     for pair in pairs:
