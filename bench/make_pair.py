@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from bench.scan_pairs import positive_thresholds
 from service.checks import check_cloud, check_transform
 from service.errors import InputError
 from service.pointcloud_io import PointCloudFormatError, read_points
@@ -61,14 +62,7 @@ def pose(parser: argparse.ArgumentParser, path: Path) -> np.ndarray:
 
 def thresholds_pair(text: str) -> tuple[float, float]:
     """An argparse ``type`` for ``--thresholds DEG,DIST``: two positive numbers."""
-    parts = text.split(",")
-    try:
-        degrees, distance = (float(part) for part in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected DEG,DIST, two numbers (e.g. 5,0.01)") from None
-    if not (np.isfinite(degrees) and np.isfinite(distance) and degrees > 0 and distance > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be positive")
-    return degrees, distance
+    return positive_thresholds(text, text, "5,0.01")
 
 
 def fit(source: np.ndarray, target: np.ndarray, transform: np.ndarray, seed: int = 0) -> float:

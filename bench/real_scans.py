@@ -62,7 +62,7 @@ from bench.report_io import (
     provenance,
     require_checkouts,
 )
-from bench.scan_pairs import THRESHOLD_FIELDS, ScanPair, derived_pairs, read_pairs
+from bench.scan_pairs import THRESHOLD_FIELDS, ScanPair, derived_pairs, positive_thresholds, read_pairs
 from bench.surface_resample import FUSED_SENSORS, densified
 from service.core.config import Settings
 
@@ -158,15 +158,9 @@ def sensor_threshold(text: str) -> tuple[str, tuple[float, float]]:
     """An argparse ``type`` for ``--thresholds SENSOR=DEG,DIST``: a sensor name, and its success thresholds (rotation
     in degrees, translation in the pair files' unit), both positive."""
     sensor, equals, values = text.rpartition("=")
-    parts = values.split(",")
-    if not equals or not sensor or len(parts) != 2:
+    if not equals or not sensor or len(values.split(",")) != 2:
         raise argparse.ArgumentTypeError(f"{text!r}: expected SENSOR=DEG,DIST (e.g. lidar=5,2)")
-    try:
-        degrees, distance = (float(part) for part in parts)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be numbers (e.g. lidar=5,2)") from None
-    if not (np.isfinite(degrees) and np.isfinite(distance) and degrees > 0 and distance > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be positive")
+    degrees, distance = positive_thresholds(values, text, "lidar=5,2")
     return sensor, (degrees, distance)
 
 

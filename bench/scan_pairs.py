@@ -11,6 +11,7 @@ apart): wider baselines, less overlap, and pairs that no default was chosen on.
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import re
 from collections import deque
@@ -35,6 +36,21 @@ class ScanPair:
 
 
 THRESHOLD_FIELDS = ("rotation_threshold_deg", "translation_threshold")  # optional in a pair file, both or neither
+
+
+def positive_thresholds(values: str, text: str, example: str) -> tuple[float, float]:
+    """``DEG,DIST`` of a ``--thresholds`` option as ``(degrees, distance)``, both positive and finite; else an
+    ``argparse.ArgumentTypeError`` quoting the option's ``text`` and an ``example`` of it."""
+    parts = values.split(",")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected DEG,DIST, two numbers (e.g. {example})")
+    try:
+        degrees, distance = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be numbers (e.g. {example})") from None
+    if not (np.isfinite(degrees) and np.isfinite(distance) and degrees > 0 and distance > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: DEG and DIST must be positive")
+    return degrees, distance
 
 
 def read_pairs(directory: Path, names: list[str] | None = None) -> list[ScanPair]:
