@@ -8,7 +8,7 @@ PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z       
                          (``VERSION`` ignored, as PCL does)
 LAS/LAZ (``laspy``,      scaled x, y, z in float64                               --
 ``lazrs``)
-E57 (``pye57``)          every scan moved into the file's frame by its pose,     --
+E57 (``e57``)            every scan moved into the file's frame by its pose,     --
                          appended; spherical converted; invalid points left out
 XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text
                          a header names x, y, z (else the first 3), values

@@ -7,7 +7,7 @@ from types import ModuleType
 
 from service.formats.errors import MissingReaderError
 
-EXTRA = "formats"  # pyproject.toml: plyfile, pypcd4, laspy + lazrs, pye57 (the serve extra includes it)
+EXTRA = "formats"  # pyproject.toml: plyfile, pypcd4, laspy + lazrs, e57 (the serve extra includes it)
 
 
 def require(module: str, what: str) -> ModuleType:

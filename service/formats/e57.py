@@ -1,28 +1,36 @@
-"""E57 (ASTM E2807) with ``pye57`` (libE57Format): every scan in the file's frame, its points with a return.
+"""E57 (ASTM E2807) with ``e57`` (Rust, memory-safe): every scan in the file's frame, its points with a return.
 
 A file holds one or more scans (``data3D``), each with its points in its own frame and a pose (a rotation
 quaternion ``w, x, y, z`` and a translation) that takes them into the file's frame,
-``p_file = R @ p_scan + t`` (no pose: the identity). Each scan's points are read, moved by its pose and
-appended in the file's order of scans, so a registered project of several scans reads as one cloud.
+``p_file = R @ p_scan + t`` (no pose: the identity). ``e57.read_points`` reads each scan, moves it by its pose and
+appends it in the file's order of scans, so a registered project of several scans reads as one cloud.
 
 - Coordinates: ``cartesianX/Y/Z`` where a scan has them, else ``sphericalRange/Azimuth/Elevation``
   converted as the standard defines, ``x = r cos(elevation) cos(azimuth)``, ``y = r cos(elevation)
-  sin(azimuth)``, ``z = r sin(elevation)`` (radians). Scaled-integer fields are scaled by libE57Format.
+  sin(azimuth)``, ``z = r sin(elevation)`` (radians). Scaled-integer fields are scaled by the library.
 - Points without a return are left out: those whose ``cartesianInvalidState`` (or, for spherical
   coordinates, ``sphericalInvalidState``) is not 0 (1: a direction only, 2: no measurement). The point
   limit counts every point the headers declare, invalid ones included, before any is read.
-- Intensity, colour, row/column indices, timestamps and images are ignored.
+- Intensity, colour, row/column indices, timestamps and images are ignored (the library reads colour and intensity
+  too: :data:`READ_BYTES_PER_POINT`).
 
-libE57Format opens files by path only: a stream that is not a file on disk (an HTTP upload held in memory)
+``e57.read_points`` opens files by path only: a stream that is not a file on disk (an HTTP upload held in memory)
 is copied to a temporary file, deleted after reading; the service's upload limit bounds its size.
 
-The XML section is checked before libE57Format's parser (Xerces-C) reads it (:func:`check_xml`). Refused: a DTD
-(E57 files have none; Xerces expands the entities a DTD declares without a limit and fetches external ones, files
-and URLs), an XML Schema instance attribute (Xerces fetches the schema an ``xsi:schemaLocation`` names), an XML
-section beyond :data:`MAX_XML_BYTES`, more than :data:`MAX_XML_ELEMENTS` elements, nesting deeper than
-:data:`MAX_XML_DEPTH`, and a structure of more than :data:`MAX_STRUCTURE_CHILDREN` children (libE57Format's tree
-takes about 160 bytes an element, and a structure's children take time quadratic in their number: 100,000 children of
-one structure took 136 s).
+The XML section is parsed by expat first (:func:`check_xml`), and the library reads only a file that passed. The
+scans' record counts come from it: the library reserves its arrays from the first scan's count before it reads a
+point, and aborts the process where that allocation fails (a declared 2,000,000,000 points), so the point limit, and
+without one the memory (:func:`_check_memory`), are checked before it reads anything. Refused there: a DTD (E57 files
+have none; the library refuses one too), an XML Schema instance attribute, an XML section beyond
+:data:`MAX_XML_BYTES` or not in the file, more than :data:`MAX_XML_ELEMENTS` elements, nesting deeper than
+:data:`MAX_XML_DEPTH` (100,000 levels overflowed the library's stack: SIGSEGV), a structure of more than
+:data:`MAX_STRUCTURE_CHILDREN` children, and what would make the library read other counts or poses than those
+checked: a ``data3D`` anywhere but under the root (the library reads the first one it meets), a record count that is
+not a decimal integer (the library reads ``+5``), and a pose quaternion whose norm is not 1 within
+:data:`MAX_QUATERNION_NORM_ERROR` (the library does not normalise it: the scan is scaled by the norm's square). A scan
+of no points is refused too: the library cannot read a file holding one (it reads the empty scan's section header at
+offset 0). Damaged point data makes the library panic (``pyo3_runtime.PanicException``, a ``BaseException``): a
+:class:`PointCloudFormatError` here.
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import resource
 import shutil
 import struct
 import tempfile
@@ -43,90 +52,134 @@ from service.formats.checks import check_count, checked
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
-BLOCK_POINTS = 1 << 18  # points read per call of libE57Format's reader (8 MiB of float64 x, y, z)
-CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
-SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
-PAGE_BYTES, PAGE_DATA_BYTES = 1024, 1020  # libE57Format's pages: 1,020 bytes of data, then a CRC-32C
+# What e57.read_points holds for a declared point: x, y, z (float64), a colour (3 float32) and an intensity (float32);
+# it reserves them from the first scan's record count before it reads a point
+READ_BYTES_PER_POINT = 40
+PAGE_BYTES, PAGE_DATA_BYTES = 1024, 1020  # E57 pages: 1,020 bytes of data, then a CRC-32C
 HEADER = struct.Struct("<8sIIQQQQ")  # signature, version major, minor, file length, XML offset, XML length, page size
-MAX_XML_BYTES = 16 << 20  # a scan's XML is a few KB; 16 MiB of it took libE57Format 51 MiB
+MAX_XML_BYTES = 16 << 20  # a scan's XML is a few KB
 MAX_XML_ELEMENTS = 100_000  # about 60 a scan (pye57's), 30 an image
 MAX_XML_DEPTH = 64  # a scan's coordinate field is 6 deep
 MAX_STRUCTURE_CHILDREN = 256  # a scan has about 20
-XSI = "http://www.w3.org/2001/XMLSchema-instance"  # xsi:schemaLocation: a URL or path Xerces loads a schema from
+XSI = "http://www.w3.org/2001/XMLSchema-instance"  # xsi:schemaLocation names a schema to load; E57 files have none
+RECORD_COUNT = re.compile(r"[0-9]+")  # ASCII digits: str.isdigit() takes "²", which int() refuses
+# Most a pose's quaternion norm may differ from 1: the library does not normalise it, and scales the scan by the
+# norm's square (2e-4 at this bound, 2 cm at 100 m); a quaternion typed to 4 decimals (0.7071, 0, 0, 0.7071) is 1e-5 off
+MAX_QUATERNION_NORM_ERROR = 1e-4
+POSE_ROTATION = ["data3D", "vectorChild", "pose", "rotation"]  # under the root: a scan's quaternion w, x, y, z
 
 
 def read_e57(f: BinaryIO, max_points: int | None) -> np.ndarray:
-    pye57 = require("pye57", "reading E57 files")
-    libe57 = pye57.libe57
+    e57 = require("e57", "reading E57 files")
     with _on_disk(f) as path:
-        check_xml(path)
-        try:
-            image = libe57.ImageFile(path, "r")
-        except Exception as exc:  # libE57Format's E57Exception: a bad signature, length, checksum or XML section
-            raise PointCloudFormatError(f"not a readable E57 file ({_reason(exc)})") from None
-        try:
-            return _read(libe57, image, max_points)
-        except PointCloudFormatError:
-            raise
-        except Exception as exc:
-            raise PointCloudFormatError(f"corrupt E57 data ({_reason(exc)})") from None
-        finally:
-            image.close()
+        scans = check_xml(path)
+        if not scans:
+            raise InvalidPointsError("the E57 file holds no scans (its data3D is empty): no points to read")
+        total = sum(scans)
+        check_count(total, max_points)
+        if total == 0:
+            empty = f"none of the E57 file's {len(scans)} scan(s) declares a point"
+            raise InvalidPointsError(f"the cloud is empty: {empty}")
+        if 0 in scans:
+            raise PointCloudFormatError(
+                f"E57 scan {scans.index(0)} holds no points (its recordCount is 0); a file with an empty scan is not "
+                "read (the e57 reader reads every scan's section, and an empty one has none): remove the empty scan"
+            )
+        _check_memory(total)
+        points = _read_points(e57, path)
+    if len(points) == 0:
+        raise InvalidPointsError(
+            f"the cloud is empty: all {total} points of the E57 file are marked invalid (no return)"
+        )
+    return checked(points)
 
 
-def check_xml(path: str) -> None:
-    """:class:`PointCloudFormatError` where the XML section of the E57 file at ``path`` has a DTD, is not UTF-8, is
-    not well formed or is beyond the limits above (parsed by expat, element by element, before Xerces reads it)."""
+def _read_points(e57: Any, path: str) -> np.ndarray:
+    """``e57.read_points``'s ``[N, 3]`` float64 points, its errors as :class:`PointCloudFormatError`: a
+    ``RuntimeError`` (the header or XML section) or a Rust panic (``pyo3_runtime.PanicException``, a
+    ``BaseException``: damaged point data, a checksum that does not match)."""
+    try:
+        return np.asarray(e57.read_points(path).points, dtype=np.float64)
+    except BaseException as exc:
+        if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":
+            raise  # KeyboardInterrupt, SystemExit
+        raise PointCloudFormatError(f"not a readable E57 file ({_reason(exc, path)})") from None
+
+
+def _check_memory(total: int) -> None:
+    """:class:`PointCloudFormatError` where the arrays ``e57.read_points`` reserves for ``total`` points are more
+    than half the memory this process may have (physical memory, or a lower address-space limit): the library would
+    abort the process where an allocation fails. Matters without a point limit (the CLI); the service's
+    ``max_file_points`` is far below it."""
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        memory = min(memory, soft)
+    if total * READ_BYTES_PER_POINT > memory // 2:
+        raise PointCloudFormatError(
+            f"the E57 file's scans declare {total} points; reading them takes {total * READ_BYTES_PER_POINT} bytes, "
+            f"more than half of this machine's memory ({memory} bytes)"
+        )
+
+
+def check_xml(path: str) -> list[int]:
+    """The record count of each scan of the E57 file at ``path``, from its XML section: :class:`PointCloudFormatError`
+    where it is not in the file, has a DTD, is not UTF-8, is not well formed or is beyond the limits above (parsed
+    by expat, element by element, before the e57 library reads the file)."""
     with open(path, "rb") as f:
         text = _xml_section(f)
-    if text is not None:
-        _parse_xml(text)
+    return _parse_xml(text)
 
 
 def e57_count(f: BinaryIO) -> int:
     """The points the scans of the E57 file at ``f``'s position declare (the ``recordCount`` of each
     ``/data3D/*/points``), from its XML section as :func:`check_xml` parses it, with its errors; no point is read,
-    and libE57Format is not used. :class:`PointCloudFormatError` where the XML section cannot be found."""
-    text = _xml_section(f)
-    if text is None:
-        raise PointCloudFormatError("the E57 file's XML section is not in the file")
-    return _parse_xml(text)
+    and the e57 library is not used."""
+    return sum(_parse_xml(_xml_section(f)))
 
 
-def _xml_section(f: BinaryIO) -> bytes | None:
-    """The XML section of the E57 file at ``f``'s position (its pages' CRCs left out), ``None`` where the file does
-    not hold it (a file cut short: libE57Format, which reads no XML then, names the damage)."""
+def _xml_section(f: BinaryIO) -> bytes:
+    """The XML section of the E57 file at ``f``'s position (its pages' CRCs left out); :class:`PointCloudFormatError`
+    where the file is not an E57 file or does not hold it whole (a file cut short)."""
     start = f.tell()
     header = f.read(HEADER.size)
     if len(header) < HEADER.size or not header.startswith(b"ASTM-E57"):
-        return None
+        raise PointCloudFormatError("not an E57 file: its header (48 bytes from the signature ASTM-E57) is cut short")
     _, _, _, _, offset, length, _ = HEADER.unpack(header)
     if length > MAX_XML_BYTES:
         raise PointCloudFormatError(
             f"the E57 file's XML section has {length} bytes; at most {MAX_XML_BYTES} are read (a scan's takes a few KB)"
         )
     size = f.seek(0, os.SEEK_END) - start
-    if offset >= size:
-        return None  # beyond the file's end (the header's own page, checked by libE57Format first, is damaged)
     if offset % PAGE_BYTES >= PAGE_DATA_BYTES:  # no writer puts it among a page's CRC bytes
         raise PointCloudFormatError(f"the E57 file's header puts its XML section at byte {offset}, a page's checksum")
-    f.seek(start + offset - offset % PAGE_BYTES)
-    pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
-    data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out
-    text = data[offset % PAGE_BYTES :][:length]
-    return text if len(text) == length else None
+    text = b""
+    if offset < size:
+        f.seek(start + offset - offset % PAGE_BYTES)
+        pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
+        data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out
+        text = data[offset % PAGE_BYTES :][:length]
+    if len(text) < length:
+        raise PointCloudFormatError(
+            f"the E57 file is cut short: its header puts its XML section of {length} bytes at byte {offset}, and the "
+            f"file has {size} bytes"
+        )
+    return text
 
 
-def _parse_xml(text: bytes) -> int:
-    """Parse the XML section ``text`` with expat, refusing a DTD, another encoding than UTF-8 and the limits; the
-    sum of the scans' record counts (those that are integers: libE57Format judges the others)."""
-    if b"\0" in text:  # UTF-16 or UTF-32, which Xerces would read and the byte checks here would not
+def _parse_xml(text: bytes) -> list[int]:
+    """Parse the XML section ``text`` with expat, refusing a DTD, another encoding than UTF-8, the limits, a
+    ``data3D`` elsewhere than under the root and a record count that is not a decimal integer; the record count of
+    each scan (a ``/data3D/vectorChild`` with ``points``)."""
+    if b"\0" in text:  # UTF-16 or UTF-32, which the byte checks here would not read
         raise PointCloudFormatError("the E57 file's XML section is not UTF-8 text (it holds NUL bytes)")
     parser = xml.parsers.expat.ParserCreate(namespace_separator=" ")  # names as "namespace-URI local-name"
     children = [0]  # elements so far at each open level; [0]: the document's
     structures = [False]  # whether each open element is a Structure
     names: list[str] = []  # the open elements' local names
-    elements = records = 0
+    scans: list[int | None] = []  # each /data3D/vectorChild's record count; None: no points element (yet)
+    quaternion: dict[str, str] = {}  # the text of the open pose rotation's w, x, y, z
+    elements = data3d = 0
 
     def refuse(reason: str) -> None:
         raise PointCloudFormatError(f"the E57 file's XML section {reason}")
@@ -142,7 +195,7 @@ def _parse_xml(text: bytes) -> int:
         )
 
     def start(name: str, attributes: dict[str, str]) -> None:
-        nonlocal elements, records
+        nonlocal elements, data3d
         elements += 1
         children[-1] += 1
         if elements > MAX_XML_ELEMENTS:
@@ -155,13 +208,29 @@ def _parse_xml(text: bytes) -> int:
         if schema:
             refuse(f"has the XML Schema instance attribute {schema[0]!r}: schemas named there are not fetched")
         names.append(name.rsplit(" ", 1)[-1])
-        count = attributes.get("recordCount", "")
-        if len(names) == 4 and names[1:] == ["data3D", "vectorChild", "points"] and count.isdigit():
-            records += int(count)
+        if names[-1] == "data3D":
+            data3d += 1
+            if len(names) != 2 or data3d > 1:
+                refuse("has a data3D element other than the root's (an E57 file has one, under its root)")
+        if len(names) == 3 and names[1] == "data3D" and names[2] == "vectorChild":
+            scans.append(None)
+        if len(names) == 4 and names[1:] == ["data3D", "vectorChild", "points"]:
+            count = attributes.get("recordCount", "")
+            if not RECORD_COUNT.fullmatch(count):
+                refuse(f"gives scan {len(scans) - 1} the recordCount {count[:40]!r}, not a decimal integer")
+            scans[-1] = (scans[-1] or 0) + int(count)
+        if names[1:] == POSE_ROTATION:
+            quaternion.clear()
         children.append(0)
         structures.append(attributes.get("type") == "Structure")
 
+    def characters(data: str) -> None:
+        if len(names) == 6 and names[1:5] == POSE_ROTATION and names[5] in ("w", "x", "y", "z"):
+            quaternion[names[5]] = quaternion.get(names[5], "") + data
+
     def end(name: str) -> None:
+        if names[1:] == POSE_ROTATION:
+            _check_quaternion(quaternion, len(scans) - 1)
         children.pop()
         structures.pop()
         names.pop()
@@ -169,6 +238,7 @@ def _parse_xml(text: bytes) -> int:
     parser.XmlDeclHandler = declaration
     parser.StartDoctypeDeclHandler = doctype
     parser.StartElementHandler = start
+    parser.CharacterDataHandler = characters
     parser.EndElementHandler = end
     try:
         parser.Parse(text, True)
@@ -177,130 +247,22 @@ def _parse_xml(text: bytes) -> int:
             f"is not well-formed XML ({xml.parsers.expat.errors.messages[exc.code]} at line {exc.lineno}, "
             f"column {exc.offset})"
         )
-    return records
+    return [count for count in scans if count is not None]
 
 
-def _read(libe57: Any, image: Any, max_points: int | None) -> np.ndarray:
-    root = image.root()
-    if not root.isDefined("data3D") or root["data3D"].childCount() == 0:
-        raise InvalidPointsError("the E57 file holds no scans (its data3D is empty): no points to read")
-    data3d = root["data3D"]
-    scans = [data3d[k] for k in range(data3d.childCount())]
-    plans = [_plan(libe57, scan, k) for k, scan in enumerate(scans)]
-    total = sum(count for _, count, _ in plans)
-    check_count(total, max_points)
-    out = np.empty((total, 3), dtype=np.float64)  # [N, 3]: the valid points move up as they are read
-    kept = 0
-    for scan, (fields, count, invalid) in zip(scans, plans, strict=True):
-        rotation, translation = _pose(scan)
-        kept = _read_scan(libe57, image, scan, fields, invalid, count, rotation, translation, out, kept)
-    if kept == 0:
-        raise InvalidPointsError(
-            f"the cloud is empty: all {total} points of the E57 file are marked invalid (no return)"
-        )
-    return checked(out[:kept])
-
-
-def _plan(libe57: Any, scan: Any, index: int) -> tuple[tuple[str, str, str], int, str | None]:
-    """The coordinate fields a scan is read from, its point count, and its invalid-state field (if any)."""
-    if not scan.isDefined("points"):
-        raise PointCloudFormatError(f"E57 scan {index} has no points node")
-    points = scan["points"]
-    prototype = libe57.StructureNode(points.prototype())
-    names = {prototype.get(k).elementName() for k in range(prototype.childCount())}
-    if set(CARTESIAN) <= names:
-        fields, state = CARTESIAN, "cartesianInvalidState"
-    elif set(SPHERICAL) <= names:
-        fields, state = SPHERICAL, "sphericalInvalidState"
-    else:
-        raise PointCloudFormatError(
-            f"E57 scan {index} has neither cartesianX/Y/Z nor sphericalRange/Azimuth/"
-            f"Elevation fields (it has {', '.join(sorted(names))})"
-        )
-    return fields, int(points.childCount()), state if state in names else None
-
-
-def _pose(scan: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``R [3, 3]`` and ``t [3]`` of the scan's pose (identity where absent); the quaternion normalised."""
-    rotation, translation = np.eye(3), np.zeros(3)
-    if not scan.isDefined("pose"):
-        return rotation, translation
-    pose = scan["pose"]
-    if pose.isDefined("rotation"):
-        q = np.array([_value(pose["rotation"], axis, 1.0 if axis == "w" else 0.0) for axis in "wxyz"])
-        norm = float(np.linalg.norm(q))
-        if not np.isfinite(norm) or norm < 1e-12:
-            raise PointCloudFormatError(f"E57 scan pose has a rotation quaternion of norm {norm}")
-        rotation = _rotation_matrix(q / norm)
-    if pose.isDefined("translation"):
-        translation = np.array([_value(pose["translation"], axis, 0.0) for axis in "xyz"])
-        if not np.isfinite(translation).all():
-            raise PointCloudFormatError(f"E57 scan pose has a translation of {translation.tolist()}")
-    return rotation, translation
-
-
-def _value(node: Any, name: str, default: float) -> float:
-    return float(node[name].value()) if node.isDefined(name) else default
-
-
-def _rotation_matrix(q: np.ndarray) -> np.ndarray:
-    """The rotation of the unit quaternion ``q = (w, x, y, z)``."""
-    w, x, y, z = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _read_scan(
-    libe57: Any,
-    image: Any,
-    scan: Any,
-    fields: tuple[str, str, str],
-    invalid: str | None,
-    count: int,
-    rotation: np.ndarray,
-    translation: np.ndarray,
-    out: np.ndarray,
-    kept: int,
-) -> int:
-    """The scan's valid points, in the file's frame, written to ``out`` from row ``kept``; the rows then filled."""
-    if count == 0:
-        return kept
-    capacity = min(count, BLOCK_POINTS)
-    columns = {name: np.empty(capacity, dtype=np.float64) for name in fields}
-    if invalid:
-        columns[invalid] = np.empty(capacity, dtype=np.int8)
-    buffers = libe57.VectorSourceDestBuffer()
-    for name, column in columns.items():
-        buffers.append(libe57.SourceDestBuffer(image, name, column, capacity, True, True))
-    reader = scan["points"].reader(buffers)
-    read = 0
+def _check_quaternion(quaternion: dict[str, str], scan: int) -> None:
+    """:class:`PointCloudFormatError` where scan ``scan``'s pose rotation (the text of its ``w, x, y, z``; an empty
+    or missing one is 0, as the library reads it) is not a unit quaternion within
+    :data:`MAX_QUATERNION_NORM_ERROR`."""
     try:
-        while read < count and (n := reader.read()) > 0:
-            block = np.stack([columns[name][:n] for name in fields], axis=1)  # [n, 3]
-            if invalid:
-                block = block[columns[invalid][:n] == 0]
-            if fields == SPHERICAL:
-                block = _cartesian(block)
-            out[kept : kept + len(block)] = block @ rotation.T + translation
-            kept += len(block)
-            read += n
-    finally:
-        reader.close()
-    if read != count:
-        raise PointCloudFormatError(f"E57 scan holds {read} points; its header says {count}")
-    return kept
-
-
-def _cartesian(rae: np.ndarray) -> np.ndarray:
-    """``[n, 3]`` range, azimuth, elevation (radians) -> ``[n, 3]`` x, y, z (the E57 standard's convention)."""
-    r, azimuth, elevation = rae.T
-    flat = r * np.cos(elevation)
-    return np.stack([flat * np.cos(azimuth), flat * np.sin(azimuth), r * np.sin(elevation)], axis=1)
+        norm = float(np.linalg.norm([float(quaternion.get(axis, "").strip() or 0) for axis in "wxyz"]))
+    except ValueError:
+        raise PointCloudFormatError(f"E57 scan {scan}'s pose has a rotation quaternion that is not numbers") from None
+    if not abs(norm - 1.0) <= MAX_QUATERNION_NORM_ERROR:
+        raise PointCloudFormatError(
+            f"E57 scan {scan}'s pose has a rotation quaternion of norm {norm:.9g}; the standard's is a unit "
+            f"quaternion (within {MAX_QUATERNION_NORM_ERROR:g} here), and another would scale the scan"
+        )
 
 
 @contextlib.contextmanager
@@ -320,11 +282,12 @@ def _on_disk(f: BinaryIO) -> Iterator[str]:
         os.unlink(path)
 
 
-def _reason(exc: Exception) -> str:
-    """libE57Format's message and the context it gives (``header.filePhysicalLength=6144 file->length=3000``),
-    without the temporary file's name and the library's source locations."""
-    text = " ".join(str(exc).split())
-    summary = text.split(" **** ")[0]
-    context = re.search(r"context: (.*?)(?: sourceFunctionName:|$)", text)
-    details = re.sub(r"fileName=\S*\s*", "", context.group(1)).strip() if context else ""
-    return (f"{summary}: {details}" if details else summary)[:300] or type(exc).__name__
+def _reason(exc: BaseException, path: str) -> str:
+    """The library's message without Rust's debug wrapping: ``Unable to read next point: Read { desc: "Failed to
+    read data packet buffers", source: Some(Custom { kind: InvalidData, error: "Detected invalid checksum ..." }) }``
+    reads ``Unable to read next point: Failed to read data packet buffers: Detected invalid checksum ...``; no path."""
+    text = " ".join(str(exc).replace(path, "the file").split())
+    quoted = re.findall(r'(?:desc|error): "((?:[^"\\]|\\.)*)"', text)
+    if quoted:
+        text = ": ".join([text.split(":", 1)[0], *quoted]) if ": " in text else ": ".join(quoted)
+    return text[:300] or type(exc).__name__

@@ -107,7 +107,7 @@ def check_declared_count(source: BinaryIO, name: str, max_points: int) -> None:
     """:class:`TooManyPointsError` (named as :func:`read_cloud` names it) where the header of the cloud at ``source``
     declares more than ``max_points`` points: PLY's vertex count, PCD's ``POINTS``, the LAS/LAZ point count, an
     ``.npy``'s shape, an ``.npz`` member's, the record counts of an E57's scans (its XML section, parsed by expat, not
-    libE57Format), a PTS file's first count, a PTX file's first columns x rows. Only the header is read (from the
+    the e57 library), a PTS file's first count, a PTX file's first columns x rows. Only the header is read (from the
     first :data:`PRECHECK_BYTES`; an ``.npz``'s directory and member header and an E57's XML section from the
     file), ``source``'s position is kept, and nothing else is
     refused here: text formats (counted only while read), a header this cannot read whole, and every other problem

@@ -1,5 +1,5 @@
-"""E57 files with their XML section rewritten: libE57Format's pages (1,020 bytes of data and a CRC-32C each) rebuilt
-around the new XML, so that the file passes libE57Format's checksums and its XML reaches the parser."""
+"""E57 files with their XML section rewritten: E57 pages (1,020 bytes of data and a CRC-32C each) rebuilt
+around the new XML, so that the file passes the page checksums and its XML reaches the reader."""
 
 from __future__ import annotations
 

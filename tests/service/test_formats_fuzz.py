@@ -2,7 +2,7 @@
 numbers replaced by extreme ones (counts of 10^18, negative, beyond 64 bits). ``read_cloud`` and
 ``check_declared_count`` raise only the formats' own errors (``PointCloudFormatError``, with an HTTP status of 400,
 413, 415 or 422), and the pre-check keeps the file's position. An E57's XML section is mutated too, its pages rebuilt
-with their checksums so that libE57Format parses it. A short derandomized run, and a long random one (``-m slow``),
+with their checksums so that the e57 library parses it. A short derandomized run, and a long random one (``-m slow``),
 which found the E57 offset and PTS/PTX count errors fixed here."""
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def mutated(draw, seeds: dict[str, bytes]) -> tuple[str, bytes]:
     name = draw(st.sampled_from(sorted(seeds)))
     in_xml = name.endswith(".e57") and draw(
         st.booleans()
-    )  # the XML section, its pages rebuilt: it reaches libE57Format
+    )  # the XML section, its pages rebuilt: it reaches the e57 library
     data = bytearray(xml_of(seeds[name]) if in_xml else seeds[name])
     for op in draw(st.lists(st.sampled_from(["cut", "flip", "insert", "number", "wide"]), min_size=1, max_size=3)):
         head = len(data) if in_xml else min(len(data), 1024)

@@ -1,4 +1,5 @@
-"""Terrestrial laser scanner files: E57 (written by pye57 / libE57Format) and Leica PTS / PTX text, read by
+"""Terrestrial laser scanner files: E57 (written by pye57 / libE57Format, read by the e57 library) and Leica PTS / PTX
+text, read by
 ``read_cloud`` and uploaded to a real server: scans brought into the file's frame by their poses, points without a
 return left out, the point limit from the header, and damaged files a 4xx naming the problem."""
 
@@ -10,6 +11,7 @@ import numpy as np
 import pye57
 import pytest
 from api_server import LIMITED, MODEL, assert_error, limited_server, synthetic_pair
+from e57_xml import with_xml, xml_of
 from pye57 import libe57
 
 from service.formats import PointCloudFormatError, TooManyPointsError, read_cloud
@@ -118,7 +120,7 @@ def test_e57_spherical_coordinates_are_converted_as_the_standard_defines(tmp_pat
 
 def test_e57_point_limit_comes_from_the_headers_before_any_point_is_read(tmp_path, monkeypatch) -> None:
     write_e57(tmp_path / "a.e57", [{"xyz": SOURCE[:200]}, {"xyz": SOURCE[200:450]}])
-    monkeypatch.setattr(e57_reader, "_read_scan", lambda *args: pytest.fail("points read past the limit"))
+    monkeypatch.setattr(e57_reader, "_read_points", lambda *args: pytest.fail("points read past the limit"))
     with pytest.raises(TooManyPointsError, match=r"a\.e57: has 450 points; the limit is 449") as caught:
         read_cloud(tmp_path / "a.e57", max_points=449)
     assert (caught.value.count, caught.value.limit) == (450, 449)
@@ -142,9 +144,66 @@ def test_damaged_e57_is_a_400_naming_the_problem(tmp_path, damage) -> None:
     with pytest.raises(PointCloudFormatError) as caught:
         read_cloud(bytes(data), "a.e57")
     assert caught.value.status == 400
-    words = "size in file header not same as actual" if damage == "truncated" else "checksum mismatch"
+    words = "the E57 file is cut short" if damage == "truncated" else "invalid checksum"
     assert str(caught.value).startswith("a.e57: ") and words in str(caught.value)
     assert "/tmp" not in str(caught.value)  # the temporary copy's name stays out of the message
+
+
+def test_a_panic_of_the_e57_library_is_a_400(tmp_path) -> None:
+    """Damaged point data makes ``e57.read_points`` panic: ``pyo3_runtime.PanicException``, a BaseException that an
+    ``except Exception`` lets through (a 500, or the end of the worker's thread)."""
+    e57 = pytest.importorskip("e57")
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    data = bytearray((tmp_path / "a.e57").read_bytes())
+    data[100] ^= 0xFF  # in the first scan's points: its page's checksum no longer matches
+    (tmp_path / "a.e57").write_bytes(data)
+    with pytest.raises(BaseException) as panic:
+        e57.read_points(str(tmp_path / "a.e57"))
+    assert type(panic.value).__name__ == "PanicException" and not isinstance(panic.value, Exception)
+    for source in (tmp_path / "a.e57", bytes(data)):  # the file's own path, and an upload's temporary copy
+        with pytest.raises(PointCloudFormatError) as caught:
+            read_cloud(source, "a.e57")
+        assert caught.value.status == 400
+        assert str(caught.value).startswith("a.e57: not a readable E57 file (") and "invalid checksum" in str(
+            caught.value
+        )
+        assert "/tmp" not in str(caught.value) and "Read {" not in str(caught.value)
+
+
+def test_an_e57_with_an_empty_scan_is_a_400_naming_it_and_only_empty_scans_a_422(tmp_path) -> None:
+    """The library cannot read a file holding a scan of no points (libE57Format writes its section offset as 0, and
+    the library reads a section header there: a panic)."""
+    e57 = pye57.E57(str(tmp_path / "a.e57"), mode="w")
+    imf = e57.image_file
+    for name in ("{empty-1}", "{empty-2}"):
+        scan = libe57.StructureNode(imf)
+        scan.set("guid", libe57.StringNode(imf, name))
+        prototype = libe57.StructureNode(imf)
+        for axis in "XYZ":
+            prototype.set(f"cartesian{axis}", libe57.FloatNode(imf, 0.0, libe57.E57_DOUBLE))
+        scan.set("points", libe57.CompressedVectorNode(imf, prototype, libe57.VectorNode(imf, True)))
+        e57.data3d.append(scan)
+    e57.close()
+    with pytest.raises(PointCloudFormatError, match=r"none of the E57 file's 2 scan\(s\) declares a point") as caught:
+        read_cloud(tmp_path / "a.e57")
+    assert caught.value.status == 422
+    data = (tmp_path / "a.e57").read_bytes()
+    xml = xml_of(data).replace(b'recordCount="0"', b'recordCount="5"', 1)  # the first scan now declares points
+    with pytest.raises(PointCloudFormatError, match=r"E57 scan 1 holds no points \(its recordCount is 0\)") as caught:
+        read_cloud(with_xml(data, xml), "a.e57")
+    assert caught.value.status == 400
+
+
+def test_an_e57_declaring_more_points_than_memory_holds_is_a_400_without_a_limit(tmp_path) -> None:
+    """The library reserves its arrays from the first scan's record count before it reads a point, and aborts the
+    process where that allocation fails (a declared 2,000,000,000 points: 48 GB, SIGABRT); without a point limit (the
+    CLI) the count is checked against the memory first."""
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    data = (tmp_path / "a.e57").read_bytes()
+    huge = with_xml(data, xml_of(data).replace(b'recordCount="%d"' % len(SOURCE), b'recordCount="%d"' % 10**15))
+    with pytest.raises(PointCloudFormatError, match=r"declare 1000000000000000 points; reading them takes") as caught:
+        read_cloud(huge, "a.e57")
+    assert caught.value.status == 400 and "more than half of this machine's memory" in str(caught.value)
 
 
 # ------------------------------------------------------------------------------------------------------ PTS / PTX
@@ -244,7 +303,7 @@ def test_damaged_tls_uploads_are_4xx_naming_the_file(client, tmp_path) -> None:
     write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
     good = ("t.pts", pts_text(TARGET).encode())
     cases = {
-        ("cut.e57", (tmp_path / "a.e57").read_bytes()[:3000]): (400, "cut.e57", "size in file header"),
+        ("cut.e57", (tmp_path / "a.e57").read_bytes()[:3000]): (400, "cut.e57", "E57 file is cut short"),
         ("count.pts", ("9" + pts_text(SOURCE[:5])[1:]).encode()): (400, "count.pts", "declares 9 points; 5 rows"),
         ("short.ptx", b"3\n2\n0 0 0\n1 0 0\n"): (400, "short.ptx", "header of 10 lines"),
     }
