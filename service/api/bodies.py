@@ -454,10 +454,10 @@ def _upload_error(exc: PointCloudFormatError) -> APIError:
 
 async def refuse_oversized_uploads(form: RegisterForm, max_points: int) -> None:
     """The 413 :func:`decode_upload` would answer for an upload whose header declares more than ``max_points``
-    points (PLY, PCD, LAS/LAZ, .npy, .npz: :func:`service.formats.read.check_declared_count`), before the request
-    waits for a worker, the form then closed: a busy server answered it with a 504 once the deadline passed in the
-    queue. It reads the headers only, in a thread (off the event loop); the decoder stays the authority (text formats,
-    and a header that declares fewer points than its data holds, are refused there)."""
+    points (PLY, PCD, LAS/LAZ, E57, PTS, PTX, .npy, .npz: :func:`service.formats.read.check_declared_count`), before
+    the request waits for a worker (where a deadline passing in the queue would make it a 504), the form then closed.
+    It reads the headers only, in a thread (off the event loop); the decoder stays the authority (text formats, and a
+    header that declares fewer points than its data holds, are refused there)."""
     try:
         await run_in_threadpool(_check_declared_counts, form, max_points)
     except BaseException:
