@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pytest
@@ -13,9 +12,11 @@ from scipy.spatial import cKDTree
 from bench.failures import CLASSES
 from bench.turntable_scans import RADIUS, Shape, about_up, main, turntable_pairs
 from model.analytic_shapes import lumpy_sphere
+from model.data import data_dir
 from model.sensor_sim import estimate_normals
 
-needs_data = pytest.mark.skipif(not os.environ.get("MFGNET_DATA"), reason="ModelNet40 absent (set MFGNET_DATA)")
+needs_data = pytest.mark.skipif(not (data_dir() / "modelnet40_test.npz").exists(),
+                                reason="ModelNet40 absent (../shared/data/modelnet40 or $MFGNET_DATA)")
 
 
 def test_the_ground_truth_turns_the_scan_back_onto_the_scan_at_0_deg() -> None:
