@@ -145,18 +145,21 @@ def run_server(settings: Settings | None = None) -> None:
     """Serve on ``settings.host:settings.port`` in this process until interrupted."""
     import uvicorn
 
-    from service.api.http_protocol import h11_protocol
+    from service.api.http_protocol import connection_limits, h11_protocol
 
     settings = settings or Settings()
     configure_logging(settings.log_level)
     app = create_app(settings)
+    max_connections, backlog = connection_limits(settings.max_connections)  # within the open-file limit
     uvicorn.run(
         app,
         host=settings.host,
         port=settings.port,
         workers=1,
-        # uvicorn's h11, with a deadline on the request headers; its 408s counted in the app's metrics
-        http=h11_protocol(settings.header_timeout_s, app.state.metrics),
+        # uvicorn's h11, with a deadline on the request headers and a cap on open connections; its 408s and refused
+        # connections counted in the app's metrics
+        http=h11_protocol(settings.header_timeout_s, app.state.metrics, max_connections),
+        backlog=backlog,
         access_log=False,  # one JSON line per request comes from RequestContextMiddleware
         log_config=None,  # keep the JSON handlers configure_logging installed
         server_header=False,

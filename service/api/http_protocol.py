@@ -1,4 +1,4 @@
-"""uvicorn's h11 protocol with a deadline on the request line and headers (slowloris).
+"""uvicorn's h11 protocol with a deadline on the request line and headers (slowloris) and a cap on open connections.
 
 uvicorn times out a connection only while it is idle between two requests (``timeout_keep_alive``): a connection
 that never sends a byte, or that sends its headers a line at a time, stays open for good, and a few thousand of
@@ -10,6 +10,14 @@ them hold every file descriptor the process may open. Here:
   ``mfgnet_http_header_timeouts_total`` and written as an access line (status 408, the peer's address). Written
   below the ASGI layer, the 408 carries the hardening headers of ``security_headers.py`` itself.
 
+At most ``max_connections`` connections stay open (idle ones cost a file descriptor each: at a soft ``nofile`` limit
+of 1024, 2,000 idle connections left the health probes unanswered). A connection beyond the cap first closes the
+connection idle for longest (none sent yet, or kept alive between requests), as nginx reuses its idle connections when
+its ``worker_connections`` run out: a client may always reconnect, and probes get in. Only when every open connection
+is busy with a request is the new one refused: a JSON 503 with ``Retry-After`` at once, its write side shut and the
+socket closed a second later (so the answer is read, not reset), counted in ``mfgnet_http_connections_refused_total``.
+uvicorn's own ``limit_concurrency`` reads the request first, answers a plain-text 503, and leaves idle connections open.
+
 Bodies have their own limits (``body_timeout_s``, ``body_min_rate``: ``middleware.py``).
 """
 
@@ -19,15 +27,20 @@ import asyncio
 import json
 import logging
 import uuid
+from collections import OrderedDict
+from typing import ClassVar
 
 import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.api.metrics import Metrics
 from service.api.security_headers import CSP, HEADERS, NOTHING_ALLOWED
-from service.core.logging import ACCESS_LOGGER
+from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
 access_log = logging.getLogger(ACCESS_LOGGER)
+FD_RESERVE = 100  # file descriptors kept for other than connections: models, spooled uploads, logs, the loop's own
+REFUSED_LINGER_S = 1.0  # a refused connection's socket stays open this long after its 503, so the client reads it
+RETRY_AFTER_REFUSED_S = 1
 
 
 class HeaderTimeoutH11Protocol(H11Protocol):
@@ -35,13 +48,59 @@ class HeaderTimeoutH11Protocol(H11Protocol):
     metrics: Metrics | None = None  # the app's, for mfgnet_http_header_timeouts_total (set by :func:`h11_protocol`)
     _header_timer: asyncio.TimerHandle | None = None
     _first_byte_at: float = 0.0  # loop time of the pending request's first byte
+    max_connections: int | None = None  # open connections at most (set by :func:`h11_protocol`)
+    # This server's idle connections, longest idle first (:func:`h11_protocol` gives each server its own).
+    idle: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
+    _refused: bool = False
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
+        if self.max_connections is not None and len(self.connections) > self.max_connections and not self._make_room():
+            self._refuse()
+            return
         # Nothing sent yet: idle, as between two requests (uvicorn cancels this timer when data arrives).
         self.timeout_keep_alive_task = self.loop.call_later(self.timeout_keep_alive, self.timeout_keep_alive_handler)
+        self.idle[self] = None
+
+    def _make_room(self) -> bool:
+        """Close the connection idle for longest (as its keep-alive timeout would); ``False`` if none is idle."""
+        for other in self.idle:
+            if not other.transport.is_closing():
+                other._unset_keepalive_if_required()
+                other.timeout_keep_alive_handler()
+                return True
+        return False
+
+    def _refuse(self) -> None:
+        """A JSON 503 before any request, the write side shut; the socket is closed after ``REFUSED_LINGER_S``."""
+        self._refused = True
+        message = (f"the server has {self.max_connections} connections open, each busy with a request "
+                   "(max_connections); retry later")
+        body = json.dumps({"error": message}).encode()
+        self.transport.write(
+            b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\ncontent-length: %d\r\n"
+            b"retry-after: %d\r\n%sconnection: close\r\n\r\n%s"
+            % (len(body), RETRY_AFTER_REFUSED_S, _hardening(), body)
+        )
+        if self.transport.can_write_eof():
+            self.transport.write_eof()
+        self.loop.call_later(REFUSED_LINGER_S, self.transport.close)
+        if self.metrics is not None:
+            self.metrics.connections_refused.inc()
+
+    def _unset_keepalive_if_required(self) -> None:
+        super()._unset_keepalive_if_required()
+        self.idle.pop(self, None)
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if self.timeout_keep_alive_task is not None:  # idle again, until the next request's first bytes
+            self.idle[self] = None
+            self.idle.move_to_end(self)
 
     def data_received(self, data: bytes) -> None:
+        if self._refused:  # answered already: what it sends is not read
+            return
         if self._header_timer is None and self.conn.their_state is h11.IDLE:  # a request's first bytes
             self._first_byte_at = self.loop.time()
             self._header_timer = self.loop.call_later(self.header_timeout_s, self._headers_late)
@@ -51,6 +110,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_header_timer()
+        self.idle.pop(self, None)
         super().connection_lost(exc)
 
     def _cancel_header_timer(self) -> None:
@@ -65,10 +125,9 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         message = f"the request headers did not arrive within {self.header_timeout_s:g} s (header_timeout_s)"
         body = json.dumps({"error": message}).encode()
         request_id = uuid.uuid4().hex  # as the request context's for a request without a usable X-Request-ID
-        hardening = b"".join(b"%s: %s\r\n" % pair for pair in (*HEADERS, (CSP, NOTHING_ALLOWED.encode())))
         self.transport.write(  # h11 sends no response before a request: the bytes are written as they are
             b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\ncontent-length: %d\r\n"
-            b"x-request-id: %s\r\n%sconnection: close\r\n\r\n%s" % (len(body), request_id.encode(), hardening, body)
+            b"x-request-id: %s\r\n%sconnection: close\r\n\r\n%s" % (len(body), request_id.encode(), _hardening(), body)
         )
         self.transport.close()
         if self.metrics is not None:
@@ -85,7 +144,49 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         })
 
 
-def h11_protocol(header_timeout_s: float, metrics: Metrics | None = None) -> type[HeaderTimeoutH11Protocol]:
-    """The protocol class for ``uvicorn.run(http=...)`` with this header deadline, counting its 408s in ``metrics``."""
+UVICORN_BACKLOG = 2048  # uvicorn's listen backlog; asyncio accepts up to this many connections before any is handled
+
+
+def connection_limits(max_connections: int) -> tuple[int, int]:
+    """``(cap on open connections, listen backlog)``: ``max_connections`` and uvicorn's backlog, or less where the
+    open-file limit would run out first. The soft ``nofile`` limit is raised to the hard one first (as nginx's
+    ``worker_rlimit_nofile`` and Go programs do; containers often start at a soft 1024). asyncio accepts up to a
+    backlog of connections at once before any of them is handled (and so before the cap can close one), so the cap,
+    the backlog and :data:`FD_RESERVE` must fit in the limit together; a log line says when they were lowered. Past
+    the limit, ``accept()`` fails: new connections wait unanswered, probes included, and asyncio logs the failure
+    thousands of times a second."""
+    try:
+        import resource
+    except ImportError:  # not a Unix: no such limit to read
+        return max_connections, UVICORN_BACKLOG
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != hard:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+            soft = hard
+        except (ValueError, OSError):  # e.g. an unlimited hard limit, above the kernel's nr_open: keep the soft one
+            pass
+    if soft == resource.RLIM_INFINITY or max_connections + UVICORN_BACKLOG + FD_RESERVE <= soft:
+        return max_connections, UVICORN_BACKLOG
+    room = max(2, soft - FD_RESERVE)
+    backlog = min(UVICORN_BACKLOG, room // 2)
+    cap = max(1, min(max_connections, room - backlog))
+    logging.getLogger(APP_LOGGER).warning(
+        "max_connections and the listen backlog lowered to fit the open-file limit (nofile)",
+        extra={"max_connections": max_connections, "nofile": soft, "cap": cap, "backlog": backlog},
+    )
+    return cap, backlog
+
+
+def _hardening() -> bytes:
+    """The headers of ``security_headers.py``, as header lines (for the answers written below the ASGI layer)."""
+    return b"".join(b"%s: %s\r\n" % pair for pair in (*HEADERS, (CSP, NOTHING_ALLOWED.encode())))
+
+
+def h11_protocol(header_timeout_s: float, metrics: Metrics | None = None,
+                 max_connections: int | None = None) -> type[HeaderTimeoutH11Protocol]:
+    """The protocol class for ``uvicorn.run(http=...)`` with this header deadline and connection cap (``None``: no
+    cap), counting its 408s and refused connections in ``metrics``; one class per server (it holds the idle ones)."""
     return type("HeaderTimeoutH11Protocol", (HeaderTimeoutH11Protocol,),
-                {"header_timeout_s": header_timeout_s, "metrics": metrics})
+                {"header_timeout_s": header_timeout_s, "metrics": metrics, "max_connections": max_connections,
+                 "idle": OrderedDict()})

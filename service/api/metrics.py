@@ -39,6 +39,11 @@ class Metrics:
             "header_timeout_s of its first byte (slow or stalled clients, slowloris).",
             registry=self.registry,
         )
+        self.connections_refused = Counter(
+            "mfgnet_http_connections_refused",
+            "Connections answered 503 and closed on arrival because max_connections were open and none was idle.",
+            registry=self.registry,
+        )
         self.latency = Histogram(
             "mfgnet_http_request_duration_seconds",
             "Seconds from a request's arrival to its last response byte, by route template.",

@@ -115,6 +115,13 @@ class Settings(BaseSettings):
         "connection is closed (slowloris: uvicorn alone waits for ever). A new connection that sends nothing is "
         "closed after keep_alive_s, as an idle one between requests is.",
     )
+    max_connections: int = Field(
+        1000, ge=1, description="Most connections open at once. A connection beyond it closes the one idle for "
+        "longest (none sent yet, or kept alive between requests); when every open connection is busy with a request "
+        "it is refused at once with 503 and Retry-After. At most the open-file limit (nofile, raised to its hard limit "
+        "at start) less 100, which file descriptors other than connections may need. An idle connection costs about "
+        "5 KiB.",
+    )
     keep_alive_s: int = Field(
         75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
         "(often 60 s), so the server never closes a connection that a client is about to reuse.",

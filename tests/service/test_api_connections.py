@@ -1,0 +1,178 @@
+"""The cap on open connections (``MFGNET_MAX_CONNECTIONS``, ``service/api/http_protocol.py``) against a real server
+process: idle connections make room for new ones (probes get in), and when every connection is busy with a request a
+new one is answered 503 with Retry-After at once; the open-file limit is raised and the cap fitted under it."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+from api_server import REPO, start_subprocess_server
+
+CAP = 8
+
+
+@pytest.fixture(scope="module")
+def capped_server():
+    server = start_subprocess_server("capped", MFGNET_MAX_CONNECTIONS=str(CAP))
+    yield server
+    server.stop()
+
+
+def connect(server) -> socket.socket:
+    url = urlsplit(server.url)
+    return socket.create_connection((url.hostname, url.port), timeout=10)
+
+
+def closed_by_server(sock: socket.socket, within_s: float) -> bool:
+    """Whether the server closed ``sock`` (EOF, or a reset) within ``within_s`` seconds."""
+    sock.settimeout(within_s)
+    try:
+        return sock.recv(1) == b""
+    except TimeoutError:
+        return False
+    except ConnectionResetError:
+        return True
+
+
+def answer(sock: socket.socket, timeout_s: float = 10) -> bytes:
+    """Everything the server sends until it closes the connection."""
+    sock.settimeout(timeout_s)
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    return data
+
+
+def get(sock: socket.socket, path: str, timeout_s: float = 10) -> bytes:
+    sock.sendall(b"GET %s HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n" % path.encode())
+    return answer(sock, timeout_s)
+
+
+def test_idle_connections_beyond_the_cap_make_room_and_a_probe_gets_in(capped_server):
+    """Without a cap all of them stayed open (for MFGNET_KEEP_ALIVE_S, 75 s): a few thousand held every file
+    descriptor a soft nofile limit of 1024 gives, and the probes went unanswered."""
+    idle = [connect(capped_server) for _ in range(3 * CAP)]
+    try:
+        time.sleep(0.3)  # every one accepted
+        with connect(capped_server) as probe:
+            started = time.monotonic()
+            reply = get(probe, "/v2/health/live")
+        assert reply.startswith(b"HTTP/1.1 200"), reply[:200]
+        assert time.monotonic() - started < 2
+        time.sleep(0.3)  # the closes sent
+        closed = [closed_by_server(sock, 0.01) for sock in idle]
+        # the longest idle were closed to make room; the newest stay open
+        assert all(closed[: 2 * CAP]), closed
+        assert not any(closed[-CAP + 1 :]), closed
+    finally:
+        for sock in idle:
+            sock.close()
+
+
+def test_when_every_connection_is_busy_a_new_one_is_refused_503_at_once(capped_server):
+    busy = [connect(capped_server) for _ in range(CAP)]
+    try:
+        for sock in busy:  # a request line and nothing more: busy until MFGNET_HEADER_TIMEOUT_S (15 s)
+            sock.sendall(b"GET /v2/health/live HTTP/1.1\r\n")
+        time.sleep(0.3)
+        with connect(capped_server) as late:
+            started = time.monotonic()
+            reply = get(late, "/v2/health/live")
+            elapsed = time.monotonic() - started
+        head, _, body = reply.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 503"), reply[:300]
+        headers = dict(line.decode().lower().split(": ", 1) for line in head.split(b"\r\n")[1:])
+        assert headers["retry-after"] == "1" and headers["content-type"] == "application/json", headers
+        assert headers["x-content-type-options"] == "nosniff", headers
+        assert "max_connections" in json.loads(body)["error"]
+        assert elapsed < 2, elapsed
+    finally:
+        for sock in busy:
+            sock.close()
+    time.sleep(0.3)
+    with connect(capped_server) as sock:  # the busy ones gone: served again, and the refusal counted
+        metrics = get(sock, "/metrics")
+    assert metrics.startswith(b"HTTP/1.1 200"), metrics[:200]
+    match = re.search(rb"^mfgnet_http_connections_refused_total (\S+)$", metrics, re.MULTILINE)
+    assert match and float(match.group(1)) == 1.0, metrics[-2000:]
+
+
+LIMITS = "from service.api.http_protocol import connection_limits as c; import resource; " \
+         "print(c(1000), resource.getrlimit(resource.RLIMIT_NOFILE)[0])"
+
+
+@pytest.mark.parametrize(("ulimit", "expected"), [
+    ("-Sn 512", "(1000, 2048) 4096"),  # the soft limit raised to the hard one: room for the defaults
+    ("-n 1024", "(462, 462) 1024"),  # a hard limit of 1024: the cap and backlog lowered to fit it
+])
+def test_the_open_file_limit_is_raised_and_the_cap_fitted_under_it(ulimit, expected):
+    command = f"ulimit -Sn 512 && ulimit -Hn 4096 && ulimit {ulimit} && exec {sys.executable} -c '{LIMITS}'"
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = subprocess.run(["bash", "-c", command], capture_output=True, text=True, env=env, cwd=REPO, timeout=30)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == expected
+
+
+IDLE = 2000
+CONTAINER_SOFT_NOFILE = 1024  # a common container default (the hard limit is far higher)
+
+
+def server_status(pid: int) -> tuple[int, float]:
+    """The server's open file descriptors and resident memory (MiB)."""
+    status = Path(f"/proc/{pid}/status").read_text().splitlines()
+    rss = next(line for line in status if line.startswith("VmRSS")).split()[1]
+    return len(os.listdir(f"/proc/{pid}/fd")), int(rss) / 1024
+
+
+@pytest.mark.slow
+def test_two_thousand_idle_connections_at_a_soft_nofile_of_1024_leave_the_probes_answered():
+    """Before the cap, such a server's open files ran out (asyncio: "socket.accept() out of system resource", logged
+    tens of thousands of times) and both probes timed out for as long as the connections stayed open (75 s)."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < IDLE + 200:
+        pytest.skip(f"the hard nofile limit {hard} leaves no room for {IDLE} client sockets")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (CONTAINER_SOFT_NOFILE, hard))  # the server inherits it
+    try:
+        server = start_subprocess_server("idle-connections")
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, IDLE + 200), hard))  # this process's own sockets
+    idle: list[socket.socket] = []
+    try:
+        pid = server.extra["proc"].pid
+        fds_before, rss_before = server_status(pid)
+        started = time.monotonic()
+        idle = [connect(server) for _ in range(IDLE)]
+        opened_s = time.monotonic() - started
+        time.sleep(2)
+        fds, rss = server_status(pid)
+        answers = {}
+        for path in ("/v2/health/live", "/v2/health/ready"):
+            with connect(server) as probe:
+                started = time.monotonic()
+                try:
+                    reply = get(probe, path, timeout_s=5)
+                except TimeoutError:
+                    reply = b"(no answer within 5 s)"
+                answers[path] = (reply.split(b"\r\n", 1)[0].decode(), round(time.monotonic() - started, 3))
+        accept_errors = server.log_path.read_text().count("out of system resource")
+        print(f"\n{IDLE} idle connections opened in {opened_s:.1f} s; server file descriptors {fds_before} -> {fds}, "
+              f"RSS {rss_before:.1f} -> {rss:.1f} MiB; probes {answers}; accept errors logged: {accept_errors}")
+        assert all(status.startswith("HTTP/1.1 200") and seconds < 1 for status, seconds in answers.values()), answers
+        assert accept_errors == 0
+        assert fds < 1000 + 100, fds  # the default cap, and the server's own files
+    finally:
+        for sock in idle:
+            sock.close()
+        server.stop()
