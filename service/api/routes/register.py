@@ -88,10 +88,12 @@ async def register(request: Request) -> RenderedJSON:
         if kind == bodies.JSON:
             held = held_until_done.enter_context(
                 await bodies.read_body(request, runner.body_budget, settings.max_body_bytes))
+            # 413 before the wait for a worker
+            await bodies.refuse_too_many_values(held, bodies.check_register_values, settings.max_points)
 
             def decode() -> bodies.Pair:  # takes the body: it is freed once parsed, before the pipeline runs
                 with held:
-                    return bodies.register_pair_from_json(held.take(), settings.max_points)
+                    return bodies.register_pair_from_json(held.take(), settings.max_points, values_checked=True)
         else:
             form = await bodies.read_register_form(request)
             await bodies.refuse_oversized_uploads(form, settings.max_file_points)  # 413 before the wait for a worker
@@ -121,10 +123,13 @@ async def register_batch(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
     bodies.require_media_type(request, bodies.JSON)
     with runner.admit() as slot, await bodies.read_body(request, runner.body_budget, settings.max_body_bytes) as held:
+        # 413 before the wait for a worker
+        await bodies.refuse_too_many_values(held, bodies.check_batch_values, settings.max_points)
 
         def decode() -> list[bodies.Pair]:
             with held:
-                return bodies.batch_pairs_from_json(held.take(), settings.max_points, settings.max_batch)
+                return bodies.batch_pairs_from_json(held.take(), settings.max_points, settings.max_batch,
+                                                    values_checked=True)
 
         def work(pairs: list[bodies.Pair]):
             return pairs, runner.register_batch(pairs)
