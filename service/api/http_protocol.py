@@ -13,8 +13,10 @@ them hold every file descriptor the process may open. Here:
 At most ``max_connections`` connections stay open (idle ones cost a file descriptor each: at a soft ``nofile`` limit
 of 1024, 2,000 idle connections left the health probes unanswered). A connection beyond the cap first closes the
 connection idle for longest (none sent yet, or kept alive between requests), as nginx reuses its idle connections when
-its ``worker_connections`` run out: a client may always reconnect, and probes get in. Only when every open connection
-is busy with a request is the new one refused: a JSON 503 with ``Retry-After`` at once, its write side shut and the
+its ``worker_connections`` run out: a client may always reconnect, and probes get in. Without an idle one, the
+connection whose headers have been arriving for longest gets a 408 and is closed (slowloris connections, each kept for
+up to ``header_timeout_s``, cannot fill the cap). Only when every open connection has a whole request is the new one
+refused: a JSON 503 with ``Retry-After`` at once, its write side shut and the
 socket closed a second later (so the answer is read, not reset), counted in ``mfgnet_http_connections_refused_total``.
 uvicorn's own ``limit_concurrency`` reads the request first, answers a plain-text 503, and leaves idle connections open.
 
@@ -41,6 +43,8 @@ access_log = logging.getLogger(ACCESS_LOGGER)
 FD_RESERVE = 100  # file descriptors kept for other than connections: models, spooled uploads, logs, the loop's own
 REFUSED_LINGER_S = 1.0  # a refused connection's socket stays open this long after its 503, so the client reads it
 RETRY_AFTER_REFUSED_S = 1
+ROOM_MESSAGE = ("the request headers were still arriving when a new connection needed the place (max_connections); "
+                "send them at once")
 
 
 class HeaderTimeoutH11Protocol(H11Protocol):
@@ -51,6 +55,8 @@ class HeaderTimeoutH11Protocol(H11Protocol):
     max_connections: int | None = None  # open connections at most (set by :func:`h11_protocol`)
     # This server's idle connections, longest idle first (:func:`h11_protocol` gives each server its own).
     idle: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
+    # Its connections whose request headers are arriving, the earliest first byte first.
+    arriving: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
     _refused: bool = False
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
@@ -63,11 +69,17 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         self.idle[self] = None
 
     def _make_room(self) -> bool:
-        """Close the connection idle for longest (as its keep-alive timeout would); ``False`` if none is idle."""
+        """Close the connection idle for longest (as its keep-alive timeout would), else the one whose headers have
+        been arriving for longest (a 408, as its header deadline would; slowloris connections cannot fill the cap);
+        ``False`` if every other connection has a whole request."""
         for other in self.idle:
             if not other.transport.is_closing():
                 other._unset_keepalive_if_required()
                 other.timeout_keep_alive_handler()
+                return True
+        for other in self.arriving:
+            if other is not self and not other.transport.is_closing():
+                other._headers_late(ROOM_MESSAGE)
                 return True
         return False
 
@@ -104,6 +116,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         if self._header_timer is None and self.conn.their_state is h11.IDLE:  # a request's first bytes
             self._first_byte_at = self.loop.time()
             self._header_timer = self.loop.call_later(self.header_timeout_s, self._headers_late)
+            self.arriving[self] = None
         super().data_received(data)
         if self.conn.their_state is not h11.IDLE:  # its headers are complete (or it was refused)
             self._cancel_header_timer()
@@ -114,15 +127,19 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         super().connection_lost(exc)
 
     def _cancel_header_timer(self) -> None:
+        self.arriving.pop(self, None)
         if self._header_timer is not None:
             self._header_timer.cancel()
             self._header_timer = None
 
-    def _headers_late(self) -> None:
-        self._header_timer = None
+    def _headers_late(self, message: str | None = None) -> None:
+        """The 408 for headers not whole after ``header_timeout_s`` (counted), or closed early with ``message``."""
+        late = message is None
+        self._cancel_header_timer()
         if self.conn.their_state is not h11.IDLE or self.transport.is_closing():
             return
-        message = f"the request headers did not arrive within {self.header_timeout_s:g} s (header_timeout_s)"
+        if late:
+            message = f"the request headers did not arrive within {self.header_timeout_s:g} s (header_timeout_s)"
         body = json.dumps({"error": message}).encode()
         request_id = uuid.uuid4().hex  # as the request context's for a request without a usable X-Request-ID
         self.transport.write(  # h11 sends no response before a request: the bytes are written as they are
@@ -130,7 +147,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
             b"x-request-id: %s\r\n%sconnection: close\r\n\r\n%s" % (len(body), request_id.encode(), _hardening(), body)
         )
         self.transport.close()
-        if self.metrics is not None:
+        if late and self.metrics is not None:
             self.metrics.header_timeouts.inc()
         # The access line of the request context (middleware.py) but for the request line, which may not have
         # arrived whole: no method, route or path, and the peer's address (no proxy's X-Forwarded-For was read).
@@ -189,4 +206,4 @@ def h11_protocol(header_timeout_s: float, metrics: Metrics | None = None,
     cap), counting its 408s and refused connections in ``metrics``; one class per server (it holds the idle ones)."""
     return type("HeaderTimeoutH11Protocol", (HeaderTimeoutH11Protocol,),
                 {"header_timeout_s": header_timeout_s, "metrics": metrics, "max_connections": max_connections,
-                 "idle": OrderedDict()})
+                 "idle": OrderedDict(), "arriving": OrderedDict()})

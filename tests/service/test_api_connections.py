@@ -78,11 +78,44 @@ def test_idle_connections_beyond_the_cap_make_room_and_a_probe_gets_in(capped_se
             sock.close()
 
 
+def test_connections_whose_headers_are_still_arriving_make_room_with_a_408(capped_server):
+    """Slowloris connections (a request line, then nothing: kept until MFGNET_HEADER_TIMEOUT_S, 15 s) cannot fill
+    the cap: the one whose headers began first is answered 408 and closed."""
+    slow = [connect(capped_server) for _ in range(CAP)]
+    try:
+        for sock in slow:
+            sock.sendall(b"GET /v2/health/live HTTP/1.1\r\n")
+            time.sleep(0.01)  # in this order
+        time.sleep(0.3)
+        with connect(capped_server) as probe:
+            reply = get(probe, "/v2/health/live")
+        assert reply.startswith(b"HTTP/1.1 200"), reply[:200]
+        first = answer(slow[0], timeout_s=2)
+        assert first.startswith(b"HTTP/1.1 408") and b"max_connections" in first, first[:300]
+        time.sleep(0.3)
+        assert not any(closed_by_server(sock, 0.01) for sock in slow[1:])
+    finally:
+        for sock in slow:
+            sock.close()
+
+
+def refused(server) -> float:
+    """``mfgnet_http_connections_refused_total`` on the server's ``/metrics``."""
+    with connect(server) as sock:
+        metrics = get(sock, "/metrics")
+    assert metrics.startswith(b"HTTP/1.1 200"), metrics[:200]
+    match = re.search(rb"^mfgnet_http_connections_refused_total (\S+)$", metrics, re.MULTILINE)
+    assert match, metrics[-2000:]
+    return float(match.group(1))
+
+
 def test_when_every_connection_is_busy_a_new_one_is_refused_503_at_once(capped_server):
+    before = refused(capped_server)
     busy = [connect(capped_server) for _ in range(CAP)]
     try:
-        for sock in busy:  # a request line and nothing more: busy until MFGNET_HEADER_TIMEOUT_S (15 s)
-            sock.sendall(b"GET /v2/health/live HTTP/1.1\r\n")
+        for sock in busy:  # a whole request but for its body: busy until MFGNET_BODY_TIMEOUT_S (15 s)
+            sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                         b"Content-Length: 1000\r\n\r\n{")
         time.sleep(0.3)
         with connect(capped_server) as late:
             started = time.monotonic()
@@ -99,11 +132,7 @@ def test_when_every_connection_is_busy_a_new_one_is_refused_503_at_once(capped_s
         for sock in busy:
             sock.close()
     time.sleep(0.3)
-    with connect(capped_server) as sock:  # the busy ones gone: served again, and the refusal counted
-        metrics = get(sock, "/metrics")
-    assert metrics.startswith(b"HTTP/1.1 200"), metrics[:200]
-    match = re.search(rb"^mfgnet_http_connections_refused_total (\S+)$", metrics, re.MULTILINE)
-    assert match and float(match.group(1)) == 1.0, metrics[-2000:]
+    assert refused(capped_server) == before + 1  # the busy ones gone: served again, and the refusal counted
 
 
 LIMITS = "from service.api.http_protocol import connection_limits as c; import resource; " \
