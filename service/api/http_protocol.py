@@ -20,6 +20,13 @@ refused: a JSON 503 with ``Retry-After`` at once, its write side shut and the
 socket closed a second later (so the answer is read, not reset), counted in ``mfgnet_http_connections_refused_total``.
 uvicorn's own ``limit_concurrency`` reads the request first, answers a plain-text 503, and leaves idle connections open.
 
+A request answered before its body was read whole (a 413 from its Content-Length, a 415, a 503 from a full queue, a
+408 for a stalled body) leaves the rest of its body to come: uvicorn read it for as long as it kept coming, with no
+timer at all, so a byte now and then held the connection for good. Here it is read (and dropped) for at most
+``LINGER_MAX_S``, and the connection closed once none has come for ``LINGER_IDLE_S`` (nginx's ``lingering_time`` and
+``lingering_timeout``); a body that ends in time leaves the connection to serve its next request. A lingering
+connection, its answer sent, is the first to go when the cap needs room after the idle ones.
+
 Bodies have their own limits (``body_timeout_s``, ``body_min_rate``: ``middleware.py``).
 """
 
@@ -43,6 +50,8 @@ access_log = logging.getLogger(ACCESS_LOGGER)
 FD_RESERVE = 100  # file descriptors kept for other than connections: models, spooled uploads, logs, the loop's own
 REFUSED_LINGER_S = 1.0  # a refused connection's socket stays open this long after its 503, so the client reads it
 RETRY_AFTER_REFUSED_S = 1
+LINGER_IDLE_S = 5.0  # the rest of an answered request's body: closed once none has come for this long...
+LINGER_MAX_S = 30.0  # ...or this long after the answer, whatever comes
 ROOM_MESSAGE = ("the request headers were still arriving when a new connection needed the place (max_connections); "
                 "send them at once")
 
@@ -57,7 +66,11 @@ class HeaderTimeoutH11Protocol(H11Protocol):
     idle: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
     # Its connections whose request headers are arriving, the earliest first byte first.
     arriving: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
+    # Its connections answered before their request's body was read whole, discarding the rest, the earliest first.
+    lingering: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
     _refused: bool = False
+    _linger_timer: asyncio.TimerHandle | None = None
+    _linger_until: float = 0.0
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -76,6 +89,10 @@ class HeaderTimeoutH11Protocol(H11Protocol):
             if not other.transport.is_closing():
                 other._unset_keepalive_if_required()
                 other.timeout_keep_alive_handler()
+                return True
+        for other in self.lingering:
+            if not other.transport.is_closing():
+                other._stop_lingering()
                 return True
         for other in self.arriving:
             if other is not self and not other.transport.is_closing():
@@ -106,12 +123,38 @@ class HeaderTimeoutH11Protocol(H11Protocol):
 
     def on_response_complete(self) -> None:
         super().on_response_complete()
+        if self.conn.their_state is h11.SEND_BODY and not self.transport.is_closing():  # answered, its body unread
+            self._unset_keepalive_if_required()
+            self._linger_until = self.loop.time() + LINGER_MAX_S
+            self._linger_timer = self.loop.call_later(LINGER_IDLE_S, self._stop_lingering)
+            self.lingering[self] = None
+            return
         if self.timeout_keep_alive_task is not None:  # idle again, until the next request's first bytes
             self.idle[self] = None
             self.idle.move_to_end(self)
 
     def data_received(self, data: bytes) -> None:
         if self._refused:  # answered already: what it sends is not read
+            return
+        if self._linger_timer is not None:  # the rest of an answered request's body, read (and dropped) by uvicorn
+            self._linger_timer.cancel()
+            self._linger_timer = None
+            answered = self.cycle
+            super().data_received(data)
+            if self.cycle is answered and self.conn.their_state is h11.SEND_BODY:  # more of it to come
+                left = self._linger_until - self.loop.time()
+                self._linger_timer = self.loop.call_later(max(0.0, min(LINGER_IDLE_S, left)), self._stop_lingering)
+                return
+            self.lingering.pop(self, None)  # its body ended: the connection serves its next request as any other
+            if self.cycle is answered and not self.transport.is_closing():
+                if self.conn.their_state is h11.IDLE and self.conn.trailing_data[0]:  # the next request's first bytes
+                    self._first_byte_at = self.loop.time()
+                    self._header_timer = self.loop.call_later(self.header_timeout_s, self._headers_late)
+                    self.arriving[self] = None
+                elif self.conn.their_state is h11.IDLE:  # idle, as after any answer
+                    self.timeout_keep_alive_task = self.loop.call_later(self.timeout_keep_alive,
+                                                                        self.timeout_keep_alive_handler)
+                    self.idle[self] = None
             return
         if self._header_timer is None and self.conn.their_state is h11.IDLE:  # a request's first bytes
             self._first_byte_at = self.loop.time()
@@ -121,9 +164,20 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         if self.conn.their_state is not h11.IDLE:  # its headers are complete (or it was refused)
             self._cancel_header_timer()
 
+    def _stop_lingering(self) -> None:
+        self.lingering.pop(self, None)
+        if self._linger_timer is not None:
+            self._linger_timer.cancel()
+            self._linger_timer = None
+        self.transport.close()
+
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_header_timer()
         self.idle.pop(self, None)
+        self.lingering.pop(self, None)
+        if self._linger_timer is not None:
+            self._linger_timer.cancel()
+            self._linger_timer = None
         super().connection_lost(exc)
 
     def _cancel_header_timer(self) -> None:
@@ -206,4 +260,4 @@ def h11_protocol(header_timeout_s: float, metrics: Metrics | None = None,
     cap), counting its 408s and refused connections in ``metrics``; one class per server (it holds the idle ones)."""
     return type("HeaderTimeoutH11Protocol", (HeaderTimeoutH11Protocol,),
                 {"header_timeout_s": header_timeout_s, "metrics": metrics, "max_connections": max_connections,
-                 "idle": OrderedDict(), "arriving": OrderedDict()})
+                 "idle": OrderedDict(), "arriving": OrderedDict(), "lingering": OrderedDict()})

@@ -117,7 +117,8 @@ class Settings(BaseSettings):
     )
     max_connections: int = Field(
         1000, ge=1, description="Most connections open at once. A connection beyond it closes the one idle for "
-        "longest (none sent yet, or kept alive between requests), else the one whose headers have been arriving for "
+        "longest (none sent yet, or kept alive between requests), else one answered before its body was read whole, "
+        "else the one whose headers have been arriving for "
         "longest (408); when every open connection has a whole request "
         "it is refused at once with 503 and Retry-After. At most the open-file limit (nofile, raised to its hard limit "
         "at start) less 100, which file descriptors other than connections may need. An idle connection costs about "

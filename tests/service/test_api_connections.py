@@ -99,6 +99,54 @@ def test_connections_whose_headers_are_still_arriving_make_room_with_a_408(cappe
             sock.close()
 
 
+TOO_LARGE = (b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+             b"Content-Length: 104857600\r\n\r\n{")  # over max_body_bytes (64 MiB): a 413 before the body is read
+
+
+def answered_early(server) -> socket.socket:
+    """A connection whose request was answered 413 from its Content-Length, its body still to come."""
+    sock = connect(server)
+    sock.sendall(TOO_LARGE)
+    sock.settimeout(5)
+    reply = b""
+    while b"\r\n\r\n" not in reply or not reply.endswith(b"}"):  # the whole answer: its JSON body ends it
+        reply += sock.recv(65536)
+    assert reply.startswith(b"HTTP/1.1 413"), reply[:200]
+    return sock
+
+
+def test_connections_answered_before_their_body_make_room(capped_server):
+    """uvicorn read the rest of such a body for as long as it kept coming, with no timer: connections answered early
+    and then fed a byte now and then held places of the cap for good. Now they linger at most 30 s and go first."""
+    early = [answered_early(capped_server) for _ in range(CAP)]
+    try:
+        for sock in early:
+            sock.sendall(b" ")
+        time.sleep(0.3)
+        with connect(capped_server) as probe:
+            reply = get(probe, "/v2/health/live")
+        assert reply.startswith(b"HTTP/1.1 200"), reply[:200]
+        assert closed_by_server(early[0], 2)  # the one answered first made room
+    finally:
+        for sock in early:
+            sock.close()
+
+
+@pytest.mark.slow
+def test_the_rest_of_an_answered_body_is_read_30_s_at_most(capped_server):
+    with answered_early(capped_server) as sock:
+        started = time.monotonic()
+        closed = False
+        while not closed and time.monotonic() - started < 40:
+            try:
+                sock.sendall(b" ")  # a byte every half second: never idle for LINGER_IDLE_S (5 s)
+            except OSError:
+                break
+            closed = closed_by_server(sock, 0.5)
+        elapsed = time.monotonic() - started
+    assert 29 < elapsed < 32, elapsed
+
+
 def refused(server) -> float:
     """``mfgnet_http_connections_refused_total`` on the server's ``/metrics``."""
     with connect(server) as sock:
