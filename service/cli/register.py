@@ -59,7 +59,12 @@ OutOpt = Annotated[
     typer.Option(help="write the pose, quality, model and timing as JSON here ('-': to standard output, as --json)"),
 ]
 WriteAlignedOpt = Annotated[
-    Path | None, typer.Option(help="write the source moved onto the target (R @ p + t); format from extension")
+    Path | None,
+    typer.Option(
+        help="write the source moved onto the target (R @ p + t), format from the extension (.ply .pcd .las .laz "
+        ".xyz .txt .csv .npy .npz): a PLY, PCD or LAS/LAZ source written in its own format keeps its other fields "
+        "(colours, intensity, faces; normals rotated); otherwise x, y, z only"
+    ),
 ]
 BinaryOpt = Annotated[
     bool,
@@ -72,6 +77,7 @@ BinaryOpt = Annotated[
 RequireReliableOpt = Annotated[
     bool, typer.Option(help="exit 3 when the result is not quality.reliable (the outputs are still written)")
 ]
+LAS_SUFFIXES = (".las", ".laz")  # --write-aligned of a LAS/LAZ source only
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")]
 
 
@@ -113,7 +119,7 @@ def register_command(
     """
     if out == Path("-"):  # the record on standard output, nothing else there
         out, json_output = None, True
-    _check_register_flags(write_aligned, out)
+    _check_register_flags(write_aligned, out, source)
     check_server_flags(server, model_dir, threads)
     options = registration_options(
         iterations, keypoints, refine, refine_points, drop_isolated, rotation_search, rotation_search_mode
@@ -124,25 +130,43 @@ def register_command(
         record = _register_remote(server, api_key, src, tgt, model, options, binary, timeout, busy_retries)
     else:
         record = _register_local(src, tgt, model, model_dir or [], threads, options)
-    _write_outputs(record, src, out, write_aligned)
+    _write_outputs(record, src, out, write_aligned, source)
     typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
     if require_reliable and not record["quality"].get("reliable"):
         typer.echo("mfgnet: the result is not reliable (--require-reliable)", err=True)
         raise typer.Exit(UNRELIABLE_EXIT)
 
 
-def _check_register_flags(write_aligned: Path | None, out: Path | None = None) -> None:
-    """Usage errors of ``register``'s outputs, before the registration runs."""
+def _check_register_flags(write_aligned: Path | None, out: Path | None = None, source: Path | None = None) -> None:
+    """Usage errors of ``register``'s outputs, before the registration runs: among them a LAS/LAZ ``--write-aligned``
+    of a source that is not LAS/LAZ (its format from its content)."""
+    from service.formats.moved import FORMAT_NAMES, source_format
     from service.pointcloud_io import SUFFIXES
 
     check_output_path(out, "--out")
     check_output_path(write_aligned, "--write-aligned")
-    if write_aligned is not None and write_aligned.suffix.lower() not in SUFFIXES:
-        fail(f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected {SUFFIXES}")
+    if write_aligned is None:
+        return
+    suffix = write_aligned.suffix.lower()
+    if suffix not in (*SUFFIXES, *LAS_SUFFIXES):
+        fail(
+            f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected "
+            f"{(*SUFFIXES, *LAS_SUFFIXES)}"
+        )
+    kind = source_format(source) if source is not None else None
+    if suffix in LAS_SUFFIXES and kind is not None and kind != "las":
+        fail(
+            f"--write-aligned {write_aligned.name}: a LAS/LAZ file is written only from a LAS/LAZ source; "
+            f"{source.name} is {FORMAT_NAMES[kind]} (write one of {SUFFIXES})"
+        )
 
 
-def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligned: Path | None) -> None:
-    """``--out`` (the JSON record) and ``--write-aligned`` (the source moved by the pose)."""
+def _write_outputs(
+    record: dict, src: np.ndarray, out: Path | None, write_aligned: Path | None, source: Path | None = None
+) -> None:
+    """``--out`` (the JSON record) and ``--write-aligned`` (the source moved by the pose: the ``source`` file itself,
+    moved, where the output's format is its own PLY, PCD or LAS/LAZ, else ``src``'s x, y, z moved)."""
+    from service.formats.moved import KEPT_FORMATS, keeps_content, other_fields, source_format, write_moved
     from service.pointcloud_io import PointCloudFormatError, write_points
 
     R = np.asarray(record["rotation"], dtype=np.float64)  # [3, 3]
@@ -150,12 +174,26 @@ def _write_outputs(record: dict, src: np.ndarray, out: Path | None, write_aligne
     if out is not None:
         write_text(out, json.dumps(record, indent=2) + "\n")
         typer.echo(f"wrote {out}", err=True)
-    if write_aligned is not None:
-        try:
-            write_points(write_aligned, src @ R.T + t)
-        except (PointCloudFormatError, OSError) as exc:
-            fail(f"cannot write {write_aligned}: {exc}", code=1)
-        typer.echo(f"wrote {write_aligned}", err=True)
+    if write_aligned is None:
+        return
+    moved = src @ R.T + t  # [N, 3]
+    kind = source_format(source) if source is not None else None
+    try:
+        if keeps_content(kind, write_aligned):
+            write_moved(source, write_aligned, R, t, largest=float(np.abs(moved).max()))
+        else:
+            write_points(write_aligned, moved)
+    except (PointCloudFormatError, OSError) as exc:
+        fail(f"cannot write {write_aligned}: {exc}", code=1)
+    typer.echo(f"wrote {write_aligned}", err=True)
+    dropped = [] if keeps_content(kind, write_aligned) else other_fields(source, kind)
+    if dropped:
+        shown = ", ".join(dropped[:6]) + (", ..." if len(dropped) > 6 else "")
+        typer.echo(
+            f"mfgnet: note: {write_aligned.name} holds x, y, z only; {source.name}'s other fields ({shown}) "
+            f"are kept in a {'/'.join(KEPT_FORMATS[kind])} output",
+            err=True,
+        )
 
 
 def _read_transform(path: Path) -> list:

@@ -3,11 +3,12 @@
 =======================  =====================================================  ==================
 format                   read (detected from the content)                       written as
 =======================  =====================================================  ==================
-PLY (``plyfile``)        ascii, binary little/big endian; vertex x, y, z         binary LE float32
-PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z        binary float32
-                         (``VERSION`` ignored, as PCL does)
-LAS/LAZ (``laspy``,      scaled x, y, z in float64                               --
-``lazrs``)
+PLY (``plyfile``)        ascii, binary little/big endian; vertex x, y, z         binary LE float32;
+                                                                                a PLY source moved
+PCD (``pypcd4``)         ascii, binary, binary_compressed; fields x, y, z        binary float32;
+                         (``VERSION`` ignored, as PCL does)                     a PCD source moved
+LAS/LAZ (``laspy``,      scaled x, y, z in float64                               a LAS/LAZ source
+``lazrs``)                                                                      moved
 E57 (``e57``)            every scan moved into the file's frame by its pose,     --
                          appended; spherical converted; invalid points left out
 XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text
@@ -24,9 +25,10 @@ NPZ                      array ``points``, else ``positions`` (Open3D), else    
                          the only array
 =======================  =====================================================  ==================
 
-Colours, intensity, normals and faces are ignored. The PLY, PCD, LAS/LAZ and E57 libraries come with the
-``formats`` extra (part of ``serve``); without one, reading that format raises
-:class:`MissingReaderError` (HTTP 415) naming the extra.
+Colours, intensity, normals and faces are not read. "A ... source moved": the source file itself, its points moved
+and everything else kept (:func:`service.formats.moved.write_moved`, ``mfgnet register --write-aligned``). The PLY,
+PCD, LAS/LAZ and E57 libraries come with the ``formats`` extra (part of ``serve``); without one, reading that format
+raises :class:`MissingReaderError` (HTTP 415) naming the extra.
 """
 
 from service.formats.errors import (

@@ -204,3 +204,23 @@ def test_client_takes_numpy_float32_timeouts(server) -> None:
     with MfgnetClient(server, timeout=np.float32(30)) as client:
         client.wait_ready(timeout=np.float32(1), interval=np.float32(0.01))
         assert client.register(SOURCE, TARGET, iterations=1, keypoints=32)["iterations"] == 1
+
+
+def test_server_mode_writes_the_source_file_moved_with_its_colours(server, tmp_path):
+    """The aligned file is written here from the local source file, whatever computed the pose: a coloured PLY keeps
+    its colours through --server as in process."""
+    import plyfile
+
+    vertex = np.empty(len(SOURCE), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("alpha", "u1")])
+    for axis, name in enumerate("xyz"):
+        vertex[name] = SOURCE[:, axis]
+    vertex["red"], vertex["alpha"] = np.arange(len(SOURCE)) % 251, 255
+    src, tgt, aligned = tmp_path / "scan.ply", tmp_path / "target.npy", tmp_path / "aligned.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")]).write(str(src))
+    np.save(tgt, TARGET)
+    code, remote, err = register(src, tgt, "--server", server, "--write-aligned", aligned)
+    assert code == 0, err
+    rows = plyfile.PlyData.read(str(aligned))["vertex"].data
+    assert rows["red"].tobytes() == vertex["red"].tobytes() and rows["alpha"].tobytes() == vertex["alpha"].tobytes()
+    R, t = np.asarray(remote["rotation"]), np.asarray(remote["translation"])
+    np.testing.assert_allclose(read_points(aligned), SOURCE.astype(np.float64) @ R.T + t, atol=1e-5)

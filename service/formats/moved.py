@@ -1,0 +1,382 @@
+"""The source file itself, its points moved by a pose: ``p' = R @ p + t`` in float64, every other field kept.
+
+Written where the output's format is the source's (:data:`KEPT_FORMATS`; the source's format from its content, the
+output's from its extension): PLY, PCD and LAS/LAZ. Normals (PLY ``nx ny nz``, PCD ``normal_x normal_y normal_z``,
+where all three are floats) are rotated, not translated; every other per-point field is copied as the file holds it.
+
+- PLY (``plyfile`` parses the header): binary files are copied a block of rows at a time, the vertex rows' x, y, z
+  and normals replaced, the bytes of every other element (faces, edges, ...) and the header copied as they are; ASCII
+  files are read and written whole by ``plyfile`` (``%.18g``).
+- PCD (``pypcd4`` parses and composes the header): binary records are copied a block at a time, ``binary_compressed``
+  read and written whole by ``pypcd4``, ASCII read whole and written with ``%.9g`` for 4-byte floats and ``%.17g``
+  for 8-byte ones (``pypcd4``'s ``%.10f`` loses small values and colours packed in a float). The header is composed by
+  ``pypcd4`` (``VERSION 0.7``, comments dropped); ``VIEWPOINT``, the sensor's pose in the file's frame, is moved with
+  the points.
+- LAS/LAZ (``laspy``, ``lazrs``): the points, VLRs (a CRS among them), EVLRs and point format kept; x, y, z at the
+  file's scales, its offsets kept where the moved coordinates fit its 32-bit integers, else the moved bounds' centre
+  rounded to a whole unit; ``laspy`` writes the header's bounds. ``.las`` or ``.laz`` from the output's extension.
+
+x, y, z stored as 4-byte floats become 8-byte ones where a moved coordinate is beyond ``FLOAT32_EXACT_ENOUGH`` (as
+:func:`service.formats.write.write_cloud` writes them). The output is written to a temporary file beside it and
+renamed into place, so an output naming the source is written from the whole source.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, BinaryIO
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from service.formats import pcd as pcd_format
+from service.formats import ply as ply_format
+from service.formats.checks import BLOCK_BYTES
+from service.formats.deps import require
+from service.formats.errors import InvalidPointsError, PointCloudFormatError
+from service.formats.read import _detect as detect_format
+from service.formats.write import FLOAT32_EXACT_ENOUGH
+
+if TYPE_CHECKING:
+    from plyfile import PlyData
+
+# source format (service.formats.detect) -> the output extensions that keep its content
+KEPT_FORMATS = {"ply": (".ply",), "pcd": (".pcd",), "las": (".las", ".laz")}
+NORMALS = {"ply": ("nx", "ny", "nz"), "pcd": ("normal_x", "normal_y", "normal_z")}
+FORMAT_NAMES = {
+    "ply": "PLY",
+    "pcd": "PCD",
+    "las": "LAS/LAZ",
+    "e57": "E57",
+    "npy": "NPY",
+    "npz": "NPZ",
+    "pts": "PTS",
+    "ptx": "PTX",
+    "text": "XYZ/CSV/TXT",
+}
+INT32_MAX = 2**31 - 1
+
+
+def source_format(path: str | os.PathLike[str]) -> str | None:
+    """The format of the file at ``path`` as :func:`service.formats.read_cloud` finds it, from its first bytes;
+    ``None`` where it cannot be opened or read as a point cloud (the reader says why)."""
+    try:
+        with open(path, "rb") as f:
+            return detect_format(f)
+    except (OSError, PointCloudFormatError):
+        return None
+
+
+def keeps_content(kind: str | None, out: str | os.PathLike[str]) -> bool:
+    """Whether an output named ``out`` is written as the source file of format ``kind``, moved."""
+    return Path(out).suffix.lower() in KEPT_FORMATS.get(kind or "", ())
+
+
+def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
+    """What a PLY, PCD or LAS/LAZ file holds besides x, y, z, from its header: the vertex properties and the other
+    elements of a PLY file, the fields of a PCD file, the point dimensions of a LAS/LAZ file. Empty for other formats
+    (their other columns are not known without reading them) and where the header cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            if kind == "ply":
+                header, _ = ply_format._header(require("plyfile", "reading PLY files"), f)
+                names = [prop.name for prop in header["vertex"].properties]
+                return [n for n in names if n not in ("x", "y", "z")] + [
+                    element.name for element in header.elements if element.name != "vertex"
+                ]
+            if kind == "pcd":
+                return [
+                    n
+                    for n in pcd_format._metadata(require("pypcd4", "reading PCD files"), f).fields
+                    if n not in ("x", "y", "z")
+                ]
+            if kind == "las":
+                laspy = require("laspy", "reading LAS/LAZ files")
+                with laspy.open(f, closefd=False, read_evlrs=False) as reader:
+                    return [n for n in reader.header.point_format.dimension_names if n not in ("X", "Y", "Z")]
+    except Exception:  # a note only: the reader has already read the file
+        return []
+    return []
+
+
+def write_moved(
+    source: str | os.PathLike[str],
+    out: str | os.PathLike[str],
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    largest: float,
+) -> None:
+    """Write the PLY, PCD or LAS/LAZ file ``source`` to ``out`` (:func:`keeps_content`) with its points moved by
+    ``rotation [3, 3]`` and ``translation [3]`` and its normals rotated, every other field and element kept.
+    ``largest``: the largest absolute moved coordinate (the caller has moved the points it registered): beyond
+    ``FLOAT32_EXACT_ENOUGH`` float32 x, y, z are written as float64.
+
+    Raises:
+        PointCloudFormatError: a source this cannot copy, or moved coordinates its LAS scale cannot hold.
+        OSError: ``source`` unreadable or ``out`` unwritable.
+    """
+    source, out = Path(source), Path(out)
+    kind = source_format(source)
+    if not keeps_content(kind, out):
+        raise PointCloudFormatError(
+            f"{out.name}: a {FORMAT_NAMES.get(kind or '', 'such')} source is not written as "
+            f"{out.suffix!r} with its other fields"
+        )
+    R = np.asarray(rotation, dtype=np.float64)  # [3, 3]
+    t = np.asarray(translation, dtype=np.float64)  # [3]
+    widen = bool(largest > FLOAT32_EXACT_ENOUGH)
+    handle, temporary = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
+    try:
+        with open(source, "rb") as src, os.fdopen(handle, "wb") as dst:
+            if kind == "ply":
+                _moved_ply(src, dst, R, t, widen)
+            elif kind == "pcd":
+                _moved_pcd(src, dst, R, t, widen)
+            else:
+                _moved_las(src, dst, R, t, out.suffix.lower() == ".laz")
+        os.chmod(temporary, 0o666 & ~_umask())
+        os.replace(temporary, out)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+# ------------------------------------------------------------------------------------------ records
+
+
+def _widened(record: np.dtype, widen: bool) -> np.dtype:
+    """``record`` with x, y, z as they are written: 8-byte floats stay, others become 8-byte floats where ``widen``,
+    else 4-byte ones (integer and 2-byte coordinates too: moved, they are no longer whole numbers); byte order kept."""
+
+    def kept(field: np.dtype) -> np.dtype:
+        if field.kind == "f" and (field.itemsize == 8 or (field.itemsize == 4 and not widen)):
+            return field
+        return np.dtype((field.str[0] if field.str[0] in "<>" else "=") + ("f8" if widen else "f4"))
+
+    return np.dtype([(name, kept(record[name]) if name in ("x", "y", "z") else record[name]) for name in record.names])
+
+
+def _move_rows(rows: np.ndarray, written: np.ndarray, R: np.ndarray, t: np.ndarray, normals: tuple[str, ...]) -> None:
+    """``written [n]`` (records of ``rows``' fields, perhaps ``rows`` itself): x, y, z of ``rows [n]`` moved, its
+    float normals rotated, every other field copied."""
+    if written is not rows:
+        for name in rows.dtype.names:
+            written[name] = rows[name]
+    xyz = np.stack([rows[a].astype(np.float64) for a in "xyz"], axis=1)  # [n, 3]
+    moved = xyz @ R.T + t  # [n, 3]
+    for axis, name in enumerate("xyz"):
+        written[name] = moved[:, axis]
+    if all(n in rows.dtype.names and rows.dtype[n].kind == "f" for n in normals):
+        turned = np.stack([rows[n].astype(np.float64) for n in normals], axis=1) @ R.T  # [n, 3]
+        for axis, name in enumerate(normals):
+            written[name] = turned[:, axis]
+
+
+def _moved_blocks(
+    src: BinaryIO,
+    dst: BinaryIO,
+    record: np.dtype,
+    written: np.dtype,
+    count: int,
+    R: np.ndarray,
+    t: np.ndarray,
+    normals: tuple[str, ...],
+    what: str,
+) -> None:
+    """The ``count`` binary rows of ``record`` at ``src``'s position, moved, to ``dst`` as rows of ``written``: a
+    block of ``BLOCK_BYTES`` at a time."""
+    per_block = max(1, BLOCK_BYTES // record.itemsize)
+    for begin in range(0, count, per_block):
+        n = min(per_block, count - begin)
+        data = bytearray(n * record.itemsize)
+        if src.readinto(data) != len(data):
+            raise PointCloudFormatError(f"{what} cut short: fewer than {count} rows follow")
+        rows = np.frombuffer(data, dtype=record)  # [n], writable: moved in place where the record is kept
+        out = rows if written == record else np.empty(n, dtype=written)
+        _move_rows(rows, out, R, t, normals)
+        dst.write(out.tobytes())
+
+
+# ---------------------------------------------------------------------------------------------- PLY
+
+
+def _moved_ply(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
+    plyfile = require("plyfile", "writing PLY files")
+    header, body = ply_format._header(plyfile, src)
+    vertex = header["vertex"]
+    if any(isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties):
+        raise InvalidPointsError("PLY vertex element with list properties")
+    if header.text:
+        src.seek(0)
+        _moved_ply_text(plyfile, src, dst, R, t, widen)
+        return
+    at = [element.name for element in header.elements].index("vertex")
+    before = header.elements[:at]
+    if any(isinstance(prop, plyfile.PlyListProperty) for element in before for prop in element.properties):
+        raise InvalidPointsError("binary PLY whose vertex element follows an element of lists")
+    record = ply_format._record(vertex, header.byte_order)
+    written = _widened(record, widen)
+    src.seek(0)
+    if written == record:
+        _copy(src, dst, body, "PLY header")
+    else:
+        dst.write(_ply_header(plyfile, header, at, written).encode("ascii") + b"\n")
+        src.seek(body)
+    _copy(src, dst, sum(e.count * ply_format._record(e, header.byte_order).itemsize for e in before), "PLY data")
+    _moved_blocks(src, dst, record, written, vertex.count, R, t, NORMALS["ply"], "PLY vertex rows")
+    shutil.copyfileobj(src, dst)  # the elements after the vertices, as they are
+
+
+def _ply_header(plyfile: ModuleType, header: PlyData, at: int, written: np.dtype) -> str:
+    """``plyfile``'s header text for ``header`` with the vertex element's x, y, z declared as ``written`` holds them."""
+    vertex = header.elements[at]
+    properties = [
+        plyfile.PlyProperty(p.name, "double" if written[p.name].itemsize == 8 else "float")
+        if p.name in ("x", "y", "z")
+        else p
+        for p in vertex.properties
+    ]
+    elements = list(header.elements)
+    elements[at] = plyfile.PlyElement(vertex.name, properties, vertex.count, vertex.comments)
+    return plyfile.PlyData(
+        elements, text=header.text, byte_order=header.byte_order, comments=header.comments, obj_info=header.obj_info
+    ).header
+
+
+def _moved_ply_text(
+    plyfile: ModuleType, src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool
+) -> None:
+    try:
+        data = plyfile.PlyData.read(src)
+    except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as exc:
+        raise PointCloudFormatError(f"corrupt PLY data ({exc})") from None
+    vertex = data["vertex"]
+    rows = vertex.data
+    written = _widened(rows.dtype, widen)
+    out = rows if written == rows.dtype else np.empty(len(rows), dtype=written)
+    _move_rows(rows, out, R, t, NORMALS["ply"])
+    if out is not rows:
+        at = [element.name for element in data.elements].index("vertex")
+        moved = plyfile.PlyElement.describe(out, "vertex", comments=vertex.comments)
+        kinds = {p.name: p for p in vertex.properties}  # the file's own type names where they are kept
+        moved.properties = [p if p.name in ("x", "y", "z") else kinds[p.name] for p in moved.properties]
+        elements = list(data.elements)
+        elements[at] = moved
+        data.elements = elements
+    data.write(dst)
+
+
+# ---------------------------------------------------------------------------------------------- PCD
+
+
+def _moved_pcd(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
+    pypcd4 = require("pypcd4", "writing PCD files")
+    meta = pcd_format._metadata(pypcd4, src)  # src now at the data
+    record = pcd_format._record(meta)
+    written = _widened(record, widen)
+    xyz = [name in ("x", "y", "z") for name in meta.fields]
+    sizes = tuple(
+        written[name].itemsize if is_xyz else size
+        for name, size, is_xyz in zip(meta.fields, meta.size, xyz, strict=True)
+    )
+    types = tuple("F" if is_xyz else kind for kind, is_xyz in zip(meta.type, xyz, strict=True))
+    encoding = pypcd4.Encoding.BINARY_COMPRESSED if meta.data == pypcd4.Encoding.BINARYSCOMPRESSED else meta.data
+    moved_meta = meta.derive(size=sizes, type=types, viewpoint=_moved_viewpoint(meta.viewpoint, R, t), data=encoding)
+    if meta.data == pypcd4.Encoding.BINARY:
+        dst.write(moved_meta.compose_header().encode("ascii"))
+        _moved_blocks(src, dst, record, written, meta.points, R, t, NORMALS["pcd"], "PCD binary data")
+        return
+    if meta.data == pypcd4.Encoding.ASCII:
+        text = io.TextIOWrapper(src, encoding="ascii")
+        rows = np.loadtxt(text, dtype=record, max_rows=meta.points, ndmin=1, comments=None)
+    else:
+        rows = pypcd4.pypcd4._parse_pc_data(src, meta)
+    if len(rows) != meta.points:
+        raise PointCloudFormatError(f"PCD data holds {len(rows)} points; the header says {meta.points}")
+    out = rows if written == record and rows.flags.writeable else np.empty(len(rows), dtype=written)
+    _move_rows(rows, out, R, t, NORMALS["pcd"])
+    if meta.data == pypcd4.Encoding.ASCII:
+        dst.write(moved_meta.compose_header().encode("ascii"))
+        formats = [
+            "%.9g"
+            if written[n].kind == "f" and written[n].itemsize <= 4
+            else "%.17g"
+            if written[n].kind == "f"
+            else "%d"
+            for n in written.names
+        ]
+        np.savetxt(dst, out, fmt=formats, delimiter=" ")
+    else:
+        pypcd4.PointCloud(moved_meta, out).save(dst, encoding=encoding)
+
+
+def _moved_viewpoint(viewpoint: tuple[float, ...], R: np.ndarray, t: np.ndarray) -> tuple[float, ...]:
+    """PCD's ``VIEWPOINT tx ty tz qw qx qy qz`` (the sensor's pose in the file's frame) moved by ``R``, ``t``."""
+    origin, (qw, qx, qy, qz) = np.asarray(viewpoint[:3], dtype=np.float64), viewpoint[3:]
+    turn = Rotation.from_matrix(R) * Rotation.from_quat([qx, qy, qz, qw])
+    x, y, z, w = turn.as_quat(canonical=True)
+    return (*(float(v) for v in R @ origin + t), float(w), float(x), float(y), float(z))
+
+
+# ------------------------------------------------------------------------------------------ LAS/LAZ
+
+
+def _moved_las(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, compress: bool) -> None:
+    laspy = require("laspy", "writing LAS/LAZ files")
+    try:
+        las = laspy.read(src, closefd=False, laz_backend=laspy.LazBackend.Lazrs)
+    except Exception as exc:  # laspy's LaspyException, what the LAZ backend raises
+        raise PointCloudFormatError(f"corrupt LAS/LAZ data ({type(exc).__name__}: {exc})") from None
+    moved = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1) @ R.T + t  # [N, 3]
+    offsets = _las_offsets(moved, np.asarray(las.header.scales), np.asarray(las.header.offsets))
+    las.header.offsets = offsets
+    las.points.offsets = offsets
+    for axis, name in enumerate("xyz"):
+        setattr(las, name, moved[:, axis])
+    if compress and not laspy.LazBackend.Lazrs.is_available():
+        raise PointCloudFormatError("writing LAZ needs the 'lazrs' package: pip install 'mfgnet[formats]'")
+    las.write(dst, do_compress=compress, laz_backend=laspy.LazBackend.Lazrs if compress else None)
+
+
+def _las_offsets(moved: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """``[3]`` offsets that put ``moved [N, 3]`` within the 32-bit integers at ``scales``: ``offsets`` where they do,
+    else the moved bounds' centre rounded to a whole unit (a multiple of a scale above 1)."""
+    if not len(moved):
+        return offsets
+    low, high = moved.min(axis=0), moved.max(axis=0)  # [3]
+    fits = (np.abs(low - offsets) / scales < INT32_MAX) & (np.abs(high - offsets) / scales < INT32_MAX)
+    step = np.maximum(scales, 1.0)
+    centred = np.round((low + high) / 2 / step) * step
+    wide = (high - centred) / scales >= INT32_MAX
+    if (~fits & wide).any():
+        k = int(np.flatnonzero(~fits & wide)[0])
+        raise PointCloudFormatError(
+            f"the moved {'xyz'[k]} coordinates span {high[k] - low[k]:.6g}: more than the LAS "
+            f"file's 32-bit integers hold at its scale {scales[k]:g}"
+        )
+    return np.where(fits, offsets, centred)
+
+
+# --------------------------------------------------------------------------------------------- glue
+
+
+def _copy(src: BinaryIO, dst: BinaryIO, size: int, what: str) -> None:
+    """``size`` bytes from ``src`` to ``dst``."""
+    left = size
+    while left > 0:
+        data = src.read(min(left, BLOCK_BYTES))
+        if not data:
+            raise PointCloudFormatError(f"{what} cut short")
+        dst.write(data)
+        left -= len(data)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

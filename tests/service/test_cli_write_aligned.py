@@ -1,0 +1,327 @@
+"""Specification of the aligned cloud as the user's own file, moved (``mfgnet register --write-aligned``,
+``service.formats.moved.write_moved``): a PLY, PCD or LAS/LAZ source written in its own format keeps every other
+field byte for byte (colours, intensity, faces, classification, VLRs), its points moved by ``R @ p + t`` within the
+format's precision and its normals rotated; other combinations hold x, y, z and say what was not carried.
+
+The files are written with the libraries users have (plyfile, pypcd4, laspy + lazrs)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import laspy
+import numpy as np
+import plyfile
+import pypcd4
+import pytest
+from cli_support import snapshot_model, synthetic_pair
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from service.cli import app
+from service.formats.moved import write_moved
+from service.pointcloud_io import read_points
+
+runner = CliRunner()
+FAST = ("--iterations", "1", "--keypoints", "32")
+SOURCE, TARGET = synthetic_pair()  # [600, 3] float32 each
+R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
+T = np.array([1.5, -2.0, 0.3])
+UTM = np.array([512_345.0, 4_123_456.0, 150.0])
+PLY_NORMALS, PCD_NORMALS = ("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z")
+
+
+def normals(n: int, seed: int = 1) -> np.ndarray:
+    turned = np.random.default_rng(seed).normal(size=(n, 3))
+    return turned / np.linalg.norm(turned, axis=1, keepdims=True)  # [n, 3] unit
+
+
+def coloured_ply(path: Path, xyz: np.ndarray, text: bool = False) -> np.ndarray:
+    """A mesh as scanners write it: float x, y, z, normals, uchar colours, a float quality; faces of 3 and 4 corners.
+    Returns the vertex records."""
+    rng = np.random.default_rng(2)
+    n = len(xyz)
+    vertex = np.empty(
+        n,
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("nx", "<f4"),
+            ("ny", "<f4"),
+            ("nz", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("quality", "<f4"),
+        ],
+    )
+    for axis, name in enumerate("xyz"):
+        vertex[name] = xyz[:, axis]
+    for axis, name in enumerate(PLY_NORMALS):
+        vertex[name] = normals(n)[:, axis]
+    for name in ("red", "green", "blue"):
+        vertex[name] = rng.integers(0, 256, n)
+    vertex["quality"] = rng.random(n)
+    faces = np.empty(200, dtype=[("vertex_indices", "O")])
+    faces["vertex_indices"] = [rng.integers(0, n, 3 + k % 2).astype(np.int32) for k in range(200)]
+    elements = [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")]
+    plyfile.PlyData(elements, text=text, byte_order="<", comments=["scanner X"]).write(str(path))
+    return vertex
+
+
+def pcd_with_fields(path: Path, xyz: np.ndarray, encoding: str) -> np.ndarray:
+    """x, y, z, intensity, normals and a packed rgb float (PCL's layout) in ``encoding``; returns the records."""
+    rng = np.random.default_rng(3)
+    n = len(xyz)
+    fields = ("x", "y", "z", "intensity", *PCD_NORMALS, "rgb")
+    values = np.column_stack([xyz, rng.integers(0, 4, n), normals(n), np.zeros(n)]).astype(np.float32)
+    cloud = pypcd4.PointCloud.from_points(values, fields, (np.float32,) * len(fields))
+    cloud.pc_data["rgb"] = pypcd4.PointCloud.encode_rgb(rng.integers(0, 4, (n, 3)).astype(np.uint8) * 60)
+    if encoding == "ascii":  # pypcd4's own ASCII writer prints %.10f: packed colours would read back as 0
+        with open(path, "wb") as f:
+            f.write(cloud.metadata.compose_header(data=pypcd4.Encoding.ASCII).encode())
+            np.savetxt(f, cloud.pc_data, fmt="%.9g")
+    else:
+        cloud.save(path, encoding=pypcd4.Encoding(encoding))
+        assert pypcd4.PointCloud.from_path(path).metadata.data.value == encoding  # compressible: kept compressed
+    return cloud.pc_data
+
+
+def survey_las(path: Path, xyz: np.ndarray, offsets=(512_000.0, 4_123_000.0, 100.0)) -> laspy.LasData:
+    """A LAS 1.2 point format 3 file at millimetre scale with UTM-like offsets, colours, classification and a WKT CRS
+    VLR (written compressed where ``path`` ends in .laz)."""
+    rng = np.random.default_rng(4)
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = np.full(3, 0.001), np.asarray(offsets)
+    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr('PROJCS["WGS 84 / UTM zone 32N"]'))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    n = len(xyz)
+    las.intensity = rng.integers(0, 65535, n)
+    las.classification = rng.integers(0, 10, n)
+    las.gps_time = rng.random(n) * 1e5
+    for name in ("red", "green", "blue"):
+        setattr(las, name, rng.integers(0, 65535, n))
+    las.write(str(path))
+    return laspy.read(str(path))
+
+
+def moved(xyz: np.ndarray, rotation: np.ndarray = R, translation: np.ndarray = T) -> np.ndarray:
+    return np.asarray(xyz, dtype=np.float64) @ rotation.T + translation
+
+
+def stacked(rows: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
+    return np.stack([np.asarray(rows[name], dtype=np.float64) for name in names], axis=1)
+
+
+def write(source: Path, out: Path, rotation: np.ndarray = R, translation: np.ndarray = T) -> None:
+    write_moved(
+        source,
+        out,
+        rotation,
+        translation,
+        largest=float(np.abs(moved(read_points(source), rotation, translation)).max()),
+    )
+
+
+# --------------------------------------------------------------------------------------------- PLY
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["binary", "ascii"])
+def test_ply_keeps_colours_and_faces_and_rotates_its_normals(tmp_path, text) -> None:
+    source, out = tmp_path / "scan.ply", tmp_path / "aligned.ply"
+    vertex = coloured_ply(source, SOURCE, text)
+    write(source, out)
+    written = plyfile.PlyData.read(str(out))
+    assert written.text == text and written.comments == ["scanner X"]
+    rows = written["vertex"].data
+    assert rows.dtype == vertex.dtype  # float32 x, y, z kept: the moved points are within 1e4
+    for name in ("red", "green", "blue", "quality"):
+        assert rows[name].tobytes() == vertex[name].tobytes(), name
+    np.testing.assert_allclose(stacked(rows, tuple("xyz")), moved(SOURCE), rtol=0, atol=1e-6)  # float32 steps
+    np.testing.assert_allclose(stacked(rows, PLY_NORMALS), moved(stacked(vertex, PLY_NORMALS), R, 0), atol=1e-6)
+    faces = plyfile.PlyData.read(str(source))["face"].data["vertex_indices"]
+    assert [list(f) for f in written["face"].data["vertex_indices"]] == [list(f) for f in faces]
+    if not text:  # the header and the faces' bytes are the source's
+        before, after = source.read_bytes(), out.read_bytes()
+        body = before.index(b"end_header\n") + len(b"end_header\n")
+        rows_end = body + len(vertex) * vertex.dtype.itemsize
+        assert after[:body] == before[:body] and after[rows_end:] == before[rows_end:]
+
+
+def test_ply_moved_into_map_coordinates_holds_them_in_double(tmp_path) -> None:
+    """float32 steps 0.25-0.5 m at UTM northings: x, y, z become double, every other property stays as it was."""
+    source, out = tmp_path / "scan.ply", tmp_path / "aligned.ply"
+    vertex = coloured_ply(source, SOURCE)
+    write(source, out, R, UTM)
+    rows = plyfile.PlyData.read(str(out))["vertex"].data
+    assert [rows.dtype[a].str for a in "xyz"] == ["<f8"] * 3
+    np.testing.assert_allclose(stacked(rows, tuple("xyz")), moved(SOURCE, R, UTM), rtol=0, atol=1e-9)
+    assert all(rows[name].tobytes() == vertex[name].tobytes() for name in ("red", "green", "blue", "quality"))
+
+
+def test_an_output_naming_its_source_is_written_from_the_whole_source(tmp_path) -> None:
+    source = tmp_path / "scan.ply"
+    coloured_ply(source, SOURCE)
+    write(source, source)
+    np.testing.assert_allclose(read_points(source), moved(SOURCE), atol=1e-6)
+    assert [p.name for p in tmp_path.iterdir()] == ["scan.ply"]  # no temporary file left
+
+
+# --------------------------------------------------------------------------------------------- PCD
+
+
+@pytest.mark.parametrize("encoding", ["ascii", "binary", "binary_compressed"])
+def test_pcd_keeps_intensity_and_colour_rotates_normals_and_moves_its_viewpoint(tmp_path, encoding) -> None:
+    source, out = tmp_path / "scan.pcd", tmp_path / "aligned.pcd"
+    records = pcd_with_fields(source, SOURCE, encoding)
+    write(source, out)
+    written = pypcd4.PointCloud.from_path(out)
+    assert written.metadata.data.value == encoding and written.fields == (
+        "x",
+        "y",
+        "z",
+        "intensity",
+        *PCD_NORMALS,
+        "rgb",
+    )
+    rows = written.pc_data
+    for name in ("intensity", "rgb"):  # the packed colour bit for bit, also through ASCII
+        assert rows[name].tobytes() == records[name].tobytes(), name
+    np.testing.assert_allclose(stacked(rows, tuple("xyz")), moved(SOURCE), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(stacked(rows, PCD_NORMALS), moved(stacked(records, PCD_NORMALS), R, 0), atol=1e-6)
+    viewpoint = written.metadata.viewpoint  # tx ty tz qw qx qy qz: the sensor, at the origin before, moved too
+    np.testing.assert_allclose(viewpoint[:3], T, atol=1e-12)
+    w, x, y, z = viewpoint[3:]
+    np.testing.assert_allclose(Rotation.from_quat([x, y, z, w]).as_matrix(), R, atol=1e-12)
+
+
+def test_pcd_moved_into_map_coordinates_holds_them_in_8_byte_floats(tmp_path) -> None:
+    source, out = tmp_path / "scan.pcd", tmp_path / "aligned.pcd"
+    records = pcd_with_fields(source, SOURCE, "binary")
+    write(source, out, R, UTM)
+    written = pypcd4.PointCloud.from_path(out)
+    assert written.metadata.size == (8, 8, 8, 4, 4, 4, 4, 4)
+    np.testing.assert_allclose(read_points(out), moved(SOURCE, R, UTM), rtol=0, atol=1e-9)
+    assert written.pc_data["rgb"].tobytes() == records["rgb"].tobytes()
+
+
+def test_an_organized_pcd_keeps_its_grid_and_its_missing_returns(tmp_path) -> None:
+    source, out = tmp_path / "depth.pcd", tmp_path / "aligned.pcd"
+    grid = SOURCE[:600].astype(np.float32).copy()
+    grid[::7] = np.nan  # pixels without a return
+    cloud = pypcd4.PointCloud.from_points(grid, ("x", "y", "z"), (np.float32,) * 3)
+    cloud.metadata = cloud.metadata.derive(width=30, height=20)
+    cloud.save(source, encoding=pypcd4.Encoding.BINARY)
+    write(source, out)
+    written = pypcd4.PointCloud.from_path(out)
+    assert (written.metadata.width, written.metadata.height, written.metadata.points) == (30, 20, 600)
+    rows = stacked(written.pc_data, tuple("xyz"))
+    assert np.isnan(rows[::7]).all() and not np.isnan(np.delete(rows, np.s_[::7], axis=0)).any()
+    np.testing.assert_allclose(read_points(out), moved(np.delete(grid, np.s_[::7], axis=0)), atol=1e-6)
+
+
+# ----------------------------------------------------------------------------------------- LAS/LAZ
+
+
+@pytest.mark.parametrize(("suffix", "out_suffix"), [(".las", ".las"), (".laz", ".laz"), (".las", ".laz")])
+def test_las_keeps_every_point_field_its_vlrs_and_its_scale(tmp_path, suffix, out_suffix) -> None:
+    source, out = tmp_path / f"survey{suffix}", tmp_path / f"aligned{out_suffix}"
+    original = survey_las(source, SOURCE.astype(np.float64) * 20 + UTM)
+    write(source, out)
+    written = laspy.read(str(out))
+    assert written.header.are_points_compressed == (out_suffix == ".laz")
+    assert written.header.point_format.id == 3 and written.header.version == original.header.version
+    np.testing.assert_array_equal(written.header.scales, original.header.scales)
+    np.testing.assert_array_equal(written.header.offsets, original.header.offsets)  # the moved points fit them
+    assert [(v.record_id, v.record_data_bytes()) for v in written.header.vlrs if v.user_id != "laszip encoded"] == [
+        (v.record_id, v.record_data_bytes()) for v in original.header.vlrs if v.user_id != "laszip encoded"
+    ]
+    for name in original.points.array.dtype.names:  # the raw records: return bits, flags, classification, ...
+        if name not in ("X", "Y", "Z"):
+            assert written.points.array[name].tobytes() == original.points.array[name].tobytes(), name
+    np.testing.assert_allclose(written.xyz, moved(original.xyz), rtol=0, atol=0.0005 + 1e-9)  # half the scale
+    np.testing.assert_allclose(written.header.mins, written.xyz.min(axis=0))
+    np.testing.assert_allclose(written.header.maxs, written.xyz.max(axis=0))
+
+
+def test_las_moved_from_a_local_frame_into_map_coordinates_gets_offsets_that_fit(tmp_path) -> None:
+    """At millimetre scale 32-bit integers span +-2,147 km: a local scan (offsets 0) moved to a northing of 4,123 km
+    needs a new offset there, the scale kept."""
+    source, out = tmp_path / "local.las", tmp_path / "aligned.laz"
+    original = survey_las(source, SOURCE.astype(np.float64) * 20, offsets=(0.0, 0.0, 0.0))
+    write(source, out, R, UTM)
+    written = laspy.read(str(out))
+    np.testing.assert_array_equal(written.header.scales, original.header.scales)
+    assert written.header.offsets[1] == pytest.approx(UTM[1], abs=100) and written.header.offsets[1] % 1 == 0
+    np.testing.assert_allclose(written.xyz, moved(original.xyz, R, UTM), rtol=0, atol=0.0005 + 1e-9)
+
+
+# ------------------------------------------------------------------------------------------- the CLI
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    return snapshot_model(tmp_path_factory.mktemp("models"))
+
+
+def register(*args, model_dir: Path):
+    return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *FAST])
+
+
+def pose(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    record = json.loads(out.read_text())
+    return np.asarray(record["rotation"]), np.asarray(record["translation"])
+
+
+def test_register_writes_the_coloured_ply_moved(tmp_path, model_dir) -> None:
+    source, target, out, aligned = (tmp_path / n for n in ("scan.ply", "target.npy", "pose.json", "aligned.ply"))
+    vertex = coloured_ply(source, SOURCE)
+    np.save(target, TARGET)
+    result = register(source, target, "--out", out, "--write-aligned", aligned, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    rotation, translation = pose(out)
+    rows = plyfile.PlyData.read(str(aligned))["vertex"].data
+    assert all(rows[name].tobytes() == vertex[name].tobytes() for name in ("red", "green", "blue", "quality"))
+    np.testing.assert_allclose(stacked(rows, tuple("xyz")), moved(SOURCE, rotation, translation), atol=1e-6)
+    assert len(plyfile.PlyData.read(str(aligned))["face"].data) == 200 and "note" not in result.stderr
+
+
+def test_register_writes_a_laz_survey_moved_at_its_scale(tmp_path, model_dir) -> None:
+    source, target, out, aligned = (tmp_path / n for n in ("survey.laz", "target.npy", "pose.json", "aligned.laz"))
+    original = survey_las(source, SOURCE.astype(np.float64) + UTM)
+    np.save(target, TARGET.astype(np.float64) + UTM)
+    result = register(source, target, "--out", out, "--write-aligned", aligned, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    rotation, translation = pose(out)
+    written = laspy.read(str(aligned))
+    assert written.header.are_points_compressed
+    assert [v.string for v in written.header.vlrs if isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr)] == [
+        'PROJCS["WGS 84 / UTM zone 32N"]'
+    ]  # the CRS stays: the target's frame is the user's to know
+    np.testing.assert_array_equal(written.classification, original.classification)
+    np.testing.assert_allclose(written.xyz, moved(original.xyz, rotation, translation), rtol=0, atol=0.0005 + 1e-9)
+
+
+def test_a_las_output_of_a_source_that_is_not_las_is_a_usage_error_before_anything_is_read(tmp_path, model_dir) -> None:
+    source = tmp_path / "scan.ply"
+    coloured_ply(source, SOURCE)
+    result = register(
+        source, tmp_path / "missing.npy", "--write-aligned", tmp_path / "aligned.laz", model_dir=model_dir
+    )
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "aligned.laz" in result.stderr and "only from a LAS/LAZ source" in result.stderr
+    assert "scan.ply is PLY" in result.stderr and not (tmp_path / "aligned.laz").exists()
+
+
+def test_another_output_format_holds_x_y_z_and_says_which_fields_it_left(tmp_path, model_dir) -> None:
+    source, target, out, aligned = (tmp_path / n for n in ("scan.pcd", "target.npy", "pose.json", "aligned.xyz"))
+    pcd_with_fields(source, SOURCE, "binary")
+    np.save(target, TARGET)
+    result = register(source, target, "--out", out, "--write-aligned", aligned, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    np.testing.assert_allclose(read_points(aligned), moved(SOURCE, *pose(out)), atol=1e-5)
+    assert "aligned.xyz holds x, y, z only" in result.stderr
+    assert "intensity, normal_x, normal_y, normal_z, rgb" in result.stderr and ".pcd output" in result.stderr
