@@ -12,8 +12,9 @@ makes the result ambiguous: not ``reliable``, with a warning. The pose itself is
 
 A shape of revolution seen in part (a vase, a bowl) turns about its axis without leaving its surface, and the axis
 need not be a principal axis of the part seen. Where the result's ``stability`` is low and its least constrained
-motion is a turn (:mod:`service.stability`), the pose also competes with itself turned ``AXIS_TURN_DEGREES`` either
-way about that motion's axis (``docs/decisions/0038-turns-about-the-least-constrained-axis.md``).
+motion is a turn (:mod:`service.stability`), the pose also competes with itself turned by each of ``AXIS_TURN_DEGREES``
+either way about that motion's axis (``docs/decisions/0038-turns-about-the-least-constrained-axis.md``,
+``0073-turns-of-120-deg-about-the-least-constrained-axis.md``).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from service.stages.ranking import candidate_fits
 from service.stages.refine import icp_distance, short_refine
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
-AXIS_TURN_DEGREES = 60.0  # ... this far either way
+AXIS_TURN_DEGREES = (60.0, 120.0)  # ... by each of these angles either way
 
 
 def symmetry(work: Working, result: RegistrationResult, options: RegistrationOptions,
@@ -71,11 +72,11 @@ def half_turn_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, options: Re
 
 def axis_turns(work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | None = None
                ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The pose ``R [3, 3], t [3]`` turned ``AXIS_TURN_DEGREES`` either way about the axis its least constrained motion
-    turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds; ``surface``: the refinement's
-    target surface, reused where it is the working target's); none where that motion is not mostly a turn
-    (``ROTATION_SHARE``). The motion is measured at ``R, t`` itself: the final pose, which the fine stage may have
-    moved from the pose whose ``stability`` the result reports."""
+    """The pose ``R [3, 3], t [3]`` turned by each of ``AXIS_TURN_DEGREES`` either way about the axis its least
+    constrained motion turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds;
+    ``surface``: the refinement's target surface, reused where it is the working target's); none where that motion
+    is not mostly a turn (``ROTATION_SHARE``). The motion is measured at ``R, t`` itself: the final pose, which the
+    fine stage may have moved from the pose whose ``stability`` the result reports."""
     moved = work.working_source @ R.T + t  # [Ns, 3]
     tree, working = work.working_target_lookup(surface)
     found = pose_stability(moved, work.tgt_w, tree, ICP_DISTANCE * work.norm.scale, working)
@@ -83,6 +84,6 @@ def axis_turns(work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | N
     if axis is None:
         return []
     point, direction = axis  # [3], [3]
-    angle = np.radians(AXIS_TURN_DEGREES)
-    turns = [rotation_of(sign * angle * direction, angle) for sign in (1.0, -1.0)]  # [3, 3] each
+    angles = np.radians(AXIS_TURN_DEGREES)
+    turns = [rotation_of(sign * angle * direction, angle) for angle in angles for sign in (1.0, -1.0)]  # [3, 3] each
     return [(Q @ R, Q @ (t - point) + point) for Q in turns]

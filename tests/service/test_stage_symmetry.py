@@ -1,7 +1,7 @@
 """The symmetry check on its own: a reliable pose of a shape that a half turn maps onto itself (an open tub) loses
 ``reliable`` with an ambiguity warning and keeps its pose; an asymmetric shape's stays reliable; a part of a shape of
-revolution (an open bowl) whose stability is low is turned about its axis; results that are not reliable, or not
-refined, are not checked."""
+revolution (an open bowl) whose stability is low is turned about its axis, 60 and 120 deg either way (a bowl with
+three fins fits itself turned 120 deg, not 60); results that are not reliable, or not refined, are not checked."""
 
 from __future__ import annotations
 
@@ -48,6 +48,17 @@ def open_bowl(points: int, seed: int) -> np.ndarray:
     wall = np.stack([r * np.cos(a), r * np.sin(a), z], axis=1)  # [side, 3]
     floor = np.stack([floor_r * np.cos(floor_a), floor_r * np.sin(floor_a), np.zeros(points - side)], axis=1)
     return np.concatenate([wall, floor]) - np.array([0.0, 0.0, 0.4])
+
+
+def finned_bowl(points: int, seed: int) -> np.ndarray:
+    """:func:`open_bowl` with three fins up its side at 0, 120 and 240 deg about the z axis (0.1 high, about 6 deg
+    wide): a turn of 120 deg maps it onto itself, one of 60 deg does not."""
+    bowl = open_bowl(points, seed)
+    side = slice(0, int(0.75 * points))  # open_bowl's side points come first
+    a = np.arctan2(bowl[side, 1], bowl[side, 0])  # [side]
+    to_fin = np.angle(np.exp(3j * a)) / 3  # [side]: radians to the nearest fin
+    bowl[side, :2] *= (1 + 0.1 * np.exp(-((to_fin / 0.1) ** 2)) / np.hypot(bowl[side, 0], bowl[side, 1]))[:, None]
+    return bowl
 
 
 def bowl_part_on_bowl():
@@ -101,14 +112,22 @@ def test_a_part_of_a_shape_of_revolution_is_turned_about_its_axis_where_its_stab
     assert np.array_equal(checked.rotation, R_TRUE)
 
 
-def test_axis_turns_turn_the_pose_60_deg_either_way_about_the_axis_of_revolution():
+def test_a_part_of_a_shape_a_turn_of_120_deg_maps_onto_itself_is_ambiguous():
+    cut = np.array([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
+    part = finned_bowl(6000, 0)
+    work, options = working(part[part @ cut > -0.1], finned_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
+    warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY)
+    assert warning is not None and warning.startswith("ambiguous: a pose 120 deg away")
+
+
+def test_axis_turns_turn_the_pose_60_and_120_deg_either_way_about_the_axis_of_revolution():
     work, _ = bowl_part_on_bowl()
     axis = R_TRUE[:, 2]  # the bowl's axis after the true pose, through T_TRUE + R_TRUE (0, 0, -0.4)
     turns = axis_turns(work, R_TRUE, T_TRUE)
-    assert len(turns) == 2
-    for R, t in turns:
+    assert len(turns) == 4
+    for (R, t), degrees in zip(turns, (60.0, 60.0, 120.0, 120.0), strict=True):
         turn = Rotation.from_matrix(R @ R_TRUE.T).as_rotvec(degrees=True)  # [3]
-        assert abs(np.linalg.norm(turn) - 60.0) < 1e-6 and abs(abs(turn @ axis) / 60.0 - 1.0) < 1e-3
+        assert abs(np.linalg.norm(turn) - degrees) < 1e-6 and abs(abs(turn @ axis) / degrees - 1.0) < 1e-3
         on_axis = T_TRUE + R_TRUE @ np.array([0.0, 0.0, -0.4])  # a point of the axis stays where it was
         assert np.linalg.norm(R @ (R_TRUE.T @ (on_axis - T_TRUE)) + t - on_axis) < 0.01
 
