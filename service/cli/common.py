@@ -55,6 +55,35 @@ def write_text(path: Path, text: str) -> None:
         fail(f"cannot write {path}: {exc.strerror or exc}", code=1)
 
 
+def write_aligned_cloud(path: Path, source: Path | None, points: np.ndarray, R: np.ndarray, t: np.ndarray) -> None:
+    """``--write-aligned``: the file ``source`` itself moved by ``R [3, 3]``, ``t [3]`` where ``path``'s extension is
+    its own PLY, PCD or LAS/LAZ format (:mod:`service.formats.moved`), else the x, y, z of ``points [N, 3]`` (read from
+    it) moved, with a note on stderr naming the fields its header declares that were left behind; exit 1 where it
+    cannot be written."""
+    from service.formats.moved import KEPT_FORMATS, keeps_content, other_fields, source_format, write_moved
+    from service.pointcloud_io import PointCloudFormatError, write_points
+
+    moved = points @ R.T + t  # [N, 3]
+    kind = source_format(source) if source is not None else None
+    kept = keeps_content(kind, path)
+    try:
+        if kept:
+            write_moved(source, path, R, t, largest=float(np.abs(moved).max()))
+        else:
+            write_points(path, moved)
+    except (PointCloudFormatError, OSError) as exc:
+        fail(f"cannot write {path}: {exc}", code=1)
+    typer.echo(f"wrote {path}", err=True)
+    dropped = [] if kept else other_fields(source, kind)
+    if dropped:
+        shown = ", ".join(dropped[:6]) + (", ..." if len(dropped) > 6 else "")
+        typer.echo(
+            f"mfgnet: note: {path.name} holds x, y, z only; {source.name}'s other fields ({shown}) are kept in a "
+            f"{'/'.join(KEPT_FORMATS[kind])} output",
+            err=True,
+        )
+
+
 def number(value: float | None, spec: str = ".4g") -> str:
     """``value`` formatted for a summary line, ``?`` where it is missing."""
     return "?" if value is None else format(float(value), spec)

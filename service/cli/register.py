@@ -16,6 +16,7 @@ from service.cli.common import (
     fail,
     number,
     read_cloud,
+    write_aligned_cloud,
     write_text,
 )
 from service.cli.model_lookup import load_registrar
@@ -166,34 +167,13 @@ def _write_outputs(
 ) -> None:
     """``--out`` (the JSON record) and ``--write-aligned`` (the source moved by the pose: the ``source`` file itself,
     moved, where the output's format is its own PLY, PCD or LAS/LAZ, else ``src``'s x, y, z moved)."""
-    from service.formats.moved import KEPT_FORMATS, keeps_content, other_fields, source_format, write_moved
-    from service.pointcloud_io import PointCloudFormatError, write_points
-
     R = np.asarray(record["rotation"], dtype=np.float64)  # [3, 3]
     t = np.asarray(record["translation"], dtype=np.float64)  # [3]
     if out is not None:
         write_text(out, json.dumps(record, indent=2) + "\n")
         typer.echo(f"wrote {out}", err=True)
-    if write_aligned is None:
-        return
-    moved = src @ R.T + t  # [N, 3]
-    kind = source_format(source) if source is not None else None
-    try:
-        if keeps_content(kind, write_aligned):
-            write_moved(source, write_aligned, R, t, largest=float(np.abs(moved).max()))
-        else:
-            write_points(write_aligned, moved)
-    except (PointCloudFormatError, OSError) as exc:
-        fail(f"cannot write {write_aligned}: {exc}", code=1)
-    typer.echo(f"wrote {write_aligned}", err=True)
-    dropped = [] if keeps_content(kind, write_aligned) else other_fields(source, kind)
-    if dropped:
-        shown = ", ".join(dropped[:6]) + (", ..." if len(dropped) > 6 else "")
-        typer.echo(
-            f"mfgnet: note: {write_aligned.name} holds x, y, z only; {source.name}'s other fields ({shown}) "
-            f"are kept in a {'/'.join(KEPT_FORMATS[kind])} output",
-            err=True,
-        )
+    if write_aligned is not None:
+        write_aligned_cloud(write_aligned, source, src, R, t)
 
 
 def _read_transform(path: Path) -> list:

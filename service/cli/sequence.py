@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, TextIO
 import numpy as np
 import typer
 
-from service.cli.common import UNRELIABLE_EXIT, check_output_path, fail, number, read_cloud
+from service.cli.common import UNRELIABLE_EXIT, check_output_path, fail, number, read_cloud, write_aligned_cloud
 from service.cli.model_lookup import load_registrar
 from service.cli.options import (
     ApiKeyOpt,
@@ -68,6 +68,15 @@ ConstantVelocityOpt = Annotated[
         "keeps moving as it moved; a result far from it carries a warning); without it no guess"
     ),
 ]
+SequenceAlignedOpt = Annotated[
+    Path | None,
+    typer.Option(
+        metavar="DIR",
+        help="write every frame moved into frame 0's coordinates (T_0_i) into this folder, named as the frame: "
+        "a PLY, PCD or LAS/LAZ frame keeps its other fields (as register --write-aligned), others hold x, y, z "
+        "(.e57 .pts .ptx frames as .ply)",
+    ),
+]
 SequenceReliableOpt = Annotated[
     bool, typer.Option(help="exit 3 when any step is not quality.reliable (every step is still written)")
 ]
@@ -78,6 +87,7 @@ def sequence_command(
     out: SequenceOutOpt = None,
     kitti: KittiOpt = None,
     constant_velocity: ConstantVelocityOpt = False,
+    write_aligned: SequenceAlignedOpt = None,
     require_reliable: SequenceReliableOpt = False,
     model: ModelOpt = None,
     model_dir: ModelDirs = None,
@@ -127,6 +137,7 @@ def sequence_command(
         if problem:
             fail(f"frame {index} {path}: {problem}")
     _check_sequence_outputs(frames, out, kitti)
+    _check_aligned_folder(frames, write_aligned)
     check_server_flags(server, model_dir, threads)
     options = registration_options(
         iterations, keypoints, refine, refine_points, drop_isolated, rotation_search, rotation_search_mode
@@ -143,8 +154,16 @@ def sequence_command(
             def register_pair(src: np.ndarray, tgt: np.ndarray, guess: list | None) -> dict:
                 return local_record(registrar, src, tgt, {**options, "initial_transform": guess})
 
-        steps = register_sequence(frames, _read_frame, register_pair, constant_velocity=constant_velocity)
-        unreliable = _write_steps(steps, frames, out, kitti)
+        clouds: dict[int, np.ndarray] = {}  # the frames read, kept for --write-aligned until written
+
+        def read_frame(index: int, path: Path) -> np.ndarray:
+            points = _read_frame(index, path)
+            if write_aligned is not None:
+                clouds[index] = points
+            return points
+
+        steps = register_sequence(frames, read_frame, register_pair, constant_velocity=constant_velocity)
+        unreliable = _write_steps(steps, frames, out, kitti, write_aligned, clouds)
     written = ", ".join(str(path) for path in (out, kitti) if path is not None)
     typer.echo(
         f"{len(frames) - 1} steps, {len(unreliable)} not reliable" + (f"; wrote {written}" if written else ""), err=True
@@ -155,9 +174,17 @@ def sequence_command(
         raise typer.Exit(UNRELIABLE_EXIT)
 
 
-def _write_steps(steps: Iterator[Step], frames: list[Path], out: Path | None, kitti: Path | None) -> list[int]:
-    """Each step's JSON line (``out``, else standard output), KITTI line (``kitti``) and progress line as it comes;
-    the indices of the steps that are not quality.reliable."""
+def _write_steps(
+    steps: Iterator[Step],
+    frames: list[Path],
+    out: Path | None,
+    kitti: Path | None,
+    aligned: Path | None = None,
+    clouds: dict[int, np.ndarray] | None = None,
+) -> list[int]:
+    """Each step's JSON line (``out``, else standard output), KITTI line (``kitti``), aligned frame (into the folder
+    ``aligned``, from the points read, ``clouds``: frame 0 as it is with the first step) and progress line as it
+    comes; the indices of the steps that are not quality.reliable."""
     from service.sequence import kitti_line
 
     unreliable: list[int] = []
@@ -168,6 +195,15 @@ def _write_steps(steps: Iterator[Step], frames: list[Path], out: Path | None, ki
             _write_line(lines, step.json_line(), out)
             if poses is not None:
                 _write_line(poses, kitti_line(step.accumulated), kitti)
+            if aligned is not None and clouds is not None:
+                if step.index == 1:
+                    write_aligned_cloud(aligned / aligned_name(frames[0]), frames[0], clouds[0], np.eye(3), np.zeros(3))
+                for index in [index for index in clouds if index < step.index]:
+                    del clouds[index]  # written: frame i - 1 only serves as a target
+                T = step.accumulated  # [4, 4] T_0_i
+                write_aligned_cloud(
+                    aligned / aligned_name(step.source), step.source, clouds[step.index], T[:3, :3], T[:3, 3]
+                )
             typer.echo(_step_progress(step, len(frames) - 1), err=True)
             if not step.reliable:
                 unreliable.append(step.index)
@@ -187,6 +223,36 @@ def _check_sequence_outputs(frames: list[Path], out: Path | None, kitti: Path | 
     for path, option in ((out, "--out"), (kitti, "--kitti")):
         if path is not None and path.resolve() in inputs:
             fail(f"{option} {path} is one of the frames; it would be overwritten")
+
+
+def aligned_name(frame: Path) -> str:
+    """The file name of ``frame`` moved (``mfgnet sequence --write-aligned``): its own name, where a writer is named by
+    its extension (a ``.las``/``.laz`` name only for LAS/LAZ content), else its stem with ``.ply``."""
+    from service.formats.moved import source_format
+    from service.pointcloud_io import SUFFIXES
+
+    suffix = frame.suffix.lower()
+    if suffix in SUFFIXES or (suffix in (".las", ".laz") and source_format(frame) == "las"):
+        return frame.name
+    return frame.stem + ".ply"
+
+
+def _check_aligned_folder(frames: list[Path], folder: Path | None) -> None:
+    """Usage errors of ``--write-aligned DIR`` before any registration: not an existing folder, two frames of one
+    name, or an output that would overwrite a frame."""
+    if folder is None:
+        return
+    if not folder.is_dir():
+        fail(f"--write-aligned {folder}: {'not a folder' if folder.exists() else 'no such folder'}")
+    names: dict[str, Path] = {}
+    inputs = {frame.resolve() for frame in frames}
+    for frame in frames:
+        name = aligned_name(frame)
+        if name in names:
+            fail(f"--write-aligned {folder}: frames {names[name]} and {frame} would both be written as {name}")
+        names[name] = frame
+        if (folder / name).resolve() in inputs:
+            fail(f"--write-aligned {folder}: {folder / name} is one of the frames; it would be overwritten")
 
 
 def _read_frame(index: int, path: Path) -> np.ndarray:

@@ -325,3 +325,49 @@ def test_another_output_format_holds_x_y_z_and_says_which_fields_it_left(tmp_pat
     np.testing.assert_allclose(read_points(aligned), moved(SOURCE, *pose(out)), atol=1e-5)
     assert "aligned.xyz holds x, y, z only" in result.stderr
     assert "intensity, normal_x, normal_y, normal_z, rgb" in result.stderr and ".pcd output" in result.stderr
+
+
+# ------------------------------------------------------------------------------------------ sequence
+
+
+def test_sequence_writes_every_frame_moved_into_frame_0_with_its_fields(tmp_path, model_dir) -> None:
+    frames, vertices = [], []
+    for index in range(3):
+        turn = Rotation.from_euler("z", -8.0 * index, degrees=True).as_matrix()
+        (tmp_path / f"f{index}").mkdir()
+        frames.append(tmp_path / f"f{index}" / f"frame_{index}.ply")
+        vertices.append(coloured_ply(frames[-1], (SOURCE.astype(np.float64) @ turn.T).astype(np.float32)))
+    folder, steps = tmp_path / "aligned", tmp_path / "steps.jsonl"
+    folder.mkdir()
+    result = runner.invoke(
+        app,
+        ["sequence", *map(str, frames), "--write-aligned", str(folder), "--out", str(steps),
+         "--model-dir", str(model_dir), *FAST],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    accumulated = [np.eye(4)] + [np.asarray(json.loads(line)["accumulated_transform"]) for line in
+                                 steps.read_text().splitlines()]  # fmt: skip
+    assert sorted(p.name for p in folder.iterdir()) == ["frame_0.ply", "frame_1.ply", "frame_2.ply"]
+    for index, (vertex, T) in enumerate(zip(vertices, accumulated, strict=True)):
+        written = plyfile.PlyData.read(str(folder / f"frame_{index}.ply"))
+        rows = written["vertex"].data
+        assert all(rows[name].tobytes() == vertex[name].tobytes() for name in ("red", "green", "blue", "quality"))
+        expected = moved(stacked(vertex, tuple("xyz")), T[:3, :3], T[:3, 3])
+        np.testing.assert_allclose(stacked(rows, tuple("xyz")), expected, atol=1e-5)
+        assert len(written["face"].data) == 200
+
+
+def test_sequence_aligned_folder_errors_come_before_any_registration(tmp_path, model_dir) -> None:
+    frames = [tmp_path / "a" / "scan.ply", tmp_path / "b" / "scan.ply"]
+    for frame in frames:
+        frame.parent.mkdir()
+        coloured_ply(frame, SOURCE)
+    base = ["sequence", *map(str, frames), "--model-dir", str(model_dir), *FAST, "--write-aligned"]
+    missing = runner.invoke(app, [*base, str(tmp_path / "nowhere")])
+    assert missing.exit_code == 2 and "no such folder" in missing.stderr
+    clash = runner.invoke(app, [*base, str(tmp_path)])
+    assert clash.exit_code == 2 and "would both be written as scan.ply" in clash.stderr
+    own = [tmp_path / "a" / "other.ply", frames[0]]
+    coloured_ply(own[0], SOURCE)
+    itself = runner.invoke(app, ["sequence", *map(str, own), "--write-aligned", str(tmp_path / "a")])
+    assert itself.exit_code == 2 and "is one of the frames; it would be overwritten" in itself.stderr
