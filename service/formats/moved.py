@@ -39,7 +39,7 @@ from service.formats import ply as ply_format
 from service.formats.checks import BLOCK_BYTES
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
-from service.formats.read import _detect as detect_format
+from service.formats.read import detect_at as detect_format
 from service.formats.write import FLOAT32_EXACT_ENOUGH
 
 if TYPE_CHECKING:
@@ -84,7 +84,7 @@ def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
     try:
         with open(path, "rb") as f:
             if kind == "ply":
-                header, _ = ply_format._header(require("plyfile", "reading PLY files"), f)
+                header, _ = ply_format.read_header(require("plyfile", "reading PLY files"), f)
                 names = [prop.name for prop in header["vertex"].properties]
                 return [n for n in names if n not in ("x", "y", "z")] + [
                     element.name for element in header.elements if element.name != "vertex"
@@ -92,7 +92,7 @@ def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
             if kind == "pcd":
                 return [
                     n
-                    for n in pcd_format._metadata(require("pypcd4", "reading PCD files"), f).fields
+                    for n in pcd_format.read_metadata(require("pypcd4", "reading PCD files"), f).fields
                     if n not in ("x", "y", "z")
                 ]
             if kind == "las":
@@ -207,7 +207,7 @@ def _moved_blocks(
 
 def _moved_ply(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
     plyfile = require("plyfile", "writing PLY files")
-    header, body = ply_format._header(plyfile, src)
+    header, body = ply_format.read_header(plyfile, src)
     vertex = header["vertex"]
     if any(isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties):
         raise InvalidPointsError("PLY vertex element with list properties")
@@ -219,7 +219,7 @@ def _moved_ply(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen
     before = header.elements[:at]
     if any(isinstance(prop, plyfile.PlyListProperty) for element in before for prop in element.properties):
         raise InvalidPointsError("binary PLY whose vertex element follows an element of lists")
-    record = ply_format._record(vertex, header.byte_order)
+    record = ply_format.row_record(vertex, header.byte_order)
     written = _widened(record, widen)
     src.seek(0)
     if written == record:
@@ -227,7 +227,7 @@ def _moved_ply(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen
     else:
         dst.write(_ply_header(plyfile, header, at, written).encode("ascii") + b"\n")
         src.seek(body)
-    _copy(src, dst, sum(e.count * ply_format._record(e, header.byte_order).itemsize for e in before), "PLY data")
+    _copy(src, dst, sum(e.count * ply_format.row_record(e, header.byte_order).itemsize for e in before), "PLY data")
     _moved_blocks(src, dst, record, written, vertex.count, R, t, NORMALS["ply"], "PLY vertex rows")
     shutil.copyfileobj(src, dst)  # the elements after the vertices, as they are
 
@@ -276,8 +276,8 @@ def _moved_ply_text(
 
 def _moved_pcd(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
     pypcd4 = require("pypcd4", "writing PCD files")
-    meta = pcd_format._metadata(pypcd4, src)  # src now at the data
-    record = pcd_format._record(meta)
+    meta = pcd_format.read_metadata(pypcd4, src)  # src now at the data
+    record = pcd_format.point_record(meta)
     written = _widened(record, widen)
     xyz = [name in ("x", "y", "z") for name in meta.fields]
     sizes = tuple(

@@ -51,12 +51,12 @@ ROWS_PER_BLOCK = BLOCK_BYTES // 24  # float64 x, y, z rows an organized cloud's 
 def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     pypcd4 = require("pypcd4", "reading PCD files")
     require("lzf", "reading PCD files")  # pypcd4 imports it for binary_compressed
-    meta = _metadata(pypcd4, f)
+    meta = read_metadata(pypcd4, f)
     check_count(meta.points, max_points)
     missing = [axis for axis in "xyz" if axis not in meta.fields]
     if missing:
         raise InvalidPointsError(f"PCD file lacks fields {missing}")
-    dtype = _record(meta)
+    dtype = point_record(meta)
     several = [axis for axis in "xyz" if meta.count[meta.fields.index(axis)] != 1]
     if several:
         raise InvalidPointsError(f"PCD fields {several} have COUNT > 1; x, y and z must be single values")
@@ -82,7 +82,7 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
 def pcd_count(f: BinaryIO) -> int:
     """The points (``POINTS``) the PCD header at ``f``'s position declares, with :func:`read_pcd`'s header errors; no
     data is read."""
-    return _metadata(require("pypcd4", "reading PCD files"), f).points
+    return read_metadata(require("pypcd4", "reading PCD files"), f).points
 
 
 def _usable(xyz: np.ndarray, meta: MetaData) -> np.ndarray:
@@ -160,7 +160,9 @@ def _compressed_xyz(f: BinaryIO, points: int, dtype: np.dtype) -> np.ndarray:
     return stacked_xyz([np.frombuffer(block, dtype=dtype[axis], count=points, offset=offsets[axis]) for axis in "xyz"])
 
 
-def _metadata(pypcd4: ModuleType, f: BinaryIO):
+def read_metadata(pypcd4: ModuleType, f: BinaryIO) -> MetaData:
+    """``pypcd4``'s header of the PCD file at ``f``'s position, read a bounded line at a time; ``f`` is left at the
+    data."""
     lines: list[str] = []
     start = f.tell()
     while len(lines) < MAX_HEADER_LINES and f.tell() - start <= MAX_HEAD_BYTES:  # comments count in bytes only
@@ -197,7 +199,7 @@ def _reason(exc: Exception) -> str:
     return " ".join(str(exc).split())[:300]
 
 
-def _record(meta: MetaData) -> np.dtype:
+def point_record(meta: MetaData) -> np.dtype:
     """The numpy record of a point, from FIELDS, SIZE, TYPE and COUNT, once they are known to agree."""
     entries = {"FIELDS": meta.fields, "SIZE": meta.size, "TYPE": meta.type, "COUNT": meta.count}
     if len({len(values) for values in entries.values()}) != 1:

@@ -31,7 +31,7 @@ MAX_HEADER_BYTES = 256 * 1024  # plyfile parses a header one byte at a time (abo
 
 def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
     plyfile = require("plyfile", "reading PLY files")
-    header, body = _header(plyfile, f)  # body: where the elements' rows begin
+    header, body = read_header(plyfile, f)  # body: where the elements' rows begin
     vertex = header["vertex"]
     check_count(vertex.count, max_points)
     kinds = {prop.name: prop for prop in vertex.properties}
@@ -53,17 +53,18 @@ def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
     if lists:  # rows of lists have no fixed size: the vertex rows' place would take reading them all
         raise InvalidPointsError(f"binary PLY whose vertex element follows an element of lists ({lists[0]!r}): "
                                  "only files with their vertices before such elements are read")
-    f.seek(body + sum(element.count * _record(element, header.byte_order).itemsize for element in before))
-    return checked(xyz_in_blocks(f, _record(vertex, header.byte_order), vertex.count, "corrupt PLY data: vertex rows"))
+    f.seek(body + sum(element.count * row_record(element, header.byte_order).itemsize for element in before))
+    record = row_record(vertex, header.byte_order)
+    return checked(xyz_in_blocks(f, record, vertex.count, "corrupt PLY data: vertex rows"))
 
 
 def ply_count(f: BinaryIO) -> int:
     """The vertices the PLY header at ``f``'s position declares, with :func:`read_ply`'s header errors; no rows are
     read."""
-    return _header(require("plyfile", "reading PLY files"), f)[0]["vertex"].count
+    return read_header(require("plyfile", "reading PLY files"), f)[0]["vertex"].count
 
 
-def _header(plyfile: ModuleType, f: BinaryIO) -> tuple[PlyData, int]:
+def read_header(plyfile: ModuleType, f: BinaryIO) -> tuple[PlyData, int]:
     """``plyfile``'s header at ``f``'s position (parsed from its first :data:`MAX_HEADER_BYTES` at most; it has a
     vertex element) and the offset of the first row after it."""
     start = f.tell()
@@ -80,7 +81,7 @@ def _header(plyfile: ModuleType, f: BinaryIO) -> tuple[PlyData, int]:
     return header, start + head.tell()
 
 
-def _record(element: PlyElement, byte_order: str) -> np.dtype:
+def row_record(element: PlyElement, byte_order: str) -> np.dtype:
     """The numpy record of one row of ``element`` (scalar properties only), in the file's byte order."""
     return np.dtype([(prop.name, prop.dtype(byte_order)) for prop in element.properties])
 

@@ -91,7 +91,7 @@ def read_cloud(
     name = name or "<cloud>"
     try:
         start = source.tell()
-        kind = _detect(source)
+        kind = detect_at(source)
         source.seek(start)
         if kind in NEEDS_REAL_FILE and not _has_fileno(source):
             with tempfile.TemporaryFile() as spooled:
@@ -115,7 +115,7 @@ def check_declared_count(source: BinaryIO, name: str, max_points: int) -> None:
     than the header declares (a header declaring fewer than its data holds gives that many)."""
     start = source.tell()
     try:
-        kind = _detect(source)
+        kind = detect_at(source)
         count_of = HEADER_COUNTS.get(kind)
         if count_of is None:
             return
@@ -130,7 +130,7 @@ def check_declared_count(source: BinaryIO, name: str, max_points: int) -> None:
         source.seek(start)
 
 
-def _detect(source: BinaryIO) -> str:
+def detect_at(source: BinaryIO) -> str:
     """The format of the file at ``source``'s position (:func:`detect`), from its first bytes (read, not put back)."""
     head = source.read(HEAD_BYTES)
     while only_comments(head) and len(head) < MAX_HEAD_BYTES and (more := source.read(len(head))):
