@@ -27,6 +27,16 @@ timer at all, so a byte now and then held the connection for good. Here it is re
 ``lingering_timeout``); a body that ends in time leaves the connection to serve its next request. A lingering
 connection, its answer sent, is the first to go when the cap needs room after the idle ones.
 
+A request h11 cannot parse (a bad request line, an invalid header name, a Content-Length that is not a number, a
+malformed chunk of a chunked body) got uvicorn's plain-text ``400 Invalid HTTP request received.``; here it gets a JSON
+answer naming h11's complaint without the bytes it quotes (a header line may hold the API key), with the status h11
+suggests where it is a 4xx (431 for a request line and headers over ``h11_max_incomplete_event_size``, 16 KiB; 400
+otherwise, where h11 suggests 501 for a transfer coding other than chunked too), the hardening headers,
+``connection: close`` and an access line. An error in a body whose request reached the app takes
+that request's id and access line (``middleware.ANSWERED_BELOW``); one in the rest of a body already answered closes
+the connection. The write side is shut and what the client still sends is dropped for ``REFUSED_LINGER_S`` before the
+socket closes, so the answer is read rather than reset away (1 MB of headers).
+
 Bodies have their own limits (``body_timeout_s``, ``body_min_rate``: ``middleware.py``).
 """
 
@@ -35,14 +45,18 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
+import sys
 import uuid
 from collections import OrderedDict
 from typing import ClassVar
 
 import h11
-from uvicorn.protocols.http.h11_impl import H11Protocol
+from h11._connection import DEFAULT_MAX_INCOMPLETE_EVENT_SIZE  # as uvicorn's h11_impl imports it
+from uvicorn.protocols.http.h11_impl import STATUS_PHRASES, H11Protocol
 
 from service.api.metrics import Metrics
+from service.api.middleware import ANSWERED_BELOW, request_id_of
 from service.api.security_headers import CSP, HEADERS, NOTHING_ALLOWED
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
@@ -52,6 +66,8 @@ REFUSED_LINGER_S = 1.0  # a refused connection's socket stays open this long aft
 RETRY_AFTER_REFUSED_S = 1
 LINGER_IDLE_S = 5.0  # the rest of an answered request's body: closed once none has come for this long...
 LINGER_MAX_S = 30.0  # ...or this long after the answer, whatever comes
+MAX_DETAIL_CHARS = 200  # of h11's complaint
+_QUOTED = re.compile(r":? (?=bytearray\(|b['\"])")  # where h11's complaint starts quoting the request's bytes
 ROOM_MESSAGE = ("the request headers were still arriving when a new connection needed the place (max_connections); "
                 "send them at once")
 
@@ -164,6 +180,56 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         if self.conn.their_state is not h11.IDLE:  # its headers are complete (or it was refused)
             self._cancel_header_timer()
 
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn's answer to a request h11 cannot parse, called while h11's ``RemoteProtocolError`` is handled: a
+        JSON 4xx naming it (the status h11 suggests where it is a 4xx, else 400), the hardening headers, an access line;
+        the write side shut, the socket closed after ``REFUSED_LINGER_S``."""
+        if self.conn.our_state not in (h11.IDLE, h11.SEND_RESPONSE):  # answered already (its body's rest was bad)
+            self.transport.close()
+            return
+        cycle = self.cycle if self.cycle is not None and not self.cycle.response_complete else None  # in its body
+        error = sys.exc_info()[1]
+        status = getattr(error, "error_status_hint", 400)
+        status = status if 400 <= status < 500 else 400  # 501 for a transfer coding other than chunked: the client's
+        limit = self.config.h11_max_incomplete_event_size or DEFAULT_MAX_INCOMPLETE_EVENT_SIZE
+        if status == 431 and cycle is None:  # no end of the headers within the limit
+            message = f"the request line and headers are over {limit} bytes; send smaller headers"
+        elif status == 431:  # a chunk-size line of the body
+            status, message = 400, f"invalid HTTP request: a line of the chunked body is over {limit} bytes"
+        else:
+            detail = str(error) if isinstance(error, h11.RemoteProtocolError) else msg
+            # without the bytes h11 quotes: a header line may hold the API key (neither answered nor logged)
+            detail = _QUOTED.split(detail, maxsplit=1)[0][:MAX_DETAIL_CHARS]
+            message = f"invalid HTTP request: {detail}"
+        state = cycle.scope.setdefault("state", {}) if cycle is not None else {}
+        # the request context's (the app may not have started yet: it takes this one then)
+        request_id = state.setdefault("request_id", request_id_of(cycle.scope)) if cycle else uuid.uuid4().hex
+        body = json.dumps({"error": message}).encode()
+        headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body)),
+                   (b"x-request-id", request_id.encode()), *_hardening_pairs(), (b"connection", b"close")]
+        self.transport.write(self.conn.send(h11.Response(status_code=status, headers=headers,
+                                                         reason=STATUS_PHRASES[status])))
+        self.transport.write(self.conn.send(h11.Data(data=body)))
+        self.transport.write(self.conn.send(h11.EndOfMessage()))
+        self._refused = True  # what it sends now is dropped
+        if self.transport.can_write_eof():
+            self.transport.write_eof()
+        self.loop.call_later(REFUSED_LINGER_S, self.transport.close)
+        self.lingering[self] = None  # the cap may close it first
+        if cycle is not None:  # the app reading its body: a disconnect; the request context writes the access line
+            state[ANSWERED_BELOW] = (status, message)
+            cycle.disconnected = True
+            cycle.message_event.set()
+            return
+        access_log.info("request", extra={  # as the 408's: the request line may not have been read
+            "request_id": request_id,
+            "status": status,
+            "ms": round(1000 * (self.loop.time() - self._first_byte_at), 2) if self._first_byte_at else 0.0,
+            "bytes_in": 0,
+            "client": self.client[0] if self.client else "",
+            "error": message,
+        })
+
     def _stop_lingering(self) -> None:
         self.lingering.pop(self, None)
         if self._linger_timer is not None:
@@ -249,9 +315,14 @@ def connection_limits(max_connections: int) -> tuple[int, int]:
     return cap, backlog
 
 
+def _hardening_pairs() -> tuple[tuple[bytes, bytes], ...]:
+    """The headers of ``security_headers.py`` (for the answers written below the ASGI layer)."""
+    return (*HEADERS, (CSP, NOTHING_ALLOWED.encode()))
+
+
 def _hardening() -> bytes:
-    """The headers of ``security_headers.py``, as header lines (for the answers written below the ASGI layer)."""
-    return b"".join(b"%s: %s\r\n" % pair for pair in (*HEADERS, (CSP, NOTHING_ALLOWED.encode())))
+    """:func:`_hardening_pairs` as header lines."""
+    return b"".join(b"%s: %s\r\n" % pair for pair in _hardening_pairs())
 
 
 def h11_protocol(header_timeout_s: float, metrics: Metrics | None = None,

@@ -29,9 +29,13 @@ UNMATCHED_ROUTE = "<unmatched>"
 KNOWN_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "PATCH", "TRACE", "CONNECT"})
 OTHER_METHOD = "other"
 MAX_ERROR_BODY_BYTES = 4096  # of an error response, read back for the access line's ``error``
+# ``scope["state"]`` key of ``(status, message)`` where the HTTP protocol answered a request whose body it could not
+# parse (``http_protocol.py``); the app sees a disconnect
+ANSWERED_BELOW = "mfgnet.answered_below"
 
 
-def _request_id(scope: Scope) -> str:
+def request_id_of(scope: Scope) -> str:
+    """The request's ``X-Request-ID`` where it is usable, else a new one."""
     for key, value in scope.get("headers", []):
         if key == b"x-request-id":
             text = value.decode("latin-1").strip()
@@ -105,7 +109,7 @@ class RequestContextMiddleware:
             await self.app(scope, receive, send)
             return
         started = time.perf_counter()
-        request_id = _request_id(scope)
+        request_id = scope.get("state", {}).get("request_id") or request_id_of(scope)  # the protocol's, if it answered
         scope.setdefault("state", {})["request_id"] = request_id
         state = {"status": 0, "started": False, "received": 0, "body_done": False, "body_started": 0.0}
         path, root_path = scope.get("path", ""), scope.get("root_path", "")  # before routing changes them
@@ -167,6 +171,9 @@ class RequestContextMiddleware:
                 state["status"] = 500
         finally:
             self.metrics.in_flight.dec()
+            error = _error_message(state["status"], bytes(error_body))
+            if (answered := scope["state"].get(ANSWERED_BELOW)) is not None:  # a malformed body: the protocol's 4xx
+                state["status"], error = answered
             elapsed = time.perf_counter() - started
             route = _route_template(scope, path, root_path)
             method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
@@ -182,7 +189,7 @@ class RequestContextMiddleware:
                 "bytes_in": state["received"],
                 "client": (scope.get("client") or ("", 0))[0],
             }
-            if (error := _error_message(state["status"], bytes(error_body))) is not None:
+            if error is not None:
                 extra["error"] = error
             access_log.info("request", extra=extra)
 

@@ -1,0 +1,117 @@
+"""Requests h11 cannot parse get a JSON 4xx naming the problem from the service's protocol (``http_protocol.py``), as
+every other bad request does: the status h11 suggests (431 for headers too large), the hardening headers,
+``connection: close`` and an access line; no 5xx and no traceback. uvicorn's own answer was a plain-text
+``400 Invalid HTTP request received.`` whatever the problem, and a malformed rest of a body already answered raised in
+the protocol (an asyncio "Fatal error" traceback in the log).
+
+Real sockets against a real server process (``run_server``, the production protocol).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import time
+from urllib.parse import urlsplit
+
+import pytest
+from api_server import main_server, wait_for
+
+from service.api.security_headers import CSP, HEADERS, NOTHING_ALLOWED
+
+REGISTER = b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+SECRET = "s3cret-key"  # in a header line h11 refuses: neither answered nor logged
+CASES = {  # name: (bytes sent (or parts, 0.1 s apart), status, words of the error, whether the request reached the app)
+    "headers too large": (b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 1_000_000 + b"\r\n\r\n",
+                          431, ("headers", "16384 bytes"), False),
+    "bad request line": (b"GARBAGE\r\n\r\n", 400, ("invalid HTTP request", "illegal request line"), False),
+    "invalid header name": (b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nBad Header: y\r\n\r\n", 400,
+                            ("invalid HTTP request", "illegal header line"), False),
+    "NUL in a header": (b"GET /v1/models HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer " + SECRET.encode()
+                        + b"\x00\r\n\r\n", 400, ("illegal header line",), False),
+    "Content-Length not a number": (REGISTER + b"Content-Length: abc\r\n\r\n{}", 400, ("Content-Length",), False),
+    "transfer coding not chunked": (REGISTER + b"Transfer-Encoding: gzip\r\n\r\n", 400, ("chunked",), False),
+    "bad chunked encoding": (REGISTER + b"Transfer-Encoding: chunked\r\n\r\nzz\r\nabc\r\n", 400,
+                             ("invalid HTTP request", "illegal chunk header"), True),
+    "bad chunk while the app reads": ([REGISTER + b"Transfer-Encoding: chunked\r\n\r\n3\r\n{\"s\r\n", b"zz\r\n"],
+                                      400, ("invalid HTTP request", "illegal chunk header"), True),
+}
+
+
+def connect() -> socket.socket:
+    url = urlsplit(main_server().url)
+    return socket.create_connection((url.hostname, url.port), timeout=10)
+
+
+def until_closed(sock: socket.socket) -> bytes:
+    data = b""
+    while chunk := sock.recv(65536):
+        data += chunk
+    return data
+
+
+def parse(reply: bytes) -> tuple[int, dict[str, str], bytes]:
+    head, _, body = reply.partition(b"\r\n\r\n")
+    status_line, *lines = head.decode("latin-1").split("\r\n")
+    headers = {}
+    for line in lines:
+        name, _, value = line.partition(":")
+        headers[name.strip().lower()] = value.strip()
+    return int(status_line.split()[1]), headers, body
+
+
+def access_line(request_id: str) -> dict:
+    found = []
+    wait_for(lambda: bool(found.extend(line for line in main_server().log_lines()
+                                       if line.get("request_id") == request_id) or found), 5, "the access line")
+    return found[0]
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_a_malformed_request_gets_a_json_4xx_naming_it(name):
+    sent, status, words, reached_app = CASES[name]
+    with connect() as sock:
+        for part in [sent] if isinstance(sent, bytes) else sent:
+            sock.sendall(part)  # 1 MB of headers: read (and dropped) after the answer, so it is not reset away
+            time.sleep(0.1)
+        reply = until_closed(sock)  # the server shuts its side after the answer
+    got, headers, body = parse(reply)
+    assert got == status, reply[:300]
+    assert headers["content-type"] == "application/json" and int(headers["content-length"]) == len(body)
+    assert headers["connection"] == "close"
+    for key, value in (*HEADERS, (CSP, NOTHING_ALLOWED.encode())):
+        assert headers[key.decode()] == value.decode(), key
+    error = json.loads(body)["error"]
+    for word in words:
+        assert word.lower() in error.lower(), error
+    assert not {"GARBAGE", "Bad Header", "zz", SECRET} & set(error.split()), error  # the request's bytes not quoted
+    line = access_line(headers["x-request-id"])
+    assert line["status"] == status and line["error"] == error and line["client"] == "127.0.0.1"
+    assert SECRET not in main_server().log_path.read_text()
+    if reached_app:  # the request context's line: its method and route, one line
+        assert (line["method"], line["route"]) == ("POST", "/v1/register")
+
+
+def test_a_malformed_rest_of_a_body_already_answered_closes_the_connection_quietly():
+    with connect() as sock:
+        sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: text/plain\r\n"
+                     b"Transfer-Encoding: chunked\r\n\r\n")
+        reply = b""
+        while b"}" not in reply:  # the 415, before the body is read
+            reply += sock.recv(65536)
+        assert reply.startswith(b"HTTP/1.1 415 "), reply[:200]
+        started = time.monotonic()
+        sock.sendall(b"zz\r\nabc\r\n")
+        assert until_closed(sock) == b""
+        assert time.monotonic() - started < 2
+    time.sleep(0.2)  # the server's log written
+    assert not [line for line in main_server().log_lines() if "Fatal error" in line.get("msg", "")]
+
+
+def test_a_well_formed_request_after_a_malformed_one_is_served():
+    with connect() as sock:
+        sock.sendall(b"GARBAGE\r\n\r\n")
+        assert until_closed(sock).startswith(b"HTTP/1.1 400 ")
+    with connect() as sock:
+        sock.sendall(b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        assert until_closed(sock).startswith(b"HTTP/1.1 200 ")
