@@ -5,8 +5,10 @@ A binary request is a JSON header of ``Inference-Header-Content-Length`` bytes f
 bytes (little-endian, row-major, no padding) of every input whose ``parameters`` carry ``binary_data_size``,
 in the order of ``inputs``. Every size is checked before a byte is converted: the header length against the
 body, each ``binary_data_size`` against ``shape`` x the datatype's size, their sum against what follows the
-header (exactly), and the point count against ``max_points``. A binary input is read in place
-(``np.frombuffer``): the body plus one float64 copy per cloud is all the memory a request holds.
+header (exactly), and both clouds' declared point counts against ``max_points`` before either cloud's data. A binary
+input is read in place (``np.frombuffer``): the body plus one float64 copy per cloud is all the memory a request holds.
+:func:`check_infer_head` runs the checks a short JSON header allows once the body is read, before the request waits for
+a worker.
 """
 
 from __future__ import annotations
@@ -43,6 +45,9 @@ FP32_WIRE = np.dtype("<f4")  # binary FP32: little-endian float32
 # its shared memory region or expecting class labels
 SHARED_MEMORY = ("shared_memory_region", "shared_memory_byte_size", "shared_memory_offset")
 MAX_HEADER_DIGITS = 19  # any int64; more digits cannot be a header length
+# A JSON header up to this long is parsed before the request waits for a worker (check_infer_head): one of binary
+# tensor data names its tensors in a few hundred bytes
+HEAD_PRECHECK_BYTES = 64 * 1024
 
 
 @dataclass
@@ -328,11 +333,26 @@ def _load_head(head: bytes | bytearray, length: int | None, octet_stream: bool) 
         raise
 
 
-def infer_call(body: bytes | bytearray, length: int | None, max_points: int, octet_stream: bool = False) -> InferCall:
-    """Decode an ``infer`` body whose JSON header is ``length`` bytes long (``None``: the whole body);
-    ``octet_stream``: it was sent as ``application/octet-stream`` (a hint for the error when it is no JSON)."""
+@dataclass
+class _Head:
+    """An ``infer`` body's JSON header, checked up to the clouds' data: the request, its parameters, the inputs by name,
+    the outputs, the binary inputs' bytes."""
+
+    req: InferRequest
+    params: InferParameters
+    by_name: dict[str, InferInputTensor]
+    outputs: list[str]
+    binary_outputs: set[str]
+    parts: dict[str, memoryview]
+
+
+def _infer_head(body: bytes | bytearray, length: int | None, max_points: int, octet_stream: bool,
+                values_checked: bool) -> _Head:
+    """Every check of :func:`infer_call` before the clouds' data is read, the clouds' declared shapes last (their 413
+    above ``max_points``, SOURCE's then TARGET's)."""
     head, tail = _split(body, length)
-    check_json_values(head, 2 * max_points, two_clouds(max_points))
+    if not values_checked:
+        check_json_values(head, 2 * max_points, two_clouds(max_points))
     obj = _load_head(head, length, octet_stream)
     if not isinstance(obj, dict):
         raise APIError(422, f"invalid request: the body must be a JSON object, got {type(obj).__name__}")
@@ -357,6 +377,31 @@ def infer_call(body: bytes | bytearray, length: int | None, max_points: int, oct
         raise APIError(422, f"invalid request: inputs: missing {', '.join(missing)}")
     outputs, binary_outputs = _outputs(req, params.binary_data_output)
     parts = _binary_parts(req.inputs, tail)
+    for name in OIP_INPUTS:  # both clouds' declared sizes before either cloud's data
+        _point_count(by_name[name], max_points)
+    return _Head(req, params, by_name, outputs, binary_outputs, parts)
+
+
+def check_infer_head(body: bytes | bytearray, max_points: int, length: int | None, octet_stream: bool) -> None:
+    """What :func:`infer_call` refuses before reading the clouds' data, where that is cheap: the JSON header's value
+    count (bytes counted, no parse, as :func:`service.api.bodies.check_json_values` for ``/v1/register``), and, for a
+    JSON header of at most :data:`HEAD_PRECHECK_BYTES` (binary tensor data, the values after it), every check up to
+    the clouds' declared shapes (their 413 above ``max_points``). Its error is the one :func:`infer_call` gives
+    first (the same checks in the same order), so a request answered from here gets an idle server's answer without
+    waiting for a worker; :func:`infer_call` then skips the count (``values_checked``)."""
+    head, _ = _split(body, length)
+    check_json_values(head, 2 * max_points, two_clouds(max_points))
+    if length is not None and length <= HEAD_PRECHECK_BYTES:
+        _infer_head(body, length, max_points, octet_stream, values_checked=True)
+
+
+def infer_call(body: bytes | bytearray, length: int | None, max_points: int, octet_stream: bool = False,
+               values_checked: bool = False) -> InferCall:
+    """Decode an ``infer`` body whose JSON header is ``length`` bytes long (``None``: the whole body);
+    ``octet_stream``: it was sent as ``application/octet-stream`` (a hint for the error when it is no JSON);
+    ``values_checked``: :func:`check_infer_head` has passed the body already (its values not counted twice)."""
+    checked = _infer_head(body, length, max_points, octet_stream, values_checked)
+    by_name, parts = checked.by_name, checked.parts
     clouds: list[np.ndarray] = []
     for name in OIP_INPUTS:
         tensor = by_name[name]
@@ -365,10 +410,11 @@ def infer_call(body: bytes | bytearray, length: int | None, max_points: int, oct
             _decode_json_tensor(tensor, max_points) if part is None else _decode_binary_tensor(tensor, part, max_points)
         )
     guess = by_name.get(GUESS_INPUT)
+    params = checked.params
     options = RegisterOptions(
         iterations=params.iterations, keypoints=params.keypoints, refine=params.refine,
         refine_points=params.refine_points, drop_isolated=params.drop_isolated, rotation_search=params.rotation_search,
         initial_transform=None if guess is None else _decode_transform(guess, parts.get(GUESS_INPUT)),
         return_correspondences=True,
     )
-    return InferCall(req.id, Pair(options, clouds[0], clouds[1]), outputs, binary_outputs)
+    return InferCall(checked.req.id, Pair(options, clouds[0], clouds[1]), checked.outputs, checked.binary_outputs)

@@ -12,6 +12,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse
+from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response
 
 from service.api import oip_request
@@ -222,11 +223,15 @@ async def _infer(name: str, request: Request) -> Response:
     settings, runner = get_settings(request), get_runner(request)
     kind = oip_request.check_media_type(request)
     length = oip_request.header_length(request)
+    octet_stream = kind == OCTET_STREAM
     with runner.admit() as slot, await read_body(request, runner.body_budget, settings.max_body_bytes) as held:
+        # a 413 the header or the value count tells (and the checks before it) before the wait for a worker
+        await run_in_threadpool(oip_request.check_infer_head, held.peek(), settings.max_points, length, octet_stream)
 
         def decode() -> oip_request.InferCall:
             with held:  # the body is freed once decoded, before the pipeline runs
-                return oip_request.infer_call(held.take(), length, settings.max_points, kind == OCTET_STREAM)
+                return oip_request.infer_call(held.take(), length, settings.max_points, octet_stream,
+                                              values_checked=True)
 
         def work(call: oip_request.InferCall):
             entry, result = runner.register_one(call.pair, model=name)
