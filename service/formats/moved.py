@@ -18,7 +18,8 @@ where all three are floats) are rotated, not translated; every other per-point f
 
 x, y, z stored as 4-byte floats become 8-byte ones where a moved coordinate is beyond ``FLOAT32_EXACT_ENOUGH`` (as
 :func:`service.formats.write.write_cloud` writes them). The output is written to a temporary file beside it and
-renamed into place, so an output naming the source is written from the whole source.
+renamed into place, so an output naming the source is written from the whole source. The source may be a path or
+an open, seekable binary file (an HTTP upload, spooled): it is read from its start and left open.
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import io
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 from typing import TYPE_CHECKING, BinaryIO
@@ -60,16 +63,42 @@ FORMAT_NAMES = {
     "text": "XYZ/CSV/TXT",
 }
 INT32_MAX = 2**31 - 1
+Source = str | os.PathLike[str] | BinaryIO  # a path, or an open seekable binary file (read from its start, left open)
 
 
-def source_format(path: str | os.PathLike[str]) -> str | None:
-    """The format of the file at ``path`` as :func:`service.formats.read_cloud` finds it, from its first bytes;
-    ``None`` where it cannot be opened or read as a point cloud (the reader says why)."""
+@contextmanager
+def _opened(source: Source) -> Iterator[BinaryIO]:
+    """``source`` at its first byte: a path opened (closed afterwards), or an open file seeked to its start."""
+    if hasattr(source, "read"):
+        source.seek(0)  # type: ignore[union-attr]
+        yield source  # type: ignore[misc]
+    else:
+        with open(source, "rb") as f:  # type: ignore[arg-type]
+            yield f
+
+
+def source_format(path: Source) -> str | None:
+    """The format of the file at ``path`` (or of an open file) as :func:`service.formats.read_cloud` finds it, from its
+    first bytes; ``None`` where it cannot be opened or read as a point cloud (the reader says why)."""
     try:
-        with open(path, "rb") as f:
+        with _opened(path) as f:
             return detect_format(f)
     except (OSError, PointCloudFormatError):
         return None
+
+
+def own_suffix(source: Source, kind: str, name: str) -> str:
+    """The extension of the moved copy of a ``kind`` source (:data:`KEPT_FORMATS`) named ``name``: its own where it is
+    one of its format's (``.las`` or ``.laz`` as named), else ``.ply``, ``.pcd``, or for LAS/LAZ ``.laz`` where its
+    header marks the points compressed."""
+    suffix = Path(name).suffix.lower()
+    if suffix in KEPT_FORMATS[kind]:
+        return suffix
+    if kind != "las":
+        return KEPT_FORMATS[kind][0]
+    laspy = require("laspy", "reading LAS/LAZ files")
+    with _opened(source) as f, laspy.open(f, closefd=False, read_evlrs=False) as reader:
+        return ".laz" if reader.header.are_points_compressed else ".las"
 
 
 def keeps_content(kind: str | None, out: str | os.PathLike[str]) -> bool:
@@ -105,14 +134,15 @@ def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
 
 
 def write_moved(
-    source: str | os.PathLike[str],
+    source: Source,
     out: str | os.PathLike[str],
     rotation: np.ndarray,
     translation: np.ndarray,
     largest: float,
 ) -> None:
-    """Write the PLY, PCD or LAS/LAZ file ``source`` to ``out`` (:func:`keeps_content`) with its points moved by
-    ``rotation [3, 3]`` and ``translation [3]`` and its normals rotated, every other field and element kept.
+    """Write the PLY, PCD or LAS/LAZ file ``source`` (a path or an open file) to ``out`` (:func:`keeps_content`) with
+    its points moved by ``rotation [3, 3]`` and ``translation [3]`` and its normals rotated, every other field and
+    element kept.
     ``largest``: the largest absolute moved coordinate (the caller has moved the points it registered): beyond
     ``FLOAT32_EXACT_ENOUGH`` float32 x, y, z are written as float64.
 
@@ -120,7 +150,7 @@ def write_moved(
         PointCloudFormatError: a source this cannot copy, or moved coordinates its LAS scale cannot hold.
         OSError: ``source`` unreadable or ``out`` unwritable.
     """
-    source, out = Path(source), Path(out)
+    out = Path(out)
     kind = source_format(source)
     if not keeps_content(kind, out):
         raise PointCloudFormatError(
@@ -132,7 +162,7 @@ def write_moved(
     widen = bool(largest > FLOAT32_EXACT_ENOUGH)
     handle, temporary = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
     try:
-        with open(source, "rb") as src, os.fdopen(handle, "wb") as dst:
+        with _opened(source) as src, os.fdopen(handle, "wb") as dst:
             if kind == "ply":
                 _moved_ply(src, dst, R, t, widen)
             elif kind == "pcd":
@@ -294,6 +324,7 @@ def _moved_pcd(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen
     if meta.data == pypcd4.Encoding.ASCII:
         text = io.TextIOWrapper(src, encoding="ascii")
         rows = np.loadtxt(text, dtype=record, max_rows=meta.points, ndmin=1, comments=None)
+        text.detach()  # the source stays open (a caller's file is the caller's to close)
     else:
         rows = pypcd4.pypcd4._parse_pc_data(src, meta)
     if len(rows) != meta.points:

@@ -18,8 +18,10 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+import plyfile
 import pytest
 from api_server import LIMITED, limited_server, synthetic_pair
+from moved_files import coloured_ply
 
 from service.pointcloud_io import read_points, write_points
 
@@ -109,7 +111,8 @@ def external_requests(driver, server_url: str) -> list[str]:
         elif message["method"] == "Network.loadingFailed" and params.get("blockedReason"):
             blocked.add(params["requestId"])
     return [
-        url for rid, url in sent.items()
+        url
+        for rid, url in sent.items()
         if rid not in blocked and re.match(r"(https?|wss?)://", url) and not url.startswith(server_url + "/")
     ]
 
@@ -128,8 +131,9 @@ def register(driver, server_url: str, source: Path, target: Path, key: str | Non
     driver.find_element("id", "source").send_keys(str(source))
     driver.find_element("id", "target").send_keys(str(target))
     driver.find_element("id", "register").click()
-    return wait_for(driver, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the registration")
+    return wait_for(
+        driver, "document.body.dataset.state !== 'running' && document.body.dataset.state", "the registration"
+    )
 
 
 def register_a_broken_source(driver, folder: Path) -> str:
@@ -139,8 +143,9 @@ def register_a_broken_source(driver, folder: Path) -> str:
     corrupt.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n")
     driver.find_element("id", "source").send_keys(str(corrupt))
     driver.find_element("id", "register").click()
-    return wait_for(driver, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the failed registration")
+    return wait_for(
+        driver, "document.body.dataset.state !== 'running' && document.body.dataset.state", "the failed registration"
+    )
 
 
 def status_text(driver) -> str:
@@ -200,8 +205,11 @@ def test_page_registers_two_ply_files_and_draws_both_clouds(browser, server, ply
     browser.find_element("id", "source").send_keys(str(source_file))
     browser.find_element("id", "target").send_keys(str(target_file))
     browser.find_element("id", "register").click()
-    state = wait_for(browser, "['done', 'error'].includes(document.body.dataset.state) && document.body.dataset.state",
-                     "the registration")
+    state = wait_for(
+        browser,
+        "['done', 'error'].includes(document.body.dataset.state) && document.body.dataset.state",
+        "the registration",
+    )
     assert state == "done", browser.find_element("id", "status").text
 
     result = browser.find_element("id", "result")
@@ -257,10 +265,37 @@ def test_page_downloads_the_aligned_source_as_ply(browser, server, ply_files):
     assert np.abs(aligned - expected).max() < 1e-4  # the page shows the pose to 5 significant digits
 
 
-@pytest.mark.parametrize(("path", "ready"), [
-    ("/docs", "document.querySelector('.swagger-ui .info .title')"),
-    ("/redoc", "document.querySelector('.api-info h1, h1')"),
-])
+def test_page_downloads_a_coloured_ply_mesh_as_itself_moved(browser, server, tmp_path):
+    """The download was x, y, z only: a coloured mesh came back without its colours, normals and faces."""
+    pair = synthetic_pair(seed=3)
+    source_file, target_file = tmp_path / "mesh.ply", tmp_path / "target.ply"
+    vertex = coloured_ply(source_file, pair.source)
+    write_points(target_file, pair.target)
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    browser.find_element("id", "download").click()
+    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
+    download = browser.downloads / "mesh_aligned.ply"  # the name the answer's Content-Disposition gives
+    for _ in range(100):
+        if download.is_file() and download.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
+            break
+        time.sleep(0.05)
+    written = plyfile.PlyData.read(str(download))
+    rows = written["vertex"].data
+    for name in ("red", "green", "blue", "quality"):
+        assert rows[name].tobytes() == vertex[name].tobytes(), name
+    assert len(written["face"].data) == 200
+    T = shown_transform(browser)  # 5 significant digits
+    expected = pair.source.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    assert np.abs(np.stack([rows[a] for a in "xyz"], axis=1) - expected).max() < 1e-4
+
+
+@pytest.mark.parametrize(
+    ("path", "ready"),
+    [
+        ("/docs", "document.querySelector('.swagger-ui .info .title')"),
+        ("/redoc", "document.querySelector('.api-info h1, h1')"),
+    ],
+)
 def test_api_docs_load_with_no_external_requests(browser, server, path, ready):
     page = httpx.get(server.url + path, timeout=10).text
     hosts = set(re.findall(r"https?://[^\s'\"<>]+", page))
@@ -277,7 +312,8 @@ def test_every_control_is_labelled_and_reached_by_tab_in_order(browser, server):
     browser.get(f"{server.url}/")
     unlabelled = browser.execute_script(
         "return [...document.querySelectorAll('input, select, button')].filter(e => !(e.labels && e.labels.length)"
-        " && !e.getAttribute('aria-label') && !e.textContent.trim()).map(e => e.id)")
+        " && !e.getAttribute('aria-label') && !e.textContent.trim()).map(e => e.id)"
+    )
     assert unlabelled == []
     assert browser.find_element("id", "status").get_attribute("role") == "status"  # a polite live region
     from selenium.webdriver.common.action_chains import ActionChains
@@ -288,7 +324,7 @@ def test_every_control_is_labelled_and_reached_by_tab_in_order(browser, server):
         ActionChains(browser).send_keys(Keys.TAB).perform()
         reached.append(browser.execute_script("return document.activeElement.id"))
     order = ["source", "target", "refine", "rotation_search", "drop_isolated", "api_key", "register"]
-    assert [i for i in reached if i in order][:len(order)] == order, reached
+    assert [i for i in reached if i in order][: len(order)] == order, reached
 
 
 VIEW_JS = "JSON.parse(document.getElementById('canvas').dataset.view)"
@@ -343,7 +379,8 @@ def test_the_view_turns_zooms_and_resets_from_the_keyboard_without_scrolling_the
         press(browser, Keys.TAB)  # the view comes next in the tab order, with a visible outline
         assert browser.execute_script("return document.activeElement.id") == "canvas"
         outline = browser.execute_script(
-            "const s = getComputedStyle(document.activeElement); return [s.outlineStyle, parseFloat(s.outlineWidth)]")
+            "const s = getComputedStyle(document.activeElement); return [s.outlineStyle, parseFloat(s.outlineWidth)]"
+        )
         assert outline[0] != "none" and outline[1] >= 2, outline
         browser.execute_script("window.scrollTo(0, 60)")
         scroll_y = browser.execute_script("return window.scrollY")
@@ -352,8 +389,11 @@ def test_the_view_turns_zooms_and_resets_from_the_keyboard_without_scrolling_the
         start = view_state(browser)
         before = canvas.screenshot_as_png
         steps = [  # key, the change it makes to the view
-            (Keys.ARROW_LEFT, {"yaw_deg": -5}), (Keys.ARROW_RIGHT, {"yaw_deg": 0}), (Keys.ARROW_RIGHT, {"yaw_deg": 5}),
-            (Keys.ARROW_UP, {"yaw_deg": 5, "pitch_deg": -5}), (Keys.ARROW_DOWN, {"yaw_deg": 5, "pitch_deg": 0}),
+            (Keys.ARROW_LEFT, {"yaw_deg": -5}),
+            (Keys.ARROW_RIGHT, {"yaw_deg": 0}),
+            (Keys.ARROW_RIGHT, {"yaw_deg": 5}),
+            (Keys.ARROW_UP, {"yaw_deg": 5, "pitch_deg": -5}),
+            (Keys.ARROW_DOWN, {"yaw_deg": 5, "pitch_deg": 0}),
             (Keys.ARROW_DOWN, {"yaw_deg": 5, "pitch_deg": 5}),
         ]
         for key, change in steps:
@@ -399,8 +439,9 @@ def test_the_view_turns_zooms_and_resets_from_the_keyboard_without_scrolling_the
         browser.set_window_size(1400, 1000)
 
 
-def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_result(browser, server, ply_files,
-                                                                                  tmp_path):
+def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_result(
+    browser, server, ply_files, tmp_path
+):
     """After a good pair, a bad file's error showed under the good pair's pose, view and download button."""
     _, source_file, target_file = ply_files
     assert register(browser, server.url, source_file, target_file) == "done"
@@ -412,8 +453,14 @@ def test_a_failed_registration_shows_the_servers_message_and_hides_the_last_resu
     assert not browser.find_element("id", "register").get_attribute("disabled")
     browser.find_element("id", "source").send_keys(str(source_file))  # the user picks the right file: it registers
     browser.find_element("id", "register").click()
-    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the registration after an error") == "done", status_text(browser)
+    assert (
+        wait_for(
+            browser,
+            "document.body.dataset.state !== 'running' && document.body.dataset.state",
+            "the registration after an error",
+        )
+        == "done"
+    ), status_text(browser)
     assert not browser.execute_script("return document.getElementById('result').hidden")
 
 
@@ -432,23 +479,37 @@ def test_a_slow_answer_shows_the_time_and_can_be_cancelled_and_no_answer_is_expl
         wait_for(browser, "document.getElementById('elapsed').textContent.includes('1 s')", "the elapsed time")
         assert browser.find_element("id", "cancel").is_displayed()
         browser.find_element("id", "cancel").click()
-        assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                        "the cancel") == "cancelled"
+        assert (
+            wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state", "the cancel")
+            == "cancelled"
+        )
         assert status_text(browser) == "Cancelled."
         assert not browser.find_element("id", "cancel").is_displayed()
         assert not browser.find_element("id", "register").get_attribute("disabled")
 
         browser.execute_cdp_cmd("Network.emulateNetworkConditions", {**slow, "offline": True, "latency": 0})
         browser.find_element("id", "register").click()
-        assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                        "the unreachable server") == "error"
+        assert (
+            wait_for(
+                browser,
+                "document.body.dataset.state !== 'running' && document.body.dataset.state",
+                "the unreachable server",
+            )
+            == "error"
+        )
         assert status_text(browser).startswith("No answer from the server"), status_text(browser)
     finally:
         browser.execute_cdp_cmd("Network.emulateNetworkConditions", {**slow, "latency": 0})
         browser.execute_cdp_cmd("Network.disable", {})
     browser.find_element("id", "register").click()  # the server answers again: so does the page
-    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the registration after a cancel") == "done", status_text(browser)
+    assert (
+        wait_for(
+            browser,
+            "document.body.dataset.state !== 'running' && document.body.dataset.state",
+            "the registration after a cancel",
+        )
+        == "done"
+    ), status_text(browser)
 
 
 def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browser, tmp_path):
@@ -471,8 +532,10 @@ def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browse
     key = LIMITED["api_key"]
     assert register(browser, limited.url, source_file, target_file, key=key) == "done", status_text(browser)
     with limited.client(headers={"Authorization": f"Bearer {key}"}) as client:
-        files = {"source": (source_file.name, source_file.read_bytes()),
-                 "target": (target_file.name, target_file.read_bytes())}
+        files = {
+            "source": (source_file.name, source_file.read_bytes()),
+            "target": (target_file.name, target_file.read_bytes()),
+        }
         answer = client.post("/v1/register", files=files, data={"drop_isolated": "true"})  # the page's options
     assert answer.status_code == 200, answer.text
     api = answer.json()
@@ -495,8 +558,12 @@ def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browse
     np.save(big, np.tile(pair.source, (2, 1)))  # 600 points
     browser.find_element("id", "source").send_keys(str(big))
     browser.find_element("id", "register").click()
-    assert wait_for(browser, "document.body.dataset.state !== 'running' && document.body.dataset.state",
-                    "the too large file") == "error"
+    assert (
+        wait_for(
+            browser, "document.body.dataset.state !== 'running' && document.body.dataset.state", "the too large file"
+        )
+        == "error"
+    )
     status = status_text(browser)
     assert status.startswith("413: ") and "600 points" in status and "max_file_points" in status, status
 

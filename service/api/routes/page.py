@@ -1,5 +1,7 @@
 """The browser page: ``GET /`` (static files from ``service/web``), ``POST /v1/register/view`` (a registration
-plus decimated display clouds) and ``POST /v1/register/aligned`` (the source moved by a pose, as binary PLY).
+plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded source moved by a pose: a PLY, PCD or
+LAS/LAZ file as itself, every other field kept (:func:`service.formats.moved.write_moved`), any other format as
+binary PLY of x, y, z).
 
 Uploads go through the reader and limits of ``POST /v1/register`` (:func:`service.api.bodies.decode_upload`: any
 format of :mod:`service.formats`, found from the content, up to ``max_file_points`` per cloud). Display clouds
@@ -11,15 +13,19 @@ from __future__ import annotations
 
 import base64
 import json
+import shutil
+import tempfile
+from collections.abc import AsyncIterator
 from pathlib import Path, PurePath
-from typing import Any
+from typing import Any, BinaryIO
 from urllib.parse import quote
 
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Request
-from fastapi.responses import FileResponse, Response
+from fastapi.responses import FileResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
 
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
@@ -30,6 +36,8 @@ from service.api.runner import register_response
 from service.api.schemas import RegisterResponse
 from service.api.security_headers import page_policy
 from service.errors import InputError
+from service.formats import PointCloudFormatError
+from service.formats.moved import KEPT_FORMATS, own_suffix, source_format, write_moved
 from service.formats.write import as_written
 from service.registrar import check_transform
 
@@ -38,6 +46,15 @@ DISPLAY_CAP = 100_000  # points per cloud sent to the page
 DISPLAY_SEED = 0
 # Nothing loaded from elsewhere, and no other site frames the page.
 PAGE_POLICY = {"Content-Security-Policy": page_policy("default-src 'self'; img-src 'self' data: blob:")}
+OCTET_STREAM = "application/octet-stream"
+# The aligned download's media type by its extension: LAS and LAZ have IANA types; PLY and PCD have none.
+ALIGNED_MEDIA_TYPES = {
+    ".ply": OCTET_STREAM,
+    ".pcd": OCTET_STREAM,
+    ".las": "application/vnd.las",
+    ".laz": "application/vnd.laszip",
+}
+STREAM_CHUNK_BYTES = 1 << 20
 
 page_router = APIRouter(include_in_schema=False)
 router = APIRouter(prefix="/v1", tags=["page"], dependencies=[Depends(require_api_key)])
@@ -73,7 +90,8 @@ def display_cloud(points: np.ndarray) -> dict[str, Any]:
 
 class DisplayCloud(BaseModel):
     points: int = Field(
-        description="Points read from the uploaded cloud (an organized PCD's missing returns left out).")
+        description="Points read from the uploaded cloud (an organized PCD's missing returns left out)."
+    )
     shown: int = Field(description=f"Points sent for display: all, or {DISPLAY_CAP} chosen at random.")
     xyz: str = Field(description="base64 of float32 little-endian [shown, 3] rows, caller's units and frame.")
 
@@ -93,7 +111,11 @@ _ALIGNED_SCHEMA = {
     "type": "object",
     "required": ["source", "transform"],
     "properties": {
-        "source": {"type": "string", "format": "binary", "description": "Point-cloud file [N, 3]."},
+        "source": {
+            "type": "string",
+            "format": "binary",
+            "description": "Point-cloud file [N, 3] (PLY, PCD, LAS/LAZ come back as themselves, moved).",
+        },
         "transform": {"type": "string", "description": "JSON 4x4 rigid src_to_tgt matrix."},
     },
 }
@@ -134,17 +156,32 @@ async def register_view(request: Request) -> RenderedJSON:
     return RenderedJSON({"result": register_response(entry, pair, result, queue_ms), "display": display})
 
 
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+
+
 @router.post(
     "/register/aligned",
     response_class=Response,
-    summary="The source moved by a pose, as binary PLY",
+    summary="The uploaded source moved by a pose, in its own format",
     description="Multipart form: file `source` (any supported format) and field `transform`, a JSON 4x4 rigid "
-    "src_to_tgt matrix (e.g. a registration's `transform`). Answers binary little-endian float32 PLY of "
-    "`source @ R.T + t`, every point.",
+    "src_to_tgt matrix (e.g. a registration's `transform`). Every point becomes `R @ p + t`. A PLY, PCD or LAS/LAZ "
+    "source comes back as that file moved, named `<stem>_aligned.<its extension>`: every other field and element "
+    "kept (colours, intensities, faces, LAS records and VLRs), normals rotated, x, y, z in the file's precision "
+    "(4-byte floats become 8-byte ones for map coordinates; LAS keeps its scale and, where the moved points fit, its "
+    "offsets). "
+    "Any other format comes back as binary little-endian PLY of x, y, z (float32, or double for map coordinates), "
+    "named `<stem>_aligned.ply`. A file that cannot hold its moved points (a LAS span beyond its 32-bit integers at "
+    "its scale) is a 422 naming why.",
     openapi_extra=_multipart(_ALIGNED_SCHEMA),
-    responses={200: {"description": "Binary little-endian PLY of the moved source (Content-Disposition names it).",
-                    "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}},
-               **error_docs(400, 401, 408, 413, 415, 422, 503, 504)},
+    responses={
+        200: {
+            "description": "The moved source (Content-Disposition names it): PLY and PCD as "
+            "application/octet-stream, LAS as application/vnd.las, LAZ as "
+            "application/vnd.laszip.",
+            "content": {media: _BINARY for media in dict.fromkeys(ALIGNED_MEDIA_TYPES.values())},
+        },
+        **error_docs(400, 401, 408, 413, 415, 422, 503, 504),
+    },
 )
 async def register_aligned(request: Request) -> Response:
     settings, runner = get_settings(request), get_runner(request)
@@ -159,18 +196,55 @@ async def register_aligned(request: Request) -> Response:
             def decode() -> np.ndarray:
                 return bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
 
-            def work(source: np.ndarray) -> bytes:
+            def work(source: np.ndarray) -> tuple[bytes | BinaryIO, str]:
                 aligned = source @ R.T + t  # [N, 3] float64
                 if not np.isfinite(aligned).all():
                     raise APIError(422, "invalid request: the moved source leaves the float64 range")
-                return ply_bytes(aligned)
+                kind = source_format(upload.file)
+                if kind not in KEPT_FORMATS:
+                    return ply_bytes(aligned), ".ply"
+                suffix = own_suffix(upload.file, kind, upload.filename)
+                return moved_upload(upload, suffix, R, t, float(np.abs(aligned).max(initial=0.0))), suffix
 
-            content, _ = await runner.run(slot, work, request, decode)
+            (content, suffix), _ = await runner.run(slot, work, request, decode)
         finally:
             form.close()
     stem = PurePath(upload.filename).stem or "source"
-    return Response(content, media_type="application/octet-stream",
-                    headers={"Content-Disposition": attachment(f"{_safe(stem)}_aligned.ply")})
+    headers = {"Content-Disposition": attachment(f"{_safe(stem)}_aligned{suffix}")}
+    if isinstance(content, bytes):
+        return Response(content, media_type=OCTET_STREAM, headers=headers)
+    size = content.seek(0, 2)
+    content.seek(0)
+    return StreamingResponse(
+        streamed(content), media_type=ALIGNED_MEDIA_TYPES[suffix], headers={**headers, "Content-Length": str(size)}
+    )
+
+
+def moved_upload(upload: bodies.Upload, suffix: str, R: np.ndarray, t: np.ndarray, largest: float) -> BinaryIO:
+    """The spooled ``upload`` (PLY, PCD or LAS/LAZ) moved by ``R [3, 3]``, ``t [3]`` into a temporary file written as
+    ``suffix`` (:func:`service.formats.moved.write_moved`), open for reading; its name is already removed, so the disk
+    space is freed when it is closed, whatever becomes of the request. A 422 where the moved points do not fit the
+    format (a LAS span beyond its 32-bit integers at its scale)."""
+    folder = tempfile.mkdtemp(prefix="mfgnet-aligned-")
+    try:
+        out = Path(folder) / f"aligned{suffix}"
+        try:
+            write_moved(upload.file, out, R, t, largest)
+        except PointCloudFormatError as exc:
+            raise APIError(422, f"invalid request: {upload.label} cannot be written moved: {exc}") from None
+        return open(out, "rb")  # closed by streamed()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+async def streamed(file: BinaryIO) -> AsyncIterator[bytes]:
+    """``file``'s bytes, :data:`STREAM_CHUNK_BYTES` at a time read in a worker thread; closed at the end or when the
+    response stops early (the client gone)."""
+    try:
+        while chunk := await run_in_threadpool(file.read, STREAM_CHUNK_BYTES):
+            yield chunk
+    finally:
+        file.close()
 
 
 def attachment(name: str) -> str:
@@ -201,8 +275,10 @@ def _aligned_transform(fields: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
 def _numbers_only(matrix: Any) -> bool:
     """Whether ``matrix`` is a JSON list of lists of numbers (``true`` and ``"1"`` are none)."""
     rows = matrix if isinstance(matrix, list) and all(isinstance(row, list) for row in matrix) else [matrix]
-    return all(isinstance(row, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
-               for row in rows)
+    return all(
+        isinstance(row, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+        for row in rows
+    )
 
 
 def ply_bytes(xyz: np.ndarray) -> bytes:
