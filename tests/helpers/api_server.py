@@ -27,6 +27,7 @@ import httpx
 import numpy as np
 import pytest
 from shapes import asymmetric_blob
+from starlette.requests import Request  # at module level: the held route's annotation is resolved here
 
 from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
 
@@ -255,6 +256,27 @@ def serve_in_thread(app, until_ready: bool = True) -> Server:
     atexit.register(stop)
     url = f"http://127.0.0.1:{port}"
     return Server(url, None, _wait(url, until_ready=until_ready), stop)
+
+
+def held_worker_server(**settings) -> tuple[Server, object, threading.Event]:
+    """A real server in a thread with one worker, four places in the queue and ``isolated_settings(**settings)``
+    otherwise, whose added route ``POST /test/hold`` holds that worker until the returned event is set: a busy server
+    for the checks made before the queue. Returns the server, its limiter (``running``, ``taken``) and the event;
+    set the event and ``stop()`` the server when done."""
+    from service.api.app import create_app
+
+    app = create_app(isolated_settings(model_dirs=[str(model_root())], bundled_models=False, threads=1,
+                                       max_concurrency=1, max_queue=4, **settings))
+    release = threading.Event()
+
+    @app.post("/test/hold")
+    async def hold(request: Request) -> dict:
+        runner = app.state.runner
+        with runner.admit() as slot:
+            await runner.run(slot, lambda _: None, request, decode=lambda: release.wait(60))
+        return {}
+
+    return serve_in_thread(app), app.state.limiter, release
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float = 30.0, what: str = "condition") -> None:

@@ -17,10 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from api_server import Server, assert_error, isolated_settings, model_root, serve_in_thread, wait_for
-from starlette.requests import Request
-
-from service.api.app import create_app
+from api_server import Server, assert_error, held_worker_server, wait_for
 
 LIMIT = 1_000  # the server's max_points
 DEADLINE_S = 0.5
@@ -33,19 +30,8 @@ JUST_OVER = RNG.normal(size=(LIMIT + 1, 3)).round(4).tolist()  # within the coun
 
 @pytest.fixture(scope="module")
 def held() -> Iterator[tuple[Server, object, threading.Event]]:
-    app = create_app(isolated_settings(model_dirs=[str(model_root())], bundled_models=False, threads=1,
-                                       max_concurrency=1, max_queue=4, timeout_s=DEADLINE_S, max_points=LIMIT))
-    release = threading.Event()
-
-    @app.post("/test/hold")
-    async def hold(request: Request) -> dict:
-        runner = app.state.runner
-        with runner.admit() as slot:
-            await runner.run(slot, lambda _: None, request, decode=lambda: release.wait(60))
-        return {}
-
-    server = serve_in_thread(app)
-    yield server, app.state.limiter, release
+    server, limiter, release = held_worker_server(timeout_s=DEADLINE_S, max_points=LIMIT)
+    yield server, limiter, release
     release.set()
     server.stop()
 

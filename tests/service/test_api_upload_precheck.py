@@ -23,10 +23,8 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from api_server import Server, assert_error, isolated_settings, model_root, serve_in_thread, wait_for
-from starlette.requests import Request
+from api_server import Server, assert_error, held_worker_server, wait_for
 
-from service.api.app import create_app
 from service.formats import TooManyPointsError, read_cloud, write_cloud
 from service.formats.read import HEADER_COUNTS, check_declared_count
 
@@ -116,28 +114,8 @@ def test_a_header_that_lies_is_still_the_readers_to_judge(tmp_path):
 def held() -> Iterator[tuple[Server, object, threading.Event]]:
     """One worker, four places in the queue, a 0.5 s deadline, at most 1,000 points per file; ``POST /test/hold``
     holds the worker until the event is set. Yields the server, its limiter and the event."""
-    app = create_app(
-        isolated_settings(
-            model_dirs=[str(model_root())],
-            bundled_models=False,
-            threads=1,
-            max_concurrency=1,
-            max_queue=4,
-            timeout_s=DEADLINE_S,
-            max_file_points=LIMIT,
-        )
-    )
-    release = threading.Event()
-
-    @app.post("/test/hold")
-    async def hold(request: Request) -> dict:
-        runner = app.state.runner
-        with runner.admit() as slot:
-            await runner.run(slot, lambda _: None, request, decode=lambda: release.wait(60))
-        return {}
-
-    server = serve_in_thread(app)
-    yield server, app.state.limiter, release
+    server, limiter, release = held_worker_server(timeout_s=DEADLINE_S, max_file_points=LIMIT)
+    yield server, limiter, release
     release.set()
     server.stop()
 
