@@ -75,57 +75,82 @@ class Settings(BaseSettings):
         200_000, ge=32, description="Most points per cloud sent as JSON or OIP tensors; more is answered with 413."
     )
     max_file_points: int = Field(
-        2_000_000, ge=32, description="Most points per cloud uploaded as a file (multipart: PLY, PCD, LAS/LAZ, "
-        "NPY/NPZ, XYZ/CSV/TXT); more is answered with 413, known from the file's header before its points are "
+        2_000_000,
+        ge=32,
+        description="Most points per cloud uploaded as a file (multipart, any "
+        "format); more is answered with 413, known from the file's header before its points are "
         "read (text files: while reading). The server holds about 24 bytes per point per cloud while decoding.",
     )
     max_body_bytes: int = Field(
-        64 * MiB, ge=1024, description="Largest body of a request that is not a multipart upload (JSON, OIP); "
-        "more is answered with 413.",
+        64 * MiB,
+        ge=1024,
+        description="Largest body of a request that is not a multipart upload (JSON, OIP); more is answered with 413.",
     )
     max_buffered_bytes: int = Field(
-        256 * MiB, ge=1024, description="Most bytes of JSON and OIP bodies held in memory at once, from their reading "
+        256 * MiB,
+        ge=1024,
+        description="Most bytes of JSON and OIP bodies held in memory at once, from their reading "
         "until their registration has decoded them (each counted at its Content-Length, else max_body_bytes); a "
         "request whose body does not fit waits, unread, for earlier ones (in arrival order). Queued requests held "
         "their whole bodies: 18 of 64 MiB peaked above 1.1 GiB. A body larger than this is read alone.",
     )
     max_upload_bytes: int = Field(
-        256 * MiB, ge=1024, description="Largest multipart upload body (both files and the options); more is "
+        256 * MiB,
+        ge=1024,
+        description="Largest multipart upload body (both files and the options); more is "
         "answered with 413. The files are spooled to temporary files, not held in memory. 256 MiB holds two "
         "2,000,000-point clouds as float64 .npy (48 MB each) or as %.9g XYZ text (at most about 80 MB each).",
     )
-    max_batch: int = Field(16, ge=1, description="Most pairs in one /v1/register/batch request; their clouds hold at "
-                           "most 2 x max_points points in all (as one pair may), so a batch's memory is a pair's.")
+    max_batch: int = Field(
+        16,
+        ge=1,
+        description="Most pairs in one /v1/register/batch request; their clouds hold at "
+        "most 2 x max_points points in all (as one pair may), so a batch's memory is a pair's.",
+    )
     max_concurrency: int = Field(2, ge=1, description="Registrations running at once (worker threads).")
     max_queue: int = Field(16, ge=0, description="Registrations waiting for a worker; beyond that: 503.")
-    timeout_s: float = Field(30.0, gt=0, description="Deadline per request after its body is read, not "
-                                "counting the decoding of its clouds (a body over a size limit is a 413 whatever the "
-                                "deadline); then 504, and its registration stops at its next network call.")
+    timeout_s: float = Field(
+        30.0,
+        gt=0,
+        description="Deadline per request after its body is read, not "
+        "counting the decoding of its clouds (a body over a size limit is a 413 whatever the "
+        "deadline); then 504, and its registration stops at its next network call.",
+    )
     body_timeout_s: float = Field(
-        15.0, gt=0, description="Longest wait for the next piece of a request body; then 408 and the request's slot "
+        15.0,
+        gt=0,
+        description="Longest wait for the next piece of a request body; then 408 and the request's slot "
         "is freed (a request takes its slot before its body arrives, so stalled uploads would hold them all).",
     )
     body_min_rate: int = Field(
-        32 * KiB, ge=1, description="Slowest accepted body upload, in bytes per second: a body must arrive within "
+        32 * KiB,
+        ge=1,
+        description="Slowest accepted body upload, in bytes per second: a body must arrive within "
         "body_timeout_s plus one second per body_min_rate bytes received (Apache's mod_reqtimeout MinRate); then 408 "
         "and the slot is freed, so a client sending a byte now and then cannot hold a slot for hours.",
     )
     header_timeout_s: float = Field(
-        15.0, gt=0, description="Longest time from a request's first byte to the end of its headers; then 408 and the "
+        15.0,
+        gt=0,
+        description="Longest time from a request's first byte to the end of its headers; then 408 and the "
         "connection is closed (slowloris: uvicorn alone waits for ever). A new connection that sends nothing is "
         "closed after keep_alive_s, as an idle one between requests is.",
     )
     max_connections: int = Field(
-        1000, ge=1, description="Most connections open at once. A connection beyond it closes the one idle for "
+        1000,
+        ge=1,
+        description="Most connections open at once. A connection beyond it closes the one idle for "
         "longest (none sent yet, or kept alive between requests), else one answered before its body was read whole, "
         "else the one whose headers have been arriving for "
         "longest (408); when every open connection has a whole request "
-        "it is refused at once with 503 and Retry-After. At most the open-file limit (nofile, raised to its hard limit "
-        "at start) less 100, which file descriptors other than connections may need. An idle connection costs about "
-        "5 KiB.",
+        "it is refused at once with 503 and Retry-After. At start the open-file limit (nofile) is raised to its hard "
+        "limit; where this cap, the listen backlog (2048) and 100 other file descriptors do not fit under it, the cap "
+        "and the backlog are lowered to fit. An idle connection costs about 5 KiB.",
     )
     keep_alive_s: int = Field(
-        75, ge=1, description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
+        75,
+        ge=1,
+        description="Idle keep-alive timeout; longer than clients' (httpx: 5 s) and load balancers' "
         "(often 60 s), so the server never closes a connection that a client is about to reuse.",
     )
     api_key: SecretStr | None = Field(None, description="If set, inference routes need 'Authorization: Bearer <key>'.")
