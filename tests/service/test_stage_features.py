@@ -15,7 +15,7 @@ from service.registrar import Registrar
 from service.rotation_search import rotation_between_deg
 from service.stages.features import JOIN_SUPPORT, MIN_SUPPORT, feature_candidates, feature_confirmed
 from service.stages.network import network
-from service.stages.normalise import normalise
+from service.stages.normalise import normalise, to_caller
 from service.stages.pipeline import Stages
 from service.stages.sample import sample
 from service.stages.search import SEARCH_AHEAD_BELOW, plain_overlay
@@ -123,6 +123,21 @@ def test_a_feature_pose_confirms_only_results_near_it_and_only_with_enough_suppo
     assert not feature_confirmed(work, plain, right)  # no feature candidate joined
     weak = dataclasses.replace(found, feature_support=MIN_SUPPORT - 1)
     assert not feature_confirmed(work, weak, right)
+
+
+def test_a_result_confirms_only_within_agreement_deg_of_the_feature_pose(registrar) -> None:
+    # two wrong turntable results lay 27 and 29 deg from a feature pose with enough support: they are searched
+    # (docs/decisions/0074-a-confirmation-within-25-degrees.md)
+    request, work, plain, _ = plain_pass_of_a_half_turned_scan(registrar)
+    found = feature_candidates(registrar, work, plain, request.iterations, request.keypoints, {})
+    assert found.feature_support >= MIN_SUPPORT
+    right = registrar.solve(work, request, None, {}, found=found)
+    pose, _ = to_caller(work, found.poses[-1].rotation, found.poses[-1].translation)
+    for degrees, confirmed in ((22.0, True), (27.0, False), (29.0, False)):
+        turn = Rotation.from_rotvec(np.radians(degrees) * AXIS).as_matrix()
+        near = dataclasses.replace(right, rotation=turn @ pose)
+        assert rotation_between_deg(near.rotation, pose) == pytest.approx(degrees)
+        assert feature_confirmed(work, found, near) is confirmed, degrees
 
 
 def test_a_feature_pose_joins_from_join_support_and_confirms_only_from_min_support(registrar, monkeypatch) -> None:
