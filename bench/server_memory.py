@@ -2,6 +2,7 @@
 
     python -m bench.server_memory --models general
     python -m bench.server_memory                   # every bundled model
+    python -m bench.server_memory --aligned ply,las,laz --aligned-pair laz
 
 It starts ``mfgnet``'s HTTP app on 127.0.0.1 (``MFGNET_THREADS`` and ``MFGNET_MAX_CONCURRENCY`` 2, the server's
 defaults), reads its resident memory (``VmRSS``) after start, after ``--small`` default registrations of seeded
@@ -9,11 +10,20 @@ defaults), reads its resident memory (``VmRSS``) after start, after ``--small`` 
 points and jittered copies of them), and its peak (``VmHWM``); ``searched`` counts the requests that ran the
 rotation search. Every request is ``POST /v1/register`` with the two clouds as JSON and no option, so it runs what
 a caller gets by default (``rotation_search: "auto"`` included).
+
+``--aligned FORMATS`` measures the page's download instead: for each format, a fresh server (the same settings)
+answers one ``POST /v1/register/aligned`` of a seeded ``--aligned-points`` file (PLY: a coloured binary mesh; PCD:
+binary with intensity, normals and colour; LAS/LAZ: point format 3 with a CRS VLR), read to its end, and reports
+``VmRSS`` after start and after the answer, and ``VmHWM``. ``--aligned-pair FORMAT`` adds two such uploads at once to
+a server with the Kubernetes manifest's settings (``MFGNET_THREADS`` 1, ``MFGNET_MAX_CONCURRENCY`` 2).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -26,6 +36,10 @@ from model.cli_inputs import require_shapes
 
 SMALL_POINTS = 1024
 THREADS = 2
+ALIGNED_FORMATS = ("ply", "pcd", "las", "laz")
+MANIFEST_THREADS, MANIFEST_CONCURRENCY = 1, 2  # deploy/k8s/deployment.yaml
+# the pose sent: a quarter turn about z and a shift
+ALIGNED_POSE = [[0.0, -1.0, 0.0, 1.5], [1.0, 0.0, 0.0, -2.0], [0.0, 0.0, 1.0, 0.3], [0.0, 0.0, 0.0, 1.0]]
 
 
 def pairs(count: int, big_points: int, seed: int = 0) -> tuple[list[dict], dict]:
@@ -34,11 +48,14 @@ def pairs(count: int, big_points: int, seed: int = 0) -> tuple[list[dict], dict]
 
     test = make_test_pairs("dense", "test", count=count, seed=seed)
     rng = np.random.default_rng(seed)
-    small = [{"source": resize_cloud(s, SMALL_POINTS, rng).tolist(),
-              "target": resize_cloud(t, SMALL_POINTS, rng).tolist()}
-             for s, t in zip(test["source"], test["target"], strict=True)]
-    big = {"source": resize_cloud(test["source"][0], big_points, rng).tolist(),
-           "target": resize_cloud(test["target"][0], big_points, rng).tolist()}
+    small = [
+        {"source": resize_cloud(s, SMALL_POINTS, rng).tolist(), "target": resize_cloud(t, SMALL_POINTS, rng).tolist()}
+        for s, t in zip(test["source"], test["target"], strict=True)
+    ]
+    big = {
+        "source": resize_cloud(test["source"][0], big_points, rng).tolist(),
+        "target": resize_cloud(test["target"][0], big_points, rng).tolist(),
+    }
     return small, big
 
 
@@ -61,17 +78,163 @@ def measure(models: str | None, small_requests: int = 5, big_points: int = 100_0
         rss["after_big"] = rss_mb(pid)
         rss["peak"] = rss_mb(pid, "VmHWM")
         served = [m["name"] for m in client.get("/v1/models").json()["models"]]
-    return {"benchmark": "server_memory", "models": served, "small_requests": small_requests,
-            "small_points": SMALL_POINTS, "searched": searches, "big_points": big_points, "seed": seed,
-            "rss_mib": {k: round(v, 1) for k, v in rss.items()}, "machine": machine_info(THREADS)}
+    return {
+        "benchmark": "server_memory",
+        "models": served,
+        "small_requests": small_requests,
+        "small_points": SMALL_POINTS,
+        "searched": searches,
+        "big_points": big_points,
+        "seed": seed,
+        "rss_mib": {k: round(v, 1) for k, v in rss.items()},
+        "machine": machine_info(THREADS),
+    }
+
+
+def aligned_file(folder: Path, fmt: str, n: int, seed: int = 0) -> Path:
+    """A seeded ``n``-point file as scanners write it, in ``fmt`` (one of :data:`ALIGNED_FORMATS`)."""
+    rng = np.random.default_rng(seed)
+    xyz = rng.random((n, 3)) * 100  # [n, 3] metres
+    turned = rng.normal(size=(n, 3))
+    normals = turned / np.linalg.norm(turned, axis=1, keepdims=True)  # [n, 3] unit
+    path = folder / f"cloud.{fmt}"
+    if fmt == "ply":  # a mesh: float x, y, z, normals, uchar colours, a float quality; 200 faces
+        import plyfile
+
+        names = ("x", "y", "z", "nx", "ny", "nz")
+        vertex = np.empty(
+            n,
+            dtype=[
+                *((name, "<f4") for name in names),
+                ("red", "u1"),
+                ("green", "u1"),
+                ("blue", "u1"),
+                ("quality", "<f4"),
+            ],
+        )
+        for axis, name in enumerate(names):
+            vertex[name] = np.column_stack([xyz, normals])[:, axis]
+        for name in ("red", "green", "blue"):
+            vertex[name] = rng.integers(0, 256, n)
+        vertex["quality"] = rng.random(n)
+        faces = np.empty(200, dtype=[("vertex_indices", "O")])
+        faces["vertex_indices"] = [rng.integers(0, n, 3 + k % 2).astype(np.int32) for k in range(200)]
+        elements = [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")]
+        plyfile.PlyData(elements, byte_order="<").write(str(path))
+    elif fmt == "pcd":  # binary: x, y, z, intensity, normals and a packed rgb float (PCL's layout)
+        import pypcd4
+
+        fields = ("x", "y", "z", "intensity", "normal_x", "normal_y", "normal_z", "rgb")
+        values = np.column_stack([xyz, rng.integers(0, 4, n), normals, np.zeros(n)]).astype(np.float32)
+        cloud = pypcd4.PointCloud.from_points(values, fields, (np.float32,) * len(fields))
+        cloud.pc_data["rgb"] = pypcd4.PointCloud.encode_rgb(rng.integers(0, 256, (n, 3)).astype(np.uint8))
+        cloud.save(path, encoding=pypcd4.Encoding.BINARY)
+    else:  # LAS 1.2 point format 3 at millimetre scale, UTM-like offsets, a WKT CRS VLR; LAZ compressed
+        import laspy
+
+        header = laspy.LasHeader(point_format=3, version="1.2")
+        header.scales, header.offsets = np.full(3, 0.001), np.array([512_000.0, 4_123_000.0, 100.0])
+        header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr('PROJCS["WGS 84 / UTM zone 32N"]'))
+        las = laspy.LasData(header)
+        las.x, las.y, las.z = (xyz + np.array([512_345.0, 4_123_456.0, 150.0])).T
+        las.intensity = rng.integers(0, 65535, n)
+        las.classification = rng.integers(0, 10, n)
+        las.gps_time = rng.random(n) * 1e5
+        for name in ("red", "green", "blue"):
+            setattr(las, name, rng.integers(0, 65535, n))
+        las.write(str(path))
+    return path
+
+
+def aligned_download(url: str, path: Path) -> int:
+    """``POST /v1/register/aligned`` of ``path`` with :data:`ALIGNED_POSE`, its answer read to the end; its bytes."""
+    with httpx.Client(base_url=url, timeout=300) as client, open(path, "rb") as f:
+        files, data = {"source": (path.name, f)}, {"transform": json.dumps(ALIGNED_POSE)}
+        with client.stream("POST", "/v1/register/aligned", files=files, data=data) as response:
+            if response.status_code != 200:
+                response.read()
+                raise RuntimeError(f"{path.name}: HTTP {response.status_code}: {response.text[:300]}")
+            return sum(len(chunk) for chunk in response.iter_bytes())
+
+
+def aligned_memory(
+    models: str | None, path: Path, at_once: int = 1, threads: int = THREADS, max_concurrency: int = THREADS
+) -> dict:
+    """A fresh server's RSS in MiB after start, after ``at_once`` aligned downloads of ``path`` sent together, and its
+    peak; the answers' sizes in MiB."""
+    with Server(threads=threads, max_concurrency=max_concurrency, models=models) as server:
+        pid = server.proc.pid
+        after_start = rss_mb(pid)
+        with ThreadPoolExecutor(at_once) as pool:
+            sizes = list(pool.map(lambda _: aligned_download(server.url, path), range(at_once)))
+        rss = {"after_start": after_start, "after": rss_mb(pid), "peak": rss_mb(pid, "VmHWM")}
+    rss["peak_over_start"] = rss["peak"] - after_start
+    return {
+        "upload_mib": round(path.stat().st_size / 2**20, 1),
+        "answer_mib": round(sizes[0] / 2**20, 1),
+        "at_once": at_once,
+        "threads": threads,
+        "max_concurrency": max_concurrency,
+        "rss_mib": {k: round(v, 1) for k, v in rss.items()},
+    }
+
+
+def measure_aligned(models: str | None, formats: list[str], points: int, pair: str | None, seed: int = 0) -> dict:
+    """:func:`aligned_memory` for one upload of each of ``formats``, in a fresh server each, and for two ``pair``
+    uploads at once with the manifest's settings."""
+    report = {
+        "benchmark": "server_memory_aligned",
+        "models": models or "every bundled model",
+        "points": points,
+        "seed": seed,
+        "pose": ALIGNED_POSE,
+        "formats": {},
+    }
+    with tempfile.TemporaryDirectory(prefix="mfgnet-aligned-bench-") as folder:
+        for fmt in dict.fromkeys([*formats, *([pair] if pair else [])]):
+            path = aligned_file(Path(folder), fmt, points, seed)
+            if fmt in formats:
+                report["formats"][fmt] = aligned_memory(models, path)
+            if fmt == pair:
+                report["pair"] = {
+                    "format": pair,
+                    **aligned_memory(models, path, 2, MANIFEST_THREADS, MANIFEST_CONCURRENCY),
+                }
+            path.unlink()
+    report["machine"] = machine_info(THREADS)
+    return report
+
+
+def formats_list(text: str) -> list[str]:
+    """``--aligned``'s comma-separated formats, each one of :data:`ALIGNED_FORMATS`."""
+    names = [name.strip().lower() for name in text.split(",") if name.strip()]
+    unknown = [name for name in names if name not in ALIGNED_FORMATS]
+    if not names or unknown:
+        raise argparse.ArgumentTypeError(f"expected formats among {', '.join(ALIGNED_FORMATS)}, got {text!r}")
+    return list(dict.fromkeys(names))
 
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", help="serve only these model names, comma separated (default: every bundled one)")
     parser.add_argument("--small", type=positive_int, default=5, help="1,024-point registrations before the big one")
-    parser.add_argument("--big-points", type=positive_int, default=100_000,
-                        help="points per cloud of the big JSON request")
+    parser.add_argument(
+        "--big-points", type=positive_int, default=100_000, help="points per cloud of the big JSON request"
+    )
+    parser.add_argument(
+        "--aligned",
+        type=formats_list,
+        metavar="FORMATS",
+        help="measure POST /v1/register/aligned instead: one upload per format, a fresh server each "
+        f"(comma separated, of {', '.join(ALIGNED_FORMATS)})",
+    )
+    parser.add_argument("--aligned-points", type=positive_int, default=2_000_000, help="points of each aligned upload")
+    parser.add_argument(
+        "--aligned-pair",
+        choices=ALIGNED_FORMATS,
+        metavar="FORMAT",
+        help="also two aligned uploads of FORMAT at once, with the Kubernetes manifest's settings",
+    )
     parser.add_argument("--seed", type=non_negative_int, default=0)
     parser.add_argument("--json", type=Path, help="also write the report here")
     args = parser.parse_args(argv)
@@ -82,9 +245,12 @@ def main(argv: list[str] | None = None) -> dict:
         unknown = [name for name in args.models.split(",") if name.strip() not in bundled]
         if unknown:
             parser.error(f"--models: no bundled model {', '.join(unknown)} (bundled: {', '.join(bundled)})")
-    checked(require_shapes, "test", "dense", None)  # the requests' pairs
     json_destination(args.json)
-    report = measure(args.models, args.small, args.big_points, args.seed)
+    if args.aligned or args.aligned_pair:
+        report = measure_aligned(args.models, args.aligned or [], args.aligned_points, args.aligned_pair, args.seed)
+    else:
+        checked(require_shapes, "test", "dense", None)  # the requests' pairs
+        report = measure(args.models, args.small, args.big_points, args.seed)
     emit_report(report, args.json)
     return report
 

@@ -22,8 +22,14 @@ def files(tmp_path, monkeypatch):
     """Bad and good inputs: ``{name: path}``; the real-scan set of the tests is a fake one of two pairs."""
     rng = np.random.default_rng(0)
     good = tmp_path / "pairs.npz"
-    np.savez(good, source=rng.normal(size=(1, 8, 3)), target=rng.normal(size=(1, 8, 3)),
-             rotation=np.eye(3)[None], translation=np.zeros((1, 3)), label=np.zeros(1))
+    np.savez(
+        good,
+        source=rng.normal(size=(1, 8, 3)),
+        target=rng.normal(size=(1, 8, 3)),
+        rotation=np.eye(3)[None],
+        translation=np.zeros((1, 3)),
+        label=np.zeros(1),
+    )
     np.savez(tmp_path / "wrong.npz", x=np.zeros(3))
     (tmp_path / "text.npz").write_text("not an archive")
     (tmp_path / "list.json").write_text(json.dumps([1]))
@@ -45,11 +51,20 @@ def files(tmp_path, monkeypatch):
     with socket.socket() as s:  # a port with no server behind it
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    return {"pairs": str(good), "wrong": str(tmp_path / "wrong.npz"), "text": str(tmp_path / "text.npz"),
-            "list": str(tmp_path / "list.json"), "empty": str(tmp_path / "empty"),
-            "missing": str(tmp_path / "missing" / "out.json"), "checkout": str(tmp_path / "checkout"),
-            "scans": str(scans), "url": f"http://127.0.0.1:{port}", "nopose": str(tmp_path / "nopose"),
-            "textpair": str(tmp_path / "textpair"), "unjudged": str(tmp_path / "unjudged")}
+    return {
+        "pairs": str(good),
+        "wrong": str(tmp_path / "wrong.npz"),
+        "text": str(tmp_path / "text.npz"),
+        "list": str(tmp_path / "list.json"),
+        "empty": str(tmp_path / "empty"),
+        "missing": str(tmp_path / "missing" / "out.json"),
+        "checkout": str(tmp_path / "checkout"),
+        "scans": str(scans),
+        "url": f"http://127.0.0.1:{port}",
+        "nopose": str(tmp_path / "nopose"),
+        "textpair": str(tmp_path / "textpair"),
+        "unjudged": str(tmp_path / "unjudged"),
+    }
 
 
 # (module, argv with {file} names, the work replaced, a fragment of the message)
@@ -124,14 +139,15 @@ CASES = [
     ("queued_bodies", ["--json", "{missing}"], "measure", "does not exist"),
     ("queued_bodies", ["--compare-root", "{checkout}"], "measure", "--compare-root"),
     ("server_memory", ["--models", "general,nope"], "measure", "--models: no bundled model nope"),
+    ("server_memory", ["--aligned", "ply,e57"], "measure_aligned", "--aligned: expected formats among ply, pcd"),
+    ("server_memory", ["--aligned-pair", "xyz"], "measure_aligned", "--aligned-pair: invalid choice"),
     ("http_latency", ["--big-requests", "0"], "bench_overhead", "--big-requests: must be at least 1"),
     ("http_latency", ["--compare-root", "{checkout}"], "bench_overhead", "not a checkout"),
     ("plot", ["{list}", "{missing}"], "plot_report", "not an mfgnet bench report"),
 ]
 
 
-@pytest.mark.parametrize(("module", "argv", "work", "fragment"), CASES,
-                         ids=[f"{c[0]}:{' '.join(c[1])}" for c in CASES])
+@pytest.mark.parametrize(("module", "argv", "work", "fragment"), CASES, ids=[f"{c[0]}:{' '.join(c[1])}" for c in CASES])
 def test_mistake_is_a_usage_error_before_any_work(module, argv, work, fragment, files, monkeypatch, capsys):
     bench = importlib.import_module(f"bench.{module}")
     monkeypatch.setattr(bench, work, _no_work)
@@ -142,13 +158,15 @@ def test_mistake_is_a_usage_error_before_any_work(module, argv, work, fragment, 
     assert "error: " in message and fragment in message
 
 
-@pytest.mark.parametrize(("folders", "fragment"), [
-    (["x/candidate", "y/candidate"], "DIR: candidates need distinct folder names other than general"),
-    (["x/general", "y/other"], "DIR: candidates need distinct folder names other than general"),
-    (["unseen"], "normalises clouds to a reference radius of"),
-])
-def test_search_network_candidates_are_checked_before_any_work(folders, fragment, files, tmp_path, monkeypatch,
-                                                                capsys):
+@pytest.mark.parametrize(
+    ("folders", "fragment"),
+    [
+        (["x/candidate", "y/candidate"], "DIR: candidates need distinct folder names other than general"),
+        (["x/general", "y/other"], "DIR: candidates need distinct folder names other than general"),
+        (["unseen"], "normalises clouds to a reference radius of"),
+    ],
+)
+def test_search_network_candidates_are_checked_before_any_work(folders, fragment, files, tmp_path, monkeypatch, capsys):
     import shutil
 
     from bench import search_network
@@ -181,8 +199,10 @@ def test_modelnet_data_missing_is_a_usage_error(files, monkeypatch, capsys):
     assert "ModelNet40 file not found" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("options", "fragment"), [({"json_out": "missing"}, "does not exist"),
-                                                   ({"settings": ["bogus"]}, "unknown setting 'bogus'")])
+@pytest.mark.parametrize(
+    ("options", "fragment"),
+    [({"json_out": "missing"}, "does not exist"), ({"settings": ["bogus"]}, "unknown setting 'bogus'")],
+)
 def test_rotation_search_checks_its_options_before_the_cost_stage(options, fragment, files, monkeypatch, capsys):
     from pathlib import Path
 
@@ -196,11 +216,15 @@ def test_rotation_search_checks_its_options_before_the_cost_stage(options, fragm
     assert fragment in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("command", [
-    ["evaluate", "--checkpoint", "nope"],  # mfgnet evaluate
-    ["bench", "--model", "nope"],  # mfgnet bench (bench.latency)
-    ["rotation_search", "--model", "nope"],  # python -m bench.rotation_search
-], ids=lambda command: command[0])
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["evaluate", "--checkpoint", "nope"],  # mfgnet evaluate
+        ["bench", "--model", "nope"],  # mfgnet bench (bench.latency)
+        ["rotation_search", "--model", "nope"],  # python -m bench.rotation_search
+    ],
+    ids=lambda command: command[0],
+)
 def test_negative_seed_of_a_typer_bench_is_a_usage_error(command):
     """The seed is checked as the command line is parsed, before the command's own checks (here: a missing model)."""
     from typer.testing import CliRunner

@@ -24,3 +24,17 @@ def test_one_model_server_reports_its_memory_at_each_phase(tmp_path) -> None:
     rss = report["rss_mib"]
     assert 50 < rss["after_start"] < 1024  # a loaded model, not an empty interpreter nor a runaway
     assert max(rss["after_start"], rss["after_small"], rss["after_big"]) <= rss["peak"]
+
+
+def test_aligned_downloads_report_each_server_peak(tmp_path) -> None:
+    out = tmp_path / "aligned.json"
+    options = ["--models", "general", "--aligned", "ply", "--aligned-pair", "laz", "--aligned-points", "3000"]
+    main([*options, "--json", str(out)])
+    report = json.loads(out.read_text())
+    assert report["points"] == 3000 and list(report["formats"]) == ["ply"] and report["pair"]["format"] == "laz"
+    for run in (report["formats"]["ply"], report["pair"]):
+        assert run["answer_mib"] > 0  # the moved file came back
+        rss = run["rss_mib"]
+        assert 50 < rss["after_start"] <= rss["peak"] and rss["after"] <= rss["peak"]
+    pair = report["pair"]
+    assert (pair["at_once"], pair["threads"], pair["max_concurrency"]) == (2, 1, 2)  # the manifest's settings
