@@ -29,6 +29,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from bench import scan_files
 from bench.http_latency import Server, rss_mb
 from bench.latency import resize_cloud
 from bench.report_io import checked, emit_report, json_destination, machine_info, non_negative_int, positive_int
@@ -92,57 +93,17 @@ def measure(models: str | None, small_requests: int = 5, big_points: int = 100_0
 
 
 def aligned_file(folder: Path, fmt: str, n: int, seed: int = 0) -> Path:
-    """A seeded ``n``-point file as scanners write it, in ``fmt`` (one of :data:`ALIGNED_FORMATS`)."""
-    rng = np.random.default_rng(seed)
-    xyz = rng.random((n, 3)) * 100  # [n, 3] metres
-    turned = rng.normal(size=(n, 3))
-    normals = turned / np.linalg.norm(turned, axis=1, keepdims=True)  # [n, 3] unit
+    """A seeded ``n``-point file as scanners write it, in ``fmt`` (one of :data:`ALIGNED_FORMATS`): a coloured PLY
+    mesh, a binary PCD with intensity, normals and colour, a LAS (or LAZ) survey in UTM coordinates
+    (:mod:`bench.scan_files`)."""
+    xyz = np.random.default_rng(seed).random((n, 3)) * 100  # [n, 3] metres
     path = folder / f"cloud.{fmt}"
-    if fmt == "ply":  # a mesh: float x, y, z, normals, uchar colours, a float quality; 200 faces
-        import plyfile
-
-        names = ("x", "y", "z", "nx", "ny", "nz")
-        vertex = np.empty(
-            n,
-            dtype=[
-                *((name, "<f4") for name in names),
-                ("red", "u1"),
-                ("green", "u1"),
-                ("blue", "u1"),
-                ("quality", "<f4"),
-            ],
-        )
-        for axis, name in enumerate(names):
-            vertex[name] = np.column_stack([xyz, normals])[:, axis]
-        for name in ("red", "green", "blue"):
-            vertex[name] = rng.integers(0, 256, n)
-        vertex["quality"] = rng.random(n)
-        faces = np.empty(200, dtype=[("vertex_indices", "O")])
-        faces["vertex_indices"] = [rng.integers(0, n, 3 + k % 2).astype(np.int32) for k in range(200)]
-        elements = [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")]
-        plyfile.PlyData(elements, byte_order="<").write(str(path))
-    elif fmt == "pcd":  # binary: x, y, z, intensity, normals and a packed rgb float (PCL's layout)
-        import pypcd4
-
-        fields = ("x", "y", "z", "intensity", "normal_x", "normal_y", "normal_z", "rgb")
-        values = np.column_stack([xyz, rng.integers(0, 4, n), normals, np.zeros(n)]).astype(np.float32)
-        cloud = pypcd4.PointCloud.from_points(values, fields, (np.float32,) * len(fields))
-        cloud.pc_data["rgb"] = pypcd4.PointCloud.encode_rgb(rng.integers(0, 256, (n, 3)).astype(np.uint8))
-        cloud.save(path, encoding=pypcd4.Encoding.BINARY)
-    else:  # LAS 1.2 point format 3 at millimetre scale, UTM-like offsets, a WKT CRS VLR; LAZ compressed
-        import laspy
-
-        header = laspy.LasHeader(point_format=3, version="1.2")
-        header.scales, header.offsets = np.full(3, 0.001), np.array([512_000.0, 4_123_000.0, 100.0])
-        header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr('PROJCS["WGS 84 / UTM zone 32N"]'))
-        las = laspy.LasData(header)
-        las.x, las.y, las.z = (xyz + np.array([512_345.0, 4_123_456.0, 150.0])).T
-        las.intensity = rng.integers(0, 65535, n)
-        las.classification = rng.integers(0, 10, n)
-        las.gps_time = rng.random(n) * 1e5
-        for name in ("red", "green", "blue"):
-            setattr(las, name, rng.integers(0, 65535, n))
-        las.write(str(path))
+    if fmt == "ply":
+        scan_files.coloured_ply(path, xyz)
+    elif fmt == "pcd":
+        scan_files.pcd_with_fields(path, xyz)
+    else:
+        scan_files.survey_las(path, xyz + np.array([512_345.0, 4_123_456.0, 150.0]))
     return path
 
 

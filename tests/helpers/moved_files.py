@@ -1,6 +1,5 @@
-"""Point-cloud files as users have them, written with the libraries they use (plyfile, pypcd4, laspy + lazrs): a
-coloured PLY mesh, a PCD with intensity, normals and packed colour, a LAS survey with a CRS VLR. Shared by the tests of
-the aligned file (``mfgnet register --write-aligned``, ``POST /v1/register/aligned``, the page's download)."""
+"""The files of ``bench.scan_files`` as the tests of the aligned file use them (``mfgnet register --write-aligned``,
+``POST /v1/register/aligned``, the page's download): a PCD kept compressed where asked, a LAS file read back."""
 
 from __future__ import annotations
 
@@ -8,83 +7,23 @@ from pathlib import Path
 
 import laspy
 import numpy as np
-import plyfile
 import pypcd4
 
-PLY_NORMALS, PCD_NORMALS = ("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z")
+from bench import scan_files
+from bench.scan_files import PCD_NORMALS, PLY_NORMALS, coloured_ply
 
-
-def normals(n: int, seed: int = 1) -> np.ndarray:
-    turned = np.random.default_rng(seed).normal(size=(n, 3))
-    return turned / np.linalg.norm(turned, axis=1, keepdims=True)  # [n, 3] unit
-
-
-def coloured_ply(path: Path, xyz: np.ndarray, text: bool = False) -> np.ndarray:
-    """A mesh as scanners write it: float x, y, z, normals, uchar colours, a float quality; faces of 3 and 4 corners.
-    Returns the vertex records."""
-    rng = np.random.default_rng(2)
-    n = len(xyz)
-    vertex = np.empty(
-        n,
-        dtype=[
-            ("x", "<f4"),
-            ("y", "<f4"),
-            ("z", "<f4"),
-            ("nx", "<f4"),
-            ("ny", "<f4"),
-            ("nz", "<f4"),
-            ("red", "u1"),
-            ("green", "u1"),
-            ("blue", "u1"),
-            ("quality", "<f4"),
-        ],
-    )
-    for axis, name in enumerate("xyz"):
-        vertex[name] = xyz[:, axis]
-    for axis, name in enumerate(PLY_NORMALS):
-        vertex[name] = normals(n)[:, axis]
-    for name in ("red", "green", "blue"):
-        vertex[name] = rng.integers(0, 256, n)
-    vertex["quality"] = rng.random(n)
-    faces = np.empty(200, dtype=[("vertex_indices", "O")])
-    faces["vertex_indices"] = [rng.integers(0, n, 3 + k % 2).astype(np.int32) for k in range(200)]
-    elements = [plyfile.PlyElement.describe(vertex, "vertex"), plyfile.PlyElement.describe(faces, "face")]
-    plyfile.PlyData(elements, text=text, byte_order="<", comments=["scanner X"]).write(str(path))
-    return vertex
+__all__ = ["PCD_NORMALS", "PLY_NORMALS", "coloured_ply", "pcd_with_fields", "survey_las"]
 
 
 def pcd_with_fields(path: Path, xyz: np.ndarray, encoding: str) -> np.ndarray:
-    """x, y, z, intensity, normals and a packed rgb float (PCL's layout) in ``encoding``; returns the records."""
-    rng = np.random.default_rng(3)
-    n = len(xyz)
-    fields = ("x", "y", "z", "intensity", *PCD_NORMALS, "rgb")
-    values = np.column_stack([xyz, rng.integers(0, 4, n), normals(n), np.zeros(n)]).astype(np.float32)
-    cloud = pypcd4.PointCloud.from_points(values, fields, (np.float32,) * len(fields))
-    cloud.pc_data["rgb"] = pypcd4.PointCloud.encode_rgb(rng.integers(0, 4, (n, 3)).astype(np.uint8) * 60)
-    if encoding == "ascii":  # pypcd4's own ASCII writer prints %.10f: packed colours would read back as 0
-        with open(path, "wb") as f:
-            f.write(cloud.metadata.compose_header(data=pypcd4.Encoding.ASCII).encode())
-            np.savetxt(f, cloud.pc_data, fmt="%.9g")
-    else:
-        cloud.save(path, encoding=pypcd4.Encoding(encoding))
+    """:func:`bench.scan_files.pcd_with_fields`, checked to be written in ``encoding`` (compressible data)."""
+    records = scan_files.pcd_with_fields(path, xyz, encoding)
+    if encoding != "ascii":
         assert pypcd4.PointCloud.from_path(path).metadata.data.value == encoding  # compressible: kept compressed
-    return cloud.pc_data
+    return records
 
 
-def survey_las(path: Path, xyz: np.ndarray, offsets=(512_000.0, 4_123_000.0, 100.0)) -> laspy.LasData:
-    """A LAS 1.2 point format 3 file at millimetre scale with UTM-like offsets, colours, classification and a WKT CRS
-    VLR (written compressed where ``path`` ends in .laz)."""
-    rng = np.random.default_rng(4)
-    header = laspy.LasHeader(point_format=3, version="1.2")
-    header.scales, header.offsets = np.full(3, 0.001), np.asarray(offsets)
-    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr('PROJCS["WGS 84 / UTM zone 32N"]'))
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz.T
-    n = len(xyz)
-    las.intensity = rng.integers(0, 65535, n)
-    las.classification = rng.integers(0, 10, n)
-    las.gps_time = rng.random(n) * 1e5
-    for name in ("red", "green", "blue"):
-        setattr(las, name, rng.integers(0, 65535, n))
-    las.write(str(path))
+def survey_las(path: Path, xyz: np.ndarray, offsets=scan_files.UTM_OFFSETS) -> laspy.LasData:
+    """:func:`bench.scan_files.survey_las`, read back."""
+    scan_files.survey_las(path, xyz, offsets)
     return laspy.read(str(path))
