@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import io
 import os
+import secrets
 import shutil
-import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -160,7 +160,7 @@ def write_moved(
     R = np.asarray(rotation, dtype=np.float64)  # [3, 3]
     t = np.asarray(translation, dtype=np.float64)  # [3]
     widen = bool(largest > FLOAT32_EXACT_ENOUGH)
-    handle, temporary = tempfile.mkstemp(prefix=f".{out.name}.", dir=out.parent)
+    handle, temporary = _new_file_beside(out)
     try:
         with _opened(source) as src, os.fdopen(handle, "wb") as dst:
             if kind == "ply":
@@ -169,7 +169,6 @@ def write_moved(
                 _moved_pcd(src, dst, R, t, widen)
             else:
                 _moved_las(src, dst, R, t, out.suffix.lower() == ".laz")
-        os.chmod(temporary, 0o666 & ~_umask())
         os.replace(temporary, out)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
@@ -407,7 +406,13 @@ def _copy(src: BinaryIO, dst: BinaryIO, size: int, what: str) -> None:
         left -= len(data)
 
 
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+def _new_file_beside(out: Path) -> tuple[int, Path]:
+    """A new hidden file in ``out``'s folder, open for writing, with the permissions any new file gets there (0o666
+    less the umask, applied by the kernel: reading the umask would set it process-wide for a moment, and a server's
+    other threads create files too)."""
+    while True:
+        path = out.parent / f".{out.name}.{secrets.token_hex(6)}"
+        try:
+            return os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666), path
+        except FileExistsError:
+            continue

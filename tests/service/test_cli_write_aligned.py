@@ -8,6 +8,7 @@ The files are written with the libraries users have (plyfile, pypcd4, laspy + la
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import laspy
@@ -92,6 +93,24 @@ def test_an_output_naming_its_source_is_written_from_the_whole_source(tmp_path) 
     write(source, source)
     np.testing.assert_allclose(read_points(source), moved(SOURCE), atol=1e-6)
     assert [p.name for p in tmp_path.iterdir()] == ["scan.ply"]  # no temporary file left
+
+
+def test_the_written_file_gets_a_new_files_permissions_without_touching_the_process_umask(tmp_path, monkeypatch):
+    """0o666 less the umask, as any file the user writes; reading the umask would set it process-wide for a moment,
+    while a server's other threads create files (spooled uploads, logs)."""
+    source, out = tmp_path / "scan.ply", tmp_path / "out.ply"
+    coloured_ply(source, SOURCE)
+    mask = os.umask(0o027)
+    try:
+        def umask_called(_: int) -> int:
+            raise AssertionError("write_moved changed the process umask")
+
+        monkeypatch.setattr(os, "umask", umask_called)
+        write(source, out)
+    finally:
+        monkeypatch.undo()
+        os.umask(mask)
+    assert out.stat().st_mode & 0o777 == 0o640
 
 
 # --------------------------------------------------------------------------------------------- PCD
