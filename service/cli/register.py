@@ -63,8 +63,9 @@ WriteAlignedOpt = Annotated[
     Path | None,
     typer.Option(
         help="write the source moved onto the target (R @ p + t), format from the extension (.ply .pcd .las .laz "
-        ".xyz .txt .csv .npy .npz): a PLY, PCD or LAS/LAZ source written in its own format keeps its other fields "
-        "(colours, intensity, faces; normals rotated); otherwise x, y, z only"
+        ".xyz .txt .csv .pts .ptx .npy .npz): a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS or PTX source written in its "
+        "own format is that file moved, its other fields kept (colours, intensity, faces; normals rotated); "
+        "otherwise x, y, z only"
     ),
 ]
 BinaryOpt = Annotated[
@@ -78,7 +79,6 @@ BinaryOpt = Annotated[
 RequireReliableOpt = Annotated[
     bool, typer.Option(help="exit 3 when the result is not quality.reliable (the outputs are still written)")
 ]
-LAS_SUFFIXES = (".las", ".laz")  # --write-aligned of a LAS/LAZ source only
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record instead of the summary")]
 
 
@@ -139,9 +139,9 @@ def register_command(
 
 
 def _check_register_flags(write_aligned: Path | None, out: Path | None = None, source: Path | None = None) -> None:
-    """Usage errors of ``register``'s outputs, before the registration runs: among them a LAS/LAZ ``--write-aligned``
-    of a source that is not LAS/LAZ (its format from its content)."""
-    from service.formats.moved import FORMAT_NAMES, source_format
+    """Usage errors of ``register``'s outputs, before the registration runs: among them a LAS/LAZ, PTS or PTX
+    ``--write-aligned`` of a source of another format (its format from its content)."""
+    from service.formats.moved import FORMAT_NAMES, OWN_FORMAT_ONLY, source_format
     from service.pointcloud_io import SUFFIXES
 
     check_output_path(out, "--out")
@@ -149,16 +149,17 @@ def _check_register_flags(write_aligned: Path | None, out: Path | None = None, s
     if write_aligned is None:
         return
     suffix = write_aligned.suffix.lower()
-    if suffix not in (*SUFFIXES, *LAS_SUFFIXES):
+    if suffix not in (*SUFFIXES, *OWN_FORMAT_ONLY):
         fail(
             f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected "
-            f"{(*SUFFIXES, *LAS_SUFFIXES)}"
+            f"{(*SUFFIXES, *OWN_FORMAT_ONLY)}"
         )
     kind = source_format(source) if source is not None else None
-    if suffix in LAS_SUFFIXES and kind is not None and kind != "las":
+    own = OWN_FORMAT_ONLY.get(suffix)
+    if own is not None and kind is not None and kind != own:
         fail(
-            f"--write-aligned {write_aligned.name}: a LAS/LAZ file is written only from a LAS/LAZ source; "
-            f"{source.name} is {FORMAT_NAMES[kind]} (write one of {SUFFIXES})"
+            f"--write-aligned {write_aligned.name}: a {FORMAT_NAMES[own]} file is written only from a "
+            f"{FORMAT_NAMES[own]} source; {source.name} is {FORMAT_NAMES[kind]} (write one of {SUFFIXES})"
         )
 
 
@@ -166,7 +167,8 @@ def _write_outputs(
     record: dict, src: np.ndarray, out: Path | None, write_aligned: Path | None, source: Path | None = None
 ) -> None:
     """``--out`` (the JSON record) and ``--write-aligned`` (the source moved by the pose: the ``source`` file itself,
-    moved, where the output's format is its own PLY, PCD or LAS/LAZ, else ``src``'s x, y, z moved)."""
+    moved, where the output's format is its own (:data:`service.formats.moved.KEPT_FORMATS`), else ``src``'s x, y, z
+    moved)."""
     R = np.asarray(record["rotation"], dtype=np.float64)  # [3, 3]
     t = np.asarray(record["translation"], dtype=np.float64)  # [3]
     if out is not None:

@@ -73,8 +73,8 @@ SequenceAlignedOpt = Annotated[
     typer.Option(
         metavar="DIR",
         help="write every frame moved into frame 0's coordinates (T_0_i) into this folder, named as the frame: "
-        "a PLY, PCD or LAS/LAZ frame keeps its other fields (as register --write-aligned), others hold x, y, z "
-        "(.e57 .pts .ptx frames as .ply)",
+        "a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS or PTX frame is that file moved, its other fields kept (as register "
+        "--write-aligned); others hold x, y, z (.e57 frames as .ply)",
     ),
 ]
 SequenceReliableOpt = Annotated[
@@ -227,12 +227,13 @@ def _check_sequence_outputs(frames: list[Path], out: Path | None, kitti: Path | 
 
 def aligned_name(frame: Path) -> str:
     """The file name of ``frame`` moved (``mfgnet sequence --write-aligned``): its own name, where a writer is named by
-    its extension (a ``.las``/``.laz`` name only for LAS/LAZ content), else its stem with ``.ply``."""
-    from service.formats.moved import source_format
+    its extension (a ``.las``/``.laz``, ``.pts`` or ``.ptx`` name only for content of that format), else its stem with
+    ``.ply``."""
+    from service.formats.moved import OWN_FORMAT_ONLY, source_format
     from service.pointcloud_io import SUFFIXES
 
     suffix = frame.suffix.lower()
-    if suffix in SUFFIXES or (suffix in (".las", ".laz") and source_format(frame) == "las"):
+    if suffix in SUFFIXES or (suffix in OWN_FORMAT_ONLY and source_format(frame) == OWN_FORMAT_ONLY[suffix]):
         return frame.name
     return frame.stem + ".ply"
 

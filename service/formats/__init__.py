@@ -11,13 +11,13 @@ LAS/LAZ (``laspy``,      scaled x, y, z in float64                              
 ``lazrs``)                                                                      moved
 E57 (``e57``)            every scan moved into the file's frame by its pose,     --
                          appended; spherical converted; invalid points left out
-XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text
-                         a header names x, y, z (else the first 3), values
+XYZ/CSV/TXT              whitespace, comma or semicolon separated, the columns   ``%.9g`` text;
+                         a header names x, y, z (else the first 3), values      a text source moved
                          optionally quoted; ``#`` comments and one header
                          line skipped
-PTS                      blocks of a point count line and that many rows         --
+PTS                      blocks of a point count line and that many rows         a PTS source moved
                          ``x y z [i [r g b]]``; each count checked
-PTX                      scans of a 10-line header and columns x rows rows,      --
+PTX                      scans of a 10-line header and columns x rows rows,      a PTX source moved
                          each moved by its 4x4; ``0 0 0`` rows left out
 NPY                      numbers ``(N, >=3)`` (first 3 columns, any int/float    float32 ``(N, 3)``
                          dtype, cast) or fields x, y, z; no pickles

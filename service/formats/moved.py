@@ -1,8 +1,9 @@
 """The source file itself, its points moved by a pose: ``p' = R @ p + t`` in float64, every other field kept.
 
 Written where the output's format is the source's (:data:`KEPT_FORMATS`; the source's format from its content, the
-output's from its extension): PLY, PCD and LAS/LAZ. Normals (PLY ``nx ny nz``, PCD ``normal_x normal_y normal_z``,
-where all three are floats) are rotated, not translated; every other per-point field is copied as the file holds it.
+output's from its extension): PLY, PCD, LAS/LAZ, XYZ/CSV/TXT (any of ``.txt``, ``.xyz``, ``.csv``), PTS and PTX.
+Normals (PLY ``nx ny nz``, PCD ``normal_x normal_y normal_z``, where all three are floats; text columns a header names
+so) are rotated, not translated; every other per-point field is copied as the file holds it.
 
 - PLY (``plyfile`` parses the header): binary files are copied a block of rows at a time, the vertex rows' x, y, z
   and normals replaced, the bytes of every other element (faces, edges, ...) and the header copied as they are; ASCII
@@ -15,6 +16,9 @@ where all three are floats) are rotated, not translated; every other per-point f
 - LAS/LAZ (``laspy``, ``lazrs``): the points, VLRs (a CRS among them), EVLRs and point format kept; x, y, z at the
   file's scales, its offsets kept where the moved coordinates fit its 32-bit integers, else the moved bounds' centre
   rounded to a whole unit; ``laspy`` writes the header's bounds. ``.las`` or ``.laz`` from the output's extension.
+- XYZ/CSV/TXT, PTS and PTX (:mod:`service.formats.moved_text`): every line copied as it is but for the numbers that
+  place a point: a row's x, y, z (normals) written with the decimals the source's coordinates carry, a PTX scan's
+  header composed with the pose (its rows, in the scanner's frame, copied).
 
 x, y, z stored as 4-byte floats become 8-byte ones where a moved coordinate is beyond ``FLOAT32_EXACT_ENOUGH`` (as
 :func:`service.formats.write.write_cloud` writes them). The output is written to a temporary file beside it and
@@ -42,14 +46,24 @@ from service.formats import ply as ply_format
 from service.formats.checks import BLOCK_BYTES
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
+from service.formats.moved_text import moved_pts, moved_ptx, moved_text
 from service.formats.read import detect_at as detect_format
 from service.formats.write import FLOAT32_EXACT_ENOUGH
 
 if TYPE_CHECKING:
     from plyfile import PlyData
 
-# source format (service.formats.detect) -> the output extensions that keep its content
-KEPT_FORMATS = {"ply": (".ply",), "pcd": (".pcd",), "las": (".las", ".laz")}
+# source format (service.formats.detect) -> the output extensions that keep its content (the first: a name's default)
+KEPT_FORMATS = {
+    "ply": (".ply",),
+    "pcd": (".pcd",),
+    "las": (".las", ".laz"),
+    "text": (".txt", ".xyz", ".csv"),
+    "pts": (".pts",),
+    "ptx": (".ptx",),
+}
+# The extensions written only from a source of their format (no writer of x, y, z alone is named by them)
+OWN_FORMAT_ONLY = {".las": "las", ".laz": "las", ".pts": "pts", ".ptx": "ptx"}
 NORMALS = {"ply": ("nx", "ny", "nz"), "pcd": ("normal_x", "normal_y", "normal_z")}
 FORMAT_NAMES = {
     "ply": "PLY",
@@ -63,6 +77,7 @@ FORMAT_NAMES = {
     "text": "XYZ/CSV/TXT",
 }
 INT32_MAX = 2**31 - 1
+_TEXT_WRITERS = {"text": moved_text, "pts": moved_pts, "ptx": moved_ptx}
 Source = str | os.PathLike[str] | BinaryIO  # a path, or an open seekable binary file (read from its start, left open)
 
 
@@ -140,9 +155,9 @@ def write_moved(
     translation: np.ndarray,
     largest: float,
 ) -> None:
-    """Write the PLY, PCD or LAS/LAZ file ``source`` (a path or an open file) to ``out`` (:func:`keeps_content`) with
-    its points moved by ``rotation [3, 3]`` and ``translation [3]`` and its normals rotated, every other field and
-    element kept.
+    """Write the PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS or PTX file ``source`` (a path or an open file) to ``out``
+    (:func:`keeps_content`) with its points moved by ``rotation [3, 3]`` and ``translation [3]`` and its normals
+    rotated, every other field and element kept.
     ``largest``: the largest absolute moved coordinate (the caller has moved the points it registered): beyond
     ``FLOAT32_EXACT_ENOUGH`` float32 x, y, z are written as float64.
 
@@ -167,8 +182,10 @@ def write_moved(
                 _moved_ply(src, dst, R, t, widen)
             elif kind == "pcd":
                 _moved_pcd(src, dst, R, t, widen)
-            else:
+            elif kind == "las":
                 _moved_las(src, dst, R, t, out.suffix.lower() == ".laz")
+            else:
+                _TEXT_WRITERS[kind](src, dst, R, t)
         os.replace(temporary, out)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)

@@ -32,12 +32,14 @@ def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
         stream.detach()  # leave the caller's file open
 
 
-def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
-    skip, separator, header, rows_follow = 0, None, None, False
+def layout(stream: io.TextIOWrapper) -> tuple[int, str | None, str | None, bool]:
+    """How the text at ``stream``'s start is laid out, from its first :data:`PROBE_LINES` lines: the lines before the
+    rows (the header line and the comments before it; 0 without a header), the separator (``;``, ``,`` or ``None``:
+    whitespace), the header line (``None`` without one), and whether rows of numbers may follow."""
+    skip, separator, header = 0, None, None
     for number, line in enumerate(stream):
         if number >= PROBE_LINES:
-            rows_follow = True  # not known yet: loadtxt reads on
-            break
+            return skip, separator, header, True  # not known yet: loadtxt reads on
         text = line.strip()
         if not text or text.startswith("#"):
             continue
@@ -45,43 +47,63 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
         if header is None and (not _numeric(text, separator) or len(text.split(separator)) == 1):
             skip, header = number + 1, text  # one header line: skip it and the comments before it
             continue
-        rows_follow = True
-        break
+        return skip, separator, header, True
+    return skip, separator, header, False
+
+
+def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
+    skip, separator, header, rows_follow = layout(stream)
     if not rows_follow:  # checked here: numpy's loadtxt would warn on stderr, then return no rows
         raise InvalidPointsError(_no_rows(header))
     stream.seek(0)
     try:
         table = np.loadtxt(
-            stream, dtype=np.float64, comments="#", delimiter=separator, skiprows=skip, quotechar='"',
-            usecols=_xyz_columns(header, separator), ndmin=2, max_rows=None if max_points is None else max_points + 1,
+            stream,
+            dtype=np.float64,
+            comments="#",
+            delimiter=separator,
+            skiprows=skip,
+            quotechar='"',
+            usecols=xyz_columns(header, separator),
+            ndmin=2,
+            max_rows=None if max_points is None else max_points + 1,
         )  # [N, 3]
     except ValueError as exc:
         raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}") from None
     if len(table) == 0:
         raise InvalidPointsError(_no_rows(header))
     if max_points is not None and len(table) > max_points:
-        raise TooManyPointsError(f"has more than {max_points} points; the limit is {max_points} per cloud",
-                                 len(table), max_points)
+        raise TooManyPointsError(
+            f"has more than {max_points} points; the limit is {max_points} per cloud", len(table), max_points
+        )
     return checked(table)
 
 
 def _no_rows(header: str | None) -> str:
     """The error for text with no rows of numbers; ``header``: its one non-comment line, if any."""
-    what = ("only comments or blank lines" if header is None
-            else f"no rows of numbers after its first line {header[:40]!r}")
-    return (f"the cloud is empty: read as XYZ/CSV/TXT text (it starts with no PLY, PCD, LAS/LAZ, .npy or .npz header), "
-            f"it has {what}; expected rows of x y z")
+    what = (
+        "only comments or blank lines" if header is None else f"no rows of numbers after its first line {header[:40]!r}"
+    )
+    return (
+        f"the cloud is empty: read as XYZ/CSV/TXT text (it starts with no PLY, PCD, LAS/LAZ, .npy or .npz header), "
+        f"it has {what}; expected rows of x y z"
+    )
 
 
 def _separator(line: str) -> str | None:
     return ";" if ";" in line else "," if "," in line else None  # else whitespace
 
 
-def _xyz_columns(header: str | None, separator: str | None) -> tuple[int, int, int]:
+def xyz_columns(header: str | None, separator: str | None) -> tuple[int, int, int]:
     """The columns a header line names x, y and z (any case, quoted or not, CloudCompare's ``//`` before the first),
     else the first three."""
-    names = [token.strip().strip('"').removeprefix("//").lower() for token in (header or "").split(separator)]
+    names = header_names(header, separator)
     return tuple(names.index(axis) for axis in "xyz") if {"x", "y", "z"} <= set(names) else (0, 1, 2)
+
+
+def header_names(header: str | None, separator: str | None) -> list[str]:
+    """The names a header line gives its columns: lower case, quotes and CloudCompare's ``//`` taken off."""
+    return [token.strip().strip('"').removeprefix("//").lower() for token in (header or "").split(separator)]
 
 
 def _numeric(line: str, separator: str | None) -> bool:

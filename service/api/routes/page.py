@@ -1,7 +1,7 @@
 """The browser page: ``GET /`` (static files from ``service/web``), ``POST /v1/register/view`` (a registration
-plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded source moved by a pose: a PLY, PCD or
-LAS/LAZ file as itself, every other field kept (:func:`service.formats.moved.write_moved`), any other format as
-binary PLY of x, y, z).
+plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded source moved by a pose: a PLY, PCD,
+LAS/LAZ, XYZ/CSV/TXT, PTS or PTX file as itself, every other field kept (:func:`service.formats.moved.write_moved`),
+any other format as binary PLY of x, y, z).
 
 Uploads go through the reader and limits of ``POST /v1/register`` (:func:`service.api.bodies.decode_upload`: any
 format of :mod:`service.formats`, found from the content, up to ``max_file_points`` per cloud). Display clouds
@@ -47,12 +47,18 @@ DISPLAY_SEED = 0
 # Nothing loaded from elsewhere, and no other site frames the page.
 PAGE_POLICY = {"Content-Security-Policy": page_policy("default-src 'self'; img-src 'self' data: blob:")}
 OCTET_STREAM = "application/octet-stream"
-# The aligned download's media type by its extension: LAS and LAZ have IANA types; PLY and PCD have none.
+# The aligned download's media type by its extension: LAS, LAZ and CSV have IANA types; PLY and PCD have none; XYZ,
+# TXT, PTS and PTX are plain text.
 ALIGNED_MEDIA_TYPES = {
     ".ply": OCTET_STREAM,
     ".pcd": OCTET_STREAM,
     ".las": "application/vnd.las",
     ".laz": "application/vnd.laszip",
+    ".csv": "text/csv",
+    ".txt": "text/plain",
+    ".xyz": "text/plain",
+    ".pts": "text/plain",
+    ".ptx": "text/plain",
 }
 STREAM_CHUNK_BYTES = 1 << 20
 
@@ -164,11 +170,13 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
     response_class=Response,
     summary="The uploaded source moved by a pose, in its own format",
     description="Multipart form: file `source` (any supported format) and field `transform`, a JSON 4x4 rigid "
-    "src_to_tgt matrix (e.g. a registration's `transform`). Every point becomes `R @ p + t`. A PLY, PCD or LAS/LAZ "
-    "source comes back as that file moved, named `<stem>_aligned.<its extension>`: every other field and element "
-    "kept (colours, intensities, faces, LAS records and VLRs), normals rotated, x, y, z in the file's precision "
+    "src_to_tgt matrix (e.g. a registration's `transform`). Every point becomes `R @ p + t`. A PLY, PCD, LAS/LAZ, "
+    "XYZ/CSV/TXT, PTS or PTX source comes back as that file moved, named `<stem>_aligned.<its extension>` (a text "
+    "source named otherwise: `.txt`): every other field and element kept (colours, intensities, faces, LAS records "
+    "and VLRs, every other column and line of a text file), normals rotated, x, y, z in the file's precision "
     "(4-byte floats become 8-byte ones for map coordinates; LAS keeps its scale and, where the moved points fit, its "
-    "offsets). "
+    "offsets; text keeps the decimals of its coordinates); a PTX file keeps its rows and has each scan's header "
+    "composed with the pose. "
     "Any other format comes back as binary little-endian PLY of x, y, z (float32, or double for map coordinates), "
     "named `<stem>_aligned.ply`. A file that cannot hold its moved points (a LAS span beyond its 32-bit integers at "
     "its scale) is a 422 naming why.",
@@ -177,7 +185,7 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
         200: {
             "description": "The moved source (Content-Disposition names it): PLY and PCD as "
             "application/octet-stream, LAS as application/vnd.las, LAZ as "
-            "application/vnd.laszip.",
+            "application/vnd.laszip, CSV as text/csv, XYZ, TXT, PTS and PTX as text/plain (UTF-8).",
             "content": {media: _BINARY for media in dict.fromkeys(ALIGNED_MEDIA_TYPES.values())},
         },
         **error_docs(400, 401, 408, 413, 415, 422, 503, 504),
@@ -221,10 +229,11 @@ async def register_aligned(request: Request) -> Response:
 
 
 def moved_upload(upload: bodies.Upload, suffix: str, R: np.ndarray, t: np.ndarray, largest: float) -> BinaryIO:
-    """The spooled ``upload`` (PLY, PCD or LAS/LAZ) moved by ``R [3, 3]``, ``t [3]`` into a temporary file written as
-    ``suffix`` (:func:`service.formats.moved.write_moved`), open for reading; its name is already removed, so the disk
-    space is freed when it is closed, whatever becomes of the request. A 422 where the moved points do not fit the
-    format (a LAS span beyond its 32-bit integers at its scale)."""
+    """The spooled ``upload`` (a format of :data:`service.formats.moved.KEPT_FORMATS`) moved by ``R [3, 3]``,
+    ``t [3]`` into a temporary file written as ``suffix`` (:func:`service.formats.moved.write_moved`), open for
+    reading; its name is already removed, so the disk space is freed when it is closed, whatever becomes of the
+    request. A 422 where the moved points do not fit the format (a LAS span beyond its 32-bit integers at its scale)
+    or the upload cannot be written moved."""
     folder = tempfile.mkdtemp(prefix="mfgnet-aligned-")
     try:
         out = Path(folder) / f"aligned{suffix}"
