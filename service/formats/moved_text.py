@@ -12,9 +12,11 @@ are, only the numbers that place a point changed.
   written as the shortest text that reads back as the same float64.
 
 A moved value is written with as many decimals as the most any value of its columns (x, y, z; normals apart) carries
-in the source, so that the file keeps its resolution without 17-digit noise (``1.5e-3`` counts 4 decimals); where
-that is more than :data:`FULL_PRECISION_DECIMALS` (a file of float64 values, as ``repr`` writes them) each value is
-its shortest float64 text. The decimals come from a first pass over the file; rows are then moved
+in the source, so that the file keeps its resolution without 17-digit noise (``1.5e-3`` counts 4 decimals), and at
+least enough for :data:`MIN_SIGNIFICANT_DIGITS` significant digits of the largest coordinate (normals: at least
+:data:`MIN_NORMAL_DECIMALS`), so that a file of whole numbers is not rounded to them once turned; where that is more
+than :data:`FULL_PRECISION_DECIMALS` (a file of float64 values, as ``repr`` writes them) each value is its shortest
+float64 text. The decimals come from a first pass over the file; rows are then moved
 :data:`CHUNK_CHARS` at a time, so memory does not grow with the file.
 """
 
@@ -36,6 +38,10 @@ from service.formats.text import header_names, layout, xyz_columns
 CHUNK_CHARS = 1 << 20  # lines are moved about this many characters at a time
 PTX_BLOCK_ROWS = 1 << 16  # a PTX scan's rows are copied this many at a time
 FULL_PRECISION_DECIMALS = 15  # more decimals than this in the source: each value as its shortest float64 text
+# At least this many significant digits of the largest coordinate: a file of whole numbers (a hand-made cloud in
+# metres) is not rounded to whole metres once turned; a scanner's file carries more than this already.
+MIN_SIGNIFICANT_DIGITS = 4
+MIN_NORMAL_DECIMALS = 6  # rotated normals: unit vectors written as whole numbers would point elsewhere
 TEXT_NORMALS = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))
 UTF8_BOM = b"\xef\xbb\xbf"
 _WHITESPACE = re.compile(r"(\s+)")
@@ -125,12 +131,14 @@ def _rewrite(
     rows = _Rows(separator, (*xyz, *normals), what)
     with _text(src) as lines:
         decimals = np.zeros(len(rows.columns), dtype=np.int64)  # [C] the most any value of each column carries
+        largest = 0.0  # the largest |x|, |y| or |z|
         for _, tokens in _pieces(lines, layout(), rows, values_only=True):
             if tokens is not None:
                 decimals = np.maximum(decimals, _decimals(tokens))
-    written = [_number_format(int(decimals[: len(xyz)].max()))] * 3
+                largest = max(largest, _largest(tokens[:, : len(xyz)], what))
+    written = [_number_format(max(int(decimals[: len(xyz)].max()), _significant_decimals(largest)))] * 3
     if normals:
-        written += [_number_format(int(decimals[len(xyz) :].max()))] * 3
+        written += [_number_format(max(int(decimals[len(xyz) :].max()), MIN_NORMAL_DECIMALS))] * 3
     with _text(src) as lines, _text_out(src, dst) as out:
         for split, tokens in _pieces(lines, layout(), rows):
             if tokens is None:
@@ -352,6 +360,21 @@ def _decimals(tokens: np.ndarray) -> np.ndarray:
         if power.lstrip("+-").isdigit():  # else no number: the rows are parsed next
             most[column] = max(most[column], len(mantissa.partition(".")[2]) - int(power))
     return most
+
+
+def _largest(tokens: np.ndarray, what: str) -> float:
+    """The largest absolute value of ``tokens [n, 3]`` (numbers as text)."""
+    try:
+        return float(np.abs(tokens.astype(np.float64)).max(initial=0.0))
+    except ValueError as exc:
+        raise PointCloudFormatError(f"{what}: a row changed since it was read ({exc})") from None
+
+
+def _significant_decimals(largest: float) -> int:
+    """The decimals that give the largest coordinate ``largest`` :data:`MIN_SIGNIFICANT_DIGITS` significant digits."""
+    if not np.isfinite(largest) or largest <= 0.0:
+        return 0
+    return max(0, MIN_SIGNIFICANT_DIGITS - 1 - int(np.floor(np.log10(largest))))
 
 
 def _number_format(decimals: int) -> Callable[[np.ndarray], list[str]]:

@@ -162,6 +162,21 @@ def test_the_decimals_of_the_coordinates_are_kept_and_exponents_counted(tmp_path
     np.testing.assert_array_equal(values, moved(XYZ[:5] / 7))  # read back exactly as computed
 
 
+def test_whole_numbers_get_four_significant_digits_and_normals_six_decimals(tmp_path) -> None:
+    """A file of whole numbers (a hand-made cloud in metres) is not rounded to whole metres once turned: its largest
+    coordinate (here 1-2 digits) keeps 4 significant digits; whole-number normals (``0 0 1``) get 6 decimals."""
+    whole = np.round(XYZ[:20]).astype(int)  # [20, 3], |v| <= 20
+    source = tmp_path / "whole.xyz"
+    source.write_text("x y z nx ny nz\n" + "".join(" ".join(map(str, [*p, 0, 0, 1])) + "\n" for p in whole))
+    write(source, tmp_path / "out.xyz")
+    rows = [line.split() for line in (tmp_path / "out.xyz").read_text().splitlines()[1:]]
+    assert {decimals(v) for row in rows for v in row[:3]} == {2}
+    assert {decimals(v) for row in rows for v in row[3:]} == {6}
+    values = np.array(rows, dtype=np.float64)  # [20, 6]
+    np.testing.assert_allclose(values[:, :3], moved(whole), atol=0.005 + 1e-9)
+    np.testing.assert_allclose(values[:, 3:], np.tile(R[:, 2], (20, 1)), atol=5e-7 + 1e-12)
+
+
 def test_an_output_naming_its_source_is_written_from_the_whole_source(tmp_path) -> None:
     source = tmp_path / "scan.csv"
     text = pandas_csv(source)
