@@ -29,6 +29,7 @@ an open, seekable binary file (an HTTP upload, spooled): it is read from its sta
 from __future__ import annotations
 
 import io
+import itertools
 import os
 import secrets
 import shutil
@@ -43,6 +44,7 @@ from scipy.spatial.transform import Rotation
 
 from service.formats import pcd as pcd_format
 from service.formats import ply as ply_format
+from service.formats import text as text_format
 from service.formats.checks import BLOCK_BYTES
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
@@ -64,6 +66,7 @@ KEPT_FORMATS = {
 }
 # The extensions written only from a source of their format (no writer of x, y, z alone is named by them)
 OWN_FORMAT_ONLY = {".las": "las", ".laz": "las", ".pts": "pts", ".ptx": "ptx"}
+LEICA_COLUMNS = ("intensity", "red", "green", "blue")  # a PTS or PTX row's values after x, y, z
 NORMALS = {"ply": ("nx", "ny", "nz"), "pcd": ("normal_x", "normal_y", "normal_z")}
 FORMAT_NAMES = {
     "ply": "PLY",
@@ -122,11 +125,14 @@ def keeps_content(kind: str | None, out: str | os.PathLike[str]) -> bool:
 
 
 def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
-    """What a PLY, PCD or LAS/LAZ file holds besides x, y, z, from its header: the vertex properties and the other
-    elements of a PLY file, the fields of a PCD file, the point dimensions of a LAS/LAZ file. Empty for other formats
-    (their other columns are not known without reading them) and where the header cannot be read."""
+    """What a file holds besides x, y, z, from its header or first row: the vertex properties and the other elements
+    of a PLY file, the fields of a PCD file, the point dimensions of a LAS/LAZ file, the other columns of a text file
+    (named by its header, else numbered from 1) and of a PTS or PTX file (intensity, red, green, blue). Empty for
+    other formats and where the file cannot be read."""
     try:
         with open(path, "rb") as f:
+            if kind in ("text", "pts", "ptx"):
+                return _other_columns(f, kind)
             if kind == "ply":
                 header, _ = ply_format.read_header(require("plyfile", "reading PLY files"), f)
                 names = [prop.name for prop in header["vertex"].properties]
@@ -146,6 +152,25 @@ def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
     except Exception:  # a note only: the reader has already read the file
         return []
     return []
+
+
+def _other_columns(f: BinaryIO, kind: str) -> list[str]:
+    """The columns of the text, PTS or PTX file ``f`` besides x, y, z, from its header line or its first row."""
+    stream = io.TextIOWrapper(f, encoding="utf-8-sig", newline=None)
+    if kind == "text":
+        skip, separator, header, _ = text_format.layout(stream)
+        if header is not None:
+            xyz = text_format.xyz_columns(header, separator)
+            names = text_format.header_names(header, separator)
+            return [n or f"column {k + 1}" for k, n in enumerate(names) if k not in xyz]
+        stream.seek(0)
+        rows = (line.strip() for line in itertools.islice(stream, skip, None))
+        first = next((line for line in rows if line and not line.startswith("#")), "")
+        return [f"column {k + 1}" for k in range(3, len(first.split(separator)))]
+    header_lines = 1 if kind == "pts" else 10  # a PTS block's count line; a PTX scan's header
+    rows = (line.strip() for line in itertools.islice(stream, header_lines, None))
+    first = next((line for line in rows if line), "")
+    return list(LEICA_COLUMNS[: max(0, len(first.split()) - 3)])
 
 
 def write_moved(

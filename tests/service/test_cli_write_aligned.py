@@ -102,6 +102,7 @@ def test_the_written_file_gets_a_new_files_permissions_without_touching_the_proc
     coloured_ply(source, SOURCE)
     mask = os.umask(0o027)
     try:
+
         def umask_called(_: int) -> int:
             raise AssertionError("write_moved changed the process umask")
 
@@ -268,6 +269,29 @@ def test_another_output_format_holds_x_y_z_and_says_which_fields_it_left(tmp_pat
     np.testing.assert_allclose(read_points(aligned), moved(SOURCE, *pose(out)), atol=1e-5)
     assert "aligned.xyz holds x, y, z only" in result.stderr
     assert "intensity, normal_x, normal_y, normal_z, rgb" in result.stderr and ".pcd output" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "named"),
+    [
+        ("scan.csv", ",x,y,z,r,g,b\n", "(column 1, r, g, b)"),
+        ("scan.xyz", "# no header\n", "(column 4, column 5)"),
+        ("scan.pts", "600\n", "(intensity, red, green, blue)"),
+    ],
+    ids=["csv-header", "xyz-bare", "pts"],
+)
+def test_a_text_source_to_another_format_says_which_columns_it_left(tmp_path, model_dir, name, text, named) -> None:
+    source, target, aligned = tmp_path / name, tmp_path / "target.npy", tmp_path / "aligned.ply"
+    extra = {"scan.csv": 3, "scan.xyz": 2, "scan.pts": 4}[name]
+    rows = [[*p, *range(extra)] for p in SOURCE.tolist()]
+    if name == "scan.csv":
+        rows = [[k, *row] for k, row in enumerate(rows)]  # pandas' index first
+    separator = "," if name == "scan.csv" else " "
+    source.write_text(text + "".join(separator.join(map(str, row)) + "\n" for row in rows))
+    np.save(target, TARGET)
+    result = register(source, target, "--write-aligned", aligned, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    assert "aligned.ply holds x, y, z only" in result.stderr and named in result.stderr
 
 
 # ------------------------------------------------------------------------------------------ sequence
