@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -11,7 +12,7 @@ from service.quality import LOOSE_FIT, NEAR_SURFACE_FACTOR, assess, near_surface
 from service.quality import poor_fit as poor_fit_of  # the rule's band, given the attainable ratio
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
-from service.stability import WEAK_EIGENVALUE, pose_stability, weak_motion_warning
+from service.stability import ROTATION_SHARE, WEAK_EIGENVALUE, Stability, pose_stability, weak_motion_warning
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, Working, to_caller
 from service.stages.ranking import samples_the_surface
@@ -24,6 +25,7 @@ RELIABLE_SURFACE_SHARE = 0.66
 # With a dense target, a pose whose stability is below this is weakly constrained (not reliable), instead of
 # service.stability.WEAK_EIGENVALUE: right poses on real scans stay at 0.03 and above, cut or not, while a wrong pose
 # on a small patch of the overlap turns or slides more freely (docs/decisions/0050-a-firmer-pose-on-dense-targets.md).
+# Only where the least constrained motion is not mostly a turn (turns_at_the_common_floor).
 RELIABLE_STABILITY_ON_SURFACE = 0.02
 
 
@@ -36,9 +38,11 @@ def off_the_surface(work: Working, R: np.ndarray, t: np.ndarray) -> str | None:
     share = near_surface_share(work.working_source, work.tgt_e, R, t, work.inlier_distance, work.entered_target_tree)
     if share >= RELIABLE_SURFACE_SHARE:
         return None
-    return (f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
-            f"only {share:.3f} lie within one, < {RELIABLE_SURFACE_SHARE}; a right pose lies on the target's surface "
-            "where they overlap")
+    return (
+        f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the target's points "
+        f"only {share:.3f} lie within one, < {RELIABLE_SURFACE_SHARE}; a right pose lies on the target's surface "
+        "where they overlap"
+    )
 
 
 def reliable_attainable(work: Working) -> tuple[float, bool]:
@@ -63,6 +67,18 @@ def weak_below(work: Working) -> float:
     return RELIABLE_STABILITY_ON_SURFACE if samples_the_surface(work) else WEAK_EIGENVALUE
 
 
+def turns_at_the_common_floor(stability: Stability | None) -> Stability | None:
+    """``stability`` judged at ``WEAK_EIGENVALUE`` where its least constrained motion is mostly a turn
+    (``ROTATION_SHARE``) and a dense target's ``RELIABLE_STABILITY_ON_SURFACE`` was asked: the symmetry check turns such
+    a result about that motion's axis (stability below ``service.stages.symmetry.AXIS_TURN_STABILITY``) and compares
+    the fits, which tests a free turn itself, while right turntable scans of smooth objects (cars, a person, round
+    blobs) hold turns at 0.011-0.019. A slide keeps the firmer floor: the symmetry check does not move a pose along one,
+    and the wrong result the floor was chosen on slid (``docs/decisions/0050-a-firmer-pose-on-dense-targets.md``)."""
+    if stability is None or stability.weak_below <= WEAK_EIGENVALUE or stability.turn_share < ROTATION_SHARE:
+        return stability
+    return dataclasses.replace(stability, weak_below=WEAK_EIGENVALUE)
+
+
 def iteration_poses(work: Working, candidate: SearchCandidate) -> list[IterationPose]:
     """The caller's cumulative pose after each network iteration of ``candidate`` (from its start rotation)."""
     net, R_start = candidate.output, candidate.start
@@ -76,8 +92,14 @@ def svd_weights(net: NetworkOutput) -> np.ndarray:
     return (weights / (w_sum + 1e-8) if w_sum > 0 else np.full_like(weights, 1 / len(weights))).astype(np.float32)
 
 
-def assess_result(work: Working, found: Candidates, refined: Refined, iterations: int, return_iterations: bool,
-                  timing: dict[str, float]) -> RegistrationResult:
+def assess_result(
+    work: Working,
+    found: Candidates,
+    refined: Refined,
+    iterations: int,
+    return_iterations: bool,
+    timing: dict[str, float],
+) -> RegistrationResult:
     """Inlier ratio, residual and ``reliable`` (:func:`service.quality.assess`), the pose's stability
     (:func:`service.stability.pose_stability`) and the winning candidate's correspondences as a result.
 
@@ -94,7 +116,7 @@ def assess_result(work: Working, found: Candidates, refined: Refined, iterations
     attainable, on_surface = reliable_attainable(work)
     quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface)
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working, weak_below(work))
-    weak = weak_motion_warning(stability)
+    weak = weak_motion_warning(turns_at_the_common_floor(stability))
     reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate
     loose = off_the_surface(work, R, t) if reliable else None  # only where nothing else took `reliable` away
     result = RegistrationResult(
