@@ -11,6 +11,7 @@ double quotes (pandas' ``QUOTE_ALL``).
 from __future__ import annotations
 
 import io
+import re
 from typing import BinaryIO
 
 import numpy as np
@@ -19,6 +20,7 @@ from service.formats.checks import check_text_lines, checked
 from service.formats.errors import InvalidPointsError, PointCloudFormatError, TooManyPointsError
 
 PROBE_LINES = 64  # lines read to find the header and the separator
+_DECIMAL_COMMA = re.compile(r"convert string '[-+]?\d+,\d+' ")  # numpy's error for a number such as 0,125
 
 
 def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -69,7 +71,8 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
             max_rows=None if max_points is None else max_points + 1,
         )  # [N, 3]
     except ValueError as exc:
-        raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}") from None
+        comma = " (a decimal comma? numbers need a decimal point)" if _DECIMAL_COMMA.search(str(exc)) else ""
+        raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}{comma}") from None
     if len(table) == 0:
         raise InvalidPointsError(_no_rows(header))
     if max_points is not None and len(table) > max_points:

@@ -903,3 +903,14 @@ def test_laz14_xyz_layer_sizes_are_checked_under_a_chunk_table_of_no_chunks(tmp_
     out = read_in_subprocess(tmp_path / "a.laz", memory_mib=1000)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.startswith("error a.laz: LAZ chunk 0 declares x, y and z layers of"), out.stdout
+
+
+def test_a_decimal_comma_is_named_in_the_error(tmp_path: Path) -> None:
+    """A semicolon CSV as a spreadsheet of a comma-decimal locale saves it: the error says what the numbers lack."""
+    (tmp_path / "eu.csv").write_text("x;y;z\n0,125;-1,5;2,0\n1,0;2,0;3,0\n")
+    with pytest.raises(InvalidPointsError, match=r"'0,125'.*a decimal comma\? numbers need a decimal point"):
+        read_cloud(tmp_path / "eu.csv")
+    (tmp_path / "word.csv").write_text("x;y;z\nabc;1;2\n")
+    with pytest.raises(InvalidPointsError) as word:
+        read_cloud(tmp_path / "word.csv")
+    assert "decimal comma" not in str(word.value)
