@@ -34,30 +34,60 @@ class Refined:
     surface: Surface | None  # the refinement's target surface (icp-plane modes), reused by the assessment
 
 
-def refine_pose(work: Working, R0: np.ndarray, t0: np.ndarray, refine: str, distance: float,
-                max_iterations: int, surface: Surface | None, short: bool = False) -> IcpResult:
+def refine_pose(
+    work: Working,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    refine: str,
+    distance: float,
+    max_iterations: int,
+    surface: Surface | None,
+    short: bool = False,
+) -> IcpResult:
     """``refine`` (``icp`` or the point-to-plane stages of ``icp-plane*``) of the caller's pose ``R0, t0``, moving
     ``src_r`` (``short``: :attr:`Working.short_points`, every ``SHORT_REFINE_STRIDE``-th of its points)."""
     src = work.short_points if short else work.src_r
     if refine == "icp":
         return icp(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations)
     own = work.short_surface if short else work.source_surface
-    return refine_plane(src, work.tgt_r, R0, t0, max_distance=distance, max_iterations=max_iterations,
-                        target_surface=surface, source_surface=own)
+    return refine_plane(
+        src,
+        work.tgt_r,
+        R0,
+        t0,
+        max_distance=distance,
+        max_iterations=max_iterations,
+        target_surface=surface,
+        source_surface=own,
+    )
 
 
-def short_refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], refine: str, distance: float,
-                 surface: Surface | None) -> tuple[np.ndarray, np.ndarray]:
+def short_refine(
+    work: Working,
+    starts: list[tuple[np.ndarray, np.ndarray]],
+    refine: str,
+    distance: float,
+    surface: Surface | None,
+    iterations: int = CANDIDATE_ITERATIONS,
+) -> tuple[np.ndarray, np.ndarray]:
     """The candidates' short refinements, enough to rank basins: ``refine`` of each start pose (caller's units) with at
-    most ``CANDIDATE_ITERATIONS`` updates per stage, moving :attr:`Working.short_points`; the point-to-plane modes
-    refine every start at once (:func:`service.icp_batch.refine_plane_many`). Returns ``R [C, 3, 3]``, ``t [C, 3]``."""
+    most ``iterations`` (``CANDIDATE_ITERATIONS``) updates per stage, moving :attr:`Working.short_points`; the
+    point-to-plane modes refine every start at once (:func:`service.icp_batch.refine_plane_many`). Returns
+    ``R [C, 3, 3]``, ``t [C, 3]``."""
     if refine == "icp":
-        basins = [refine_pose(work, R0, t0, refine, distance, CANDIDATE_ITERATIONS, None, short=True)
-                  for R0, t0 in starts]
+        basins = [refine_pose(work, R0, t0, refine, distance, iterations, None, short=True) for R0, t0 in starts]
         return np.stack([b.rotation for b in basins]), np.stack([b.translation for b in basins])
     rotations, translations = np.stack([R for R, _ in starts]), np.stack([t for _, t in starts])  # [C, 3, 3], [C, 3]
-    return refine_plane_many(work.short_points, work.tgt_r, rotations, translations, max_distance=distance,
-                             max_iterations=CANDIDATE_ITERATIONS, target=surface, source=work.short_surface)
+    return refine_plane_many(
+        work.short_points,
+        work.tgt_r,
+        rotations,
+        translations,
+        max_distance=distance,
+        max_iterations=iterations,
+        target=surface,
+        source=work.short_surface,
+    )
 
 
 def icp_distance(work: Working, options: RegistrationOptions) -> float:

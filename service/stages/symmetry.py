@@ -15,6 +15,15 @@ need not be a principal axis of the part seen. Where the result's ``stability`` 
 motion is a turn (:mod:`service.stability`), the pose also competes with itself turned by each of ``AXIS_TURN_DEGREES``
 either way about that motion's axis (``docs/decisions/0038-turns-about-the-least-constrained-axis.md``,
 ``0073-turns-of-120-deg-about-the-least-constrained-axis.md``).
+
+A shape with four-fold symmetry (a four-legged stool, a square table or box) overlays its target about as well turned a
+quarter turn about its vertical axis, which is often a principal axis of the part seen, at a stability that need not
+be low. So where the entered target samples the surface densely (a scan, not a sample as sparse as the working cloud:
+:func:`service.stages.ranking.samples_the_surface`) the pose also competes with its :func:`quarter_turns` about the
+same principal axes as its half turns. A quarter turn about the part seen's centroid leaves it off the symmetry axis
+by up to the object's radius, which the short refinement does not close in its few updates: the best-fitting quarter
+turn is refined ``QUARTER_TURN_ITERATIONS`` updates more before the ranking. On 768-point targets the turns would have
+taken a default request to 1.16x its p50 (``docs/decisions/0076-quarter-turns-in-the-symmetry-check.md``).
 """
 
 from __future__ import annotations
@@ -31,15 +40,17 @@ from service.rotation_search import ambiguity_warning
 from service.stability import ROTATION_SHARE, pose_stability
 from service.stages.normalise import ICP_DISTANCE, Working
 from service.stages.partial import half_turns
-from service.stages.ranking import candidate_fits
+from service.stages.ranking import candidate_fits, samples_the_surface
 from service.stages.refine import icp_distance, short_refine
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
 AXIS_TURN_DEGREES = (60.0, 120.0)  # ... by each of these angles either way
+QUARTER_TURN_ITERATIONS = 5  # more short-refinement updates for the best-fitting of the quarter turns
 
 
-def symmetry(work: Working, result: RegistrationResult, options: RegistrationOptions,
-             timing: dict[str, float]) -> RegistrationResult:
+def symmetry(
+    work: Working, result: RegistrationResult, options: RegistrationOptions, timing: dict[str, float]
+) -> RegistrationResult:
     """``result``, not ``reliable`` and with :func:`half_turn_ambiguity`'s warning where it gives one; only results
     that are ``reliable`` and refined are checked. The time is added to ``timing["postprocess"]``."""
     if not result.reliable or options.refine_mode == "none":
@@ -52,26 +63,50 @@ def symmetry(work: Working, result: RegistrationResult, options: RegistrationOpt
     return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
 
 
-def half_turn_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, options: RegistrationOptions,
-                        stability: float | None = None) -> str | None:
-    """The ambiguity warning of the pose ``R [3, 3], t [3]`` (caller's units) against its three half turns, and where
-    ``stability`` is below ``AXIS_TURN_STABILITY`` its :func:`axis_turns`, after the search's short refinement; or
-    ``None`` where each of them fits worse by more than ``AMBIGUOUS_RATIO_GAP`` or returns to the pose."""
+def half_turn_ambiguity(
+    work: Working, R: np.ndarray, t: np.ndarray, options: RegistrationOptions, stability: float | None = None
+) -> str | None:
+    """The ambiguity warning of the pose ``R [3, 3], t [3]`` (caller's units) against its three half turns, where the
+    entered target samples the surface densely its six :func:`quarter_turns`, and where ``stability`` is below
+    ``AXIS_TURN_STABILITY`` its :func:`axis_turns`, after the search's short refinement (the best-fitting quarter turn
+    ``QUARTER_TURN_ITERATIONS`` updates more); or ``None`` where each of them fits worse by more than
+    ``AMBIGUOUS_RATIO_GAP`` or returns to the pose."""
     mode = options.refine_mode
     surface = work.target_surface if mode != "icp" else None
+    distance = icp_distance(work, options)
     R_h, t_h = half_turns(work.working_source, R, t)  # [3, 3, 3], [3, 3]
-    starts = list(zip(R_h, t_h, strict=True))
+    quarters = list(zip(*quarter_turns(work.working_source, R, t), strict=True)) if samples_the_surface(work) else []
+    starts = list(zip(R_h, t_h, strict=True)) + quarters
     if stability is not None and stability < AXIS_TURN_STABILITY:
         starts += axis_turns(work, R, t, surface)
-    R_s, t_s = short_refine(work, starts, mode, icp_distance(work, options), surface)
+    R_s, t_s = short_refine(work, starts, mode, distance, surface)
     rotations = np.concatenate([R[None], R_s])  # [1 + C, 3, 3]: the pose, then its turns
     translations = np.concatenate([t[None], t_s])  # [1 + C, 3]
     fits, measure = candidate_fits(work, rotations, translations)  # [1 + C]
+    if quarters:  # the best-fitting quarter turn, refined further
+        best = 1 + len(R_h) + int(np.argmax(fits[1 + len(R_h) : 1 + len(R_h) + len(quarters)]))  # its row
+        R_b, t_b = short_refine(
+            work, [(rotations[best], translations[best])], mode, distance, surface, QUARTER_TURN_ITERATIONS
+        )
+        rotations[best], translations[best] = R_b[0], t_b[0]
+        fits[best] = candidate_fits(work, R_b, t_b)[0][0]
     return ambiguity_warning(rotations, fits, 0, measure=measure)
 
 
-def axis_turns(work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | None = None
-               ) -> list[tuple[np.ndarray, np.ndarray]]:
+def quarter_turns(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose ``R [3, 3], t [3]`` of ``points [N, 3]`` turned 90 deg either way about each principal axis of the
+    moved points, through their centroid (the axes of :func:`service.stages.partial.half_turns`) -> ``R [6, 3, 3]``,
+    ``t [6, 3]``."""
+    moved = points @ R.T + t  # [N, 3]
+    centre = moved.mean(axis=0)  # [3]
+    axes = np.linalg.svd(moved - centre, full_matrices=False)[2]  # [3, 3] rows: principal axes
+    turns = np.stack([rotation_of(sign * 0.5 * np.pi * axis, 0.5 * np.pi) for axis in axes for sign in (1.0, -1.0)])
+    return turns @ R, (turns @ (t - centre)) + centre
+
+
+def axis_turns(
+    work: Working, R: np.ndarray, t: np.ndarray, surface: Surface | None = None
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """The pose ``R [3, 3], t [3]`` turned by each of ``AXIS_TURN_DEGREES`` either way about the axis its least
     constrained motion turns about (:meth:`service.stability.Stability.turn_axis`, on the working clouds;
     ``surface``: the refinement's target surface, reused where it is the working target's); none where that motion

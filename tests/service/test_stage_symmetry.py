@@ -1,7 +1,9 @@
 """The symmetry check on its own: a reliable pose of a shape that a half turn maps onto itself (an open tub) loses
 ``reliable`` with an ambiguity warning and keeps its pose; an asymmetric shape's stays reliable; a part of a shape of
 revolution (an open bowl) whose stability is low is turned about its axis, 60 and 120 deg either way (a bowl with
-three fins fits itself turned 120 deg, not 60); results that are not reliable, or not refined, are not checked."""
+three fins fits itself turned 120 deg, not 60); a part of a four-legged stool, whose centroid lies off the stool's
+axis, fits itself turned a quarter turn about that axis and is flagged on a dense target (on a sparse one no quarter
+turn is tried); results that are not reliable, or not refined, are not checked."""
 
 from __future__ import annotations
 
@@ -13,9 +15,10 @@ from shapes import asymmetric_blob
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.result import RegistrationResult
+from service.stages import symmetry as stage
 from service.stages.normalise import normalise
 from service.stages.sample import sample
-from service.stages.symmetry import AXIS_TURN_STABILITY, axis_turns, half_turn_ambiguity, symmetry
+from service.stages.symmetry import AXIS_TURN_STABILITY, axis_turns, half_turn_ambiguity, quarter_turns, symmetry
 from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
@@ -27,8 +30,11 @@ def open_tub(points: int, seed: int) -> np.ndarray:
     vertical axis maps it onto itself, no other rotation does."""
     rng = np.random.default_rng(seed)
     faces = [  # (origin, first edge, second edge): floor, the walls at x = 0 / 2, y = 0 / 1
-        ((0, 0, 0), (2, 0, 0), (0, 1, 0)), ((0, 0, 0), (0, 1, 0), (0, 0, 0.6)), ((2, 0, 0), (0, 1, 0), (0, 0, 0.6)),
-        ((0, 0, 0), (2, 0, 0), (0, 0, 0.6)), ((0, 1, 0), (2, 0, 0), (0, 0, 0.6)),
+        ((0, 0, 0), (2, 0, 0), (0, 1, 0)),
+        ((0, 0, 0), (0, 1, 0), (0, 0, 0.6)),
+        ((2, 0, 0), (0, 1, 0), (0, 0, 0.6)),
+        ((0, 0, 0), (2, 0, 0), (0, 0, 0.6)),
+        ((0, 1, 0), (2, 0, 0), (0, 0, 0.6)),
     ]
     area = np.array([np.linalg.norm(np.cross(a, b)) for _, a, b in faces])
     face = rng.choice(len(faces), size=points, p=area / area.sum())  # [points]
@@ -61,6 +67,29 @@ def finned_bowl(points: int, seed: int) -> np.ndarray:
     return bowl
 
 
+def boxes_surface(boxes: list[tuple[tuple[float, ...], tuple[float, ...]]], points: int, seed: int) -> np.ndarray:
+    """``[points, 3]`` on the faces of the axis-aligned ``boxes`` (lowest corner, highest corner), spread by area."""
+    rng = np.random.default_rng(seed)
+    faces = []  # (origin, first edge, second edge)
+    for low, high in boxes:
+        low, size = np.array(low), np.array(high) - np.array(low)
+        for k in range(3):
+            a, b = (np.eye(3)[(k + j) % 3] * size[(k + j) % 3] for j in (1, 2))
+            faces += [(low, a, b), (low + size[k] * np.eye(3)[k], a, b)]
+    area = np.array([np.linalg.norm(np.cross(a, b)) for _, a, b in faces])
+    face = rng.choice(len(faces), size=points, p=area / area.sum())  # [points]
+    o, a, b = (np.array([f[k] for f in faces])[face] for k in range(3))  # [points, 3] each
+    u, v = rng.random((2, points, 1))
+    return o + u * a + v * b
+
+
+def four_legged_stool(points: int, seed: int) -> np.ndarray:
+    """``[points, 3]`` on a stool: a square seat 1 x 1 x 0.1 on four square legs 0.1 wide under its corners, 0.9 high.
+    A quarter turn about its vertical axis (z) maps it onto itself."""
+    legs = [((x - 0.05, y - 0.05, -0.5), (x + 0.05, y + 0.05, 0.4)) for x in (-0.4, 0.4) for y in (-0.4, 0.4)]
+    return boxes_surface([((-0.5, -0.5, 0.4), (0.5, 0.5, 0.5)), *legs], points, seed)
+
+
 def bowl_part_on_bowl():
     """A part of one bowl cut off by a tilted plane (none of its principal axes is the bowl's), on a whole other sample
     of it moved by the true pose."""
@@ -74,13 +103,25 @@ def working(source: np.ndarray, target: np.ndarray, refine: str = "icp-plane"):
     return normalise(sample(request), general_reference_radius()), request.options
 
 
-def result_at(R: np.ndarray, t: np.ndarray, reliable: bool = True, stability: float | None = None
-              ) -> RegistrationResult:
+def result_at(
+    R: np.ndarray, t: np.ndarray, reliable: bool = True, stability: float | None = None
+) -> RegistrationResult:
     empty = np.zeros(0)
-    return RegistrationResult(rotation=R, translation=t, source_index=empty.astype(np.int64),
-                              target_index=empty.astype(np.int64), credibility=empty, weight=empty,
-                              inlier_ratio=1.0, residual_rms=0.0, reliable=reliable, warnings=[], iterations=3,
-                              timing_ms={}, stability=stability)
+    return RegistrationResult(
+        rotation=R,
+        translation=t,
+        source_index=empty.astype(np.int64),
+        target_index=empty.astype(np.int64),
+        credibility=empty,
+        weight=empty,
+        inlier_ratio=1.0,
+        residual_rms=0.0,
+        reliable=reliable,
+        warnings=[],
+        iterations=3,
+        timing_ms={},
+        stability=stability,
+    )
 
 
 def test_a_shape_a_half_turn_maps_onto_itself_is_ambiguous_and_keeps_its_pose():
@@ -101,12 +142,18 @@ def test_an_asymmetric_shape_stays_reliable():
     assert symmetry(work, result, options, {}) is result
 
 
-def test_a_part_of_a_shape_of_revolution_is_turned_about_its_axis_where_its_stability_is_low():
+def test_a_part_of_a_shape_of_revolution_is_turned_about_its_axis_where_its_stability_is_low(monkeypatch):
     work, options = bowl_part_on_bowl()
-    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None  # no half turn about the part's axes fits
-    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options, AXIS_TURN_STABILITY) is None  # not below: not turned
+    turned = []  # one entry per time the pose was turned about its least constrained axis
+    monkeypatch.setattr(stage, "axis_turns", lambda *args: turned.append(args) or axis_turns(*args))
+    # stability unknown, or not below the bar: not turned about the axis; a quarter turn about one of the part's
+    # principal axes, refined, reaches the bowl's surface all the same
+    for stability in (None, AXIS_TURN_STABILITY):
+        warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options, stability)
+        assert warning is not None and warning.startswith("ambiguous: a pose")
+    assert turned == []
     warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY)
-    assert warning is not None and warning.startswith("ambiguous: a pose")
+    assert warning is not None and warning.startswith("ambiguous: a pose") and len(turned) == 1
     checked = symmetry(work, result_at(R_TRUE, T_TRUE, stability=0.5 * AXIS_TURN_STABILITY), options, {})
     assert not checked.reliable and checked.warnings == [warning]
     assert np.array_equal(checked.rotation, R_TRUE)
@@ -118,6 +165,36 @@ def test_a_part_of_a_shape_a_turn_of_120_deg_maps_onto_itself_is_ambiguous():
     work, options = working(part[part @ cut > -0.1], finned_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
     warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY)
     assert warning is not None and warning.startswith("ambiguous: a pose 120 deg away")
+
+
+def test_a_part_of_a_shape_a_quarter_turn_maps_onto_itself_is_ambiguous_on_a_dense_target(monkeypatch):
+    cut = np.array([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
+    part = four_legged_stool(6000, 0)
+    part = part[part @ cut > 0.0]  # its centroid lies off the stool's axis: a quarter turn about it leaves the stool
+    work, options = working(part, four_legged_stool(6000, 1) @ R_TRUE.T + T_TRUE)  # 6,000 >= 4 x 768 target points
+    warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options)  # stability unknown: no axis turns
+    assert warning is not None and warning.startswith("ambiguous: a pose 90 deg away")
+    checked = symmetry(work, result_at(R_TRUE, T_TRUE), options, {})
+    assert not checked.reliable and checked.warnings == [warning]
+    assert np.array_equal(checked.rotation, R_TRUE) and np.array_equal(checked.translation, T_TRUE)
+    turned = []  # one entry per time the pose was given its quarter turns
+    monkeypatch.setattr(stage, "quarter_turns", lambda *args: turned.append(args) or quarter_turns(*args))
+    work, options = working(part, four_legged_stool(2000, 1) @ R_TRUE.T + T_TRUE)  # a target as sparse as a sample
+    assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None and turned == []
+
+
+def test_quarter_turns_turn_the_pose_90_deg_either_way_about_the_moved_points_principal_axes():
+    points = open_tub(3000, 0)  # principal axes x, y, z (2 x 1 x 0.6)
+    R_q, t_q = quarter_turns(points, R_TRUE, T_TRUE)
+    assert R_q.shape == (6, 3, 3) and t_q.shape == (6, 3)
+    centre = (points @ R_TRUE.T + T_TRUE).mean(axis=0)
+    for k, (R, t) in enumerate(zip(R_q, t_q, strict=True)):
+        turn = Rotation.from_matrix(R @ R_TRUE.T).as_rotvec(degrees=True)  # [3]
+        axis = R_TRUE[:, k // 2]  # the tub's x, y, z after the true pose
+        assert abs(np.linalg.norm(turn) - 90.0) < 1e-6 and abs(abs(turn @ axis) / 90.0 - 1.0) < 1e-3
+        assert np.linalg.norm(R @ (R_TRUE.T @ (centre - T_TRUE)) + t - centre) < 1e-9  # the centroid stays
+    for k in range(3):  # either way: the two turns about one axis undo each other
+        assert np.allclose((R_q[2 * k] @ R_TRUE.T) @ (R_q[2 * k + 1] @ R_TRUE.T), np.eye(3), atol=1e-12)
 
 
 def test_axis_turns_turn_the_pose_60_and_120_deg_either_way_about_the_axis_of_revolution():
@@ -151,7 +228,8 @@ def test_results_not_reliable_or_not_refined_are_not_checked():
 
 def test_the_registrar_does_not_call_a_symmetric_shape_reliable():
     registrar = Registrar(bundled_models_dir() / "general", threads=1)
-    result = registrar.register(open_tub(3000, 0), open_tub(3000, 1) @ R_TRUE.T + T_TRUE, refine="icp-plane",
-                                rotation_search="auto")
+    result = registrar.register(
+        open_tub(3000, 0), open_tub(3000, 1) @ R_TRUE.T + T_TRUE, refine="icp-plane", rotation_search="auto"
+    )
     assert not result.reliable
     assert any(w.startswith("ambiguous") for w in result.warnings)
