@@ -23,12 +23,18 @@ PARTIAL_NEAR_SHARE = 0.75  # lowest near-surface share of a partial view
 PARTIAL_FLIP_RATIO = 0.9  # a turned pose fitting at least this share of the pose's inlier ratio is a doubt
 
 
+def principal_frame(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The centroid ``[3]`` and principal axes ``[3, 3]`` (rows, largest spread first) of ``points [N, 3]`` moved by
+    the pose ``R [3, 3], t [3]``."""
+    moved = points @ R.T + t  # [N, 3]
+    centre = moved.mean(axis=0)  # [3]
+    return centre, np.linalg.svd(moved - centre, full_matrices=False)[2]
+
+
 def half_turns(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pose ``R [3, 3], t [3]`` of ``points [N, 3]`` turned 180 deg about each principal axis of the moved points,
     through their centroid -> ``R [3, 3, 3], t [3, 3]``."""
-    moved = points @ R.T + t  # [N, 3]
-    centre = moved.mean(axis=0)  # [3]
-    axes = np.linalg.svd(moved - centre, full_matrices=False)[2]  # [3, 3] rows: principal axes
+    centre, axes = principal_frame(points, R, t)
     turns = 2.0 * axes[:, :, None] * axes[:, None, :] - np.eye(3)  # [3, 3, 3] half turns about each axis
     return turns @ R, (turns @ (t - centre)) + centre
 

@@ -39,7 +39,7 @@ from service.result import RegistrationResult
 from service.rotation_search import ambiguity_warning
 from service.stability import ROTATION_SHARE, pose_stability
 from service.stages.normalise import ICP_DISTANCE, Working
-from service.stages.partial import half_turns
+from service.stages.partial import half_turns, principal_frame
 from service.stages.ranking import candidate_fits, samples_the_surface
 from service.stages.refine import icp_distance, short_refine
 
@@ -97,9 +97,7 @@ def quarter_turns(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.
     """The pose ``R [3, 3], t [3]`` of ``points [N, 3]`` turned 90 deg either way about each principal axis of the
     moved points, through their centroid (the axes of :func:`service.stages.partial.half_turns`) -> ``R [6, 3, 3]``,
     ``t [6, 3]``."""
-    moved = points @ R.T + t  # [N, 3]
-    centre = moved.mean(axis=0)  # [3]
-    axes = np.linalg.svd(moved - centre, full_matrices=False)[2]  # [3, 3] rows: principal axes
+    centre, axes = principal_frame(points, R, t)  # [3], [3, 3] rows: principal axes
     turns = np.stack([rotation_of(sign * 0.5 * np.pi * axis, 0.5 * np.pi) for axis in axes for sign in (1.0, -1.0)])
     return turns @ R, (turns @ (t - centre)) + centre
 
