@@ -311,6 +311,20 @@ def test_damaged_tls_uploads_are_4xx_naming_the_file(client, tmp_path) -> None:
         assert_error(upload(client, {"source": (name, data), "target": good}), status, *words)
 
 
+def test_a_damaged_e57_upload_is_a_400_and_no_rust_panic_on_the_servers_stderr(server, client, tmp_path) -> None:
+    """A byte changed in a scan's points (its page's checksum no longer matches) made the e57 library panic: a 400
+    still, but Rust's panic hook printed ``thread '<unnamed>' panicked at ...`` on the server's stderr, which reads as
+    a crash in an operator's logs. The pages' checksums are checked before the library reads the file."""
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    data = bytearray((tmp_path / "a.e57").read_bytes())
+    data[100] ^= 0xFF  # page 0: the first scan's points
+    response = upload(client, {"source": ("bad.e57", bytes(data)), "target": ("t.pts", pts_text(TARGET).encode())})
+    assert response.status_code == 400, response.text
+    log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
+    assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
+    assert_error(response, 400, "bad.e57", "invalid checksum for page 0", "damaged")
+
+
 def test_e57_over_the_file_point_limit_is_a_413_from_its_header(tmp_path) -> None:
     server = limited_server()
     count = LIMITED["max_file_points"] + 1
