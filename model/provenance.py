@@ -35,13 +35,26 @@ def checkout(root: Path = ROOT) -> dict:
     return {"commit": commit, "uncommitted_changes": changed}
 
 
+def portable_path(path: str | os.PathLike) -> str:
+    """``path`` as a record that means the same on another machine and says nothing of this one's layout: relative
+    to the working directory where it lies inside it (``data/modelnet40``), else its last component only (a
+    label: ``/home/alice/data/modelnet40`` is ``modelnet40``). What identifies a file is its sha256, beside it."""
+    path, here = Path(path).resolve(), Path.cwd().resolve()
+    return path.relative_to(here).as_posix() if path.is_relative_to(here) and path != here else path.name
+
+
 def data_file(path: str | os.PathLike) -> dict:
-    """The data file a run reads, to tell it from another copy or version: its folder (absolute), name, size in bytes
-    and sha256 (one more read of a file that training loads whole anyway)."""
+    """The data file a run reads, to tell it from another copy or version: its folder (:func:`portable_path`: no
+    absolute path), name, size in bytes and sha256 (one more read of a file that training loads whole anyway)."""
     from service.manifest import sha256_file
 
     path = Path(path).resolve()
-    return {"folder": str(path.parent), "file": path.name, "bytes": path.stat().st_size, "sha256": sha256_file(path)}
+    return {
+        "folder": portable_path(path.parent),
+        "file": path.name,
+        "bytes": path.stat().st_size,
+        "sha256": sha256_file(path),
+    }
 
 
 def versions() -> dict:

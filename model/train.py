@@ -23,7 +23,7 @@ from model.inference import predict_poses
 from model.losses import registration_losses, sample_training_keypoints
 from model.metrics import registration_metrics
 from model.network import MFGNet
-from model.provenance import run_record
+from model.provenance import portable_path, run_record
 from model.recipes import SEARCH, recipe_draw
 from model.sensor_pairs import validation_pairs as sensor_validation_pairs
 
@@ -317,7 +317,7 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
         before = [r["data"] for r in (made_by["run"], *made_by["resumes"][:-1]) if r and "data" in r]
         now = made_by["resumes"][-1]["data"]
         if before and before[-1]["sha256"] != now["sha256"]:  # the data folder is this process's: said, not refused
-            print(f"note: resuming on other data than the run's so far: {now['folder']}/{now['file']} "
+            print(f"note: resuming on other data than the run's so far: {data_file} "
                   f"(sha256 {now['sha256'][:12]}), not {before[-1]['folder']}/{before[-1]['file']} "
                   f"(sha256 {before[-1]['sha256'][:12]}); its validation split and shapes differ", file=sys.stderr)
         print(f"resumed from {last_path} at epoch {state['epoch']} batch {state['batch']}")
@@ -339,7 +339,7 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
             print(f"initialised from {opts.init} (its network: {cfg.to_dict()})")
         init_file = resolve_checkpoint(opts.init).resolve() if opts.init else None
         made_by = {"run": run_record(asdict(opts), data_file, init=init_file and {
-            "checkpoint": str(init_file), "sha256": file_sha256(init_file),
+            "checkpoint": portable_path(init_file), "sha256": file_sha256(init_file),
             "provenance": init.get("provenance")}), "resumes": []}
         optimizer = torch.optim.Adam(model.parameters(), lr=opts.lr, weight_decay=opts.weight_decay)
         if run_files:  # overwrite: the run it replaces goes once the new one is ready to start

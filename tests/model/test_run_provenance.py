@@ -22,12 +22,13 @@ runner = CliRunner()
 
 
 def assert_run_record(record: dict, data: str, **options) -> None:
-    """``record`` names this checkout's commit, the data file read (by its absolute folder, size and hash), this
-    process's command line, the run's ``options`` (those given) and the versions of torch and numpy."""
+    """``record`` names this checkout's commit, the data file read (its folder by name only, as it lies outside the
+    working directory; its size and hash), this process's command line, the run's ``options`` (those given) and the
+    versions of torch and numpy."""
     assert_this_checkout(record)
     file = Path(data).resolve() / "modelnet40_train.npz"
     assert record["data"] == {
-        "folder": str(file.parent),
+        "folder": file.parent.name,
         "file": file.name,
         "bytes": file.stat().st_size,
         "sha256": hashlib.sha256(file.read_bytes()).hexdigest(),
@@ -104,7 +105,7 @@ def test_a_fine_tuned_run_records_the_checkpoint_it_started_from(tmp_path, tiny_
     assert result.exit_code == 0, result.output
     init = read_checkpoint(run / "last.pt")["provenance"]["run"]["init"]
     assert init == {
-        "checkpoint": str(tiny_checkpoint.resolve()),
+        "checkpoint": tiny_checkpoint.name,  # outside the working directory: its name
         "sha256": hashlib.sha256(tiny_checkpoint.read_bytes()).hexdigest(),
         "provenance": None,
     }
@@ -170,9 +171,48 @@ def test_a_resume_on_other_data_says_so_and_records_it(tmp_path, capsys) -> None
     train(TrainOptions(data=str(other), epochs=3, resume=True, **opts))
     err = capsys.readouterr().err
     assert f"note: resuming on other data than the run's so far: {other}/modelnet40_train.npz" in err
-    assert f"not {Path(data).resolve()}/modelnet40_train.npz" in err
+    assert "not data/modelnet40_train.npz" in err
     resumes = read_checkpoint(run / "last.pt")["provenance"]["resumes"]
-    assert [r["data"]["folder"] for r in resumes] == [str(Path(data).resolve()), str(other.resolve())]
+    assert [r["data"]["folder"] for r in resumes] == ["data", "other"]
+
+
+def test_the_record_holds_no_absolute_path_and_a_checkpoint_with_one_still_resumes(tmp_path, monkeypatch, capsys):
+    """A data folder inside the working directory is recorded relative to it, one outside by its name only (an
+    absolute path says where a user keeps files, and nothing on another machine); the sha256 identifies the file. A
+    checkpoint that recorded the absolute folder (before this) resumes, and its folder is quoted as recorded."""
+    from model.train import TrainOptions, train
+
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    inside = Path(tiny_training_data(work))  # work/data
+    outside = Path(tiny_training_data(tmp_path))  # tmp_path/data: beside the working directory
+    opts = {"batch_size": 2, "max_batches_per_epoch": 1, "val_pairs": 1, "device": "cpu", "config": dict(TINY_MODEL)}
+    train(TrainOptions(out="run", data="data", epochs=1, **opts))
+    train(TrainOptions(out="abs", data=str(outside), epochs=1, **opts))
+    train(TrainOptions(out="init", data=str(inside), epochs=1, init=str(work / "run" / "last.pt"), **opts))
+    for run, folder in (("run", "data"), ("abs", "data"), ("init", "data")):
+        record = read_checkpoint(work / run / "last.pt")["provenance"]["run"]
+        assert record["data"]["folder"] == folder
+        assert json.loads((work / run / "config.json").read_text())["provenance"]["run"]["data"] == record["data"]
+    assert read_checkpoint(work / "init" / "last.pt")["provenance"]["run"]["init"]["checkpoint"] == "run/last.pt"
+    for run in ("run", "abs", "init"):
+        text = json.dumps(read_checkpoint(work / run / "last.pt")["provenance"]["run"]["data"])
+        assert str(tmp_path) not in text
+    capsys.readouterr()
+
+    old = read_checkpoint(work / "abs" / "last.pt")  # as written before: the absolute folder
+    old["provenance"]["run"]["data"]["folder"] = str(outside)
+    torch.save(old, work / "abs" / "last.pt")
+    points = np.load(outside / "modelnet40_train.npz")["points"][:20]
+    np.savez(work / "data" / "modelnet40_train.npz", points=points, labels=np.arange(20))
+    train(TrainOptions(out="abs", data="data", epochs=2, resume=True, **opts))
+    err = capsys.readouterr().err
+    assert "resuming on other data than the run's so far: data/modelnet40_train.npz" in err
+    assert f"not {outside}/modelnet40_train.npz" in err
+    made_by = read_checkpoint(work / "abs" / "last.pt")["provenance"]
+    assert made_by["run"]["data"]["folder"] == str(outside)  # the old record kept as it was
+    assert made_by["resumes"][0]["data"]["folder"] == "data"
 
 
 def test_a_run_says_when_it_validates_on_fewer_pairs_than_asked(tmp_path, capsys) -> None:
