@@ -5,8 +5,10 @@ they are returned in float64, unrounded (the registrar centres each cloud before
 
 The counts of the header (VLRs, points, LAZ chunks) are checked against the file's size before
 ``laspy`` loops over them or ``lazrs`` allocates them (``lazrs`` aborts the process when an
-allocation fails), and points are read in batches of at most :data:`BATCH_BYTES`. LAZ is decompressed
-by ``lazrs``'s sequential decompressor: the parallel one allocates a buffer of the LAZ VLR's chunk size
+allocation fails), and points are read in batches of at most :data:`BATCH_BYTES`. The LAZ VLR's items are
+checked as LASzip checks them, each item of a fixed size (a point, a GPS time, a colour) of that size: ``lazrs``
+panics on a shorter one, and Rust's panic hook prints ``thread ... panicked at ...`` on the server's stderr. LAZ is
+decompressed by ``lazrs``'s sequential decompressor: the parallel one allocates a buffer of the LAZ VLR's chunk size
 (points) at once, whatever the file holds.
 """
 
@@ -34,6 +36,17 @@ BATCH_BYTES = 16 * 2**20
 # raw, its point count and each layer's size (u32); Point14's first two layers are x/y (with returns, channel) and z.
 POINT14, LAYERS = 10, {10: 9, 11: 1, 12: 2, 13: 1}
 BYTE14 = 14
+# LAZ item types of a fixed size (LASzip's), by type: name, bytes. Byte items (0, 14) are as long as they say.
+ITEM_BYTES = {
+    6: ("Point10", 20),
+    7: ("GpsTime11", 8),
+    8: ("RGB12", 6),
+    9: ("Wavepacket13", 29),
+    10: ("Point14", 30),
+    11: ("RGB14", 6),
+    12: ("RGBNIR14", 8),
+    13: ("Wavepacket14", 29),
+}
 
 
 def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -133,7 +146,9 @@ def _check_header(f: BinaryIO, size: int) -> None:
 
 
 def _check_laz_items(header: LasHeader) -> None:
-    """The LAZ VLR's items add up to the header's point size (lazrs sizes its buffers from the items)."""
+    """The LAZ VLR's items add up to the header's point size (lazrs sizes its buffers from the items), and each item
+    of a fixed size has that size, as LASzip requires (lazrs slices an item's fixed size out of its declared bytes:
+    fewer is a Rust panic, whose hook prints it on the server's stderr)."""
     found = header.vlrs.get("LasZipVlr")
     if not found:
         return  # laspy says that it is missing
@@ -146,6 +161,12 @@ def _check_laz_items(header: LasHeader) -> None:
         raise PointCloudFormatError(
             f"LAZ VLR describes points of {size} bytes; the header says {header.point_format.size}"
         )
+    for k, (kind, length, _) in enumerate(_laz_items(data)):
+        name, fixed = ITEM_BYTES.get(kind, (None, length))
+        if length != fixed:
+            raise PointCloudFormatError(
+                f"LAZ VLR's item {k} is a {name} of {length} bytes; a {name} item has {fixed} (the VLR is damaged)"
+            )
 
 
 def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:

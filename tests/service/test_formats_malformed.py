@@ -20,6 +20,7 @@ import numpy as np
 import plyfile
 import pypcd4
 import pytest
+from api_server import MODEL, assert_error
 
 from service.formats import InvalidPointsError, PointCloudFormatError, checks, read_cloud, write_cloud
 
@@ -677,13 +678,40 @@ def test_laz_vlr_items_must_make_the_header_point_size(tmp_path: Path) -> None:
         read_cloud(tmp_path / "a.laz")
 
 
-def test_laz_panic_in_lazrs_is_a_format_error(tmp_path: Path) -> None:
-    """A GPS-time item typed as a point: lazrs panics, and pyo3's PanicException is no Exception."""
-    data = las_bytes("1.2", 1, compressed=True)
-    struct.pack_into("<H", data, LAS12_HEADER + LAS_VLR_HEADER + 34 + 6, 6)  # second item's type: 7 -> 6
+@pytest.mark.parametrize(
+    ("version", "point_format", "item", "value", "message"),
+    [
+        ("1.2", 1, 1, (6, 8), "item 1 is a Point10 of 8 bytes; a Point10 item has 20"),  # GPS time typed as a point
+        ("1.2", 3, 2, (7, 6), "item 2 is a GpsTime11 of 6 bytes; a GpsTime11 item has 8"),  # a colour typed as a time
+        ("1.4", 7, 1, (13, 6), "item 1 is a Wavepacket14 of 6 bytes; a Wavepacket14 item has 29"),
+    ],
+)
+def test_laz_item_of_another_size_than_its_type_is_refused_before_lazrs_panics(
+    tmp_path: Path, version: str, point_format: int, item: int, value: tuple[int, int], message: str
+) -> None:
+    """An item shorter than its type made lazrs panic (pyo3's PanicException, its message printed on stderr by
+    Rust's panic hook); each item of a fixed size must have that size, as LASzip requires."""
+    data = las_bytes(version, point_format, compressed=True)
+    header = LAS12_HEADER if version == "1.2" else LAS14_HEADER
+    struct.pack_into("<HH", data, header + LAS_VLR_HEADER + 34 + 6 * item, *value)
     (tmp_path / "a.laz").write_bytes(data)
-    with pytest.raises(PointCloudFormatError, match="lazrs panicked"):
+    with pytest.raises(PointCloudFormatError, match=re.escape(message)):
         read_cloud(tmp_path / "a.laz")
+
+
+def test_a_laz_item_of_the_wrong_size_is_a_400_and_no_rust_panic_on_the_servers_stderr(server, client) -> None:
+    """The GPS-time item typed as a point, uploaded: a 400 before as after, but lazrs's panic was printed on the
+    server's stderr by Rust's panic hook (``thread '<unnamed>' panicked at ...``), which reads as a crash in an
+    operator's logs."""
+    data = las_bytes("1.2", 1, compressed=True, n=64)
+    struct.pack_into("<H", data, LAS12_HEADER + LAS_VLR_HEADER + 34 + 6, 6)  # second item's type: 7 -> 6
+    target = io.BytesIO()
+    np.save(target, cloud(64))
+    files = {"source": ("bad.laz", bytes(data)), "target": ("t.npy", target.getvalue())}
+    response = client.post("/v1/register", files=files, data={"model": MODEL, "rotation_search": "false"})
+    log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
+    assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
+    assert_error(response, 400, "source (bad.laz)", "item 1 is a Point10 of 8 bytes", "damaged")
 
 
 # --- NPY / NPZ ---------------------------------------------------------------------------------------------------
