@@ -33,9 +33,12 @@ offset 0).
 
 Every page's checksum is checked before the library reads the file (:func:`check_pages`): the library checks each page
 as it reads it, but a mismatch in a scan's points is a Rust panic, and the panic hook prints it on stderr (a damaged
-upload read as a crash in the server's logs). A panic that still happens (``pyo3_runtime.PanicException``, a
-``BaseException``: an XML section with valid checksums that does not describe the binary sections, a ``fileOffset`` or
-``recordCount`` changed) is a :class:`PointCloudFormatError` here, its message still printed by the hook.
+upload read as a crash in the server's logs). So is any error it meets in a scan's section, so each scan's ``points``
+``fileOffset`` is checked to lead to one (:func:`check_sections`): inside the file, at a compressed-vector section
+header (section ID 1, a length of whole 4-byte words) whose data offset is a data packet's. A panic that still happens
+(``pyo3_runtime.PanicException``, a ``BaseException``: an XML section with valid checksums that does not describe the
+binary sections, a ``recordCount`` larger than the section holds) is a :class:`PointCloudFormatError` here, its message
+still printed by the hook.
 """
 
 from __future__ import annotations
@@ -63,6 +66,8 @@ READ_BYTES_PER_POINT = 40
 PAGE_BYTES, PAGE_DATA_BYTES = 1024, 1020  # E57 pages: 1,020 bytes of data, then a CRC-32C
 PAGES_A_CHUNK = 1024  # pages read and checked at a time (1 MiB)
 HEADER = struct.Struct("<8sIIQQQQ")  # signature, version major, minor, file length, XML offset, XML length, page size
+SECTION = struct.Struct("<B7xQQQ")  # a compressed vector's section header: ID 1, logical length, data and index offsets
+DATA_PACKET = 1  # a packet's first byte: 0 index, 1 data, 2 empty
 MAX_XML_BYTES = 16 << 20  # a scan's XML is a few KB
 MAX_XML_ELEMENTS = 100_000  # about 60 a scan (pye57's), 30 an image
 MAX_XML_DEPTH = 64  # a scan's coordinate field is 6 deep
@@ -78,7 +83,8 @@ POSE_ROTATION = ["data3D", "vectorChild", "pose", "rotation"]  # under the root:
 def read_e57(f: BinaryIO, max_points: int | None) -> np.ndarray:
     e57 = require("e57", "reading E57 files")
     with _on_disk(f) as path:
-        scans = check_xml(path)
+        offsets: list[tuple[int, str]] = []
+        scans = check_xml(path, offsets)
         if not scans:
             raise InvalidPointsError("the E57 file holds no scans (its data3D is empty): no points to read")
         total = sum(scans)
@@ -93,6 +99,7 @@ def read_e57(f: BinaryIO, max_points: int | None) -> np.ndarray:
             )
         _check_memory(total)
         check_pages(path)
+        check_sections(path, offsets)
         points = _read_points(e57, path)
     if len(points) == 0:
         raise InvalidPointsError(
@@ -145,6 +152,63 @@ def check_pages(path: str) -> None:
             first += len(found)
 
 
+def check_sections(path: str, offsets: list[tuple[int, str]]) -> None:
+    """:class:`PointCloudFormatError` where a scan's ``points`` ``fileOffset`` (``(scan, text)`` each, as the XML
+    section gives them) does not lead to a compressed-vector section: past the file's end or at a page's checksum, a
+    section header that is not one (section ID 1, a logical length of whole 4-byte words), or a data offset that is not
+    a data packet's. The library panics on each (its hook prints the panic on the server's stderr); this reads 33 bytes
+    a scan and decodes nothing. A ``fileOffset`` that is not a decimal integer is left to the library, which refuses
+    it without a panic."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        for scan, text in offsets:
+            if not RECORD_COUNT.fullmatch(text.removeprefix("+")):
+                continue
+            offset = int(text)
+            where = f"the E57 file's XML section puts scan {scan}'s points at byte {offset}"
+            header = _logical_bytes(f, offset, SECTION.size, size)
+            if header is None:
+                raise PointCloudFormatError(
+                    f"{where}, {_outside(offset, size)}: the XML section does not describe the file (it is damaged)"
+                )
+            section, length, data, _ = SECTION.unpack(header)
+            if section != 1 or length % 4:
+                found = f"a first byte of {section}, not the section ID 1"
+                if section == 1:
+                    found = f"a length of {length} bytes, not a multiple of 4"
+                raise PointCloudFormatError(
+                    f"{where}, where there is no compressed-vector section ({found}): the XML section does not "
+                    "describe the file (it is damaged)"
+                )
+            packet = _logical_bytes(f, data, 1, size)
+            if packet != bytes([DATA_PACKET]):
+                found = _outside(data, size) if packet is None else f"where there is none (a byte of {packet[0]})"
+                raise PointCloudFormatError(
+                    f"E57 scan {scan}'s section (at byte {offset}) puts its first data packet at byte {data}, {found}: "
+                    "the file is damaged"
+                )
+
+
+def _outside(offset: int, size: int) -> str:
+    """Why ``offset`` holds no section or packet of a file of ``size`` bytes."""
+    if offset < size and offset % PAGE_BYTES >= PAGE_DATA_BYTES:
+        return "a page's checksum"
+    return f"at or past the end of the file ({size} bytes)"
+
+
+def _logical_bytes(f: BinaryIO, offset: int, count: int, size: int) -> bytes | None:
+    """``count`` bytes of the E57 file ``f`` from the physical ``offset`` on, its pages' checksums left out; None
+    where ``offset`` is a checksum's or the bytes run past the file's ``size``."""
+    if offset % PAGE_BYTES >= PAGE_DATA_BYTES or offset >= size:
+        return None
+    first = offset - offset % PAGE_BYTES
+    f.seek(first)
+    pages = f.read((offset % PAGE_BYTES + count) // PAGE_DATA_BYTES * PAGE_BYTES + PAGE_BYTES)
+    data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))
+    found = data[offset % PAGE_BYTES :][:count]
+    return found if len(found) == count else None
+
+
 def _check_memory(total: int) -> None:
     """:class:`PointCloudFormatError` where the arrays ``e57.read_points`` reserves for ``total`` points are more
     than half the memory this process may have (physical memory, or a lower address-space limit): the library would
@@ -161,13 +225,14 @@ def _check_memory(total: int) -> None:
         )
 
 
-def check_xml(path: str) -> list[int]:
+def check_xml(path: str, offsets: list[tuple[int, str]] | None = None) -> list[int]:
     """The record count of each scan of the E57 file at ``path``, from its XML section: :class:`PointCloudFormatError`
     where it is not in the file, has a DTD, is not UTF-8, is not well formed or is beyond the limits above (parsed
-    by expat, element by element, before the e57 library reads the file)."""
+    by expat, element by element, before the e57 library reads the file). Each scan's ``points`` ``fileOffset``
+    (``(scan, text)``) is appended to ``offsets`` where given."""
     with open(path, "rb") as f:
         text = _xml_section(f)
-    return _parse_xml(text)
+    return _parse_xml(text, offsets)
 
 
 def e57_count(f: BinaryIO) -> int:
@@ -206,10 +271,11 @@ def _xml_section(f: BinaryIO) -> bytes:
     return text
 
 
-def _parse_xml(text: bytes) -> list[int]:
+def _parse_xml(text: bytes, offsets: list[tuple[int, str]] | None = None) -> list[int]:
     """Parse the XML section ``text`` with expat, refusing a DTD, another encoding than UTF-8, the limits, a
     ``data3D`` elsewhere than under the root and a record count that is not a decimal integer; the record count of
-    each scan (a ``/data3D/vectorChild`` with ``points``)."""
+    each scan (a ``/data3D/vectorChild`` with ``points``), and each ``points`` ``fileOffset`` appended to
+    ``offsets`` where given."""
     if b"\0" in text:  # UTF-16 or UTF-32, which the byte checks here would not read
         raise PointCloudFormatError("the E57 file's XML section is not UTF-8 text (it holds NUL bytes)")
     parser = xml.parsers.expat.ParserCreate(namespace_separator=" ")  # names as "namespace-URI local-name"
@@ -258,6 +324,8 @@ def _parse_xml(text: bytes) -> list[int]:
             if not RECORD_COUNT.fullmatch(count):
                 refuse(f"gives scan {len(scans) - 1} the recordCount {count[:40]!r}, not a decimal integer")
             scans[-1] = (scans[-1] or 0) + int(count)
+            if offsets is not None:
+                offsets.append((len(scans) - 1, attributes.get("fileOffset", "")))
         if names[1:] == POSE_ROTATION:
             quaternion.clear()
         children.append(0)

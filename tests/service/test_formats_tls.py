@@ -5,6 +5,7 @@ return left out, the point limit from the header, and damaged files a 4xx naming
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -323,6 +324,46 @@ def test_a_damaged_e57_upload_is_a_400_and_no_rust_panic_on_the_servers_stderr(s
     log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
     assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
     assert_error(response, 400, "bad.e57", "invalid checksum for page 0", "damaged")
+
+
+def points_at(data: bytes, offset: int) -> bytes:
+    """The E57 file ``data`` with its first scan's ``points`` ``fileOffset`` set to ``offset`` (pages rebuilt)."""
+    xml = xml_of(data)
+    start = xml.index(b'fileOffset="') + len(b'fileOffset="')
+    return with_xml(data, xml[:start] + str(offset).encode() + xml[xml.index(b'"', start) :])
+
+
+@pytest.mark.parametrize(
+    ("offset", "message"),
+    [
+        (10**6, "puts scan 0's points at byte 1000000, at or past the end of the file"),
+        (1020, "puts scan 0's points at byte 1020, a page's checksum"),
+        (100, "puts scan 0's points at byte 100, where there is no compressed-vector section (a first byte of"),
+        (8, "E57 scan 0's section (at byte 8) puts its first data packet at byte"),  # the header: a 1, zeros, offsets
+    ],
+)
+def test_an_e57_scan_whose_file_offset_leads_to_no_section_is_refused_before_the_library_panics(
+    tmp_path, offset: int, message: str
+) -> None:
+    """A well-formed, checksummed XML section whose scan's ``fileOffset`` leads to no compressed-vector section: the
+    e57 library panicked (its hook printed the panic on stderr). The section header and its first packet's type are
+    checked first."""
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}, {"xyz": TARGET}])
+    data = points_at((tmp_path / "a.e57").read_bytes(), offset)
+    with pytest.raises(PointCloudFormatError, match=re.escape(message)) as caught:
+        read_cloud(data, "a.e57")
+    assert caught.value.status == 400 and "damaged" in str(caught.value)
+
+
+def test_an_e57_file_offset_past_the_file_is_a_400_and_no_rust_panic_on_the_servers_stderr(
+    server, client, tmp_path
+) -> None:
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    data = points_at((tmp_path / "a.e57").read_bytes(), 10**6)
+    response = upload(client, {"source": ("far.e57", data), "target": ("t.pts", pts_text(TARGET).encode())})
+    log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
+    assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
+    assert_error(response, 400, "far.e57", "scan 0's points at byte 1000000", "at or past the end of the file")
 
 
 def test_e57_over_the_file_point_limit_is_a_413_from_its_header(tmp_path) -> None:
