@@ -24,6 +24,19 @@ same principal axes as its half turns. A quarter turn about the part seen's cent
 by up to the object's radius, which the short refinement does not close in its few updates: the best-fitting quarter
 turn is refined ``QUARTER_TURN_ITERATIONS`` updates more before the ranking. On 768-point targets the turns would have
 taken a default request to 1.16x its p50 (``docs/decisions/0076-quarter-turns-in-the-symmetry-check.md``).
+
+Where the clouds are rooms (orthogonal planes over a dense target:
+:func:`service.stages.search.plane_frames_on_the_surface`) and the pose places part of its source off the target
+(less than ``WHOLE_OVERLAY`` of the working source within ``NEAR_DISTANCE`` inlier distances of the entered target),
+the fit comparison can favour a wrong pose: of two fragments that overlap in part, a half- or quarter-turned pose may
+overlay more of the source than the truth does, and the close fit counts the points overlaid. So there a turn also
+makes the result ambiguous where it fits within ``PARTIAL_FIT_GAP`` of the pose's close fit and fits what it overlays
+about as closely (:func:`overlay_precision`: the close-fit share among the source points it places near the target,
+which the size of the overlap does not raise; at least the pose's less ``PRECISION_GAP``). On the rooms measured, a
+right result's turns within ``PARTIAL_FIT_GAP`` of its fit fit what they overlay at least 0.17 less closely than the
+pose. A pose that overlays its whole source is not tested: there a turn that overlays less is worse, whatever it
+fits (a scanned lamp's turns fit what they overlay within 0.01 of its right pose while overlaying 0.91 of it)
+(``docs/decisions/0077-partial-overlays-in-the-symmetry-check.md``).
 """
 
 from __future__ import annotations
@@ -36,16 +49,23 @@ import numpy as np
 from service.icp import Surface, rotation_of
 from service.options import RegistrationOptions
 from service.result import RegistrationResult
-from service.rotation_search import ambiguity_warning
+from service.rotation_search import AMBIGUOUS_DEGREES, ambiguity_warning, rotation_between_deg
 from service.stability import ROTATION_SHARE, pose_stability
 from service.stages.normalise import ICP_DISTANCE, Working
 from service.stages.partial import half_turns, principal_frame
-from service.stages.ranking import candidate_fits, samples_the_surface
+from service.stages.ranking import CLOSE_FIT, candidate_fits, samples_the_surface
 from service.stages.refine import icp_distance, short_refine
+from service.stages.search import plane_frames_on_the_surface
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
 AXIS_TURN_DEGREES = (60.0, 120.0)  # ... by each of these angles either way
 QUARTER_TURN_ITERATIONS = 5  # more short-refinement updates for the best-fitting of the quarter turns
+# rooms whose pose overlays part of its source: a turn within PARTIAL_FIT_GAP of the pose's close fit whose
+# overlay_precision is at least the pose's less PRECISION_GAP makes the result ambiguous
+NEAR_DISTANCE = 3.0  # inlier distances: a working source point this near the entered target is overlaid
+WHOLE_OVERLAY = 0.99  # a pose that overlays at least this share of the working source is not tested so
+PARTIAL_FIT_GAP = 0.2
+PRECISION_GAP = 0.05
 
 
 def symmetry(
@@ -90,7 +110,47 @@ def half_turn_ambiguity(
         )
         rotations[best], translations[best] = R_b[0], t_b[0]
         fits[best] = candidate_fits(work, R_b, t_b)[0][0]
-    return ambiguity_warning(rotations, fits, 0, measure=measure)
+    warning = ambiguity_warning(rotations, fits, 0, measure=measure)
+    if warning is None and plane_frames_on_the_surface(work):
+        warning = partial_overlay_ambiguity(work, rotations, translations, fits)
+    return warning
+
+
+def overlay_precision(work: Working, rotations: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each pose (``rotations [C, 3, 3]``, ``translations [C, 3]``, caller's units): ``near [C]``, the share of
+    the working source it places within ``NEAR_DISTANCE`` inlier distances of the entered target (what it overlays),
+    and ``precision [C]``, the share of those within ``CLOSE_FIT`` inlier distances (how closely it fits what it
+    overlays: :func:`service.stages.ranking.close_fit` over ``near``; 0 where it overlays nothing)."""
+    reach = NEAR_DISTANCE * work.inlier_distance
+    moved = work.working_source @ rotations.transpose(0, 2, 1) + translations[:, None]  # [C, Ns, 3]
+    dist, _ = work.entered_target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=reach)
+    dist = dist.reshape(moved.shape[:2])  # [C, Ns], inf beyond reach
+    near = (dist < reach).mean(axis=1)  # [C]
+    close = (dist < CLOSE_FIT * work.inlier_distance).mean(axis=1)  # [C]
+    return near, np.divide(close, near, out=np.zeros_like(close), where=near > 0)
+
+
+def partial_overlay_ambiguity(
+    work: Working, rotations: np.ndarray, translations: np.ndarray, fits: np.ndarray
+) -> str | None:
+    """The warning of a pose (row 0 of ``rotations [1 + C, 3, 3]``, ``translations [1 + C, 3]``, close fits ``fits
+    [1 + C]``) that overlays part of its source (below ``WHOLE_OVERLAY``) against its refined turns (the other rows):
+    the turn more than ``AMBIGUOUS_DEGREES`` from it with the best :func:`overlay_precision` among those within
+    ``PARTIAL_FIT_GAP`` of its close fit and at least its precision less ``PRECISION_GAP``; ``None`` where none is."""
+    near, precision = overlay_precision(work, rotations, translations)  # [1 + C] each
+    if near[0] >= WHOLE_OVERLAY:
+        return None
+    for i in np.argsort(-precision[1:], kind="stable") + 1:
+        angle = rotation_between_deg(rotations[0], rotations[i])
+        if angle > AMBIGUOUS_DEGREES and fits[i] >= fits[0] - PARTIAL_FIT_GAP:
+            if precision[i] < precision[0] - PRECISION_GAP:
+                return None  # the others fit what they overlay less closely still
+            return (
+                f"ambiguous: a pose {angle:.0f} deg away fits what it overlays about as closely (close fit "
+                f"{precision[i]:.2f} vs {precision[0]:.2f} of the source points each places near the target) and "
+                f"overlays {near[i]:.2f} of the source vs {near[0]:.2f}; the clouds may overlap in part"
+            )
+    return None
 
 
 def quarter_turns(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

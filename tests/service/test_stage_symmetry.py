@@ -3,14 +3,16 @@
 revolution (an open bowl) whose stability is low is turned about its axis, 60 and 120 deg either way (a bowl with
 three fins fits itself turned 120 deg, not 60); a part of a four-legged stool, whose centroid lies off the stool's
 axis, fits itself turned a quarter turn about that axis and is flagged on a dense target (on a sparse one no quarter
-turn is tried); results that are not reliable, or not refined, are not checked."""
+turn is tried); two views of a synthetic room that overlap in part, at a wrong pose turned a quarter turn that
+overlays more of the source than the truth, are flagged by a turn that fits what it overlays about as closely, and the
+truth is not; results that are not reliable, or not refined, are not checked."""
 
 from __future__ import annotations
 
 import numpy as np
 from real_scan_cases import general_reference_radius
 from scipy.spatial.transform import Rotation
-from shapes import asymmetric_blob
+from shapes import asymmetric_blob, room_scene
 
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
@@ -18,7 +20,16 @@ from service.result import RegistrationResult
 from service.stages import symmetry as stage
 from service.stages.normalise import normalise
 from service.stages.sample import sample
-from service.stages.symmetry import AXIS_TURN_STABILITY, axis_turns, half_turn_ambiguity, quarter_turns, symmetry
+from service.stages.search import plane_frames_on_the_surface
+from service.stages.symmetry import (
+    AXIS_TURN_STABILITY,
+    WHOLE_OVERLAY,
+    axis_turns,
+    half_turn_ambiguity,
+    overlay_precision,
+    quarter_turns,
+    symmetry,
+)
 from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
@@ -181,6 +192,30 @@ def test_a_part_of_a_shape_a_quarter_turn_maps_onto_itself_is_ambiguous_on_a_den
     monkeypatch.setattr(stage, "quarter_turns", lambda *args: turned.append(args) or quarter_turns(*args))
     work, options = working(part, four_legged_stool(2000, 1) @ R_TRUE.T + T_TRUE)  # a target as sparse as a sample
     assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None and turned == []
+
+
+def test_a_room_view_turned_to_overlay_more_than_the_truth_is_ambiguous():
+    room = room_scene(np.random.default_rng(1))  # floor and walls at x = 0, y = 0, x = 4 (4 x 3 m), eight boxes
+    work, options = working(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # two views overlapping on x in 0.8-3.2
+    assert plane_frames_on_the_surface(work)
+    # turned 90 deg about the vertical, the source's corner of walls x = 0 and y = 0 lies in the target's corner of
+    # y = 0 and x = 4: it overlays more of the source than the truth (the identity) does, only the boxes disagree
+    R_wrong, t_wrong = Rotation.from_euler("z", 90.0, degrees=True).as_matrix(), np.array([4.0, 0.0, 0.0])
+    near, precision = overlay_precision(work, np.stack([R_wrong, np.eye(3)]), np.stack([t_wrong, np.zeros(3)]))
+    assert near[1] < near[0] < WHOLE_OVERLAY and precision[1] > precision[0]
+    warning = half_turn_ambiguity(work, R_wrong, t_wrong, options)
+    assert warning is not None and "fits what it overlays about as closely" in warning
+    checked = symmetry(work, result_at(R_wrong, t_wrong), options, {})
+    assert not checked.reliable and checked.warnings == [warning] and np.array_equal(checked.rotation, R_wrong)
+    assert half_turn_ambiguity(work, np.eye(3), np.zeros(3), options) is None  # the truth stays reliable
+
+
+def test_overlay_precision_is_the_close_fit_among_the_points_overlaid():
+    blob = asymmetric_blob(3000)
+    work, _ = working(blob, blob @ R_TRUE.T + T_TRUE)
+    far = T_TRUE + 100.0  # nothing overlaid
+    near, precision = overlay_precision(work, np.stack([R_TRUE, R_TRUE]), np.stack([T_TRUE, far]))
+    assert np.allclose(near, [1.0, 0.0]) and np.allclose(precision, [1.0, 0.0])
 
 
 def test_quarter_turns_turn_the_pose_90_deg_either_way_about_the_moved_points_principal_axes():
