@@ -5,7 +5,8 @@ three fins fits itself turned 120 deg, not 60); a part of a four-legged stool, w
 axis, fits itself turned a quarter turn about that axis and is flagged on a dense target (on a sparse one no quarter
 turn is tried); two views of a synthetic room that overlap in part, at a wrong pose turned a quarter turn that
 overlays more of the source than the truth, are flagged by a turn that fits what it overlays about as closely, and the
-truth is not; results that are not reliable, or not refined, are not checked."""
+truth is not; another such pose, which no turn fits so, is flagged by a turn that fits the boxes (the points off the
+room's dominant planes) at least as closely; results that are not reliable, or not refined, are not checked."""
 
 from __future__ import annotations
 
@@ -208,6 +209,27 @@ def test_a_room_view_turned_to_overlay_more_than_the_truth_is_ambiguous():
     checked = symmetry(work, result_at(R_wrong, t_wrong), options, {})
     assert not checked.reliable and checked.warnings == [warning] and np.array_equal(checked.rotation, R_wrong)
     assert half_turn_ambiguity(work, np.eye(3), np.zeros(3), options) is None  # the truth stays reliable
+
+
+def test_a_room_view_turned_a_quarter_turn_is_ambiguous_by_what_is_not_wall_or_floor():
+    room = room_scene(np.random.default_rng(0))  # floor and walls at x = 0, y = 0, x = 4 (4 x 3 m), eight boxes
+    work, options = working(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # two views overlapping on x in 0.8-3.2
+    # turned 90 deg about the vertical, the source's corner of walls x = 0 and y = 0 lies in the target's corner of
+    # y = 0 and x = 4; no turn fits what it overlays within PRECISION_GAP of it, but the boxes land off the target's
+    R_wrong, t_wrong = Rotation.from_euler("z", 90.0, degrees=True).as_matrix(), np.array([4.0, 0.0, 0.0])
+    warning = half_turn_ambiguity(work, R_wrong, t_wrong, options)
+    assert warning is not None and "fits what is not wall or floor at least as closely" in warning
+    checked = symmetry(work, result_at(R_wrong, t_wrong), options, {})
+    assert not checked.reliable and checked.warnings == [warning] and np.array_equal(checked.rotation, R_wrong)
+    assert half_turn_ambiguity(work, np.eye(3), np.zeros(3), options) is None  # the truth stays reliable
+    points = work.working_source  # [Ns, 3]: the room's own coordinates
+    off = stage.off_plane_points(points, work.inlier_distance)  # [Ns]
+    assert 0.1 < off.mean() < 0.3  # the boxes' points away from floor and walls
+    assert (np.abs(points[off]).min(axis=1) > 2.0 * work.inlier_distance).all()  # none near floor or wall
+    amount, precision = stage.structure_precision(
+        work, off, np.stack([R_wrong, np.eye(3)]), np.stack([t_wrong, np.zeros(3)])
+    )
+    assert (amount > stage.MIN_STRUCTURE).all() and precision[1] > precision[0] + 0.5  # the truth fits the boxes
 
 
 def test_overlay_precision_is_the_close_fit_among_the_points_overlaid():
