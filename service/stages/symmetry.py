@@ -48,7 +48,8 @@ target. A turn more than ``AMBIGUOUS_DEGREES`` away that, as the pose does, plac
 working source's points off the planes and near the target, and fits them at least as closely as the pose (its
 structure precision at least the pose's less ``STRUCTURE_GAP``) makes the result ambiguous. On the rooms measured, a
 right result's best such turn fits them at least 0.08 less closely than the pose; at the wrong poses measured
-(synthetic rooms turned a quarter turn, a room crop 16 deg off) a turn fits them 0.02-0.30 more closely.
+(synthetic rooms turned a quarter turn, a room crop 16 deg off) a turn fits them 0.02-0.30 more closely
+(``docs/decisions/0079-what-is-not-wall-or-floor-in-the-symmetry-check.md``).
 """
 
 from __future__ import annotations
