@@ -42,7 +42,7 @@ Walls and floor give a room's pose only up to the symmetries of its frame: turne
 corner of two walls lies in another corner of the target, and a pose so turned may overlay more of the source than
 the truth and fit it nearly as closely. What tells places apart is what is not wall or floor (furniture, boxes,
 clutter). So where the precision comparison flags nothing, the same rooms compare the pose and its turns by their
-:func:`structure_precision`: the close-fit share among the working source's :func:`off_plane_points` (farther than
+structure precision: the close-fit share among the working source's :func:`off_plane_points` (farther than
 ``OFF_PLANE_DISTANCE`` inlier distances from each of the source's dominant planes) that a pose places near the
 target. A turn more than ``AMBIGUOUS_DEGREES`` away that, as the pose does, places at least ``MIN_STRUCTURE`` of the
 working source's points off the planes and near the target, and fits them at least as closely as the pose (its
@@ -136,18 +136,27 @@ def half_turn_ambiguity(
     return warning
 
 
-def overlay_precision(work: Working, rotations: np.ndarray, translations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each pose (``rotations [C, 3, 3]``, ``translations [C, 3]``, caller's units): ``near [C]``, the share of
-    the working source it places within ``NEAR_DISTANCE`` inlier distances of the entered target (what it overlays),
-    and ``precision [C]``, the share of those within ``CLOSE_FIT`` inlier distances (how closely it fits what it
-    overlays: :func:`service.stages.ranking.close_fit` over ``near``; 0 where it overlays nothing)."""
+def overlay_distances(work: Working, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
+    """``[C, Ns]``: each working source point's distance to the entered target at each pose (``rotations [C, 3, 3]``,
+    ``translations [C, 3]``, caller's units), ``inf`` beyond ``NEAR_DISTANCE`` inlier distances; one KD-tree query for
+    :func:`overlay_precision` of every point and of the :func:`off_plane_points` alike."""
     reach = NEAR_DISTANCE * work.inlier_distance
     moved = work.working_source @ rotations.transpose(0, 2, 1) + translations[:, None]  # [C, Ns, 3]
     dist, _ = work.entered_target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=reach)
-    dist = dist.reshape(moved.shape[:2])  # [C, Ns], inf beyond reach
-    near = (dist < reach).mean(axis=1)  # [C]
-    close = (dist < CLOSE_FIT * work.inlier_distance).mean(axis=1)  # [C]
-    return near, np.divide(close, near, out=np.zeros_like(close), where=near > 0)
+    return dist.reshape(moved.shape[:2])
+
+
+def overlay_precision(work: Working, distances: np.ndarray, rows: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """For each pose, from its working source points' ``distances [C, Ns]`` (:func:`overlay_distances`), of the
+    points ``rows`` (bool ``[Ns]``; all where ``None``): ``near [C]``, the share of the whole working source that is
+    among them and within ``NEAR_DISTANCE`` inlier distances of the entered target (what the pose overlays), and
+    ``precision [C]``, the share of those within ``CLOSE_FIT`` inlier distances (how closely it fits what it
+    overlays: :func:`service.stages.ranking.close_fit` over ``near``; 0 where it overlays none)."""
+    taken = distances if rows is None else distances[:, rows]  # [C, K]
+    near = np.count_nonzero(taken < NEAR_DISTANCE * work.inlier_distance, axis=1)  # [C]
+    close = np.count_nonzero(taken < CLOSE_FIT * work.inlier_distance, axis=1)  # [C]
+    return near / distances.shape[1], np.divide(close, near, out=np.zeros(len(near)), where=near > 0)
 
 
 def partial_overlay_ambiguity(
@@ -158,7 +167,8 @@ def partial_overlay_ambiguity(
     the turn more than ``AMBIGUOUS_DEGREES`` from it with the best :func:`overlay_precision` among those within
     ``PARTIAL_FIT_GAP`` of its close fit and at least its precision less ``PRECISION_GAP``; where none is,
     :func:`structure_ambiguity`'s warning (``None`` where it gives none)."""
-    near, precision = overlay_precision(work, rotations, translations)  # [1 + C] each
+    distances = overlay_distances(work, rotations, translations)  # [1 + C, Ns]
+    near, precision = overlay_precision(work, distances)  # [1 + C] each
     if near[0] >= WHOLE_OVERLAY:
         return None
     for i in np.argsort(-precision[1:], kind="stable") + 1:
@@ -171,17 +181,19 @@ def partial_overlay_ambiguity(
                 f"{precision[i]:.2f} vs {precision[0]:.2f} of the source points each places near the target) and "
                 f"overlays {near[i]:.2f} of the source vs {near[0]:.2f}; the clouds may overlap in part"
             )
-    return structure_ambiguity(work, rotations, translations)
+    return structure_ambiguity(work, rotations, distances)
 
 
-def structure_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarray) -> str | None:
-    """The warning of a room's pose (row 0 of ``rotations [1 + C, 3, 3]``, ``translations [1 + C, 3]``) against its
-    refined turns (the other rows) by what is not wall or floor: the turn more than ``AMBIGUOUS_DEGREES`` from it with
-    the best :func:`structure_precision` among those that, like the pose, place at least ``MIN_STRUCTURE`` of the
-    working source's points off its dominant planes and near the target, where that is at least the pose's less
-    ``STRUCTURE_GAP``; ``None`` where none is, or the pose places too few such points near the target."""
+def structure_ambiguity(work: Working, rotations: np.ndarray, distances: np.ndarray) -> str | None:
+    """The warning of a room's pose (row 0 of ``rotations [1 + C, 3, 3]``; its working source points' distances
+    to the target ``distances [1 + C, Ns]``, :func:`overlay_distances`) against its refined turns (the other rows) by
+    what is not wall or floor: the turn more than ``AMBIGUOUS_DEGREES`` from it with the best structure precision
+    (:func:`overlay_precision` of the :func:`off_plane_points`) among those that, like the pose, place at least
+    ``MIN_STRUCTURE`` of the working source's points off its dominant planes and near the target, where that is at
+    least the pose's less ``STRUCTURE_GAP``; ``None`` where none is, or the pose places too few such points near the
+    target."""
     off = off_plane_points(work.working_source, work.inlier_distance)  # [Ns]
-    amount, precision = structure_precision(work, off, rotations, translations)  # [1 + C] each
+    amount, precision = overlay_precision(work, distances, off)  # [1 + C] each
     if amount[0] < MIN_STRUCTURE:
         return None
     angles = np.array([rotation_between_deg(rotations[0], Q) for Q in rotations])  # [1 + C]
@@ -235,26 +247,6 @@ def plane_offsets(heights: np.ndarray, width: float, least: float) -> list[float
         taken[b : b + 2] = True
         offsets.append(float(np.median(heights[(bins == b) | (bins == b + 1)])))
     return offsets
-
-
-def structure_precision(
-    work: Working, off: np.ndarray, rotations: np.ndarray, translations: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """For each pose (``rotations [C, 3, 3]``, ``translations [C, 3]``, caller's units) and the working source's
-    points ``off [Ns]`` (bool: :func:`off_plane_points`): ``amount [C]``, the share of the working source that is
-    among them and placed within ``NEAR_DISTANCE`` inlier distances of the entered target, and ``precision [C]``, the
-    share of those within ``CLOSE_FIT`` inlier distances (0 where none is near)."""
-    count = len(work.working_source)
-    if not off.any():
-        return np.zeros(len(rotations)), np.zeros(len(rotations))
-    reach = NEAR_DISTANCE * work.inlier_distance
-    moved = work.working_source[off] @ rotations.transpose(0, 2, 1) + translations[:, None]  # [C, K, 3]
-    dist, _ = work.entered_target_tree.query(moved.reshape(-1, 3), k=1, distance_upper_bound=reach)
-    dist = dist.reshape(moved.shape[:2])  # [C, K], inf beyond reach
-    near = np.count_nonzero(dist < reach, axis=1)  # [C]
-    close = np.count_nonzero(dist < CLOSE_FIT * work.inlier_distance, axis=1)  # [C]
-    precision = np.divide(close, near, out=np.zeros(len(near)), where=near > 0)
-    return near / count, precision
 
 
 def quarter_turns(points: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -202,7 +202,8 @@ def test_a_room_view_turned_to_overlay_more_than_the_truth_is_ambiguous():
     # turned 90 deg about the vertical, the source's corner of walls x = 0 and y = 0 lies in the target's corner of
     # y = 0 and x = 4: it overlays more of the source than the truth (the identity) does, only the boxes disagree
     R_wrong, t_wrong = Rotation.from_euler("z", 90.0, degrees=True).as_matrix(), np.array([4.0, 0.0, 0.0])
-    near, precision = overlay_precision(work, np.stack([R_wrong, np.eye(3)]), np.stack([t_wrong, np.zeros(3)]))
+    distances = stage.overlay_distances(work, np.stack([R_wrong, np.eye(3)]), np.stack([t_wrong, np.zeros(3)]))
+    near, precision = overlay_precision(work, distances)
     assert near[1] < near[0] < WHOLE_OVERLAY and precision[1] > precision[0]
     warning = half_turn_ambiguity(work, R_wrong, t_wrong, options)
     assert warning is not None and "fits what it overlays about as closely" in warning
@@ -226,9 +227,8 @@ def test_a_room_view_turned_a_quarter_turn_is_ambiguous_by_what_is_not_wall_or_f
     off = stage.off_plane_points(points, work.inlier_distance)  # [Ns]
     assert 0.1 < off.mean() < 0.3  # the boxes' points away from floor and walls
     assert (np.abs(points[off]).min(axis=1) > 2.0 * work.inlier_distance).all()  # none near floor or wall
-    amount, precision = stage.structure_precision(
-        work, off, np.stack([R_wrong, np.eye(3)]), np.stack([t_wrong, np.zeros(3)])
-    )
+    distances = stage.overlay_distances(work, np.stack([R_wrong, np.eye(3)]), np.stack([t_wrong, np.zeros(3)]))
+    amount, precision = overlay_precision(work, distances, off)
     assert (amount > stage.MIN_STRUCTURE).all() and precision[1] > precision[0] + 0.5  # the truth fits the boxes
 
 
@@ -236,7 +236,8 @@ def test_overlay_precision_is_the_close_fit_among_the_points_overlaid():
     blob = asymmetric_blob(3000)
     work, _ = working(blob, blob @ R_TRUE.T + T_TRUE)
     far = T_TRUE + 100.0  # nothing overlaid
-    near, precision = overlay_precision(work, np.stack([R_TRUE, R_TRUE]), np.stack([T_TRUE, far]))
+    near, precision = overlay_precision(work, stage.overlay_distances(work, np.stack([R_TRUE, R_TRUE]),
+                                                                       np.stack([T_TRUE, far])))
     assert np.allclose(near, [1.0, 0.0]) and np.allclose(precision, [1.0, 0.0])
 
 
