@@ -196,13 +196,12 @@ def _outside(offset: int, size: int) -> str:
     return f"at or past the end of the file ({size} bytes)"
 
 
-def _logical_bytes(f: BinaryIO, offset: int, count: int, size: int) -> bytes | None:
-    """``count`` bytes of the E57 file ``f`` from the physical ``offset`` on, its pages' checksums left out; None
-    where ``offset`` is a checksum's or the bytes run past the file's ``size``."""
+def _logical_bytes(f: BinaryIO, offset: int, count: int, size: int, start: int = 0) -> bytes | None:
+    """``count`` bytes of the E57 file ``f`` (beginning at ``start`` in ``f``) from its physical ``offset`` on, its
+    pages' checksums left out; None where ``offset`` is a checksum's or the bytes run past the file's ``size``."""
     if offset % PAGE_BYTES >= PAGE_DATA_BYTES or offset >= size:
         return None
-    first = offset - offset % PAGE_BYTES
-    f.seek(first)
+    f.seek(start + offset - offset % PAGE_BYTES)
     pages = f.read((offset % PAGE_BYTES + count) // PAGE_DATA_BYTES * PAGE_BYTES + PAGE_BYTES)
     data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))
     found = data[offset % PAGE_BYTES :][:count]
@@ -257,13 +256,8 @@ def _xml_section(f: BinaryIO) -> bytes:
     size = f.seek(0, os.SEEK_END) - start
     if offset % PAGE_BYTES >= PAGE_DATA_BYTES:  # no writer puts it among a page's CRC bytes
         raise PointCloudFormatError(f"the E57 file's header puts its XML section at byte {offset}, a page's checksum")
-    text = b""
-    if offset < size:
-        f.seek(start + offset - offset % PAGE_BYTES)
-        pages = f.read((length + offset % PAGE_BYTES) // PAGE_DATA_BYTES * PAGE_BYTES + 2 * PAGE_BYTES)
-        data = b"".join(pages[k : k + PAGE_DATA_BYTES] for k in range(0, len(pages), PAGE_BYTES))  # the CRCs left out
-        text = data[offset % PAGE_BYTES :][:length]
-    if len(text) < length:
+    text = _logical_bytes(f, offset, length, size, start) if length else b""
+    if text is None:
         raise PointCloudFormatError(
             f"the E57 file is cut short: its header puts its XML section of {length} bytes at byte {offset}, and the "
             f"file has {size} bytes"
