@@ -25,13 +25,18 @@ OVERLAP_CELLS = 16  # grid cells along the pair's longer extent for overlap_scor
 SUPPORT_BLOCK = 64  # rows of the normals' pairwise comparison at a time (support)
 
 
-def plane_frame(points: np.ndarray) -> tuple[np.ndarray | None, float]:
+def plane_frame(
+    points: np.ndarray, normals: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray | None, float]:
     """The dominant plane directions of ``points [N, 3]`` as a rotation ``F [3, 3]`` (columns: the most common normal
     direction, the most common one roughly perpendicular to it, their cross product), and the share of the points
-    whose PCA normal (:func:`service.icp.target_normals`) lies within ``AXIS_DEGREES`` of one of the three (either
-    sign). ``None, 0`` where no such pair of directions exists; the frame counts only where the share reaches
-    ``MIN_FRAME_SHARE`` (:func:`frame_rotations`)."""
-    normals, defined = target_normals(np.asarray(points, dtype=np.float64))  # [N, 3], [N]
+    whose PCA normal (:func:`service.icp.target_normals`; ``normals``, its ``[N, 3]`` normals and ``[N]`` defined
+    flags, where the caller has them) lies within ``AXIS_DEGREES`` of one of the three (either sign). ``None, 0``
+    where no such pair of directions exists; the frame counts only where the share reaches ``MIN_FRAME_SHARE``
+    (:func:`frame_rotations`)."""
+    if normals is None:
+        normals = target_normals(np.asarray(points, dtype=np.float64))
+    normals, defined = normals  # [N, 3], [N]
     n = normals[defined]  # [D, 3] unit, sign arbitrary
     if len(n) < MIN_NORMALS:
         return None, 0.0

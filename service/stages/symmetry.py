@@ -216,10 +216,10 @@ def off_plane_points(points: np.ndarray, unit: float) -> np.ndarray:
     a slab two ``PLANE_SLAB`` bins wide across the axis holding at least ``PLANE_SHARE`` of the points among those
     whose normal lies along the axis (:func:`plane_offsets`). None where the cloud has no frame or no such plane."""
     points = np.asarray(points, dtype=np.float64)
-    frame, _ = plane_frame(points)  # [3, 3] columns: the axes
+    normals, defined = target_normals(points)  # [N, 3], [N]
+    frame, _ = plane_frame(points, (normals, defined))  # [3, 3] columns: the axes
     if frame is None:
         return np.zeros(len(points), dtype=bool)
-    normals, defined = target_normals(points)  # [N, 3], [N]
     distance = np.full(len(points), np.inf)  # [N]: to the nearest dominant plane
     for axis in frame.T:
         along = defined & (np.abs(normals @ axis) > np.cos(np.radians(AXIS_DEGREES)))  # [N]
