@@ -164,14 +164,9 @@ class Settings(BaseSettings):
     def _split_paths(cls, value: object) -> object:
         return _split(value, r"[,:]")
 
-    @field_validator("models", mode="before")
+    @field_validator("models", "cors_origins", mode="before")
     @classmethod
-    def _split_names(cls, value: object) -> object:
-        return _split(value, r"[,\s]+")
-
-    @field_validator("cors_origins", mode="before")
-    @classmethod
-    def _split_origins(cls, value: object) -> object:
+    def _split_words(cls, value: object) -> object:
         return _split(value, r"[,\s]+")
 
     @field_validator("api_key", mode="before")
