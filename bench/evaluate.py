@@ -43,13 +43,17 @@ def evaluate(
     ctx: typer.Context,
     checkpoint: Annotated[str | None, typer.Option(help="checkpoint path or bundled name")] = None,
     pairs: Annotated[
-        Path | None, typer.Option(help="pairs .npz, evaluated whole (else made from --setting, --count, --seed and "
-                                       "the pair options)")
+        Path | None,
+        typer.Option(
+            help="pairs .npz, evaluated whole (else made from --setting, --count, --seed and the pair options)"
+        ),
     ] = None,
     setting: Setting = "clean",
     count: Annotated[
-        int | None, typer.Option(help="pairs to make from --setting: a seeded draw of the test split's shapes "
-                                      "[default: one pair per shape]")
+        int | None,
+        typer.Option(
+            help="pairs to make from --setting: a seeded draw of the test split's shapes [default: one pair per shape]"
+        ),
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="seed of the pairs made from --setting")] = 0,
     iterations: int | None = None,
@@ -79,16 +83,21 @@ def evaluate(
     ] = None,
     rotation_search_mode: Annotated[
         RotationSearchMode | None,
-        typer.Option(help="with --model: off, on (= --rotation-search) or auto (search only where the plain "
-                          "result looks wrong; reports the share of pairs searched) [default: off]"),
+        typer.Option(
+            help="with --model: off, on (= --rotation-search) or auto (search only where the plain "
+            "result looks wrong; reports the share of pairs searched) [default: off]"
+        ),
     ] = None,
     baseline: Annotated[
         str | None, typer.Option(help=f"classical method instead of a network: {', '.join(BASELINES)} (bench extra)")
     ] = None,
     per_pair: Annotated[
-        Path | None, typer.Option(help="also write each pair's pose and errors here (.npz: rotation, translation, "
-                                       "rotation_error_deg, translation_error, label when known; with --model "
-                                       "also reliable and stability)")
+        Path | None,
+        typer.Option(
+            help="also write each pair's pose and errors here (.npz: rotation, translation, "
+            "rotation_error_deg, translation_error, label when known; with --model "
+            "also reliable and stability)"
+        ),
     ] = None,
     by_label: Annotated[
         bool, typer.Option(help="add 'by_label': the recalls of each class (pairs with labels; ModelNet40 names)")
@@ -103,7 +112,8 @@ def evaluate(
         refuse_pair_options(ctx)
     if sum(x is not None for x in (checkpoint, model, baseline)) != 1:
         raise typer.BadParameter(
-            "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)")
+            "give exactly one of --checkpoint (PyTorch), --model (ONNX runtime) or --baseline (Open3D)"
+        )
     refuse_options_of_other_methods(ctx, checkpoint, model, baseline)
     if baseline is not None and baseline not in BASELINES:
         raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
@@ -125,17 +135,30 @@ def evaluate(
         data_pairs = pairs_file(pairs)
         evaluated: dict = {"pairs": {"file": str(pairs), "sha256": file_sha256(pairs)}}
     else:
-        protocol = setting_protocol(setting, source_points, target_points, overlap, noise, max_angle, points, outliers,
-                                    view_angle)
+        protocol = setting_protocol(
+            setting, source_points, target_points, overlap, noise, max_angle, points, outliers, view_angle
+        )
         shapes = require_shapes("test", setting, data)
         with finite_shapes():
             data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
-        evaluated = {"pairs": {"setting": setting, "split": "test", "count": count, "seed": seed,
-                               "protocol": asdict(protocol), "shapes": str(shapes)}}
+        evaluated = {
+            "pairs": {
+                "setting": setting,
+                "split": "test",
+                "count": count,
+                "seed": seed,
+                "protocol": asdict(protocol),
+                "shapes": str(shapes),
+            }
+        }
     if checkpoint_path is not None:
-        evaluated |= {"checkpoint": str(checkpoint_path), "checkpoint_sha256": file_sha256(checkpoint_path),
-                      "iterations": iterations or network.cfg.iterations,
-                      "keypoints": keypoints or network.cfg.keypoints, "batch_size": batch_size}
+        evaluated |= {
+            "checkpoint": str(checkpoint_path),
+            "checkpoint_sha256": file_sha256(checkpoint_path),
+            "iterations": iterations or network.cfg.iterations,
+            "keypoints": keypoints or network.cfg.keypoints,
+            "batch_size": batch_size,
+        }
     elif model_path is not None:
         evaluated |= runtime_model_fields(model_path, iterations, keypoints)
         evaluated |= {"refine": refine, "refine_points": refine_points, "rotation_search": search}
@@ -169,10 +192,14 @@ def evaluate(
         from model.data import class_names
         from model.metrics import recall_by_label
 
-        names = ([str(name) for name in data_pairs["class_names"]] if "class_names" in data_pairs  # make-pairs'
-                 else class_names(data))
-        metrics["by_label"] = recall_by_label(R, t, data_pairs["rotation"], data_pairs["translation"],
-                                              data_pairs["label"], names)
+        names = (
+            [str(name) for name in data_pairs["class_names"]]
+            if "class_names" in data_pairs  # make-pairs'
+            else class_names(data)
+        )
+        metrics["by_label"] = recall_by_label(
+            R, t, data_pairs["rotation"], data_pairs["translation"], data_pairs["label"], names
+        )
     metrics["evaluated"] = evaluated  # what these figures were measured on and with
     text = json.dumps(metrics, indent=2)
     typer.echo(text)
@@ -184,8 +211,19 @@ def evaluate(
 
 
 # The options that only make pairs (from --setting); a --pairs file is evaluated whole, as it is.
-PAIR_MAKING_OPTIONS = ("setting", "count", "seed", "source_points", "target_points", "overlap", "noise", "max_angle",
-                       "points", "outliers", "view_angle")
+PAIR_MAKING_OPTIONS = (
+    "setting",
+    "count",
+    "seed",
+    "source_points",
+    "target_points",
+    "overlap",
+    "noise",
+    "max_angle",
+    "points",
+    "outliers",
+    "view_angle",
+)
 
 
 # The runtime's options (with --model), PyTorch's batches (with --checkpoint) and the network's (not --baseline).
@@ -208,17 +246,22 @@ def refuse_pair_options(ctx: typer.Context) -> None:
     """
     given = given_flags(ctx, PAIR_MAKING_OPTIONS)
     if given:
-        fail(f"{', '.join(given)}: cannot apply with --pairs ({'it makes' if len(given) == 1 else 'they make'} "
-             "pairs from --setting; a --pairs file is evaluated whole; for a subset: mfgnet make-pairs --count N "
-             "--seed S)")
+        fail(
+            f"{', '.join(given)}: cannot apply with --pairs ({'it makes' if len(given) == 1 else 'they make'} "
+            "pairs from --setting; a --pairs file is evaluated whole; for a subset: mfgnet make-pairs --count N "
+            "--seed S)"
+        )
 
 
-def refuse_options_of_other_methods(ctx: typer.Context, checkpoint: str | None, model: str | None,
-                                    baseline: str | None) -> None:
+def refuse_options_of_other_methods(
+    ctx: typer.Context, checkpoint: str | None, model: str | None, baseline: str | None
+) -> None:
     """A usage error naming options given on the command line that the chosen method would ignore."""
-    for names, applies, where in ((RUNTIME_OPTIONS, model is not None, "only with --model (the runtime)"),
-                                  (CHECKPOINT_OPTIONS, checkpoint is not None, "only with --checkpoint (PyTorch)"),
-                                  (NETWORK_OPTIONS, baseline is None, "to networks, not to --baseline")):
+    for names, applies, where in (
+        (RUNTIME_OPTIONS, model is not None, "only with --model (the runtime)"),
+        (CHECKPOINT_OPTIONS, checkpoint is not None, "only with --checkpoint (PyTorch)"),
+        (NETWORK_OPTIONS, baseline is None, "to networks, not to --baseline"),
+    ):
         given = [] if applies else given_flags(ctx, names)
         if given:
             fail(f"{', '.join(given)}: {'applies' if len(given) == 1 else 'apply'} {where}")
@@ -230,8 +273,12 @@ def runtime_model_fields(folder: Path, iterations: int | None, keypoints: int | 
     from service.manifest import load_manifest
 
     manifest = load_manifest(folder)
-    return {"model": manifest.name, "model_version": manifest.version, "model_directory": str(folder),
-            "manifest_sha256": manifest.sha256,
-            "checkpoint_sha256": manifest.raw.get("source_checkpoint_sha256"),
-            "iterations": iterations or manifest.config.get("iterations"),
-            "keypoints": keypoints or manifest.config.get("keypoints")}
+    return {
+        "model": manifest.name,
+        "model_version": manifest.version,
+        "model_directory": str(folder),
+        "manifest_sha256": manifest.sha256,
+        "checkpoint_sha256": manifest.raw.get("source_checkpoint_sha256"),
+        "iterations": iterations or manifest.config.get("iterations"),
+        "keypoints": keypoints or manifest.config.get("keypoints"),
+    }
