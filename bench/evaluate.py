@@ -23,19 +23,17 @@ from model.cli import (
     SourcePoints,
     TargetPoints,
     ViewAngle,
+    setting_pairs,
     setting_protocol,
 )
 from model.cli_inputs import (
     checkpoint_model,
     fail,
-    finite_shapes,
     given_options,
     model_dir,
     output_file,
     pairs_file,
-    require_shapes,
 )
-from model.data import make_test_pairs
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 
@@ -138,9 +136,7 @@ def evaluate(
         protocol = setting_protocol(
             setting, source_points, target_points, overlap, noise, max_angle, points, outliers, view_angle
         )
-        shapes = require_shapes("test", setting, data)
-        with finite_shapes():
-            data_pairs = make_test_pairs(setting, "test", count, seed, data, protocol=protocol)
+        data_pairs, shapes = setting_pairs(setting, "test", count, seed, data, protocol)
         evaluated = {
             "pairs": {
                 "setting": setting,

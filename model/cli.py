@@ -78,6 +78,20 @@ def setting_protocol(
         raise typer.BadParameter(str(err)) from err
 
 
+def setting_pairs(
+    setting: str, split: str, count: int | None, seed: int, data: str | None, protocol: PairProtocol
+) -> tuple[dict[str, np.ndarray], Path]:
+    """The seeded pairs of ``setting`` made from ``split``'s shapes under ``data`` (``--data``/``$MFGNET_DATA``) with
+    ``protocol``, and the shapes file they come from (``make-pairs``, ``evaluate``); a missing or bad shapes file, a
+    shape with NaN or infinite coordinates or a ``count`` NumPy cannot draw is a usage error."""
+    shapes = require_shapes(split, setting, data)
+    try:
+        with finite_shapes():
+            return make_test_pairs(setting, split, count, seed, data, protocol=protocol), shapes
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from err
+
+
 def make_pairs(
     out: Annotated[Path, typer.Option(help="output .npz (added to a name without it)")],
     setting: Setting = "clean",
@@ -100,12 +114,7 @@ def make_pairs(
     )
     output_file(out, "--out")
     out = output_file(pairs_path(out), "--out")  # the file written: numpy adds .npz to a name without it
-    require_shapes(split, setting, data)
-    try:
-        with finite_shapes():
-            pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
-    except ValueError as err:
-        raise typer.BadParameter(str(err)) from err
+    pairs, _ = setting_pairs(setting, split, count, seed, data, protocol)
     names = class_names(data)  # the data folder's: evaluate --by-label names the classes of the file's labels
     if names is not None:
         pairs["class_names"] = np.asarray(names, dtype=np.str_)

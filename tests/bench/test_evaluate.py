@@ -252,3 +252,17 @@ def test_evaluate_refuses_options_the_method_would_ignore(tiny_checkpoint, synth
     chosen = ["--checkpoint", str(tiny_checkpoint)] if method == "checkpoint" else ["--baseline", "fgr"]
     result = runner.invoke(app, ["evaluate", "--pairs", str(synthetic_pairs), *chosen, *options])
     assert_usage_error(result, *words)
+
+
+@pytest.mark.parametrize("command", ["evaluate", "make-pairs"])
+def test_evaluate_refuses_a_count_numpy_cannot_draw_as_make_pairs_does(tmp_path, tiny_checkpoint, command) -> None:
+    """The pairs made from --setting come from one function (``model.cli.setting_pairs``): a --count that cannot be
+    drawn is the same usage error in both commands, not a traceback."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_test.npz", points=sphere_shapes(4, seed=3).astype(np.float32), labels=np.arange(4))
+    method = ["--checkpoint", str(tiny_checkpoint)] if command == "evaluate" else ["--out", str(tmp_path / "p.npz")]
+    result = runner.invoke(app, [command, *method, "--count", "-1", "--data", str(folder)])
+    assert result.exit_code == 2, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
+    assert "Invalid value: negative dimensions are not allowed" in result.output
