@@ -13,8 +13,20 @@ from typer.testing import CliRunner
 from model.data import PairProtocol, make_pairs, save_pairs
 from service.cli import app
 
-METRIC_KEYS = {"n", "rmse_r", "mae_r", "rmse_t", "mae_t", "iso_r_mean", "iso_r_median", "iso_t_mean",
-               "iso_t_median", "recall_r1_t001", "recall_r5_t005", "ms_per_pair"}
+METRIC_KEYS = {
+    "n",
+    "rmse_r",
+    "mae_r",
+    "rmse_t",
+    "mae_t",
+    "iso_r_mean",
+    "iso_r_median",
+    "iso_t_mean",
+    "iso_t_median",
+    "recall_r1_t001",
+    "recall_r5_t005",
+    "ms_per_pair",
+}
 
 runner = CliRunner()
 
@@ -28,8 +40,17 @@ def synthetic_pairs(tmp_path):
 
 def test_evaluate_writes_every_metric_to_json(tmp_path, tiny_checkpoint, synthetic_pairs) -> None:
     out = tmp_path / "metrics.json"
-    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs),
-            "--json", str(out), "--batch-size", "2"]
+    args = [
+        "evaluate",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--pairs",
+        str(synthetic_pairs),
+        "--json",
+        str(out),
+        "--batch-size",
+        "2",
+    ]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
@@ -43,8 +64,19 @@ def test_evaluate_json_records_the_pairs_file_and_the_checkpoint(tmp_path, tiny_
     from model.checkpoint import file_sha256, load_model
 
     out = tmp_path / "metrics.json"
-    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs), "--json", str(out),
-            "--batch-size", "2", "--iterations", "1"]
+    args = [
+        "evaluate",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--pairs",
+        str(synthetic_pairs),
+        "--json",
+        str(out),
+        "--batch-size",
+        "2",
+        "--iterations",
+        "1",
+    ]
     assert runner.invoke(app, args).exit_code == 0
     evaluated = json.loads(out.read_text())["evaluated"]
     assert evaluated["pairs"] == {"file": str(synthetic_pairs), "sha256": file_sha256(synthetic_pairs)}
@@ -54,15 +86,31 @@ def test_evaluate_json_records_the_pairs_file_and_the_checkpoint(tmp_path, tiny_
     assert evaluated["batch_size"] == 2
 
 
-def test_evaluate_json_records_the_setting_count_seed_and_protocol_of_made_pairs(tmp_path, tiny_checkpoint,
-                                                                                 monkeypatch) -> None:
+def test_evaluate_json_records_the_setting_count_seed_and_protocol_of_made_pairs(
+    tmp_path, tiny_checkpoint, monkeypatch
+) -> None:
     folder = tmp_path / "data"
     folder.mkdir()
     np.savez(folder / "modelnet40_test.npz", points=sphere_shapes(4, seed=1), labels=np.arange(4))
     monkeypatch.setenv("MFGNET_DATA", str(folder))
     out = tmp_path / "metrics.json"
-    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--setting", "noise", "--count", "2", "--seed", "7",
-            "--noise", "0.02", "--json", str(out), "--batch-size", "2"]
+    args = [
+        "evaluate",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--setting",
+        "noise",
+        "--count",
+        "2",
+        "--seed",
+        "7",
+        "--noise",
+        "0.02",
+        "--json",
+        str(out),
+        "--batch-size",
+        "2",
+    ]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     metrics = json.loads(out.read_text())
@@ -72,30 +120,52 @@ def test_evaluate_json_records_the_setting_count_seed_and_protocol_of_made_pairs
     assert pairs["protocol"]["noise_sigma"] == 0.02 and pairs["shapes"] == str(folder / "modelnet40_test.npz")
 
 
-@pytest.mark.parametrize("options", [["--count", "2"], ["--seed", "7"], ["--setting", "noise"], ["--noise", "0.05"],
-                                     ["--setting", "noise", "--count", "2", "--seed", "7", "--noise", "0.05"]])
+@pytest.mark.parametrize(
+    "options",
+    [
+        ["--count", "2"],
+        ["--seed", "7"],
+        ["--setting", "noise"],
+        ["--noise", "0.05"],
+        ["--setting", "noise", "--count", "2", "--seed", "7", "--noise", "0.05"],
+    ],
+)
 def test_evaluate_refuses_pair_making_options_with_a_pairs_file(tiny_checkpoint, synthetic_pairs, options) -> None:
     """A --pairs file is evaluated whole: --count, --seed, --setting and the pair options would be ignored."""
-    result = runner.invoke(app, ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs),
-                                 *options])
+    result = runner.invoke(
+        app, ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs), *options]
+    )
     named = [option for option in options if option.startswith("--")]
     assert_usage_error(result, ", ".join(named) + ": cannot apply with --pairs", "make-pairs --count")
 
 
 def test_evaluate_writes_per_pair_poses_and_errors(tmp_path, tiny_checkpoint, synthetic_pairs) -> None:
     out, per_pair = tmp_path / "metrics.json", tmp_path / "pairs_out.npz"
-    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs), "--json", str(out),
-            "--per-pair", str(per_pair), "--batch-size", "2"]
+    args = [
+        "evaluate",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--pairs",
+        str(synthetic_pairs),
+        "--json",
+        str(out),
+        "--per-pair",
+        str(per_pair),
+        "--batch-size",
+        "2",
+    ]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     rows = np.load(per_pair)
     assert rows["rotation"].shape == (3, 3, 3) and rows["translation"].shape == (3, 3)
     gt = np.load(synthetic_pairs)
-    expected = np.degrees(np.arccos(np.clip(
-        (np.einsum("mij,mij->m", rows["rotation"], gt["rotation"]) - 1) / 2, -1, 1)))  # angle of R^T R_gt
+    expected = np.degrees(
+        np.arccos(np.clip((np.einsum("mij,mij->m", rows["rotation"], gt["rotation"]) - 1) / 2, -1, 1))
+    )  # angle of R^T R_gt
     np.testing.assert_allclose(rows["rotation_error_deg"], expected, atol=1e-3)
-    np.testing.assert_allclose(rows["translation_error"], np.linalg.norm(rows["translation"] - gt["translation"],
-                                                                          axis=1), atol=1e-6)
+    np.testing.assert_allclose(
+        rows["translation_error"], np.linalg.norm(rows["translation"] - gt["translation"], axis=1), atol=1e-6
+    )
     metrics = json.loads(out.read_text())  # the pooled figures are the same errors
     assert metrics["iso_r_median"] == pytest.approx(float(np.median(rows["rotation_error_deg"])), abs=1e-3)
 
@@ -104,8 +174,18 @@ def test_evaluate_reports_recall_by_label(tmp_path, tiny_checkpoint, synthetic_p
     labelled = tmp_path / "labelled.npz"
     save_pairs(labelled, {**dict(np.load(synthetic_pairs)), "label": np.array([7, 3, 7])})
     out = tmp_path / "metrics.json"
-    args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(labelled), "--json", str(out),
-            "--by-label", "--batch-size", "2"]
+    args = [
+        "evaluate",
+        "--checkpoint",
+        str(tiny_checkpoint),
+        "--pairs",
+        str(labelled),
+        "--json",
+        str(out),
+        "--by-label",
+        "--batch-size",
+        "2",
+    ]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     by_label = json.loads(out.read_text())["by_label"]
@@ -136,8 +216,10 @@ def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
     pytest.importorskip("open3d", reason="the classical baselines need the bench extra (open3d-cpu)")
     shapes = np.random.default_rng(1).normal(size=(2, 2048, 3)) * [1.0, 0.6, 0.3]  # anisotropic blobs
     pairs_path, out = tmp_path / "pairs.npz", tmp_path / "fpfh.json"
-    save_pairs(pairs_path, make_pairs(shapes.astype(np.float32), PairProtocol(points=2048, keep=1800),
-                                      np.random.default_rng(2)))
+    save_pairs(
+        pairs_path,
+        make_pairs(shapes.astype(np.float32), PairProtocol(points=2048, keep=1800), np.random.default_rng(2)),
+    )
     args = ["evaluate", "--baseline", "fpfh-ransac-icp", "--pairs", str(pairs_path), "--json", str(out)]
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
@@ -167,15 +249,26 @@ def broken_checkpoint(tiny_checkpoint, tmp_path, kind: str):
 def test_evaluate_rejects_a_file_that_is_not_a_checkpoint(tmp_path, synthetic_pairs, kind) -> None:
     path = bad_file(tmp_path, kind)
     result = runner.invoke(app, ["evaluate", "--checkpoint", str(path), "--pairs", str(synthetic_pairs)])
-    assert_usage_error(result, "--checkpoint", str(path), {**NOT_A_FILE, **NOT_A_CHECKPOINT}[kind]
-                       if kind != "missing" else "no checkpoint file")
+    assert_usage_error(
+        result,
+        "--checkpoint",
+        str(path),
+        {**NOT_A_FILE, **NOT_A_CHECKPOINT}[kind] if kind != "missing" else "no checkpoint file",
+    )
 
 
-@pytest.mark.parametrize(("kind", "problem"), [("no-model", "no 'model'"), ("no-config", "no 'config'"),
-                                               ("missing-weight", "1 weights missing"),
-                                               ("wrong-shape", "1 of another shape")])
-def test_evaluate_rejects_a_checkpoint_that_does_not_fit_the_network(tmp_path, tiny_checkpoint, synthetic_pairs,
-                                                                     kind, problem) -> None:
+@pytest.mark.parametrize(
+    ("kind", "problem"),
+    [
+        ("no-model", "no 'model'"),
+        ("no-config", "no 'config'"),
+        ("missing-weight", "1 weights missing"),
+        ("wrong-shape", "1 of another shape"),
+    ],
+)
+def test_evaluate_rejects_a_checkpoint_that_does_not_fit_the_network(
+    tmp_path, tiny_checkpoint, synthetic_pairs, kind, problem
+) -> None:
     path = broken_checkpoint(tiny_checkpoint, tmp_path, kind)
     result = runner.invoke(app, ["evaluate", "--checkpoint", str(path), "--pairs", str(synthetic_pairs)])
     assert_usage_error(result, str(path), problem)
@@ -197,11 +290,15 @@ def test_evaluate_rejects_a_pairs_file_without_the_pair_arrays(tmp_path, tiny_ch
 
 @pytest.mark.parametrize("option", ["--json", "--per-pair"])
 @pytest.mark.parametrize("where", ["no-folder", "file-as-folder", "folder"])
-def test_evaluate_rejects_an_output_it_cannot_write_before_evaluating(tmp_path, tiny_checkpoint, synthetic_pairs,
-                                                                      option, where) -> None:
+def test_evaluate_rejects_an_output_it_cannot_write_before_evaluating(
+    tmp_path, tiny_checkpoint, synthetic_pairs, option, where
+) -> None:
     (tmp_path / "a_file").write_text("x")
-    out = {"no-folder": tmp_path / "nowhere" / "out", "file-as-folder": tmp_path / "a_file" / "out",
-           "folder": tmp_path}[where]
+    out = {
+        "no-folder": tmp_path / "nowhere" / "out",
+        "file-as-folder": tmp_path / "a_file" / "out",
+        "folder": tmp_path,
+    }[where]
     args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--pairs", str(synthetic_pairs), option, str(out)]
     problem = {"no-folder": "does not exist", "file-as-folder": "is not a folder", "folder": "a folder, not a file"}
     assert_usage_error(runner.invoke(app, args), option, str(out), problem[where])
@@ -216,8 +313,12 @@ def test_evaluate_rejects_a_data_folder_without_modelnet(tmp_path, tiny_checkpoi
         (folder / "modelnet40_test.npz").write_text("not an archive")
     elif data == "no-points":
         np.savez(folder / "modelnet40_test.npz", labels=np.zeros(2))
-    problem = {"missing": "folder not found", "empty-folder": "file not found", "not-npz": "not an .npz archive",
-               "no-points": "no 'points'"}[data]
+    problem = {
+        "missing": "folder not found",
+        "empty-folder": "file not found",
+        "not-npz": "not an .npz archive",
+        "no-points": "no 'points'",
+    }[data]
     args = ["evaluate", "--checkpoint", str(tiny_checkpoint), "--count", "2"]
     assert_usage_error(runner.invoke(app, [*args, "--data", str(folder)]), str(folder), problem)
     monkeypatch.setenv("MFGNET_DATA", str(folder))  # the same through the environment
@@ -239,15 +340,22 @@ def test_evaluate_help_says_what_count_and_seed_make() -> None:
     assert "--seed <int range> seed of the pairs made from --setting [default: 0; x>=0]" in text  # NumPy's seeds
 
 
-@pytest.mark.parametrize(("method", "options", "words"), [
-    ("checkpoint", ["--refine", "icp"], ("--refine", "only with --model")),
-    ("checkpoint", ["--rotation-search-mode", "on", "--refine-points", "512"],
-     ("--refine-points, --rotation-search-mode", "only with --model")),
-    ("baseline", ["--iterations", "2"], ("--iterations", "not to --baseline")),
-    ("baseline", ["--batch-size", "4"], ("--batch-size", "only with --checkpoint")),
-])
-def test_evaluate_refuses_options_the_method_would_ignore(tiny_checkpoint, synthetic_pairs, method, options,
-                                                          words) -> None:
+@pytest.mark.parametrize(
+    ("method", "options", "words"),
+    [
+        ("checkpoint", ["--refine", "icp"], ("--refine", "only with --model")),
+        (
+            "checkpoint",
+            ["--rotation-search-mode", "on", "--refine-points", "512"],
+            ("--refine-points, --rotation-search-mode", "only with --model"),
+        ),
+        ("baseline", ["--iterations", "2"], ("--iterations", "not to --baseline")),
+        ("baseline", ["--batch-size", "4"], ("--batch-size", "only with --checkpoint")),
+    ],
+)
+def test_evaluate_refuses_options_the_method_would_ignore(
+    tiny_checkpoint, synthetic_pairs, method, options, words
+) -> None:
     """They were accepted and ignored: --refine icp with --checkpoint evaluated the network alone."""
     chosen = ["--checkpoint", str(tiny_checkpoint)] if method == "checkpoint" else ["--baseline", "fgr"]
     result = runner.invoke(app, ["evaluate", "--pairs", str(synthetic_pairs), *chosen, *options])
