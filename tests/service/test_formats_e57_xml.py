@@ -2,8 +2,8 @@
 locations, a section that is not UTF-8, XML whose size, element count, depth or structure width is beyond the limits
 (100,000 levels crash the library), and what would make the library read other counts or poses than the pre-check
 saw: a data3D elsewhere than under the root, a record count that is not a decimal integer, a quaternion that is not a
-unit one. Each is a 400 naming the problem, found before the library opens the file; files within the limits still
-read."""
+unit one; and a Float precision it does not know. Each is a 400 naming the problem, found before the library opens
+the file; files within the limits still read."""
 
 from __future__ import annotations
 
@@ -149,6 +149,35 @@ def test_a_record_count_that_is_not_a_decimal_integer_is_refused(e57, count: str
     data = edited(e57, b'recordCount="50"', b'recordCount="%s"' % count.encode())
     refused(data, "recordCount", "not a decimal integer")
     assert check_declared_count(io.BytesIO(data), "a.e57", 10) is None  # read_cloud's to name
+
+
+@pytest.mark.parametrize("precision", ["Single", "singel", "", "double "])
+def test_a_float_precision_other_than_single_or_double_is_refused_naming_the_field(e57, precision: str) -> None:
+    """The library reads a Float field's ``precision`` as ``single`` or ``double`` exactly (none: ``double``) and
+    refuses another value when it opens the file; the record-count check needs each field's bits, so it is refused
+    in the parse, naming the field and the value."""
+    data = edited(e57, b'precision="single"', b'precision="%s"' % precision.encode())
+    refused(data, f"gives scan 0's field 'cartesianX' the Float precision {precision!r}", "'single' and 'double'")
+
+
+def test_a_data3d_child_that_is_not_a_structure_is_skipped_as_the_library_skips_it(e57, tmp_path, capfd) -> None:
+    """The library reads the data3D children of type Structure only: the parse counted every child, so a file whose
+    one scan is of another type panicked in the library ("files contain pointclouds"), and another's points were
+    counted against the limit without being read."""
+    path = tmp_path / "two.e57"
+    with pye57.E57(str(path), mode="w") as writer:
+        for part in (XYZ[:20], XYZ[20:]):
+            writer.write_scan_raw(
+                {f"cartesian{axis}": np.ascontiguousarray(part[:, k]) for k, axis in enumerate("XYZ")}
+            )
+    two = edited(path.read_bytes(), b'<vectorChild type="Structure">', b'<vectorChild type="Integer">')  # the first
+    np.testing.assert_allclose(read_cloud(two, "a.e57"), XYZ[20:])
+    assert check_declared_count(io.BytesIO(two), "a.e57", 30) is None  # the 30 points read, not 50
+    one = edited(e57, b'<vectorChild type="Structure">', b'<vectorChild type="Integer">')
+    with pytest.raises(PointCloudFormatError, match=r"holds no scans") as caught:
+        read_cloud(one, "a.e57")
+    assert caught.value.status == 422
+    assert "panicked" not in capfd.readouterr().err
 
 
 def test_a_data3d_other_than_the_roots_is_refused(e57) -> None:

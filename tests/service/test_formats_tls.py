@@ -65,6 +65,46 @@ def write_spherical_e57(path: Path, rae: np.ndarray, invalid: np.ndarray) -> Non
     e57.close()
 
 
+def write_typed_e57(path: Path, scans: list[dict[str, tuple]]) -> None:
+    """Scans of fields ``{name: (kind, column)}`` through libE57Format's nodes, each kind ``"single"``, ``"double"``,
+    ``("integer", minimum, maximum)`` or ``("scaled", minimum, maximum, scale)``."""
+    e57 = pye57.E57(str(path), mode="w")
+    imf = e57.image_file
+    for number, fields in enumerate(scans):
+        scan = libe57.StructureNode(imf)
+        scan.set("guid", libe57.StringNode(imf, f"{{typed-{number}}}"))
+        prototype = libe57.StructureNode(imf)
+        columns = []
+        for name, (kind, column) in fields.items():
+            if kind in ("single", "double"):
+                precision = libe57.E57_SINGLE if kind == "single" else libe57.E57_DOUBLE
+                prototype.set(name, libe57.FloatNode(imf, 0.0, precision))
+                columns.append(np.ascontiguousarray(column, dtype=np.float32 if kind == "single" else np.float64))
+            elif kind[0] == "integer":
+                prototype.set(name, libe57.IntegerNode(imf, kind[1], kind[1], kind[2]))
+                columns.append(np.ascontiguousarray(column, dtype=np.int64))
+            else:
+                prototype.set(name, libe57.ScaledIntegerNode(imf, kind[1], kind[1], kind[2], kind[3], 0.0))
+                columns.append(np.ascontiguousarray(column, dtype=np.float64))
+        points = libe57.CompressedVectorNode(imf, prototype, libe57.VectorNode(imf, True))
+        scan.set("points", points)
+        e57.data3d.append(scan)
+        buffers = libe57.VectorSourceDestBuffer()
+        for (name, (kind, _)), column in zip(fields.items(), columns, strict=True):
+            buffers.append(libe57.SourceDestBuffer(imf, name, column, len(column), True, kind[0] == "scaled"))
+        writer = points.writer(buffers)
+        writer.write(len(columns[0]))
+        writer.close()
+    e57.close()
+
+
+def with_record_count(data: bytes, scan: int, count: int) -> bytes:
+    """The E57 file ``data`` with scan ``scan``'s ``recordCount`` set to ``count`` (pages rebuilt)."""
+    xml = xml_of(data)
+    found = list(re.finditer(rb'recordCount="([0-9]+)"', xml))[scan]
+    return with_xml(data, xml[: found.start(1)] + str(count).encode() + xml[found.end(1) :])
+
+
 def pts_text(xyz: np.ndarray) -> str:
     """Open3D's / Cyclone's PTS: the count, then x y z intensity r g b."""
     return f"{len(xyz)}\n" + "".join(f"{x:.17g} {y:.17g} {z:.17g} 0.5 10 20 30\n" for x, y, z in xyz)
@@ -364,6 +404,134 @@ def test_an_e57_file_offset_past_the_file_is_a_400_and_no_rust_panic_on_the_serv
     log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
     assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
     assert_error(response, 400, "far.e57", "scan 0's points at byte 1000000", "at or past the end of the file")
+
+
+def test_e57_record_counts_are_checked_against_what_each_section_holds(tmp_path, capfd) -> None:
+    """The e57 library reads a scan's data packets until it has its ``recordCount`` records, and panicked on what
+    follows the last one where the count is larger (its hook printed the panic on stderr). The packets' headers are
+    walked first: on libE57Format's files of several scans, single and double floats, integers and scaled integers,
+    each scan's count reads, and one more is refused naming the scan, its count and what its section holds."""
+    rng = np.random.default_rng(7)
+    counts = [300, 120, 45]
+    colour = ("integer", 0, 255)
+    scans = [
+        {
+            **{f"cartesian{axis}": ("single", rng.normal(size=counts[0])) for axis in "XYZ"},
+            **{f"color{name}": (colour, rng.integers(0, 256, counts[0])) for name in ("Red", "Green", "Blue")},
+            "intensity": ("single", rng.uniform(size=counts[0])),
+        },
+        {
+            **{f"cartesian{axis}": ("double", rng.normal(size=counts[1])) for axis in "XYZ"},
+            "cartesianInvalidState": (("integer", 0, 2), np.zeros(counts[1])),
+        },
+        {
+            **{
+                f"cartesian{axis}": (("scaled", -(10**5), 10**5, 1e-3), rng.uniform(-99, 99, counts[2]).round(3))
+                for axis in "XYZ"
+            },
+            "intensity": (("integer", 0, 2047), rng.integers(0, 2048, counts[2])),
+        },
+    ]
+    write_typed_e57(tmp_path / "a.e57", scans)
+    data = (tmp_path / "a.e57").read_bytes()
+    assert len(read_cloud(data, "a.e57")) == sum(counts)
+    for scan, count in enumerate(counts):
+        declares = rf"E57 scan {scan} declares {count + 1} records \(its recordCount\)"
+        message = rf"{declares}, and its section \(at byte [0-9]+\) holds {count} before byte"
+        with pytest.raises(PointCloudFormatError, match=message) as caught:
+            read_cloud(with_record_count(data, scan, count + 1), "a.e57")
+        assert caught.value.status == 400 and "does not describe the file (it is damaged)" in str(caught.value)
+    assert "panicked" not in capfd.readouterr().err
+
+
+def _no_precision(xml: bytes) -> bytes:
+    return xml.replace(b' precision="single"', b"", 3)  # scan 0's single floats read as doubles: half as many
+
+
+def _other_section(xml: bytes) -> bytes:
+    first, second = re.findall(rb'fileOffset="[0-9]+"', xml)
+    return xml.replace(first, second, 1)  # scan 0 at scan 1's section, of 100 records
+
+
+def _one_more_field(xml: bytes) -> bytes:
+    return xml.replace(b"</prototype>", b'<intensity type="Float" precision="single"/></prototype>', 1)
+
+
+def _zero_bits(xml: bytes) -> bytes:
+    constant = rb'<cartesian\1 type="Integer" minimum="0" maximum="0"/>'
+    return re.sub(rb'<cartesian([XYZ]) type="Float"[^>]*>[^<]*</cartesian[XYZ]>', constant, xml, count=3)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (
+            _no_precision,
+            r"E57 scan 0 declares 700 records \(its recordCount\), and its section \(at byte 48\) holds 350 before",
+        ),
+        (
+            _other_section,
+            r"E57 scan 0 declares 700 records \(its recordCount\), and its section \(at byte [0-9]+\) holds 100 before",
+        ),
+        (
+            _one_more_field,
+            r"E57 scan 0's prototype has 4 field\(s\), and its section \(at byte 48\) has a data packet of 3 bytes",
+        ),
+        (
+            _zero_bits,
+            r"E57 scan 0's prototype has 3 field\(s\), each an integer whose minimum is its maximum \(0 bits a",
+        ),
+    ],
+    ids=["precision left out", "another scan's section", "a field added", "every field 0 bits"],
+)
+def test_an_e57_prototype_its_packets_do_not_match_is_refused_before_the_library_panics(
+    tmp_path, capfd, edit, message: str
+) -> None:
+    """A checksummed XML section whose scan's prototype does not describe its section: a single-precision field read
+    as a double (half the records), another scan's smaller section, a field more than the packets' bytestreams. The
+    library panicked on each (a Float without ``precision`` is a double to it); a prototype of integers whose minimum
+    is their maximum (0 bits a record) made it fill records until its memory ran out. Refused first."""
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}, {"xyz": TARGET[:100]}])
+    data = (tmp_path / "a.e57").read_bytes()
+    with pytest.raises(PointCloudFormatError, match=message) as caught:
+        read_cloud(with_xml(data, edit(xml_of(data))), "a.e57")
+    assert caught.value.status == 400
+    assert "panicked" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("field", ["intensity", "colorRed"])
+def test_an_e57_intensity_or_colour_whose_minimum_is_above_its_maximum_is_refused(tmp_path, capfd, field: str) -> None:
+    """The library scales intensity and colour by their Float limits, and panicked on a minimum above the maximum
+    ("Found invalid range"); equal limits, or limits equal in single precision, still read."""
+    xyz = SOURCE[:50]
+    fields = {f"cartesian{axis}": ("single", xyz[:, k]) for k, axis in enumerate("XYZ")}
+    write_typed_e57(tmp_path / "a.e57", [{**fields, field: ("single", np.linspace(0, 1, len(xyz)))}])
+    data = (tmp_path / "a.e57").read_bytes()
+    element = rb"<%s type=\"Float\"[^>]*?(/>|>[^<]*</%s>)" % (field.encode(), field.encode())
+
+    def limits(low: bytes, high: bytes) -> bytes:
+        new = b'<%s type="Float" precision="single" minimum="%s" maximum="%s"/>' % (field.encode(), low, high)
+        return with_xml(data, re.sub(element, new, xml_of(data), count=1))
+
+    with pytest.raises(
+        PointCloudFormatError, match=rf"gives scan 0's field '{field}' the minimum '7', above its"
+    ) as caught:
+        read_cloud(limits(b"7", b"1"), "a.e57")
+    assert caught.value.status == 400
+    assert "panicked" not in capfd.readouterr().err
+    for low in (b"1", b"1.00000001"):  # 1.00000001 is 1 in single precision
+        np.testing.assert_allclose(read_cloud(limits(low, b"1"), "a.e57"), xyz)
+
+
+def test_an_e57_record_count_beyond_its_section_is_a_400_and_no_rust_panic_on_the_servers_stderr(
+    server, client, tmp_path
+) -> None:
+    write_e57(tmp_path / "a.e57", [{"xyz": SOURCE}])
+    data = with_record_count((tmp_path / "a.e57").read_bytes(), 0, len(SOURCE) + 1)
+    response = upload(client, {"source": ("more.e57", data), "target": ("t.pts", pts_text(TARGET).encode())})
+    log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
+    assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
+    assert_error(response, 400, "more.e57", "E57 scan 0 declares 701 records (its recordCount)", "holds 700 before")
 
 
 def test_e57_over_the_file_point_limit_is_a_413_from_its_header(tmp_path) -> None:
