@@ -231,7 +231,8 @@ def _check_records(f: BinaryIO, section: Section, data: int, size: int) -> None:
     fewest of them. Also refused: a packet of another number of bytestreams than the prototype has fields, and a
     prototype whose every field takes 0 bits (the library fills records without end: its memory). Left to the
     library (which refuses them when it opens the file, or reads them): a field of unknown bits, an index or ignored
-    packet, a packet whose length is not its bytestreams', and more than :data:`MAX_PACKETS` packets."""
+    packet, a packet that does not end where the library reads on (its bytestreams, up to the next multiple of 4
+    bytes in the file), and more than :data:`MAX_PACKETS` packets."""
     scan, offset, count, bits = section
     if any(width is None for width in bits):
         return
@@ -276,7 +277,10 @@ def _check_records(f: BinaryIO, section: Section, data: int, size: int) -> None:
             )
         lengths = struct.unpack_from(f"<{streams}H", header, PACKET.size)
         used = PACKET.size + 2 * streams + sum(lengths)
-        if -(-used // 4) * 4 != length + 1:  # a packet laid out otherwise than the library reads it
+        # The library reads the bytestreams, then goes on at the next multiple of 4 bytes in the file (not of the
+        # packet's own length: the two differ where a section does not begin at one). A packet laid out otherwise
+        # than the library reads it is left to the library
+        if -(-(logical + used) // 4) * 4 != logical + length + 1:
             return
         held = [total + more for total, more in zip(held, lengths, strict=True)]
         logical += length + 1

@@ -6,13 +6,14 @@ return left out, the point limit from the header, and damaged files a 4xx naming
 from __future__ import annotations
 
 import re
+import struct
 from pathlib import Path
 
 import numpy as np
 import pye57
 import pytest
 from api_server import LIMITED, MODEL, assert_error, limited_server, synthetic_pair
-from e57_xml import with_xml, xml_of
+from e57_xml import HEADER, _paged, with_xml, xml_of
 from pye57 import libe57
 
 from service.formats import PointCloudFormatError, TooManyPointsError, read_cloud
@@ -521,6 +522,34 @@ def test_an_e57_intensity_or_colour_whose_minimum_is_above_its_maximum_is_refuse
     assert "panicked" not in capfd.readouterr().err
     for low in (b"1", b"1.00000001"):  # 1.00000001 is 1 in single precision
         np.testing.assert_allclose(read_cloud(limits(low, b"1"), "a.e57"), xyz)
+
+
+def test_an_e57_section_off_a_4_byte_boundary_reads_as_the_library_reads_it(tmp_path, capfd) -> None:
+    """The library reads a data packet's bytestreams, then goes on at the next multiple of 4 bytes in the file. Where a
+    section begins 2 bytes past one, that is 2 bytes past where the packet's own length (72) ends, and the library
+    skips the 2 bytes between. A section of two such packets of 5 records each: the library reads its 10 records,
+    and so does ``read_cloud`` (the walk of its packets took the bytes skipped for the next packet's header, and
+    refused the file as damaged)."""
+    e57 = pytest.importorskip("e57")
+    xyz = SOURCE[:10]
+    write_e57(tmp_path / "a.e57", [{"xyz": xyz}])
+    xml = xml_of((tmp_path / "a.e57").read_bytes()).replace(b'fileOffset="48"', b'fileOffset="50"')
+    streams = [xyz[:, k].astype("<f4").tobytes() for k in range(3)]
+    header = struct.pack("<BBHH3H", 1, 0, 72 - 1, 3, 20, 20, 20)  # 12 + 60 bytes: a length of 72
+    first, second = (header + b"".join(stream[half] for stream in streams) for half in (slice(0, 20), slice(20, 40)))
+    # at byte 50 (2 past a multiple of 4): the section's header; its first packet at byte 82, 2 bytes skipped to the
+    # second at byte 156, and 2 more to make the section's length whole 4-byte words
+    packets = first + b"\xaa\xaa" + second + b"\xaa\xaa"
+    section = struct.pack("<B7xQQQ", 1, 32 + len(packets), 82, 0) + packets
+    logical = bytearray(48) + b"\0\0" + section
+    xml_offset = len(logical)
+    logical += xml
+    HEADER.pack_into(logical, 0, b"ASTM-E57", 1, 0, -(-len(logical) // 1020) * 1024, xml_offset, len(xml), 1024)
+    data = _paged(bytes(logical))
+    (tmp_path / "b.e57").write_bytes(data)
+    assert len(e57.read_points(str(tmp_path / "b.e57")).points) == len(xyz)  # the library reads it
+    np.testing.assert_allclose(read_cloud(data, "b.e57"), xyz)
+    assert "panicked" not in capfd.readouterr().err
 
 
 def test_an_e57_record_count_beyond_its_section_is_a_400_and_no_rust_panic_on_the_servers_stderr(
