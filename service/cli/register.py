@@ -63,8 +63,9 @@ WriteAlignedOpt = Annotated[
     Path | None,
     typer.Option(
         help="write the source moved onto the target (R @ p + t), format from the extension (.ply .pcd .las .laz "
-        ".xyz .txt .csv .pts .ptx .npy .npz): a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS or PTX source written in its "
-        "own format is that file moved, its other fields kept (colours, intensity, faces; normals rotated); "
+        ".xyz .txt .csv .pts .ptx .npy .npz): a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ source written "
+        "in its own format is that file moved, its other fields kept (colours, intensity, faces, an array's other "
+        "columns and arrays; normals rotated); "
         "otherwise x, y, z only"
     ),
 ]

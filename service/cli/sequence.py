@@ -73,8 +73,8 @@ SequenceAlignedOpt = Annotated[
     typer.Option(
         metavar="DIR",
         help="write every frame moved into frame 0's coordinates (T_0_i) into this folder, named as the frame: "
-        "a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS or PTX frame is that file moved, its other fields kept (as register "
-        "--write-aligned); others hold x, y, z (.e57 frames as .ply)",
+        "a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ frame is that file moved, its other fields kept (as "
+        "register --write-aligned); others hold x, y, z (.e57 frames as .ply)",
     ),
 ]
 SequenceReliableOpt = Annotated[

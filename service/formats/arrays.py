@@ -9,7 +9,8 @@ import struct
 import tokenize
 import zipfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import BinaryIO, TypeVar
 
 import numpy as np
@@ -28,23 +29,8 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
 
     ``size``: the bytes of the whole ``.npy`` file where ``f`` has no end to seek to (a member of an ``.npz``).
     """
-    shape, fortran, dtype = _header(f)
-    rows = _rows(shape, dtype)
-    check_count(rows, max_points)
+    shape, fortran, dtype, rows = npy_layout(f, max_points, size)
     count = math.prod(shape)
-    needed, held = count * dtype.itemsize, _bytes_left(f, size)
-    if needed > held:  # before numpy allocates the array
-        raise PointCloudFormatError(
-            f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, {held} follow the header"
-        )
-    if math.prod(n for n in shape if n) * dtype.itemsize > np.iinfo(np.intp).max:  # empty, as (0, 2**63)
-        raise PointCloudFormatError(f"not a valid .npy file (shape {list(shape)} is beyond any array's size)")
-    row_bytes = count * dtype.itemsize // rows if rows else 0
-    if row_bytes > MAX_ROW_BYTES:
-        raise InvalidPointsError(
-            f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "
-            f"bytes per point, e.g. 16 float64 columns"
-        )
     if dtype.names is None and not (shape[-1] == 3 and dtype == np.float64 and not fortran and _has_fileno(f)):
         try:  # numbers other than float64 [N, 3] in a file: only x, y, z are held, a block of rows at a time
             return checked(_xyz_table(f, dtype, rows, shape[-1], fortran))
@@ -63,6 +49,34 @@ def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np
     if table.shape[1] == 3 and table.dtype == np.float64 and table.flags.c_contiguous and table.flags.writeable:
         return checked(table)  # already what the readers return: no second 2,000,000-point copy
     return xyz_columns([table[:, axis] for axis in range(3)])
+
+
+def npy_layout(
+    f: BinaryIO, max_points: int | None, size: int | None = None
+) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """The shape, Fortran order, dtype and points (rows) of the ``.npy`` file at ``f``'s position, left at its data,
+    with :func:`read_npy`'s checks (the count limit, the bytes that follow, the row size) before any data is read.
+
+    ``size``: as :func:`read_npy`'s.
+    """
+    shape, fortran, dtype = _header(f)
+    rows = _rows(shape, dtype)
+    check_count(rows, max_points)
+    count = math.prod(shape)
+    needed, held = count * dtype.itemsize, _bytes_left(f, size)
+    if needed > held:  # before numpy allocates the array
+        raise PointCloudFormatError(
+            f"truncated .npy file: shape {list(shape)} of {dtype} needs {needed} bytes, {held} follow the header"
+        )
+    if math.prod(n for n in shape if n) * dtype.itemsize > np.iinfo(np.intp).max:  # empty, as (0, 2**63)
+        raise PointCloudFormatError(f"not a valid .npy file (shape {list(shape)} is beyond any array's size)")
+    row_bytes = count * dtype.itemsize // rows if rows else 0
+    if row_bytes > MAX_ROW_BYTES:
+        raise InvalidPointsError(
+            f"rows of {row_bytes} bytes (shape {list(shape)} of {dtype}): at most {MAX_ROW_BYTES} "
+            f"bytes per point, e.g. 16 float64 columns"
+        )
+    return shape, fortran, dtype, rows
 
 
 def read_npz(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -91,33 +105,45 @@ def _with_member(f: BinaryIO, use: Callable[[BinaryIO, int], T]) -> T:
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:  # a zip version beyond 6.3
         raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
     with archive:
-        names = [name for name in archive.namelist() if name.endswith(".npy")]
-        named = [name for name in NPZ_KEYS if f"{name}.npy" in names]
-        if named:
-            member = f"{named[0]}.npy"
-        elif len(names) == 1:
-            member = names[0]
-        else:
-            keys = [name[:-4] for name in names]
-            raise PointCloudFormatError(
-                f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and not exactly one array: {keys}"
-            )
-        try:
-            with archive.open(member) as stream:
-                return use(stream, archive.getinfo(member).file_size)
-        except PointCloudFormatError:
-            raise
-        except (
-            zipfile.BadZipFile,
-            EOFError,
-            OSError,
-            ValueError,
-            zlib.error,
-            lzma.LZMAError,
-            NotImplementedError,
-            RuntimeError,
-        ) as exc:  # a CRC error, a cut-off or corrupt member, a compression or encryption
-            raise PointCloudFormatError(f"corrupt or unsupported .npz archive ({type(exc).__name__}: {exc})") from None
+        member = cloud_member(archive)
+        with archive_errors(), archive.open(member) as stream:
+            return use(stream, archive.getinfo(member).file_size)
+
+
+def cloud_member(archive: zipfile.ZipFile) -> str:
+    """The name of the member of ``archive`` that :func:`read_npz` reads: ``points.npy``, else ``positions.npy``,
+    else its only ``.npy`` member."""
+    names = [name for name in archive.namelist() if name.endswith(".npy")]
+    named = [name for name in NPZ_KEYS if f"{name}.npy" in names]
+    if named:
+        return f"{named[0]}.npy"
+    if len(names) == 1:
+        return names[0]
+    keys = [name[:-4] for name in names]
+    raise PointCloudFormatError(
+        f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and not exactly one array: {keys}"
+    )
+
+
+@contextmanager
+def archive_errors() -> Iterator[None]:
+    """What reading an archive's members raises (a CRC error, a cut-off or corrupt member, a compression or an
+    encryption) as :class:`PointCloudFormatError`."""
+    try:
+        yield
+    except PointCloudFormatError:
+        raise
+    except (
+        zipfile.BadZipFile,
+        EOFError,
+        OSError,
+        ValueError,
+        zlib.error,
+        lzma.LZMAError,
+        NotImplementedError,
+        RuntimeError,
+    ) as exc:
+        raise PointCloudFormatError(f"corrupt or unsupported .npz archive ({type(exc).__name__}: {exc})") from None
 
 
 def _header(f: BinaryIO) -> tuple[tuple[int, ...], bool, np.dtype]:

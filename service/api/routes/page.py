@@ -1,7 +1,7 @@
 """The browser page: ``GET /`` (static files from ``service/web``), ``POST /v1/register/view`` (a registration
 plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded source moved by a pose: a PLY, PCD,
-LAS/LAZ, XYZ/CSV/TXT, PTS or PTX file as itself, every other field kept (:func:`service.formats.moved.write_moved`),
-any other format as binary PLY of x, y, z).
+LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ file as itself, every other field kept
+(:func:`service.formats.moved.write_moved`), any other format as binary PLY of x, y, z).
 
 Uploads go through the reader and limits of ``POST /v1/register`` (:func:`service.api.bodies.decode_upload`: any
 format of :mod:`service.formats`, found from the content, up to ``max_file_points`` per cloud). Display clouds
@@ -47,8 +47,8 @@ DISPLAY_SEED = 0
 # Nothing loaded from elsewhere, and no other site frames the page.
 PAGE_POLICY = {"Content-Security-Policy": page_policy("default-src 'self'; img-src 'self' data: blob:")}
 OCTET_STREAM = "application/octet-stream"
-# The aligned download's media type by its extension: LAS, LAZ and CSV have IANA types; PLY and PCD have none; XYZ,
-# TXT, PTS and PTX are plain text.
+# The aligned download's media type by its extension: LAS, LAZ and CSV have IANA types; PLY, PCD, NPY and NPZ have
+# none; XYZ, TXT, PTS and PTX are plain text.
 ALIGNED_MEDIA_TYPES = {
     ".ply": OCTET_STREAM,
     ".pcd": OCTET_STREAM,
@@ -59,6 +59,8 @@ ALIGNED_MEDIA_TYPES = {
     ".xyz": "text/plain",
     ".pts": "text/plain",
     ".ptx": "text/plain",
+    ".npy": OCTET_STREAM,
+    ".npz": OCTET_STREAM,
 }
 STREAM_CHUNK_BYTES = 1 << 20
 
@@ -171,9 +173,10 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
     summary="The uploaded source moved by a pose, in its own format",
     description="Multipart form: file `source` (any supported format) and field `transform`, a JSON 4x4 rigid "
     "src_to_tgt matrix (e.g. a registration's `transform`). Every point becomes `R @ p + t`. A PLY, PCD, LAS/LAZ, "
-    "XYZ/CSV/TXT, PTS or PTX source comes back as that file moved, named `<stem>_aligned.<its extension>` (a text "
-    "source named otherwise: `.txt`): every other field and element kept (colours, intensities, faces, LAS records "
-    "and VLRs, every other column and line of a text file), normals rotated, x, y, z in the file's precision "
+    "XYZ/CSV/TXT, PTS, PTX, NPY or NPZ source comes back as that file moved, named `<stem>_aligned.<its extension>` (a "
+    "text source named otherwise: `.txt`): every other field and element kept (colours, intensities, faces, LAS "
+    "records and VLRs, every other column and line of a text file, an array's other columns, an NPZ's other "
+    "arrays), normals rotated (an NPZ's `normals` array too), x, y, z in the file's precision "
     "(4-byte floats become 8-byte ones for map coordinates; LAS keeps its scale and, where the moved points fit, its "
     "offsets; text keeps the decimals of its coordinates); a PTX file keeps its rows and has each scan's header "
     "composed with the pose. "
@@ -183,7 +186,7 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
     openapi_extra=_multipart(_ALIGNED_SCHEMA),
     responses={
         200: {
-            "description": "The moved source (Content-Disposition names it): PLY and PCD as "
+            "description": "The moved source (Content-Disposition names it): PLY, PCD, NPY and NPZ as "
             "application/octet-stream, LAS as application/vnd.las, LAZ as "
             "application/vnd.laszip, CSV as text/csv, XYZ, TXT, PTS and PTX as text/plain (UTF-8).",
             "content": {media: _BINARY for media in dict.fromkeys(ALIGNED_MEDIA_TYPES.values())},

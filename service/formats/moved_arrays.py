@@ -1,0 +1,255 @@
+"""``.npy`` and ``.npz`` files moved by a pose (:func:`service.formats.moved.write_moved`): the user's array, its
+shape, order and other columns kept.
+
+- ``.npy``: the points (:func:`service.formats.arrays.read_npy`'s: the first three columns of an ``[N, C]`` or
+  ``[1, N, C]`` array, or the fields x, y, z) become ``R @ p + t`` in float64, stored in the array's dtype; the
+  fields ``nx ny nz`` or ``normal_x normal_y normal_z`` of a structured array (all three floats) are rotated; every
+  other column and field is copied as it was (a plain array's columns after the third have no names: copied). The
+  header is copied as it was where the dtype is kept, else composed by numpy. Rows are read and written a block of
+  ``BLOCK_BYTES`` at a time; a Fortran-order array's x, y, z columns are held whole (they follow one another), the
+  rest is streamed.
+- The dtype: float64 is kept; float32 is kept unless a moved coordinate is beyond ``FLOAT32_EXACT_ENOUGH``, when the
+  coordinates become float64 (a plain array: the whole array, each other value exactly as it was); a plain array of
+  2-byte floats becomes float32 (float64 beyond it), one of integers float64 (an 8-byte integer beyond 2**53, which
+  float64 would round, is refused). A structured array's x, y, z fields are written as a PLY file's are (8-byte
+  floats kept, 4-byte ones kept or widened, others 4-byte floats, 8-byte ones beyond it); its other fields keep
+  their types.
+- ``.npz``: every member copied as it was, in its place, with its name, date, attributes and compression (stored or
+  deflated), the archive's comment too; the member :func:`service.formats.arrays.read_npz` reads (``points``, else
+  ``positions``, else the only array) moved as an ``.npy`` file, and a plain float ``normals`` array of its rows and
+  3 columns (Open3D's ``o3d.t.io`` layout, or ours) rotated. Members are decompressed and compressed a block at a
+  time; those not moved may expand to at most ``OTHER_BYTES_PER_POINT`` per point of the cloud (plus
+  ``OTHER_BYTES_EXTRA``), so that a small archive cannot ask for gigabytes of work.
+"""
+
+from __future__ import annotations
+
+import shutil
+import zipfile
+from typing import BinaryIO
+
+import numpy as np
+
+from service.formats.arrays import archive_errors, cloud_member, npy_layout
+from service.formats.checks import BLOCK_BYTES, MAX_ROW_BYTES
+from service.formats.errors import PointCloudFormatError
+
+NORMAL_FIELDS = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"))  # a structured array's, rotated
+NORMALS_MEMBER = "normals.npy"  # an .npz array of the cloud's rows and 3 float columns, rotated
+OTHER_BYTES_PER_POINT = MAX_ROW_BYTES  # what an .npz's members not moved may expand to, per point of its cloud ...
+OTHER_BYTES_EXTRA = 1 << 20  # ... and this much more (small arrays: a pose, a name, a grid's size)
+EXACT_INTEGERS = 2**53  # the largest integers float64 holds exactly
+
+
+def moved_npy(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
+    """The ``.npy`` file ``src`` (at its start) moved into ``dst`` (module docstring); ``widen``: a moved coordinate
+    is beyond ``FLOAT32_EXACT_ENOUGH``."""
+    _moved_array(src, dst, R, t, widen)
+
+
+def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
+    """The ``.npz`` archive ``src`` (at its start) moved into ``dst``: its cloud member moved, a ``normals`` member
+    rotated, every other member copied (module docstring)."""
+    try:
+        archive = zipfile.ZipFile(src)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
+        raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
+    with archive, archive_errors():
+        member = cloud_member(archive)
+        with archive.open(member) as stream:
+            rows = npy_layout(stream, None, archive.getinfo(member).file_size)[3]
+        normals = NORMALS_MEMBER if _are_normals(archive, rows) and member != NORMALS_MEMBER else None
+        others = sum(info.file_size for info in archive.infolist() if info.filename not in (member, normals))
+        allowed = rows * OTHER_BYTES_PER_POINT + OTHER_BYTES_EXTRA
+        if others > allowed:
+            raise PointCloudFormatError(
+                f".npz archive whose other arrays expand to {others} bytes: at most {allowed} are copied "
+                f"({OTHER_BYTES_PER_POINT} bytes per point of its {rows}, and {OTHER_BYTES_EXTRA} more)"
+            )
+        with zipfile.ZipFile(dst, "w", allowZip64=True) as out:
+            out.comment = archive.comment
+            for info in archive.infolist():
+                copy = zipfile.ZipInfo(info.filename, info.date_time)
+                copy.compress_type, copy.external_attr, copy.comment = (
+                    info.compress_type,
+                    info.external_attr,
+                    info.comment,
+                )
+                copy.file_size = info.file_size  # zipfile's ZIP64 choice; a moved member grows at most 8-fold
+                if info.is_dir():
+                    out.writestr(copy, b"")
+                    continue
+                wider = info.filename == member and info.file_size * 8 > zipfile.ZIP64_LIMIT
+                with archive.open(info) as stream, out.open(copy, "w", force_zip64=wider) as written:
+                    if info.filename == member:
+                        _moved_array(stream, written, R, t, widen, info.file_size)
+                    elif info.filename == normals:
+                        _moved_array(stream, written, R, np.zeros(3), False, info.file_size, rotate=True)
+                    else:
+                        shutil.copyfileobj(stream, written, BLOCK_BYTES)
+
+
+def other_fields(f: BinaryIO, kind: str) -> list[str]:
+    """What an ``.npy`` file (``kind`` ``npy``) or an ``.npz`` archive (``npz``) holds besides x, y, z: a structured
+    array's other fields, a plain array's other columns (``column 4``, ...), an archive's other arrays."""
+    if kind == "npy":
+        return _other_columns(f, None)
+    with zipfile.ZipFile(f) as archive:
+        member = cloud_member(archive)
+        with archive.open(member) as stream:
+            fields = _other_columns(stream, archive.getinfo(member).file_size)
+        return fields + [name.removesuffix(".npy") for name in archive.namelist() if name != member]
+
+
+def _other_columns(f: BinaryIO, size: int | None) -> list[str]:
+    shape, _, dtype, _ = npy_layout(f, None, size)
+    if dtype.names is not None:
+        return [name for name in dtype.names if name not in ("x", "y", "z")]
+    return [f"column {k + 1}" for k in range(3, shape[-1])]
+
+
+def _are_normals(archive: zipfile.ZipFile, rows: int) -> bool:
+    """Whether ``archive`` holds a ``normals`` member of ``rows`` rows of 3 floats."""
+    if NORMALS_MEMBER not in archive.namelist():
+        return False
+    try:
+        with archive.open(NORMALS_MEMBER) as stream:
+            shape, _, dtype, count = npy_layout(stream, None, archive.getinfo(NORMALS_MEMBER).file_size)
+    except PointCloudFormatError:  # not an array of points: copied as it is
+        return False
+    return dtype.names is None and dtype.kind == "f" and count == rows and shape[-1] == 3
+
+
+# ------------------------------------------------------------------------------------------- arrays
+
+
+def _moved_array(
+    src: BinaryIO,
+    dst: BinaryIO,
+    R: np.ndarray,
+    t: np.ndarray,
+    widen: bool,
+    size: int | None = None,
+    rotate: bool = False,
+) -> None:
+    """The ``.npy`` bytes at ``src``'s position (``size`` of them: an archive's member; else to the file's end)
+    moved into ``dst``; ``rotate``: the array is a plain float one of normals, rotated, its dtype kept."""
+    start = src.tell()
+    shape, fortran, dtype, rows = npy_layout(src, None, size)
+    header = src.tell() - start
+    if dtype.names is not None:
+        from service.formats.moved import _moved_blocks, _widened
+
+        written = _widened(dtype, widen)
+        _header(src, dst, start, header, shape, fortran, dtype, written)
+        normals = next((names for names in NORMAL_FIELDS if all(n in dtype.names for n in names)), ())
+        _moved_blocks(src, dst, dtype, written, rows, R, t, normals, ".npy records")
+    else:
+        written = dtype if rotate else _plain_written(dtype, widen)
+        _header(src, dst, start, header, shape, fortran, dtype, written)
+        if fortran:
+            _moved_columns(src, dst, dtype, written, rows, shape[-1], R, t)
+        else:
+            _moved_rows(src, dst, dtype, written, rows, shape[-1], R, t)
+    shutil.copyfileobj(src, dst, BLOCK_BYTES)  # what follows the array, as it was
+
+
+def _plain_written(dtype: np.dtype, widen: bool) -> np.dtype:
+    """The dtype a plain array of ``dtype`` is written in (module docstring)."""
+    if dtype.kind == "f" and (dtype.itemsize >= 8 or (dtype.itemsize == 4 and not widen)):
+        return dtype
+    order = dtype.str[0] if dtype.str[0] in "<>" else "="
+    return np.dtype(order + ("f8" if widen or dtype.kind in "iu" else "f4"))
+
+
+def _header(
+    src: BinaryIO,
+    dst: BinaryIO,
+    start: int,
+    length: int,
+    shape: tuple[int, ...],
+    fortran: bool,
+    dtype: np.dtype,
+    written: np.dtype,
+) -> None:
+    """The ``.npy`` header: the source's ``length`` bytes from ``start`` where the dtype is kept, else numpy's."""
+    if written != dtype:
+        header = {"descr": np.lib.format.dtype_to_descr(written), "fortran_order": fortran, "shape": shape}
+        np.lib.format.write_array_header_1_0(dst, header)
+        return
+    src.seek(start)
+    dst.write(src.read(length))
+
+
+def _moved_rows(
+    src: BinaryIO,
+    dst: BinaryIO,
+    dtype: np.dtype,
+    written: np.dtype,
+    rows: int,
+    columns: int,
+    R: np.ndarray,
+    t: np.ndarray,
+) -> None:
+    """The ``rows`` C-order rows of ``columns`` values at ``src``'s position, their first three moved, to ``dst``
+    as ``written``: a block of ``BLOCK_BYTES`` at a time."""
+    row_bytes = columns * dtype.itemsize
+    per_block = max(1, BLOCK_BYTES // row_bytes)
+    for begin in range(0, rows, per_block):
+        n = min(per_block, rows - begin)
+        block = np.frombuffer(_read(src, n * row_bytes, rows), dtype=dtype).reshape(n, columns)  # [n, C]
+        out = block if written == dtype else _cast(block, written, 3)  # [n, C]
+        out[:, :3] = block[:, :3].astype(np.float64) @ R.T + t
+        dst.write(out.data)
+
+
+def _moved_columns(
+    src: BinaryIO,
+    dst: BinaryIO,
+    dtype: np.dtype,
+    written: np.dtype,
+    rows: int,
+    columns: int,
+    R: np.ndarray,
+    t: np.ndarray,
+) -> None:
+    """The Fortran-order ``[rows, columns]`` values at ``src``'s position (column after column) to ``dst`` as
+    ``written``: the x, y, z columns held whole and moved, the others copied a block at a time."""
+    xyz = np.frombuffer(_read(src, 3 * rows * dtype.itemsize, rows), dtype=dtype).reshape(3, rows)  # [3, N]
+    out = xyz if written == dtype else np.empty((3, rows), dtype=written)  # [3, N]
+    per_block = max(1, BLOCK_BYTES // (3 * dtype.itemsize))
+    for begin in range(0, rows, per_block):
+        end = min(rows, begin + per_block)
+        out[:, begin:end] = R @ xyz[:, begin:end].astype(np.float64) + t[:, None]
+    dst.write(out.data)
+    left = (columns - 3) * rows
+    per_block = max(1, BLOCK_BYTES // dtype.itemsize)
+    for begin in range(0, left, per_block):
+        n = min(per_block, left - begin)
+        values = np.frombuffer(_read(src, n * dtype.itemsize, rows), dtype=dtype)  # [n]
+        dst.write(values.data if written == dtype else _cast(values[:, None], written, 0).data)
+
+
+def _cast(values: np.ndarray, written: np.dtype, skip: int) -> np.ndarray:
+    """``values [n, C]`` as ``written``; an 8-byte integer beyond ``EXACT_INTEGERS`` in a column from ``skip`` on
+    (float64 would round it) is an error."""
+    if values.dtype.kind in "iu" and values.dtype.itemsize == 8 and values.shape[1] > skip:
+        kept = values[:, skip:]
+        if ((kept > EXACT_INTEGERS) | (kept < -EXACT_INTEGERS)).any():
+            raise PointCloudFormatError(
+                f"an array of {values.dtype} holds integers beyond 2**53, which float64 cannot hold exactly; its "
+                "moved coordinates need floats (save the array as float64, or write another format)"
+            )
+    return values.astype(written)
+
+
+def _read(src: BinaryIO, size: int, rows: int) -> bytearray:
+    """``size`` bytes of ``src`` in a writable buffer, or a format error."""
+    data = bytearray(size)
+    view, done = memoryview(data), 0
+    while done < size:
+        got = src.readinto(view[done:])
+        if not got:
+            raise PointCloudFormatError(f"truncated .npy file: its {rows} rows do not follow")
+        done += got
+    return data

@@ -1,0 +1,311 @@
+"""Specification of the aligned cloud of an ``.npy`` or ``.npz`` source as the user's own array, moved
+(``write_moved``, ``mfgnet register --write-aligned``, ``mfgnet sequence --write-aligned``,
+``POST /v1/register/aligned``): the same shape, order and dtype (float32 widened to float64 only for map
+coordinates, integers written as float64), the first three columns or the fields x, y, z moved by ``R @ p + t``, a
+structured array's normals and an archive's ``normals`` array rotated, every other column, field and member kept
+byte for byte, an archive's members in their order and compression. Each file is read back with numpy."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from api_server import assert_error
+from cli_support import snapshot_model, synthetic_pair
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from service.cli import app
+from service.formats import PointCloudFormatError
+from service.formats.moved import write_moved
+from service.pointcloud_io import read_points
+
+runner = CliRunner()
+FAST = ("--iterations", "1", "--keypoints", "32")
+R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
+T = np.array([1.5, -2.0, 0.3])
+UTM = np.array([512_345.0, 4_123_456.0, 150.0])
+RNG = np.random.default_rng(5)
+N = 600  # as synthetic_pair's clouds
+XYZ = RNG.uniform(-20, 20, (N, 3))  # [N, 3]
+NORMALS = Rotation.random(N, random_state=3).apply([0.0, 0.0, 1.0])  # [N, 3] unit
+COLOURS = RNG.integers(0, 256, (N, 3), dtype=np.uint8)  # [N, 3]
+LABELS = RNG.integers(0, 40, N, dtype=np.int32)  # [N]
+
+
+def moved(xyz: np.ndarray, rotation: np.ndarray = R, translation: np.ndarray = T) -> np.ndarray:
+    return np.asarray(xyz, dtype=np.float64) @ rotation.T + translation
+
+
+def write(source: Path, out: Path, rotation: np.ndarray = R, translation: np.ndarray = T) -> None:
+    largest = float(np.abs(moved(read_points(source), rotation, translation)).max())
+    write_moved(source, out, rotation, translation, largest=largest)
+
+
+def assert_moved(values: np.ndarray, expected: np.ndarray) -> None:
+    """``values`` are ``expected`` (float64) stored in ``values``' dtype: within one step of it."""
+    step = np.spacing(np.abs(expected).max().astype(values.dtype))
+    np.testing.assert_allclose(np.asarray(values, dtype=np.float64), expected, rtol=0, atol=float(step))
+
+
+def header_bytes(path: Path) -> bytes:
+    with open(path, "rb") as f:
+        np.lib.format.read_magic(f)
+        np.lib.format.read_array_header_1_0(f)
+        return path.read_bytes()[: f.tell()]
+
+
+def table(dtype: str) -> np.ndarray:
+    """``[N, 6]``: x, y, z, then three columns (normals, which a plain array does not name)."""
+    return np.concatenate([XYZ, NORMALS], axis=1).astype(dtype)
+
+
+# ------------------------------------------------------------------------------------------------- .npy
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f8", ">f4"])
+@pytest.mark.parametrize("layout", ["C", "F", "batch"])
+def test_an_array_keeps_its_shape_order_dtype_and_other_columns(tmp_path, dtype, layout) -> None:
+    array = table(dtype)
+    if layout == "F":
+        array = np.asfortranarray(array)
+    elif layout == "batch":
+        array = array[None]  # [1, N, 6]
+    source, out = tmp_path / "cloud.npy", tmp_path / "aligned.npy"
+    np.save(source, array)
+    write(source, out)
+    written = np.load(out)
+    assert written.shape == array.shape and written.dtype == array.dtype
+    assert written.flags.f_contiguous == (layout == "F") and header_bytes(out) == header_bytes(source)
+    rows, kept = written.reshape(N, 6), array.reshape(N, 6)
+    assert rows[:, 3:].tobytes() == kept[:, 3:].tobytes()  # a plain array's other columns are copied, never turned
+    assert_moved(rows[:, :3], moved(kept[:, :3]))
+    assert out.stat().st_size == source.stat().st_size
+
+
+def test_a_float32_array_moved_into_map_coordinates_becomes_float64_with_its_other_values(tmp_path) -> None:
+    source, out = tmp_path / "cloud.npy", tmp_path / "aligned.npy"
+    np.save(source, table("<f4"))
+    write(source, out, R, UTM)
+    written = np.load(out)
+    assert written.dtype == np.float64 and written.shape == (N, 6)
+    np.testing.assert_array_equal(written[:, 3:], table("<f4")[:, 3:].astype(np.float64))
+    np.testing.assert_allclose(written[:, :3], moved(table("<f4")[:, :3], R, UTM), rtol=0, atol=1e-9)
+
+
+def test_an_integer_array_becomes_float64_its_labels_exactly_kept(tmp_path) -> None:
+    array = np.concatenate([np.round(XYZ * 1000), LABELS[:, None]], axis=1).astype(np.int64)  # millimetres, label
+    source, out = tmp_path / "grid.npy", tmp_path / "aligned.npy"
+    np.save(source, array)
+    write(source, out)
+    written = np.load(out)
+    assert written.dtype == np.float64 and written.shape == (N, 4)
+    np.testing.assert_array_equal(written[:, 3], LABELS)
+    assert_moved(written[:, :3], moved(array[:, :3]))
+    array[7, 3] = 2**53 + 1  # float64 would round it
+    np.save(source, array)
+    with pytest.raises(PointCloudFormatError, match=r"beyond 2\*\*53"):
+        write(source, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["aligned.npy", "grid.npy"]  # no temporary file left
+
+
+@pytest.mark.parametrize("names", [("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z")])
+def test_a_structured_array_rotates_its_normals_and_keeps_its_other_fields(tmp_path, names) -> None:
+    fields = [(a, "<f4") for a in "xyz"] + [(n, "<f4") for n in names] + [("intensity", "<u2"), ("label", "<i4")]
+    array = np.zeros(N, dtype=fields)
+    for k in range(3):
+        array["xyz"[k]], array[names[k]] = XYZ[:, k], NORMALS[:, k]
+    array["intensity"], array["label"] = RNG.integers(0, 65535, N), LABELS
+    source, out = tmp_path / "cloud.npy", tmp_path / "aligned.npy"
+    np.save(source, array)
+    write(source, out)
+    written = np.load(out)
+    assert written.dtype == array.dtype and header_bytes(out) == header_bytes(source)
+    for name in ("intensity", "label"):
+        assert written[name].tobytes() == array[name].tobytes(), name
+    assert_moved(np.stack([written[a] for a in "xyz"], 1), moved(np.stack([array[a] for a in "xyz"], 1)))
+    assert_moved(np.stack([written[n] for n in names], 1), moved(np.stack([array[n] for n in names], 1), R, 0))
+
+
+# ------------------------------------------------------------------------------------------------- .npz
+
+
+def members(path: Path) -> list[tuple[str, int]]:
+    with zipfile.ZipFile(path) as archive:
+        return [(info.filename, info.compress_type) for info in archive.infolist()]
+
+
+def member_bytes(path: Path, name: str) -> bytes:
+    with zipfile.ZipFile(path) as archive:
+        return archive.read(name)
+
+
+@pytest.mark.parametrize("save", [np.savez, np.savez_compressed], ids=["stored", "deflated"])
+def test_an_npz_keeps_every_other_array_in_its_order_and_compression(tmp_path, save) -> None:
+    source, out = tmp_path / "scan.npz", tmp_path / "aligned.npz"
+    save(source, colors=COLOURS, points=XYZ.astype(np.float32), labels=LABELS, scale=np.float64(0.25))
+    write(source, out)
+    assert members(out) == members(source)
+    for name in ("colors.npy", "labels.npy", "scale.npy"):
+        assert member_bytes(out, name) == member_bytes(source, name), name
+    written = np.load(out)
+    assert written["points"].dtype == np.float32
+    assert_moved(written["points"], moved(XYZ.astype(np.float32)))
+
+
+@pytest.mark.parametrize("key", ["positions", "points"])
+def test_open3d_positions_and_their_normals_are_moved_and_rotated(tmp_path, key) -> None:
+    """Open3D's ``o3d.t.io`` writes ``positions``, ``normals`` and ``colors`` (float32)."""
+    source, out = tmp_path / "o3d.npz", tmp_path / "aligned.npz"
+    colours = (COLOURS / 255).astype(np.float32)
+    np.savez_compressed(source, **{key: XYZ.astype(np.float32)}, normals=NORMALS.astype(np.float32), colors=colours)
+    write(source, out)
+    written = np.load(out)
+    assert_moved(written[key], moved(XYZ.astype(np.float32)))
+    assert_moved(written["normals"], moved(NORMALS.astype(np.float32), R, 0))
+    assert member_bytes(out, "colors.npy") == member_bytes(source, "colors.npy")
+
+
+def test_normals_of_another_row_count_are_copied_as_they_are(tmp_path) -> None:
+    source, out = tmp_path / "o3d.npz", tmp_path / "aligned.npz"
+    np.savez(source, positions=XYZ, normals=NORMALS[:10])
+    write(source, out)
+    assert member_bytes(out, "normals.npy") == member_bytes(source, "normals.npy")
+
+
+def test_an_npz_whose_other_arrays_expand_beyond_the_limit_is_refused_before_writing(tmp_path) -> None:
+    """A deflated member of zeros is a few kilobytes that ask for as many megabytes of work as it declares."""
+    source, out = tmp_path / "bomb.npz", tmp_path / "aligned.npz"
+    np.savez_compressed(source, points=XYZ[:20], padding=np.zeros(1 << 19))  # 4 MiB of zeros
+    assert source.stat().st_size < 100_000
+    with pytest.raises(PointCloudFormatError, match="other arrays expand to"):
+        write(source, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bomb.npz"]
+
+
+# -------------------------------------------------------------------------------------------------- CLI
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory) -> Path:
+    return snapshot_model(tmp_path_factory.mktemp("models"))
+
+
+def pose(out: Path) -> tuple[np.ndarray, np.ndarray]:
+    record = json.loads(out.read_text())
+    return np.asarray(record["rotation"]), np.asarray(record["translation"])
+
+
+def register(*args, model_dir: Path):
+    return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *FAST])
+
+
+def test_register_writes_an_npy_and_an_npz_as_themselves_moved(tmp_path, model_dir) -> None:
+    source, target = synthetic_pair()
+    np.save(tmp_path / "target.npy", target)
+    cloud = np.concatenate([source, NORMALS[: len(source)]], axis=1).astype(np.float32)  # [600, 6]
+    np.save(tmp_path / "scan.npy", cloud)
+    out, aligned = tmp_path / "pose.json", tmp_path / "aligned.npy"
+    result = register(tmp_path / "scan.npy", tmp_path / "target.npy", "--out", out, "--write-aligned", aligned,
+                      model_dir=model_dir)  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "note" not in result.stderr
+    rotation, translation = pose(out)
+    written = np.load(aligned)
+    assert written.dtype == np.float32 and written.shape == cloud.shape
+    assert written[:, 3:].tobytes() == cloud[:, 3:].tobytes()
+    assert_moved(written[:, :3], moved(cloud[:, :3], rotation, translation))
+
+    labels = np.arange(len(source), dtype=np.int16)
+    np.savez_compressed(tmp_path / "scan.npz", points=source, colors=COLOURS[: len(source)], labels=labels)
+    aligned = tmp_path / "aligned.npz"
+    result = register(tmp_path / "scan.npz", tmp_path / "target.npy", "--out", out, "--write-aligned", aligned,
+                      model_dir=model_dir)  # fmt: skip
+    assert result.exit_code == 0, result.output
+    rotation, translation = pose(out)
+    assert members(aligned) == members(tmp_path / "scan.npz")
+    assert member_bytes(aligned, "labels.npy") == member_bytes(tmp_path / "scan.npz", "labels.npy")
+    assert_moved(np.load(aligned)["points"], moved(source, rotation, translation))
+
+
+def test_another_output_format_says_which_columns_and_arrays_it_left(tmp_path, model_dir) -> None:
+    source, target = synthetic_pair()
+    np.save(tmp_path / "target.npy", target)
+    np.save(tmp_path / "scan.npy", np.concatenate([source, NORMALS[: len(source)]], axis=1))
+    np.savez(tmp_path / "scan.npz", points=source, colors=COLOURS[: len(source)])
+    for name, left in (("scan.npy", "(column 4, column 5, column 6)"), ("scan.npz", "(colors)")):
+        result = register(tmp_path / name, tmp_path / "target.npy", "--write-aligned", tmp_path / "aligned.ply",
+                          model_dir=model_dir)  # fmt: skip
+        assert result.exit_code == 0, result.output
+        assert f"{name}'s other fields {left} are kept in a .np" in result.stderr.replace("\n", " ")
+        assert read_points(tmp_path / "aligned.ply").shape == (len(source), 3)
+
+
+def test_sequence_writes_npy_and_npz_frames_as_themselves(tmp_path, model_dir) -> None:
+    source, target = synthetic_pair()
+    frames = [tmp_path / "f0.npy", tmp_path / "f1.npz", tmp_path / "f2.npy"]
+    np.save(frames[0], np.concatenate([target, LABELS[: len(target), None]], axis=1))  # float64 [600, 4]
+    np.savez(frames[1], positions=source, normals=NORMALS[: len(source)].astype(np.float32))
+    np.save(frames[2], np.asfortranarray(np.concatenate([source, NORMALS[: len(source)]], axis=1)))
+    folder, steps = tmp_path / "aligned", tmp_path / "steps.jsonl"
+    folder.mkdir()
+    result = runner.invoke(app, ["sequence", *map(str, frames), "--write-aligned", str(folder), "--out", str(steps),
+                                 "--model-dir", str(model_dir), *FAST])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in folder.iterdir()) == ["f0.npy", "f1.npz", "f2.npy"]
+    assert (folder / "f0.npy").read_bytes() == frames[0].read_bytes()  # frame 0: the identity
+    accumulated = [np.asarray(json.loads(line)["accumulated_transform"]) for line in steps.read_text().splitlines()]
+    f1, f2 = np.load(folder / "f1.npz"), np.load(folder / "f2.npy")
+    rotation, translation = accumulated[0][:3, :3], accumulated[0][:3, 3]
+    assert_moved(f1["positions"], moved(source, rotation, translation))
+    assert_moved(f1["normals"], moved(NORMALS[: len(source)].astype(np.float32), rotation, 0))
+    rotation, translation = accumulated[1][:3, :3], accumulated[1][:3, 3]
+    assert f2.flags.f_contiguous and f2[:, 3:].tobytes() == np.load(frames[2])[:, 3:].tobytes()
+    assert_moved(f2[:, :3], moved(source, rotation, translation))
+
+
+# ------------------------------------------------------------------------------------------------- HTTP
+
+
+def transform() -> str:
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[:3, 3] = R, T
+    return json.dumps(matrix.tolist())
+
+
+def post(client, path: Path, name: str | None = None):
+    return client.post(
+        "/v1/register/aligned",
+        files={"source": (name or path.name, path.read_bytes())},
+        data={"transform": transform()},
+    )
+
+
+def test_the_page_downloads_an_npy_and_an_npz_as_themselves_moved(client, tmp_path) -> None:
+    np.save(tmp_path / "scan.npy", table("<f4"))
+    np.savez_compressed(tmp_path / "scan.npz", positions=XYZ, normals=NORMALS, colors=COLOURS)
+    cases = [("scan.npy", None, "scan_aligned.npy"), ("scan.npz", None, "scan_aligned.npz"),
+             ("scan.npy", "scan.bin", "scan_aligned.npy"), ("scan.npz", "scan", "scan_aligned.npz")]  # fmt: skip
+    for name, upload_name, download in cases:
+        answer = post(client, tmp_path / name, upload_name)
+        assert answer.status_code == 200, answer.text
+        assert answer.headers["content-type"] == "application/octet-stream"
+        assert answer.headers["content-disposition"] == f'attachment; filename="{download}"'
+        assert int(answer.headers["content-length"]) == len(answer.content)
+        write(tmp_path / name, tmp_path / f"cli_{name}")
+        assert answer.content == (tmp_path / f"cli_{name}").read_bytes()  # the CLI's file, byte for byte
+    written = np.load(io.BytesIO(post(client, tmp_path / "scan.npz").content))
+    assert_moved(written["normals"], moved(NORMALS, R, 0))
+    assert written["colors"].tobytes() == COLOURS.tobytes()
+
+
+def test_the_page_refuses_an_array_it_cannot_write_moved_with_a_422(client, tmp_path) -> None:
+    np.savez_compressed(tmp_path / "bomb.npz", points=XYZ[:20], padding=np.zeros(1 << 19))
+    assert_error(post(client, tmp_path / "bomb.npz"), 422, "bomb.npz", "other arrays expand to")
+    array = np.concatenate([np.round(XYZ), np.full((N, 1), 2**60)], axis=1).astype(np.int64)
+    np.save(tmp_path / "ids.npy", array)
+    assert_error(post(client, tmp_path / "ids.npy"), 422, "ids.npy", "2**53")
