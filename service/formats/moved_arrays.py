@@ -11,9 +11,9 @@ shape, order and other columns kept.
 - The dtype: float64 is kept; float32 is kept unless a moved coordinate is beyond ``FLOAT32_EXACT_ENOUGH``, when the
   coordinates become float64 (a plain array: the whole array, each other value exactly as it was); a plain array of
   2-byte floats becomes float32 (float64 beyond it), one of integers float64 (an 8-byte integer beyond 2**53, which
-  float64 would round, is refused). A structured array's x, y, z fields are written as a PLY file's are (8-byte
-  floats kept, 4-byte ones kept or widened, others 4-byte floats, 8-byte ones beyond it); its other fields keep
-  their types.
+  float64 would round, is refused, and so is a widened row longer than ``MAX_WRITTEN_ROW_BYTES``). A structured
+  array's x, y, z fields are written as a PLY file's are (8-byte floats kept, 4-byte ones kept or widened, others
+  4-byte floats, 8-byte ones beyond it); its other fields keep their types.
 - ``.npz``: every member copied as it was, in its place, with its name, date, attributes and compression (stored or
   deflated), the archive's comment too; the member :func:`service.formats.arrays.read_npz` reads (``points``, else
   ``positions``, else the only array) moved as an ``.npy`` file, and a plain float ``normals`` array of its rows and
@@ -39,6 +39,7 @@ NORMALS_MEMBER = "normals.npy"  # an .npz array of the cloud's rows and 3 float 
 OTHER_BYTES_PER_POINT = MAX_ROW_BYTES  # what an .npz's members not moved may expand to, per point of its cloud ...
 OTHER_BYTES_EXTRA = 1 << 20  # ... and this much more (small arrays: a pose, a name, a grid's size)
 EXACT_INTEGERS = 2**53  # the largest integers float64 holds exactly
+MAX_WRITTEN_ROW_BYTES = 2 * MAX_ROW_BYTES  # a plain array widened (integers to float64): its rows at most this long
 
 
 def moved_npy(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
@@ -146,6 +147,11 @@ def _moved_array(
         _moved_blocks(src, dst, dtype, written, rows, R, t, normals, ".npy records")
     else:
         written = dtype if rotate else _plain_written(dtype, widen)
+        if shape[-1] * written.itemsize > MAX_WRITTEN_ROW_BYTES:  # 128 int8 columns would be 1 KiB a row
+            raise PointCloudFormatError(
+                f"rows of {shape[-1]} {dtype} values would be {shape[-1] * written.itemsize} bytes as {written}: "
+                f"at most {MAX_WRITTEN_ROW_BYTES} are written (save the array as floats, or write another format)"
+            )
         _header(src, dst, start, header, shape, fortran, dtype, written)
         if fortran:
             _moved_columns(src, dst, dtype, written, rows, shape[-1], R, t)

@@ -111,6 +111,9 @@ def test_an_integer_array_becomes_float64_its_labels_exactly_kept(tmp_path) -> N
     with pytest.raises(PointCloudFormatError, match=r"beyond 2\*\*53"):
         write(source, out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["aligned.npy", "grid.npy"]  # no temporary file left
+    np.save(source, np.zeros((N, 40), dtype=np.int8))  # 40 bytes a row would be 320 as float64
+    with pytest.raises(PointCloudFormatError, match="would be 320 bytes as float64: at most 256"):
+        write(source, out)
 
 
 @pytest.mark.parametrize("names", [("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z")])
