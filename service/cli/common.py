@@ -84,6 +84,21 @@ def write_aligned_cloud(path: Path, source: Path | None, points: np.ndarray, R: 
         )
 
 
+def check_e57_aligned(source: Path, out_name: str) -> None:
+    """Exit 2 where the E57 file ``source`` cannot be written moved as ``out_name`` (its XML section cannot be
+    rewritten: :func:`service.formats.moved_e57.check_moved_e57`), before any registration runs."""
+    from service.formats.moved_e57 import check_moved_e57
+    from service.pointcloud_io import PointCloudFormatError
+
+    try:
+        with open(source, "rb") as f:
+            check_moved_e57(f)
+    except PointCloudFormatError as exc:
+        fail(f"--write-aligned {out_name}: {source.name} cannot be written moved as E57: {exc}")
+    except OSError:
+        return  # reading it says why
+
+
 def number(value: float | None, spec: str = ".4g") -> str:
     """``value`` formatted for a summary line, ``?`` where it is missing."""
     return "?" if value is None else format(float(value), spec)

@@ -62,11 +62,12 @@ OutOpt = Annotated[
 WriteAlignedOpt = Annotated[
     Path | None,
     typer.Option(
-        help="write the source moved onto the target (R @ p + t), format from the extension (.ply .pcd .las .laz "
+        help="write the source moved onto the target (R @ p + t), format from the extension (.ply .pcd .las .laz .e57 "
         ".xyz .txt .csv .pts .ptx .npy .npz): a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ source written "
         "in its own format is that file moved, its other fields kept (colours, intensity, faces, an array's other "
         "columns and arrays; normals rotated); "
-        "otherwise x, y, z only"
+        "otherwise x, y, z only; an E57 source written as .e57 keeps its scans, images and fields, each scan's and "
+        "image's pose composed with the registration"
     ),
 ]
 BinaryOpt = Annotated[
@@ -141,7 +142,9 @@ def register_command(
 
 def _check_register_flags(write_aligned: Path | None, out: Path | None = None, source: Path | None = None) -> None:
     """Usage errors of ``register``'s outputs, before the registration runs: among them a LAS/LAZ, PTS or PTX
-    ``--write-aligned`` of a source of another format (its format from its content)."""
+    ``--write-aligned`` of a source of another format (its format from its content), and an E57 source to ``.e57``
+    whose XML section cannot be rewritten."""
+    from service.cli.common import check_e57_aligned
     from service.formats.moved import FORMAT_NAMES, OWN_FORMAT_ONLY, source_format
     from service.pointcloud_io import SUFFIXES
 
@@ -157,11 +160,14 @@ def _check_register_flags(write_aligned: Path | None, out: Path | None = None, s
         )
     kind = source_format(source) if source is not None else None
     own = OWN_FORMAT_ONLY.get(suffix)
+    article = "an" if own == "e57" else "a"
     if own is not None and kind is not None and kind != own:
         fail(
-            f"--write-aligned {write_aligned.name}: a {FORMAT_NAMES[own]} file is written only from a "
+            f"--write-aligned {write_aligned.name}: {article} {FORMAT_NAMES[own]} file is written only from {article} "
             f"{FORMAT_NAMES[own]} source; {source.name} is {FORMAT_NAMES[kind]} (write one of {SUFFIXES})"
         )
+    if own == "e57" and kind == "e57":
+        check_e57_aligned(source, write_aligned.name)
 
 
 def _write_outputs(

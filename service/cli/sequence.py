@@ -12,7 +12,15 @@ from typing import TYPE_CHECKING, Annotated, TextIO
 import numpy as np
 import typer
 
-from service.cli.common import UNRELIABLE_EXIT, check_output_path, fail, number, read_cloud, write_aligned_cloud
+from service.cli.common import (
+    UNRELIABLE_EXIT,
+    check_e57_aligned,
+    check_output_path,
+    fail,
+    number,
+    read_cloud,
+    write_aligned_cloud,
+)
 from service.cli.model_lookup import load_registrar
 from service.cli.options import (
     ApiKeyOpt,
@@ -74,7 +82,8 @@ SequenceAlignedOpt = Annotated[
         metavar="DIR",
         help="write every frame moved into frame 0's coordinates (T_0_i) into this folder, named as the frame: "
         "a PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ frame is that file moved, its other fields kept (as "
-        "register --write-aligned); others hold x, y, z (.e57 frames as .ply)",
+        "register --write-aligned); others hold x, y, z; an E57 frame is written as .e57 with its poses "
+        "composed",
     ),
 ]
 SequenceReliableOpt = Annotated[
@@ -227,8 +236,8 @@ def _check_sequence_outputs(frames: list[Path], out: Path | None, kitti: Path | 
 
 def aligned_name(frame: Path) -> str:
     """The file name of ``frame`` moved (``mfgnet sequence --write-aligned``): its own name, where a writer is named by
-    its extension (a ``.las``/``.laz``, ``.pts`` or ``.ptx`` name only for content of that format), else its stem with
-    ``.ply``."""
+    its extension (a ``.las``/``.laz``, ``.pts``, ``.ptx`` or ``.e57`` name only for content of that
+    format), else its stem with ``.ply``."""
     from service.formats.moved import OWN_FORMAT_ONLY, source_format
     from service.pointcloud_io import SUFFIXES
 
@@ -240,7 +249,7 @@ def aligned_name(frame: Path) -> str:
 
 def _check_aligned_folder(frames: list[Path], folder: Path | None) -> None:
     """Usage errors of ``--write-aligned DIR`` before any registration: not an existing folder, two frames of one
-    name, or an output that would overwrite a frame."""
+    name, an output that would overwrite a frame, or an E57 frame whose XML section cannot be rewritten."""
     if folder is None:
         return
     if not folder.is_dir():
@@ -254,6 +263,8 @@ def _check_aligned_folder(frames: list[Path], folder: Path | None) -> None:
         names[name] = frame
         if (folder / name).resolve() in inputs:
             fail(f"--write-aligned {folder}: {folder / name} is one of the frames; it would be overwritten")
+        if Path(name).suffix.lower() == ".e57":  # an E57 frame as itself: its XML section can be rewritten
+            check_e57_aligned(frame, str(folder / name))
 
 
 def _read_frame(index: int, path: Path) -> np.ndarray:

@@ -1,8 +1,8 @@
 """The source file itself, its points moved by a pose: ``p' = R @ p + t`` in float64, every other field kept.
 
 Written where the output's format is the source's (:data:`KEPT_FORMATS`; the source's format from its content, the
-output's from its extension): PLY, PCD, LAS/LAZ, XYZ/CSV/TXT (any of ``.txt``, ``.xyz``, ``.csv``), PTS, PTX, NPY and
-NPZ.
+output's from its extension): PLY, PCD, LAS/LAZ, XYZ/CSV/TXT (any of ``.txt``, ``.xyz``, ``.csv``), PTS, PTX, NPY,
+NPZ and E57.
 Normals (PLY ``nx ny nz``, PCD ``normal_x normal_y normal_z``, where all three are floats; text columns a header names
 so) are rotated, not translated; every other per-point field is copied as the file holds it.
 
@@ -20,6 +20,8 @@ so) are rotated, not translated; every other per-point field is copied as the fi
 - XYZ/CSV/TXT, PTS and PTX (:mod:`service.formats.moved_text`): every line copied as it is but for the numbers that
   place a point: a row's x, y, z (normals) written with the decimals the source's coordinates carry, a PTX scan's
   header composed with the pose (its rows, in the scanner's frame, copied).
+- E57 (:mod:`service.formats.moved_e57`): every scan's and image's pose composed with the pose in the XML section;
+  the points, images and every other binary section copied as they are, a chunk of pages at a time.
 - NPY and NPZ (:mod:`service.formats.moved_arrays`): the array's shape, order and dtype kept (float32 widened for
   map coordinates, integers written as float64), its first three columns or fields x, y, z moved, a structured
   array's normals and an archive's ``normals`` array rotated, every other column, field and archive member copied.
@@ -54,6 +56,8 @@ from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 from service.formats.moved_arrays import moved_npy, moved_npz
 from service.formats.moved_arrays import other_fields as array_fields
+from service.formats.moved_e57 import moved_e57
+from service.formats.moved_e57 import other_fields as e57_fields
 from service.formats.moved_text import moved_pts, moved_ptx, moved_text
 from service.formats.read import detect_at as detect_format
 from service.formats.write import FLOAT32_EXACT_ENOUGH
@@ -69,11 +73,12 @@ KEPT_FORMATS = {
     "text": (".txt", ".xyz", ".csv"),
     "pts": (".pts",),
     "ptx": (".ptx",),
+    "e57": (".e57",),
     "npy": (".npy",),
     "npz": (".npz",),
 }
 # The extensions written only from a source of their format (no writer of x, y, z alone is named by them)
-OWN_FORMAT_ONLY = {".las": "las", ".laz": "las", ".pts": "pts", ".ptx": "ptx"}
+OWN_FORMAT_ONLY = {".las": "las", ".laz": "las", ".pts": "pts", ".ptx": "ptx", ".e57": "e57"}
 LEICA_COLUMNS = ("intensity", "red", "green", "blue")  # a PTS or PTX row's values after x, y, z
 NORMALS = {"ply": ("nx", "ny", "nz"), "pcd": ("normal_x", "normal_y", "normal_z")}
 FORMAT_NAMES = {
@@ -143,6 +148,8 @@ def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
                 return _other_columns(f, kind)
             if kind in ("npy", "npz"):
                 return array_fields(f, kind)
+            if kind == "e57":
+                return e57_fields(f)
             if kind == "ply":
                 header, _ = ply_format.read_header(require("plyfile", "reading PLY files"), f)
                 names = [prop.name for prop in header["vertex"].properties]
@@ -190,10 +197,10 @@ def write_moved(
     translation: np.ndarray,
     largest: float,
 ) -> None:
-    """Write the PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ file ``source`` (a path or an open file) to
+    """Write the PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY, NPZ or E57 file ``source`` (a path or an open file) to
     ``out``
     (:func:`keeps_content`) with its points moved by ``rotation [3, 3]`` and ``translation [3]`` and its normals
-    rotated, every other field and element kept.
+    rotated, every other field and element kept; an E57 file with every scan's and image's pose composed.
     ``largest``: the largest absolute moved coordinate (the caller has moved the points it registered): beyond
     ``FLOAT32_EXACT_ENOUGH`` float32 x, y, z are written as float64.
 
@@ -222,6 +229,8 @@ def write_moved(
                 _moved_las(src, dst, R, t, out.suffix.lower() == ".laz")
             elif kind in ("npy", "npz"):
                 (moved_npy if kind == "npy" else moved_npz)(src, dst, R, t, widen)
+            elif kind == "e57":
+                moved_e57(src, dst, R, t)
             else:
                 _TEXT_WRITERS[kind](src, dst, R, t)
         os.replace(temporary, out)

@@ -3,6 +3,9 @@ plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded s
 LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ file as itself, every other field kept
 (:func:`service.formats.moved.write_moved`), any other format as binary PLY of x, y, z).
 
+An E57 upload comes back as E57: every scan's and image's pose composed with the transform, its points, images and
+other fields copied as they are (:mod:`service.formats.moved_e57`).
+
 Uploads go through the reader and limits of ``POST /v1/register`` (:func:`service.api.bodies.decode_upload`: any
 format of :mod:`service.formats`, found from the content, up to ``max_file_points`` per cloud). Display clouds
 are float32 little-endian ``[n, 3]`` rows, base64 in the JSON, at most :data:`DISPLAY_CAP` points per cloud (a
@@ -59,6 +62,7 @@ ALIGNED_MEDIA_TYPES = {
     ".xyz": "text/plain",
     ".pts": "text/plain",
     ".ptx": "text/plain",
+    ".e57": "model/e57",  # its IANA media type
     ".npy": OCTET_STREAM,
     ".npz": OCTET_STREAM,
 }
@@ -179,7 +183,8 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
     "arrays), normals rotated (an NPZ's `normals` array too), x, y, z in the file's precision "
     "(4-byte floats become 8-byte ones for map coordinates; LAS keeps its scale and, where the moved points fit, its "
     "offsets; text keeps the decimals of its coordinates); a PTX file keeps its rows and has each scan's header "
-    "composed with the pose. "
+    "composed with the pose. An E57 source comes back as E57, named `<stem>_aligned.e57`: every scan's and image's "
+    "pose composed with the transform, its points, images and every other field copied as they are. "
     "Any other format comes back as binary little-endian PLY of x, y, z (float32, or double for map coordinates), "
     "named `<stem>_aligned.ply`. A file that cannot hold its moved points (a LAS span beyond its 32-bit integers at "
     "its scale) is a 422 naming why.",
@@ -188,7 +193,7 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
         200: {
             "description": "The moved source (Content-Disposition names it): PLY, PCD, NPY and NPZ as "
             "application/octet-stream, LAS as application/vnd.las, LAZ as "
-            "application/vnd.laszip, CSV as text/csv, XYZ, TXT, PTS and PTX as text/plain (UTF-8).",
+            "application/vnd.laszip, CSV as text/csv, XYZ, TXT, PTS and PTX as text/plain (UTF-8), E57 as model/e57.",
             "content": {media: _BINARY for media in dict.fromkeys(ALIGNED_MEDIA_TYPES.values())},
         },
         **error_docs(400, 401, 408, 413, 415, 422, 503, 504),
