@@ -11,6 +11,8 @@ away. :func:`overlap_scores` ranks them by a coarse occupancy correlation, so th
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from service.icp import target_normals
@@ -54,6 +56,32 @@ def plane_frame(
     return frame, float(on_axes.sum()) / len(points)
 
 
+@dataclass(frozen=True)
+class CloudFrame:
+    """A cloud's PCA normals and the :func:`plane_frame` they give, found once and shared by the stages that ask."""
+
+    normals: np.ndarray  # [N, 3] unit, sign arbitrary
+    defined: np.ndarray  # [N] bool: a plane is defined there
+    axes: np.ndarray | None  # [3, 3] columns: the dominant plane directions; None where there are none
+    share: float  # of the points, those whose normal lies along one of the axes
+
+    @property
+    def counts(self) -> bool:
+        """Whether the frame covers at least ``MIN_FRAME_SHARE`` of the points (:func:`frame_rotations` needs it)."""
+        return self.axes is not None and self.share >= MIN_FRAME_SHARE
+
+    def turned_back(self, R: np.ndarray) -> CloudFrame:
+        """The frame of the cloud's points before they were turned by ``R [3, 3]`` (``p_turned = R @ p``)."""
+        return CloudFrame(self.normals @ R, self.defined, None if self.axes is None else R.T @ self.axes, self.share)
+
+
+def cloud_frame(points: np.ndarray) -> CloudFrame:
+    """The :class:`CloudFrame` of ``points [N, 3]``: its :func:`service.icp.target_normals` and :func:`plane_frame`."""
+    normals, defined = target_normals(np.asarray(points, dtype=np.float64))  # [N, 3], [N]
+    axes, share = plane_frame(points, (normals, defined))
+    return CloudFrame(normals, defined, axes, share)
+
+
 def alike(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``[A, B]`` bool: unit directions ``a [A, 3]`` and ``b [B, 3]`` within ``AXIS_DEGREES`` of each other, either
     sign (the dot products summed axis by axis: faster than a ``[A, 3] @ [3, B]`` matrix product here)."""
@@ -78,17 +106,18 @@ def mean_direction(normals: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return mean / np.linalg.norm(mean)
 
 
-def frame_rotations(source: np.ndarray, target: np.ndarray) -> np.ndarray | None:
+def frame_rotations(source: np.ndarray, target: np.ndarray, source_frame: CloudFrame | None = None
+                    ) -> np.ndarray | None:
     """``[24, 3, 3]``: the rotations ``F_t G F_s^T`` taking the :func:`plane_frame` of ``source [N, 3]`` onto that of
     ``target [M, 3]`` (``G``: the cube's 24 rotations), or ``None`` unless both clouds have a frame covering at least
-    ``MIN_FRAME_SHARE`` of their points."""
-    f_s, share_s = plane_frame(source)
-    if f_s is None or share_s < MIN_FRAME_SHARE:  # most clouds: the target's frame is not needed
+    ``MIN_FRAME_SHARE`` of their points. ``source_frame``: the source's :func:`cloud_frame`, where the caller has it."""
+    f_s = cloud_frame(source) if source_frame is None else source_frame
+    if not f_s.counts:  # most clouds: the target's frame is not needed
         return None
-    f_t, share_t = plane_frame(target)
-    if f_t is None or share_t < MIN_FRAME_SHARE:
+    f_t = cloud_frame(target)
+    if not f_t.counts:
         return None
-    return f_t[None] @ search_rotations_for(24) @ f_s.T[None]
+    return f_t.axes[None] @ search_rotations_for(24) @ f_s.axes.T[None]
 
 
 def overlap_scores(source: np.ndarray, target: np.ndarray, rotations: np.ndarray,

@@ -12,7 +12,7 @@ from service.icp import NORMAL_NEIGHBOURS, Surface
 from service.kdtree import KDTree
 from service.neighbours import knn_graph
 from service.normalization import Normalization
-from service.plane_frames import frame_rotations
+from service.plane_frames import CloudFrame, cloud_frame, frame_rotations
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio, attainable_on_surface, degenerate, nearest_other_distances
 from service.sampling import hashed_indices
@@ -89,11 +89,17 @@ class Working(Sampled):
                 range_view(self.tgt_e, self.entered_target_tree) if samples_densely(self.tgt_e, self.tgt_w) else None)
 
     @cached_property
+    def source_frame(self) -> CloudFrame:
+        """The normalised working source's normals and plane frame (:func:`service.plane_frames.cloud_frame`), found
+        once per registration: the frame rotations and the symmetry check's off-plane points both ask."""
+        return cloud_frame(self.src_n)
+
+    @cached_property
     def plane_frame_rotations(self) -> np.ndarray | None:
         """``[24, 3, 3]``: the rotations between the normalised working clouds' plane frames
         (:func:`service.plane_frames.frame_rotations`), or ``None`` unless both are built of orthogonal planes;
         found once per registration (``auto`` and the search both ask)."""
-        return frame_rotations(self.src_n, self.tgt_n)
+        return frame_rotations(self.src_n, self.tgt_n, self.source_frame)
 
     @cached_property
     def entered_target_tree(self) -> KDTree:

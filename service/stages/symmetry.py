@@ -59,9 +59,9 @@ import time
 
 import numpy as np
 
-from service.icp import Surface, rotation_of, target_normals
+from service.icp import Surface, rotation_of
 from service.options import RegistrationOptions
-from service.plane_frames import AXIS_DEGREES, plane_frame
+from service.plane_frames import AXIS_DEGREES, CloudFrame, cloud_frame
 from service.result import RegistrationResult
 from service.rotation_search import AMBIGUOUS_DEGREES, ambiguity_warning, rotation_between_deg
 from service.stability import ROTATION_SHARE, pose_stability
@@ -192,7 +192,8 @@ def structure_ambiguity(work: Working, rotations: np.ndarray, distances: np.ndar
     ``MIN_STRUCTURE`` of the working source's points off its dominant planes and near the target, where that is at
     least the pose's less ``STRUCTURE_GAP``; ``None`` where none is, or the pose places too few such points near the
     target."""
-    off = off_plane_points(work.working_source, work.inlier_distance)  # [Ns]
+    frame = work.source_frame.turned_back(work.R_init)  # src_n's directions in the working source's own frame
+    off = off_plane_points(work.working_source, work.inlier_distance, frame)  # [Ns]
     amount, precision = overlay_precision(work, distances, off)  # [1 + C] each
     if amount[0] < MIN_STRUCTURE:
         return None
@@ -210,19 +211,20 @@ def structure_ambiguity(work: Working, rotations: np.ndarray, distances: np.ndar
     )
 
 
-def off_plane_points(points: np.ndarray, unit: float) -> np.ndarray:
+def off_plane_points(points: np.ndarray, unit: float, frame: CloudFrame | None = None) -> np.ndarray:
     """``[N]`` bool: the points of ``points [N, 3]`` farther than ``OFF_PLANE_DISTANCE`` times ``unit`` (an inlier
     distance) from each dominant plane of the cloud: along each axis of its :func:`service.plane_frames.plane_frame`,
     a slab two ``PLANE_SLAB`` bins wide across the axis holding at least ``PLANE_SHARE`` of the points among those
-    whose normal lies along the axis (:func:`plane_offsets`). None where the cloud has no frame or no such plane."""
+    whose normal lies along the axis (:func:`plane_offsets`). None where the cloud has no frame or no such plane.
+    ``frame``: the cloud's :func:`service.plane_frames.cloud_frame` in the frame of ``points``, where the caller has
+    it (the working source's, of its normalised copy: :attr:`Working.source_frame`)."""
     points = np.asarray(points, dtype=np.float64)
-    normals, defined = target_normals(points)  # [N, 3], [N]
-    frame, _ = plane_frame(points, (normals, defined))  # [3, 3] columns: the axes
-    if frame is None:
+    frame = cloud_frame(points) if frame is None else frame
+    if frame.axes is None:
         return np.zeros(len(points), dtype=bool)
     distance = np.full(len(points), np.inf)  # [N]: to the nearest dominant plane
-    for axis in frame.T:
-        along = defined & (np.abs(normals @ axis) > np.cos(np.radians(AXIS_DEGREES)))  # [N]
+    for axis in frame.axes.T:
+        along = frame.defined & (np.abs(frame.normals @ axis) > np.cos(np.radians(AXIS_DEGREES)))  # [N]
         for offset in plane_offsets(points[along] @ axis, PLANE_SLAB * unit, PLANE_SHARE * len(points)):
             distance = np.minimum(distance, np.abs(points @ axis - offset))
     return np.isfinite(distance) & (distance > OFF_PLANE_DISTANCE * unit)

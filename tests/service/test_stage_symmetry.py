@@ -232,6 +232,19 @@ def test_a_room_view_turned_a_quarter_turn_is_ambiguous_by_what_is_not_wall_or_f
     assert (amount > stage.MIN_STRUCTURE).all() and precision[1] > precision[0] + 0.5  # the truth fits the boxes
 
 
+def test_the_off_plane_points_from_the_shared_frame_are_those_of_the_working_source_under_a_guess():
+    room = room_scene(np.random.default_rng(0))
+    guess = np.eye(4)
+    guess[:3, :3], guess[:3, 3] = Rotation.from_euler("zyx", [70.0, -25.0, 40.0], degrees=True).as_matrix(), [1, 2, 3]
+    request = validate(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8], None, {"initial_transform": guess.tolist()},
+                       3, 128)
+    work = normalise(sample(request), general_reference_radius())
+    shared = work.source_frame.turned_back(work.R_init)  # found on src_n, which the guess turned
+    alone = stage.off_plane_points(work.working_source, work.inlier_distance)  # [Ns] its own frame, afresh
+    assert 0.1 < alone.mean() < 0.3
+    assert np.array_equal(stage.off_plane_points(work.working_source, work.inlier_distance, shared), alone)
+
+
 def test_overlay_precision_is_the_close_fit_among_the_points_overlaid():
     blob = asymmetric_blob(3000)
     work, _ = working(blob, blob @ R_TRUE.T + T_TRUE)
