@@ -16,13 +16,19 @@ from api_server import assert_error
 from moved_files import coloured_ply, pcd_with_fields, survey_las
 from scipy.spatial.transform import Rotation
 
-from service.formats.moved import write_moved
+from service.formats.detect import FORMATS
+from service.formats.moved import KEPT_FORMATS, write_moved
 from service.pointcloud_io import read_points
 
 R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
 T = np.array([1.5, -2.0, 0.3])
 UTM = np.array([512_345.0, 4_123_456.0, 150.0])
 XYZ = np.random.default_rng(11).normal(size=(500, 3)).astype(np.float32)  # [500, 3]
+
+
+def test_every_format_the_reader_finds_comes_back_as_itself():
+    """The download has no fallback format: a format the reader learns must learn to be written moved too."""
+    assert set(KEPT_FORMATS) == set(FORMATS)
 
 
 def transform(rotation: np.ndarray = R, translation: np.ndarray = T) -> str:

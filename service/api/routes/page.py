@@ -1,10 +1,8 @@
 """The browser page: ``GET /`` (static files from ``service/web``), ``POST /v1/register/view`` (a registration
-plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded source moved by a pose: a PLY, PCD,
-LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY or NPZ file as itself, every other field kept
-(:func:`service.formats.moved.write_moved`), any other format as binary PLY of x, y, z).
-
-An E57 upload comes back as E57: every scan's and image's pose composed with the transform, its points, images and
-other fields copied as they are (:mod:`service.formats.moved_e57`).
+plus decimated display clouds) and ``POST /v1/register/aligned`` (the uploaded source moved by a pose: a file of
+any format the service reads comes back as itself, every other field kept: :func:`service.formats.moved.write_moved`;
+an E57 file with every scan's and image's pose composed with the transform, its points, images and other fields copied
+as they are: :mod:`service.formats.moved_e57`).
 
 Uploads go through the reader and limits of ``POST /v1/register`` (:func:`service.api.bodies.decode_upload`: any
 format of :mod:`service.formats`, found from the content, up to ``max_file_points`` per cloud). Display clouds
@@ -41,7 +39,6 @@ from service.api.security_headers import page_policy
 from service.errors import InputError
 from service.formats import PointCloudFormatError
 from service.formats.moved import KEPT_FORMATS, own_suffix, source_format, write_moved
-from service.formats.write import as_written
 from service.registrar import check_transform
 
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
@@ -184,9 +181,8 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
     "(4-byte floats become 8-byte ones for map coordinates; LAS keeps its scale and, where the moved points fit, its "
     "offsets; text keeps the decimals of its coordinates); a PTX file keeps its rows and has each scan's header "
     "composed with the pose. An E57 source comes back as E57, named `<stem>_aligned.e57`: every scan's and image's "
-    "pose composed with the transform, its points, images and every other field copied as they are. "
-    "Any other format comes back as binary little-endian PLY of x, y, z (float32, or double for map coordinates), "
-    "named `<stem>_aligned.ply`. A file that cannot hold its moved points (a LAS span beyond its 32-bit integers at "
+    "pose composed with the transform, its points, images and every other field copied as they are. A file that "
+    "cannot hold its moved points (a LAS span beyond its 32-bit integers at "
     "its scale) is a 422 naming why.",
     openapi_extra=_multipart(_ALIGNED_SCHEMA),
     responses={
@@ -212,13 +208,13 @@ async def register_aligned(request: Request) -> Response:
             def decode() -> np.ndarray:
                 return bodies.decode_upload(upload, settings.max_file_points)  # [N, 3] float64, the shared reader
 
-            def work(source: np.ndarray) -> tuple[bytes | BinaryIO, str]:
+            def work(source: np.ndarray) -> tuple[BinaryIO, str]:
                 aligned = source @ R.T + t  # [N, 3] float64
                 if not np.isfinite(aligned).all():
                     raise APIError(422, "invalid request: the moved source leaves the float64 range")
-                kind = source_format(upload.file)
-                if kind not in KEPT_FORMATS:
-                    return ply_bytes(aligned), ".ply"
+                kind = source_format(upload.file)  # every format the reader decodes is one of KEPT_FORMATS
+                if kind not in KEPT_FORMATS:  # the spooled file could not be read again
+                    raise APIError(422, f"invalid request: {upload.label} could not be read again to be written moved")
                 suffix = own_suffix(upload.file, kind, upload.filename)
                 return moved_upload(upload, suffix, R, t, float(np.abs(aligned).max(initial=0.0))), suffix
 
@@ -227,8 +223,6 @@ async def register_aligned(request: Request) -> Response:
             form.close()
     stem = PurePath(upload.filename).stem or "source"
     headers = {"Content-Disposition": attachment(f"{_safe(stem)}_aligned{suffix}")}
-    if isinstance(content, bytes):
-        return Response(content, media_type=OCTET_STREAM, headers=headers)
     size = content.seek(0, 2)
     content.seek(0)
     return StreamingResponse(
@@ -296,18 +290,6 @@ def _numbers_only(matrix: Any) -> bool:
         isinstance(row, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
         for row in rows
     )
-
-
-def ply_bytes(xyz: np.ndarray) -> bytes:
-    """Binary little-endian PLY of float64 ``xyz [N, 3]`` in the precision the CLI writes clouds with
-    (:func:`service.formats.write.as_written`: float32, or ``double`` for map coordinates)."""
-    xyz = as_written(xyz)
-    kind, dtype = ("double", "<f8") if xyz.dtype == np.float64 else ("float", "<f4")
-    header = (
-        "ply\nformat binary_little_endian 1.0\ncomment aligned by mfgnet (src_to_tgt applied)\n"
-        f"element vertex {len(xyz)}\nproperty {kind} x\nproperty {kind} y\nproperty {kind} z\nend_header\n"
-    )
-    return header.encode("ascii") + np.ascontiguousarray(xyz, dtype=dtype).tobytes()
 
 
 def _safe(stem: str) -> str:
