@@ -1,6 +1,8 @@
 """Point-cloud files as scanners and their software write them, with the libraries users have (plyfile, pypcd4,
-laspy + lazrs): a coloured PLY mesh, a PCD with intensity, normals and packed colour, a LAS survey with a CRS VLR.
-Seeded. ``bench.server_memory --aligned`` uploads them; the tests of the aligned file
+laspy + lazrs, pye57, numpy): a coloured PLY mesh, a PCD with intensity, normals and packed colour, a LAS survey with
+a CRS VLR, a terrestrial scanner's E57 project of posed scans with intensity and colour, and the arrays machine
+learning code keeps (an ``.npy`` of x, y, z, normals and intensity; a deflated ``.npz`` of points, colours and
+labels). Seeded. ``bench.server_memory --aligned`` uploads them; the tests of the aligned file
 (``mfgnet register --write-aligned``, ``POST /v1/register/aligned``) compare what comes back against them."""
 
 from __future__ import annotations
@@ -82,3 +84,50 @@ def survey_las(path: Path, xyz: np.ndarray, offsets: tuple[float, float, float] 
     for name in ("red", "green", "blue"):
         setattr(las, name, rng.integers(0, 65535, n))
     las.write(str(path))
+
+
+def tls_e57(path: Path, xyz: np.ndarray, scans: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
+    """An E57 project as a terrestrial scanner's software exports it (pye57, libE57Format): ``xyz [n, 3]`` split into
+    ``scans`` scans of consecutive rows, each in its own frame with a pose (a turn about z and a shift, as a tripod's
+    setups stand), float32 coordinates and intensity, 8-bit colour. Returns each scan's pose (quaternion w, x, y, z;
+    translation)."""
+    import pye57
+
+    rng = np.random.default_rng(5)
+    poses = []
+    writer = pye57.E57(str(path), mode="w")
+    try:
+        for number, part in enumerate(np.array_split(xyz, scans)):
+            angle = 0.7 * number  # about z
+            pose = (np.array([np.cos(angle / 2), 0.0, 0.0, np.sin(angle / 2)]), np.array([10.0 * number, -3.0, 1.5]))
+            data = {f"cartesian{axis}": np.ascontiguousarray(part[:, k]) for k, axis in enumerate("XYZ")}
+            data["intensity"] = rng.random(len(part))
+            for name in ("colorRed", "colorGreen", "colorBlue"):
+                data[name] = rng.integers(0, 256, len(part)).astype(np.uint8)
+            writer.write_scan_raw(data, name=f"Setup {number + 1}", rotation=pose[0], translation=pose[1])
+            poses.append(pose)
+    finally:
+        writer.close()
+    return poses
+
+
+def ml_npy(path: Path, xyz: np.ndarray) -> np.ndarray:
+    """A float32 ``[n, 7]`` array of ``xyz [n, 3]``, unit normals and an intensity in [0, 1), as point-cloud learning
+    code keeps its samples; returns it."""
+    rows = np.column_stack([xyz, unit_normals(len(xyz)), np.random.default_rng(6).random(len(xyz))])
+    array = rows.astype(np.float32)  # [n, 7]
+    np.save(path, array)
+    return array
+
+
+def labelled_npz(path: Path, xyz: np.ndarray) -> dict[str, np.ndarray]:
+    """A deflated ``.npz`` (``np.savez_compressed``) of float32 ``points [n, 3]``, uint8 ``colors [n, 3]`` and int32
+    per-point ``labels [n]`` (13 classes, as a segmentation set's); returns its arrays."""
+    rng = np.random.default_rng(7)
+    arrays = {
+        "points": xyz.astype(np.float32),
+        "colors": rng.integers(0, 256, (len(xyz), 3)).astype(np.uint8),
+        "labels": rng.integers(0, 13, len(xyz)).astype(np.int32),
+    }
+    np.savez_compressed(path, **arrays)
+    return arrays

@@ -2,7 +2,7 @@
 
     python -m bench.server_memory --models general
     python -m bench.server_memory                   # every bundled model
-    python -m bench.server_memory --aligned ply,las,laz --aligned-pair laz
+    python -m bench.server_memory --aligned ply,pcd,las,laz,e57,npy,npz --aligned-pair laz
 
 It starts ``mfgnet``'s HTTP app on 127.0.0.1 (``MFGNET_THREADS`` and ``MFGNET_MAX_CONCURRENCY`` 2, the server's
 defaults), reads its resident memory (``VmRSS``) after start, after ``--small`` default registrations of seeded
@@ -13,9 +13,12 @@ a caller gets by default (``rotation_search: "auto"`` included).
 
 ``--aligned FORMATS`` measures the page's download instead: for each format, a fresh server (the same settings)
 answers one ``POST /v1/register/aligned`` of a seeded ``--aligned-points`` file (PLY: a coloured binary mesh; PCD:
-binary with intensity, normals and colour; LAS/LAZ: point format 3 with a CRS VLR), read to its end, and reports
-``VmRSS`` after start and after the answer, and ``VmHWM``. ``--aligned-pair FORMAT`` adds two such uploads at once to
-a server with the Kubernetes manifest's settings (``MFGNET_THREADS`` 1, ``MFGNET_MAX_CONCURRENCY`` 2).
+binary with intensity, normals and colour; LAS/LAZ: point format 3 with a CRS VLR; E57: a terrestrial scanner's
+project of two posed scans of half the points each, as a station-by-station survey is exported, with intensity and
+colour; NPY: float32 x, y, z, normals and intensity; NPZ: deflated float32 points, uint8 colours and int32 labels;
+:mod:`bench.scan_files`), read to its end, and reports ``VmRSS`` after start and after the answer, and ``VmHWM``.
+``--aligned-pair FORMAT`` adds two such uploads at once to a server with the Kubernetes manifest's settings
+(``MFGNET_THREADS`` 1, ``MFGNET_MAX_CONCURRENCY`` 2).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from model.cli_inputs import require_shapes
 
 SMALL_POINTS = 1024
 THREADS = 2
-ALIGNED_FORMATS = ("ply", "pcd", "las", "laz")
+ALIGNED_FORMATS = ("ply", "pcd", "las", "laz", "e57", "npy", "npz")
 MANIFEST_THREADS, MANIFEST_CONCURRENCY = 1, 2  # deploy/k8s/deployment.yaml
 # the pose sent: a quarter turn about z and a shift
 ALIGNED_POSE = [[0.0, -1.0, 0.0, 1.5], [1.0, 0.0, 0.0, -2.0], [0.0, 0.0, 1.0, 0.3], [0.0, 0.0, 0.0, 1.0]]
@@ -93,17 +96,26 @@ def measure(models: str | None, small_requests: int = 5, big_points: int = 100_0
 
 
 def aligned_file(folder: Path, fmt: str, n: int, seed: int = 0) -> Path:
-    """A seeded ``n``-point file as scanners write it, in ``fmt`` (one of :data:`ALIGNED_FORMATS`): a coloured PLY
-    mesh, a binary PCD with intensity, normals and colour, a LAS (or LAZ) survey in UTM coordinates
-    (:mod:`bench.scan_files`)."""
+    """A seeded ``n``-point file as scanners and their users write it, in ``fmt`` (one of :data:`ALIGNED_FORMATS`): a
+    coloured PLY mesh, a binary PCD with intensity, normals and colour, a LAS (or LAZ) survey in UTM coordinates, an
+    E57 project of two posed scans with intensity and colour, an ``.npy`` float32 array of x, y, z, normals and
+    intensity, a deflated ``.npz`` of points, colours and labels (:mod:`bench.scan_files`)."""
     xyz = np.random.default_rng(seed).random((n, 3)) * 100  # [n, 3] metres
     path = folder / f"cloud.{fmt}"
     if fmt == "ply":
         scan_files.coloured_ply(path, xyz)
     elif fmt == "pcd":
         scan_files.pcd_with_fields(path, xyz)
-    else:
+    elif fmt in ("las", "laz"):
         scan_files.survey_las(path, xyz + np.array([512_345.0, 4_123_456.0, 150.0]))
+    elif fmt == "e57":
+        scan_files.tls_e57(path, xyz)
+    elif fmt == "npy":
+        scan_files.ml_npy(path, xyz)
+    elif fmt == "npz":
+        scan_files.labelled_npz(path, xyz)
+    else:
+        raise ValueError(f"no aligned file of format {fmt!r} (expected one of {', '.join(ALIGNED_FORMATS)})")
     return path
 
 
