@@ -243,14 +243,17 @@ def write_moved(
 
 
 def _widened(record: np.dtype, widen: bool) -> np.dtype:
-    """``record`` with x, y, z as they are written: 8-byte floats stay, others become 8-byte floats where ``widen``,
-    else 4-byte ones (integer and 2-byte coordinates too: moved, they are no longer whole numbers); byte order kept."""
+    """``record`` with x, y, z as they are written: floats of 8 bytes or more stay, others become 8-byte floats where
+    ``widen``, else 4-byte ones (integer and 2-byte coordinates too: moved, they are no longer whole numbers); byte
+    order kept. ``record`` itself (its offsets, padding and titles) where no field changes."""
 
     def kept(field: np.dtype) -> np.dtype:
-        if field.kind == "f" and (field.itemsize == 8 or (field.itemsize == 4 and not widen)):
+        if field.kind == "f" and (field.itemsize >= 8 or (field.itemsize == 4 and not widen)):
             return field
         return np.dtype((field.str[0] if field.str[0] in "<>" else "=") + ("f8" if widen else "f4"))
 
+    if all(kept(record[name]) == record[name] for name in ("x", "y", "z")):
+        return record
     return np.dtype([(name, kept(record[name]) if name in ("x", "y", "z") else record[name]) for name in record.names])
 
 
@@ -264,7 +267,7 @@ def _move_rows(rows: np.ndarray, written: np.ndarray, R: np.ndarray, t: np.ndarr
     moved = xyz @ R.T + t  # [n, 3]
     for axis, name in enumerate("xyz"):
         written[name] = moved[:, axis]
-    if all(n in rows.dtype.names and rows.dtype[n].kind == "f" for n in normals):
+    if normals and all(n in rows.dtype.names and rows.dtype[n].kind == "f" for n in normals):
         turned = np.stack([rows[n].astype(np.float64) for n in normals], axis=1) @ R.T  # [n, 3]
         for axis, name in enumerate(normals):
             written[name] = turned[:, axis]

@@ -13,11 +13,13 @@ shape, order and other columns kept.
   2-byte floats becomes float32 (float64 beyond it), one of integers float64 (an 8-byte integer beyond 2**53, which
   float64 would round, is refused, and so is a widened row longer than ``MAX_WRITTEN_ROW_BYTES``). A structured
   array's x, y, z fields are written as a PLY file's are (8-byte floats kept, 4-byte ones kept or widened, others
-  4-byte floats, 8-byte ones beyond it); its other fields keep their types.
+  4-byte floats, 8-byte ones beyond it; ``np.longdouble`` ones kept); its other fields keep their types, and where
+  x, y, z keep theirs the dtype is the file's own (its padding, offsets and titles).
 - ``.npz``: every member copied as it was, in its place, with its name, date, attributes and compression (stored or
   deflated), the archive's comment too; the member :func:`service.formats.arrays.read_npz` reads (``points``, else
   ``positions``, else the only array) moved as an ``.npy`` file, and a plain float ``normals`` array of its rows and
-  3 columns (Open3D's ``o3d.t.io`` layout, or ours) rotated. Members are decompressed and compressed a block at a
+  3 columns (Open3D's ``o3d.t.io`` layout, or ours) rotated; of two members of one name, the last (numpy's) is the
+  one moved or rotated, the other one of those copied. Members are decompressed and compressed a block at a
   time; those not moved may expand to at most ``OTHER_BYTES_PER_POINT`` per point of the cloud (plus
   ``OTHER_BYTES_EXTRA``), so that a small archive cannot ask for gigabytes of work.
 """
@@ -56,11 +58,12 @@ def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
         raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
     with archive, archive_errors():
-        member = cloud_member(archive)
+        member = archive.getinfo(cloud_member(archive))  # of two members of one name, the last, as numpy reads
         with archive.open(member) as stream:
-            rows = npy_layout(stream, None, archive.getinfo(member).file_size)[3]
-        normals = NORMALS_MEMBER if _are_normals(archive, rows) and member != NORMALS_MEMBER else None
-        others = sum(info.file_size for info in archive.infolist() if info.filename not in (member, normals))
+            rows = npy_layout(stream, None, member.file_size)[3]
+        normals = archive.getinfo(NORMALS_MEMBER) if _are_normals(archive, rows) else None
+        normals = None if normals is member else normals
+        others = sum(info.file_size for info in archive.infolist() if info is not member and info is not normals)
         allowed = rows * OTHER_BYTES_PER_POINT + OTHER_BYTES_EXTRA
         if others > allowed:
             raise PointCloudFormatError(
@@ -80,11 +83,11 @@ def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
                 if info.is_dir():
                     out.writestr(copy, b"")
                     continue
-                wider = info.filename == member and info.file_size * 8 > zipfile.ZIP64_LIMIT
+                wider = info is member and info.file_size * 8 > zipfile.ZIP64_LIMIT
                 with archive.open(info) as stream, out.open(copy, "w", force_zip64=wider) as written:
-                    if info.filename == member:
+                    if info is member:
                         _moved_array(stream, written, R, t, widen, info.file_size)
-                    elif info.filename == normals:
+                    elif info is normals:
                         _moved_array(stream, written, R, np.zeros(3), False, info.file_size, rotate=True)
                     else:
                         shutil.copyfileobj(stream, written, BLOCK_BYTES)

@@ -7,6 +7,7 @@ byte for byte, an archive's members in their order and compression. Each file is
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import zipfile
@@ -134,6 +135,35 @@ def test_a_structured_array_rotates_its_normals_and_keeps_its_other_fields(tmp_p
     assert_moved(np.stack([written[n] for n in names], 1), moved(np.stack([array[n] for n in names], 1), R, 0))
 
 
+@pytest.mark.parametrize(
+    "dtype",
+    [
+        np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<i4")]),  # no normals
+        np.dtype([("label", "u1"), ("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("flag", "u1")], align=True),  # padded
+        np.dtype({"names": ["x", "y", "z"], "formats": ["<f8"] * 3, "titles": ["east", "north", "up"]}),
+        np.dtype([("x", np.longdouble), ("y", np.longdouble), ("z", np.longdouble), ("label", "<i4")]),
+    ],
+    ids=["no-normals", "padded", "titles", "longdouble"],
+)
+def test_a_structured_array_without_normals_keeps_its_dtype_byte_for_byte(tmp_path, dtype) -> None:
+    """A record without normal fields (it was a ValueError, a traceback in the CLI and a 500 on the page); a record
+    whose x, y, z are kept keeps its own dtype: its padding and titles, 16-byte floats not narrowed to 4 bytes."""
+    array = np.zeros(N, dtype=dtype)
+    for k in range(3):
+        array["xyz"[k]] = XYZ[:, k]
+    if "label" in dtype.names:
+        array["label"] = LABELS
+    source, out = tmp_path / "cloud.npy", tmp_path / "aligned.npy"
+    np.save(source, array)
+    write(source, out)
+    written = np.load(out)
+    assert written.dtype == array.dtype and header_bytes(out) == header_bytes(source)
+    if "label" in dtype.names:
+        assert written["label"].tobytes() == array["label"].tobytes()
+    xyz = np.stack([array[a].astype(np.float64) for a in "xyz"], 1)
+    assert_moved(np.stack([written[a] for a in "xyz"], 1), moved(xyz))
+
+
 # ------------------------------------------------------------------------------------------------- .npz
 
 
@@ -188,6 +218,35 @@ def test_an_npz_whose_other_arrays_expand_beyond_the_limit_is_refused_before_wri
     with pytest.raises(PointCloudFormatError, match="other arrays expand to"):
         write(source, out)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bomb.npz"]
+
+
+def test_a_second_member_named_as_the_cloud_is_copied_within_the_other_members_limit(tmp_path) -> None:
+    """Of two members named ``points.npy`` numpy reads the last: the other was moved too, however many rows its header
+    declared (a deflated array of zeros asked for any amount of work and disk); it is now one of the other members."""
+    source, out = tmp_path / "twice.npz", tmp_path / "aligned.npz"
+    with zipfile.ZipFile(source, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for array in (np.zeros((200_000, 3)), XYZ):  # 4.8 MB of zeros, then the cloud numpy reads
+            data = io.BytesIO()
+            np.save(data, array)
+            with pytest.warns(UserWarning, match="Duplicate name") if array is XYZ else contextlib.nullcontext():
+                archive.writestr("points.npy", data.getvalue())
+    assert source.stat().st_size < 100_000
+    with pytest.raises(PointCloudFormatError, match="other arrays expand to 4800128 bytes"):
+        write(source, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["twice.npz"]
+    small = tmp_path / "small.npz"  # a small one: copied as it is, the last one moved
+    with zipfile.ZipFile(small, "w") as archive:
+        for array in (XYZ[:5], XYZ):
+            data = io.BytesIO()
+            np.save(data, array)
+            with pytest.warns(UserWarning, match="Duplicate name") if array is XYZ else contextlib.nullcontext():
+                archive.writestr("points.npy", data.getvalue())
+    with pytest.warns(UserWarning, match="Duplicate name"):  # zipfile's, writing the copy of the first
+        write(small, out)
+    with zipfile.ZipFile(small) as before, zipfile.ZipFile(out) as after:
+        first = [archive.open(archive.infolist()[0]).read() for archive in (before, after)]
+        assert first[0] == first[1] and len(after.infolist()) == 2
+    assert_moved(np.load(out)["points"], moved(XYZ))
 
 
 # -------------------------------------------------------------------------------------------------- CLI
@@ -304,6 +363,20 @@ def test_the_page_downloads_an_npy_and_an_npz_as_themselves_moved(client, tmp_pa
     written = np.load(io.BytesIO(post(client, tmp_path / "scan.npz").content))
     assert_moved(written["normals"], moved(NORMALS, R, 0))
     assert written["colors"].tobytes() == COLOURS.tobytes()
+
+
+def test_the_page_downloads_a_structured_array_without_normals(client, tmp_path) -> None:
+    """It was a 500 (a ValueError in the writer)."""
+    array = np.zeros(N, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("label", "<i4")])
+    for k in range(3):
+        array["xyz"[k]] = XYZ[:, k]
+    array["label"] = LABELS
+    np.save(tmp_path / "labelled.npy", array)
+    answer = post(client, tmp_path / "labelled.npy")
+    assert answer.status_code == 200, answer.text
+    written = np.load(io.BytesIO(answer.content))
+    assert written.dtype == array.dtype and written["label"].tobytes() == LABELS.tobytes()
+    assert_moved(np.stack([written[a] for a in "xyz"], 1), moved(XYZ))
 
 
 def test_the_page_refuses_an_array_it_cannot_write_moved_with_a_422(client, tmp_path) -> None:
