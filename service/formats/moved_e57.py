@@ -10,7 +10,9 @@ scans' own frames; so do bounds (``cartesianBounds``, ``sphericalBounds``: in th
   where they are (found at expat's byte positions), as ``<w type="Float">`` with the value's shortest float64 text
   (``repr``), and a missing pose, rotation, translation or component is inserted before its parent's end tag; every
   other byte of the XML (declaration, namespaces, extensions, element order, whitespace, CDATA) is kept. Only elements
-  of the root's namespace are looked at (an extension's ``pose`` is not one).
+  of the root's namespace are composed; an element of another namespace named as one of those the pose is looked up
+  by (a scan's ``pose``, its ``rotation``, its ``w``, ...) is refused where the pose is looked up, since the e57 library
+  reads the first element of that local name whatever its namespace (one deeper in an extension is not looked at).
 - Each quaternion is written of unit norm, its sign the one with ``w >= 0``. A scan's or image's quaternion must be of
   norm 1 within :data:`service.formats.e57.MAX_QUATERNION_NORM_ERROR` (what the reader allows); it is normalised
   before it is composed.
@@ -23,7 +25,8 @@ scans' own frames; so do bounds (``cartesianBounds``, ``sphericalBounds``: in th
 
 Refused (:class:`PointCloudFormatError`, before anything is written): what the reader refuses of the XML section
 (:func:`service.formats.e57.check_xml`'s checks), another page size than 1,024 bytes, a file of partial pages, a pose
-element repeated, or a pose whose numbers are not finite numbers or whose quaternion is not a unit one.
+element repeated or one of its names in another namespace, or a pose whose numbers are not finite numbers or whose
+quaternion is not a unit one.
 """
 
 from __future__ import annotations
@@ -273,8 +276,17 @@ def _open(element: _Element | None) -> bool:
 
 
 def _unique(parent: _Element | None, root: _Element, name: str, what: str) -> _Element | None:
-    """``parent``'s child ``name`` (the root's namespace), ``None`` where it has none; refused where it has two."""
-    found = _named(parent, root, name) if parent is not None else []
+    """``parent``'s child ``name`` (the root's namespace), ``None`` where it has none; refused where it has two, or
+    one of that local name in another namespace (the e57 library reads a scan's first child of the local name
+    ``pose``, whatever its namespace: that one would be read as the pose, not the one composed)."""
+    found = [c for c in parent.children if c.name == name] if parent is not None else []
+    foreign = next((c for c in found if c.namespace != root.namespace), None)
+    if foreign is not None:
+        raise PointCloudFormatError(
+            f"{what}'s pose cannot be rewritten: the E57 file's XML section gives it a {name!r} element of another "
+            f"namespace ({foreign.namespace[:80]!r}), and the e57 reader reads the first {name!r}, whatever its "
+            "namespace"
+        )
     if len(found) > 1:
         raise PointCloudFormatError(
             f"{what}'s pose cannot be rewritten: the E57 file's XML section gives it {len(found)} {name!r} elements"

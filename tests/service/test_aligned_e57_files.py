@@ -25,6 +25,7 @@ from service.cli import app
 from service.formats import PointCloudFormatError
 from service.formats.e57 import read_e57
 from service.formats.moved import write_moved
+from service.formats.moved_e57 import check_moved_e57
 
 HEADER = struct.Struct("<8sIIQQQQ")  # signature, version, file length, XML offset, XML length, page size
 R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
@@ -263,6 +264,33 @@ def test_an_e57_whose_xml_cannot_be_rewritten_is_refused_naming_why(project, tmp
     with pytest.raises(PointCloudFormatError, match=r"E57 image 0's pose has a rotation quaternion of norm 2\.0098"):
         moved_to(source, tmp_path / "aligned.e57")
     assert not (tmp_path / "aligned.e57").exists() and [p.name for p in tmp_path.iterdir()] == ["damaged.e57"]
+
+
+EXTENSION_POSE = (
+    b'<ext:pose type="Structure" xmlns:ext="urn:example"><rotation type="Structure"><w type="Float">1</w>'
+    b'<x type="Float">0</x><y type="Float">0</y><z type="Float">0</z></rotation><translation type="Structure">'
+    b'<x type="Float">100</x><y type="Float">0</y><z type="Float">0</z></translation></ext:pose>'
+)
+
+
+@pytest.mark.parametrize("where", ["before", "instead"])
+def test_a_scan_with_a_pose_element_of_another_namespace_is_refused(project, tmp_path, where) -> None:
+    """The e57 library (our reader) takes a scan's first child of the local name ``pose`` whatever its namespace: an
+    extension's pose before E57's (or instead of one) was read as the pose, and the file written with E57's composed
+    (or a new one added after it) read back unmoved."""
+    data = project.read_bytes()
+    xml = xml_of(data)
+    pose = re.search(rb'<pose type="Structure">.*?</pose>', xml, flags=re.DOTALL).group(0)
+    source = tmp_path / "extended.e57"
+    source.write_bytes(with_xml(data, xml.replace(pose, EXTENSION_POSE + (pose if where == "before" else b""), 1)))
+    with open(source, "rb") as f:
+        read_e57(f, None)  # the reader reads it: the extension's pose
+    message = r"E57 scan 0's pose cannot be rewritten: .* 'pose' element of another namespace \('urn:example'\)"
+    with pytest.raises(PointCloudFormatError, match=message):
+        moved_to(source, tmp_path / "aligned.e57")
+    with open(source, "rb") as f, pytest.raises(PointCloudFormatError, match=message):
+        check_moved_e57(f)  # before registering: the CLI's usage error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["extended.e57"]
 
 
 # -------------------------------------------------------------------------------------------------- the CLI
