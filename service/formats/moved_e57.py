@@ -25,8 +25,8 @@ scans' own frames; so do bounds (``cartesianBounds``, ``sphericalBounds``: in th
 
 Refused (:class:`PointCloudFormatError`, before anything is written): what the reader refuses of the XML section
 (:func:`service.formats.e57.check_xml`'s checks), another page size than 1,024 bytes, a file of partial pages, a pose
-element repeated or one of its names in another namespace, or a pose whose numbers are not finite numbers or whose
-quaternion is not a unit one.
+element repeated or one of its names in another namespace, a pose whose numbers are not finite numbers or whose
+quaternion is not a unit one, and an XML section that the poses added would take beyond the reader's limits.
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ COPY_BYTES = e57_format.PAGES_A_CHUNK * PAGE_BYTES  # pages copied at a time (1 
 ELEMENTS = ("data3D", "images2D")  # the root's vectors whose Structure children have poses
 ROTATION, TRANSLATION = ("w", "x", "y", "z"), ("x", "y", "z")
 COORDINATES = {f"cartesian{a}" for a in "XYZ"} | {f"spherical{a}" for a in ("Range", "Azimuth", "Elevation")}
+WHITESPACE = b" \t\n\r\x0b\x0c"  # what bytes.rstrip() strips
 START_TAG = re.compile(rb"""<(?:[^>"']|"[^"]*"|'[^']*')*>""")  # a start tag: '>' may be in an attribute's value
 
 
@@ -222,24 +223,44 @@ def _moved_xml(text: bytes, R: np.ndarray, t: np.ndarray) -> tuple[bytes, list[i
     root = _tree(text, offsets)
     edits: list[tuple[int, int, bytes]] = []
     matrix = np.asarray(R, dtype=np.float64)
+    turn = Rotation.from_matrix(matrix)  # once: each scan's or image's rotation is composed with it
     for vector in ELEMENTS:
         if len(_named(root, root, vector)) > 1:
             raise PointCloudFormatError(f"the E57 file's XML section has more than one {vector} element")
         for number, owner in enumerate(_posed(root, vector)):
             what = f"E57 {'scan' if vector == 'data3D' else 'image'} {number}"
-            edits += _pose_edits(text, root, owner, what, matrix, np.asarray(t, dtype=np.float64))
+            edits += _pose_edits(text, root, owner, what, matrix, turn, np.asarray(t, dtype=np.float64))
     out, at = bytearray(), 0
     for begin, finish, piece in sorted(edits, key=lambda edit: edit[0]):  # stable: insertions keep their order
         out += text[at:begin] + piece
         at = finish
     out += text[at:]
+    _check_readable(bytes(out))
     return bytes(out), [int(value) if e57_format.RECORD_COUNT.fullmatch(value) else None for value in offsets]
 
 
+def _check_readable(text: bytes) -> None:
+    """:class:`PointCloudFormatError` where the reader would refuse the moved XML section ``text``: the poses added
+    (10 elements, about 340 bytes, each) may take it beyond :data:`service.formats.e57.MAX_XML_ELEMENTS` or
+    :data:`service.formats.e57.MAX_XML_BYTES`."""
+    reason = None
+    if len(text) > e57_format.MAX_XML_BYTES:
+        reason = f"it would have {len(text)} bytes; at most {e57_format.MAX_XML_BYTES} are read"
+    else:
+        try:
+            e57_format._parse_xml(text)
+        except PointCloudFormatError as exc:
+            reason = str(exc).removeprefix("the E57 file's XML section ")
+    if reason is not None:
+        raise PointCloudFormatError(
+            f"the E57 file's XML section with its poses composed would not be read back: {reason}"
+        )
+
+
 def _pose_edits(
-    text: bytes, root: _Element, owner: _Element, what: str, R: np.ndarray, t: np.ndarray
+    text: bytes, root: _Element, owner: _Element, what: str, R: np.ndarray, turn: Rotation, t: np.ndarray
 ) -> list[tuple[int, int, bytes]]:
-    """The splices that give ``owner`` (a scan or image) its pose composed with ``R``, ``t``."""
+    """The splices that give ``owner`` (a scan or image) its pose composed with ``R``, ``t`` (``turn``: ``R``)."""
     pose = _unique(owner, root, "pose", what)
     rotation = _unique(pose, root, "rotation", what) if _open(pose) else None
     translation = _unique(pose, root, "translation", what) if _open(pose) else None
@@ -250,7 +271,7 @@ def _pose_edits(
             f"{what}'s pose has a rotation quaternion of norm {norm:.9g}; the standard's is a unit quaternion (within "
             f"{e57_format.MAX_QUATERNION_NORM_ERROR:g} here)"
         )
-    turned = Rotation.from_matrix(R) * Rotation.from_quat(q[[1, 2, 3, 0]] / norm)
+    turned = turn * Rotation.from_quat(q[[1, 2, 3, 0]] / norm)
     x, y, z, w = turned.as_quat(canonical=True)  # w >= 0
     offset = _numbers(translation, root, TRANSLATION, what) if _open(translation) else np.zeros(3)
     values = {
@@ -335,8 +356,10 @@ def _put(text: bytes, parent: _Element, old: _Element | None, piece: bytes) -> l
         opening = text[parent.start : parent.open_end][:-2].rstrip()
         qname = re.match(rb"<([^\s/>]+)", opening).group(1)
         return [(parent.start, parent.end, opening + b">" + piece + b"</" + qname + b">")]
-    before = text[: parent.content_end]
-    space = before[len(before.rstrip()) :]
+    start = parent.content_end  # the white space before the end tag, found without copying the text before it
+    while start > 0 and text[start - 1] in WHITESPACE:
+        start -= 1
+    space = text[start : parent.content_end]
     if b"\n" in space:
         indent = space.rpartition(b"\n")[2]
         piece = b"  " + piece + b"\n" + indent
