@@ -30,7 +30,9 @@ not a decimal integer (the library reads ``+5``), and a pose quaternion whose no
 :data:`MAX_QUATERNION_NORM_ERROR` (the library does not normalise it: the scan is scaled by the norm's square). So is a
 prototype field's Float ``precision`` other than ``single`` and ``double`` (none is ``double``; the library refuses
 another value too, case and spaces included), as the record counts are checked from each field's bits, and a Float
-intensity or colour whose minimum is above its maximum (the library scales them by these limits, and panics). Only the
+intensity or colour whose minimum is above its maximum (the library scales them by these limits, and panics), and a
+comment or processing instruction inside a value element (:data:`VALUE_TYPES`: the library reads its text only up to
+it). Only the
 ``data3D`` children of type Structure are scans, as the library reads them (it skips another, and panics where none
 is left). A scan of no points is refused too: the library cannot read a file holding one (it reads the empty scan's
 section header at offset 0).
@@ -95,6 +97,7 @@ RECORD_COUNT = re.compile(r"[0-9]+")  # ASCII digits: str.isdigit() takes "²", 
 # Most a pose's quaternion norm may differ from 1: the library does not normalise it, and scales the scan by the
 # norm's square (2e-4 at this bound, 2 cm at 100 m); a quaternion typed to 4 decimals (0.7071, 0, 0, 0.7071) is 1e-5 off
 MAX_QUATERNION_NORM_ERROR = 1e-4
+VALUE_TYPES = ("Float", "Integer", "ScaledInteger", "String")  # elements whose text is their value
 POSE_ROTATION = ["data3D", "vectorChild", "pose", "rotation"]  # under the root: a scan's quaternion w, x, y, z
 PROTOTYPE = ["data3D", "vectorChild", "points", "prototype"]  # under the root: a scan's fields, one bytestream each
 
@@ -378,6 +381,7 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
     parser = xml.parsers.expat.ParserCreate(namespace_separator=" ")  # names as "namespace-URI local-name"
     children = [0]  # elements so far at each open level; [0]: the document's
     structures = [False]  # whether each open element is a Structure
+    values = [False]  # whether each open element is a value the library reads from its text (Float, Integer, ...)
     names: list[str] = []  # the open elements' local names
     scans: list[int | None] = []  # each /data3D/vectorChild Structure's record count; None: no points element (yet)
     quaternion: dict[str, str] = {}  # the text of the open pose rotation's w, x, y, z
@@ -431,6 +435,14 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
             quaternion.clear()
         children.append(0)
         structures.append(attributes.get("type") == "Structure")
+        values.append(attributes.get("type") in VALUE_TYPES)
+
+    def inside_value(what: str) -> None:
+        if values[-1]:
+            refuse(
+                f"has {what} inside the value of <{names[-1]}>: the e57 library reads a value's text only up to it "
+                "(other readers read all of it)"
+            )
 
     def characters(data: str) -> None:
         if len(names) == 6 and names[1:5] == POSE_ROTATION and names[5] in ("w", "x", "y", "z"):
@@ -441,12 +453,15 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
             _check_quaternion(quaternion, len(scans) - 1)
         children.pop()
         structures.pop()
+        values.pop()
         names.pop()
 
     parser.XmlDeclHandler = declaration
     parser.StartDoctypeDeclHandler = doctype
     parser.StartElementHandler = start
     parser.CharacterDataHandler = characters
+    parser.CommentHandler = lambda _: inside_value("a comment")
+    parser.ProcessingInstructionHandler = lambda *_: inside_value("a processing instruction")
     parser.EndElementHandler = end
     try:
         parser.Parse(text, True)

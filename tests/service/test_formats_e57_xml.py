@@ -198,3 +198,21 @@ def test_a_pose_quaternion_that_is_not_a_unit_one_is_refused(e57, tmp_path) -> N
     assert caught.value.status == 400
     typed = edited(path.read_bytes(), b'<w type="Float">2</w>', b'<w type="Float">0.99999</w>')  # within 1e-4: read
     np.testing.assert_allclose(read_cloud(typed, "a.e57"), XYZ * 0.99999**2, rtol=1e-12)
+
+
+
+@pytest.mark.parametrize(
+    "value, what",
+    [(b"<!-- c -->5", "a comment"), (b"5<!-- c -->1", "a comment"), (b"<?pi a?>5", "a processing instruction")],
+)
+def test_a_comment_inside_a_value_is_refused_as_the_library_reads_only_up_to_it(tmp_path, value, what) -> None:
+    """The library read ``<x><!-- c -->5</x>`` as 0 and ``5<!-- c -->1`` as 5, where other readers read 5 and 51."""
+    path = tmp_path / "posed.e57"
+    with pye57.E57(str(path), mode="w") as writer:
+        columns = {f"cartesian{axis}": np.ascontiguousarray(XYZ[:, k]) for k, axis in enumerate("XYZ")}
+        writer.write_scan_raw(columns, rotation=np.array([1.0, 0, 0, 0]), translation=np.array([5.0, 0, 0]))
+    posed = path.read_bytes()
+    np.testing.assert_allclose(read_cloud(posed, "a.e57"), XYZ + np.array([5.0, 0, 0]), rtol=1e-12)
+    between = edited(posed, b'<x type="Float">5</x>', b'<!-- c --><x type="Float">5</x><?pi a?>')  # not inside
+    np.testing.assert_allclose(read_cloud(between, "a.e57"), XYZ + np.array([5.0, 0, 0]), rtol=1e-12)
+    refused(edited(posed, b'<x type="Float">5</x>', b'<x type="Float">%s</x>' % value), what, "inside the value of <x>")
