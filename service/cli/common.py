@@ -84,17 +84,21 @@ def write_aligned_cloud(path: Path, source: Path | None, points: np.ndarray, R: 
         )
 
 
-def check_e57_aligned(source: Path, out_name: str) -> None:
-    """Exit 2 where the E57 file ``source`` cannot be written moved as ``out_name`` (its XML section cannot be
-    rewritten: :func:`service.formats.moved_e57.check_moved_e57`), before any registration runs."""
-    from service.formats.moved_e57 import check_moved_e57
+def check_aligned_source(source: Path, out_name: str) -> None:
+    """Exit 2 where ``source``, written as ``out_name`` in its own format (:func:`service.formats.moved.keeps_content`),
+    cannot be written moved as far as its header decides (:func:`service.formats.moved.check_moved`: an E57 file
+    whose XML section cannot be rewritten, an ``.npy`` or ``.npz`` array the writer refuses), before any registration
+    runs."""
+    from service.formats.moved import FORMAT_NAMES, check_moved, keeps_content, source_format
     from service.pointcloud_io import PointCloudFormatError
 
+    kind = source_format(source)
+    if not keeps_content(kind, out_name):
+        return
     try:
-        with open(source, "rb") as f:
-            check_moved_e57(f)
+        check_moved(source, kind)
     except PointCloudFormatError as exc:
-        fail(f"--write-aligned {out_name}: {source.name} cannot be written moved as E57: {exc}")
+        fail(f"--write-aligned {out_name}: {source.name} cannot be written moved as {FORMAT_NAMES[kind]}: {exc}")
     except OSError:
         return  # reading it says why
 

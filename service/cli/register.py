@@ -142,9 +142,10 @@ def register_command(
 
 def _check_register_flags(write_aligned: Path | None, out: Path | None = None, source: Path | None = None) -> None:
     """Usage errors of ``register``'s outputs, before the registration runs: among them a LAS/LAZ, PTS or PTX
-    ``--write-aligned`` of a source of another format (its format from its content), and an E57 source to ``.e57``
-    whose XML section cannot be rewritten."""
-    from service.cli.common import check_e57_aligned
+    ``--write-aligned`` of a source of another format (its format from its content), and a source written in its own
+    format that its header says cannot be (:func:`service.cli.common.check_aligned_source`: an E57 file whose XML
+    section cannot be rewritten, an ``.npy`` or ``.npz`` array the writer refuses)."""
+    from service.cli.common import check_aligned_source
     from service.formats.moved import FORMAT_NAMES, OWN_FORMAT_ONLY, source_format
     from service.pointcloud_io import SUFFIXES
 
@@ -166,8 +167,8 @@ def _check_register_flags(write_aligned: Path | None, out: Path | None = None, s
             f"--write-aligned {write_aligned.name}: {article} {FORMAT_NAMES[own]} file is written only from {article} "
             f"{FORMAT_NAMES[own]} source; {source.name} is {FORMAT_NAMES[kind]} (write one of {SUFFIXES})"
         )
-    if own == "e57" and kind == "e57":
-        check_e57_aligned(source, write_aligned.name)
+    if source is not None:
+        check_aligned_source(source, write_aligned.name)
 
 
 def _write_outputs(

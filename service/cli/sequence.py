@@ -14,7 +14,7 @@ import typer
 
 from service.cli.common import (
     UNRELIABLE_EXIT,
-    check_e57_aligned,
+    check_aligned_source,
     check_output_path,
     fail,
     number,
@@ -249,7 +249,9 @@ def aligned_name(frame: Path) -> str:
 
 def _check_aligned_folder(frames: list[Path], folder: Path | None) -> None:
     """Usage errors of ``--write-aligned DIR`` before any registration: not an existing folder, two frames of one
-    name, an output that would overwrite a frame, or an E57 frame whose XML section cannot be rewritten."""
+    name, an output that would overwrite a frame, or a frame written in its own format that its header says cannot be
+    (:func:`service.cli.common.check_aligned_source`: an E57 file whose XML section cannot be rewritten, an ``.npy``
+    or ``.npz`` array the writer refuses)."""
     if folder is None:
         return
     if not folder.is_dir():
@@ -263,8 +265,7 @@ def _check_aligned_folder(frames: list[Path], folder: Path | None) -> None:
         names[name] = frame
         if (folder / name).resolve() in inputs:
             fail(f"--write-aligned {folder}: {folder / name} is one of the frames; it would be overwritten")
-        if Path(name).suffix.lower() == ".e57":  # an E57 frame as itself: its XML section can be rewritten
-            check_e57_aligned(frame, str(folder / name))
+        check_aligned_source(frame, str(folder / name))
 
 
 def _read_frame(index: int, path: Path) -> np.ndarray:

@@ -54,9 +54,9 @@ from service.formats import text as text_format
 from service.formats.checks import BLOCK_BYTES
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
-from service.formats.moved_arrays import moved_npy, moved_npz
+from service.formats.moved_arrays import check_moved_npy, check_moved_npz, moved_npy, moved_npz
 from service.formats.moved_arrays import other_fields as array_fields
-from service.formats.moved_e57 import moved_e57
+from service.formats.moved_e57 import check_moved_e57, moved_e57
 from service.formats.moved_e57 import other_fields as e57_fields
 from service.formats.moved_text import moved_pts, moved_ptx, moved_text
 from service.formats.read import detect_at as detect_format
@@ -94,6 +94,7 @@ FORMAT_NAMES = {
 }
 INT32_MAX = 2**31 - 1
 _TEXT_WRITERS = {"text": moved_text, "pts": moved_pts, "ptx": moved_ptx}
+_CHECKS = {"e57": check_moved_e57, "npy": check_moved_npy, "npz": check_moved_npz}  # what a header decides
 Source = str | os.PathLike[str] | BinaryIO  # a path, or an open seekable binary file (read from its start, left open)
 
 
@@ -135,6 +136,23 @@ def own_suffix(source: Source, kind: str, name: str) -> str:
 def keeps_content(kind: str | None, out: str | os.PathLike[str]) -> bool:
     """Whether an output named ``out`` is written as the source file of format ``kind``, moved."""
     return Path(out).suffix.lower() in KEPT_FORMATS.get(kind or "", ())
+
+
+def check_moved(source: Source, kind: str | None) -> None:
+    """:class:`PointCloudFormatError` where the ``kind`` file ``source`` (:func:`source_format`; a path or an open
+    file) cannot be written moved as itself, as far as its header decides, before anything is registered or written:
+    an E57 file whose poses cannot be rewritten (:func:`service.formats.moved_e57.check_moved_e57`), an array whose
+    rows would be too long written, an ``.npz`` archive whose other members are too large or cannot be opened
+    (:func:`service.formats.moved_arrays.check_moved_npy`, ``check_moved_npz``), with the writers' own checks.
+    Nothing for other formats: their writers' refusals need the data.
+
+    Raises:
+        OSError: ``source`` unreadable.
+    """
+    check = _CHECKS.get(kind or "")
+    if check is not None:
+        with _opened(source) as f:
+            check(f)
 
 
 def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:

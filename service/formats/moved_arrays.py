@@ -22,13 +22,19 @@ shape, order and other columns kept.
   one moved or rotated, the other one of those copied. Members are decompressed and compressed a block at a
   time; those not moved may expand to at most ``OTHER_BYTES_PER_POINT`` per point of the cloud (plus
   ``OTHER_BYTES_EXTRA``), so that a small archive cannot ask for gigabytes of work.
+
+:func:`check_moved_npy` and :func:`check_moved_npz` refuse, before anything is registered, what the header (an
+archive's directory and its members' headers) decides, with the writer's own checks: rows too long written, other
+members too large, a member zipfile cannot open. An 8-byte integer beyond 2**53 needs the data: the writer finds it.
 """
 
 from __future__ import annotations
 
 import shutil
 import zipfile
-from typing import BinaryIO
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
@@ -53,23 +59,8 @@ def moved_npy(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
 def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
     """The ``.npz`` archive ``src`` (at its start) moved into ``dst``: its cloud member moved, a ``normals`` member
     rotated, every other member copied (module docstring)."""
-    try:
-        archive = zipfile.ZipFile(src)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
-        raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
-    with archive, archive_errors():
-        member = archive.getinfo(cloud_member(archive))  # of two members of one name, the last, as numpy reads
-        with archive.open(member) as stream:
-            rows = npy_layout(stream, None, member.file_size)[3]
-        normals = archive.getinfo(NORMALS_MEMBER) if _are_normals(archive, rows) else None
-        normals = None if normals is member else normals
-        others = sum(info.file_size for info in archive.infolist() if info is not member and info is not normals)
-        allowed = rows * OTHER_BYTES_PER_POINT + OTHER_BYTES_EXTRA
-        if others > allowed:
-            raise PointCloudFormatError(
-                f".npz archive whose other arrays expand to {others} bytes: at most {allowed} are copied "
-                f"({OTHER_BYTES_PER_POINT} bytes per point of its {rows}, and {OTHER_BYTES_EXTRA} more)"
-            )
+    with _archive(src) as archive:
+        member, normals = _archive_plan(archive)
         with zipfile.ZipFile(dst, "w", allowZip64=True) as out:
             out.comment = archive.comment
             for info in archive.infolist():
@@ -91,6 +82,28 @@ def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
                         _moved_array(stream, written, R, np.zeros(3), False, info.file_size, rotate=True)
                     else:
                         shutil.copyfileobj(stream, written, BLOCK_BYTES)
+
+
+def check_moved_npy(f: BinaryIO) -> None:
+    """:class:`PointCloudFormatError` where the ``.npy`` file ``f`` (seekable, read from its start) cannot be written
+    moved as far as its header decides (:func:`moved_npy`'s refusals that need no data: :func:`_array_plan`'s), before
+    anything is registered or written; ``f`` is left at its start. An 8-byte integer beyond ``EXACT_INTEGERS`` is the
+    writer's to find: it needs the data."""
+    try:
+        _array_plan(f, False)  # x, y, z not widened: a row refused so is refused widened too
+    finally:
+        f.seek(0)
+
+
+def check_moved_npz(f: BinaryIO) -> None:
+    """:class:`PointCloudFormatError` where the ``.npz`` archive ``f`` (seekable, read from its start) cannot be
+    written moved as far as its directory and its members' headers decide (:func:`_archive_plan`, which
+    :func:`moved_npz` runs first), before anything is registered or written; ``f`` is left at its start."""
+    try:
+        with _archive(f) as archive:
+            _archive_plan(archive)
+    finally:
+        f.seek(0)
 
 
 def other_fields(f: BinaryIO, kind: str) -> list[str]:
@@ -124,7 +137,80 @@ def _are_normals(archive: zipfile.ZipFile, rows: int) -> bool:
     return dtype.names is None and dtype.kind == "f" and count == rows and shape[-1] == 3
 
 
+@contextmanager
+def _archive(src: BinaryIO) -> Iterator[zipfile.ZipFile]:
+    """The ``.npz`` archive ``src`` open, what reading it raises as :class:`PointCloudFormatError`."""
+    try:
+        archive = zipfile.ZipFile(src)
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
+        raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
+    with archive, archive_errors():
+        yield archive
+
+
+def _archive_plan(archive: zipfile.ZipFile) -> tuple[zipfile.ZipInfo, zipfile.ZipInfo | None]:
+    """The member of ``archive`` moved (the cloud: of two of one name, the last, as numpy reads) and the ``normals``
+    member rotated (``None``: none), with the refusals that the directory and these members' headers decide: the
+    cloud member's (:func:`_array_plan`, x, y, z not widened), the other members expanding beyond
+    ``OTHER_BYTES_PER_POINT`` per point, and a member zipfile cannot open (encrypted, a compression it lacks, a
+    local header that is not the directory's). No member's data is read."""
+    member = archive.getinfo(cloud_member(archive))
+    with archive.open(member) as stream:
+        rows = _array_plan(stream, False, member.file_size).rows
+    normals = archive.getinfo(NORMALS_MEMBER) if _are_normals(archive, rows) else None
+    normals = None if normals is member else normals
+    others = sum(info.file_size for info in archive.infolist() if info is not member and info is not normals)
+    allowed = rows * OTHER_BYTES_PER_POINT + OTHER_BYTES_EXTRA
+    if others > allowed:
+        raise PointCloudFormatError(
+            f".npz archive whose other arrays expand to {others} bytes: at most {allowed} are copied "
+            f"({OTHER_BYTES_PER_POINT} bytes per point of its {rows}, and {OTHER_BYTES_EXTRA} more)"
+        )
+    for info in archive.infolist():
+        if info.is_dir():  # a folder's entry is written anew, never opened
+            continue
+        if info.flag_bits & 0x1:  # zipfile's own test: it asks for a password
+            raise PointCloudFormatError(f".npz member {info.filename!r} is encrypted: it cannot be read or copied")
+        try:
+            archive.open(info).close()  # the local header read and a decompressor picked: no data
+        except NotImplementedError as exc:  # a compression this Python's zipfile lacks
+            raise PointCloudFormatError(f".npz member {info.filename!r} cannot be read or copied: {exc}") from None
+    return member, normals
+
+
 # ------------------------------------------------------------------------------------------- arrays
+
+
+class _Plan(NamedTuple):
+    """An ``.npy`` array as :func:`_moved_array` writes it."""
+
+    start: int  # where its header begins
+    header: int  # the header's bytes
+    shape: tuple[int, ...]
+    fortran: bool
+    dtype: np.dtype
+    rows: int
+    written: np.dtype  # the dtype it is written in
+
+
+def _array_plan(src: BinaryIO, widen: bool, size: int | None = None, rotate: bool = False) -> _Plan:
+    """The ``.npy`` header at ``src``'s position (``size`` bytes: an archive's member; else to the file's end),
+    ``src`` left at its data, as it is written (:func:`_moved_array`'s arguments), or its refusal: a plain array
+    whose rows would be longer than ``MAX_WRITTEN_ROW_BYTES`` in the dtype written."""
+    start = src.tell()
+    shape, fortran, dtype, rows = npy_layout(src, None, size)
+    header = src.tell() - start
+    if dtype.names is not None:
+        from service.formats.moved import _widened
+
+        return _Plan(start, header, shape, fortran, dtype, rows, _widened(dtype, widen))
+    written = dtype if rotate else _plain_written(dtype, widen)
+    if shape[-1] * written.itemsize > MAX_WRITTEN_ROW_BYTES:  # 128 int8 columns would be 1 KiB a row
+        raise PointCloudFormatError(
+            f"rows of {shape[-1]} {dtype} values would be {shape[-1] * written.itemsize} bytes as {written}: "
+            f"at most {MAX_WRITTEN_ROW_BYTES} are written (save the array as floats, or write another format)"
+        )
+    return _Plan(start, header, shape, fortran, dtype, rows, written)
 
 
 def _moved_array(
@@ -138,28 +224,17 @@ def _moved_array(
 ) -> None:
     """The ``.npy`` bytes at ``src``'s position (``size`` of them: an archive's member; else to the file's end)
     moved into ``dst``; ``rotate``: the array is a plain float one of normals, rotated, its dtype kept."""
-    start = src.tell()
-    shape, fortran, dtype, rows = npy_layout(src, None, size)
-    header = src.tell() - start
+    start, header, shape, fortran, dtype, rows, written = _array_plan(src, widen, size, rotate)
+    _header(src, dst, start, header, shape, fortran, dtype, written)
     if dtype.names is not None:
-        from service.formats.moved import _moved_blocks, _widened
+        from service.formats.moved import _moved_blocks
 
-        written = _widened(dtype, widen)
-        _header(src, dst, start, header, shape, fortran, dtype, written)
         normals = next((names for names in NORMAL_FIELDS if all(n in dtype.names for n in names)), ())
         _moved_blocks(src, dst, dtype, written, rows, R, t, normals, ".npy records")
+    elif fortran:
+        _moved_columns(src, dst, dtype, written, rows, shape[-1], R, t)
     else:
-        written = dtype if rotate else _plain_written(dtype, widen)
-        if shape[-1] * written.itemsize > MAX_WRITTEN_ROW_BYTES:  # 128 int8 columns would be 1 KiB a row
-            raise PointCloudFormatError(
-                f"rows of {shape[-1]} {dtype} values would be {shape[-1] * written.itemsize} bytes as {written}: "
-                f"at most {MAX_WRITTEN_ROW_BYTES} are written (save the array as floats, or write another format)"
-            )
-        _header(src, dst, start, header, shape, fortran, dtype, written)
-        if fortran:
-            _moved_columns(src, dst, dtype, written, rows, shape[-1], R, t)
-        else:
-            _moved_rows(src, dst, dtype, written, rows, shape[-1], R, t)
+        _moved_rows(src, dst, dtype, written, rows, shape[-1], R, t)
     shutil.copyfileobj(src, dst, BLOCK_BYTES)  # what follows the array, as it was
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import re
 import zipfile
 from pathlib import Path
 
@@ -22,7 +23,8 @@ from typer.testing import CliRunner
 
 from service.cli import app
 from service.formats import PointCloudFormatError
-from service.formats.moved import write_moved
+from service.formats.moved import check_moved, write_moved
+from service.formats.moved_arrays import check_moved_npy, check_moved_npz
 from service.pointcloud_io import read_points
 
 runner = CliRunner()
@@ -385,3 +387,152 @@ def test_the_page_refuses_an_array_it_cannot_write_moved_with_a_422(client, tmp_
     array = np.concatenate([np.round(XYZ), np.full((N, 1), 2**60)], axis=1).astype(np.int64)
     np.save(tmp_path / "ids.npy", array)
     assert_error(post(client, tmp_path / "ids.npy"), 422, "ids.npy", "2**53")
+
+
+# ------------------------------------------------------------------------------------ refused before registering
+
+
+def patched_member(path: Path, name: str, *, flags: int = 0, method: int | None = None) -> None:
+    """The archive at ``path`` with member ``name``'s general-purpose flags or'ed with ``flags`` (1: encrypted) and
+    its compression method set to ``method``, in its local header and its central directory entry alike (zipfile
+    writes neither)."""
+    data = bytearray(path.read_bytes())
+    with zipfile.ZipFile(path) as archive:
+        local, entry = archive.getinfo(name).header_offset, archive.start_dir  # the central directory's start
+    while data[entry + 46 : entry + 46 + int.from_bytes(data[entry + 28 : entry + 30], "little")] != name.encode():
+        entry = data.find(b"PK\x01\x02", entry + 4)  # the next entry: each holds its name from byte 46
+    for at in (local + 6, entry + 8):  # the flags, then the method
+        data[at : at + 2] = (int.from_bytes(data[at : at + 2], "little") | flags).to_bytes(2, "little")
+        if method is not None:
+            data[at + 2 : at + 4] = method.to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+
+
+def unwritable(folder: Path, case: str, xyz: np.ndarray) -> tuple[Path, str]:
+    """A cloud of ``xyz [n, 3]`` the reader reads but the writer refuses, and the words of the refusal."""
+    wide = np.zeros((len(xyz), 40), dtype=np.int16)  # 80 bytes a row, 320 as float64
+    wide[:, :3] = np.round(xyz * 1000)  # millimetres
+    labels = np.arange(len(xyz), dtype=np.int32)
+    if case == "wide-npy":
+        np.save(folder / "wide.npy", wide)
+        return folder / "wide.npy", "rows of 40 int16 values would be 320 bytes as float64: at most 256"
+    if case == "wide-npz":
+        np.savez(folder / "wide.npz", points=wide, labels=labels)
+        return folder / "wide.npz", "rows of 40 int16 values would be 320 bytes as float64: at most 256"
+    if case == "large-others":
+        np.savez_compressed(folder / "bomb.npz", points=xyz, padding=np.zeros(1 << 19))  # 4 MiB of zeros
+        return folder / "bomb.npz", "other arrays expand to 4194432 bytes"
+    path = folder / f"{case}.npz"
+    np.savez(path, points=xyz, labels=labels)
+    if case == "encrypted":
+        patched_member(path, "labels.npy", flags=0x1)
+        return path, "member 'labels.npy' is encrypted"
+    patched_member(path, "labels.npy", method=98)  # PPMd: no zipfile decompressor
+    return path, "compression method is not supported"
+
+
+CASES = ["wide-npy", "wide-npz", "large-others", "encrypted", "compression"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_what_the_header_decides_is_refused_before_writing_as_the_writer_refuses_it(tmp_path, case) -> None:
+    """``check_moved_npy`` / ``check_moved_npz`` (the CLI's check before registering) refuse what the writer refuses
+    with the writer's own words, reading the header alone; the file is read as a cloud all the same."""
+    source, words = unwritable(tmp_path, case, XYZ)
+    assert read_points(source).shape == (N, 3)
+    kind = source.suffix[1:]
+    with open(source, "rb") as f:
+        with pytest.raises(PointCloudFormatError, match=re.escape(words)):
+            check_moved(f, kind)
+        assert f.tell() == 0
+    with pytest.raises(PointCloudFormatError, match=re.escape(words)):
+        write(source, tmp_path / f"aligned.{kind}")
+    assert not (tmp_path / f"aligned.{kind}").exists()
+
+
+def test_the_check_passes_what_is_written_and_leaves_the_integers_beyond_2_53_to_the_writer(tmp_path) -> None:
+    np.save(tmp_path / "ids.npy", np.concatenate([np.round(XYZ), np.full((N, 1), 2**60)], axis=1).astype(np.int64))
+    np.savez_compressed(tmp_path / "o3d.npz", positions=XYZ, normals=NORMALS, colors=COLOURS)
+    np.save(tmp_path / "narrow.npy", np.zeros((N, 32), dtype=np.int8))  # 256 bytes a row as float64: the limit
+    for name in ("ids.npy", "o3d.npz", "narrow.npy"):
+        check_moved(tmp_path / name, name[-3:])
+    with pytest.raises(PointCloudFormatError, match=r"beyond 2\*\*53"):  # it needs the data
+        write(tmp_path / "ids.npy", tmp_path / "aligned.npy")
+
+
+class CountingFile(io.FileIO):
+    """A file that counts the bytes read from it."""
+
+    read_bytes = 0
+
+    def read(self, size=-1):
+        data = super().read(size)
+        self.read_bytes += len(data)
+        return data
+
+    def readinto(self, buffer):
+        got = super().readinto(buffer)
+        self.read_bytes += got or 0
+        return got
+
+
+def test_the_check_of_a_2_000_000_point_array_reads_its_headers_only(tmp_path) -> None:
+    rows = 2_000_000
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<i2", "fortran_order": False, "shape": (rows, 40)})
+    with open(tmp_path / "big.npy", "wb") as f:  # a sparse file: the header, then 160 MB of zeros
+        f.write(header.getvalue())
+        f.truncate(len(header.getvalue()) + rows * 80)
+    with zipfile.ZipFile(tmp_path / "big.npz", "w") as archive:  # stored: the cloud's 24 MB, then an encrypted member
+        with archive.open("points.npy", "w") as member:
+            np.lib.format.write_array(member, np.zeros((rows, 3), dtype=np.float32))
+        archive.writestr("labels.npy", b"")
+    patched_member(tmp_path / "big.npz", "labels.npy", flags=0x1)
+    for name, words in (("big.npy", "would be 320 bytes"), ("big.npz", "is encrypted")):
+        with CountingFile(tmp_path / name) as f:
+            with pytest.raises(PointCloudFormatError, match=words):
+                (check_moved_npy if name.endswith("npy") else check_moved_npz)(f)
+            assert f.read_bytes < 100_000, (name, f.read_bytes)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_register_refuses_an_array_it_cannot_write_before_registering(tmp_path, model_dir, case) -> None:
+    """Each was exit 1 "cannot write" once registered (seconds; minutes in a sequence): now exit 2 before it, and the
+    registration's record (``--out``, written before the aligned cloud) never exists."""
+    source_xyz, target = synthetic_pair()
+    source, words = unwritable(tmp_path, case, source_xyz.astype(np.float64))
+    np.save(tmp_path / "target.npy", target * (1000 if case.startswith("wide") else 1))
+    out, aligned = tmp_path / "pose.json", tmp_path / f"aligned{source.suffix}"
+    result = register(source, tmp_path / "target.npy", "--out", out, "--write-aligned", aligned, model_dir=model_dir)
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    stderr = " ".join(result.stderr.split())
+    assert (
+        f"--write-aligned {aligned.name}: {source.name} cannot be written moved as {source.suffix[1:].upper()}: "
+        in stderr
+    )
+    assert words in stderr
+    assert not out.exists() and not aligned.exists()
+
+
+def test_sequence_refuses_a_frame_it_cannot_write_before_the_first_registration(tmp_path, model_dir) -> None:
+    """The last frame of three: it was found once both steps had been registered and frames 0 and 1 written."""
+    source, target = synthetic_pair()
+    frames = [tmp_path / "f0.npy", tmp_path / "f1.npy"]
+    np.save(frames[0], target)
+    np.save(frames[1], source)
+    frames.append(unwritable(tmp_path, "encrypted", source.astype(np.float64))[0])
+    folder = tmp_path / "aligned"
+    folder.mkdir()
+    result = runner.invoke(app, ["sequence", *map(str, frames), "--write-aligned", str(folder),
+                                 "--model-dir", str(model_dir), *FAST])  # fmt: skip
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    stderr = " ".join(result.stderr.split())
+    assert f"--write-aligned {folder / 'encrypted.npz'}: encrypted.npz cannot be written moved as NPZ" in stderr
+    assert "member 'labels.npy' is encrypted" in stderr
+    assert result.stdout == "" and list(folder.iterdir()) == []  # no step's JSON line, no frame written
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_the_page_still_refuses_what_the_cli_now_refuses_before_registering_with_a_422(client, tmp_path, case):
+    source, words = unwritable(tmp_path, case, XYZ)
+    assert_error(post(client, source), 422, source.name, "cannot be written moved", words)
