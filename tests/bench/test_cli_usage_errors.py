@@ -139,7 +139,7 @@ CASES = [
     ("queued_bodies", ["--json", "{missing}"], "measure", "does not exist"),
     ("queued_bodies", ["--compare-root", "{checkout}"], "measure", "--compare-root"),
     ("server_memory", ["--models", "general,nope"], "measure", "--models: no bundled model nope"),
-    ("server_memory", ["--aligned", "ply,e57"], "measure_aligned", "--aligned: expected formats among ply, pcd"),
+    ("server_memory", ["--aligned", "ply,xyz"], "measure_aligned", "--aligned: expected formats among ply, pcd"),
     ("server_memory", ["--aligned-pair", "xyz"], "measure_aligned", "--aligned-pair: invalid choice"),
     ("http_latency", ["--big-requests", "0"], "bench_overhead", "--big-requests: must be at least 1"),
     ("http_latency", ["--compare-root", "{checkout}"], "bench_overhead", "not a checkout"),
