@@ -16,19 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from aligned_runs import pose, post_aligned, register, sequence
 from api_server import assert_error
-from cli_support import snapshot_model, synthetic_pair
+from cli_support import synthetic_pair
 from scipy.spatial.transform import Rotation
-from typer.testing import CliRunner
 
-from service.cli import app
 from service.formats import PointCloudFormatError
 from service.formats.moved import check_moved, write_moved
 from service.formats.moved_arrays import check_moved_npy, check_moved_npz
 from service.pointcloud_io import read_points
 
-runner = CliRunner()
-FAST = ("--iterations", "1", "--keypoints", "32")
 R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
 T = np.array([1.5, -2.0, 0.3])
 UTM = np.array([512_345.0, 4_123_456.0, 150.0])
@@ -254,18 +251,7 @@ def test_a_second_member_named_as_the_cloud_is_copied_within_the_other_members_l
 # -------------------------------------------------------------------------------------------------- CLI
 
 
-@pytest.fixture(scope="module")
-def model_dir(tmp_path_factory) -> Path:
-    return snapshot_model(tmp_path_factory.mktemp("models"))
 
-
-def pose(out: Path) -> tuple[np.ndarray, np.ndarray]:
-    record = json.loads(out.read_text())
-    return np.asarray(record["rotation"]), np.asarray(record["translation"])
-
-
-def register(*args, model_dir: Path):
-    return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *FAST])
 
 
 def test_register_writes_an_npy_and_an_npz_as_themselves_moved(tmp_path, model_dir) -> None:
@@ -317,8 +303,7 @@ def test_sequence_writes_npy_and_npz_frames_as_themselves(tmp_path, model_dir) -
     np.save(frames[2], np.asfortranarray(np.concatenate([source, NORMALS[: len(source)]], axis=1)))
     folder, steps = tmp_path / "aligned", tmp_path / "steps.jsonl"
     folder.mkdir()
-    result = runner.invoke(app, ["sequence", *map(str, frames), "--write-aligned", str(folder), "--out", str(steps),
-                                 "--model-dir", str(model_dir), *FAST])  # fmt: skip
+    result = sequence(frames, folder, model_dir, steps)
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in folder.iterdir()) == ["f0.npy", "f1.npz", "f2.npy"]
     assert (folder / "f0.npy").read_bytes() == frames[0].read_bytes()  # frame 0: the identity
@@ -335,18 +320,8 @@ def test_sequence_writes_npy_and_npz_frames_as_themselves(tmp_path, model_dir) -
 # ------------------------------------------------------------------------------------------------- HTTP
 
 
-def transform() -> str:
-    matrix = np.eye(4)
-    matrix[:3, :3], matrix[:3, 3] = R, T
-    return json.dumps(matrix.tolist())
-
-
 def post(client, path: Path, name: str | None = None):
-    return client.post(
-        "/v1/register/aligned",
-        files={"source": (name or path.name, path.read_bytes())},
-        data={"transform": transform()},
-    )
+    return post_aligned(client, path, R, T, name)
 
 
 def test_the_page_downloads_an_npy_and_an_npz_as_themselves_moved(client, tmp_path) -> None:
@@ -523,8 +498,7 @@ def test_sequence_refuses_a_frame_it_cannot_write_before_the_first_registration(
     frames.append(unwritable(tmp_path, "encrypted", source.astype(np.float64))[0])
     folder = tmp_path / "aligned"
     folder.mkdir()
-    result = runner.invoke(app, ["sequence", *map(str, frames), "--write-aligned", str(folder),
-                                 "--model-dir", str(model_dir), *FAST])  # fmt: skip
+    result = sequence(frames, folder, model_dir)
     assert result.exit_code == 2 and "Traceback" not in result.output, result.output
     stderr = " ".join(result.stderr.split())
     assert f"--write-aligned {folder / 'encrypted.npz'}: encrypted.npz cannot be written moved as NPZ" in stderr

@@ -14,14 +14,13 @@ import e57
 import numpy as np
 import pye57
 import pytest
+from aligned_runs import register, sequence
 from api_server import assert_error
-from cli_support import snapshot_model, synthetic_pair
+from cli_support import synthetic_pair
 from e57_xml import _paged, with_xml, xml_of
 from pye57 import libe57
 from scipy.spatial.transform import Rotation
-from typer.testing import CliRunner
 
-from service.cli import app
 from service.formats import PointCloudFormatError
 from service.formats.e57 import read_e57
 from service.formats.moved import write_moved
@@ -37,8 +36,6 @@ SCAN_POSES = [  # w, x, y, z; translation
 ]
 IMAGE_POSE = (np.array([np.cos(0.2), 0.0, 0.0, -np.sin(0.2)]), np.array([7.0, 8.0, 9.0]))
 IMAGE_BYTES = [bytes(range(256)) * 8, bytes(range(255, -1, -1)) * 5]  # two images' blobs, 2,048 and 1,280 bytes
-runner = CliRunner()
-FAST = ("--iterations", "1", "--keypoints", "32")
 
 
 def rotation(q: np.ndarray) -> np.ndarray:
@@ -352,20 +349,12 @@ def scan_of(xyz: np.ndarray, path: Path) -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def model_dir(tmp_path_factory) -> Path:
-    return snapshot_model(tmp_path_factory.mktemp("models"))
-
 
 def test_register_writes_an_e57_source_as_e57_moved(tmp_path, model_dir) -> None:
     source, target = scan_of(SOURCE, tmp_path / "scan.e57"), tmp_path / "target.npy"
     np.save(target, TARGET)
     out, aligned = tmp_path / "pose.json", tmp_path / "aligned.e57"
-    result = runner.invoke(
-        app,
-        ["register", str(source), str(target), "--out", str(out), "--write-aligned", str(aligned),
-         "--model-dir", str(model_dir), *FAST],
-    )  # fmt: skip
+    result = register(source, target, "--out", out, "--write-aligned", aligned, model_dir=model_dir)
     assert result.exit_code == 0, result.output
     record = json.loads(out.read_text())
     rotation_, translation = np.asarray(record["rotation"]), np.asarray(record["translation"])
@@ -379,10 +368,7 @@ def test_an_e57_source_to_another_format_holds_x_y_z_and_says_what_it_left(tmp_p
     source, target = scan_of(SOURCE, tmp_path / "scan.e57"), tmp_path / "target.npy"
     np.save(target, TARGET)
     aligned = tmp_path / "aligned.ply"
-    result = runner.invoke(
-        app,
-        ["register", str(source), str(target), "--write-aligned", str(aligned), "--model-dir", str(model_dir), *FAST],
-    )
+    result = register(source, target, "--write-aligned", aligned, model_dir=model_dir)
     assert result.exit_code == 0, result.output
     assert "aligned.ply holds x, y, z only; scan.e57's other fields (intensity, colorRed, colorGreen, colorBlue, " in (
         " ".join(result.stderr.split())
@@ -392,11 +378,8 @@ def test_an_e57_source_to_another_format_holds_x_y_z_and_says_what_it_left(tmp_p
 
 def test_register_refuses_an_e57_whose_xml_cannot_be_rewritten_before_registering(project, tmp_path, model_dir):
     source = damaged(project, tmp_path)
-    result = runner.invoke(
-        app,
-        ["register", str(source), str(tmp_path / "missing.npy"), "--write-aligned", str(tmp_path / "aligned.e57"),
-         "--model-dir", str(model_dir), *FAST],
-    )  # fmt: skip
+    aligned = tmp_path / "aligned.e57"
+    result = register(source, tmp_path / "missing.npy", "--write-aligned", aligned, model_dir=model_dir)
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert "--write-aligned aligned.e57: damaged.e57 cannot be written moved as E57" in result.stderr
     assert (
@@ -408,10 +391,7 @@ def test_register_refuses_an_e57_whose_xml_cannot_be_rewritten_before_registerin
 def test_an_e57_output_of_another_format_is_a_usage_error(tmp_path, model_dir) -> None:
     source = tmp_path / "scan.npy"
     np.save(source, SOURCE)
-    result = runner.invoke(
-        app, ["register", str(source), str(source), "--write-aligned", str(tmp_path / "a.e57"), "--model-dir",
-              str(model_dir), *FAST],
-    )  # fmt: skip
+    result = register(source, source, "--write-aligned", tmp_path / "a.e57", model_dir=model_dir)
     assert result.exit_code == 2 and "an E57 file is written only from an E57 source" in result.stderr
 
 
@@ -420,11 +400,7 @@ def test_sequence_writes_e57_frames_as_e57_moved_into_frame_0(tmp_path, model_di
     frames = [scan_of(SOURCE, tmp_path / "f0.e57"), scan_of(SOURCE.astype(np.float64) @ turn.T, tmp_path / "f1.e57")]
     folder, steps = tmp_path / "aligned", tmp_path / "steps.jsonl"
     folder.mkdir()
-    result = runner.invoke(
-        app,
-        ["sequence", *map(str, frames), "--write-aligned", str(folder), "--out", str(steps),
-         "--model-dir", str(model_dir), *FAST],
-    )  # fmt: skip
+    result = sequence(frames, folder, model_dir, steps)
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in folder.iterdir()) == ["f0.e57", "f1.e57"]
     accumulated = [np.eye(4), np.asarray(json.loads(steps.read_text().splitlines()[0])["accumulated_transform"])]
@@ -439,9 +415,7 @@ def test_sequence_refuses_an_e57_frame_whose_xml_cannot_be_rewritten_before_regi
     frames = [scan_of(SOURCE, tmp_path / "f0.e57"), damaged(project, tmp_path, "f1.e57")]
     folder = tmp_path / "aligned"
     folder.mkdir()
-    result = runner.invoke(
-        app, ["sequence", *map(str, frames), "--write-aligned", str(folder), "--model-dir", str(model_dir), *FAST]
-    )
+    result = sequence(frames, folder, model_dir)
     assert result.exit_code == 2 and "f1.e57 cannot be written moved as E57" in result.stderr
     assert list(folder.iterdir()) == []
 

@@ -13,18 +13,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from aligned_runs import pose, post_aligned, register, sequence
 from api_server import assert_error
-from cli_support import snapshot_model, synthetic_pair
+from cli_support import synthetic_pair
 from scipy.spatial.transform import Rotation
-from typer.testing import CliRunner
 
-from service.cli import app
 from service.formats import PointCloudFormatError
 from service.formats.moved import write_moved
 from service.pointcloud_io import read_points
 
-runner = CliRunner()
-FAST = ("--iterations", "1", "--keypoints", "32")
 R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
 T = np.array([1.5, -2.0, 0.3])
 RNG = np.random.default_rng(21)
@@ -296,18 +293,7 @@ def test_a_ptx_file_keeps_its_rows_and_composes_each_scans_header_with_the_pose(
 # ------------------------------------------------------------------------------------------------------ CLI
 
 
-@pytest.fixture(scope="module")
-def model_dir(tmp_path_factory) -> Path:
-    return snapshot_model(tmp_path_factory.mktemp("models"))
 
-
-def pose(out: Path) -> tuple[np.ndarray, np.ndarray]:
-    record = json.loads(out.read_text())
-    return np.asarray(record["rotation"]), np.asarray(record["translation"])
-
-
-def register(*args, model_dir: Path):
-    return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *FAST])
 
 
 def test_register_writes_the_csv_and_the_ptx_moved(tmp_path, model_dir) -> None:
@@ -357,8 +343,7 @@ def test_sequence_keeps_pts_and_ptx_frames_in_their_own_format(tmp_path, model_d
     frames[2].write_text("".join(f"{x:.6f} {y:.6f} {z:.6f} 0.25\n" for x, y, z in source))
     folder, steps = tmp_path / "aligned", tmp_path / "steps.jsonl"
     folder.mkdir()
-    result = runner.invoke(app, ["sequence", *map(str, frames), "--write-aligned", str(folder), "--out", str(steps),
-                                 "--model-dir", str(model_dir), *FAST])  # fmt: skip
+    result = sequence(frames, folder, model_dir, steps)
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in folder.iterdir()) == ["f0.pts", "f1.ptx", "f2.xyz"]
     assert (folder / "f0.pts").read_text() == frames[0].read_text()  # frame 0: the identity
@@ -375,18 +360,8 @@ def test_sequence_keeps_pts_and_ptx_frames_in_their_own_format(tmp_path, model_d
 # ----------------------------------------------------------------------------------------------------- HTTP
 
 
-def transform() -> str:
-    matrix = np.eye(4)
-    matrix[:3, :3], matrix[:3, 3] = R, T
-    return json.dumps(matrix.tolist())
-
-
 def post(client, path: Path, name: str | None = None):
-    return client.post(
-        "/v1/register/aligned",
-        files={"source": (name or path.name, path.read_bytes())},
-        data={"transform": transform()},
-    )
+    return post_aligned(client, path, R, T, name)
 
 
 def test_the_page_downloads_text_files_moved_in_their_own_format(client, tmp_path) -> None:

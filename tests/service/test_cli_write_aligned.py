@@ -16,17 +16,15 @@ import numpy as np
 import plyfile
 import pypcd4
 import pytest
-from cli_support import snapshot_model, synthetic_pair
+from aligned_runs import FAST, pose, register, runner, sequence
+from cli_support import synthetic_pair
 from moved_files import PCD_NORMALS, PLY_NORMALS, coloured_ply, pcd_with_fields, survey_las
 from scipy.spatial.transform import Rotation
-from typer.testing import CliRunner
 
 from service.cli import app
 from service.formats.moved import write_moved
 from service.pointcloud_io import read_points
 
-runner = CliRunner()
-FAST = ("--iterations", "1", "--keypoints", "32")
 SOURCE, TARGET = synthetic_pair()  # [600, 3] float32 each
 R = Rotation.from_euler("zyx", [30.0, -10.0, 5.0], degrees=True).as_matrix()
 T = np.array([1.5, -2.0, 0.3])
@@ -206,18 +204,7 @@ def test_las_moved_from_a_local_frame_into_map_coordinates_gets_offsets_that_fit
 # ------------------------------------------------------------------------------------------- the CLI
 
 
-@pytest.fixture(scope="module")
-def model_dir(tmp_path_factory) -> Path:
-    return snapshot_model(tmp_path_factory.mktemp("models"))
 
-
-def register(*args, model_dir: Path):
-    return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *FAST])
-
-
-def pose(out: Path) -> tuple[np.ndarray, np.ndarray]:
-    record = json.loads(out.read_text())
-    return np.asarray(record["rotation"]), np.asarray(record["translation"])
 
 
 def test_register_writes_the_coloured_ply_moved(tmp_path, model_dir) -> None:
@@ -306,11 +293,7 @@ def test_sequence_writes_every_frame_moved_into_frame_0_with_its_fields(tmp_path
         vertices.append(coloured_ply(frames[-1], (SOURCE.astype(np.float64) @ turn.T).astype(np.float32)))
     folder, steps = tmp_path / "aligned", tmp_path / "steps.jsonl"
     folder.mkdir()
-    result = runner.invoke(
-        app,
-        ["sequence", *map(str, frames), "--write-aligned", str(folder), "--out", str(steps),
-         "--model-dir", str(model_dir), *FAST],
-    )  # fmt: skip
+    result = sequence(frames, folder, model_dir, steps)
     assert result.exit_code == 0, result.output
     accumulated = [np.eye(4)] + [np.asarray(json.loads(line)["accumulated_transform"]) for line in
                                  steps.read_text().splitlines()]  # fmt: skip
