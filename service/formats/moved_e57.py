@@ -53,6 +53,7 @@ ROTATION, TRANSLATION = ("w", "x", "y", "z"), ("x", "y", "z")
 COORDINATES = {f"cartesian{a}" for a in "XYZ"} | {f"spherical{a}" for a in ("Range", "Azimuth", "Elevation")}
 WHITESPACE = b" \t\n\r\x0b\x0c"  # what bytes.rstrip() strips
 START_TAG = re.compile(rb"""<(?:[^>"']|"[^"]*"|'[^']*')*>""")  # a start tag: '>' may be in an attribute's value
+LONGEST_FLOAT = len("-1.2345678901234567e-300")  # the longest text repr() gives a float64 (24 characters)
 
 
 @dataclass
@@ -110,10 +111,13 @@ def moved_e57(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray) -> Non
 
 def check_moved_e57(f: BinaryIO) -> None:
     """:class:`PointCloudFormatError` where the E57 file ``f`` (seekable, read from its start) cannot be written
-    moved (:func:`moved_e57`'s refusals), before anything is registered or written; ``f`` is left at its start."""
+    moved (:func:`moved_e57`'s refusals), before anything is registered or written; ``f`` is left at its start. The
+    pose is not known yet: the identity is composed, each number written padded with zeros to the longest a float64's
+    text can be (:data:`LONGEST_FLOAT` characters), so that no registration's pose takes the XML section beyond the
+    reader's byte limit once this has passed it."""
     try:
         _, _, _, _, _, xml = _layout(f)
-        _moved_xml(xml, np.eye(3), np.zeros(3))
+        _moved_xml(xml, np.eye(3), np.zeros(3), longest=True)
     finally:
         f.seek(0)
 
@@ -216,9 +220,10 @@ def _posed(root: _Element, vector: str) -> list[_Element]:
     return [c for v in _named(root, root, vector) for c in v.children if c.kind == "Structure"]
 
 
-def _moved_xml(text: bytes, R: np.ndarray, t: np.ndarray) -> tuple[bytes, list[int | None]]:
+def _moved_xml(text: bytes, R: np.ndarray, t: np.ndarray, longest: bool = False) -> tuple[bytes, list[int | None]]:
     """The XML section ``text`` with every scan's and image's pose composed with ``R``, ``t`` (spliced: every other
-    byte kept), and the ``fileOffset`` of each binary section it names (``None``: not a decimal integer)."""
+    byte kept), and the ``fileOffset`` of each binary section it names (``None``: not a decimal integer).
+    ``longest``: each pose number padded to :data:`LONGEST_FLOAT` characters (:func:`check_moved_e57`)."""
     offsets: list[str] = []
     root = _tree(text, offsets)
     edits: list[tuple[int, int, bytes]] = []
@@ -229,7 +234,7 @@ def _moved_xml(text: bytes, R: np.ndarray, t: np.ndarray) -> tuple[bytes, list[i
             raise PointCloudFormatError(f"the E57 file's XML section has more than one {vector} element")
         for number, owner in enumerate(_posed(root, vector)):
             what = f"E57 {'scan' if vector == 'data3D' else 'image'} {number}"
-            edits += _pose_edits(text, root, owner, what, matrix, turn, np.asarray(t, dtype=np.float64))
+            edits += _pose_edits(text, root, owner, what, matrix, turn, np.asarray(t, dtype=np.float64), longest)
     out, at = bytearray(), 0
     for begin, finish, piece in sorted(edits, key=lambda edit: edit[0]):  # stable: insertions keep their order
         out += text[at:begin] + piece
@@ -258,9 +263,17 @@ def _check_readable(text: bytes) -> None:
 
 
 def _pose_edits(
-    text: bytes, root: _Element, owner: _Element, what: str, R: np.ndarray, turn: Rotation, t: np.ndarray
+    text: bytes,
+    root: _Element,
+    owner: _Element,
+    what: str,
+    R: np.ndarray,
+    turn: Rotation,
+    t: np.ndarray,
+    longest: bool = False,
 ) -> list[tuple[int, int, bytes]]:
-    """The splices that give ``owner`` (a scan or image) its pose composed with ``R``, ``t`` (``turn``: ``R``)."""
+    """The splices that give ``owner`` (a scan or image) its pose composed with ``R [3, 3]``, ``t [3]`` (``turn``:
+    ``R``); ``longest``: each number padded to :data:`LONGEST_FLOAT` characters."""
     pose = _unique(owner, root, "pose", what)
     rotation = _unique(pose, root, "rotation", what) if _open(pose) else None
     translation = _unique(pose, root, "translation", what) if _open(pose) else None
@@ -280,14 +293,14 @@ def _pose_edits(
     }
     prefix = _prefix(text, owner)
     if not _open(pose):
-        return _put(text, owner, pose, _structure(prefix, "pose", values))
+        return _put(text, owner, pose, _structure(prefix, "pose", values, longest))
     edits: list[tuple[int, int, bytes]] = []
     for name, child in (("rotation", rotation), ("translation", translation)):
         if not _open(child):
-            edits += _put(text, pose, child, _structure(prefix, name, values[name]))
+            edits += _put(text, pose, child, _structure(prefix, name, values[name], longest))
             continue
         for axis, value in values[name].items():
-            edits += _put(text, child, _unique(child, root, axis, what), _structure(prefix, axis, value))
+            edits += _put(text, child, _unique(child, root, axis, what), _structure(prefix, axis, value, longest))
     return edits
 
 
@@ -339,12 +352,18 @@ def _prefix(text: bytes, element: _Element) -> str:
     return qname.rpartition(":")[0] + ":" if ":" in qname else ""
 
 
-def _structure(prefix: str, name: str, value: float | dict) -> bytes:
-    """The element ``name``: a Float of ``value``'s shortest float64 text, or a Structure of ``value``'s items."""
+def _structure(prefix: str, name: str, value: float | dict, longest: bool = False) -> bytes:
+    """The element ``name``: a Float of ``value``'s shortest float64 text (``longest``: padded with zeros to
+    :data:`LONGEST_FLOAT` characters, the same number), or a Structure of ``value``'s items."""
     if isinstance(value, dict):
-        inner = "".join(_structure(prefix, key, item).decode("utf-8") for key, item in value.items())
+        inner = "".join(_structure(prefix, key, item, longest).decode("utf-8") for key, item in value.items())
         return f'<{prefix}{name} type="Structure">{inner}</{prefix}{name}>'.encode()
-    return f'<{prefix}{name} type="Float">{float(value)!r}</{prefix}{name}>'.encode()
+    number = repr(float(value))
+    if longest:
+        mantissa, e, exponent = number.partition("e")  # "1e-05": no point
+        mantissa += "" if "." in mantissa else "."
+        number = mantissa + "0" * (LONGEST_FLOAT - len(mantissa) - len(e) - len(exponent)) + e + exponent
+    return f'<{prefix}{name} type="Float">{number}</{prefix}{name}>'.encode()
 
 
 def _put(text: bytes, parent: _Element, old: _Element | None, piece: bytes) -> list[tuple[int, int, bytes]]:

@@ -22,7 +22,7 @@ from pye57 import libe57
 from scipy.spatial.transform import Rotation
 
 from service.formats import PointCloudFormatError
-from service.formats.e57 import read_e57
+from service.formats.e57 import MAX_XML_BYTES, read_e57
 from service.formats.moved import write_moved
 from service.formats.moved_e57 import _moved_xml, check_moved_e57
 
@@ -310,6 +310,27 @@ def test_an_e57_whose_poses_added_would_take_its_xml_beyond_the_readers_limits_i
     assert sorted(p.name for p in tmp_path.iterdir()) == ["catalogue.e57"]
 
 
+def test_an_e57_that_poses_of_longer_numbers_would_take_beyond_the_byte_limit_is_refused_before_registering(
+    project, tmp_path
+) -> None:
+    """The check before registering composed the identity, whose numbers print short (``1.0``, ``0.0``): an XML
+    section that a registration's pose (numbers of up to 24 characters) takes beyond ``MAX_XML_BYTES`` passed it, and
+    was refused once registered (exit 1). It now counts each number written at its longest."""
+    xml = xml_of(project.read_bytes())
+    shortest, longest = (len(_moved_xml(xml, np.eye(3), np.zeros(3))[0]), len(_moved_xml(xml, R, T)[0]))
+    assert longest > shortest + 100
+    padding = MAX_XML_BYTES - (shortest + longest) // 2 - len(b"<!---->")  # between the two once padded
+    padded = xml.replace(b"<data3D", b"<!--" + b"p" * padding + b"--><data3D", 1)
+    source = tmp_path / "near-the-limit.e57"
+    source.write_bytes(with_xml(project.read_bytes(), padded))
+    with open(source, "rb") as f:
+        read_e57(f, None)  # read as it is
+        with pytest.raises(PointCloudFormatError, match=f"would not be read back: .* at most {MAX_XML_BYTES}"):
+            check_moved_e57(f)
+    with pytest.raises(PointCloudFormatError, match=f"would not be read back: it would have .* {MAX_XML_BYTES}"):
+        moved_to(source, tmp_path / "aligned.e57")
+
+
 class CountedBytes(bytes):
     """An XML section that counts the bytes sliced out of it."""
 
@@ -347,7 +368,6 @@ def scan_of(xyz: np.ndarray, path: Path) -> Path:
     local = (xyz.astype(np.float64) - SCAN_POSE[1]) @ rotation(SCAN_POSE[0])  # R_i @ local + t_i = xyz
     write_project(path, [local], [SCAN_POSE])
     return path
-
 
 
 def test_register_writes_an_e57_source_as_e57_moved(tmp_path, model_dir) -> None:
