@@ -11,17 +11,20 @@ shape, order and other columns kept.
 - The dtype: float64 is kept; float32 is kept unless a moved coordinate is beyond ``FLOAT32_EXACT_ENOUGH``, when the
   coordinates become float64 (a plain array: the whole array, each other value exactly as it was); a plain array of
   2-byte floats becomes float32 (float64 beyond it), one of integers float64 (an 8-byte integer beyond 2**53, which
-  float64 would round, is refused, and so is a widened row longer than ``MAX_WRITTEN_ROW_BYTES``). A structured
+  float64 would round, is refused, and so is a plain array whose rows would be longer than ``MAX_WRITTEN_ROW_BYTES``
+  as float64, whether or not the pose widens them: only the pose tells, and the check before registering refuses
+  what the writer refuses). A structured
   array's x, y, z fields are written as a PLY file's are (8-byte floats kept, 4-byte ones kept or widened, others
   4-byte floats, 8-byte ones beyond it; ``np.longdouble`` ones kept); its other fields keep their types, and where
   x, y, z keep theirs the dtype is the file's own (its padding, offsets and titles).
-- ``.npz``: every member copied as it was, in its place, with its name, date, attributes and compression (stored or
-  deflated), the archive's comment too; the member :func:`service.formats.arrays.read_npz` reads (``points``, else
-  ``positions``, else the only array) moved as an ``.npy`` file, and a plain float ``normals`` array of its rows and
-  3 columns (Open3D's ``o3d.t.io`` layout, or ours) rotated; of two members of one name, the last (numpy's) is the
-  one moved or rotated, the other one of those copied. Members are decompressed and compressed a block at a
-  time; those not moved may expand to at most ``OTHER_BYTES_PER_POINT`` per point of the cloud (plus
-  ``OTHER_BYTES_EXTRA``), so that a small archive cannot ask for gigabytes of work.
+- ``.npz``: every member copied as it was, in its place, with its name, date, attributes (and the system that made
+  them) and compression (stored or deflated), the archive's comment too; the member
+  :func:`service.formats.arrays.read_npz` reads (``points``, else ``positions``, else the only array) moved as an
+  ``.npy`` file, and a plain float ``normals`` array of its rows and 3 columns (Open3D's ``o3d.t.io`` layout, or
+  ours) rotated; of two members of one name, the last (numpy's) is the one moved or rotated, the other one of those
+  copied. Members are decompressed and compressed a block at a time; those not moved may expand to at most
+  ``OTHER_BYTES_PER_POINT`` per point of the cloud (plus ``OTHER_BYTES_EXTRA``), so that a small archive cannot ask
+  for gigabytes of work.
 
 :func:`check_moved_npy` and :func:`check_moved_npz` refuse, before anything is registered, what the header (an
 archive's directory and its members' headers) decides, with the writer's own checks: rows too long written, other
@@ -47,7 +50,7 @@ NORMALS_MEMBER = "normals.npy"  # an .npz array of the cloud's rows and 3 float 
 OTHER_BYTES_PER_POINT = MAX_ROW_BYTES  # what an .npz's members not moved may expand to, per point of its cloud ...
 OTHER_BYTES_EXTRA = 1 << 20  # ... and this much more (small arrays: a pose, a name, a grid's size)
 EXACT_INTEGERS = 2**53  # the largest integers float64 holds exactly
-MAX_WRITTEN_ROW_BYTES = 2 * MAX_ROW_BYTES  # a plain array widened (integers to float64): its rows at most this long
+MAX_WRITTEN_ROW_BYTES = 2 * MAX_ROW_BYTES  # a plain array's rows as float64 (integers; floats widened): at most this
 
 
 def moved_npy(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
@@ -65,8 +68,9 @@ def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
             out.comment = archive.comment
             for info in archive.infolist():
                 copy = zipfile.ZipInfo(info.filename, info.date_time)
-                copy.compress_type, copy.external_attr, copy.comment = (
+                copy.compress_type, copy.create_system, copy.external_attr, copy.comment = (
                     info.compress_type,
+                    info.create_system,  # the system the attributes are read by (MS-DOS, Unix)
                     info.external_attr,
                     info.comment,
                 )
@@ -90,7 +94,7 @@ def check_moved_npy(f: BinaryIO) -> None:
     anything is registered or written; ``f`` is left at its start. An 8-byte integer beyond ``EXACT_INTEGERS`` is the
     writer's to find: it needs the data."""
     try:
-        _array_plan(f, False)  # x, y, z not widened: a row refused so is refused widened too
+        _array_plan(f, False)  # its refusals are those of x, y, z widened or not
     finally:
         f.seek(0)
 
@@ -196,7 +200,8 @@ class _Plan(NamedTuple):
 def _array_plan(src: BinaryIO, widen: bool, size: int | None = None, rotate: bool = False) -> _Plan:
     """The ``.npy`` header at ``src``'s position (``size`` bytes: an archive's member; else to the file's end),
     ``src`` left at its data, as it is written (:func:`_moved_array`'s arguments), or its refusal: a plain array
-    whose rows would be longer than ``MAX_WRITTEN_ROW_BYTES`` in the dtype written."""
+    whose rows would be longer than ``MAX_WRITTEN_ROW_BYTES`` as float64 (its dtype widened, as map coordinates
+    widen it: the same refusal whatever ``widen``, so that the check before registering refuses what this does)."""
     start = src.tell()
     shape, fortran, dtype, rows = npy_layout(src, None, size)
     header = src.tell() - start
@@ -205,9 +210,10 @@ def _array_plan(src: BinaryIO, widen: bool, size: int | None = None, rotate: boo
 
         return _Plan(start, header, shape, fortran, dtype, rows, _widened(dtype, widen))
     written = dtype if rotate else _plain_written(dtype, widen)
-    if shape[-1] * written.itemsize > MAX_WRITTEN_ROW_BYTES:  # 128 int8 columns would be 1 KiB a row
+    widest = dtype if rotate else _plain_written(dtype, True)
+    if shape[-1] * widest.itemsize > MAX_WRITTEN_ROW_BYTES:  # 128 int8 columns would be 1 KiB a row
         raise PointCloudFormatError(
-            f"rows of {shape[-1]} {dtype} values would be {shape[-1] * written.itemsize} bytes as {written}: "
+            f"rows of {shape[-1]} {dtype} values would be {shape[-1] * widest.itemsize} bytes as {widest}: "
             f"at most {MAX_WRITTEN_ROW_BYTES} are written (save the array as floats, or write another format)"
         )
     return _Plan(start, header, shape, fortran, dtype, rows, written)

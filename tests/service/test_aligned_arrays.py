@@ -189,6 +189,25 @@ def test_an_npz_keeps_every_other_array_in_its_order_and_compression(tmp_path, s
     assert_moved(written["points"], moved(XYZ.astype(np.float32)))
 
 
+def test_an_npz_made_on_windows_keeps_the_system_its_attributes_are_read_by(tmp_path) -> None:
+    """A member's attributes mean what the system that made it says (MS-DOS: 0; Unix: 3, a file mode in the high
+    bits): the copy kept an MS-DOS member's attributes (0x20, archive) but was marked as made on Unix, which reads them
+    as a mode of 0 (no permissions) when it is unzipped."""
+    source, out = tmp_path / "windows.npz", tmp_path / "aligned.npz"
+    with zipfile.ZipFile(source, "w") as archive:
+        for name, array in (("points.npy", XYZ), ("labels.npy", LABELS)):
+            info = zipfile.ZipInfo(name, (2024, 5, 1, 12, 0, 0))
+            info.create_system, info.external_attr = 0, 0x20
+            data = io.BytesIO()
+            np.save(data, array)
+            archive.writestr(info, data.getvalue())
+    write(source, out)
+    with zipfile.ZipFile(source) as before, zipfile.ZipFile(out) as after:
+        made = [(info.filename, info.create_system, info.external_attr) for info in before.infolist()]
+        assert [(info.filename, info.create_system, info.external_attr) for info in after.infolist()] == made
+    assert_moved(np.load(out)["points"], moved(XYZ))
+
+
 @pytest.mark.parametrize("key", ["positions", "points"])
 def test_open3d_positions_and_their_normals_are_moved_and_rotated(tmp_path, key) -> None:
     """Open3D's ``o3d.t.io`` writes ``positions``, ``normals`` and ``colors`` (float32)."""
@@ -249,9 +268,6 @@ def test_a_second_member_named_as_the_cloud_is_copied_within_the_other_members_l
 
 
 # -------------------------------------------------------------------------------------------------- CLI
-
-
-
 
 
 def test_register_writes_an_npy_and_an_npz_as_themselves_moved(tmp_path, model_dir) -> None:
@@ -433,6 +449,26 @@ def test_the_check_passes_what_is_written_and_leaves_the_integers_beyond_2_53_to
         check_moved(tmp_path / name, name[-3:])
     with pytest.raises(PointCloudFormatError, match=r"beyond 2\*\*53"):  # it needs the data
         write(tmp_path / "ids.npy", tmp_path / "aligned.npy")
+
+
+def test_a_float16_array_too_wide_in_map_coordinates_is_refused_before_registering_too(tmp_path) -> None:
+    """float16 rows of 40 columns are 160 bytes as float32, 320 as float64: the check before registering (x, y, z not
+    widened) passed them, and the writer refused them once the pose had moved the points into map coordinates (exit 1
+    after registering). The rows are now measured as float64 by both, since only the pose tells which is written."""
+    halves = np.zeros((N, 40), dtype=np.float16)  # [N, 40]
+    halves[:, :3] = XYZ
+    np.save(tmp_path / "halves.npy", halves)
+    np.save(tmp_path / "narrow.npy", halves[:, :32])  # 256 bytes a row as float64: the limit
+    assert read_points(tmp_path / "halves.npy").shape == (N, 3)
+    words = re.escape("rows of 40 float16 values would be 320 bytes as float64: at most 256")
+    with pytest.raises(PointCloudFormatError, match=words):
+        check_moved(tmp_path / "halves.npy", "npy")
+    for translation in (T, UTM):
+        with pytest.raises(PointCloudFormatError, match=words):
+            write(tmp_path / "halves.npy", tmp_path / "aligned.npy", translation=translation)
+    check_moved(tmp_path / "narrow.npy", "npy")
+    write(tmp_path / "narrow.npy", tmp_path / "aligned.npy", translation=UTM)
+    assert np.load(tmp_path / "aligned.npy").dtype == np.float64
 
 
 class CountingFile(io.FileIO):
