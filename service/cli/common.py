@@ -57,9 +57,9 @@ def write_text(path: Path, text: str) -> None:
 
 def write_aligned_cloud(path: Path, source: Path | None, points: np.ndarray, R: np.ndarray, t: np.ndarray) -> None:
     """``--write-aligned``: the file ``source`` itself moved by ``R [3, 3]``, ``t [3]`` where ``path``'s extension is
-    one of its own format's (PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY, NPZ: :mod:`service.formats.moved`), else
-    the x, y, z of ``points [N, 3]`` (read from it) moved, with a note on stderr naming the fields its header declares
-    that were left behind; exit 1 where it cannot be written."""
+    one of its own format's (PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY, NPZ, E57: :mod:`service.formats.moved`),
+    else the x, y, z of ``points [N, 3]`` (read from it) moved, with a note on stderr naming the fields its header
+    declares that were left behind; exit 1 where it cannot be written."""
     from service.formats.moved import KEPT_FORMATS, keeps_content, other_fields, source_format, write_moved
     from service.pointcloud_io import PointCloudFormatError, write_points
 

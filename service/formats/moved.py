@@ -158,8 +158,10 @@ def check_moved(source: Source, kind: str | None) -> None:
 def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:
     """What a file holds besides x, y, z, from its header or first row: the vertex properties and the other elements
     of a PLY file, the fields of a PCD file, the point dimensions of a LAS/LAZ file, the other columns of a text file
-    (named by its header, else numbered from 1) and of a PTS or PTX file (intensity, red, green, blue). Empty for
-    other formats and where the file cannot be read."""
+    (named by its header, else numbered from 1) and of a PTS or PTX file (intensity, red, green, blue), an array's
+    other fields or columns and an archive's other arrays (:func:`service.formats.moved_arrays.other_fields`), an E57
+    file's other point fields and its images (:func:`service.formats.moved_e57.other_fields`). Empty where the file
+    cannot be read."""
     try:
         with open(path, "rb") as f:
             if kind in ("text", "pts", "ptx"):
@@ -216,9 +218,8 @@ def write_moved(
     largest: float,
 ) -> None:
     """Write the PLY, PCD, LAS/LAZ, XYZ/CSV/TXT, PTS, PTX, NPY, NPZ or E57 file ``source`` (a path or an open file) to
-    ``out``
-    (:func:`keeps_content`) with its points moved by ``rotation [3, 3]`` and ``translation [3]`` and its normals
-    rotated, every other field and element kept; an E57 file with every scan's and image's pose composed.
+    ``out`` (:func:`keeps_content`) with its points moved by ``rotation [3, 3]`` and ``translation [3]`` and its
+    normals rotated, every other field and element kept; an E57 file with every scan's and image's pose composed.
     ``largest``: the largest absolute moved coordinate (the caller has moved the points it registered): beyond
     ``FLOAT32_EXACT_ENOUGH`` float32 x, y, z are written as float64.
 

@@ -7,7 +7,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import httpx
 import numpy as np
+from click.testing import Result
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -16,12 +18,12 @@ runner = CliRunner()
 FAST = ("--iterations", "1", "--keypoints", "32")
 
 
-def register(*args, model_dir: Path):
+def register(*args: object, model_dir: Path) -> Result:
     """``mfgnet register ARGS --model-dir MODEL_DIR`` with the ``FAST`` options."""
     return runner.invoke(app, ["register", *map(str, args), "--model-dir", str(model_dir), *FAST])
 
 
-def sequence(frames: list[Path], folder: Path, model_dir: Path, steps: Path | None = None):
+def sequence(frames: list[Path], folder: Path, model_dir: Path, steps: Path | None = None) -> Result:
     """``mfgnet sequence FRAMES --write-aligned FOLDER [--out STEPS]`` with the ``FAST`` options."""
     out = () if steps is None else ("--out", str(steps))
     return runner.invoke(
@@ -35,7 +37,9 @@ def pose(out: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(record["rotation"]), np.asarray(record["translation"])
 
 
-def post_aligned(client, path: Path, rotation: np.ndarray, translation: np.ndarray, name: str | None = None):
+def post_aligned(
+    client: httpx.Client, path: Path, rotation: np.ndarray, translation: np.ndarray, name: str | None = None
+) -> httpx.Response:
     """``POST /v1/register/aligned`` of the file at ``path`` (uploaded as ``name``, else its own name) moved by
     ``rotation [3, 3]``, ``translation [3]``."""
     matrix = np.eye(4)
