@@ -100,14 +100,22 @@ def npz_count(f: BinaryIO) -> int:
 def _with_member(f: BinaryIO, use: Callable[[BinaryIO, int], T]) -> T:
     """``use(stream, size)`` of the archive's member that :func:`read_npz` reads (its bytes, uncompressed), the
     archive's errors as :class:`PointCloudFormatError`."""
+    with opened_archive(f) as archive:
+        member = cloud_member(archive)
+        with archive.open(member) as stream:
+            return use(stream, archive.getinfo(member).file_size)
+
+
+@contextmanager
+def opened_archive(f: BinaryIO) -> Iterator[zipfile.ZipFile]:
+    """The ``.npz`` archive ``f`` open (closed afterwards; ``f`` left open), what opening it and reading its members
+    raise as :class:`PointCloudFormatError` (:func:`archive_errors`)."""
     try:
         archive = zipfile.ZipFile(f)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:  # a zip version beyond 6.3
         raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
-    with archive:
-        member = cloud_member(archive)
-        with archive_errors(), archive.open(member) as stream:
-            return use(stream, archive.getinfo(member).file_size)
+    with archive, archive_errors():
+        yield archive
 
 
 def cloud_member(archive: zipfile.ZipFile) -> str:

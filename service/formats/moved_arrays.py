@@ -35,13 +35,11 @@ from __future__ import annotations
 
 import shutil
 import zipfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
-from service.formats.arrays import archive_errors, cloud_member, npy_layout
+from service.formats.arrays import cloud_member, npy_layout, opened_archive
 from service.formats.checks import BLOCK_BYTES, MAX_ROW_BYTES
 from service.formats.errors import PointCloudFormatError
 
@@ -62,7 +60,7 @@ def moved_npy(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
 def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool) -> None:
     """The ``.npz`` archive ``src`` (at its start) moved into ``dst``: its cloud member moved, a ``normals`` member
     rotated, every other member copied (module docstring)."""
-    with _archive(src) as archive:
+    with opened_archive(src) as archive:
         member, normals = _archive_plan(archive)
         with zipfile.ZipFile(dst, "w", allowZip64=True) as out:
             out.comment = archive.comment
@@ -104,7 +102,7 @@ def check_moved_npz(f: BinaryIO) -> None:
     written moved as far as its directory and its members' headers decide (:func:`_archive_plan`, which
     :func:`moved_npz` runs first), before anything is registered or written; ``f`` is left at its start."""
     try:
-        with _archive(f) as archive:
+        with opened_archive(f) as archive:
             _archive_plan(archive)
     finally:
         f.seek(0)
@@ -139,17 +137,6 @@ def _are_normals(archive: zipfile.ZipFile, rows: int) -> bool:
     except PointCloudFormatError:  # not an array of points: copied as it is
         return False
     return dtype.names is None and dtype.kind == "f" and count == rows and shape[-1] == 3
-
-
-@contextmanager
-def _archive(src: BinaryIO) -> Iterator[zipfile.ZipFile]:
-    """The ``.npz`` archive ``src`` open, what reading it raises as :class:`PointCloudFormatError`."""
-    try:
-        archive = zipfile.ZipFile(src)
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:
-        raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
-    with archive, archive_errors():
-        yield archive
 
 
 def _archive_plan(archive: zipfile.ZipFile) -> tuple[zipfile.ZipInfo, zipfile.ZipInfo | None]:
