@@ -293,9 +293,6 @@ def test_a_ptx_file_keeps_its_rows_and_composes_each_scans_header_with_the_pose(
 # ------------------------------------------------------------------------------------------------------ CLI
 
 
-
-
-
 def test_register_writes_the_csv_and_the_ptx_moved(tmp_path, model_dir) -> None:
     source, _ = synthetic_pair()
     np.save(tmp_path / "target.npy", synthetic_pair()[1])

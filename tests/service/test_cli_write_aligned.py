@@ -204,9 +204,6 @@ def test_las_moved_from_a_local_frame_into_map_coordinates_gets_offsets_that_fit
 # ------------------------------------------------------------------------------------------- the CLI
 
 
-
-
-
 def test_register_writes_the_coloured_ply_moved(tmp_path, model_dir) -> None:
     source, target, out, aligned = (tmp_path / n for n in ("scan.ply", "target.npy", "pose.json", "aligned.ply"))
     vertex = coloured_ply(source, SOURCE)

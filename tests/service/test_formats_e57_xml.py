@@ -200,7 +200,6 @@ def test_a_pose_quaternion_that_is_not_a_unit_one_is_refused(e57, tmp_path) -> N
     np.testing.assert_allclose(read_cloud(typed, "a.e57"), XYZ * 0.99999**2, rtol=1e-12)
 
 
-
 @pytest.mark.parametrize(
     "value, what",
     [(b"<!-- c -->5", "a comment"), (b"5<!-- c -->1", "a comment"), (b"<?pi a?>5", "a processing instruction")],
