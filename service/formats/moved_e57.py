@@ -277,16 +277,16 @@ def _pose_edits(
     pose = _unique(owner, root, "pose", what)
     rotation = _unique(pose, root, "rotation", what) if _open(pose) else None
     translation = _unique(pose, root, "translation", what) if _open(pose) else None
-    q = _numbers(rotation, root, ROTATION, what) if _open(rotation) else np.array([1.0, 0.0, 0.0, 0.0])
+    q = _numbers(rotation, root, ROTATION, what) if _open(rotation) else np.array([1.0, 0.0, 0.0, 0.0])  # [4] w x y z
     norm = float(np.linalg.norm(q))
     if not abs(norm - 1.0) <= e57_format.MAX_QUATERNION_NORM_ERROR:
         raise PointCloudFormatError(
             f"{what}'s pose has a rotation quaternion of norm {norm:.9g}; the standard's is a unit quaternion (within "
             f"{e57_format.MAX_QUATERNION_NORM_ERROR:g} here)"
         )
-    turned = turn * Rotation.from_quat(q[[1, 2, 3, 0]] / norm)
+    turned = turn * Rotation.from_quat(q[[1, 2, 3, 0]] / norm)  # R @ R_i (scipy's quaternions: x, y, z, w)
     x, y, z, w = turned.as_quat(canonical=True)  # w >= 0
-    offset = _numbers(translation, root, TRANSLATION, what) if _open(translation) else np.zeros(3)
+    offset = _numbers(translation, root, TRANSLATION, what) if _open(translation) else np.zeros(3)  # [3] t_i
     values = {
         "rotation": dict(zip(ROTATION, np.array([w, x, y, z]) / np.linalg.norm([w, x, y, z]), strict=True)),
         "translation": dict(zip(TRANSLATION, R @ offset + t, strict=True)),
