@@ -224,3 +224,20 @@ def test_server_mode_writes_the_source_file_moved_with_its_colours(server, tmp_p
     assert rows["red"].tobytes() == vertex["red"].tobytes() and rows["alpha"].tobytes() == vertex["alpha"].tobytes()
     R, t = np.asarray(remote["rotation"]), np.asarray(remote["translation"])
     np.testing.assert_allclose(read_points(aligned), SOURCE.astype(np.float64) @ R.T + t, atol=1e-5)
+
+
+def test_server_mode_checks_the_aligned_source_before_anything_is_sent(tmp_path):
+    """--write-aligned's check of the source file (:func:`service.cli.common.check_aligned_source`) runs before the
+    upload, as in process: the usage error names the file though nothing listens at the address (the upload would have
+    been exit 1, server unreachable), and no aligned file is written."""
+    wide = np.zeros((len(SOURCE), 40), dtype=np.int16)  # [N, 40]: 80 bytes a row, 320 as float64
+    wide[:, :3] = np.round(SOURCE * 1000)
+    src, tgt, aligned = tmp_path / "wide.npy", tmp_path / "target.npy", tmp_path / "aligned.npy"
+    np.save(src, wide)
+    np.save(tgt, TARGET * 1000)
+    code, _, err = register(src, tgt, "--server", f"http://127.0.0.1:{free_port()}", "--write-aligned", aligned)
+    assert code == 2, err
+    assert "aligned.npy: wide.npy cannot be written moved as NPY: rows of 40 int16 values would be 320" in " ".join(
+        err.split()
+    )
+    assert not aligned.exists()
