@@ -11,10 +11,17 @@ surface often still keeps a third of the points near it, but less often half of 
 (:func:`near_surface_share`) reaches ``RELIABLE_NEAR_SHARE_ON_SURFACE`` / ``RELIABLE_NEAR_SHARE`` of that ratio: a
 right pose lies on the target where the clouds overlap. Coplanar clouds only earn a warning: their pose is usually
 determined, but it can be ambiguous (sliding within the plane, symmetric outlines).
+
+Where the target is smaller than the source (a scan cut to part of what the source sees), a right pose leaves the
+source's points beyond the cut far from the target. A caller that knows the target samples its surface densely may
+hand :func:`assess` the ratio measured the other way round (:func:`reverse_fit`): where the moved source explains the
+target (:func:`explains_the_target`) and the tight fit holds, the inlier-ratio check passes
+(``docs/decisions/0084-a-cut-target-the-source-explains.md``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,6 +47,11 @@ NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier 
 RELIABLE_NEAR_SHARE = 0.72
 # ... and where the attainable ratio is that of the target's surface (attainable_on_surface), this much of it
 RELIABLE_NEAR_SHARE_ON_SURFACE = 0.70
+# Where the caller offers the ratio measured the other way (reverse_fit), the target's points within an inlier distance
+# of the moved source must reach RELIABLE_INLIER_RATIO and this share of the source's attainable ratio, and their tight
+# fit RELIABLE_NEAR_SHARE_ON_SURFACE of it (docs/decisions/0084-a-cut-target-the-source-explains.md).
+RELIABLE_REVERSE_RATIO = 0.6
+TARGET_EXPLAINED = "target explained"  # first words of the note on a result whose ratio check passed that way
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
 IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
 
@@ -59,6 +71,15 @@ class Quality:
     residual_rms: float  # RMS of those inlier distances; 0 when there is none
     reliable: bool
     warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ReverseFit:
+    """How a ``src_to_tgt`` pose's moved source explains the target: the inlier ratio measured the other way round."""
+
+    ratio: float  # share of the target's points with a moved source point within the inlier distance
+    near_share: float  # of the target's points within NEAR_SURFACE_FACTOR inlier distances, the share within one
+    attainable: float  # the ratio a right pose reaches for the source's sampling (as Quality's, the other way)
 
 
 def degeneracy_warnings(points: np.ndarray) -> list[str]:
@@ -180,6 +201,24 @@ def attainable_on_surface(surface: np.ndarray, tgt: np.ndarray, inlier_distance:
     return float(np.mean(off_samples <= inlier_distance)) if len(off_samples) else 1.0
 
 
+def reverse_fit(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
+                attainable: float) -> ReverseFit:
+    """The inlier ratio and tight fit of ``tgt (M, 3)``'s points against ``src (N, 3)`` moved by ``R (3, 3), t (3,)``,
+    with ``attainable``: the ratio a right pose reaches that way (:func:`attainable_on_surface` of denser samples of
+    the source's surface against ``src``, or :func:`attainable_inlier_ratio` of ``src``)."""
+    moved = np.asarray(src, dtype=np.float64) @ np.asarray(R, dtype=np.float64).T + t  # [N, 3]
+    dist = KDTree(moved).query(np.asarray(tgt, dtype=np.float64), k=1)[0]  # [M]
+    return ReverseFit(float(np.mean(dist <= inlier_distance)), share_on_surface(dist, inlier_distance), attainable)
+
+
+def explains_the_target(fit: ReverseFit) -> bool:
+    """Whether the moved source explains the target as a right pose does: ``fit``'s ratio reaches
+    ``RELIABLE_INLIER_RATIO`` and ``RELIABLE_REVERSE_RATIO`` of its attainable ratio, and its tight fit
+    ``RELIABLE_NEAR_SHARE_ON_SURFACE`` of that ratio."""
+    return (fit.ratio >= max(RELIABLE_INLIER_RATIO, RELIABLE_REVERSE_RATIO * fit.attainable)
+            and fit.near_share >= RELIABLE_NEAR_SHARE_ON_SURFACE * fit.attainable)
+
+
 def relative_ratio(on_surface: bool) -> float:
     """The share of the attainable inlier ratio the ``reliable`` rule asks for: ``RELIABLE_RELATIVE_RATIO_ON_SURFACE``
     of the surface estimate (:func:`attainable_on_surface`), else ``RELIABLE_RELATIVE_RATIO`` of the density
@@ -194,7 +233,8 @@ def poor_fit(inlier_ratio: float, attainable: float, on_surface: bool) -> bool:
 
 
 def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
-           tree: KDTree | None = None, attainable: float | None = None, on_surface: bool = True) -> Quality:
+           tree: KDTree | None = None, attainable: float | None = None, on_surface: bool = True,
+           reverse: Callable[[], ReverseFit] | None = None) -> Quality:
     """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
 
     A moved source point ``R p + t`` is an inlier when its nearest target point is at most
@@ -202,7 +242,9 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     ``"target ..."``) and flag a low inlier ratio. ``tree``: ``KDTree(tgt)`` when the caller has it.
     ``attainable``: the inlier ratio a right pose reaches (:func:`attainable_on_surface`) where the caller knows
     it, or with ``on_surface=False`` the :func:`attainable_inlier_ratio` of ``tgt`` the caller already has; else
-    this computes the latter.
+    this computes the latter. ``reverse``: where the caller knows the target samples its surface densely, the
+    :func:`reverse_fit` of this pose, asked only where the inlier ratio alone keeps the result from ``reliable``; if
+    the source :func:`explains_the_target` the ratio check passes, with a note instead of its warning.
     """
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
@@ -232,18 +274,27 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
             attainable = attainable_inlier_ratio(tgt, inlier_distance, tree)
         near_share = share_on_surface(dist, inlier_distance)
     attainable = 1.0 if attainable is None else attainable  # empty clouds: degenerate, never reliable
-    if inlier_ratio < RELIABLE_INLIER_RATIO:
+    ratio_passes = inlier_ratio >= max(RELIABLE_INLIER_RATIO, relative * attainable)
+    tight = near_share >= near_factor * attainable
+    if not ratio_passes and tight and not degenerate and reverse is not None:
+        fit = reverse()
+        if explains_the_target(fit):
+            ratio_passes = True
+            warnings.append(f"{TARGET_EXPLAINED}: the inlier ratio {inlier_ratio:.3f} is below the rule's, but "
+                            f"{fit.ratio:.3f} of the target lies within the inlier distance of the moved source, "
+                            f">= {RELIABLE_REVERSE_RATIO} of the {fit.attainable:.2f} a right pose reaches: the target "
+                            "covers part of the source")
+    if not ratio_passes and inlier_ratio < RELIABLE_INLIER_RATIO:
         sparse = attainable < RELIABLE_INLIER_RATIO / RELIABLE_RELATIVE_RATIO  # even a right pose keeps little
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (
             f" (the target is sparse for the inlier distance: its density allows {attainable:.2f}, so even a right "
             "pose may not reach it)" if sparse else ""))
-    elif poor_fit(inlier_ratio, attainable, on_surface):
+    elif not ratio_passes:
         warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {relative} of the "
                         f"{attainable:.2f} {allows}")
-    elif near_share < near_factor * attainable:
+    elif not tight:
         warnings.append(f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
                         f"target only {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
                         f"{allows}; a right pose lies on the target where they overlap")
-    reliable = (not degenerate and inlier_ratio >= max(RELIABLE_INLIER_RATIO, relative * attainable)
-                and near_share >= near_factor * attainable)
+    reliable = not degenerate and ratio_passes and tight
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

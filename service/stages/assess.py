@@ -4,18 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 
 import numpy as np
 
 from service.network_loop import NetworkOutput
-from service.quality import LOOSE_FIT, NEAR_SURFACE_FACTOR, assess, near_surface_share
+from service.quality import LOOSE_FIT, NEAR_SURFACE_FACTOR, ReverseFit, assess, near_surface_share, reverse_fit
 from service.quality import poor_fit as poor_fit_of  # the rule's band, given the attainable ratio
 from service.result import IterationPose, RegistrationResult
 from service.rotation_search import SearchCandidate
 from service.stability import ROTATION_SHARE, WEAK_EIGENVALUE, Stability, pose_stability, weak_motion_warning
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, Working, to_caller
-from service.stages.ranking import samples_the_surface
+from service.stages.ranking import plane_frames_on_the_surface, samples_the_surface
 from service.stages.refine import Refined
 
 # With a dense target (service.stages.ranking.samples_the_surface), of the moved working source points within
@@ -59,6 +60,20 @@ def poor_fit(work: Working, inlier_ratio: float) -> bool:
     """Whether ``inlier_ratio`` is the ``reliable`` rule's "poor fit" on ``work`` (:func:`service.quality.poor_fit`
     against :func:`reliable_attainable`)."""
     return poor_fit_of(inlier_ratio, *reliable_attainable(work))
+
+
+def reverse_fit_on(work: Working, R: np.ndarray, t: np.ndarray) -> Callable[[], ReverseFit] | None:
+    """Where the entered target samples its surface densely (:func:`service.stages.ranking.samples_the_surface`) and
+    the clouds are not rooms (:func:`service.stages.ranking.plane_frames_on_the_surface`), the pose ``R, t``'s
+    :func:`service.quality.reverse_fit` of the working target against the working source, for
+    :func:`service.quality.assess` to ask where the inlier ratio alone keeps the result from ``reliable``; else
+    ``None``. Sparse targets and rooms keep the source-side rule: there wrong poses (half-turned partial views, a
+    room turned onto its walls) explain a cut target as well as right ones
+    (``docs/decisions/0084-a-cut-target-the-source-explains.md``)."""
+    if not samples_the_surface(work) or plane_frames_on_the_surface(work):
+        return None
+    return lambda: reverse_fit(work.working_source, work.tgt_w, R, t, work.inlier_distance,
+                               work.source_attainable_ratio)  # the source's ratio measured only where asked
 
 
 def weak_below(work: Working) -> float:
@@ -114,7 +129,7 @@ def assess_result(
     tree, working = work.working_target_lookup(surface)  # shared by the two checks below
     src = work.working_source  # [Ns, 3] caller's frame
     attainable, on_surface = reliable_attainable(work)
-    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface)
+    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface, reverse_fit_on(work, R, t))
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working, weak_below(work))
     weak = weak_motion_warning(turns_at_the_common_floor(stability))
     reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate

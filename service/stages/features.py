@@ -21,7 +21,8 @@ from service.quality import nearest_other_distances
 from service.rotation_search import SearchCandidate, deferred_output, rotation_between_deg
 from service.stages.network import Candidates
 from service.stages.normalise import Working, to_caller
-from service.stages.search import plane_frames_on_the_surface, search_rows
+from service.stages.ranking import plane_frames_on_the_surface
+from service.stages.search import search_rows
 
 if TYPE_CHECKING:
     from service.registrar import Registrar

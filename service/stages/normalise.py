@@ -80,6 +80,18 @@ class Working(Sampled):
         return attainable_on_surface(self.fine_target, self.tgt_w, self.inlier_distance)
 
     @cached_property
+    def source_attainable_ratio(self) -> float:
+        """The inlier ratio a right pose reaches measured from the target's side (:func:`service.quality.reverse_fit`):
+        :func:`service.quality.attainable_on_surface` of :attr:`fine_source` against the working source where the
+        entered source samples its surface densely, else the working source's
+        :func:`service.quality.attainable_inlier_ratio`; computed once per registration, where first asked."""
+        if samples_densely(self.src_e, self.src_w):
+            return attainable_on_surface(self.fine_source, self.working_source, self.inlier_distance)
+        if len(self.working_source) < 2:
+            return 1.0
+        return attainable_inlier_ratio(self.working_source, self.inlier_distance)
+
+    @cached_property
     def range_views(self) -> tuple[RangeView | None, RangeView | None]:
         """The entered source's and target's :func:`service.free_space.range_view`, each ``None`` unless the cloud
         samples its surface densely (``CLOSE_FIT_DENSITY`` times its working cloud's points) as a range image does;

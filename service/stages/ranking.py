@@ -72,6 +72,14 @@ def samples_the_surface(work: Working) -> bool:
     return samples_densely(work.tgt_e, work.tgt_w)
 
 
+def plane_frames_on_the_surface(work: Working) -> bool:
+    """Whether both working clouds are built of orthogonal planes (:attr:`Working.plane_frame_rotations`) and the
+    entered target samples their surface densely (:func:`samples_the_surface`): then any of the 24 frame rotations
+    can overlay the source on walls and floor, and only the search's ranking of them tells a quarter- or half-turned
+    room from the right one (``docs/decisions/0023-auto-searches-rooms.md``)."""
+    return samples_the_surface(work) and work.plane_frame_rotations is not None
+
+
 def rank_candidates(work: Working, starts: list[tuple[np.ndarray, np.ndarray]],
                     short_refine: Callable[[list[tuple[np.ndarray, np.ndarray]]], tuple[np.ndarray, np.ndarray]]
                     ) -> Ranked:

@@ -28,7 +28,7 @@ from service.stages.assess import off_the_surface, poor_fit
 from service.stages.network import Candidates
 from service.stages.normalise import INLIER_DISTANCE, Working, to_caller
 from service.stages.partial import looks_partial
-from service.stages.ranking import samples_the_surface
+from service.stages.ranking import plane_frames_on_the_surface
 from service.stages.slide import overlaid_share
 
 if TYPE_CHECKING:
@@ -128,14 +128,6 @@ def plane_frame_candidates(start_network: Callable[..., NetworkLoop], src_n: np.
     (``docs/decisions/0056-network-passes-only-for-the-winner.md``)."""
     return [SearchCandidate(deferred_output(start_network, src_n, tgt_n, start, iterations, keypoints, timing,
                                             "search"), start, start, np.zeros(3)) for start in starts]
-
-
-def plane_frames_on_the_surface(work: Working) -> bool:
-    """Whether both working clouds are built of orthogonal planes (:attr:`Working.plane_frame_rotations`) and the
-    entered target samples their surface densely (:func:`service.stages.ranking.samples_the_surface`): then any of
-    the 24 frame rotations can overlay the source on walls and floor, and only the search's ranking of them tells a
-    quarter- or half-turned room from the right one (``docs/decisions/0023-auto-searches-rooms.md``)."""
-    return samples_the_surface(work) and work.plane_frame_rotations is not None
 
 
 def needs_search(result: RegistrationResult, attainable_ratio: float = 1.0) -> bool:

@@ -67,9 +67,8 @@ from service.rotation_search import AMBIGUOUS_DEGREES, ambiguity_warning, rotati
 from service.stability import ROTATION_SHARE, pose_stability
 from service.stages.normalise import ICP_DISTANCE, Working
 from service.stages.partial import half_turns, principal_frame
-from service.stages.ranking import CLOSE_FIT, candidate_fits, samples_the_surface
+from service.stages.ranking import CLOSE_FIT, candidate_fits, plane_frames_on_the_surface, samples_the_surface
 from service.stages.refine import icp_distance, short_refine
-from service.stages.search import plane_frames_on_the_surface
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
 AXIS_TURN_DEGREES = (60.0, 120.0)  # ... by each of these angles either way

@@ -12,12 +12,17 @@ from service.quality import (
     RELIABLE_NEAR_SHARE_ON_SURFACE,
     RELIABLE_RELATIVE_RATIO,
     RELIABLE_RELATIVE_RATIO_ON_SURFACE,
+    RELIABLE_REVERSE_RATIO,
+    TARGET_EXPLAINED,
+    ReverseFit,
     assess,
     attainable_inlier_ratio,
     attainable_on_surface,
     degeneracy_warnings,
     degenerate,
+    explains_the_target,
     near_surface_share,
+    reverse_fit,
 )
 
 
@@ -230,3 +235,66 @@ def test_rejects_bad_arguments() -> None:
         assess(blob(), blob(), np.eye(3), np.zeros(3), inlier_distance=0.0)
     with pytest.raises(ValueError, match="R must be"):
         assess(blob(), blob(), np.eye(4), np.zeros(3), inlier_distance=0.1)
+
+
+def cut_surface_pair(kept_columns: int) -> tuple[np.ndarray, np.ndarray]:
+    """A curved 20 x 20 grid source and the target its columns below ``kept_columns`` (a scan cut by a plane), both
+    sampled at spacing 1 with a little noise."""
+    rng = np.random.default_rng(3)
+    grid = plane_grid(1.0, 20)  # [400, 3]
+    grid[:, 2] = 3.0 * np.sin(grid[:, 0] / 4.0) * np.cos(grid[:, 1] / 5.0)  # a curved surface, not a plane
+    src = grid + rng.normal(scale=1e-3, size=grid.shape)
+    kept = grid[grid[:, 0] < kept_columns]  # [20 * kept_columns, 3]
+    return src, kept + rng.normal(scale=1e-3, size=kept.shape)
+
+
+def test_the_reverse_fit_counts_the_targets_points_near_the_moved_source() -> None:
+    src, tgt = cut_surface_pair(8)  # the target holds 40% of the source's surface
+    fit = reverse_fit(src, tgt, np.eye(3), np.zeros(3), 0.5, attainable=1.0)
+    assert fit == ReverseFit(1.0, 1.0, 1.0)
+    moved = reverse_fit(src, tgt, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5, attainable=1.0)  # lifted off the plane
+    assert moved.ratio < 0.1 and moved.near_share < 0.1
+
+
+@pytest.mark.parametrize(("ratio", "near_share", "attainable", "explains"), [
+    (0.6, 0.7, 1.0, True),
+    (0.59, 0.9, 1.0, False),  # below RELIABLE_REVERSE_RATIO of the attainable ratio
+    (0.9, 0.69, 1.0, False),  # the target's points near the source cross its surface
+    (0.3, 0.35, 0.5, True),
+    (0.29, 0.35, 0.4, False),  # below RELIABLE_INLIER_RATIO, whatever the source's sampling allows
+])
+def test_the_source_explains_the_target_at_06_of_its_ratio_and_a_tight_fit(
+        ratio: float, near_share: float, attainable: float, explains: bool) -> None:
+    assert RELIABLE_REVERSE_RATIO == 0.6
+    assert explains_the_target(ReverseFit(ratio, near_share, attainable)) is explains
+
+
+def test_a_cut_target_the_source_explains_passes_the_ratio_check_with_a_note() -> None:
+    src, tgt = cut_surface_pair(8)
+    alone = assess(src, tgt, np.eye(3), np.zeros(3), 0.5, attainable=1.0)
+    assert not alone.reliable and any(w.startswith("poor fit: inlier ratio 0.40") for w in alone.warnings)
+    explained = assess(src, tgt, np.eye(3), np.zeros(3), 0.5, attainable=1.0,
+                       reverse=lambda: reverse_fit(src, tgt, np.eye(3), np.zeros(3), 0.5, 1.0))
+    assert explained.reliable and explained.inlier_ratio == alone.inlier_ratio
+    (note,) = explained.warnings
+    assert note.startswith(f"{TARGET_EXPLAINED}: the inlier ratio 0.400 is below the rule's, but 1.000 of the target")
+
+
+def test_a_target_the_source_does_not_explain_keeps_its_warning() -> None:
+    src, tgt = cut_surface_pair(8)
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), 0.5, attainable=1.0,
+                     reverse=lambda: ReverseFit(0.55, 1.0, 1.0))
+    assert not quality.reliable and [w.split(":")[0] for w in quality.warnings] == ["poor fit"]
+
+
+def test_the_reverse_fit_is_asked_only_where_the_ratio_alone_withholds_reliable() -> None:
+    def never() -> ReverseFit:
+        raise AssertionError("asked")
+
+    src, tgt = cut_surface_pair(20)  # the whole source: the ratio passes by itself
+    assert assess(src, tgt, np.eye(3), np.zeros(3), 0.5, attainable=1.0, reverse=never).reliable
+    src, tgt = cut_surface_pair(8)
+    crossing = src.copy()
+    crossing[::2, 2] += 1.2  # every other point 1.2 off the surface: within 3 inlier distances but not one
+    loose = assess(crossing, tgt, np.eye(3), np.zeros(3), 0.5, attainable=1.0, reverse=never)
+    assert not loose.reliable and any(w.startswith("low overlap") for w in loose.warnings)

@@ -142,3 +142,27 @@ def test_a_turntable_scan_of_a_smooth_blob_is_reliable_though_it_turns_below_the
     assert degrees < 1.0 and distance < 0.001, (degrees, distance)
     assert WEAK_EIGENVALUE < result.stability < RELIABLE_STABILITY_ON_SURFACE, result.stability
     assert result.reliable, result.warnings
+
+
+def test_the_reverse_fit_is_offered_on_dense_targets_that_are_not_rooms():
+    """Sparse targets and rooms keep the source-side ratio alone (decisions/0084): there a wrong pose explains a cut
+    target as well as a right one."""
+    from real_scan_cases import general_reference_radius, real_case
+
+    from service.quality import reverse_fit
+    from service.stages.assess import reverse_fit_on
+    from service.stages.ranking import plane_frames_on_the_surface
+
+    dense_room = room()
+    assert plane_frames_on_the_surface(dense_room) and reverse_fit_on(dense_room, R_TRUE, T_TRUE) is None
+    assert reverse_fit_on(room(target_points=1500), R_TRUE, T_TRUE) is None  # a sparse target
+    case = real_case("dragon_48_24", 0, "scanned")
+    work = normalise(sample(validate(case.source, case.target, None, {"refine": "icp-plane"}, 3, 128)),
+                     general_reference_radius())
+    R, t = case.src_to_tgt[:3, :3], case.src_to_tgt[:3, 3]
+    offered = reverse_fit_on(work, R, t)
+    assert "source_attainable_ratio" not in vars(work)  # measured only where quality.assess asks
+    fit = offered()
+    assert fit == reverse_fit(work.working_source, work.tgt_w, R, t, work.inlier_distance,
+                              work.source_attainable_ratio)
+    assert fit.attainable > 0.9 and fit.ratio > 0.5  # the source's surface estimate; the scans overlap by most

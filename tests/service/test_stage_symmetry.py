@@ -20,8 +20,8 @@ from service.registrar import Registrar
 from service.result import RegistrationResult
 from service.stages import symmetry as stage
 from service.stages.normalise import normalise
+from service.stages.ranking import plane_frames_on_the_surface
 from service.stages.sample import sample
-from service.stages.search import plane_frames_on_the_surface
 from service.stages.symmetry import (
     AXIS_TURN_STABILITY,
     WHOLE_OVERLAY,
