@@ -10,6 +10,16 @@ checked as LASzip checks them, each item of a fixed size (a point, a GPS time, a
 panics on a shorter one, and Rust's panic hook prints ``thread ... panicked at ...`` on the server's stderr. LAZ is
 decompressed by ``lazrs``'s sequential decompressor: the parallel one allocates a buffer of the LAZ VLR's chunk size
 (points) at once, whatever the file holds.
+
+The header's count of points must be the count the data holds, or the file is refused (a header that declares fewer
+points than the data holds too: reading that many would register part of the cloud without a word). Uncompressed
+points fill the bytes from the offset to the points to the first EVLR or the waveform data, else to the file's end,
+with less than a point left over. LAZ: before any point is decompressed, the counts that LAZ 1.4 layered chunks start
+with, else the chunk table (all chunks but the last of the VLR's chunk size, or each chunk's count where they vary);
+then, where the chunks are read point by point, the decompressor must stand at the chunk table once the header's
+count is read (the chunks are read back to back, each to its exact end): a count within the last chunk but wrong
+either stops short of it or decodes the table's bytes as points (a made-up point from a LAZ 1.2 file claiming one
+point more than it holds).
 """
 
 from __future__ import annotations
@@ -64,14 +74,25 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
                     "reading LAZ files needs the 'lazrs' package, which is not installed: pip install 'mfgnet[formats]'"
                 )
             _check_laz_items(header)
-            _check_chunk_table(f, start + header.offset_to_point_data, start + size)
-            _check_xyz_layers(f, header, start + header.offset_to_point_data)
-        elif count * header.point_format.size > size - header.offset_to_point_data:
-            raise PointCloudFormatError(
-                f"LAS header declares {count} points of {header.point_format.size} bytes; the file holds "
-                f"{max(0, size - header.offset_to_point_data)} bytes of points"
-            )
-        batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
+            data = start + header.offset_to_point_data
+            table = _check_chunk_table(f, data, start + size)
+            chunks = _chunk_table(f, header, data)
+            in_layers = _check_xyz_layers(f, header, data, chunks)
+            _check_laz_count(header, count, chunks, in_layers)
+            try:
+                batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
+            except Exception as exc:  # lazrs's LazrsError; "failed to fill whole buffer" at the end of the data
+                if "fill whole buffer" not in str(exc):
+                    raise
+                raise PointCloudFormatError(
+                    f"LAZ header declares {count} points; its compressed data ends before them "
+                    f"({type(exc).__name__}: {exc})"
+                ) from None
+            if table is not None and chunks and in_layers is None:  # layered chunks say their counts
+                _check_laz_end(reader, f, count, chunks, table, start + size)
+        else:
+            _check_las_count(header, count, size)
+            batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
     read = sum(len(batch) for batch in batches)
     if read != count:
         raise PointCloudFormatError(f"LAS data holds {read} points; the header says {count}")
@@ -169,9 +190,10 @@ def _check_laz_items(header: LasHeader) -> None:
             )
 
 
-def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
+def _check_chunk_table(f: BinaryIO, data: int, end: int) -> int | None:
     """The LAZ chunk table's count of chunks fits between the points' start and the table (lazrs allocates
-    16 bytes per chunk before reading them, and aborts the process if that allocation fails)."""
+    16 bytes per chunk before reading them, and aborts the process if that allocation fails). Returns the table's
+    offset, where the compressed points end; None where the file has no table there (lazrs says so, or reads on)."""
     position = f.tell()
     try:
         f.seek(data)
@@ -180,7 +202,7 @@ def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
             f.seek(max(data, end - 8))
             table = _int64(f.read(8))
         if table is None or not 0 <= table <= end - 8:
-            return  # lazrs finds no table there and says so
+            return None  # lazrs finds no table there and says so
         f.seek(table)
         chunks = struct.unpack("<II", f.read(8))[1]
         room = max(0, table - data - 8)
@@ -189,16 +211,33 @@ def _check_chunk_table(f: BinaryIO, data: int, end: int) -> None:
                 f"LAZ chunk table at byte {table} declares {chunks} chunks; {room} bytes of compressed points "
                 "cannot hold them"
             )
+        return table
     finally:
         f.seek(position)
 
 
-def _check_xyz_layers(f: BinaryIO, header: LasHeader, data: int) -> None:
+def _chunk_table(f: BinaryIO, header: LasHeader, data: int) -> list[tuple[int, int]] | None:
+    """The LAZ chunk table as lazrs reads it: (points, bytes) a chunk (the points are the VLR's chunk size in a table of
+    chunks of a fixed size); None where there is no readable table or it lists no chunks (a damaged count)."""
+    lazrs = require("lazrs", "reading LAZ files")
+    position = f.tell()
+    try:
+        f.seek(data)
+        return lazrs.read_chunk_table(f, lazrs.LazVlr(header.vlrs.get("LasZipVlr")[0].record_data)) or None
+    except BaseException as exc:  # no readable table (pyo3's PanicException is no Exception)
+        if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":
+            raise
+        return None
+    finally:
+        f.seek(position)
+
+
+def _check_xyz_layers(f: BinaryIO, header: LasHeader, data: int, chunks: list[tuple[int, int]] | None) -> int | None:
     """In a LAZ 1.4 file of layered chunks, the x/y and z layer sizes of every chunk fit in the chunk (lazrs allocates
     them, zero-filled, before reading: 4 GB each from a damaged size). Other layers are skipped unread. Without a
     readable chunk table (lazrs reads on without one), each chunk is taken to end where its layer sizes say, as lazrs
-    takes it, and its x, y and z layers must fit in the rest of the file."""
-    lazrs = require("lazrs", "reading LAZ files")
+    takes it, and its x, y and z layers must fit in the rest of the file. Returns the points the chunks say they hold
+    (each layered chunk starts with its count), None where the file is not layered or a chunk is cut short."""
     record = header.vlrs.get("LasZipVlr")[0].record_data
     items = _laz_items(record)
     if (
@@ -207,27 +246,22 @@ def _check_xyz_layers(f: BinaryIO, header: LasHeader, data: int) -> None:
         or items[0][2] < 3
         or any(kind not in LAYERS and kind != BYTE14 for kind, _, _ in items)
     ):
-        return  # not layered (LAZ 1.0-1.3 items are read point by point)
+        return None  # not layered (LAZ 1.0-1.3 items are read point by point)
     layers = sum(LAYERS.get(kind, size) for kind, size, _ in items)  # Byte14: ``size`` layers
     point = header.point_format.size
     position = f.tell()
     try:
         end = f.seek(0, os.SEEK_END)
-        f.seek(data)
-        try:
-            chunks = lazrs.read_chunk_table(f, lazrs.LazVlr(record))
-        except BaseException as exc:  # no readable table (pyo3's PanicException is no Exception)
-            if not isinstance(exc, Exception) and type(exc).__name__ != "PanicException":
-                raise
-            chunks = None
-        chunks = chunks or None  # an empty table (a damaged count) is none
-        at, k = data + 8, 0  # the chunks follow the chunk table's offset
+        at, k, points = data + 8, 0, 0  # the chunks follow the chunk table's offset
         while chunks is None or k < len(chunks):
-            f.seek(at + point + 4)  # after the first point and the point count
-            raw = f.read(4 * layers)
-            if len(raw) < 8:
-                break  # lazrs says the chunk is cut short
-            sizes = struct.unpack(f"<{len(raw) // 4}I", raw[: len(raw) // 4 * 4])
+            if chunks is not None and not chunks[k][0]:  # a chunk of no points (lazrs never reads it)
+                at, k = at + chunks[k][1], k + 1
+                continue
+            f.seek(at + point)  # after the first point
+            raw = f.read(4 + 4 * layers)
+            if len(raw) < 12:
+                return None  # lazrs says the chunk is cut short
+            count, *sizes = struct.unpack(f"<{len(raw) // 4}I", raw[: len(raw) // 4 * 4])
             xy, z = sizes[:2]
             length = chunks[k][1] if chunks is not None else point + 4 + 4 * layers + sum(sizes)
             room = min(length, end - at) - point - 4 - 4 * layers
@@ -236,11 +270,89 @@ def _check_xyz_layers(f: BinaryIO, header: LasHeader, data: int) -> None:
                     f"LAZ chunk {k} declares x, y and z layers of {xy + z} bytes; it holds "
                     f"{max(0, room)} bytes of layers"
                 )
-            at, k = at + length, k + 1
+            at, k, points = at + length, k + 1, points + count
             if chunks is None and at >= end:
                 break
+        return points
     finally:
         f.seek(position)
+
+
+def _check_laz_count(
+    header: LasHeader, count: int, chunks: list[tuple[int, int]] | None, in_layers: int | None
+) -> None:
+    """The header's count of points against what the LAZ data says it holds, before any point is decompressed: the
+    counts that layered chunks start with, else the chunk table (its points a chunk where chunks vary in size; where
+    they do not, all chunks but the last hold the VLR's chunk size, the last one to that size)."""
+    if in_layers is not None:
+        if in_layers != count:
+            raise PointCloudFormatError(f"LAZ header declares {count} points; its chunks hold {in_layers}")
+        return
+    if not chunks:
+        return
+    if header.vlrs.get("LasZipVlr")[0].record_data[12:16] == b"\xff\xff\xff\xff":  # variable-size chunks
+        held = sum(points for points, _ in chunks)
+        if held != count:
+            raise PointCloudFormatError(f"LAZ header declares {count} points; its chunk table lists {held}")
+        return
+    size = chunks[0][0]
+    low, high = (len(chunks) - 1) * size + 1, len(chunks) * size
+    if not low <= count <= high:
+        raise PointCloudFormatError(
+            f"LAZ header declares {count} points; its {len(chunks)} chunks of {size} points hold {low} to {high}"
+        )
+
+
+def _check_laz_end(
+    reader: LasReader, f: BinaryIO, count: int, chunks: list[tuple[int, int]], table: int, end: int
+) -> None:
+    """After the header's count of points, the decompressor stands where the compressed points end, at the chunk table
+    (before any chunks of no points that end a table of chunks of varying sizes): lazrs reads the chunks back to back,
+    each to its exact end. A header that declares fewer points than the last chunk holds leaves the decompressor
+    inside it; one that declares more decodes the chunk table's bytes as points (a made-up point, without an error,
+    from a LAZ 1.2 file that claims one point more than it holds). Two reads of 16 bytes; no point is decompressed."""
+    at = table
+    for points, size in reversed(chunks):
+        if points:
+            break
+        at -= size
+    length = min(16, end - at)
+    try:  # before ``f`` is moved: lazrs reads on from its position
+        after = reader.point_source.read_raw_bytes(length)  # from where the decompressor stopped
+    except Exception:  # lazrs's LazrsError: the decompressor has read to the file's end
+        after = None
+    position = f.tell()
+    f.seek(at)
+    expected = f.read(length)
+    f.seek(position)
+    if after != expected:
+        raise PointCloudFormatError(
+            f"LAZ header declares {count} points; its compressed points do not end after {count} (they end at byte "
+            f"{at}): the header's count does not match the data, or the data is damaged"
+        )
+
+
+def _check_las_count(header: LasHeader, count: int, size: int) -> None:
+    """The header's count of points fills the uncompressed points' room: from the offset to the points to the
+    first EVLR or the waveform data that the header places after them (LAS 1.3-1.4), else to the file's end. A count
+    beyond it would read those bytes, or past the file's end, as points; one that leaves room for another whole point
+    or more would leave points unread."""
+    offset, point = header.offset_to_point_data, header.point_format.size
+    ends = [size]
+    if header.version.minor >= 4 and header.number_of_evlrs:
+        ends.append(header.start_of_first_evlr)
+    if header.version.minor >= 3 and header.global_encoding.waveform_data_packets_internal:
+        ends.append(header.start_of_waveform_data_packet_record)
+    room = max(0, min(at for at in ends if offset <= at <= size) - offset)
+    if count * point > room:
+        raise PointCloudFormatError(
+            f"LAS header declares {count} points of {point} bytes; the file holds {room} bytes of points"
+        )
+    if room - count * point >= point:
+        raise PointCloudFormatError(
+            f"LAS header declares {count} points of {point} bytes; the file holds {room} bytes of points, "
+            f"{room // point} points"
+        )
 
 
 def _laz_items(record: bytes) -> list[tuple[int, int, int]]:

@@ -112,7 +112,8 @@ def check_declared_count(source: BinaryIO, name: str, max_points: int) -> None:
     file), ``source``'s position is kept, and nothing else is
     refused here: text formats (counted only while read), a header this cannot read whole, and every other problem
     are :func:`read_cloud`'s to find, which stays the authority: it checks the count again, and reads no more points
-    than the header declares (a header declaring fewer than its data holds gives that many)."""
+    than the header declares (a header declaring fewer than its data holds gives that many, but for LAS/LAZ, whose
+    reader refuses a count its data does not hold)."""
     start = source.tell()
     try:
         kind = detect_at(source)

@@ -21,7 +21,9 @@ import plyfile
 import pypcd4
 import pytest
 from api_server import MODEL, assert_error
+from typer.testing import CliRunner
 
+from service.cli import app
 from service.formats import InvalidPointsError, PointCloudFormatError, checks, read_cloud, write_cloud
 
 REPO = Path(__file__).resolve().parents[2]
@@ -712,6 +714,113 @@ def test_a_laz_item_of_the_wrong_size_is_a_400_and_no_rust_panic_on_the_servers_
     log = server.log_path.read_text(errors="replace")  # the server subprocess's stdout and stderr
     assert "panicked" not in log and "RUST_BACKTRACE" not in log, log[-2000:]
     assert_error(response, 400, "source (bad.laz)", "item 1 is a Point10 of 8 bytes", "damaged")
+
+
+def set_point_count(data: bytearray, version: str, count: int) -> None:
+    """The header's count of points: the legacy 32-bit one (0 in LAS 1.4's point formats 6-10) and LAS 1.4's 64-bit
+    one."""
+    struct.pack_into("<I", data, 107, count if version != "1.4" or data[104] & 0x3F < 6 else 0)
+    if version == "1.4":
+        struct.pack_into("<Q", data, 247, count)
+
+
+LAS_FORMATS = [(version, point_format) for version in ("1.2", "1.3", "1.4") for point_format in range(4)] + [
+    ("1.4", point_format) for point_format in (6, 7, 8)
+]
+
+
+@pytest.mark.parametrize(("version", "point_format"), LAS_FORMATS, ids=lambda value: str(value))
+@pytest.mark.parametrize("compressed", [False, True], ids=["las", "laz"])
+def test_a_header_count_its_data_does_not_hold_is_refused(version: str, point_format: int, compressed: bool) -> None:
+    """24 points under a header claiming 25 read a made-up 25th point from a LAZ file of point format 0, 2 or 3 (the
+    chunk table's bytes decoded as a point); a header claiming fewer read that many from LAS and LAZ alike, the rest
+    of the points left unread. Each count is refused now, naming what the header declares."""
+    data = las_bytes(version, point_format, compressed)
+    kind = "LAZ" if compressed else "LAS"
+    for declared in (25, 23, 26, 1, 1000):
+        set_point_count(data, version, declared)
+        with pytest.raises(PointCloudFormatError, match=f"^a.{kind.lower()}: {kind} header declares {declared} points"):
+            read_cloud(bytes(data), f"a.{kind.lower()}")
+
+
+def test_a_laz_count_beyond_its_chunks_is_refused_before_any_point_is_decompressed(tmp_path: Path) -> None:
+    """The chunk table (chunks of 50,000 points but the last) bounds the count: 50,001 points claimed as 50,000 were
+    read without the last chunk, and as 100,001 decompressed 50,001 points before lazrs ran out of data."""
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.random.default_rng(1).normal(size=(50_001, 3)).T
+    las.write(tmp_path / "a.laz", do_compress=True, laz_backend=laspy.LazBackend.Lazrs)
+    data = bytearray((tmp_path / "a.laz").read_bytes())
+    for declared in (50_000, 100_001):
+        set_point_count(data, "1.2", declared)
+        (tmp_path / "a.laz").write_bytes(data)
+
+        def read(declared: int = declared) -> None:
+            with pytest.raises(
+                PointCloudFormatError,
+                match=f"declares {declared} points; its 2 chunks of 50000 points hold 50001 to 100000",
+            ):
+                read_cloud(tmp_path / "a.laz")
+
+        assert peak_bytes(read) < 1 << 20  # nothing decompressed: 50,000 points are 1.4 MB
+
+
+@pytest.mark.parametrize("points", [1, 50_000, 50_001])
+@pytest.mark.parametrize("version_format", [("1.2", 1), ("1.3", 3), ("1.4", 3)], ids=lambda value: str(value))
+def test_laz_files_ending_at_a_chunk_edge_read_as_laspy_reads_them(tmp_path: Path, points: int, version_format) -> None:
+    """The checks of the count against the data pass LAZ files of a full last chunk and of a last chunk of one point
+    (its first point stored raw, then the decoder's first bytes)."""
+    version, point_format = version_format
+    header = laspy.LasHeader(point_format=point_format, version=version)
+    header.scales, header.offsets = [0.001] * 3, [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.random.default_rng(points).normal(scale=100.0, size=(points, 3)).T
+    las.gps_time = np.random.default_rng(0).uniform(0, 1e5, points)
+    las.write(tmp_path / "a.laz", do_compress=True, laz_backend=laspy.LazBackend.Lazrs)
+    back = laspy.read(tmp_path / "a.laz")
+    np.testing.assert_array_equal(
+        read_cloud(tmp_path / "a.laz"), np.stack([np.asarray(back.x), np.asarray(back.y), np.asarray(back.z)], axis=1)
+    )
+
+
+@pytest.mark.parametrize("compressed", [False, True], ids=["las", "laz"])
+def test_las14_points_before_an_evlr_are_counted_to_the_evlr(tmp_path: Path, compressed: bool) -> None:
+    """An EVLR follows the points of a LAS 1.4 file: a header claiming one point more read the EVLR's first bytes as a
+    made-up point. The file as written reads."""
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales, header.offsets = [2.0**-10] * 3, [0.0, 0.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud().astype(np.float64).T
+    las.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("mfgnet", 1, "padding", bytes(200))])
+    out = io.BytesIO()
+    las.write(out, do_compress=compressed)
+    data = bytearray(out.getvalue())
+    np.testing.assert_array_equal(read_cloud(bytes(data), "a.las"), on_grid(cloud()))
+    set_point_count(data, "1.4", 25)
+    with pytest.raises(PointCloudFormatError, match="header declares 25 points"):
+        read_cloud(bytes(data), "a.las")
+
+
+def test_a_laz_header_claiming_a_point_more_is_a_400_naming_the_count(client) -> None:
+    data = las_bytes("1.2", 3, compressed=True, n=64)
+    set_point_count(data, "1.2", 65)
+    target = io.BytesIO()
+    np.save(target, cloud(64))
+    files = {"source": ("scan.laz", bytes(data)), "target": ("t.npy", target.getvalue())}
+    response = client.post("/v1/register", files=files, data={"model": MODEL, "rotation_search": "false"})
+    assert_error(response, 400, "source (scan.laz)", "LAZ header declares 65 points")
+
+
+def test_a_laz_header_claiming_a_point_more_is_a_usage_error_of_register(tmp_path: Path, model_dir: Path) -> None:
+    data = las_bytes("1.2", 3, compressed=True, n=64)
+    set_point_count(data, "1.2", 65)
+    (tmp_path / "scan.laz").write_bytes(data)
+    np.save(tmp_path / "t.npy", cloud(64))
+    result = CliRunner().invoke(
+        app, ["register", str(tmp_path / "scan.laz"), str(tmp_path / "t.npy"), "--model-dir", str(model_dir)]
+    )
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    assert "scan.laz: LAZ header declares 65 points" in " ".join(result.stderr.split())
 
 
 # --- NPY / NPZ ---------------------------------------------------------------------------------------------------
