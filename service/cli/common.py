@@ -88,7 +88,8 @@ def check_aligned_source(source: Path, out_name: str) -> None:
     """Exit 2 where ``source``, written as ``out_name`` in its own format (:func:`service.formats.moved.keeps_content`),
     cannot be written moved as far as its header decides (:func:`service.formats.moved.check_moved`: an E57 file
     whose XML section cannot be rewritten, an ``.npy`` or ``.npz`` array the writer refuses), before any registration
-    runs."""
+    runs. A source the reader refuses passes here (:func:`~service.formats.moved.check_moved` leaves it to the reader):
+    reading it names what is wrong, as for every other format."""
     from service.formats.moved import FORMAT_NAMES, check_moved, keeps_content, source_format
     from service.pointcloud_io import PointCloudFormatError
 

@@ -60,6 +60,7 @@ from service.formats.moved_e57 import check_moved_e57, moved_e57
 from service.formats.moved_e57 import other_fields as e57_fields
 from service.formats.moved_text import moved_pts, moved_ptx, moved_text
 from service.formats.read import detect_at as detect_format
+from service.formats.read import read_cloud
 from service.formats.write import FLOAT32_EXACT_ENOUGH
 
 if TYPE_CHECKING:
@@ -144,7 +145,9 @@ def check_moved(source: Source, kind: str | None) -> None:
     an E57 file whose poses cannot be rewritten (:func:`service.formats.moved_e57.check_moved_e57`), an array whose
     rows would be too long written, an ``.npz`` archive whose other members are too large or cannot be opened
     (:func:`service.formats.moved_arrays.check_moved_npy`, ``check_moved_npz``), with the writers' own checks.
-    Nothing for other formats: their writers' refusals need the data.
+    Nothing for other formats: their writers' refusals need the data. Nothing either where the reader refuses the file
+    (these checks parse what the reader parses: a truncated ``.npy`` file, an archive that is no zip file, an E57 file
+    cut short): it is no writing problem, and reading the source says why, as it does for every other format.
 
     Raises:
         OSError: ``source`` unreadable.
@@ -152,7 +155,25 @@ def check_moved(source: Source, kind: str | None) -> None:
     check = _CHECKS.get(kind or "")
     if check is not None:
         with _opened(source) as f:
-            check(f)
+            try:
+                check(f)
+            except PointCloudFormatError:
+                if _read_by_the_reader(f):
+                    raise
+
+
+def _read_by_the_reader(f: BinaryIO) -> bool:
+    """Whether :func:`service.formats.read_cloud` reads the file ``f`` (from its start; left there): run only once a
+    check has refused it, to tell the file the writer refuses from the file the reader refuses (its points read once
+    more, on this path only)."""
+    f.seek(0)
+    try:
+        read_cloud(f)
+    except PointCloudFormatError:
+        return False
+    finally:
+        f.seek(0)
+    return True
 
 
 def other_fields(path: str | os.PathLike[str], kind: str | None) -> list[str]:

@@ -16,11 +16,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from aligned_runs import pose, post_aligned, register, sequence
-from api_server import assert_error
+from aligned_runs import pose, post_aligned, register, runner, sequence
+from api_server import assert_error, free_port
 from cli_support import synthetic_pair
 from scipy.spatial.transform import Rotation
 
+from service.cli import app
 from service.formats import PointCloudFormatError
 from service.formats.moved import check_moved, write_moved
 from service.formats.moved_arrays import check_moved_npy, check_moved_npz
@@ -546,3 +547,79 @@ def test_sequence_refuses_a_frame_it_cannot_write_before_the_first_registration(
 def test_the_page_still_refuses_what_the_cli_now_refuses_before_registering_with_a_422(client, tmp_path, case):
     source, words = unwritable(tmp_path, case, XYZ)
     assert_error(post(client, source), 422, source.name, "cannot be written moved", words)
+
+
+# ------------------------------------------------------------------------------ a source the reader refuses
+
+
+def unreadable(folder: Path, case: str, xyz: np.ndarray) -> tuple[Path, str]:
+    """A cloud of ``xyz [n, 3]`` damaged so that the reader refuses it, and the words of the reader's refusal."""
+    np.save(folder / "whole.npy", xyz)
+    whole = (folder / "whole.npy").read_bytes()
+    if case == "cut-npy":
+        (folder / "cut.npy").write_bytes(whole[: len(whole) // 2])
+        return folder / "cut.npy", f"truncated .npy file: shape [{len(xyz)}, 3] of float64 needs"
+    if case == "header-npy":
+        (folder / "header.npy").write_bytes(b"\x93NUMPY\x01\x00" + b"{not a dict}")
+        return folder / "header.npy", "not a valid .npy file (unreadable header)"
+    if case == "cut-npz":
+        np.savez(folder / "whole.npz", points=xyz, labels=np.arange(len(xyz)))
+        (folder / "cut.npz").write_bytes((folder / "whole.npz").read_bytes()[:-100])  # its directory cut off
+        return folder / "cut.npz", "not a valid .npz archive"
+    with zipfile.ZipFile(folder / "member.npz", "w") as archive:  # the cloud member cut short
+        archive.writestr("points.npy", whole[: len(whole) // 2])
+    return folder / "member.npz", f"truncated .npy file: shape [{len(xyz)}, 3] of float64 needs"
+
+
+UNREADABLE = ["cut-npy", "header-npy", "cut-npz", "cut-member-npz"]
+
+
+@pytest.mark.parametrize("case", UNREADABLE)
+def test_a_source_the_reader_refuses_is_no_writers_refusal(tmp_path, case) -> None:
+    """The check before registering parses what the reader parses; where the reader refuses the file, that is not the
+    writer's to say (it said 'cannot be written moved as NPY: truncated .npy file ...'): reading it says why."""
+    source, words = unreadable(tmp_path, case, XYZ)
+    with pytest.raises(PointCloudFormatError, match=re.escape(words)):
+        read_points(source)
+    check_moved(source, source.suffix[1:])
+
+
+@pytest.mark.parametrize("case", UNREADABLE)
+def test_register_names_the_read_failure_of_a_source_to_write_aligned(tmp_path, model_dir, case) -> None:
+    """Exit 2 naming the read failure, as for a PLY, PCD or LAS source the reader refuses, in process and with
+    --server (the source is read here before anything is sent: nothing listens at the address)."""
+    source_xyz, target = synthetic_pair()
+    source, words = unreadable(tmp_path, case, source_xyz.astype(np.float64))
+    np.save(tmp_path / "target.npy", target)
+    aligned = tmp_path / f"aligned{source.suffix}"
+    args = [str(source), str(tmp_path / "target.npy"), "--write-aligned", str(aligned)]
+    for result in (
+        register(*args, model_dir=model_dir),
+        runner.invoke(app, ["register", *args, "--server", f"http://127.0.0.1:{free_port()}"]),
+    ):
+        assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+        stderr = " ".join(result.stderr.split())
+        assert f"error: {source.name}: {words}" in stderr and "cannot be written moved" not in stderr, stderr
+        assert not aligned.exists()
+
+
+def test_sequence_names_the_read_failure_of_a_frame_to_write_aligned(tmp_path, model_dir) -> None:
+    """A frame the reader refuses fails as any unreadable frame does (its steps before it written), named as read."""
+    source, target = synthetic_pair()
+    frames = [tmp_path / "f0.npy", tmp_path / "f1.npy"]
+    np.save(frames[0], target)
+    np.save(frames[1], source)
+    frames.append(unreadable(tmp_path, "cut-npy", source.astype(np.float64))[0])
+    folder = tmp_path / "aligned"
+    folder.mkdir()
+    result = sequence(frames, folder, model_dir)
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    stderr = " ".join(result.stderr.split())
+    assert f"frame 2 {frames[2]}: cut.npy: truncated .npy file" in stderr and "cannot be written" not in stderr, stderr
+
+
+@pytest.mark.parametrize("case", UNREADABLE)
+def test_the_page_names_the_read_failure_of_an_unreadable_source_with_a_400(client, tmp_path, case) -> None:
+    source, words = unreadable(tmp_path, case, XYZ)
+    body = assert_error(post(client, source), 400, source.name, words)
+    assert "cannot be written moved" not in body["error"]

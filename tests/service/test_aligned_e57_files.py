@@ -21,7 +21,7 @@ from e57_xml import _paged, with_xml, xml_of
 from pye57 import libe57
 from scipy.spatial.transform import Rotation
 
-from service.formats import PointCloudFormatError
+from service.formats import PointCloudFormatError, read_cloud
 from service.formats.e57 import MAX_XML_BYTES, read_e57
 from service.formats.moved import write_moved
 from service.formats.moved_e57 import _moved_xml, check_moved_e57
@@ -406,6 +406,24 @@ def test_register_refuses_an_e57_whose_xml_cannot_be_rewritten_before_registerin
         "image 0's pose has a rotation quaternion of norm 2.0098" in result.stderr
         and not (tmp_path / "aligned.e57").exists()
     )
+
+
+@pytest.mark.parametrize("cut", ["pages", "xml"])
+def test_register_names_the_read_failure_of_an_e57_source_the_reader_refuses(project, tmp_path, model_dir, cut) -> None:
+    """The check before registering parses what the reader parses: an E57 file cut short was said to be one that
+    'cannot be written moved as E57'; the error is the reader's now, as for a PLY, PCD or LAS source."""
+    data = project.read_bytes()
+    source = tmp_path / "cut.e57"
+    source.write_bytes(data[: len(data) // 2] if cut == "xml" else data[:-100])  # its XML section, or whole pages
+    with pytest.raises(PointCloudFormatError) as refused:
+        read_cloud(source)
+    result = register(
+        source, tmp_path / "missing.npy", "--write-aligned", tmp_path / "aligned.e57", model_dir=model_dir
+    )
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    stderr = " ".join(result.stderr.split())
+    assert f"error: {refused.value}" in stderr and "cannot be written moved" not in stderr, stderr
+    assert not (tmp_path / "aligned.e57").exists()
 
 
 def test_an_e57_output_of_another_format_is_a_usage_error(tmp_path, model_dir) -> None:
