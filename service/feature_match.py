@@ -34,6 +34,13 @@ class FeaturePose:
     translation: np.ndarray  # [3]
     support: int  # matched pairs within INLIER_VOXELS voxels at this pose
     matches: int  # mutual descriptor matches
+    source_matched: np.ndarray  # [C, 3] the matched cells of the source ...
+    target_matched: np.ndarray  # [C, 3] ... and of the target, pair by pair
+    agreement: float  # INLIER_VOXELS voxels: the distance within which a pair agrees with a pose
+
+    def support_of(self, R: np.ndarray, t: np.ndarray) -> int:
+        """How many of the matched pairs agree with another ``src_to_tgt`` pose ``R [3, 3], t [3]``."""
+        return int(agreeing(R[None], t[None], self.source_matched, self.target_matched, self.agreement)[0].sum())
 
 
 def mutual_matches(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +85,7 @@ def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int
     best = int(support.argmax())  # the first of equals: seeded, so repeatable
     kept = agreeing(R[best:best + 1], t[best:best + 1], p, q, INLIER_VOXELS * voxel)[0]  # [C]
     R1, t1 = weighted_procrustes(p[kept], q[kept])
-    return FeaturePose(R1, t1, int(support[best]), len(p))
+    return FeaturePose(R1, t1, int(support[best]), len(p), p, q, INLIER_VOXELS * voxel)
 
 
 def agreeing(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, distance: float) -> np.ndarray:

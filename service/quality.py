@@ -219,6 +219,13 @@ def explains_the_target(fit: ReverseFit) -> bool:
             and fit.near_share >= RELIABLE_NEAR_SHARE_ON_SURFACE * fit.attainable)
 
 
+def target_explained(inlier_ratio: float, fit: ReverseFit) -> str:
+    """The note on a result whose inlier-ratio check passed because the source explains the target."""
+    return (f"{TARGET_EXPLAINED}: the inlier ratio {inlier_ratio:.3f} is below the rule's, but {fit.ratio:.3f} of the "
+            f"target lies within the inlier distance of the moved source, >= {RELIABLE_REVERSE_RATIO} of the "
+            f"{fit.attainable:.2f} a right pose reaches: the target covers part of the source")
+
+
 def relative_ratio(on_surface: bool) -> float:
     """The share of the attainable inlier ratio the ``reliable`` rule asks for: ``RELIABLE_RELATIVE_RATIO_ON_SURFACE``
     of the surface estimate (:func:`attainable_on_surface`), else ``RELIABLE_RELATIVE_RATIO`` of the density
@@ -280,10 +287,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         fit = reverse()
         if explains_the_target(fit):
             ratio_passes = True
-            warnings.append(f"{TARGET_EXPLAINED}: the inlier ratio {inlier_ratio:.3f} is below the rule's, but "
-                            f"{fit.ratio:.3f} of the target lies within the inlier distance of the moved source, "
-                            f">= {RELIABLE_REVERSE_RATIO} of the {fit.attainable:.2f} a right pose reaches: the target "
-                            "covers part of the source")
+            warnings.append(target_explained(inlier_ratio, fit))
     if not ratio_passes and inlier_ratio < RELIABLE_INLIER_RATIO:
         sparse = attainable < RELIABLE_INLIER_RATIO / RELIABLE_RELATIVE_RATIO  # even a right pose keeps little
         warnings.append(f"low overlap: inlier ratio {inlier_ratio:.2f} < {RELIABLE_INLIER_RATIO}" + (

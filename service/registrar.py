@@ -359,6 +359,12 @@ class Registrar:
         result = stages.fine(work, result, request.options, timing)  # the chosen pose, on denser clouds
         result = stages.free_space(work, result, request.options, timing)  # reliable: no surface through free space
         result = stages.symmetry(work, result, request.options, timing)  # reliable: no half turn fits as well
+        if mode == "auto":  # a doubtful result against the pose the descriptors agree on, checked as any result
+            agreed = stages.consensus(self, work, result, request.options, request.iterations, request.keypoints,
+                                      timing)
+            if agreed is not result:
+                result = stages.symmetry(work, stages.free_space(work, agreed, request.options, timing),
+                                         request.options, timing)
         result = anchors.result_to_caller(result)
         result = stages.guess_check(work, result, request, self.reference_radius)  # a warning far from the guess
         timing["total"] = 1000 * (time.perf_counter() - t0)

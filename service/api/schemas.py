@@ -300,7 +300,8 @@ class RegisterResponse(BaseModel):
         description="Wall-clock time per stage, in milliseconds: 'queue' = wait for a worker slot; 'total' = the "
         "whole pipeline (excluding 'queue' and the HTTP decoding); stage keys such as 'preprocess', 'encoder', "
         "'iterations', 'svd', 'refine', 'postprocess', 'features' when rotation_search 'auto' computed a "
-        "feature-matched candidate, and 'search' / 'search_per_hypothesis' when the rotation search ran. Stages may "
+        "feature-matched candidate, 'consensus' when it compared a result that is not reliable with the descriptors' "
+        "consensus pose, and 'search' / 'search_per_hypothesis' when the rotation search ran. Stages may "
         "overlap or be absent; only 'queue' and 'total' are always there."
     )
     iteration_poses: list[IterationPoseOut] | None = Field(

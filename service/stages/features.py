@@ -16,8 +16,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.feature_match import feature_pose
-from service.quality import nearest_other_distances
 from service.rotation_search import SearchCandidate, deferred_output, rotation_between_deg
 from service.stages.network import Candidates
 from service.stages.normalise import Working, to_caller
@@ -52,20 +50,29 @@ MIN_SUPPORT = 15
 AGREEMENT_DEG = 25.0
 
 
-def feature_voxel(work: Working) -> float:
-    """The grid the descriptors are computed on (caller's units): the larger of the two working clouds' median
-    nearest-neighbour spacings. The working clouds are spread samples of a fixed size, so the coarser surface gets
-    about that many cells and the other no more."""
-    return float(max(np.median(nearest_other_distances(work.src_w)), np.median(work.target_spacings)))
-
-
 def describable(work: Working) -> bool:
     """Whether :func:`feature_candidates` computes descriptors for ``work``: both entered clouds hold ``DENSITY``
     times the working size, and they are not rooms (:func:`service.stages.search.plane_frames_on_the_surface`:
     ``auto`` searches their plane frames whatever the plain pass gives)."""
-    if min(len(work.src_e), len(work.tgt_e)) < DENSITY * max(len(work.src_w), len(work.tgt_w)):
-        return False
-    return not plane_frames_on_the_surface(work)
+    return dense_enough_to_describe(work) and not plane_frames_on_the_surface(work)
+
+
+def dense_enough_to_describe(work: Working) -> bool:
+    """Whether both entered clouds hold ``DENSITY`` times the working size: their surface is sampled densely enough
+    for the descriptors."""
+    return min(len(work.src_e), len(work.tgt_e)) >= DENSITY * max(len(work.src_w), len(work.tgt_w))
+
+
+def feature_candidate(registrar: Registrar, work: Working, rotation: np.ndarray, translation: np.ndarray,
+                      iterations: int, keypoints: int, timing: dict[str, float], key: str) -> SearchCandidate:
+    """The caller's pose ``rotation [3, 3], translation [3]`` (a feature pose) as a candidate between the normalised
+    clouds, with the network's output from its rotation on the search's rows (its correspondences, should it win;
+    remapped to the working rows), computed only where it is read, its time added to ``timing[key]``."""
+    rotation, translation = work.norm.normalize_pose(rotation, translation)
+    sub_s, sub_t, kp = search_rows(registrar, work, keypoints, short_icp=True)
+    output = deferred_output(registrar.start_network, work.src_n[sub_s], work.tgt_n[sub_t], rotation, iterations, kp,
+                             timing, key, rows=(sub_s, sub_t))  # keypoints as working rows
+    return SearchCandidate(output, rotation, rotation, translation)
 
 
 def feature_candidates(registrar: Registrar, work: Working, found: Candidates, iterations: int, keypoints: int,
@@ -78,16 +85,12 @@ def feature_candidates(registrar: Registrar, work: Working, found: Candidates, i
     if not describable(work):
         return found
     started = time.perf_counter()
-    source = work.src_e @ work.R_init.T + work.t_init  # [Ne, 3] the entered source after the initial guess
-    pose = feature_pose(source, work.tgt_e, feature_voxel(work))
+    pose = work.feature_pose  # of the entered source after the initial guess
     if pose is None or pose.support < JOIN_SUPPORT:
         timing["features"] = 1000 * (time.perf_counter() - started)
         return found
-    rotation, translation = work.norm.normalize_pose(pose.rotation, pose.translation)
-    sub_s, sub_t, kp = search_rows(registrar, work, keypoints, short_icp=True)
-    output = deferred_output(registrar.start_network, work.src_n[sub_s], work.tgt_n[sub_t], rotation, iterations, kp,
-                             timing, "features", rows=(sub_s, sub_t))  # keypoints as working rows
-    candidate = SearchCandidate(output, rotation, rotation, translation)
+    candidate = feature_candidate(registrar, work, pose.rotation, pose.translation, iterations, keypoints, timing,
+                                  "features")
     timing["features"] = 1000 * (time.perf_counter() - started)
     return Candidates([*found.poses, candidate], found.net_s, found.net_t, feature_support=pose.support)
 

@@ -7,6 +7,7 @@ from functools import cached_property
 
 import numpy as np
 
+from service.feature_match import FeaturePose, feature_pose
 from service.free_space import RangeView, range_view
 from service.icp import NORMAL_NEIGHBOURS, Surface
 from service.kdtree import KDTree
@@ -90,6 +91,16 @@ class Working(Sampled):
         if len(self.working_source) < 2:
             return 1.0
         return attainable_inlier_ratio(self.working_source, self.inlier_distance)
+
+    @cached_property
+    def feature_pose(self) -> FeaturePose | None:
+        """The coarse pose of the entered source, moved by the initial guess, onto the entered target from matched
+        local descriptors (:func:`service.feature_match.feature_pose`), on a grid of the larger of the two working
+        clouds' median nearest-neighbour spacings (the working clouds are spread samples of a fixed size, so the
+        coarser surface gets about that many cells and the other no more); computed once per registration, where first
+        asked (the feature candidate, the consensus stage)."""
+        voxel = float(max(np.median(nearest_other_distances(self.src_w)), np.median(self.target_spacings)))
+        return feature_pose(self.src_e @ self.R_init.T + self.t_init, self.tgt_e, voxel)
 
     @cached_property
     def range_views(self) -> tuple[RangeView | None, RangeView | None]:

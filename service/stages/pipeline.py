@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from service.stages.anchor import anchor
 from service.stages.assess import assess_result
+from service.stages.consensus import consensus
 from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
@@ -45,6 +46,9 @@ class Stages:
     assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
     # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided, strayed) -> RegistrationResult
     auto_search: Callable = auto_search
+    # (registrar, Working, RegistrationResult, RegistrationOptions, iterations, keypoints, timing) -> the same or the
+    # descriptors' consensus pose; with rotation_search "auto", after its search
+    consensus: Callable = consensus
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same

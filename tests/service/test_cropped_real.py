@@ -4,15 +4,18 @@ density's attainable inlier ratio was 0, and a pose 134 deg off came back ``reli
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import replace
 
 import numpy as np
-from real_scan_cases import real_case, register_with_defaults, skip_without
+from real_scan_cases import GENERAL, real_case, register_with_defaults, skip_without
 
 from bench.altered_scans import ALTERATIONS, altered, cases
-from bench.real_scans import Case, data_dir, thresholds
+from bench.real_scans import Case, data_dir, pose_errors, thresholds
 from service.quality import TARGET_EXPLAINED
+from service.registrar import Registrar
 from service.stages.assess import RELIABLE_STABILITY_ON_SURFACE
+from service.stages.pipeline import Stages
 
 
 def test_a_cropped_range_image_is_not_called_reliable_when_wrong() -> None:
@@ -28,11 +31,14 @@ def test_a_cropped_range_image_is_not_called_reliable_when_wrong() -> None:
 def test_a_cut_room_fragment_half_a_turn_off_is_weakly_constrained_on_its_dense_target() -> None:
     """``3dlo_kitchen_34_21`` with its source cut (``bench.altered_scans``'s ``crop``) and turned comes back about half
     a turn off, on a patch of the target that fits it better than the right pose does: no fit tells them apart, but the
-    patch pins the pose down less than a dense target pins a right one (decisions/0050)."""
+    patch pins the pose down less than a dense target pins a right one (decisions/0050). Judged before the consensus
+    stage, which gives this not-reliable result another pose (16 matched patches against 5, also wrong)."""
     skip_without("3dlo_kitchen_34_21")
-    label, sensor, source, target, truth = next(
+    _, sensor, source, target, truth = next(
         c for c in cases(data_dir(), "crop", names=["3dlo_kitchen_34_21"]) if c[0].endswith("/turned"))
-    result, degrees, error = register_with_defaults(Case(label, sensor, "turned", 1.0, source, target, truth))
+    no_consensus = Registrar(GENERAL, stages=dataclasses.replace(Stages(), consensus=lambda *a: a[2]))
+    result = no_consensus.register(source, target, refine="icp-plane", rotation_search="auto")
+    degrees, error = pose_errors(result.rotation, result.translation, truth)
     max_degrees, max_error = thresholds(sensor)
     if degrees < max_degrees and error < max_error:
         return  # a right pose may be reliable; the pipeline found it

@@ -262,10 +262,11 @@ def test_a_kept_guess_runs_no_unguessed_network() -> None:
 
 
 def test_without_the_unguessed_stage_the_inverse_guess_lands_wrong() -> None:
-    """The measurement behind the stage: the same request with the stage left out is 105 deg off."""
+    """The measurement behind the stage: the same request with the stage left out is 105 deg off (not reliable, so the
+    consensus stage, left out here too, would look again)."""
     source, target, truth = turned_pair(asymmetric_blob, 60)
     registrar = LocalRegistrar("clean")
-    registrar.registrar.stages = dataclasses.replace(Stages(), unguessed=lambda *a: None)
+    registrar.registrar.stages = dataclasses.replace(Stages(), unguessed=lambda *a: None, consensus=lambda *a: a[2])
     result = registrar.register(source, target, initial_transform=np.linalg.inv(truth))
     assert rotation_between_deg(result.rotation, truth[:3, :3]) > 45
 
