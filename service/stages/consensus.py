@@ -85,7 +85,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
         refined = Refined(fitted.rotation, fitted.translation, 0, (), None, None)
         assess_timing = dict(timing)
         agreed = assess_result(work, Candidates([candidate], work.idx_s, work.idx_t), refined, result.iterations,
-                               bool(result.iteration_poses), assess_timing)
+                               options.return_iterations, assess_timing)
         return dataclasses.replace(agreed, warnings=[*agreed.warnings, consensus_note(pose.support, kept)],
                                    timing_ms=timing)
     finally:

@@ -69,6 +69,8 @@ def test_a_room_crop_at_30_percent_overlap_registers_from_the_descriptors_consen
     (note,) = (w for w in result.warnings if w.startswith("descriptor consensus"))
     assert note.startswith("descriptor consensus: 54 matched surface patches agree with this pose, 3 with")
     assert len(result.source_index) == len(result.target_index) > 0 and result.source_index.max() < len(source)
+    with_poses = registrar.register(source, target, refine="icp-plane", rotation_search="auto", return_iterations=True)
+    assert len(with_poses.iteration_poses) == with_poses.iterations > 0  # the network's passes from the new pose
 
 
 def test_a_right_result_that_the_descriptors_agree_with_is_kept(registrar) -> None:
