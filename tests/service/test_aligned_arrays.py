@@ -12,6 +12,7 @@ import io
 import json
 import re
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -526,15 +527,21 @@ def test_register_refuses_an_array_it_cannot_write_before_registering(tmp_path, 
     assert not out.exists() and not aligned.exists()
 
 
-def test_sequence_refuses_a_frame_it_cannot_write_before_the_first_registration(tmp_path, model_dir) -> None:
-    """The last frame of three: it was found once both steps had been registered and frames 0 and 1 written."""
+def frames_then(tmp_path: Path, last: Callable[[np.ndarray], Path]) -> tuple[list[Path], Path]:
+    """Three frames for ``mfgnet sequence``: the synthetic target, its source, and ``last`` made from the source
+    (float64); and an empty folder for the aligned frames."""
     source, target = synthetic_pair()
     frames = [tmp_path / "f0.npy", tmp_path / "f1.npy"]
     np.save(frames[0], target)
     np.save(frames[1], source)
-    frames.append(unwritable(tmp_path, "encrypted", source.astype(np.float64))[0])
     folder = tmp_path / "aligned"
     folder.mkdir()
+    return [*frames, last(source.astype(np.float64))], folder
+
+
+def test_sequence_refuses_a_frame_it_cannot_write_before_the_first_registration(tmp_path, model_dir) -> None:
+    """The last frame of three: it was found once both steps had been registered and frames 0 and 1 written."""
+    frames, folder = frames_then(tmp_path, lambda source: unwritable(tmp_path, "encrypted", source)[0])
     result = sequence(frames, folder, model_dir)
     assert result.exit_code == 2 and "Traceback" not in result.output, result.output
     stderr = " ".join(result.stderr.split())
@@ -605,13 +612,7 @@ def test_register_names_the_read_failure_of_a_source_to_write_aligned(tmp_path, 
 
 def test_sequence_names_the_read_failure_of_a_frame_to_write_aligned(tmp_path, model_dir) -> None:
     """A frame the reader refuses fails as any unreadable frame does (its steps before it written), named as read."""
-    source, target = synthetic_pair()
-    frames = [tmp_path / "f0.npy", tmp_path / "f1.npy"]
-    np.save(frames[0], target)
-    np.save(frames[1], source)
-    frames.append(unreadable(tmp_path, "cut-npy", source.astype(np.float64))[0])
-    folder = tmp_path / "aligned"
-    folder.mkdir()
+    frames, folder = frames_then(tmp_path, lambda source: unreadable(tmp_path, "cut-npy", source)[0])
     result = sequence(frames, folder, model_dir)
     assert result.exit_code == 2 and "Traceback" not in result.output, result.output
     stderr = " ".join(result.stderr.split())
