@@ -18,6 +18,8 @@ import dataclasses
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from service.icp import icp_plane
 from service.options import RegistrationOptions
 from service.procrustes import compose
@@ -35,8 +37,9 @@ if TYPE_CHECKING:
 # The feature pose replaces a result only where at least this many matched pairs agree with it: on the real-scan
 # set's room pairs wrong feature poses had at most 15 (decisions/0051), right ones on room crops 17-64.
 CONSENSUS_SUPPORT = 16
-# ... and the result keeps less than this share of them: right results kept 0.8-1.0 of a right feature pose's
-# support, wrong ones 0.02-0.4 (decisions/0085).
+# ... and the result keeps less than this share of them: wrong results that a right feature pose replaced kept
+# 0.00-0.48 of its support, right results 0.59-1.0 but three, each replaced by a right pose or `reliable`
+# (decisions/0085).
 CONSENSUS_SHARE = 0.5
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
@@ -48,6 +51,13 @@ def consensus_note(support: int, kept: int) -> str:
     result it replaced."""
     return (f"{DESCRIPTOR_CONSENSUS}: {support} matched surface patches agree with this pose, {kept} with the pose the "
             "refinement ranked first; this one is returned")
+
+
+def after_guess(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The caller's pose ``R [3, 3], t [3]`` as a pose of the source moved by the initial guess (the frame of the
+    feature pose and of the candidates): the inverse of composing with the guess."""
+    moved = R @ work.R_init.T  # [3, 3]
+    return moved, t - moved @ work.t_init
 
 
 def applies(work: Working, result: RegistrationResult, options: RegistrationOptions) -> bool:
@@ -69,8 +79,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
         pose = work.feature_pose  # of the source moved by the initial guess (the feature candidate's, where it ran)
         if pose is None or pose.support < CONSENSUS_SUPPORT:
             return result
-        after_guess = result.rotation @ work.R_init.T  # [3, 3] the result as a pose of the moved source
-        kept = pose.support_of(after_guess, result.translation - after_guess @ work.t_init)
+        kept = pose.support_of(*after_guess(work, result.rotation, result.translation))
         if kept >= CONSENSUS_SHARE * pose.support:
             return result
         start = compose(pose.rotation, pose.translation, work.R_init, work.t_init)  # the caller's pose
@@ -79,8 +88,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
                            tolerance=CONSENSUS_TOLERANCE, target_surface=work.fine_target_surface)
         if fitted.warnings:
             return result
-        after_guess = fitted.rotation @ work.R_init.T  # [3, 3] the pose of the source moved by the initial guess
-        candidate = feature_candidate(registrar, work, after_guess, fitted.translation - after_guess @ work.t_init,
+        candidate = feature_candidate(registrar, work, *after_guess(work, fitted.rotation, fitted.translation),
                                       iterations, keypoints, timing, "consensus")
         refined = Refined(fitted.rotation, fitted.translation, 0, (), None, None)
         assess_timing = dict(timing)
