@@ -87,9 +87,10 @@ def write_aligned_cloud(path: Path, source: Path | None, points: np.ndarray, R: 
 def check_aligned_source(source: Path, out_name: str) -> None:
     """Exit 2 where ``source``, written as ``out_name`` in its own format (:func:`service.formats.moved.keeps_content`),
     cannot be written moved as far as its header decides (:func:`service.formats.moved.check_moved`: an E57 file
-    whose XML section cannot be rewritten, an ``.npy`` or ``.npz`` array the writer refuses), before any registration
-    runs. A source the reader refuses passes here (:func:`~service.formats.moved.check_moved` leaves it to the reader):
-    reading it names what is wrong, as for every other format."""
+    whose XML section cannot be rewritten, an ``.npy`` or ``.npz`` array the writer refuses, an 8-byte integer array's
+    values beyond 2**53 among them), before any registration runs. A source the reader refuses passes here
+    (:func:`~service.formats.moved.check_moved` leaves it to the reader): reading it names what is wrong, as for every
+    other format."""
     from service.formats.moved import FORMAT_NAMES, check_moved, keeps_content, source_format
     from service.pointcloud_io import PointCloudFormatError
 

@@ -143,8 +143,9 @@ def check_moved(source: Source, kind: str | None) -> None:
     """:class:`PointCloudFormatError` where the ``kind`` file ``source`` (:func:`source_format`; a path or an open
     file) cannot be written moved as itself, as far as its header decides, before anything is registered or written:
     an E57 file whose poses cannot be rewritten (:func:`service.formats.moved_e57.check_moved_e57`), an array whose
-    rows would be too long written, an ``.npz`` archive whose other members are too large or cannot be opened
-    (:func:`service.formats.moved_arrays.check_moved_npy`, ``check_moved_npz``), with the writers' own checks.
+    rows would be too long written, an ``.npz`` archive whose other members are too large or cannot be opened, an
+    array of 8-byte integers holding one beyond 2**53 in a column copied as float64 (its data read a block at a time:
+    :func:`service.formats.moved_arrays.check_moved_npy`, ``check_moved_npz``), with the writers' own checks.
     Nothing for other formats: their writers' refusals need the data. Nothing either where the reader refuses the file
     (these checks parse what the reader parses: a truncated ``.npy`` file, an archive that is no zip file, an E57 file
     cut short): it is no writing problem, and reading the source says why, as it does for every other format.

@@ -28,7 +28,9 @@ shape, order and other columns kept.
 
 :func:`check_moved_npy` and :func:`check_moved_npz` refuse, before anything is registered, what the header (an
 archive's directory and its members' headers) decides, with the writer's own checks: rows too long written, other
-members too large, a member zipfile cannot open. An 8-byte integer beyond 2**53 needs the data: the writer finds it.
+members too large, a member zipfile cannot open. A plain array of 8-byte integers of more than three columns is the one
+whose data they read (a block of ``BLOCK_BYTES`` at a time, as the writer reads it): a value beyond 2**53 in a column
+the writer copies as float64 is refused by them with the writer's words.
 """
 
 from __future__ import annotations
@@ -88,11 +90,11 @@ def moved_npz(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen:
 
 def check_moved_npy(f: BinaryIO) -> None:
     """:class:`PointCloudFormatError` where the ``.npy`` file ``f`` (seekable, read from its start) cannot be written
-    moved as far as its header decides (:func:`moved_npy`'s refusals that need no data: :func:`_array_plan`'s), before
-    anything is registered or written; ``f`` is left at its start. An 8-byte integer beyond ``EXACT_INTEGERS`` is the
-    writer's to find: it needs the data."""
+    moved as far as its header decides (:func:`moved_npy`'s refusals that need no data: :func:`_array_plan`'s), and an
+    8-byte integer beyond ``EXACT_INTEGERS`` in a column copied as float64 (:func:`_check_integers`: the data of such
+    an array alone is read), before anything is registered or written; ``f`` is left at its start."""
     try:
-        _array_plan(f, False)  # its refusals are those of x, y, z widened or not
+        _check_integers(f, _array_plan(f, False))  # its refusals are those of x, y, z widened or not
     finally:
         f.seek(0)
 
@@ -100,10 +102,13 @@ def check_moved_npy(f: BinaryIO) -> None:
 def check_moved_npz(f: BinaryIO) -> None:
     """:class:`PointCloudFormatError` where the ``.npz`` archive ``f`` (seekable, read from its start) cannot be
     written moved as far as its directory and its members' headers decide (:func:`_archive_plan`, which
-    :func:`moved_npz` runs first), before anything is registered or written; ``f`` is left at its start."""
+    :func:`moved_npz` runs first), and its cloud member's 8-byte integers (:func:`_check_integers`), before anything
+    is registered or written; ``f`` is left at its start."""
     try:
         with opened_archive(f) as archive:
-            _archive_plan(archive)
+            member, _ = _archive_plan(archive)
+            with archive.open(member) as stream:
+                _check_integers(stream, _array_plan(stream, False, member.file_size))
     finally:
         f.seek(0)
 
@@ -307,9 +312,28 @@ def _moved_columns(
         dst.write(values.data if written == dtype else _cast(values[:, None], written, 0).data)
 
 
-def _cast(values: np.ndarray, written: np.dtype, skip: int) -> np.ndarray:
-    """``values [n, C]`` as ``written``; an 8-byte integer beyond ``EXACT_INTEGERS`` in a column from ``skip`` on
-    (float64 would round it) is an error."""
+def _check_integers(src: BinaryIO, plan: _Plan) -> None:
+    """The refusal :func:`_cast` makes while writing, made before: an 8-byte integer beyond ``EXACT_INTEGERS`` in a
+    column of the plain array ``plan`` (``src`` at its data) that is copied as float64 (every column but x, y, z).
+    Only such an array's data is read, a block of ``BLOCK_BYTES`` at a time (a Fortran-order array's x, y, z columns
+    skipped); ``src`` is left where it stops."""
+    dtype, rows, columns = plan.dtype, plan.rows, plan.shape[-1]
+    if dtype.names is not None or dtype.kind not in "iu" or dtype.itemsize != 8 or columns <= 3:
+        return
+    if plan.fortran:
+        _skip(src, 3 * rows * dtype.itemsize, rows)  # x, y, z: moved, not copied
+        values, width, skip = (columns - 3) * rows, 1, 0
+    else:
+        values, width, skip = rows, columns, 3
+    per_block = max(1, BLOCK_BYTES // (width * dtype.itemsize))
+    for begin in range(0, values, per_block):
+        n = min(per_block, values - begin)
+        _check_exact(np.frombuffer(_read(src, n * width * dtype.itemsize, rows), dtype=dtype).reshape(n, width), skip)
+
+
+def _check_exact(values: np.ndarray, skip: int) -> None:
+    """An error where ``values [n, C]``, 8-byte integers, hold one beyond ``EXACT_INTEGERS`` in a column from
+    ``skip`` on (float64 would round it)."""
     if values.dtype.kind in "iu" and values.dtype.itemsize == 8 and values.shape[1] > skip:
         kept = values[:, skip:]
         if ((kept > EXACT_INTEGERS) | (kept < -EXACT_INTEGERS)).any():
@@ -317,7 +341,23 @@ def _cast(values: np.ndarray, written: np.dtype, skip: int) -> np.ndarray:
                 f"an array of {values.dtype} holds integers beyond 2**53, which float64 cannot hold exactly; its "
                 "moved coordinates need floats (save the array as float64, or write another format)"
             )
+
+
+def _cast(values: np.ndarray, written: np.dtype, skip: int) -> np.ndarray:
+    """``values [n, C]`` as ``written``; an 8-byte integer beyond ``EXACT_INTEGERS`` in a column from ``skip`` on
+    (float64 would round it) is an error (:func:`_check_exact`)."""
+    _check_exact(values, skip)
     return values.astype(written)
+
+
+def _skip(src: BinaryIO, size: int, rows: int) -> None:
+    """``size`` bytes of ``src`` passed over (read a block at a time where ``src`` cannot seek: a deflated member),
+    or a format error where fewer follow."""
+    while size > 0:
+        got = len(src.read(min(size, BLOCK_BYTES)))
+        if not got:
+            raise PointCloudFormatError(f"truncated .npy file: its {rows} rows do not follow")
+        size -= got
 
 
 def _read(src: BinaryIO, size: int, rows: int) -> bytearray:

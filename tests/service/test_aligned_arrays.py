@@ -11,6 +11,7 @@ import contextlib
 import io
 import json
 import re
+import tracemalloc
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -415,6 +416,14 @@ def unwritable(folder: Path, case: str, xyz: np.ndarray) -> tuple[Path, str]:
     if case == "large-others":
         np.savez_compressed(folder / "bomb.npz", points=xyz, padding=np.zeros(1 << 19))  # 4 MiB of zeros
         return folder / "bomb.npz", "other arrays expand to 4194432 bytes"
+    ids = np.concatenate([np.round(xyz * 1000), labels[:, None]], axis=1).astype(np.int64)  # millimetres, an id
+    ids[len(xyz) // 2, 3] = 2**53 + 1  # float64 would round it to 2**53
+    if case == "ids-npy":
+        np.save(folder / "ids.npy", ids)
+        return folder / "ids.npy", "an array of int64 holds integers beyond 2**53"
+    if case == "ids-npz":  # Fortran order, deflated: the x, y, z columns passed over, the id column read
+        np.savez_compressed(folder / "ids.npz", points=np.asfortranarray(ids.astype(">i8")), labels=labels)
+        return folder / "ids.npz", "an array of >i8 holds integers beyond 2**53"
     path = folder / f"{case}.npz"
     np.savez(path, points=xyz, labels=labels)
     if case == "encrypted":
@@ -424,7 +433,7 @@ def unwritable(folder: Path, case: str, xyz: np.ndarray) -> tuple[Path, str]:
     return path, "compression method is not supported"
 
 
-CASES = ["wide-npy", "wide-npz", "large-others", "encrypted", "compression"]
+CASES = ["wide-npy", "wide-npz", "large-others", "encrypted", "compression", "ids-npy", "ids-npz"]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -443,14 +452,39 @@ def test_what_the_header_decides_is_refused_before_writing_as_the_writer_refuses
     assert not (tmp_path / f"aligned.{kind}").exists()
 
 
-def test_the_check_passes_what_is_written_and_leaves_the_integers_beyond_2_53_to_the_writer(tmp_path) -> None:
-    np.save(tmp_path / "ids.npy", np.concatenate([np.round(XYZ), np.full((N, 1), 2**60)], axis=1).astype(np.int64))
+def test_the_check_passes_what_is_written(tmp_path) -> None:
+    ids = np.concatenate([np.round(XYZ), np.full((N, 1), -(2**53))], axis=1).astype(np.int64)  # exact in float64
+    np.save(tmp_path / "ids.npy", ids)
+    np.save(tmp_path / "fortran.npy", np.asfortranarray(ids))
+    np.savez_compressed(tmp_path / "ids.npz", points=np.abs(ids).astype(np.uint64))
     np.savez_compressed(tmp_path / "o3d.npz", positions=XYZ, normals=NORMALS, colors=COLOURS)
     np.save(tmp_path / "narrow.npy", np.zeros((N, 32), dtype=np.int8))  # 256 bytes a row as float64: the limit
-    for name in ("ids.npy", "o3d.npz", "narrow.npy"):
+    for name in ("ids.npy", "fortran.npy", "ids.npz", "o3d.npz", "narrow.npy"):
         check_moved(tmp_path / name, name[-3:])
-    with pytest.raises(PointCloudFormatError, match=r"beyond 2\*\*53"):  # it needs the data
-        write(tmp_path / "ids.npy", tmp_path / "aligned.npy")
+        write(tmp_path / name, tmp_path / f"aligned-{name}")
+    for name in ("ids.npy", "fortran.npy"):
+        assert (np.load(tmp_path / f"aligned-{name}")[:, 3] == -(2**53)).all()
+
+
+def test_the_integer_check_of_a_2_000_000_point_array_reads_it_a_block_at_a_time(tmp_path) -> None:
+    """8-byte integers are the one array whose data the check reads (it was the writer's to find, after registering):
+    in blocks, never the 64 MB array whole; the value beyond 2**53 in its last row is found. (``check_moved`` then
+    asks the reader, which reads the points once, whether the file is the reader's to refuse.)"""
+    rows = 2_000_000
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<i8", "fortran_order": False, "shape": (rows, 4)})
+    with open(tmp_path / "big.npy", "wb") as f:  # a sparse file: the header, 64 MB of zeros, then a last row
+        f.write(header.getvalue())
+        f.seek(len(header.getvalue()) + (rows - 1) * 32)
+        f.write(np.array([[0, 0, 0, 2**53 + 1]], dtype="<i8").tobytes())
+    tracemalloc.start()
+    try:
+        with open(tmp_path / "big.npy", "rb") as f, pytest.raises(PointCloudFormatError, match=r"beyond 2\*\*53"):
+            check_moved_npy(f)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, peak  # 4 MiB blocks (the array: 64 MB)
 
 
 def test_a_float16_array_too_wide_in_map_coordinates_is_refused_before_registering_too(tmp_path) -> None:
@@ -514,7 +548,7 @@ def test_register_refuses_an_array_it_cannot_write_before_registering(tmp_path, 
     registration's record (``--out``, written before the aligned cloud) never exists."""
     source_xyz, target = synthetic_pair()
     source, words = unwritable(tmp_path, case, source_xyz.astype(np.float64))
-    np.save(tmp_path / "target.npy", target * (1000 if case.startswith("wide") else 1))
+    np.save(tmp_path / "target.npy", target * (1000 if case.startswith(("wide", "ids")) else 1))
     out, aligned = tmp_path / "pose.json", tmp_path / f"aligned{source.suffix}"
     result = register(source, tmp_path / "target.npy", "--out", out, "--write-aligned", aligned, model_dir=model_dir)
     assert result.exit_code == 2 and "Traceback" not in result.output, result.output
