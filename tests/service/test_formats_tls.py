@@ -552,6 +552,42 @@ def test_an_e57_section_off_a_4_byte_boundary_reads_as_the_library_reads_it(tmp_
     assert "panicked" not in capfd.readouterr().err
 
 
+@pytest.mark.parametrize("kind", ["index", "ignored"])
+def test_an_e57_packet_other_than_data_among_a_scans_packets_is_refused_before_the_library_panics(
+    tmp_path, capfd, kind: str
+) -> None:
+    """A section of two data packets of 5 records each with an index or ignored packet between them: the e57 library
+    read the first 5 records, then panicked ("Cannot read next point because of logic error", its hook printing the
+    panic on stderr). Refused from the packets' walk, naming the packet; the same section without it reads."""
+    xyz = SOURCE[:10]
+    write_e57(tmp_path / "a.e57", [{"xyz": xyz}])
+    xml = xml_of((tmp_path / "a.e57").read_bytes())
+    streams = [xyz[:, k].astype("<f4").tobytes() for k in range(3)]
+    header = struct.pack("<BBHH3H", 1, 0, 72 - 1, 3, 20, 20, 20)  # 12 + 60 bytes: a length of 72
+    first, second = (header + b"".join(stream[half] for stream in streams) for half in (slice(0, 20), slice(20, 40)))
+    # an index packet: type 0, a reserved byte, length - 1, entry count, index level, 9 reserved bytes (16 bytes); an
+    # ignored packet: type 2, a reserved byte, length - 1, and 4 bytes of its own
+    other = struct.pack("<BBHHB9x", 0, 0, 15, 0, 0) if kind == "index" else struct.pack("<BBH4x", 2, 0, 7)
+
+    def section(middle: bytes) -> bytes:
+        packets = first + middle + second
+        logical = bytearray(48) + struct.pack("<B7xQQQ", 1, 32 + len(packets), 80, 0) + packets
+        xml_offset = len(logical)  # within the first page: its physical offset too
+        logical += xml
+        HEADER.pack_into(logical, 0, b"ASTM-E57", 1, 0, -(-len(logical) // 1020) * 1024, xml_offset, len(xml), 1024)
+        return _paged(bytes(logical))
+
+    np.testing.assert_allclose(read_cloud(section(b""), "a.e57"), xyz)
+    holds = (
+        r"E57 scan 0 declares 10 records \(its recordCount\), and its section \(at byte 48\) holds 5 before byte 152"
+    )
+    message = rf"{holds}, where an {kind} packet follows among its data packets: the e57 reader cannot read"
+    with pytest.raises(PointCloudFormatError, match=message) as caught:
+        read_cloud(section(other), "a.e57")
+    assert caught.value.status == 400
+    assert "panicked" not in capfd.readouterr().err
+
+
 def test_an_e57_record_count_beyond_its_section_is_a_400_and_no_rust_panic_on_the_servers_stderr(
     server, client, tmp_path
 ) -> None:
