@@ -32,7 +32,9 @@ prototype field's Float ``precision`` other than ``single`` and ``double`` (none
 another value too, case and spaces included), as the record counts are checked from each field's bits, and a Float
 intensity or colour whose minimum is above its maximum (the library scales them by these limits, and panics), and a
 comment or processing instruction inside a value element (:data:`VALUE_TYPES`: the library reads its text only up to
-it). Only the
+it), and a ``cartesianInvalidState`` or ``sphericalInvalidState`` field other than the standard's Integer of 0 to 2
+(:func:`_check_invalid_state`: the library panics on a value outside 0 to 2, which wider bounds let the file hold).
+Only the
 ``data3D`` children of type Structure are scans, as the library reads them (it skips another, and panics where none
 is left). A scan of no points is refused too: the library cannot read a file holding one (it reads the empty scan's
 section header at offset 0).
@@ -102,6 +104,7 @@ MAX_QUATERNION_NORM_ERROR = 1e-4
 VALUE_TYPES = ("Float", "Integer", "ScaledInteger", "String")  # elements whose text is their value
 POSE_ROTATION = ["data3D", "vectorChild", "pose", "rotation"]  # under the root: a scan's quaternion w, x, y, z
 PROTOTYPE = ["data3D", "vectorChild", "points", "prototype"]  # under the root: a scan's fields, one bytestream each
+INVALID_STATES = ("cartesianInvalidState", "sphericalInvalidState")  # 0 a return, 1 a direction only, 2 none
 
 
 class Section(NamedTuple):
@@ -436,6 +439,8 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
             if sections is not None:
                 sections.append(Section(len(scans) - 1, attributes.get("fileOffset", ""), int(count), []))
         if len(names) == 6 and names[1:5] == PROTOTYPE and structures[3]:
+            if names[5] in INVALID_STATES:
+                _check_invalid_state(names[5], attributes, len(scans) - 1)
             width = _bits(names[5], attributes, len(scans) - 1)
             if sections:
                 sections[-1].bits.append(width)
@@ -514,6 +519,22 @@ def _bits(name: str, attributes: dict[str, str], scan: int) -> int | None:
         return None
     low, high = map(int, bounds)
     return (high - low).bit_length() if high >= low else None
+
+
+def _check_invalid_state(name: str, attributes: dict[str, str], scan: int) -> None:
+    """:class:`PointCloudFormatError` where scan ``scan``'s prototype field ``name`` (``cartesianInvalidState`` or
+    ``sphericalInvalidState``, of these ``attributes``) is not what the standard makes it, an Integer of ``minimum``
+    0 or more and ``maximum`` 2 or less (absent bounds: those of a 64-bit integer): the library stops at a value
+    outside 0 to 2 with a panic, so bounds that let one be stored are refused before it reads a point."""
+    kind = attributes.get("type")
+    low, high = attributes.get("minimum", str(I64_MIN)), attributes.get("maximum", str(I64_MAX))
+    if kind == "Integer" and I64.fullmatch(low) and I64.fullmatch(high) and int(low) >= 0 and int(high) <= 2:
+        return
+    found = f"the bounds {low[:40]} to {high[:40]}" if kind == "Integer" else f"the type {str(kind)[:40]!r}"
+    raise PointCloudFormatError(
+        f"the E57 file's XML section gives scan {scan}'s field {name!r} {found}; the standard's is an Integer of 0 to "
+        "2 (0: a return, 1: a direction only, 2: no measurement), and the e57 reader cannot read a value outside them"
+    )
 
 
 def _check_quaternion(quaternion: dict[str, str], scan: int) -> None:

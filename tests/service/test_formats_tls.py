@@ -83,7 +83,8 @@ def write_typed_e57(path: Path, scans: list[dict[str, tuple]]) -> None:
                 columns.append(np.ascontiguousarray(column, dtype=np.float32 if kind == "single" else np.float64))
             elif kind[0] == "integer":
                 prototype.set(name, libe57.IntegerNode(imf, kind[1], kind[1], kind[2]))
-                columns.append(np.ascontiguousarray(column, dtype=np.int64))
+                # long long: pye57's buffer takes numpy's int64 (format 'l') but writes its values as 0
+                columns.append(np.ascontiguousarray(column, dtype=np.longlong))
             else:
                 prototype.set(name, libe57.ScaledIntegerNode(imf, kind[1], kind[1], kind[2], kind[3], 0.0))
                 columns.append(np.ascontiguousarray(column, dtype=np.float64))
@@ -550,6 +551,42 @@ def test_an_e57_section_off_a_4_byte_boundary_reads_as_the_library_reads_it(tmp_
     assert len(e57.read_points(str(tmp_path / "b.e57")).points) == len(xyz)  # the library reads it
     np.testing.assert_allclose(read_cloud(data, "b.e57"), xyz)
     assert "panicked" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("name", "kind", "found"),
+    [
+        ("cartesianInvalidState", ("integer", 0, 3), "the bounds 0 to 3"),
+        ("cartesianInvalidState", ("integer", -1, 2), "the bounds -1 to 2"),
+        ("sphericalInvalidState", ("integer", 0, 3), "the bounds 0 to 3"),
+        ("cartesianInvalidState", "single", "the type 'Float'"),
+    ],
+)
+def test_an_e57_invalid_state_other_than_an_integer_of_0_to_2_is_refused_before_the_library_panics(
+    tmp_path, capfd, name: str, kind, found: str
+) -> None:
+    """The standard's ``cartesianInvalidState`` and ``sphericalInvalidState`` are Integers of 0 to 2; the e57 library
+    panicked on a value outside them ("Cartesian invalid state contains invalid value: 3", its hook printing the panic
+    on stderr), which wider bounds or a Float let a file hold. Refused from the XML section, naming the field; the
+    standard's bounds, and narrower ones, still read."""
+    xyz = SOURCE[:20]
+    fields = {f"cartesian{axis}": ("single", xyz[:, k]) for k, axis in enumerate("XYZ")}
+    if name == "sphericalInvalidState":  # the library reads it in a scan of spherical coordinates
+        rae = np.column_stack([np.linalg.norm(xyz, axis=1), np.arctan2(xyz[:, 1], xyz[:, 0]), np.zeros(len(xyz))])
+        fields = {f"spherical{axis}": ("double", rae[:, k]) for k, axis in enumerate(("Range", "Azimuth", "Elevation"))}
+    state = np.r_[np.zeros(len(xyz) - 1), -1 if kind == ("integer", -1, 2) else 3]  # the last point's: outside 0-2
+    write_typed_e57(tmp_path / "a.e57", [{**fields, name: (kind, state)}])
+    data = (tmp_path / "a.e57").read_bytes()
+    message = rf"gives scan 0's field '{name}' {re.escape(found)}; the standard's is an Integer of 0 to 2"
+    with pytest.raises(PointCloudFormatError, match=message) as caught:
+        read_cloud(data, "a.e57")
+    assert caught.value.status == 400
+    assert "panicked" not in capfd.readouterr().err
+    cartesian = {f"cartesian{axis}": ("single", xyz[:, k]) for k, axis in enumerate("XYZ")}
+    for bounds, read in (((0, 2), 19), ((0, 1), 19), ((0, 0), 20)):  # the last point: no return (2, 1), or kept
+        state = np.r_[np.zeros(len(xyz) - 1), bounds[1]]
+        write_typed_e57(tmp_path / "b.e57", [{**cartesian, "cartesianInvalidState": (("integer", *bounds), state)}])
+        np.testing.assert_allclose(read_cloud(tmp_path / "b.e57"), xyz[:read])
 
 
 @pytest.mark.parametrize("kind", ["index", "ignored"])
