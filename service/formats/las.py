@@ -20,6 +20,13 @@ then, where the chunks are read point by point, the decompressor must stand at t
 count is read (the chunks are read back to back, each to its exact end): a count within the last chunk but wrong
 either stops short of it or decodes the table's bytes as points (a made-up point from a LAZ 1.2 file claiming one
 point more than it holds).
+
+LAZ of pointwise compression (the LAZ VLR's compressor 1, LASzip's only kind before chunks: one arithmetic-coded stream
+of every point from the offset to the points, no chunk table nor its offset before the points) is read by ``lazrs``
+as one chunk; none of the chunk table's checks apply (the first 8 bytes are a point's, not a table's offset), and
+the decompressor must stand where the points end (the first EVLR or the waveform data, else the file's end) once
+the header's count is read. ``lazrs`` takes a chunk size of 0 or 2**32 - 1 in the VLR for chunks of varying size and
+panics without a chunk table: such a file is refused, as is one whose items are LAS 1.4 layered ones (only chunked).
 """
 
 from __future__ import annotations
@@ -46,6 +53,8 @@ BATCH_BYTES = 16 * 2**20
 # raw, its point count and each layer's size (u32); Point14's first two layers are x/y (with returns, channel) and z.
 POINT14, LAYERS = 10, {10: 9, 11: 1, 12: 2, 13: 1}
 BYTE14 = 14
+POINTWISE = 1  # the LAZ VLR's compressor (u16 at byte 0): no chunks, no chunk table
+VARIABLE_CHUNKS = (0, 2**32 - 1)  # the VLR's chunk sizes (u32 at byte 12) lazrs takes for chunks of varying size
 # LAZ item types of a fixed size (LASzip's), by type: name, bytes. Byte items (0, 14) are as long as they say.
 ITEM_BYTES = {
     6: ("Point10", 20),
@@ -75,21 +84,28 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
                 )
             _check_laz_items(header)
             data = start + header.offset_to_point_data
-            table = _check_chunk_table(f, data, start + size)
-            chunks = _chunk_table(f, header, data)
-            in_layers = _check_xyz_layers(f, header, data, chunks)
-            _check_laz_count(header, count, chunks, in_layers)
+            pointwise = _check_pointwise(header)
+            if pointwise:
+                table, chunks, in_layers = None, None, None
+            else:
+                table = _check_chunk_table(f, data, start + size)
+                chunks = _chunk_table(f, header, data)
+                in_layers = _check_xyz_layers(f, header, data, chunks)
+                _check_laz_count(header, count, chunks, in_layers)
             try:
                 batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
             except Exception as exc:  # lazrs's LazrsError; "failed to fill whole buffer" at the end of the data
                 if "fill whole buffer" not in str(exc):
                     raise
+                kind = " (pointwise, without a chunk table)" if pointwise else ""
                 raise PointCloudFormatError(
-                    f"LAZ header declares {count} points; its compressed data ends before them "
+                    f"LAZ header declares {count} points; its compressed data{kind} ends before them "
                     f"({type(exc).__name__}: {exc})"
                 ) from None
-            if table is not None and chunks and in_layers is None:  # layered chunks say their counts
-                _check_laz_end(reader, f, count, chunks, table, start + size)
+            if pointwise:
+                _check_laz_end(reader, f, count, start + _points_end(header, size), start + size)
+            elif table is not None and chunks and in_layers is None:  # layered chunks say their counts
+                _check_laz_end(reader, f, count, _chunks_end(chunks, table), start + size)
         else:
             _check_las_count(header, count, size)
             batches = _read_xyz(reader, count, max(1, BATCH_BYTES // header.point_format.size))
@@ -188,6 +204,26 @@ def _check_laz_items(header: LasHeader) -> None:
             raise PointCloudFormatError(
                 f"LAZ VLR's item {k} is a {name} of {length} bytes; a {name} item has {fixed} (the VLR is damaged)"
             )
+
+
+def _check_pointwise(header: LasHeader) -> bool:
+    """Whether the LAZ VLR says pointwise compression (no chunk table), or its refusal where ``lazrs`` cannot read
+    it: a chunk size it takes for chunks of varying size (it panics: they need a table), LAS 1.4 layered items."""
+    record = header.vlrs.get("LasZipVlr")[0].record_data  # checked to hold its items (_check_laz_items)
+    compressor, chunk_size = struct.unpack_from("<H", record, 0)[0], struct.unpack_from("<I", record, 12)[0]
+    if compressor != POINTWISE:
+        return False
+    if chunk_size in VARIABLE_CHUNKS:
+        raise PointCloudFormatError(
+            f"LAZ without a chunk table (pointwise compression) whose VLR gives a chunk size of {chunk_size}, which "
+            "the LAZ reader takes for chunks of varying size: not supported; re-compress it with laszip or PDAL"
+        )
+    if any(kind in LAYERS or kind == BYTE14 for kind, _, _ in _laz_items(record)):
+        raise PointCloudFormatError(
+            "LAZ without a chunk table (pointwise compression) of LAS 1.4 layered items, which LASzip writes only in "
+            "chunks: not supported (the VLR is damaged); re-compress it with laszip or PDAL"
+        )
+    return True
 
 
 def _check_chunk_table(f: BinaryIO, data: int, end: int) -> int | None:
@@ -303,27 +339,32 @@ def _check_laz_count(
         )
 
 
-def _check_laz_end(
-    reader: LasReader, f: BinaryIO, count: int, chunks: list[tuple[int, int]], table: int, end: int
-) -> None:
-    """After the header's count of points, the decompressor stands where the compressed points end, at the chunk table
-    (before any chunks of no points that end a table of chunks of varying sizes): lazrs reads the chunks back to back,
-    each to its exact end. A header that declares fewer points than the last chunk holds leaves the decompressor
-    inside it; one that declares more decodes the chunk table's bytes as points (a made-up point, without an error,
-    from a LAZ 1.2 file that claims one point more than it holds). Two reads of 16 bytes; no point is decompressed."""
+def _chunks_end(chunks: list[tuple[int, int]], table: int) -> int:
+    """Where the compressed points end: at the chunk table, before any chunks of no points that end a table of chunks
+    of varying sizes."""
     at = table
     for points, size in reversed(chunks):
         if points:
             break
         at -= size
+    return at
+
+
+def _check_laz_end(reader: LasReader, f: BinaryIO, count: int, at: int, end: int) -> None:
+    """After the header's count of points, the decompressor stands at ``at``, where the compressed points end
+    (:func:`_chunks_end`; a pointwise file's at the EVLRs or waveform data, else the file's end ``end``): lazrs reads
+    the chunks back to back, each to its exact end. A header that declares fewer points than the last chunk holds
+    leaves the decompressor inside it; one that declares more decodes the chunk table's bytes as points (a made-up
+    point, without an error, from a LAZ 1.2 file that claims one point more than it holds). Two reads of at most 16
+    bytes (at the file's end: one byte, which must not be there); no point is decompressed."""
     length = min(16, end - at)
     try:  # before ``f`` is moved: lazrs reads on from its position
-        after = reader.point_source.read_raw_bytes(length)  # from where the decompressor stopped
+        after = reader.point_source.read_raw_bytes(length or 1)  # from where the decompressor stopped
     except Exception:  # lazrs's LazrsError: the decompressor has read to the file's end
         after = None
     position = f.tell()
     f.seek(at)
-    expected = f.read(length)
+    expected = f.read(length) if length else None
     f.seek(position)
     if after != expected:
         raise PointCloudFormatError(
@@ -338,12 +379,7 @@ def _check_las_count(header: LasHeader, count: int, size: int) -> None:
     beyond it would read those bytes, or past the file's end, as points; one that leaves room for another whole point
     or more would leave points unread."""
     offset, point = header.offset_to_point_data, header.point_format.size
-    ends = [size]
-    if header.version.minor >= 4 and header.number_of_evlrs:
-        ends.append(header.start_of_first_evlr)
-    if header.version.minor >= 3 and header.global_encoding.waveform_data_packets_internal:
-        ends.append(header.start_of_waveform_data_packet_record)
-    room = max(0, min(at for at in ends if offset <= at <= size) - offset)
+    room = max(0, _points_end(header, size) - offset)
     if count * point > room:
         raise PointCloudFormatError(
             f"LAS header declares {count} points of {point} bytes; the file holds {room} bytes of points"
@@ -353,6 +389,18 @@ def _check_las_count(header: LasHeader, count: int, size: int) -> None:
             f"LAS header declares {count} points of {point} bytes; the file holds {room} bytes of points, "
             f"{room // point} points"
         )
+
+
+def _points_end(header: LasHeader, size: int) -> int:
+    """Where the points end (from the header's start; ``size`` bytes from there): at the first EVLR or the waveform
+    data that the header places after them (LAS 1.3-1.4), else at the file's end."""
+    offset = header.offset_to_point_data
+    ends = [size]
+    if header.version.minor >= 4 and header.number_of_evlrs:
+        ends.append(header.start_of_first_evlr)
+    if header.version.minor >= 3 and header.global_encoding.waveform_data_packets_internal:
+        ends.append(header.start_of_waveform_data_packet_record)
+    return min(at for at in ends if offset <= at <= size)
 
 
 def _laz_items(record: bytes) -> list[tuple[int, int, int]]:
