@@ -1,4 +1,4 @@
-"""Stage 6b, consensus: a result that is not ``reliable`` against the pose the clouds' descriptors agree on.
+"""Stage 6b, consensus: a doubtful result against the pose the clouds' descriptors agree on.
 
 The refinement and the candidates' ranking judge a pose by how much of the source it lays on the target. Where two
 scans overlap by a third or less, a wrong pose can lay more of it there than the right one (a room turned onto its
@@ -10,6 +10,12 @@ pairs agree with the result. Where at least ``CONSENSUS_SUPPORT`` agree with the
 less than ``CONSENSUS_SHARE`` of that, the feature pose refined on the fine clouds (point-to-plane ICP at one inlier
 distance, as :mod:`service.stages.fine` pairs them) replaces it, assessed as any result is
 (``docs/decisions/0085-a-descriptor-consensus-for-doubtful-results.md``).
+
+A ``reliable`` result is looked at too where both clouds are built of orthogonal planes
+(:func:`service.stages.ranking.plane_frames_on_the_surface`: rooms, LiDAR frames) and it overlays less than
+``PARTIAL_OVERLAY`` of what a right pose reaches on the target's surface: of two views that overlap in part, a room
+turned onto its walls or slid along them can pass every check. It is replaced only where it keeps less than
+``RELIABLE_CONSENSUS_SHARE`` (``docs/decisions/0086-the-consensus-looks-at-reliable-rooms.md``).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from service.stages.assess import assess_result
 from service.stages.features import dense_enough_to_describe, feature_candidate
 from service.stages.network import Candidates
 from service.stages.normalise import Working
+from service.stages.ranking import plane_frames_on_the_surface
 from service.stages.refine import Refined
 
 if TYPE_CHECKING:
@@ -41,6 +48,13 @@ CONSENSUS_SUPPORT = 16
 # 0.00-0.48 of its support, right results 0.59-1.0 but three, each replaced by a right pose or `reliable`
 # (decisions/0085).
 CONSENSUS_SHARE = 0.5
+# ... or, for a `reliable` room result, this share: wrong ones kept 0.00-0.48, 10 of 13 below 0.3, and right lamp scans
+# that pass as built of orthogonal planes kept 0.38-0.45 of a wrong feature pose's support (decisions/0086).
+RELIABLE_CONSENSUS_SHARE = 0.3
+# A `reliable` room result is looked at only where its inlier ratio is below this share of what a right pose reaches
+# on the target's surface (the views overlap in part): wrong ones reached 0.51-0.82 of it, right ones on synthetic
+# rooms and LiDAR frames 0.85-1.0, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
+PARTIAL_OVERLAY = 0.9
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
 DESCRIPTOR_CONSENSUS = "descriptor consensus"  # first words of the note on a result this stage gave
@@ -60,19 +74,30 @@ def after_guess(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray
     return moved, t - moved @ work.t_init
 
 
-def applies(work: Working, result: RegistrationResult, options: RegistrationOptions) -> bool:
-    """Whether the consensus stage looks at ``result``: it is not ``reliable``, the refinement is point to plane (the
-    fine clouds' normals), and both entered clouds are dense enough to describe."""
-    return (not result.reliable and options.refine_mode in PLANE_MODES and options.refine_points is None
-            and dense_enough_to_describe(work))
+def share_to_keep(work: Working, result: RegistrationResult, options: RegistrationOptions) -> float | None:
+    """The share of the feature pose's support ``result`` must keep, or None where the stage does not look at it: the
+    refinement is point to plane (the fine clouds' normals), both entered clouds are dense enough to describe, and the
+    result is not ``reliable`` (``CONSENSUS_SHARE``) or is a room's that overlays its source in part
+    (``RELIABLE_CONSENSUS_SHARE``)."""
+    if options.refine_mode not in PLANE_MODES or options.refine_points is not None:
+        return None
+    if not dense_enough_to_describe(work):
+        return None
+    if not result.reliable:
+        return CONSENSUS_SHARE
+    in_part = plane_frames_on_the_surface(work) and (
+        result.inlier_ratio < PARTIAL_OVERLAY * work.surface_attainable_ratio)
+    return RELIABLE_CONSENSUS_SHARE if in_part else None
 
 
 def consensus(registrar: Registrar, work: Working, result: RegistrationResult, options: RegistrationOptions,
               iterations: int, keypoints: int, timing: dict[str, float]) -> RegistrationResult:
-    """``result`` (caller's frames of the anchored clouds), or where :func:`applies` and the descriptors' consensus
-    outweighs it, the feature pose refined on the fine clouds and assessed (:func:`service.stages.assess.assess_result`)
-    with a note naming both supports; records ``timing["consensus"]`` where it computed descriptors."""
-    if not applies(work, result, options):
+    """``result`` (caller's frames of the anchored clouds), or where it keeps less than :func:`share_to_keep` of the
+    descriptors' consensus, the feature pose refined on the fine clouds and assessed
+    (:func:`service.stages.assess.assess_result`) with a note naming both supports; records ``timing["consensus"]``
+    where it looked."""
+    share = share_to_keep(work, result, options)
+    if share is None:
         return result
     started = time.perf_counter()
     try:
@@ -80,7 +105,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
         if pose is None or pose.support < CONSENSUS_SUPPORT:
             return result
         kept = pose.support_of(*after_guess(work, result.rotation, result.translation))
-        if kept >= CONSENSUS_SHARE * pose.support:
+        if kept >= share * pose.support:
             return result
         start = compose(pose.rotation, pose.translation, work.R_init, work.t_init)  # the caller's pose
         fitted = icp_plane(work.fine_source, work.fine_target, *start,

@@ -1,4 +1,4 @@
-"""Stage consensus: a result that is not reliable against the pose the clouds' descriptors agree on (decisions/0085)."""
+"""Stage consensus: a doubtful result against the pose the clouds' descriptors agree on (decisions/0085, 0086)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from real_scan_cases import GENERAL, skip_without, skip_without_general
+from real_scan_cases import GENERAL, real_case, skip_without, skip_without_general
 from scipy.spatial.transform import Rotation
 from shapes import room_scene
 
@@ -16,7 +16,15 @@ from service.feature_match import feature_pose
 from service.options import RegistrationOptions
 from service.registrar import Registrar
 from service.result import RegistrationResult
-from service.stages.consensus import CONSENSUS_SUPPORT, applies, consensus
+from service.stages.consensus import (
+    CONSENSUS_SHARE,
+    CONSENSUS_SUPPORT,
+    PARTIAL_OVERLAY,
+    RELIABLE_CONSENSUS_SHARE,
+    consensus,
+    share_to_keep,
+)
+from service.stages.normalise import Working
 from service.stages.pipeline import Stages
 
 
@@ -34,6 +42,15 @@ def room_crop(label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[flo
         if name == label:
             return source, target, truth, thresholds(sensor)
     raise AssertionError(f"no case {label}")
+
+
+def without_consensus() -> Registrar:
+    return Registrar(GENERAL, threads=1, stages=dataclasses.replace(Stages(), consensus=lambda *a: a[2]))
+
+
+def working(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> Working:
+    return registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
+        source, target, None, {"refine": "icp-plane"}, 3, 128)), registrar.reference_radius)
 
 
 def registered(registrar: Registrar, source: np.ndarray, target: np.ndarray, truth: np.ndarray,
@@ -60,8 +77,7 @@ def test_a_room_crop_at_30_percent_overlap_registers_from_the_descriptors_consen
     the target's walls half a turn off (172 deg) than at the truth; 54 matched patches agree with the truth, 3 with
     that pose."""
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o30/cut")
-    without = Registrar(GENERAL, threads=1, stages=dataclasses.replace(Stages(), consensus=lambda *a: a[2]))
-    result, right = registered(without, source, target, truth, limits)
+    result, right = registered(without_consensus(), source, target, truth, limits)
     assert not right and not result.reliable
     result, right = registered(registrar, source, target, truth, limits)
     assert right, pose_errors(result.rotation, result.translation, truth)
@@ -81,18 +97,59 @@ def test_a_right_result_that_the_descriptors_agree_with_is_kept(registrar) -> No
     assert not any(w.startswith("descriptor consensus") for w in result.warnings)
 
 
-def test_reliable_results_sparse_clouds_and_other_refinements_are_not_looked_at(registrar) -> None:
+def test_a_reliable_room_result_half_a_turn_off_is_replaced(registrar) -> None:
+    """At 30% overlap this crop's result passes every check 179 deg off, as a room turned onto its own walls; 18
+    matched patches agree with the truth, 2 with that pose: under 0.3 of them, so the consensus replaces it."""
+    source, target, truth, limits = room_crop("3dm_hotel3_15_8/source/o30/turned-3")
+    result, right = registered(without_consensus(), source, target, truth, limits)
+    assert not right and result.reliable
+    result, right = registered(registrar, source, target, truth, limits)
+    assert right, pose_errors(result.rotation, result.translation, truth)
+    (note,) = (w for w in result.warnings if w.startswith("descriptor consensus"))
+    assert note.startswith("descriptor consensus: 18 matched surface patches agree with this pose, 2 with")
+
+
+def test_the_share_to_keep_by_result_clouds_and_refinement(registrar) -> None:
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o30/cut")
     result, _ = registered(registrar, source, target, truth, limits)
-    work = registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
-        source, target, None, {"refine": "icp-plane"}, 3, 128)), registrar.reference_radius)
+    work = working(registrar, source, target)
     options = RegistrationOptions(refine="icp-plane")
-    assert applies(work, result, options)
-    assert not applies(work, dataclasses.replace(result, reliable=True), options)
-    assert not applies(work, result, RegistrationOptions(refine="icp"))
-    sparse = registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
-        source[::10], target[::10], None, {"refine": "icp-plane"}, 3, 128)), registrar.reference_radius)
-    assert not applies(sparse, result, options)  # under 4 times the working points: nothing to describe
+    assert share_to_keep(work, result, options) == CONSENSUS_SHARE
+    reliable = dataclasses.replace(result, reliable=True)
+    assert share_to_keep(work, reliable, options) == RELIABLE_CONSENSUS_SHARE  # a room: the stricter share
+    assert share_to_keep(work, result, RegistrationOptions(refine="icp")) is None
+    sparse = working(registrar, source[::10], target[::10])
+    assert share_to_keep(sparse, result, options) is None  # under 4 times the working points: nothing to describe
+
+
+def test_a_reliable_room_that_overlays_all_its_source_is_not_looked_at(registrar) -> None:
+    """Two thirds of a synthetic room onto the whole of it: a right pose lays all of the source on the target, and the
+    pipeline's own checks settle such a room; only a result that overlays less than PARTIAL_OVERLAY of what a right
+    pose reaches is looked at."""
+    room = room_scene(np.random.default_rng(8))
+    source, target = room[room[:, 0] < 2.7].astype(np.float32), room.astype(np.float32)
+    turn = Rotation.from_euler("zx", [100, 20], degrees=True).as_matrix()
+    source = source @ turn.T.astype(np.float32)
+    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    truth = np.eye(4)
+    truth[:3, :3] = turn.T  # src_to_tgt
+    assert pose_errors(result.rotation, result.translation, truth)[0] < 1.0
+    assert result.reliable and "consensus" not in result.timing_ms
+    work = working(registrar, source, target)
+    options = RegistrationOptions(refine="icp-plane")
+    assert result.inlier_ratio >= PARTIAL_OVERLAY * work.surface_attainable_ratio
+    assert share_to_keep(work, result, options) is None
+    in_part = dataclasses.replace(result, inlier_ratio=0.8 * PARTIAL_OVERLAY * work.surface_attainable_ratio)
+    assert share_to_keep(work, in_part, options) == RELIABLE_CONSENSUS_SHARE
+
+
+def test_reliable_results_that_are_not_rooms_are_not_looked_at(registrar) -> None:
+    case = real_case("dragon_96_72", 0, "scanned")
+    result = registrar.register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    assert result.reliable
+    work = working(registrar, case.source, case.target)
+    options = RegistrationOptions(refine="icp-plane")
+    assert share_to_keep(work, result, options) is None
+    assert share_to_keep(work, dataclasses.replace(result, reliable=False), options) == CONSENSUS_SHARE
     timing: dict[str, float] = {}
-    kept = dataclasses.replace(result, reliable=True)
-    assert consensus(registrar, work, kept, options, 3, 128, timing) is kept and not timing
+    assert consensus(registrar, work, result, options, 3, 128, timing) is result and not timing
