@@ -53,7 +53,7 @@ CONSENSUS_SHARE = 0.5
 RELIABLE_CONSENSUS_SHARE = 0.3
 # A `reliable` room result is looked at only where its inlier ratio is below this share of what a right pose reaches
 # on the target's surface (the views overlap in part): wrong ones reached 0.51-0.82 of it, right ones on synthetic
-# rooms and LiDAR frames 0.85-1.0, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
+# rooms and LiDAR frames 0.85-1.03, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
 PARTIAL_OVERLAY = 0.9
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
