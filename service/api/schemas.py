@@ -300,9 +300,9 @@ class RegisterResponse(BaseModel):
         description="Wall-clock time per stage, in milliseconds: 'queue' = wait for a worker slot; 'total' = the "
         "whole pipeline (excluding 'queue' and the HTTP decoding); stage keys such as 'preprocess', 'encoder', "
         "'iterations', 'svd', 'refine', 'postprocess', 'features' when rotation_search 'auto' computed a "
-        "feature-matched candidate, 'consensus' when it compared a result that is not reliable with the descriptors' "
-        "consensus pose, and 'search' / 'search_per_hypothesis' when the rotation search ran. Stages may "
-        "overlap or be absent; only 'queue' and 'total' are always there."
+        "feature-matched candidate, 'consensus' when it compared a result that is not reliable, or a reliable room's "
+        "whose views overlap in part, with the descriptors' consensus pose, and 'search' / 'search_per_hypothesis' "
+        "when the rotation search ran. Stages may overlap or be absent; only 'queue' and 'total' are always there."
     )
     iteration_poses: list[IterationPoseOut] | None = Field(
         None, description="Cumulative network pose src_to_tgt after each iteration (when return_iterations), "

@@ -33,7 +33,9 @@ another value too, case and spaces included), as the record counts are checked f
 intensity or colour whose minimum is above its maximum (the library scales them by these limits, and panics), and a
 comment or processing instruction inside a value element (:data:`VALUE_TYPES`: the library reads its text only up to
 it), and a ``cartesianInvalidState`` or ``sphericalInvalidState`` field other than the standard's Integer of 0 to 2
-(:func:`_check_invalid_state`: the library panics on a value outside 0 to 2, which wider bounds let the file hold).
+(:func:`_check_invalid_state`: the library panics on a value outside 0 to 2, which wider bounds let the file hold;
+the standard's own bounds take 2 bits, which can still store a 3: only the points' data shows it, and that panic is
+left to the library).
 Only the
 ``data3D`` children of type Structure are scans, as the library reads them (it skips another, and panics where none
 is left). A scan of no points is refused too: the library cannot read a file holding one (it reads the empty scan's
@@ -525,7 +527,8 @@ def _check_invalid_state(name: str, attributes: dict[str, str], scan: int) -> No
     """:class:`PointCloudFormatError` where scan ``scan``'s prototype field ``name`` (``cartesianInvalidState`` or
     ``sphericalInvalidState``, of these ``attributes``) is not what the standard makes it, an Integer of ``minimum``
     0 or more and ``maximum`` 2 or less (absent bounds: those of a 64-bit integer): the library stops at a value
-    outside 0 to 2 with a panic, so bounds that let one be stored are refused before it reads a point."""
+    outside 0 to 2 with a panic, so wider bounds, which let one be stored, are refused before it reads a point (a 3
+    in the standard's own 2 bits shows only in the points' data: left to the library)."""
     kind = attributes.get("type")
     low, high = attributes.get("minimum", str(I64_MIN)), attributes.get("maximum", str(I64_MAX))
     if kind == "Integer" and I64.fullmatch(low) and I64.fullmatch(high) and int(low) >= 0 and int(high) <= 2:

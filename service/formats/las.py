@@ -103,7 +103,7 @@ def read_las(f: BinaryIO, max_points: int | None) -> np.ndarray:
                     f"({type(exc).__name__}: {exc})"
                 ) from None
             if pointwise:
-                _check_laz_end(reader, f, count, start + _points_end(header, size), start + size)
+                _check_laz_end(reader, f, count, start + _points_end(header, size), start + size, pointwise=True)
             elif table is not None and chunks and in_layers is None:  # layered chunks say their counts
                 _check_laz_end(reader, f, count, _chunks_end(chunks, table), start + size)
         else:
@@ -350,13 +350,14 @@ def _chunks_end(chunks: list[tuple[int, int]], table: int) -> int:
     return at
 
 
-def _check_laz_end(reader: LasReader, f: BinaryIO, count: int, at: int, end: int) -> None:
+def _check_laz_end(reader: LasReader, f: BinaryIO, count: int, at: int, end: int, pointwise: bool = False) -> None:
     """After the header's count of points, the decompressor stands at ``at``, where the compressed points end
     (:func:`_chunks_end`; a pointwise file's at the EVLRs or waveform data, else the file's end ``end``): lazrs reads
     the chunks back to back, each to its exact end. A header that declares fewer points than the last chunk holds
     leaves the decompressor inside it; one that declares more decodes the chunk table's bytes as points (a made-up
-    point, without an error, from a LAZ 1.2 file that claims one point more than it holds). Two reads of at most 16
-    bytes (at the file's end: one byte, which must not be there); no point is decompressed."""
+    point, without an error, from a LAZ 1.2 file that claims one point more than it holds). A ``pointwise`` stream has
+    no table to end at, so bytes appended after its points are refused too. Two reads of at most 16 bytes (at the
+    file's end: one byte, which must not be there); no point is decompressed."""
     length = min(16, end - at)
     try:  # before ``f`` is moved: lazrs reads on from its position
         after = reader.point_source.read_raw_bytes(length or 1)  # from where the decompressor stopped
@@ -366,6 +367,12 @@ def _check_laz_end(reader: LasReader, f: BinaryIO, count: int, at: int, end: int
     f.seek(at)
     expected = f.read(length) if length else None
     f.seek(position)
+    if after != expected and pointwise:
+        raise PointCloudFormatError(
+            f"LAZ header declares {count} points; after them its pointwise stream (no chunk table) does not reach "
+            f"byte {at}, where the points must end: the header's count does not match the data, the data is damaged, "
+            "or bytes were appended after the points"
+        )
     if after != expected:
         raise PointCloudFormatError(
             f"LAZ header declares {count} points; its compressed points do not end after {count} (they end at byte "

@@ -328,7 +328,8 @@ def _check_integers(src: BinaryIO, plan: _Plan) -> None:
     per_block = max(1, BLOCK_BYTES // (width * dtype.itemsize))
     for begin in range(0, values, per_block):
         n = min(per_block, values - begin)
-        _check_exact(np.frombuffer(_read(src, n * width * dtype.itemsize, rows), dtype=dtype).reshape(n, width), skip)
+        block = np.frombuffer(_read(src, n * width * dtype.itemsize, rows), dtype=dtype).reshape(n, width)  # [n, W]
+        _check_exact(block, skip)
 
 
 def _check_exact(values: np.ndarray, skip: int) -> None:

@@ -105,8 +105,12 @@ def test_a_header_count_that_is_not_the_streams_is_refused(tmp_path) -> None:
     (tmp_path / "fewer.laz").write_bytes(with_count(data, 4999))
     (tmp_path / "more.laz").write_bytes(with_count(data, 5001))
     (tmp_path / "cut.laz").write_bytes(data[:-500])
-    with pytest.raises(PointCloudFormatError, match="declares 4999 points; its compressed points do not end after"):
-        read_points(tmp_path / "fewer.laz")
+    (tmp_path / "appended.laz").write_bytes(data + b"\0")
+    for name, count in (("fewer.laz", 4999), ("appended.laz", 5000)):
+        with pytest.raises(PointCloudFormatError, match=rf"declares {count} points; after them its pointwise stream "
+                           r"\(no chunk table\) does not reach byte \d+, where the points must end: .* or bytes were "
+                           "appended after the points"):
+            read_points(tmp_path / name)
     for name, count in (("more.laz", 5001), ("cut.laz", 5000)):
         with pytest.raises(
             PointCloudFormatError,
