@@ -367,17 +367,17 @@ def _check_laz_end(reader: LasReader, f: BinaryIO, count: int, at: int, end: int
     f.seek(at)
     expected = f.read(length) if length else None
     f.seek(position)
-    if after != expected and pointwise:
-        raise PointCloudFormatError(
-            f"LAZ header declares {count} points; after them its pointwise stream (no chunk table) does not reach "
-            f"byte {at}, where the points must end: the header's count does not match the data, the data is damaged, "
-            "or bytes were appended after the points"
-        )
-    if after != expected:
-        raise PointCloudFormatError(
-            f"LAZ header declares {count} points; its compressed points do not end after {count} (they end at byte "
-            f"{at}): the header's count does not match the data, or the data is damaged"
-        )
+    if after == expected:
+        return
+    if pointwise:  # no table marks the points' end: appended bytes look the same as points the count leaves out
+        where = f"after them its pointwise stream (no chunk table) does not reach byte {at}, where the points must end"
+        causes = "the data is damaged, or bytes were appended after the points"
+    else:
+        where = f"its compressed points do not end after {count} (they end at byte {at})"
+        causes = "or the data is damaged"
+    raise PointCloudFormatError(
+        f"LAZ header declares {count} points; {where}: the header's count does not match the data, {causes}"
+    )
 
 
 def _check_las_count(header: LasHeader, count: int, size: int) -> None:
