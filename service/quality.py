@@ -30,6 +30,7 @@ from service.checks import MIN_POINTS
 from service.kdtree import KDTree
 from service.sampling import distinct_count
 
+POOR_FIT = "poor fit"  # the kind of warning a pose that lays too little of the source on the target gets
 LOOSE_FIT = "loose fit"  # the kind of warning a pose near the target but off its surface gets (here and in the stages)
 RELIABLE_INLIER_RATIO = 0.3  # lowest inlier ratio of a reliable result (partial overlap is normal)
 # ... and at least this share of the target's attainable inlier ratio: 0.6 alone (docs/decisions/0003), 0.5 beside
@@ -294,7 +295,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
             f" (the target is sparse for the inlier distance: its density allows {attainable:.2f}, so even a right "
             "pose may not reach it)" if sparse else ""))
     elif not ratio_passes:
-        warnings.append(f"poor fit: inlier ratio {inlier_ratio:.2f} < {relative} of the "
+        warnings.append(f"{POOR_FIT}: inlier ratio {inlier_ratio:.2f} < {relative} of the "
                         f"{attainable:.2f} {allows}")
     elif not tight:
         warnings.append(f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "

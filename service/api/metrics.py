@@ -5,7 +5,7 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
 
 from service.quality import TARGET_EXPLAINED
-from service.stages.consensus import DESCRIPTOR_CONSENSUS
+from service.stages.consensus import CONFIRMED_BY_DESCRIPTORS, DESCRIPTOR_CONSENSUS
 from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
 from service.stages.guess_check import FAR_FROM_GUESS
 from service.stages.search import RETRY_WARNING
@@ -26,6 +26,7 @@ WARNING_KINDS = frozenset({
     FAR_FROM_GUESS,  # a result far from the caller's initial_transform (service.stages.guess_check)
     TARGET_EXPLAINED,  # a result whose source explains a cut target (service.quality)
     DESCRIPTOR_CONSENSUS,  # a result the descriptors' consensus gave (service.stages.consensus)
+    CONFIRMED_BY_DESCRIPTORS,  # a room result the descriptors made `reliable` (service.stages.consensus)
 })
 
 

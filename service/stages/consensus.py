@@ -16,6 +16,11 @@ A ``reliable`` result is looked at too where both clouds are built of orthogonal
 ``PARTIAL_OVERLAY`` of what a right pose reaches on the target's surface: of two views that overlap in part, a room
 turned onto its walls or slid along them can pass every check. It is replaced only where it keeps less than
 ``RELIABLE_CONSENSUS_SHARE`` (``docs/decisions/0086-the-consensus-looks-at-reliable-rooms.md``).
+
+Where the result it returns (kept or replaced) is a room's that only a poor fit keeps from ``reliable`` and at least
+``CONFIRMING_SUPPORT`` matched pairs agree with it, it is ``reliable``, its warnings kept and a note added: two room
+views that overlap by a third lay a third of the source on the target, below the rule's share of what a right pose
+reaches, however right the pose (``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``).
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import numpy as np
 from service.icp import icp_plane
 from service.options import RegistrationOptions
 from service.procrustes import compose
+from service.quality import POOR_FIT
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
 from service.stages.assess import assess_result
@@ -55,9 +61,14 @@ RELIABLE_CONSENSUS_SHARE = 0.3
 # on the target's surface (the views overlap in part): wrong ones reached 0.51-0.82 of it, right ones on synthetic
 # rooms and LiDAR frames 0.85-1.03, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
 PARTIAL_OVERLAY = 0.9
+# A room result that only a poor fit keeps from `reliable` is, where at least this many matched pairs agree with it:
+# wrong poses on rooms had at most 26 (the set's fragments, room crops, synthetic rooms), right ones on room crops at
+# 30% overlap 16-77 (decisions/0087).
+CONFIRMING_SUPPORT = 30
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
 DESCRIPTOR_CONSENSUS = "descriptor consensus"  # first words of the note on a result this stage gave
+CONFIRMED_BY_DESCRIPTORS = "confirmed by descriptors"  # ... and of the note on a result it made `reliable`
 
 
 def consensus_note(support: int, kept: int) -> str:
@@ -65,6 +76,29 @@ def consensus_note(support: int, kept: int) -> str:
     result it replaced."""
     return (f"{DESCRIPTOR_CONSENSUS}: {support} matched surface patches agree with this pose, {kept} with the pose the "
             "refinement ranked first; this one is returned")
+
+
+def confirmed_note(support: int) -> str:
+    """The note on a room result the descriptors confirm: ``support`` matched pairs agree with it."""
+    return (f"{CONFIRMED_BY_DESCRIPTORS}: {support} matched surface patches agree with this pose (at least "
+            f"{CONFIRMING_SUPPORT}); the views overlap in part, so a right pose fits poorly")
+
+
+def only_a_poor_fit(result: RegistrationResult) -> bool:
+    """Whether a poor fit is the only doubt of ``result`` (at least one; the consensus note is none)."""
+    doubts = [w for w in result.warnings if not w.startswith(DESCRIPTOR_CONSENSUS)]
+    return bool(doubts) and all(w.startswith(POOR_FIT) for w in doubts)
+
+
+def confirmed(work: Working, result: RegistrationResult, support: int) -> RegistrationResult:
+    """``result``, ``reliable`` with a note where it is a room's (both clouds built of orthogonal planes) that only a
+    poor fit keeps from ``reliable`` and ``support`` (the matched pairs that agree with it) reaches
+    ``CONFIRMING_SUPPORT``."""
+    if result.reliable or support < CONFIRMING_SUPPORT or not only_a_poor_fit(result):
+        return result
+    if not plane_frames_on_the_surface(work):
+        return result
+    return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_note(support)])
 
 
 def after_guess(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -94,8 +128,8 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
               iterations: int, keypoints: int, timing: dict[str, float]) -> RegistrationResult:
     """``result`` (caller's frames of the anchored clouds), or where it keeps less than :func:`share_to_keep` of the
     descriptors' consensus, the feature pose refined on the fine clouds and assessed
-    (:func:`service.stages.assess.assess_result`) with a note naming both supports; records ``timing["consensus"]``
-    where it looked."""
+    (:func:`service.stages.assess.assess_result`) with a note naming both supports; either :func:`confirmed` by the
+    pairs that agree with it. Records ``timing["consensus"]`` where it looked."""
     share = share_to_keep(work, result, options)
     if share is None:
         return result
@@ -106,7 +140,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
             return result
         kept = pose.support_of(*after_guess(work, result.rotation, result.translation))
         if kept >= share * pose.support:
-            return result
+            return confirmed(work, result, kept)
         start = compose(pose.rotation, pose.translation, work.R_init, work.t_init)  # the caller's pose
         fitted = icp_plane(work.fine_source, work.fine_target, *start,
                            max_distance=work.inlier_distance, max_iterations=CONSENSUS_ITERATIONS,
@@ -119,7 +153,8 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
         assess_timing = dict(timing)
         agreed = assess_result(work, Candidates([candidate], work.idx_s, work.idx_t), refined, result.iterations,
                                options.return_iterations, assess_timing)
-        return dataclasses.replace(agreed, warnings=[*agreed.warnings, consensus_note(pose.support, kept)],
-                                   timing_ms=timing)
+        agreed = dataclasses.replace(agreed, warnings=[*agreed.warnings, consensus_note(pose.support, kept)],
+                                     timing_ms=timing)
+        return confirmed(work, agreed, pose.support_of(*after_guess(work, fitted.rotation, fitted.translation)))
     finally:
         timing["consensus"] = 1000 * (time.perf_counter() - started)

@@ -10,7 +10,7 @@ pytest.importorskip("prometheus_client")
 
 from service.api.metrics import WARNING_KINDS, Metrics
 from service.quality import ReverseFit, target_explained
-from service.stages.consensus import consensus_note
+from service.stages.consensus import confirmed_note, consensus_note
 from service.stages.free_space import (
     CONFIRMS_BELOW,
     RELIABLE_FREE_SPACE,
@@ -28,6 +28,7 @@ CLOSING_WARNINGS = {
     "far from initial transform": far_from_guess(GuessGap(40.0, 0.01), 0.1, GuessGap(0.5, 0.001)),
     "target explained": target_explained(0.27, ReverseFit(0.98, 0.98, 1.0)),
     "descriptor consensus": consensus_note(54, 3),
+    "confirmed by descriptors": confirmed_note(41),
 }
 
 

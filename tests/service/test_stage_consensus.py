@@ -1,4 +1,5 @@
-"""Stage consensus: a doubtful result against the pose the clouds' descriptors agree on (decisions/0085, 0086)."""
+"""Stage consensus: a doubtful result against the pose the clouds' descriptors agree on, and rooms they confirm
+(decisions/0085, 0086, 0087)."""
 
 from __future__ import annotations
 
@@ -17,10 +18,13 @@ from service.options import RegistrationOptions
 from service.registrar import Registrar
 from service.result import RegistrationResult
 from service.stages.consensus import (
+    CONFIRMED_BY_DESCRIPTORS,
+    CONFIRMING_SUPPORT,
     CONSENSUS_SHARE,
     CONSENSUS_SUPPORT,
     PARTIAL_OVERLAY,
     RELIABLE_CONSENSUS_SHARE,
+    confirmed,
     consensus,
     share_to_keep,
 )
@@ -75,15 +79,18 @@ def test_the_feature_pose_counts_the_matched_pairs_that_agree_with_another_pose(
 def test_a_room_crop_at_30_percent_overlap_registers_from_the_descriptors_consensus(registrar) -> None:
     """Cut from one 3DLoMatch fragment with a third of each window shared: the refinement lays more of the source on
     the target's walls half a turn off (172 deg) than at the truth; 54 matched patches agree with the truth, 3 with
-    that pose."""
+    that pose. The pose refined from theirs lays 0.34 of the source on the target, a poor fit, and 52 pairs agree with
+    it: the descriptors confirm it."""
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o30/cut")
     result, right = registered(without_consensus(), source, target, truth, limits)
     assert not right and not result.reliable
     result, right = registered(registrar, source, target, truth, limits)
     assert right, pose_errors(result.rotation, result.translation, truth)
-    assert "consensus" in result.timing_ms and not result.reliable  # 0.34 of the source on the target: a poor fit
-    (note,) = (w for w in result.warnings if w.startswith("descriptor consensus"))
-    assert note.startswith("descriptor consensus: 54 matched surface patches agree with this pose, 3 with")
+    assert "consensus" in result.timing_ms and result.reliable
+    kinds = [w.split(":")[0] for w in result.warnings]
+    assert kinds == ["poor fit", "descriptor consensus", CONFIRMED_BY_DESCRIPTORS], result.warnings
+    assert result.warnings[1].startswith("descriptor consensus: 54 matched surface patches agree with this pose, 3")
+    assert result.warnings[2].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: 52 matched surface patches agree with this pose")
     assert len(result.source_index) == len(result.target_index) > 0 and result.source_index.max() < len(source)
     with_poses = registrar.register(source, target, refine="icp-plane", rotation_search="auto", return_iterations=True)
     assert len(with_poses.iteration_poses) == with_poses.iterations > 0  # the network's passes from the new pose
@@ -114,12 +121,13 @@ def test_the_share_to_keep_by_result_clouds_and_refinement(registrar) -> None:
     result, _ = registered(registrar, source, target, truth, limits)
     work = working(registrar, source, target)
     options = RegistrationOptions(refine="icp-plane")
-    assert share_to_keep(work, result, options) == CONSENSUS_SHARE
+    doubtful = dataclasses.replace(result, reliable=False)  # as it left the closing checks (the descriptors confirm it)
+    assert share_to_keep(work, doubtful, options) == CONSENSUS_SHARE
     reliable = dataclasses.replace(result, reliable=True)
     assert share_to_keep(work, reliable, options) == RELIABLE_CONSENSUS_SHARE  # a room: the stricter share
-    assert share_to_keep(work, result, RegistrationOptions(refine="icp")) is None
+    assert share_to_keep(work, doubtful, RegistrationOptions(refine="icp")) is None
     sparse = working(registrar, source[::10], target[::10])
-    assert share_to_keep(sparse, result, options) is None  # under 4 times the working points: nothing to describe
+    assert share_to_keep(sparse, doubtful, options) is None  # under 4 times the working points: nothing to describe
 
 
 def test_a_reliable_room_that_overlays_all_its_source_is_not_looked_at(registrar) -> None:
@@ -153,3 +161,41 @@ def test_reliable_results_that_are_not_rooms_are_not_looked_at(registrar) -> Non
     assert share_to_keep(work, dataclasses.replace(result, reliable=False), options) == CONSENSUS_SHARE
     timing: dict[str, float] = {}
     assert consensus(registrar, work, result, options, 3, 128, timing) is result and not timing
+
+
+def test_a_room_result_the_descriptors_agree_with_is_confirmed(registrar) -> None:
+    """At 30% overlap this crop's result is right and lays 0.3-0.4 of the source on the target, a poor fit however
+    right; the consensus keeps it, and 38 matched pairs agree with it (at least CONFIRMING_SUPPORT): `reliable`."""
+    source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-2")
+    result, right = registered(without_consensus(), source, target, truth, limits)
+    assert right and not result.reliable and [w.split(":")[0] for w in result.warnings] == ["poor fit"]
+    result, right = registered(registrar, source, target, truth, limits)
+    assert right and result.reliable
+    assert [w.split(":")[0] for w in result.warnings] == ["poor fit", CONFIRMED_BY_DESCRIPTORS], result.warnings
+    assert result.warnings[1].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: 38 matched surface patches agree with this pose")
+
+
+def test_a_room_result_too_few_pairs_agree_with_stays_doubtful(registrar) -> None:
+    """The same crop at another turn: right, a poor fit, 25 matched pairs agree with it: not enough to confirm."""
+    source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-3")
+    result, right = registered(registrar, source, target, truth, limits)
+    assert right and "consensus" in result.timing_ms and not result.reliable
+    assert [w.split(":")[0] for w in result.warnings] == ["poor fit"], result.warnings
+
+
+def test_only_a_rooms_result_held_back_by_a_poor_fit_alone_is_confirmed(registrar) -> None:
+    source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-3")
+    result, _ = registered(registrar, source, target, truth, limits)
+    room = working(registrar, source, target)
+    made = confirmed(room, result, CONFIRMING_SUPPORT)
+    assert made.reliable and made.warnings == [*result.warnings, made.warnings[-1]]
+    assert made.warnings[-1].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: {CONFIRMING_SUPPORT} matched surface patches")
+    assert confirmed(room, result, CONFIRMING_SUPPORT - 1) is result
+    weak = dataclasses.replace(result, warnings=[*result.warnings, "weakly constrained: a slide along (1, 0, 0)"])
+    assert confirmed(room, weak, 2 * CONFIRMING_SUPPORT) is weak  # another doubt: not settled by the descriptors
+    low = dataclasses.replace(result, warnings=["low overlap: inlier ratio 0.21 < 0.3"])
+    assert confirmed(room, low, 2 * CONFIRMING_SUPPORT) is low
+    reliable = dataclasses.replace(result, reliable=True, warnings=[])
+    assert confirmed(room, reliable, 2 * CONFIRMING_SUPPORT) is reliable
+    case = real_case("dragon_96_72", 0, "scanned")  # not a room: descriptors agreed on wrong poses there (row I)
+    assert confirmed(working(registrar, case.source, case.target), result, 2 * CONFIRMING_SUPPORT) is result
