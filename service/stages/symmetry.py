@@ -50,6 +50,13 @@ structure precision at least the pose's less ``STRUCTURE_GAP``) makes the result
 right result's best such turn fits them at least 0.08 less closely than the pose; at the wrong poses measured
 (synthetic rooms turned a quarter turn, a room crop 16 deg off) a turn fits them 0.02-0.30 more closely
 (``docs/decisions/0079-what-is-not-wall-or-floor-in-the-symmetry-check.md``).
+
+A quarter turn about the moved source's centroid turns a room right but need not place it right: where one view's
+corner lies in another corner of the target, the right place lies metres from the turned one, beyond the few updates
+of the short refinement. So where neither comparison flags the pose of such rooms, its quarter turns are also tried at
+their rotations' best candidate translations (:func:`service.stages.ranking.with_translations`, as the search's
+candidates and the flip check's half turns are), briefly refined, and compared with the pose by their structure
+precision alone (:func:`placed_turns_ambiguity`; ``docs/decisions/0088-quarter-turns-at-their-best-translations.md``).
 """
 
 from __future__ import annotations
@@ -67,7 +74,13 @@ from service.rotation_search import AMBIGUOUS_DEGREES, ambiguity_warning, rotati
 from service.stability import ROTATION_SHARE, pose_stability
 from service.stages.normalise import ICP_DISTANCE, Working
 from service.stages.partial import half_turns, principal_frame
-from service.stages.ranking import CLOSE_FIT, candidate_fits, plane_frames_on_the_surface, samples_the_surface
+from service.stages.ranking import (
+    CLOSE_FIT,
+    candidate_fits,
+    plane_frames_on_the_surface,
+    samples_the_surface,
+    with_translations,
+)
 from service.stages.refine import icp_distance, short_refine
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
@@ -132,7 +145,27 @@ def half_turn_ambiguity(
     warning = ambiguity_warning(rotations, fits, 0, measure=measure)
     if warning is None and plane_frames_on_the_surface(work):
         warning = partial_overlay_ambiguity(work, rotations, translations, fits)
+        if warning is None and quarters:
+            warning = placed_turns_ambiguity(work, R, t, quarters, mode, distance, surface)
     return warning
+
+
+def placed_turns_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, turns: list[tuple[np.ndarray, np.ndarray]],
+                           mode: str, distance: float, surface: Surface | None) -> str | None:
+    """:func:`structure_ambiguity`'s warning of the pose ``R [3, 3], t [3]`` (caller's units) against the rotations
+    of ``turns`` (its quarter turns) at their best candidate translations, each briefly refined; ``None`` where the
+    pose overlays at least ``WHOLE_OVERLAY`` of its working source (the gate of :func:`partial_overlay_ambiguity`) or
+    no such translation is found."""
+    near, _ = overlay_precision(work, overlay_distances(work, R[None], t[None]))  # [1]
+    if near[0] >= WHOLE_OVERLAY:
+        return None
+    placed = with_translations(work, turns)[0][len(turns):]  # the turns' rotations at other places only
+    if not placed:
+        return None
+    R_s, t_s = short_refine(work, placed, mode, distance, surface)  # [C, 3, 3], [C, 3]
+    rotations = np.concatenate([R[None], R_s])  # [1 + C, 3, 3]: the pose, then the placed turns
+    translations = np.concatenate([t[None], t_s])  # [1 + C, 3]
+    return structure_ambiguity(work, rotations, overlay_distances(work, rotations, translations))
 
 
 def overlay_distances(work: Working, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
