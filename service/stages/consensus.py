@@ -37,7 +37,7 @@ from service.procrustes import compose
 from service.quality import POOR_FIT
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
-from service.stages.assess import assess_result
+from service.stages.assess import assess_result, off_the_surface
 from service.stages.features import dense_enough_to_describe, feature_candidate
 from service.stages.network import Candidates
 from service.stages.normalise import Working
@@ -61,9 +61,9 @@ RELIABLE_CONSENSUS_SHARE = 0.3
 # on the target's surface (the views overlap in part): wrong ones reached 0.51-0.82 of it, right ones on synthetic
 # rooms and LiDAR frames 0.85-1.03, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
 PARTIAL_OVERLAY = 0.9
-# A room result that only a poor fit keeps from `reliable` is, where at least this many matched pairs agree with it:
-# wrong poses on rooms had at most 26 (the set's fragments, room crops, synthetic rooms), right ones on room crops at
-# 30% overlap 16-77 (decisions/0087).
+# A room result that only a poor fit keeps from `reliable` is, where at least this many matched pairs agree with it and
+# it lies on the target's surface: wrong room results kept at most 25 agreeing pairs (the set's fragments, room crops,
+# synthetic rooms), right ones at 30% overlap 17-74 (decisions/0087).
 CONFIRMING_SUPPORT = 30
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
@@ -92,11 +92,12 @@ def only_a_poor_fit(result: RegistrationResult) -> bool:
 
 def confirmed(work: Working, result: RegistrationResult, support: int) -> RegistrationResult:
     """``result``, ``reliable`` with a note where it is a room's (both clouds built of orthogonal planes) that only a
-    poor fit keeps from ``reliable`` and ``support`` (the matched pairs that agree with it) reaches
-    ``CONFIRMING_SUPPORT``."""
+    poor fit keeps from ``reliable``, ``support`` (the matched pairs that agree with it) reaches
+    ``CONFIRMING_SUPPORT`` and it lies on the target's surface where they overlap
+    (:func:`service.stages.assess.off_the_surface`, which the rule asks only of results that pass the ratio check)."""
     if result.reliable or support < CONFIRMING_SUPPORT or not only_a_poor_fit(result):
         return result
-    if not plane_frames_on_the_surface(work):
+    if not plane_frames_on_the_surface(work) or off_the_surface(work, result.rotation, result.translation):
         return result
     return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_note(support)])
 

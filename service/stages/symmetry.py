@@ -51,12 +51,14 @@ right result's best such turn fits them at least 0.08 less closely than the pose
 (synthetic rooms turned a quarter turn, a room crop 16 deg off) a turn fits them 0.02-0.30 more closely
 (``docs/decisions/0079-what-is-not-wall-or-floor-in-the-symmetry-check.md``).
 
-A quarter turn about the moved source's centroid turns a room right but need not place it right: where one view's
-corner lies in another corner of the target, the right place lies metres from the turned one, beyond the few updates
-of the short refinement. So where neither comparison flags the pose of such rooms, its quarter turns are also tried at
-their rotations' best candidate translations (:func:`service.stages.ranking.with_translations`, as the search's
-candidates and the flip check's half turns are), briefly refined, and compared with the pose by their structure
-precision alone (:func:`placed_turns_ambiguity`; ``docs/decisions/0088-quarter-turns-at-their-best-translations.md``).
+The turns above are about the principal axes of the part seen, which in a room view need not be its walls' normals,
+and through its centroid: where one view's corner lies in another corner of the target, the right place lies about
+a metre from any of them, and the short refinement slides along the walls instead of reaching it. So where neither
+comparison flags the pose of such rooms, it is also compared by its structure precision alone with its quarter turns
+about the normals of the source's walls and floor (:func:`frame_quarter_turns`), each at its rotation's best
+candidate translations (:func:`service.stages.ranking.with_translations`, as the search's candidates and the flip
+check's half turns are) and briefly refined (:func:`placed_turns_ambiguity`;
+``docs/decisions/0088-quarter-turns-at-their-best-translations.md``).
 """
 
 from __future__ import annotations
@@ -121,8 +123,9 @@ def half_turn_ambiguity(
     """The ambiguity warning of the pose ``R [3, 3], t [3]`` (caller's units) against its three half turns, where the
     entered target samples the surface densely its six :func:`quarter_turns`, and where ``stability`` is below
     ``AXIS_TURN_STABILITY`` its :func:`axis_turns`, after the search's short refinement (the best-fitting quarter turn
-    ``QUARTER_TURN_ITERATIONS`` updates more); or ``None`` where each of them fits worse by more than
-    ``AMBIGUOUS_RATIO_GAP`` or returns to the pose."""
+    ``QUARTER_TURN_ITERATIONS`` updates more); on rooms also :func:`partial_overlay_ambiguity`'s and
+    :func:`placed_turns_ambiguity`'s; or ``None`` where each of them fits worse by more than ``AMBIGUOUS_RATIO_GAP``
+    or returns to the pose."""
     mode = options.refine_mode
     surface = work.target_surface if mode != "icp" else None
     distance = icp_distance(work, options)
@@ -145,20 +148,33 @@ def half_turn_ambiguity(
     warning = ambiguity_warning(rotations, fits, 0, measure=measure)
     if warning is None and plane_frames_on_the_surface(work):
         warning = partial_overlay_ambiguity(work, rotations, translations, fits)
-        if warning is None and quarters:
-            warning = placed_turns_ambiguity(work, R, t, quarters, mode, distance, surface)
+        if warning is None:
+            warning = placed_turns_ambiguity(work, R, t, mode, distance, surface)
     return warning
 
 
-def placed_turns_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, turns: list[tuple[np.ndarray, np.ndarray]],
-                           mode: str, distance: float, surface: Surface | None) -> str | None:
-    """:func:`structure_ambiguity`'s warning of the pose ``R [3, 3], t [3]`` (caller's units) against the rotations
-    of ``turns`` (its quarter turns) at their best candidate translations, each briefly refined; ``None`` where the
-    pose overlays at least ``WHOLE_OVERLAY`` of its working source (the gate of :func:`partial_overlay_ambiguity`) or
-    no such translation is found."""
+def frame_quarter_turns(work: Working, R: np.ndarray, t: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The pose ``R [3, 3], t [3]`` of the working source turned 90 deg either way about each axis of its plane frame
+    (the normals of its walls and floor, moved by the pose), through the moved points' centroid; none where the
+    source has no plane frame."""
+    axes = work.source_frame.turned_back(work.R_init).axes  # [3, 3] columns, the working source's own frame
+    if axes is None:
+        return []
+    centre = (work.working_source @ R.T + t).mean(axis=0)  # [3]
+    turns = [rotation_of(sign * 0.5 * np.pi * axis, 0.5 * np.pi) for axis in (R @ axes).T for sign in (1.0, -1.0)]
+    return [(turn @ R, turn @ (t - centre) + centre) for turn in turns]
+
+
+def placed_turns_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, mode: str, distance: float,
+                           surface: Surface | None) -> str | None:
+    """:func:`structure_ambiguity`'s warning of a room's pose ``R [3, 3], t [3]`` (caller's units) against its
+    :func:`frame_quarter_turns` at their rotations' best candidate translations, each briefly refined; ``None`` where
+    the pose overlays at least ``WHOLE_OVERLAY`` of its working source (the gate of :func:`partial_overlay_ambiguity`)
+    or no such translation is found."""
     near, _ = overlay_precision(work, overlay_distances(work, R[None], t[None]))  # [1]
     if near[0] >= WHOLE_OVERLAY:
         return None
+    turns = frame_quarter_turns(work, R, t)
     placed = with_translations(work, turns)[0][len(turns):]  # the turns' rotations at other places only
     if not placed:
         return None

@@ -25,6 +25,7 @@ from service.stages.consensus import (
     PARTIAL_OVERLAY,
     RELIABLE_CONSENSUS_SHARE,
     confirmed,
+    confirmed_note,
     consensus,
     share_to_keep,
 )
@@ -184,6 +185,8 @@ def test_a_room_result_too_few_pairs_agree_with_stays_doubtful(registrar) -> Non
 
 
 def test_only_a_rooms_result_held_back_by_a_poor_fit_alone_is_confirmed(registrar) -> None:
+    """The rule's gates one by one on a right crop result with a poor fit: the support, another doubt, a result
+    already `reliable`, clouds that are not rooms, and a pose off the target's surface."""
     source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-3")
     result, _ = registered(registrar, source, target, truth, limits)
     room = working(registrar, source, target)
@@ -199,3 +202,29 @@ def test_only_a_rooms_result_held_back_by_a_poor_fit_alone_is_confirmed(registra
     assert confirmed(room, reliable, 2 * CONFIRMING_SUPPORT) is reliable
     case = real_case("dragon_96_72", 0, "scanned")  # not a room: descriptors agreed on wrong poses there (row I)
     assert confirmed(working(registrar, case.source, case.target), result, 2 * CONFIRMING_SUPPORT) is result
+    slid = dataclasses.replace(result, translation=result.translation + 3 * room.inlier_distance)  # off the surface
+    assert confirmed(room, slid, 2 * CONFIRMING_SUPPORT) is slid
+
+
+def test_a_result_the_descriptors_confirm_meets_free_space_and_the_symmetry_check_again() -> None:
+    """Kept or replaced, a result the consensus stage returns anew is judged again by the closing checks: here the
+    stage confirms the result it was given, and the symmetry check's second look takes `reliable` back."""
+    skip_without_general()
+    judged: list[RegistrationResult] = []
+
+    def symmetry(work, result, options, timing):  # the second look finds a turn that fits as well
+        judged.append(result)
+        if result.warnings and result.warnings[-1].startswith(CONFIRMED_BY_DESCRIPTORS):
+            return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, "ambiguous: a turn"])
+        return result
+
+    def confirming(registrar, work, result, *args):
+        return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_note(41)])
+
+    stages = dataclasses.replace(Stages(), consensus=confirming, symmetry=symmetry)
+    source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-2")
+    checking = Registrar(GENERAL, threads=1, stages=stages)
+    judged.clear()  # the registrar's own first call, at start
+    result, right = registered(checking, source, target, truth, limits)
+    assert len(judged) == 2 and judged[1].reliable and judged[1].warnings[-1].startswith(CONFIRMED_BY_DESCRIPTORS)
+    assert right and not result.reliable and result.warnings[-1] == "ambiguous: a turn"

@@ -18,6 +18,7 @@ from shapes import asymmetric_blob, room_scene
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
 from service.result import RegistrationResult
+from service.rotation_search import rotation_between_deg
 from service.stages import symmetry as stage
 from service.stages.normalise import normalise
 from service.stages.ranking import plane_frames_on_the_surface
@@ -26,6 +27,7 @@ from service.stages.symmetry import (
     AXIS_TURN_STABILITY,
     WHOLE_OVERLAY,
     axis_turns,
+    frame_quarter_turns,
     half_turn_ambiguity,
     overlay_precision,
     placed_turns_ambiguity,
@@ -237,23 +239,25 @@ def test_a_room_view_a_quarter_turn_off_its_place_is_ambiguous_by_its_turns_at_t
     room = room_scene(np.random.default_rng(56))  # floor and walls at x = 0, y = 0, x = 4 (4 x 3 m), eight boxes
     work, options = working(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # two views overlapping on x in 0.8-3.2
     # the source's corner of walls x = 0 and y = 0 in the target's corner of y = 0 and x = 4, as the pipeline returns
-    # this room turned: its quarter turns about the moved source's centroid, briefly refined, stay metres off the
-    # truth, and none of them fits the boxes as closely as the pose
+    # this room turned: the turns about the moved source's centroid, briefly refined, stay off the truth, and none
+    # of them fits the boxes as closely as the pose
     R_wrong, t_wrong = Rotation.from_euler("z", 90.0, degrees=True).as_matrix(), np.array([4.0, 0.0, 0.0])
     with monkeypatch.context() as patched:
         patched.setattr(stage, "placed_turns_ambiguity", lambda *args: None)
         assert half_turn_ambiguity(work, R_wrong, t_wrong, options) is None
+    # one of its quarter turns about the walls' and floor's normals has the truth's rotation (the identity) ...
+    turns = frame_quarter_turns(work, R_wrong, t_wrong)
+    assert len(turns) == 6 and min(rotation_between_deg(np.eye(3), R) for R, _ in turns) < 3.0
+    # ... and at its best translation it fits the boxes more closely than the pose: the result is ambiguous
     warning = half_turn_ambiguity(work, R_wrong, t_wrong, options)
-    assert warning is not None and "fits what is not wall or floor at least as closely" in warning
-    turns = list(zip(*quarter_turns(work.working_source, R_wrong, t_wrong), strict=True))
+    assert warning is not None and warning.startswith("ambiguous: a pose 90 deg away fits what is not wall or floor")
     distance = stage.icp_distance(work, options)
-    placed = placed_turns_ambiguity(work, R_wrong, t_wrong, turns, options.refine_mode, distance, work.target_surface)
+    placed = placed_turns_ambiguity(work, R_wrong, t_wrong, options.refine_mode, distance, work.target_surface)
     assert placed == warning
     assert half_turn_ambiguity(work, np.eye(3), np.zeros(3), options) is None  # the truth stays reliable
     near, _ = overlay_precision(work, stage.overlay_distances(work, R_wrong[None], t_wrong[None]))
     monkeypatch.setattr(stage, "WHOLE_OVERLAY", near[0])  # a pose that overlays its whole source is not tested
-    assert placed_turns_ambiguity(work, R_wrong, t_wrong, turns, options.refine_mode, distance,
-                                  work.target_surface) is None
+    assert placed_turns_ambiguity(work, R_wrong, t_wrong, options.refine_mode, distance, work.target_surface) is None
 
 
 def test_the_registrar_does_not_call_a_room_view_a_quarter_turn_off_reliable():
