@@ -17,10 +17,11 @@ A ``reliable`` result is looked at too where both clouds are built of orthogonal
 turned onto its walls or slid along them can pass every check. It is replaced only where it keeps less than
 ``RELIABLE_CONSENSUS_SHARE`` (``docs/decisions/0086-the-consensus-looks-at-reliable-rooms.md``).
 
-Where the result it returns (kept or replaced) is a room's that only a poor fit keeps from ``reliable`` and at least
-``CONFIRMING_SUPPORT`` matched pairs agree with it, it is ``reliable``, its warnings kept and a note added: two room
-views that overlap by a third lay a third of the source on the target, below the rule's share of what a right pose
-reaches, however right the pose (``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``).
+Where the result it returns (kept or replaced) is a room's that only a poor fit keeps from ``reliable``, at least
+``CONFIRMING_SUPPORT`` matched pairs agree with it and it lies on the target's surface, it is ``reliable``, its
+warnings kept and a note added: two room views that overlap by a third lay a third of the source on the target, below
+the rule's share of what a right pose reaches, however right the pose
+(``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``).
 """
 
 from __future__ import annotations
