@@ -171,8 +171,8 @@ def placed_turns_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, mode: st
     :func:`frame_quarter_turns` at their rotations' best candidate translations, each briefly refined; ``None`` where
     the pose overlays at least ``WHOLE_OVERLAY`` of its working source (the gate of :func:`partial_overlay_ambiguity`)
     or no such translation is found."""
-    near, _ = overlay_precision(work, overlay_distances(work, R[None], t[None]))  # [1]
-    if near[0] >= WHOLE_OVERLAY:
+    pose_distances = overlay_distances(work, R[None], t[None])  # [1, Ns]
+    if overlay_precision(work, pose_distances)[0][0] >= WHOLE_OVERLAY:
         return None
     turns = frame_quarter_turns(work, R, t)
     placed = with_translations(work, turns)[0][len(turns):]  # the turns' rotations at other places only
@@ -180,8 +180,8 @@ def placed_turns_ambiguity(work: Working, R: np.ndarray, t: np.ndarray, mode: st
         return None
     R_s, t_s = short_refine(work, placed, mode, distance, surface)  # [C, 3, 3], [C, 3]
     rotations = np.concatenate([R[None], R_s])  # [1 + C, 3, 3]: the pose, then the placed turns
-    translations = np.concatenate([t[None], t_s])  # [1 + C, 3]
-    return structure_ambiguity(work, rotations, overlay_distances(work, rotations, translations))
+    distances = np.concatenate([pose_distances, overlay_distances(work, R_s, t_s)])  # [1 + C, Ns]
+    return structure_ambiguity(work, rotations, distances)
 
 
 def overlay_distances(work: Working, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
