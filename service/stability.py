@@ -39,6 +39,7 @@ WEAK_EIGENVALUE = 0.01
 PINNED_RATIO = 1.5
 ROTATION_SHARE = 0.7  # a weak motion whose eigenvector is at least this much rotation is named a turn
 TRANSLATION_SHARE = 0.7  # ... at least this much translation a slide; in between, a turn and slide together
+WEAKLY_CONSTRAINED = "weakly constrained"  # the kind of warning of a motion that hardly changes the fit
 
 
 @dataclass(frozen=True)
@@ -149,5 +150,5 @@ def weak_motion_warning(stability: Stability | None) -> str | None:
     else:
         what = f"a turn about ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) with a slide"
         why = "the overlap may be symmetric"
-    return (f"weakly constrained: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
+    return (f"{WEAKLY_CONSTRAINED}: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
             f"{stability.weak_below:g}); {why}, and the pose along it is a guess")

@@ -17,11 +17,14 @@ A ``reliable`` result is looked at too where both clouds are built of orthogonal
 turned onto its walls or slid along them can pass every check. It is replaced only where it keeps less than
 ``RELIABLE_CONSENSUS_SHARE`` (``docs/decisions/0086-the-consensus-looks-at-reliable-rooms.md``).
 
-Where the result it returns (kept or replaced) is a room's that only a poor fit keeps from ``reliable``, at least
+Where the result it returns (kept or replaced) is a room's whose only doubts are ones the descriptors settle
+(``SETTLED_DOUBTS``: a poor fit, weak constraint, another place that fits almost as well), at least
 ``CONFIRMING_SUPPORT`` matched pairs agree with it and it lies on the target's surface, it is ``reliable``, its
 warnings kept and a note added: two room views that overlap by a third lay a third of the source on the target, below
-the rule's share of what a right pose reaches, however right the pose
-(``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``).
+the rule's share of what a right pose reaches, however right the pose, and flat walls and floors let a right pose
+slide with little change of fit; matched patches that agree within two voxels place it all the same
+(``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``,
+``0089-descriptors-settle-what-the-fit-cannot-place.md``).
 """
 
 from __future__ import annotations
@@ -38,11 +41,12 @@ from service.procrustes import compose
 from service.quality import POOR_FIT
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
+from service.stability import WEAKLY_CONSTRAINED
 from service.stages.assess import assess_result, off_the_surface
 from service.stages.features import dense_enough_to_describe, feature_candidate
 from service.stages.network import Candidates
 from service.stages.normalise import Working
-from service.stages.ranking import plane_frames_on_the_surface
+from service.stages.ranking import SHIFT_AMBIGUITY, plane_frames_on_the_surface
 from service.stages.refine import Refined
 
 if TYPE_CHECKING:
@@ -62,10 +66,16 @@ RELIABLE_CONSENSUS_SHARE = 0.3
 # on the target's surface (the views overlap in part): wrong ones reached 0.51-0.82 of it, right ones on synthetic
 # rooms and LiDAR frames 0.85-1.03, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
 PARTIAL_OVERLAY = 0.9
-# A room result that only a poor fit keeps from `reliable` is, where at least this many matched pairs agree with it and
-# it lies on the target's surface: wrong room results kept at most 25 agreeing pairs (the set's fragments, room crops,
-# synthetic rooms), right ones at 30% overlap 17-74 (decisions/0087).
+# A room result whose only doubts are SETTLED_DOUBTS is `reliable` where at least this many matched pairs agree with
+# it and it lies on the target's surface: wrong room results with a poor fit kept at most 25 agreeing pairs (the set's
+# fragments, room crops, synthetic rooms), right ones at 30% overlap 17-74 (decisions/0087); wrong ones weakly
+# constrained or with another place that fits kept at most 13, right ones 22-131 (decisions/0089).
 CONFIRMING_SUPPORT = 30
+# The doubts matched pairs settle (first words of the warnings): too little of the source on the target, a slide or
+# turn that hardly changes the fit, another place that fits almost as well. Not a turn that fits as well (the symmetry
+# check's and the ranking's `ambiguous: a pose N deg away`: wrong quarter turns of synthetic rooms kept 31 agreeing
+# pairs), a low overlap or a loose fit (decisions/0089).
+SETTLED_DOUBTS = (POOR_FIT, WEAKLY_CONSTRAINED, SHIFT_AMBIGUITY)
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
 DESCRIPTOR_CONSENSUS = "descriptor consensus"  # first words of the note on a result this stage gave
@@ -82,21 +92,22 @@ def consensus_note(support: int, kept: int) -> str:
 def confirmed_note(support: int) -> str:
     """The note on a room result the descriptors confirm: ``support`` matched pairs agree with it."""
     return (f"{CONFIRMED_BY_DESCRIPTORS}: {support} matched surface patches agree with this pose (at least "
-            f"{CONFIRMING_SUPPORT}); the views overlap in part, so a right pose fits poorly")
+            f"{CONFIRMING_SUPPORT}); they place the source where the fit alone cannot (views that overlap in part, "
+            "flat walls and floors)")
 
 
-def only_a_poor_fit(result: RegistrationResult) -> bool:
-    """Whether a poor fit is the only doubt of ``result`` (at least one; the consensus note is none)."""
+def settled_by_descriptors(result: RegistrationResult) -> bool:
+    """Whether every doubt of ``result`` (at least one; the consensus note is none) is one of ``SETTLED_DOUBTS``."""
     doubts = [w for w in result.warnings if not w.startswith(DESCRIPTOR_CONSENSUS)]
-    return bool(doubts) and all(w.startswith(POOR_FIT) for w in doubts)
+    return bool(doubts) and all(w.startswith(SETTLED_DOUBTS) for w in doubts)
 
 
 def confirmed(work: Working, result: RegistrationResult, support: int) -> RegistrationResult:
-    """``result``, ``reliable`` with a note where it is a room's (both clouds built of orthogonal planes) that only a
-    poor fit keeps from ``reliable``, ``support`` (the matched pairs that agree with it) reaches
+    """``result``, ``reliable`` with a note where it is a room's (both clouds built of orthogonal planes) whose doubts
+    the descriptors settle (:func:`settled_by_descriptors`), ``support`` (the matched pairs that agree with it) reaches
     ``CONFIRMING_SUPPORT`` and it lies on the target's surface where they overlap
     (:func:`service.stages.assess.off_the_surface`, which the rule asks only of results that pass the ratio check)."""
-    if result.reliable or support < CONFIRMING_SUPPORT or not only_a_poor_fit(result):
+    if result.reliable or support < CONFIRMING_SUPPORT or not settled_by_descriptors(result):
         return result
     if not plane_frames_on_the_surface(work) or off_the_surface(work, result.rotation, result.translation):
         return result

@@ -29,6 +29,7 @@ AMBIGUOUS_SHIFT = 0.2
 # target's points (docs/decisions/0014-places-by-their-close-fit.md).
 CLOSE_FIT = 0.5
 FIT_NAME = "close fit"  # what the ambiguity warnings of a ranking call the close fit
+SHIFT_AMBIGUITY = "ambiguous: a pose that moves the source"  # first words of the warning of another place that fits
 
 
 def with_translations(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], count: int = CANDIDATE_SHIFTS
@@ -130,5 +131,5 @@ def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarr
     i = close_second(fits, best, shift > AMBIGUOUS_SHIFT * work.norm.scale)
     if i is None:
         return None
-    return (f"ambiguous: a pose that moves the source {shift[i]:.3g} further fits almost as well ({measure} "
+    return (f"{SHIFT_AMBIGUITY} {shift[i]:.3g} further fits almost as well ({measure} "
             f"{fits[i]:.2f} vs {fits[best]:.2f}); the clouds may slide along flat or repeated surfaces")

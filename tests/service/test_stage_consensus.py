@@ -1,5 +1,5 @@
 """Stage consensus: a doubtful result against the pose the clouds' descriptors agree on, and rooms they confirm
-(decisions/0085, 0086, 0087)."""
+(decisions/0085, 0086, 0087, 0089)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,8 @@ from service.stages.consensus import (
     confirmed,
     confirmed_note,
     consensus,
+    consensus_note,
+    settled_by_descriptors,
     share_to_keep,
 )
 from service.stages.normalise import Working
@@ -184,7 +186,7 @@ def test_a_room_result_too_few_pairs_agree_with_stays_doubtful(registrar) -> Non
     assert [w.split(":")[0] for w in result.warnings] == ["poor fit"], result.warnings
 
 
-def test_only_a_rooms_result_held_back_by_a_poor_fit_alone_is_confirmed(registrar) -> None:
+def test_only_a_rooms_result_held_back_by_doubts_the_descriptors_settle_is_confirmed(registrar) -> None:
     """The rule's gates one by one on a right crop result with a poor fit: the support, another doubt, a result
     already `reliable`, clouds that are not rooms, and a pose off the target's surface."""
     source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-3")
@@ -194,8 +196,6 @@ def test_only_a_rooms_result_held_back_by_a_poor_fit_alone_is_confirmed(registra
     assert made.reliable and made.warnings == [*result.warnings, made.warnings[-1]]
     assert made.warnings[-1].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: {CONFIRMING_SUPPORT} matched surface patches")
     assert confirmed(room, result, CONFIRMING_SUPPORT - 1) is result
-    weak = dataclasses.replace(result, warnings=[*result.warnings, "weakly constrained: a slide along (1, 0, 0)"])
-    assert confirmed(room, weak, 2 * CONFIRMING_SUPPORT) is weak  # another doubt: not settled by the descriptors
     low = dataclasses.replace(result, warnings=["low overlap: inlier ratio 0.21 < 0.3"])
     assert confirmed(room, low, 2 * CONFIRMING_SUPPORT) is low
     reliable = dataclasses.replace(result, reliable=True, warnings=[])
@@ -204,6 +204,56 @@ def test_only_a_rooms_result_held_back_by_a_poor_fit_alone_is_confirmed(registra
     assert confirmed(working(registrar, case.source, case.target), result, 2 * CONFIRMING_SUPPORT) is result
     slid = dataclasses.replace(result, translation=result.translation + 3 * room.inlier_distance)  # off the surface
     assert confirmed(room, slid, 2 * CONFIRMING_SUPPORT) is slid
+
+
+@pytest.fixture(scope="module")
+def poor_fit_crop(registrar) -> tuple[Working, RegistrationResult]:
+    """A right room crop result that only a poor fit keeps from `reliable`, and its working clouds."""
+    source, target, truth, limits = room_crop("3dlo_homeat_41_38/target/o30/turned-3")
+    result, right = registered(registrar, source, target, truth, limits)
+    assert right and not result.reliable
+    return working(registrar, source, target), result
+
+
+@pytest.mark.parametrize("doubts, settled", [
+    (["poor fit: inlier ratio 0.30 < 0.45"], True),
+    (["weakly constrained: a slide along (1.00, 0.00, 0.00) hardly changes the fit"], True),
+    (["weakly constrained: a turn about the axis (0.00, 0.00, 1.00) hardly changes the fit"], True),
+    (["ambiguous: a pose that moves the source 0.467 further fits almost as well (close fit 0.23 vs 0.26)"], True),
+    (["poor fit: inlier ratio 0.30 < 0.45", "weakly constrained: a slide along (1.00, 0.00, 0.00)"], True),
+    # a turn that fits as well: wrong quarter turns of rooms keep enough agreeing pairs (decisions/0089)
+    (["ambiguous: a pose 90 deg away fits almost as well (close fit 0.72 vs 0.63)"], False),
+    (["ambiguous: a pose 85 deg away fits what is not wall or floor at least as closely"], False),
+    (["poor fit: inlier ratio 0.30 < 0.45", "ambiguous: a pose 178 deg away fits almost as well"], False),
+    (["low overlap: inlier ratio 0.21 < 0.3"], False),
+    (["loose fit: of the source points within 3 inlier distances of the target only 0.57 lie within one"], False),
+    (["found by the second, denser rotation search only (the first fitted poorly)"], False),
+    ([], False),
+])
+def test_the_doubts_the_descriptors_settle(poor_fit_crop, doubts: list[str], settled: bool) -> None:
+    """A poor fit, weak constraint and another place that fits: the fit cannot place the source, matched patches
+    can; a turn that fits as well, a low overlap or a loose fit they do not settle."""
+    room, result = poor_fit_crop
+    doubtful = dataclasses.replace(result, reliable=False, warnings=[*doubts, consensus_note(40, 3)])
+    assert settled_by_descriptors(doubtful) is settled
+    assert confirmed(room, doubtful, 2 * CONFIRMING_SUPPORT).reliable is settled
+
+
+@pytest.mark.parametrize("label, doubt", [
+    ("3dlo_homeat_41_38/source/o70/cut", "weakly constrained"),
+    ("3dm_geot_kitchen_6_0/target/o70/turned-2", "ambiguous: a pose that moves the source"),
+])
+def test_a_right_room_result_the_fit_cannot_place_is_confirmed_by_the_descriptors(registrar, label, doubt) -> None:
+    """Two room crops at 70% overlap, right: one slides along its walls with little change of fit, the other has
+    another place 0.47 m away that fits almost as well. Without the consensus each keeps that one doubt; with it,
+    70-131 matched pairs agree with the pose, which is `reliable`."""
+    source, target, truth, limits = room_crop(label)
+    result, right = registered(without_consensus(), source, target, truth, limits)
+    assert right and not result.reliable
+    assert len(result.warnings) == 1 and result.warnings[0].startswith(doubt), result.warnings
+    result, right = registered(registrar, source, target, truth, limits)
+    assert right and result.reliable, result.warnings
+    assert result.warnings[0].startswith(doubt) and result.warnings[-1].startswith(CONFIRMED_BY_DESCRIPTORS)
 
 
 def test_a_result_the_descriptors_confirm_meets_free_space_and_the_symmetry_check_again() -> None:
