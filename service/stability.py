@@ -40,6 +40,7 @@ PINNED_RATIO = 1.5
 ROTATION_SHARE = 0.7  # a weak motion whose eigenvector is at least this much rotation is named a turn
 TRANSLATION_SHARE = 0.7  # ... at least this much translation a slide; in between, a turn and slide together
 WEAKLY_CONSTRAINED = "weakly constrained"  # the kind of warning of a motion that hardly changes the fit
+WEAK_TURN = f"{WEAKLY_CONSTRAINED}: a turn about the axis"  # first words of that warning where the motion is a turn
 
 
 @dataclass(frozen=True)

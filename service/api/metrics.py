@@ -26,7 +26,7 @@ WARNING_KINDS = frozenset({
     FAR_FROM_GUESS,  # a result far from the caller's initial_transform (service.stages.guess_check)
     TARGET_EXPLAINED,  # a result whose source explains a cut target (service.quality)
     DESCRIPTOR_CONSENSUS,  # a result the descriptors' consensus gave (service.stages.consensus)
-    CONFIRMED_BY_DESCRIPTORS,  # a room result the descriptors made `reliable` (service.stages.consensus)
+    CONFIRMED_BY_DESCRIPTORS,  # a result the descriptors made `reliable` (service.stages.consensus)
 })
 
 

@@ -188,7 +188,9 @@ class Quality(BaseModel):
         "well (an 'ambiguous' warning), or, where a cloud is a range image, a pose that puts the other cloud's "
         "surface where that sensor saw through (a 'through free space' warning); a loose fit of range images, or a "
         "pose only the second rotation search found, whose free space confirms the pose is reliable (a 'confirmed by "
-        "free space' note). "
+        "free space' note), as is a room's poor fit, weak constraint or other place that fits, or an object's weak "
+        "turn about its axis, that at least 30 matched surface patches of the two clouds agree with (a 'confirmed by "
+        "descriptors' note; the warning is kept). "
         "docs/RELIABILITY.md lists each condition."
     )
     stability: float | None = Field(

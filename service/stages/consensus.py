@@ -18,15 +18,15 @@ turned onto its walls or slid along them can pass every check. It is replaced on
 ``RELIABLE_CONSENSUS_SHARE`` (``docs/decisions/0086-the-consensus-looks-at-reliable-rooms.md``).
 
 Where the result it returns (kept or replaced) is a room's whose only doubts are ones the descriptors settle
-(``SETTLED_DOUBTS``: a poor fit, weak constraint, another place that fits almost as well), at least
+(``ROOM_DOUBTS``: a poor fit, weak constraint, another place that fits almost as well), at least
 ``CONFIRMING_SUPPORT`` matched pairs agree with it and it lies on the target's surface, it is ``reliable``, its
 warnings kept and a note added: two room views that overlap by a third lay a third of the source on the target, below
 the rule's share of what a right pose reaches, however right the pose, and flat walls and floors let a right pose
 slide with little change of fit; matched patches that agree within two voxels place it all the same
 (``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``,
-``0089-descriptors-settle-what-the-fit-cannot-place.md``). Over other clouds only weak constraint is settled (an
-object nearly round about an axis), where the result also keeps ``OBJECT_CONFIRMING_SHARE`` of the feature pose's
-support (``0090-descriptors-settle-a-round-objects-turn.md``).
+``0089-descriptors-settle-what-the-fit-cannot-place.md``). Over other clouds only a weak turn is settled (an object
+nearly round about an axis), and only on the result the stage kept, where it also keeps ``OBJECT_CONFIRMING_SHARE``
+of the feature pose's support (``0090-descriptors-settle-a-round-objects-turn.md``).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from service.procrustes import compose
 from service.quality import POOR_FIT
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
-from service.stability import WEAKLY_CONSTRAINED
+from service.stability import WEAK_TURN, WEAKLY_CONSTRAINED
 from service.stages.assess import assess_result, off_the_surface
 from service.stages.features import dense_enough_to_describe, feature_candidate
 from service.stages.network import Candidates
@@ -68,21 +68,23 @@ RELIABLE_CONSENSUS_SHARE = 0.3
 # on the target's surface (the views overlap in part): wrong ones reached 0.51-0.82 of it, right ones on synthetic
 # rooms and LiDAR frames 0.85-1.03, on the set's and cropped room fragments 0.50-0.77 (decisions/0086).
 PARTIAL_OVERLAY = 0.9
-# A room result whose only doubts are SETTLED_DOUBTS is `reliable` where at least this many matched pairs agree with
+# A room result whose only doubts are ROOM_DOUBTS is `reliable` where at least this many matched pairs agree with
 # it and it lies on the target's surface: wrong room results with a poor fit kept at most 25 agreeing pairs (the set's
 # fragments, room crops, synthetic rooms), right ones at 30% overlap 17-74 (decisions/0087); wrong ones weakly
-# constrained or with another place that fits kept at most 13, right ones 22-131 (decisions/0089).
+# constrained or with another place that fits kept at most 13, right ones 17-131 (decisions/0089).
 CONFIRMING_SUPPORT = 30
 # The doubts matched pairs settle (first words of the warnings): too little of the source on the target, a slide or
 # turn that hardly changes the fit, another place that fits almost as well. Not a turn that fits as well (the symmetry
 # check's and the ranking's `ambiguous: a pose N deg away`: wrong quarter turns of synthetic rooms kept 31 agreeing
 # pairs), a low overlap or a loose fit (decisions/0089).
-SETTLED_DOUBTS = (POOR_FIT, WEAKLY_CONSTRAINED, SHIFT_AMBIGUITY)
-# Over clouds that are not rooms only weak constraint is settled (an object turned about an axis that hardly changes its
-# fit: a vase, a cup, a lumpy sphere), where the result also keeps at least this share of the feature pose's support:
-# on simulated turntable scans wrong ones kept 0.07-0.80 of it (up to 65 pairs), 143 of the 155 right ones with at
-# least 30 pairs 0.9 or more; a poor fit is not settled there (a derived dragon pair 9.8 deg off kept all of its 34
-# pairs) (decisions/0090).
+ROOM_DOUBTS = (POOR_FIT, WEAKLY_CONSTRAINED, SHIFT_AMBIGUITY)
+# Over clouds that are not rooms only a weak turn is settled (an object turned about an axis with little change of
+# fit: a vase, a cup, a lumpy sphere): a weak slide has no check after it (the symmetry check turns the pose), and a
+# poor fit is not settled there (a derived dragon pair 9.8 deg off kept all of its 34 pairs) (decisions/0090).
+OBJECT_DOUBTS = (WEAK_TURN,)
+# ... where the result the stage kept (not the feature pose it put in its place) also keeps at least this share of the
+# feature pose's support: on simulated turntable scans wrong results with at least 30 agreeing pairs kept at most 0.80
+# of it, 143 of the 155 right ones 0.9 or more (decisions/0090).
 OBJECT_CONFIRMING_SHARE = 0.9
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
@@ -103,25 +105,27 @@ def confirmed_note(support: int) -> str:
             f"{CONFIRMING_SUPPORT}); they place the source where the fit alone cannot")
 
 
-def settled_by_descriptors(result: RegistrationResult, doubts: tuple[str, ...] = SETTLED_DOUBTS) -> bool:
+def settled_by_descriptors(result: RegistrationResult, doubts: tuple[str, ...] = ROOM_DOUBTS) -> bool:
     """Whether every doubt of ``result`` (at least one; the consensus note is none) is one of ``doubts`` (first
     words of warnings)."""
     raised = [w for w in result.warnings if not w.startswith(DESCRIPTOR_CONSENSUS)]
     return bool(raised) and all(w.startswith(doubts) for w in raised)
 
 
-def confirmed(work: Working, result: RegistrationResult, support: int, best: int) -> RegistrationResult:
+def confirmed(work: Working, result: RegistrationResult, support: int, best: int, replaced: bool
+              ) -> RegistrationResult:
     """``result``, ``reliable`` with a note where ``support`` (the matched pairs that agree with it) reaches
     ``CONFIRMING_SUPPORT``, the descriptors settle its doubts and it lies on the target's surface where they overlap
     (:func:`service.stages.assess.off_the_surface`, which the rule asks only of results that pass the ratio check).
-    They settle a room's (both clouds built of orthogonal planes) ``SETTLED_DOUBTS``, and over other clouds weak
-    constraint alone where ``support`` is at least ``OBJECT_CONFIRMING_SHARE`` of ``best`` (the feature pose's)."""
+    They settle a room's (both clouds built of orthogonal planes) ``ROOM_DOUBTS``, kept or ``replaced``; over other
+    clouds ``OBJECT_DOUBTS`` alone, on a result the stage kept (not ``replaced``) whose ``support`` is at least
+    ``OBJECT_CONFIRMING_SHARE`` of ``best`` (the feature pose's)."""
     if result.reliable or support < CONFIRMING_SUPPORT:
         return result
     if plane_frames_on_the_surface(work):
         if not settled_by_descriptors(result):
             return result
-    elif support < OBJECT_CONFIRMING_SHARE * best or not settled_by_descriptors(result, (WEAKLY_CONSTRAINED,)):
+    elif replaced or support < OBJECT_CONFIRMING_SHARE * best or not settled_by_descriptors(result, OBJECT_DOUBTS):
         return result
     if off_the_surface(work, result.rotation, result.translation):
         return result
@@ -167,7 +171,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
             return result
         kept = pose.support_of(*after_guess(work, result.rotation, result.translation))
         if kept >= share * pose.support:
-            return confirmed(work, result, kept, pose.support)
+            return confirmed(work, result, kept, pose.support, replaced=False)
         start = compose(pose.rotation, pose.translation, work.R_init, work.t_init)  # the caller's pose
         fitted = icp_plane(work.fine_source, work.fine_target, *start,
                            max_distance=work.inlier_distance, max_iterations=CONSENSUS_ITERATIONS,
@@ -183,6 +187,6 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
         agreed = dataclasses.replace(agreed, warnings=[*agreed.warnings, consensus_note(pose.support, kept)],
                                      timing_ms=timing)
         return confirmed(work, agreed, pose.support_of(*after_guess(work, fitted.rotation, fitted.translation)),
-                         pose.support)
+                         pose.support, replaced=True)
     finally:
         timing["consensus"] = 1000 * (time.perf_counter() - started)
