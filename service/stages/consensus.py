@@ -84,7 +84,7 @@ ROOM_DOUBTS = (POOR_FIT, WEAKLY_CONSTRAINED, SHIFT_AMBIGUITY)
 OBJECT_DOUBTS = (WEAK_TURN,)
 # ... where the result the stage kept (not the feature pose it put in its place) also keeps at least this share of the
 # feature pose's support: on simulated turntable scans wrong results with at least 30 agreeing pairs kept at most 0.80
-# of it, 143 of the 155 right ones 0.9 or more (decisions/0090).
+# of it, 93 of the 108 right ones 0.9 or more (decisions/0090).
 OBJECT_CONFIRMING_SHARE = 0.9
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
