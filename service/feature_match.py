@@ -3,7 +3,9 @@
 Both clouds are reduced to the means of a common voxel grid and described; descriptors that are each other's nearest
 neighbour pair the points; triplets of pairs whose side lengths agree give candidate poses (RANSAC), and the pose that
 brings the most pairs within ``INLIER_VOXELS`` voxels of each other wins, refitted on those pairs. Its ``support``
-(that count) says how much of the surface agrees: a few pairs agree by chance, dozens do not.
+(that count) says how much of the surface agrees: a few pairs agree by chance, dozens do not. Its ``rival()`` says
+whether they point to one place: the support of the best pose that agrees with other pairs
+(``docs/decisions/0091-a-replaced-round-objects-turn-needs-one-place.md``).
 """
 
 from __future__ import annotations
@@ -24,6 +26,17 @@ MIN_SIDE_VOXELS = 2.0  # ... and none shorter than this (nearly coincident point
 # 4 * MAX_CELLS**2 bytes. The real-scan set's clouds reduce to at most 1,700 cells on the working spacing.
 MAX_CELLS = 4000
 SCORED_AT_ONCE = 500  # RANSAC poses scored per batch ([SCORED_AT_ONCE, C, 3] float32)
+# A RANSAC pose that shares at most this share of its agreeing pairs with the best's is another pose (FeaturePose.rival)
+DISTINCT_SHARED = 0.5
+
+
+@dataclass(frozen=True)
+class Hypotheses:
+    """The RANSAC poses a feature pose was chosen from."""
+
+    rotation: np.ndarray  # [H, 3, 3] src_to_tgt
+    translation: np.ndarray  # [H, 3]
+    support: np.ndarray  # [H] matched pairs within the agreement distance at each
 
 
 @dataclass(frozen=True)
@@ -37,10 +50,29 @@ class FeaturePose:
     source_matched: np.ndarray  # [C, 3] the matched cells of the source ...
     target_matched: np.ndarray  # [C, 3] ... and of the target, pair by pair
     agreement: float  # INLIER_VOXELS voxels: the distance within which a pair agrees with a pose
+    hypotheses: Hypotheses  # the RANSAC poses it was chosen from (the first with the most support), for rival()
 
     def support_of(self, R: np.ndarray, t: np.ndarray) -> int:
         """How many of the matched pairs agree with another ``src_to_tgt`` pose ``R [3, 3], t [3]``."""
         return int(agreeing(R[None], t[None], self.source_matched, self.target_matched, self.agreement)[0].sum())
+
+    def rival(self) -> int:
+        """The most matched pairs another place the descriptors point to brings into agreement: the best support of
+        the RANSAC poses that share at most ``DISTINCT_SHARED`` of their agreeing pairs with the chosen one's (0 where
+        none does). Near ``support`` on a shape the descriptors cannot tell from itself turned or slid."""
+        found = self.hypotheses
+        best = int(found.support.argmax())
+        chosen = agreeing(found.rotation[best:best + 1], found.translation[best:best + 1], self.source_matched,
+                          self.target_matched, self.agreement)[0]  # [C]
+        order = np.argsort(-found.support, kind="stable")  # [H] most support first: the first distinct one is the rival
+        for start in range(0, len(order), SCORED_AT_ONCE):
+            rows = order[start:start + SCORED_AT_ONCE]
+            agree = agreeing(found.rotation[rows], found.translation[rows], self.source_matched, self.target_matched,
+                             self.agreement)  # [B, C]
+            distinct = (agree & chosen).sum(axis=1) <= DISTINCT_SHARED * found.support[rows]  # [B]
+            if distinct.any():
+                return int(found.support[rows][distinct][0])
+        return 0
 
 
 def mutual_matches(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -85,7 +117,7 @@ def feature_pose(source: np.ndarray, target: np.ndarray, voxel: float, seed: int
     best = int(support.argmax())  # the first of equals: seeded, so repeatable
     kept = agreeing(R[best:best + 1], t[best:best + 1], p, q, INLIER_VOXELS * voxel)[0]  # [C]
     R1, t1 = weighted_procrustes(p[kept], q[kept])
-    return FeaturePose(R1, t1, int(support[best]), len(p), p, q, INLIER_VOXELS * voxel)
+    return FeaturePose(R1, t1, int(support[best]), len(p), p, q, INLIER_VOXELS * voxel, Hypotheses(R, t, support))
 
 
 def agreeing(R: np.ndarray, t: np.ndarray, p: np.ndarray, q: np.ndarray, distance: float) -> np.ndarray:

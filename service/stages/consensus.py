@@ -25,8 +25,10 @@ the rule's share of what a right pose reaches, however right the pose, and flat 
 slide with little change of fit; matched patches that agree within two voxels place it all the same
 (``docs/decisions/0087-descriptors-confirm-rooms-that-overlap-in-part.md``,
 ``0089-descriptors-settle-what-the-fit-cannot-place.md``). Over other clouds only a weak turn is settled (an object
-nearly round about an axis), and only on the result the stage kept, where it also keeps ``OBJECT_CONFIRMING_SHARE``
-of the feature pose's support (``0090-descriptors-settle-a-round-objects-turn.md``).
+nearly round about an axis), where the result keeps ``OBJECT_CONFIRMING_SHARE`` of the feature pose's support
+(``0090-descriptors-settle-a-round-objects-turn.md``); where the stage put the feature pose in the result's place,
+that pose must also be the only place the descriptors point to: no other reaches ``UNIQUE_SHARE`` of its support
+(``0091-a-replaced-round-objects-turn-needs-one-place.md``).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.feature_match import FeaturePose
 from service.icp import icp_plane
 from service.options import RegistrationOptions
 from service.procrustes import compose
@@ -82,10 +85,14 @@ ROOM_DOUBTS = (POOR_FIT, WEAKLY_CONSTRAINED, SHIFT_AMBIGUITY)
 # fit: a vase, a cup, a lumpy sphere): a weak slide has no check after it (the symmetry check turns the pose), and a
 # poor fit is not settled there (a derived dragon pair 9.8 deg off kept all of its 34 pairs) (decisions/0090).
 OBJECT_DOUBTS = (WEAK_TURN,)
-# ... where the result the stage kept (not the feature pose it put in its place) also keeps at least this share of the
-# feature pose's support: on simulated turntable scans wrong results with at least 30 agreeing pairs kept at most 0.80
-# of it, 93 of the 108 right ones 0.9 or more (decisions/0090).
+# ... where the result also keeps at least this share of the feature pose's support: on simulated turntable scans
+# wrong results the stage kept with at least 30 agreeing pairs kept at most 0.80 of it, 93 of the 108 right ones 0.9 or
+# more (decisions/0090).
 OBJECT_CONFIRMING_SHARE = 0.9
+# ... and where the stage put the feature pose in the result's place, no other place the descriptors point to
+# (FeaturePose.rival) reaches this share of its support: of the feature poses of objects with at least 30 agreeing pairs
+# on the choosing sets 18 of 634 lay over 10 deg off, 3 of the 550 below this share (decisions/0091).
+UNIQUE_SHARE = 0.6
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
 DESCRIPTOR_CONSENSUS = "descriptor consensus"  # first words of the note on a result this stage gave
@@ -112,22 +119,25 @@ def settled_by_descriptors(result: RegistrationResult, doubts: tuple[str, ...] =
     return bool(raised) and all(w.startswith(doubts) for w in raised)
 
 
-def confirmed(work: Working, result: RegistrationResult, support: int, best: int, replaced: bool
+def confirmed(work: Working, result: RegistrationResult, support: int, pose: FeaturePose, replaced: bool
               ) -> RegistrationResult:
     """``result``, ``reliable`` with a note where ``support`` (the matched pairs that agree with it) reaches
     ``CONFIRMING_SUPPORT``, the descriptors settle its doubts and it lies on the target's surface where they overlap
     (:func:`service.stages.assess.off_the_surface`, which the rule asks only of results that pass the ratio check).
     They settle a room's (both clouds built of orthogonal planes) ``ROOM_DOUBTS``, kept or ``replaced``; over other
-    clouds ``OBJECT_DOUBTS`` alone, on a result the stage kept (not ``replaced``) whose ``support`` is at least
-    ``OBJECT_CONFIRMING_SHARE`` of ``best`` (the feature pose's)."""
+    clouds ``OBJECT_DOUBTS`` alone, where ``support`` is at least ``OBJECT_CONFIRMING_SHARE`` of the feature
+    ``pose``'s and, for a result ``replaced`` by that pose, no other place the descriptors point to reaches
+    ``UNIQUE_SHARE`` of it (:meth:`service.feature_match.FeaturePose.rival`)."""
     if result.reliable or support < CONFIRMING_SUPPORT:
         return result
-    if plane_frames_on_the_surface(work):
-        if not settled_by_descriptors(result):
-            return result
-    elif replaced or support < OBJECT_CONFIRMING_SHARE * best or not settled_by_descriptors(result, OBJECT_DOUBTS):
+    room = plane_frames_on_the_surface(work)
+    if not settled_by_descriptors(result, ROOM_DOUBTS if room else OBJECT_DOUBTS):
+        return result
+    if not room and support < OBJECT_CONFIRMING_SHARE * pose.support:
         return result
     if off_the_surface(work, result.rotation, result.translation):
+        return result
+    if not room and replaced and pose.rival() >= UNIQUE_SHARE * pose.support:
         return result
     return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_note(support)])
 
@@ -171,7 +181,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
             return result
         kept = pose.support_of(*after_guess(work, result.rotation, result.translation))
         if kept >= share * pose.support:
-            return confirmed(work, result, kept, pose.support, replaced=False)
+            return confirmed(work, result, kept, pose, replaced=False)
         start = compose(pose.rotation, pose.translation, work.R_init, work.t_init)  # the caller's pose
         fitted = icp_plane(work.fine_source, work.fine_target, *start,
                            max_distance=work.inlier_distance, max_iterations=CONSENSUS_ITERATIONS,
@@ -186,7 +196,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
                                options.return_iterations, assess_timing)
         agreed = dataclasses.replace(agreed, warnings=[*agreed.warnings, consensus_note(pose.support, kept)],
                                      timing_ms=timing)
-        return confirmed(work, agreed, pose.support_of(*after_guess(work, fitted.rotation, fitted.translation)),
-                         pose.support, replaced=True)
+        return confirmed(work, agreed, pose.support_of(*after_guess(work, fitted.rotation, fitted.translation)), pose,
+                         replaced=True)
     finally:
         timing["consensus"] = 1000 * (time.perf_counter() - started)

@@ -65,6 +65,31 @@ def test_feature_pose_gives_none_without_enough_to_describe_or_match() -> None:
     assert feature_pose(tip, cloud, voxel=0.01) is None
 
 
+def box_surface(points: int, seed: int) -> np.ndarray:
+    """``[points, 3]`` uniform samples of the faces of a 1 x 0.6 x 0.3 box, each face by its share of the area."""
+    rng = np.random.default_rng(seed)
+    sides = np.array([1.0, 0.6, 0.3])
+    areas = np.array([sides[1] * sides[2], sides[0] * sides[2], sides[0] * sides[1]])
+    face = rng.choice(3, size=points, p=areas / areas.sum())  # [N] the axis each point's face is normal to
+    cloud = (rng.random((points, 3)) - 0.5) * sides
+    cloud[np.arange(points), face] = rng.choice([-0.5, 0.5], size=points) * sides[face]
+    return cloud
+
+
+def test_the_rival_is_another_place_the_descriptors_point_to() -> None:
+    """Overlapping parts of a lumpy sphere fit in one place: other RANSAC poses that share few of the chosen one's
+    pairs bring a fifth of theirs into agreement. A box half turned fits as well as unturned, on other pairs: its
+    rival gets most of the chosen pose's support."""
+    source, target = lumpy_sphere(20_000, seed=1), lumpy_sphere(20_000, seed=2)
+    lumpy = feature_pose(source[source[:, 0] > -0.4], target[target[:, 0] < 0.4], voxel=0.08)
+    assert lumpy is not None
+    assert 0 < lumpy.rival() < 0.3 * lumpy.support, (lumpy.support, lumpy.rival())
+    turned = box_surface(20_000, seed=1) @ Rotation.from_euler("z", 40, degrees=True).as_matrix().T
+    box = feature_pose(box_surface(20_000, seed=0), turned, voxel=0.03)
+    assert box is not None
+    assert box.rival() >= 0.75 * box.support, (box.support, box.rival())
+
+
 def test_a_grid_too_fine_for_the_clouds_is_coarsened_to_bounded_cells() -> None:
     source, target = lumpy_sphere(30_000, seed=1), lumpy_sphere(30_000, seed=2)
     assert len(voxel_means(source, 0.005)) > MAX_CELLS  # every point its own cell
@@ -75,11 +100,12 @@ def test_a_grid_too_fine_for_the_clouds_is_coarsened_to_bounded_cells() -> None:
 
 def test_the_largest_entered_clouds_need_bounded_memory() -> None:
     """Two 100,000-point clouds (the entry reduction's size) on a grid far too fine: the grid is coarsened to
-    ``MAX_CELLS`` cells, and the descriptors, matches and RANSAC stay within a few hundred MiB."""
+    ``MAX_CELLS`` cells, and the descriptors, matches, RANSAC and its rival pose stay within a few hundred MiB."""
     source, target = lumpy_sphere(100_000, seed=1), lumpy_sphere(100_000, seed=2)
     tracemalloc.start()
     try:
         pose = feature_pose(source, target, voxel=0.001)
+        pose.rival()
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
