@@ -56,20 +56,27 @@ class FeaturePose:
         """How many of the matched pairs agree with another ``src_to_tgt`` pose ``R [3, 3], t [3]``."""
         return int(agreeing(R[None], t[None], self.source_matched, self.target_matched, self.agreement)[0].sum())
 
-    def rival(self) -> int:
+    def rival(self, at_least: float = 0.0) -> int:
         """The most matched pairs another place the descriptors point to brings into agreement: the best support of
         the RANSAC poses that share at most ``DISTINCT_SHARED`` of their agreeing pairs with the chosen one's (0 where
-        none does). Near ``support`` on a shape the descriptors cannot tell from itself turned or slid."""
+        none does). Near ``support`` on a shape the descriptors cannot tell from itself turned or slid. Only poses with
+        at least ``at_least`` pairs are scored (a caller that compares the rival with a threshold passes it): below
+        it the rival counts as 0."""
         found = self.hypotheses
         best = int(found.support.argmax())
         chosen = agreeing(found.rotation[best:best + 1], found.translation[best:best + 1], self.source_matched,
                           self.target_matched, self.agreement)[0]  # [C]
+        source, target = self.source_matched[~chosen], self.target_matched[~chosen]  # [C', 3] the pairs it leaves
         order = np.argsort(-found.support, kind="stable")  # [H] most support first: the first distinct one is the rival
+        order = order[found.support[order] >= at_least]
+        if len(source) == 0:  # the chosen pose brings every pair into agreement: only a pose with none is distinct
+            return 0
         for start in range(0, len(order), SCORED_AT_ONCE):
             rows = order[start:start + SCORED_AT_ONCE]
-            agree = agreeing(found.rotation[rows], found.translation[rows], self.source_matched, self.target_matched,
-                             self.agreement)  # [B, C]
-            distinct = (agree & chosen).sum(axis=1) <= DISTINCT_SHARED * found.support[rows]  # [B]
+            # distinct: at least 1 - DISTINCT_SHARED of its agreeing pairs are ones the chosen pose leaves
+            elsewhere = agreeing(found.rotation[rows], found.translation[rows], source, target,
+                                 self.agreement)  # [B, C']
+            distinct = elsewhere.sum(axis=1) >= (1.0 - DISTINCT_SHARED) * found.support[rows]  # [B]
             if distinct.any():
                 return int(found.support[rows][distinct][0])
         return 0

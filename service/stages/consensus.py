@@ -73,8 +73,8 @@ RELIABLE_CONSENSUS_SHARE = 0.3
 # ... or this share where the feature pose is one strong place: at least STRONG_SUPPORT matched pairs agree with it and
 # no other place the descriptors point to (FeaturePose.rival) has ONE_PLACE_RIVAL of them. Of 610 `reliable` rooms
 # looked at (room crops, synthetic rooms, LiDAR variants, the set's rooms), 441 had such a feature pose, none over
-# 10 deg off; the right results kept 0.86 of its support or more but one (0.30, 9.7 deg off), two wrong ones 0.52 and
-# 0.55 (decisions/0092).
+# 10 deg off; the right results kept 0.86 of its support or more but two (0.18, replaced under 0.3 already; 0.30,
+# 9.7 deg off), two wrong ones 0.52 and 0.55 (decisions/0092).
 ONE_PLACE_SHARE = 0.7
 STRONG_SUPPORT = 60
 ONE_PLACE_RIVAL = 0.3
@@ -148,7 +148,7 @@ def confirmed(work: Working, result: RegistrationResult, support: int, pose: Fea
         return result
     if off_the_surface(work, result.rotation, result.translation):
         return result
-    if not room and replaced and pose.rival() >= UNIQUE_SHARE * pose.support:
+    if not room and replaced and pose.rival(UNIQUE_SHARE * pose.support) >= UNIQUE_SHARE * pose.support:
         return result
     return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_note(support)])
 
@@ -179,7 +179,8 @@ def share_to_keep(work: Working, result: RegistrationResult, options: Registrati
 def one_strong_place(pose: FeaturePose) -> bool:
     """Whether at least ``STRONG_SUPPORT`` matched pairs agree with ``pose`` and no other place the descriptors point
     to (:meth:`service.feature_match.FeaturePose.rival`) has ``ONE_PLACE_RIVAL`` of them."""
-    return pose.support >= STRONG_SUPPORT and pose.rival() < ONE_PLACE_RIVAL * pose.support
+    floor = ONE_PLACE_RIVAL * pose.support
+    return pose.support >= STRONG_SUPPORT and pose.rival(floor) < floor
 
 
 def consensus(registrar: Registrar, work: Working, result: RegistrationResult, options: RegistrationOptions,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import tracemalloc
 
 import numpy as np
@@ -9,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, lumpy_sphere
 
-from service.feature_match import MAX_CELLS, feature_pose, mutual_matches
+import service.feature_match
+from service.feature_match import MAX_CELLS, SCORED_AT_ONCE, Hypotheses, feature_pose, mutual_matches
 from service.features import BINS, PAIR_FEATURES, describe, voxel_means
 from service.rotation_search import rotation_between_deg
 
@@ -88,6 +90,32 @@ def test_the_rival_is_another_place_the_descriptors_point_to() -> None:
     box = feature_pose(box_surface(20_000, seed=0), turned, voxel=0.03)
     assert box is not None
     assert box.rival() >= 0.75 * box.support, (box.support, box.rival())
+
+
+def test_the_rival_is_scored_in_bounded_batches(monkeypatch) -> None:
+    """The lumpy sphere's feature pose with 1,200 more copies of its chosen RANSAC pose: none is another place, the
+    rival is the same, found past them in batches of at most ``SCORED_AT_ONCE`` poses (bounded memory); asked from
+    one pair above it, none."""
+    source, target = lumpy_sphere(20_000, seed=1), lumpy_sphere(20_000, seed=2)
+    pose = feature_pose(source[source[:, 0] > -0.4], target[target[:, 0] < 0.4], voxel=0.08)
+    assert pose is not None
+    rival, found, copies = pose.rival(), pose.hypotheses, 1200
+    best = int(found.support.argmax())
+    padded = dataclasses.replace(pose, hypotheses=Hypotheses(
+        np.concatenate([np.repeat(found.rotation[best:best + 1], copies, axis=0), found.rotation]),
+        np.concatenate([np.repeat(found.translation[best:best + 1], copies, axis=0), found.translation]),
+        np.concatenate([np.full(copies, found.support[best]), found.support])))
+    scored: list[int] = []
+    agreeing = service.feature_match.agreeing
+
+    def counted(R: np.ndarray, *rest) -> np.ndarray:
+        scored.append(len(R))
+        return agreeing(R, *rest)
+
+    monkeypatch.setattr(service.feature_match, "agreeing", counted)
+    assert padded.rival() == rival > 0
+    assert max(scored) <= SCORED_AT_ONCE and sum(scored) > copies, scored
+    assert padded.rival(at_least=rival + 1) == 0
 
 
 def test_a_grid_too_fine_for_the_clouds_is_coarsened_to_bounded_cells() -> None:
