@@ -137,7 +137,7 @@ def test_a_reliable_room_result_half_a_turn_off_is_replaced(registrar) -> None:
 def test_a_reliable_room_result_that_keeps_half_of_one_strong_place_gives_way_to_it(registrar) -> None:
     """A kitchen window at 70% overlap (seed 7) registers 6.5 deg and 0.44 m off and passes every check. The feature
     pose is 1.4 deg off: 118 matched pairs agree with it, no other place gets 0.3 of them, and the result keeps 0.55,
-    more than the 0.3 a `reliable` room must keep. Of one strong place it must keep 0.7, so the pose replaces it."""
+    more than the 0.3 a `reliable` room must keep. Of one strong place it must keep 0.8, so the pose replaces it."""
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o70/turned", seed=7)
     result, right = registered(without_consensus(), source, target, truth, limits)
     assert not right and result.reliable
