@@ -67,10 +67,10 @@ class FeaturePose:
         chosen = agreeing(found.rotation[best:best + 1], found.translation[best:best + 1], self.source_matched,
                           self.target_matched, self.agreement)[0]  # [C]
         source, target = self.source_matched[~chosen], self.target_matched[~chosen]  # [C', 3] the pairs it leaves
-        order = np.argsort(-found.support, kind="stable")  # [H] most support first: the first distinct one is the rival
-        order = order[found.support[order] >= at_least]
         if len(source) == 0:  # the chosen pose brings every pair into agreement: only a pose with none is distinct
             return 0
+        order = np.argsort(-found.support, kind="stable")  # [H] most support first: the first distinct one is the rival
+        order = order[found.support[order] >= at_least]
         for start in range(0, len(order), SCORED_AT_ONCE):
             rows = order[start:start + SCORED_AT_ONCE]
             # distinct: at least 1 - DISTINCT_SHARED of its agreeing pairs are ones the chosen pose leaves

@@ -183,11 +183,20 @@ def one_strong_place(pose: FeaturePose) -> bool:
     return pose.support >= STRONG_SUPPORT and pose.rival(floor) < floor
 
 
+def gives_way(result: RegistrationResult, pose: FeaturePose, kept: int, share: float) -> bool:
+    """Whether ``result``, with which ``kept`` of the feature ``pose``'s matched pairs agree, gives way to that pose:
+    it keeps less than ``share`` of its support, or it is ``reliable`` (a room the stage looks at) and keeps less than
+    ``ONE_PLACE_SHARE`` of a pose that is :func:`one_strong_place` (its rival computed only then)."""
+    if kept < share * pose.support:
+        return True
+    return result.reliable and kept < ONE_PLACE_SHARE * pose.support and one_strong_place(pose)
+
+
 def consensus(registrar: Registrar, work: Working, result: RegistrationResult, options: RegistrationOptions,
               iterations: int, keypoints: int, timing: dict[str, float]) -> RegistrationResult:
-    """``result`` (caller's frames of the anchored clouds), or where it keeps less than :func:`share_to_keep` of the
-    descriptors' consensus (a ``reliable`` room's also where it keeps less than ``ONE_PLACE_SHARE`` of a feature pose
-    that is :func:`one_strong_place`), the feature pose refined on the fine clouds and assessed
+    """``result`` (caller's frames of the anchored clouds), or where it :func:`gives_way` to the descriptors'
+    consensus (keeps less than :func:`share_to_keep` of it, or a ``reliable`` room less than ``ONE_PLACE_SHARE`` of one
+    strong place), the feature pose refined on the fine clouds and assessed
     (:func:`service.stages.assess.assess_result`) with a note naming both supports; either :func:`confirmed` by the
     pairs that agree with it. Records ``timing["consensus"]`` where it looked."""
     share = share_to_keep(work, result, options)
@@ -199,8 +208,7 @@ def consensus(registrar: Registrar, work: Working, result: RegistrationResult, o
         if pose is None or pose.support < CONSENSUS_SUPPORT:
             return result
         kept = pose.support_of(*after_guess(work, result.rotation, result.translation))
-        if kept >= share * pose.support and not (
-                result.reliable and kept < ONE_PLACE_SHARE * pose.support and one_strong_place(pose)):
+        if not gives_way(result, pose, kept, share):
             return confirmed(work, result, kept, pose, replaced=False)
         start = compose(pose.rotation, pose.translation, work.R_init, work.t_init)  # the caller's pose
         fitted = icp_plane(work.fine_source, work.fine_target, *start,
