@@ -81,6 +81,11 @@ class FeaturePose:
                 return int(found.support[rows][distinct][0])
         return 0
 
+    def has_rival(self, share: float) -> bool:
+        """Whether another place the descriptors point to (:meth:`rival`) has at least ``share`` of ``support``."""
+        floor = share * self.support
+        return self.rival(floor) >= floor
+
 
 def mutual_matches(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows ``(i [C], j [C])`` of descriptors ``source [Ns, D]`` and ``target [Nt, D]`` that are each other's nearest

@@ -148,7 +148,7 @@ def confirmed(work: Working, result: RegistrationResult, support: int, pose: Fea
         return result
     if off_the_surface(work, result.rotation, result.translation):
         return result
-    if not room and replaced and pose.rival(UNIQUE_SHARE * pose.support) >= UNIQUE_SHARE * pose.support:
+    if not room and replaced and pose.has_rival(UNIQUE_SHARE):
         return result
     return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_note(support)])
 
@@ -179,8 +179,7 @@ def share_to_keep(work: Working, result: RegistrationResult, options: Registrati
 def one_strong_place(pose: FeaturePose) -> bool:
     """Whether at least ``STRONG_SUPPORT`` matched pairs agree with ``pose`` and no other place the descriptors point
     to (:meth:`service.feature_match.FeaturePose.rival`) has ``ONE_PLACE_RIVAL`` of them."""
-    floor = ONE_PLACE_RIVAL * pose.support
-    return pose.support >= STRONG_SUPPORT and pose.rival(floor) < floor
+    return pose.support >= STRONG_SUPPORT and not pose.has_rival(ONE_PLACE_RIVAL)
 
 
 def gives_way(result: RegistrationResult, pose: FeaturePose, kept: int, share: float) -> bool:
