@@ -41,6 +41,7 @@ ROTATION_SHARE = 0.7  # a weak motion whose eigenvector is at least this much ro
 TRANSLATION_SHARE = 0.7  # ... at least this much translation a slide; in between, a turn and slide together
 WEAKLY_CONSTRAINED = "weakly constrained"  # the kind of warning of a motion that hardly changes the fit
 WEAK_TURN = f"{WEAKLY_CONSTRAINED}: a turn about the axis"  # first words of that warning where the motion is a turn
+WEAK_SLIDE = f"{WEAKLY_CONSTRAINED}: a slide along"  # ... and where it is a slide
 
 
 @dataclass(frozen=True)
