@@ -48,6 +48,10 @@ NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier 
 RELIABLE_NEAR_SHARE = 0.72
 # ... and where the attainable ratio is that of the target's surface (attainable_on_surface), this much of it
 RELIABLE_NEAR_SHARE_ON_SURFACE = 0.70
+# First words of the loose fit measured on the working target (this module's; stages.assess.off_the_surface words the
+# entered target's differently: "... of the target's points ...")
+WORKING_LOOSE_FIT = (f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
+                     "target only")
 # Where the caller offers the ratio measured the other way (reverse_fit), the target's points within an inlier distance
 # of the moved source must reach RELIABLE_INLIER_RATIO and this share of the source's attainable ratio, and their tight
 # fit RELIABLE_NEAR_SHARE_ON_SURFACE of it (docs/decisions/0084-a-cut-target-the-source-explains.md).
@@ -298,8 +302,7 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         warnings.append(f"{POOR_FIT}: inlier ratio {inlier_ratio:.2f} < {relative} of the "
                         f"{attainable:.2f} {allows}")
     elif not tight:
-        warnings.append(f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FACTOR:g} inlier distances of the "
-                        f"target only {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
+        warnings.append(f"{WORKING_LOOSE_FIT} {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
                         f"{allows}; a right pose lies on the target where they overlap")
     reliable = not degenerate and ratio_passes and tight
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

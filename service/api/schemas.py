@@ -189,8 +189,8 @@ class Quality(BaseModel):
         "surface where that sensor saw through (a 'through free space' warning); a loose fit of range images, or a "
         "pose only the second rotation search found, whose free space confirms the pose is reliable (a 'confirmed by "
         "free space' note), as is a room's poor fit, weak constraint or other place that fits, or an object's weak "
-        "turn about its axis, that at least 30 matched surface patches of the two clouds agree with (a 'confirmed by "
-        "descriptors' note; the warning is kept). "
+        "turn about its axis, weak slide or loose fit, that at least 30 matched surface patches of the two clouds "
+        "agree with (a 'confirmed by descriptors' note; the warning is kept). "
         "docs/RELIABILITY.md lists each condition."
     )
     stability: float | None = Field(
