@@ -165,9 +165,10 @@ def confirmed(work: Working, result: RegistrationResult, support: int, pose: Fea
 def object_doubts(work: Working) -> tuple[str, ...]:
     """The doubts the descriptors settle over clouds that are not rooms: ``OBJECT_DOUBTS`` and
     ``ONE_PLACE_OBJECT_DOUBTS``, without the loose fit where a cloud is a range image (free space judges it)."""
+    doubts = (*OBJECT_DOUBTS, *ONE_PLACE_OBJECT_DOUBTS)
     if any(view is not None for view in work.range_views):
-        return (*OBJECT_DOUBTS, WEAK_SLIDE)
-    return (*OBJECT_DOUBTS, *ONE_PLACE_OBJECT_DOUBTS)
+        return tuple(doubt for doubt in doubts if doubt != WORKING_LOOSE_FIT)
+    return doubts
 
 
 def after_guess(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
