@@ -106,7 +106,7 @@ class Working(Sampled):
     def range_views(self) -> tuple[RangeView | None, RangeView | None]:
         """The entered source's and target's :func:`service.free_space.range_view`, each ``None`` unless the cloud
         samples its surface densely (``CLOSE_FIT_DENSITY`` times its working cloud's points) as a range image does;
-        built once per registration, when the free-space stage first asks (the target's from
+        built once per registration, when the free-space or the consensus stage first asks (the target's from
         :attr:`entered_target_tree`)."""
         return (range_view(self.src_e) if samples_densely(self.src_e, self.src_w) else None,
                 range_view(self.tgt_e, self.entered_target_tree) if samples_densely(self.tgt_e, self.tgt_w) else None)

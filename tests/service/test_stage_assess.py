@@ -13,6 +13,7 @@ from shapes import room_scene
 
 from bench.real_scans import load_cases, pose_errors, thresholds
 from bench.turntable_scans import analytic_shape, turntable_pairs
+from service.quality import WORKING_LOOSE_FIT
 from service.registrar import Registrar
 from service.stability import WEAK_EIGENVALUE, Stability, weak_motion_warning
 from service.stages.assess import RELIABLE_STABILITY_ON_SURFACE, off_the_surface, turns_at_the_common_floor
@@ -51,6 +52,7 @@ def test_the_right_pose_lies_on_the_surface_and_a_turned_one_does_not():
     assert off_the_surface(work, *turned_about_the_target(work, 2.0)) is None
     warning = off_the_surface(work, *turned_about_the_target(work, 20.0))
     assert warning is not None and warning.startswith("loose fit: of the source points within 3 inlier distances of")
+    assert not warning.startswith(WORKING_LOOSE_FIT)  # the entered target's: never settled by descriptors (0093)
 
 
 def test_a_target_no_denser_than_its_working_cloud_is_not_checked():

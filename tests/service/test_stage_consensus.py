@@ -445,6 +445,7 @@ def test_over_objects_a_weak_turn_and_in_one_place_a_slide_are_settled(registrar
         doubtful = dataclasses.replace(result, warnings=[doubt])
         assert confirmed(sphere, doubtful, 60, supported(sphere, 60), replaced=False) is doubtful
         assert confirmed(sphere, doubtful, 101, supported(sphere, 101), replaced=True) is doubtful
+        assert confirmed(sphere, doubtful, 101, supported(sphere, 101), replaced=False) is doubtful
     slid = dataclasses.replace(result, translation=result.translation + 3 * sphere.inlier_distance)  # off the surface
     assert confirmed(sphere, slid, 60, supported(sphere, 60), replaced=False) is slid
     assert confirmed(sphere, slid, 101, supported(sphere, 101), replaced=True) is slid
