@@ -40,8 +40,10 @@ PINNED_RATIO = 1.5
 ROTATION_SHARE = 0.7  # a weak motion whose eigenvector is at least this much rotation is named a turn
 TRANSLATION_SHARE = 0.7  # ... at least this much translation a slide; in between, a turn and slide together
 WEAKLY_CONSTRAINED = "weakly constrained"  # the kind of warning of a motion that hardly changes the fit
-WEAK_TURN = f"{WEAKLY_CONSTRAINED}: a turn about the axis"  # first words of that warning where the motion is a turn
-WEAK_SLIDE = f"{WEAKLY_CONSTRAINED}: a slide along"  # ... and where it is a slide
+TURN_ABOUT = "a turn about the axis"  # how the warning names a weak motion that is a turn ...
+SLIDE_ALONG = "a slide along"  # ... and one that is a slide
+WEAK_TURN = f"{WEAKLY_CONSTRAINED}: {TURN_ABOUT}"  # first words of that warning where the motion is a turn
+WEAK_SLIDE = f"{WEAKLY_CONSTRAINED}: {SLIDE_ALONG}"  # ... and where it is a slide
 
 
 @dataclass(frozen=True)
@@ -144,10 +146,10 @@ def weak_motion_warning(stability: Stability | None) -> str | None:
     turn_share, slide_share = stability.turn_share, float(np.linalg.norm(slide))  # their squares sum to 1
     axis, direction = turn / max(turn_share, 1e-12), slide / max(slide_share, 1e-12)
     if turn_share >= ROTATION_SHARE:
-        what = f"a turn about the axis ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"
+        what = f"{TURN_ABOUT} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"
         why = "the shape may be symmetric about it"
     elif slide_share >= TRANSLATION_SHARE:
-        what = f"a slide along ({direction[0]:.2f}, {direction[1]:.2f}, {direction[2]:.2f})"
+        what = f"{SLIDE_ALONG} ({direction[0]:.2f}, {direction[1]:.2f}, {direction[2]:.2f})"
         why = "the overlap may be flat or elongated along it"
     else:
         what = f"a turn about ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) with a slide"
