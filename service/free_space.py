@@ -5,6 +5,10 @@ the incidence angle. :func:`range_view` finds the viewing direction that best ex
 (the correlation of log density and log ``|cos|`` over its points); a cloud it explains well (a correlation of at
 least ``RANGE_IMAGE_CORRELATION``: single range images, not fused room fragments, LiDAR frames or uniform samples of
 a mesh) gets a depth map along that direction: per cell of a grid across it, the nearest and the farthest depth seen.
+Density and normals are read over ``VIEW_NEIGHBOURS`` neighbours; over ``COARSE_VIEW_NEIGHBOURS`` a range image
+still explains its density through range noise of a point spacing (a coarser reading, twice the time). The grid's
+cell follows the larger of the points' nearest-neighbour and mean spacings, so that a random share of a pixel grid,
+near pairs among wide gaps, still fills its cells.
 
 :func:`free_space_share` then counts the points of the other scan, moved by a pose, that lie well in front of what the
 sensor saw in a cell it saw: space the sensor looked through. Which end of the axis the sensor was on is not known
@@ -24,12 +28,15 @@ import numpy as np
 from service.icp import smallest_eigenvectors
 from service.kdtree import KDTree
 
-RANGE_IMAGE_CORRELATION = 0.6  # range images 0.74-0.83; fused fragments, LiDAR frames and mesh samples 0.4 or less
+RANGE_IMAGE_CORRELATION = 0.6  # range images 0.74-0.83; fused fragments and LiDAR frames 0.51 or less (over
+# COARSE_VIEW_NEIGHBOURS 0.50 or less, but for a fragment cut by a plane at 0.62), mesh samples less
 VIEW_QUERIES = 1000  # the points whose density and normal fit the direction (all points are their neighbours: a
 # random share of a pixel grid would blur its density with sampling noise)
 VIEW_NEIGHBOURS = 10
+COARSE_VIEW_NEIGHBOURS = 40  # the coarser reading: noise of a point spacing turns 10 neighbours' normals to noise
+# (docs/decisions/0094)
 VIEW_DIRECTIONS = 300  # directions over a hemisphere tried first, then refined about the best
-CELL_SPACINGS = 2.0  # the depth map's cell, in the view points' median spacing
+CELL_SPACINGS = 2.0  # the depth map's cell, in the view points' spacing (viewing_axis)
 EDGE_CELLS = 2  # cells this close to an unseen one do not count as seen: a cut or cropped image's edge is no evidence
 DEPTH_TOLERANCE_SPACINGS = 4.0  # how far in front of the seen depth a point must lie to count (noise, grazing cells)
 MIN_COSINE = 0.05  # |cos| floor in the fit (grazing normals)
@@ -51,6 +58,7 @@ class RangeView:
     shape: tuple[int, int]
     nearest: np.ndarray  # [Gu * Gv] largest depth along +axis per cell (-inf: unseen)
     farthest: np.ndarray  # [Gu * Gv] smallest depth along +axis per cell (+inf: unseen)
+    neighbours: int = VIEW_NEIGHBOURS  # the reading it came from (COARSE_VIEW_NEIGHBOURS: the coarser one)
 
     def cells(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The flat cell of each of ``points [N, 3]`` and whether it lies on the grid (``[N]`` each)."""
@@ -91,13 +99,15 @@ def _correlations(log_density: np.ndarray, normals: np.ndarray, dirs: np.ndarray
     return (log_density @ log_cos) / np.maximum(norms, 1e-12)
 
 
-def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | None = None
-                 ) -> tuple[np.ndarray, float, float]:
-    """The direction that best explains the density of ``points [N >= VIEW_NEIGHBOURS, 3]`` as a range image's, its
-    correlation, and the points' median spacing; ``tree``: a KD-tree of ``points`` already built."""
+def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | None = None,
+                 neighbours: int = VIEW_NEIGHBOURS) -> tuple[np.ndarray, float, float]:
+    """The direction that best explains the density of ``points [N >= neighbours, 3]`` as a range image's, read over
+    ``neighbours`` neighbours, its correlation, and the points' spacing: the larger of the median nearest-neighbour
+    distance and the mean spacing the ``neighbours``-th neighbour's distance gives (a random share of a pixel grid
+    leaves near pairs among wide gaps); ``tree``: a KD-tree of ``points`` already built."""
     tree = KDTree(points) if tree is None else tree
     queries = points[rng.choice(len(points), min(VIEW_QUERIES, len(points)), replace=False)]  # [Q, 3]
-    dist, nb = tree.query(queries, k=VIEW_NEIGHBOURS)  # [Q, k]
+    dist, nb = tree.query(queries, k=neighbours)  # [Q, k]
     around = points[nb]  # [Q, k, 3]
     local = around - around.mean(axis=1, keepdims=True)
     normals = smallest_eigenvectors(np.einsum("qki,qkj->qij", local, local))[1].astype(np.float32)  # [Q, 3]
@@ -113,17 +123,20 @@ def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | No
         near_scores = _correlations(log_density, normals, near)
         if near_scores.max() > score:
             best, score = near[int(np.argmax(near_scores))], float(near_scores.max())
-    return best, score, float(np.median(dist[:, 1]))
+    mean_spacing = np.median(dist[:, -1]) * np.sqrt(np.pi / (neighbours - 1))  # k points on the k-th distance's disc
+    return best, score, float(max(np.median(dist[:, 1]), mean_spacing))
 
 
-def range_view(points: np.ndarray, tree: KDTree | None = None) -> RangeView | None:
-    """The :class:`RangeView` of ``points [N, 3]`` (all of them: the entry reduction bounds ``N``), or ``None``
-    where their density does not follow a viewing direction (correlation below ``RANGE_IMAGE_CORRELATION``) or they
-    are too few to tell; ``tree``: a KD-tree of ``points`` where one is built already."""
-    if len(points) < 4 * VIEW_NEIGHBOURS:
+def range_view(points: np.ndarray, tree: KDTree | None = None, neighbours: int = VIEW_NEIGHBOURS
+               ) -> RangeView | None:
+    """The :class:`RangeView` of ``points [N, 3]`` (all of them: the entry reduction bounds ``N``), read over
+    ``neighbours`` neighbours, or ``None`` where their density does not follow a viewing direction (correlation below
+    ``RANGE_IMAGE_CORRELATION``) or they are too few to tell; ``tree``: a KD-tree of ``points`` where one is built
+    already."""
+    if len(points) < 4 * neighbours:
         return None
     cloud = np.asarray(points, dtype=np.float64)  # [N, 3]
-    axis, correlation, spacing = viewing_axis(cloud, np.random.default_rng(_SEED), tree)
+    axis, correlation, spacing = viewing_axis(cloud, np.random.default_rng(_SEED), tree, neighbours)
     if correlation < RANGE_IMAGE_CORRELATION or not spacing > 0:
         return None
     across, cell = across_axis(axis), CELL_SPACINGS * spacing
@@ -143,7 +156,7 @@ def range_view(points: np.ndarray, tree: KDTree | None = None) -> RangeView | No
     inner = away_from_edges(np.isfinite(nearest).reshape(shape), EDGE_CELLS).ravel()  # [Gu * Gv]
     nearest[~inner], farthest[~inner] = -np.inf, np.inf
     return RangeView(axis, across, correlation, cell, DEPTH_TOLERANCE_SPACINGS * spacing, corner, shape, nearest,
-                     farthest)
+                     farthest, neighbours)
 
 
 def away_from_edges(seen: np.ndarray, cells: int) -> np.ndarray:
@@ -157,27 +170,43 @@ def away_from_edges(seen: np.ndarray, cells: int) -> np.ndarray:
     return inner
 
 
-def free_space_share(view: RangeView, points: np.ndarray) -> float:
+def view_shares(view: RangeView, points: np.ndarray) -> tuple[float, float]:
     """The share of ``points [N, 3]`` (in the view's frame) that lie in front of what ``view`` saw in a seen cell, by
-    more than its tolerance, with the sensor at whichever end of the axis gives the smaller share."""
+    more than its tolerance, with the sensor at whichever end of the axis gives the smaller share; and the share that
+    lies in a seen cell at all (the evidence the first rests on)."""
     if len(points) == 0:
-        return 0.0
+        return 0.0, 0.0
     flat, on = view.cells(points)
     depth = points @ view.axis  # [N]
     seen = on & np.isfinite(view.nearest[flat])
     plus = np.count_nonzero(seen & (depth > view.nearest[flat] + view.tolerance))
     minus = np.count_nonzero(seen & (depth < view.farthest[flat] - view.tolerance))
-    return min(plus, minus) / len(points)
+    return min(plus, minus) / len(points), np.count_nonzero(seen) / len(points)
+
+
+def free_space_share(view: RangeView, points: np.ndarray) -> float:
+    """The share of ``points [N, 3]`` in ``view``'s free space (the first of :func:`view_shares`)."""
+    return view_shares(view, points)[0]
+
+
+@dataclass(frozen=True)
+class PoseFreeSpace:
+    """What a pose puts in the range images' views, the larger of the two ways (:func:`pose_free_space`)."""
+
+    share: float  # of one scan's points, where the other scan's sensor saw through
+    seen: float  # of one scan's points, in cells the other scan's sensor saw
 
 
 def pose_free_space(source_view: RangeView | None, target_view: RangeView | None, source: np.ndarray,
-                    target: np.ndarray, R: np.ndarray, t: np.ndarray) -> float | None:
-    """The larger :func:`free_space_share` of the pose ``src_to_tgt = (R, t)`` both ways: ``source [N, 3]`` moved into
+                    target: np.ndarray, R: np.ndarray, t: np.ndarray) -> PoseFreeSpace | None:
+    """The larger :func:`view_shares` of the pose ``src_to_tgt = (R, t)`` both ways: ``source [N, 3]`` moved into
     ``target_view`` and ``target [M, 3]`` moved back into ``source_view``; ``None`` where neither cloud is a range
     image."""
     shares = []
     if target_view is not None:
-        shares.append(free_space_share(target_view, source @ R.T + t))
+        shares.append(view_shares(target_view, source @ R.T + t))
     if source_view is not None:
-        shares.append(free_space_share(source_view, (target - t) @ R))
-    return max(shares) if shares else None
+        shares.append(view_shares(source_view, (target - t) @ R))
+    if not shares:
+        return None
+    return PoseFreeSpace(max(free for free, _ in shares), max(seen for _, seen in shares))

@@ -5,11 +5,14 @@ moves the other cloud's fine points (:attr:`Working.fine_source`, :attr:`Working
 view; more than ``RELIABLE_FREE_SPACE`` of them in front of the surface its sensor saw
 (:func:`service.free_space.pose_free_space`) takes ``reliable`` away, with a warning. Conversely, a result that only
 the doubts free space settles (``SETTLED_DOUBTS``) kept from ``reliable`` is ``reliable`` where at most
-``CONFIRMS_BELOW`` lie there: two range images that overlap in part overlay each other loosely, and a pose only the
-second, denser rotation search found is not half a turn off if it leaves the sensors' free space clear. The pose itself
-is kept. It runs on the pose the caller gets (after the fine refinement), before the symmetry check, which still judges
+``CONFIRMS_BELOW`` lie there and at least ``CONFIRMS_SEEING`` where a sensor saw at all: two range images that overlap
+in part overlay each other loosely, and a pose only the second, denser rotation search found is not half a turn off if
+it leaves the sensors' free space clear. A confirmation reads :attr:`Working.confirming_views`, where a range image
+with range noise has a view read over more neighbours (then at most ``COARSE_CONFIRMS_BELOW``). The pose itself is
+kept. It runs on the pose the caller gets (after the fine refinement), before the symmetry check, which still judges
 a confirmed result (``docs/decisions/0053-free-space-of-range-images.md``,
-``docs/decisions/0054-free-space-settles-the-second-search.md``).
+``docs/decisions/0054-free-space-settles-the-second-search.md``,
+``docs/decisions/0094-free-space-through-range-noise-and-thinning.md``).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from service.free_space import pose_free_space
+from service.free_space import VIEW_NEIGHBOURS, PoseFreeSpace, RangeView, pose_free_space
 from service.options import RegistrationOptions
 from service.quality import LOOSE_FIT  # the warning it overrules (quality.assess, stages.assess.off_the_surface)
 from service.result import RegistrationResult
@@ -32,6 +35,14 @@ RELIABLE_FREE_SPACE = 0.08
 # low-overlap range images overlay each other loosely at 0.014 and less; wrong poses that fit loosely put 0.059 and
 # more there (the derived dragon pairs at 10 turns), each with another doubt besides.
 CONFIRMS_BELOW = 0.03
+# ... where at least this share of one scan's points lies in cells the other's sensor saw: below it, half-turned poses
+# of the set's dragon pairs (full, thinned, with noise) mostly leave under CONFIRMS_BELOW there too, whatever the pose
+# (docs/decisions/0094)
+CONFIRMS_SEEING = 0.1
+# ... and at most this share where a view read over COARSE_VIEW_NEIGHBOURS takes part: its wider cells and tolerance
+# leave less of a wrong pose in front (true poses of noisy and thinned dragon pairs 0.010 at most, half-turned ones
+# seeing a tenth 0.015 and more; docs/decisions/0094)
+COARSE_CONFIRMS_BELOW = 0.01
 # The warnings free space settles: a loose fit, and a pose found by the second, denser search only (0028: a few such
 # were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.038 and
 # more, each with another doubt besides).
@@ -41,10 +52,12 @@ THROUGH_FREE_SPACE = "through free space"
 CONFIRMED_BY_FREE_SPACE = "confirmed by free space"
 
 
-def free_space_of(work: Working, result: RegistrationResult) -> float | None:
-    """The share of one cloud's fine points that the pose of ``result`` puts where the other cloud's range-image
-    sensor saw through (the larger of the two ways), or ``None`` where neither cloud is a range image."""
-    source_view, target_view = work.range_views
+def free_space_of(work: Working, result: RegistrationResult,
+                  views: tuple[RangeView | None, RangeView | None] | None = None) -> PoseFreeSpace | None:
+    """The shares of one cloud's fine points that the pose of ``result`` puts where the other cloud's range-image
+    sensor saw through and where it saw at all (each the larger of the two ways), or ``None`` where neither cloud is
+    a range image; ``views``: the source's and the target's (default :attr:`Working.range_views`)."""
+    source_view, target_view = work.range_views if views is None else views
     if source_view is None and target_view is None:
         return None  # before the fine points are asked for: a cloud that skips the fine stage has none built
     return pose_free_space(source_view, target_view, work.fine_source, work.fine_target, result.rotation,
@@ -56,23 +69,35 @@ def only_settled_doubts(result: RegistrationResult) -> bool:
     return bool(result.warnings) and all(w.startswith(SETTLED_DOUBTS) for w in result.warnings)
 
 
+def confirms_below(views: tuple[RangeView | None, RangeView | None]) -> float:
+    """The share of one scan in the other's free space up to which ``views`` confirm a pose: ``CONFIRMS_BELOW``, or
+    ``COARSE_CONFIRMS_BELOW`` where a view read over ``COARSE_VIEW_NEIGHBOURS`` takes part."""
+    coarse = any(view is not None and view.neighbours != VIEW_NEIGHBOURS for view in views)
+    return COARSE_CONFIRMS_BELOW if coarse else CONFIRMS_BELOW
+
+
 def free_space(work: Working, result: RegistrationResult, options: RegistrationOptions,
                timing: dict[str, float]) -> RegistrationResult:
     """``result`` judged by its free space (:func:`free_space_of`): a ``reliable`` one with more than
     ``RELIABLE_FREE_SPACE`` is not, with a ``through free space`` warning; one that only ``SETTLED_DOUBTS`` kept
-    from ``reliable`` is, with at most ``CONFIRMS_BELOW`` (its warnings stay, and a note says so). The time is added to
+    from ``reliable`` is, judged by :attr:`Working.confirming_views`, with at most :func:`confirms_below` where at
+    least ``CONFIRMS_SEEING`` lie where a sensor saw (its warnings stay, and a note says so). The time is added to
     ``timing["postprocess"]``."""
     if not (result.reliable or only_settled_doubts(result)):
         return result
     started = time.perf_counter()
-    share = free_space_of(work, result)
+    views = work.range_views if result.reliable else work.confirming_views
+    shares = free_space_of(work, result, views)
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
-    if share is None:
+    if shares is None:
         return result
-    if result.reliable and share > RELIABLE_FREE_SPACE:
-        return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, through_free_space(share)])
-    if not result.reliable and share <= CONFIRMS_BELOW:
-        return dataclasses.replace(result, reliable=True, warnings=[*result.warnings, confirmed_by_free_space(share)])
+    if result.reliable and shares.share > RELIABLE_FREE_SPACE:
+        return dataclasses.replace(result, reliable=False,
+                                   warnings=[*result.warnings, through_free_space(shares.share)])
+    bound = confirms_below(views)
+    if not result.reliable and shares.share <= bound and shares.seen >= CONFIRMS_SEEING:
+        return dataclasses.replace(result, reliable=True,
+                                   warnings=[*result.warnings, confirmed_by_free_space(shares.share, bound)])
     return result
 
 
@@ -82,8 +107,8 @@ def through_free_space(share: float) -> str:
             f"> {RELIABLE_FREE_SPACE}; a right pose puts surface only where a sensor saw surface or nothing")
 
 
-def confirmed_by_free_space(share: float) -> str:
-    """The note of a result made ``reliable`` by leaving at most ``CONFIRMS_BELOW`` (``share``) in free space."""
+def confirmed_by_free_space(share: float, bound: float = CONFIRMS_BELOW) -> str:
+    """The note of a result made ``reliable`` by leaving at most ``bound`` (``share``) in free space."""
     return (f"{CONFIRMED_BY_FREE_SPACE}: only {share:.3f} of one scan's points lie where the other scan's sensor saw "
-            f"through, <= {CONFIRMS_BELOW}; range images that overlap in part overlay each other loosely, and a pose "
+            f"through, <= {bound}; range images that overlap in part overlay each other loosely, and a pose "
             "half a turn off would put surface there")

@@ -1,16 +1,38 @@
 """A range image's viewing axis and free space (service.free_space), on synthetic scans of a bumpy surface; which doubts
-the free-space stage settles."""
+the free-space stage settles, and on what evidence."""
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from types import SimpleNamespace
 
 import numpy as np
+from real_scan_cases import general_reference_radius
 
-from service.free_space import RANGE_IMAGE_CORRELATION, free_space_share, pose_free_space, range_view
-from service.stages.free_space import RELIABLE_FREE_SPACE, only_settled_doubts
+from service.free_space import (
+    COARSE_VIEW_NEIGHBOURS,
+    RANGE_IMAGE_CORRELATION,
+    free_space_share,
+    pose_free_space,
+    range_view,
+    view_shares,
+)
+from service.quality import LOOSE_FIT
+from service.result import RegistrationResult
+from service.stages.free_space import (
+    COARSE_CONFIRMS_BELOW,
+    CONFIRMED_BY_FREE_SPACE,
+    CONFIRMS_BELOW,
+    RELIABLE_FREE_SPACE,
+    free_space,
+    free_space_of,
+    only_settled_doubts,
+)
+from service.stages.normalise import normalise
+from service.stages.sample import sample
 from service.stages.search import RETRY_WARNING
+from service.stages.validate import validate
 
 
 def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -40,14 +62,41 @@ def test_a_range_image_gives_its_viewing_axis() -> None:
     assert abs(view.axis @ rotation[:, 2]) > np.cos(np.radians(5.0))  # the turned z axis, up to its sign
 
 
-def test_uniform_samples_of_the_surface_are_no_range_image() -> None:
-    """Points spread evenly over the surface (as a mesh sampler or a fused fragment's voxels give them) have a
-    density that no viewing direction explains."""
-    rng = np.random.default_rng(0)
+def test_a_range_image_with_noise_of_a_pixel_spacing_gives_its_viewing_axis_over_more_neighbours() -> None:
+    """Gaussian noise of one pixel spacing turns the normals and densities of 10 neighbours to noise; read over
+    ``COARSE_VIEW_NEIGHBOURS`` the image still explains its density (decisions/0094)."""
+    rotation = turn(np.array([1.0, 2.0, 0.5]), 40.0)
+    noisy = pixel_grid_scan(rotation) + np.random.default_rng(0).normal(scale=2 / 159, size=(160 * 160, 3))
+    assert range_view(noisy) is None
+    view = range_view(noisy, neighbours=COARSE_VIEW_NEIGHBOURS)
+    assert view is not None and view.correlation >= RANGE_IMAGE_CORRELATION
+    assert abs(view.axis @ rotation[:, 2]) > np.cos(np.radians(5.0))
+
+
+def test_a_random_half_of_a_range_image_maps_what_it_saw() -> None:
+    """A random half of the pixels leaves near pairs among gaps: cells sized by the nearest neighbour would often be
+    empty, and the edges of those holes would leave little seen; sized by the mean spacing, most of the points lie
+    in seen cells."""
+    rotation = turn(np.array([1.0, 2.0, 0.5]), 40.0)
+    full = pixel_grid_scan(rotation, pixels=400)
+    thinned = full[np.random.default_rng(0).random(len(full)) < 0.5]
+    view = range_view(thinned)
+    assert view is not None and abs(view.axis @ rotation[:, 2]) > np.cos(np.radians(5.0))
+    assert view_shares(view, thinned)[1] > 0.8
+
+
+def even_sample() -> np.ndarray:
+    """``[N > 4000, 3]``: the bumpy surface with its points spread evenly over it (as a mesh sampler or a fused
+    fragment's voxels give them), each pixel of a 400 x 400 grid kept against its cosine."""
     dense = pixel_grid_scan(np.eye(3), pixels=400)
     gy, gx = np.gradient(dense[:, 2].reshape(400, 400), 2 / 399)
     cos = 1 / np.sqrt(1 + gx.ravel() ** 2 + gy.ravel() ** 2)  # [N] of the surface normal and the z axis
-    uniform = dense[rng.random(len(dense)) < cos.min() / cos]  # each kept against its cos: even per unit of surface
+    return dense[np.random.default_rng(0).random(len(dense)) < cos.min() / cos]
+
+
+def test_uniform_samples_of_the_surface_are_no_range_image() -> None:
+    """Points spread evenly over the surface have a density that no viewing direction explains."""
+    uniform = even_sample()
     assert len(uniform) > 4000
     assert range_view(uniform) is None
 
@@ -59,9 +108,9 @@ def test_the_truth_leaves_free_space_empty_and_a_half_turn_does_not() -> None:
     views = (range_view(source), range_view(target))
     assert views[0] is not None and views[1] is not None
     R, t = source_to_target, np.zeros(3)
-    assert pose_free_space(*views, source, target, R, t) < 0.01
+    assert pose_free_space(*views, source, target, R, t).share < 0.01
     half = turn(np.array([1.0, 0.0, 0.0]), 180.0)  # the right pose turned half a turn about the target's x axis
-    share = pose_free_space(*views, source, target, half @ R, half @ t)
+    share = pose_free_space(*views, source, target, half @ R, half @ t).share
     assert share > RELIABLE_FREE_SPACE, share
 
 
@@ -105,10 +154,11 @@ def test_a_wide_angle_perspective_scan_keeps_the_truth_out_of_free_space() -> No
     source = perspective_scan(source_to_target.T @ np.array([0.0, 0.0, 1.5]), 80.0, 120) @ source_to_target
     views = (range_view(source), range_view(target))
     assert views != (None, None)
-    assert pose_free_space(*views, source, target, source_to_target, np.zeros(3)) < 0.02
+    assert pose_free_space(*views, source, target, source_to_target, np.zeros(3)).share < 0.02
     off = turn(np.array([1.0, 0.0, 0.0]), 180.0)  # about the target's centroid
     centre = target.mean(axis=0)
-    assert pose_free_space(*views, source, target, off @ source_to_target, centre - off @ centre) > RELIABLE_FREE_SPACE
+    wrong = pose_free_space(*views, source, target, off @ source_to_target, centre - off @ centre)
+    assert wrong is not None and wrong.share > RELIABLE_FREE_SPACE
 
 
 def test_a_stray_point_far_away_neither_widens_the_map_nor_overflows_its_cells() -> None:
@@ -132,3 +182,81 @@ def test_loose_fits_and_poses_only_the_second_search_found_are_the_doubts_it_set
     assert not only_settled_doubts(result())  # nothing to settle
     assert not only_settled_doubts(result(RETRY_WARNING, "poor fit: inlier ratio 0.31 < 0.45 ..."))
     assert not only_settled_doubts(result(loose, "ambiguous: a pose 180 deg away fits almost as well ..."))
+
+
+def loose_result(R: np.ndarray, t: np.ndarray) -> RegistrationResult:
+    """A result at ``(R, t)`` that only a loose fit keeps from ``reliable`` (a doubt free space settles)."""
+    empty = np.zeros(0)
+    return RegistrationResult(rotation=R, translation=t, source_index=empty.astype(np.int64),
+                              target_index=empty.astype(np.int64), credibility=empty, weight=empty, inlier_ratio=0.6,
+                              residual_rms=0.0, reliable=False, warnings=[f"{LOOSE_FIT}: ..."], iterations=4,
+                              timing_ms={})
+
+
+def test_free_space_confirms_a_pose_only_where_the_sensor_saw_the_other_scan() -> None:
+    """The truth is confirmed; a pose that moves the other scan beside the image, where its sensor saw nothing, puts
+    nothing in its free space either, and that is no evidence: it stays unconfirmed."""
+    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
+    target = pixel_grid_scan(np.eye(3))
+    source = pixel_grid_scan(np.eye(3), pixels=150) @ source_to_target
+    request = validate(source.astype(np.float32), target.astype(np.float32), None, {"refine": "icp-plane"}, 3, 128)
+    work = normalise(sample(request), general_reference_radius())
+    assert work.range_views != (None, None)
+    right = free_space(work, loose_result(source_to_target, np.zeros(3)), request.options, {})
+    assert right.reliable and any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in right.warnings), right.warnings
+    beside = free_space(work, loose_result(source_to_target, np.array([3.0, 0.0, 0.0])), request.options, {})
+    assert not beside.reliable and not any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in beside.warnings)
+
+
+def noisy_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(source, target, src_to_tgt [3, 3])``: two pixel-grid scans of the bumpy surface, each with Gaussian noise of
+    one pixel spacing (float32)."""
+    rng = np.random.default_rng(1)
+    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
+    target = pixel_grid_scan(np.eye(3)) + rng.normal(scale=2 / 159, size=(160 * 160, 3))
+    source = pixel_grid_scan(np.eye(3), pixels=150) + rng.normal(scale=2 / 149, size=(150 * 150, 3))
+    source = source @ source_to_target
+    return source.astype(np.float32), target.astype(np.float32), source_to_target
+
+
+def working_of(source: np.ndarray, target: np.ndarray):
+    request = validate(source, target, None, {"refine": "icp-plane"}, 3, 128)
+    return normalise(sample(request), general_reference_radius()), request.options
+
+
+def test_noisy_range_images_are_confirmed_by_their_coarser_views_at_the_tighter_bound() -> None:
+    """Over 10 neighbours neither noisy scan is a range image; a confirmation reads both over
+    ``COARSE_VIEW_NEIGHBOURS`` and then holds the share to ``COARSE_CONFIRMS_BELOW``."""
+    source, target, source_to_target = noisy_pair()
+    work, options = working_of(source, target)
+    assert work.range_views == (None, None)
+    assert all(view is not None and view.neighbours == COARSE_VIEW_NEIGHBOURS for view in work.confirming_views)
+    right = free_space(work, loose_result(source_to_target, np.zeros(3)), options, {})
+    assert right.reliable, right.warnings
+    assert any(w.startswith(CONFIRMED_BY_FREE_SPACE) and f"<= {COARSE_CONFIRMS_BELOW}" in w for w in right.warnings)
+    off = turn(np.array([1.0, 0.0, 0.0]), 4.0) @ source_to_target  # a few degrees off: a little in front of the scan
+    shares = free_space_of(work, loose_result(off, np.zeros(3)), work.confirming_views)
+    assert shares is not None and COARSE_CONFIRMS_BELOW < shares.share <= CONFIRMS_BELOW  # fine views would confirm it
+    assert not free_space(work, loose_result(off, np.zeros(3)), options, {}).reliable
+
+
+def test_a_reliable_result_is_judged_on_the_views_over_ten_neighbours_alone() -> None:
+    """The veto never reads the coarser views (they cost about twice the first reading): a ``reliable`` result over
+    two noisy scans is passed through without them."""
+    source, target, source_to_target = noisy_pair()
+    work, options = working_of(source, target)
+    result = dataclasses.replace(loose_result(source_to_target, np.zeros(3)), reliable=True, warnings=[])
+    assert free_space(work, result, options, {}) is result
+    assert "confirming_views" not in vars(work)
+
+
+def test_a_coarser_view_beside_a_cloud_with_no_view_confirms_nothing() -> None:
+    """A fused fragment cut by a plane can pass the coarser reading alone; a coarser view counts only where the other
+    cloud has a view too, so beside an even sample of the surface (no range image at any reading) none is kept."""
+    source, _, source_to_target = noisy_pair()
+    even = even_sample()
+    work, options = working_of(source, even.astype(np.float32))
+    assert range_view(even, neighbours=COARSE_VIEW_NEIGHBOURS) is None
+    assert range_view(source, neighbours=COARSE_VIEW_NEIGHBOURS) is not None
+    assert work.confirming_views == (None, None)
+    assert not free_space(work, loose_result(source_to_target, np.zeros(3)), options, {}).reliable

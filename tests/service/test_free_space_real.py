@@ -1,5 +1,5 @@
 """The free-space stage on real range images (decisions/0053): the derived dragon pairs, wider apart than the set's
-own, where a wrong pose can fit better than the truth and right poses fit loosely."""
+own, where a wrong pose can fit better than the truth and right poses fit loosely; a pair with range noise."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from dataclasses import replace
 
 from real_scan_cases import GENERAL, real_case, register_with_defaults, skip_without
 
+from bench.altered_scans import cases as altered_cases
 from bench.real_scans import Case, data_dir, load_cases, thresholds
 from service.registrar import Registrar
 from service.result import RegistrationResult
@@ -62,3 +63,16 @@ def test_a_right_pose_only_the_second_search_found_is_confirmed() -> None:
     assert RETRY_WARNING in result.warnings, result.warnings
     assert result.reliable and any(w.startswith("confirmed by free space") for w in result.warnings), result.warnings
     assert not without_free_space(case).reliable
+
+
+def test_a_noisy_range_images_loose_fit_is_confirmed() -> None:
+    """``dragon_96_48`` with Gaussian noise of one point spacing on every point (``bench.altered_scans``' ``noise``):
+    right, but loose. Read over 10 neighbours neither image looks like a range image any more; over
+    ``COARSE_VIEW_NEIGHBOURS`` both do, and their free space confirms the pose (decisions/0094)."""
+    skip_without("dragon_96_48")
+    label, sensor, source, target, truth = next(altered_cases(data_dir(), "noise", names=["dragon_96_48"]))
+    case = Case("dragon_96_48", sensor, label, 1.0, source, target, truth)
+    result, degrees, error = register_with_defaults(case)
+    assert is_right(case, degrees, error), (degrees, error)
+    assert any(w.startswith("loose fit") for w in result.warnings), result.warnings
+    assert result.reliable and any(w.startswith("confirmed by free space") for w in result.warnings), result.warnings
