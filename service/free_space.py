@@ -28,7 +28,7 @@ import numpy as np
 from service.icp import smallest_eigenvectors
 from service.kdtree import KDTree
 
-RANGE_IMAGE_CORRELATION = 0.6  # range images 0.74-0.83; fused fragments and LiDAR frames 0.51 or less (over
+RANGE_IMAGE_CORRELATION = 0.6  # range images 0.74-0.84; fused fragments and LiDAR frames 0.51 or less (over
 # COARSE_VIEW_NEIGHBOURS 0.50 or less, but for a fragment cut by a plane at 0.62), mesh samples less
 VIEW_QUERIES = 1000  # the points whose density and normal fit the direction (all points are their neighbours: a
 # random share of a pixel grid would blur its density with sampling noise)
@@ -104,7 +104,7 @@ def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | No
     """The direction that best explains the density of ``points [N >= neighbours, 3]`` as a range image's, read over
     ``neighbours`` neighbours, its correlation, and the points' spacing: the larger of the median nearest-neighbour
     distance and the mean spacing the ``neighbours``-th neighbour's distance gives (a random share of a pixel grid
-    leaves near pairs among wide gaps); ``tree``: a KD-tree of ``points`` already built."""
+    leaves near pairs among wide gaps), 0 where that median is 0; ``tree``: a KD-tree of ``points`` already built."""
     tree = KDTree(points) if tree is None else tree
     queries = points[rng.choice(len(points), min(VIEW_QUERIES, len(points)), replace=False)]  # [Q, 3]
     dist, nb = tree.query(queries, k=neighbours)  # [Q, k]
@@ -123,8 +123,9 @@ def viewing_axis(points: np.ndarray, rng: np.random.Generator, tree: KDTree | No
         near_scores = _correlations(log_density, normals, near)
         if near_scores.max() > score:
             best, score = near[int(np.argmax(near_scores))], float(near_scores.max())
-    mean_spacing = np.median(dist[:, -1]) * np.sqrt(np.pi / (neighbours - 1))  # k points on the k-th distance's disc
-    return best, score, float(max(np.median(dist[:, 1]), mean_spacing))
+    nearest = float(np.median(dist[:, 1]))  # 0 where most points are stacked duplicates: no view (range_view)
+    mean_spacing = float(np.median(dist[:, -1])) * np.sqrt(np.pi / (neighbours - 1))  # k points on the k-th's disc
+    return best, score, max(nearest, mean_spacing) if nearest > 0 else 0.0
 
 
 def range_view(points: np.ndarray, tree: KDTree | None = None, neighbours: int = VIEW_NEIGHBOURS

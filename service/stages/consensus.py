@@ -109,7 +109,8 @@ UNIQUE_SHARE = 0.6
 # ... and where the feature pose is one place in that sense (kept or replaced), a slide that hardly changes the fit and
 # a loose fit of the working target (not the entered target's, which confirmed() asks of every result), the latter
 # only where neither cloud is a range image (free space, which runs before, settles theirs where it is the only doubt,
-# and declines it above 0.03 of a scan in free space): on the choosing sets 48 of 50 object results with such doubts
+# and declines it above 0.03 of a scan in free space, 0.01 on a coarser view, or where it saw under 0.1 of a scan;
+# decisions/0094): on the choosing sets 48 of 50 object results with such doubts
 # alone were right, the 2 wrong ones kept 16 and 13 pairs; 30 right ones passed the rule. A poor fit stays unsettled:
 # none passed it (decisions/0093).
 ONE_PLACE_OBJECT_DOUBTS = (WEAK_SLIDE, WORKING_LOOSE_FIT)
@@ -167,11 +168,12 @@ def confirmed(work: Working, result: RegistrationResult, support: int, pose: Fea
 
 
 def loose_between_range_images(work: Working, result: RegistrationResult) -> bool:
-    """Whether ``result`` fits the working target loosely and a cloud is a range image: such a loose fit is free
-    space's to settle (:mod:`service.stages.free_space`, where it is the result's only doubt), not the descriptors'.
-    The range views are built only where the warning is there."""
+    """Whether ``result`` fits the working target loosely and a cloud is a range image, as free space reads it for a
+    confirmation (:attr:`Working.confirming_views`): such a loose fit is free space's to settle
+    (:mod:`service.stages.free_space`, where it is the result's only doubt), not the descriptors'. The views are built
+    only where the warning is there."""
     loose = any(w.startswith(WORKING_LOOSE_FIT) for w in result.warnings)
-    return loose and any(view is not None for view in work.range_views)
+    return loose and any(view is not None for view in work.confirming_views)
 
 
 def after_guess(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

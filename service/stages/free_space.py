@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from service.free_space import VIEW_NEIGHBOURS, PoseFreeSpace, RangeView, pose_free_space
+from service.free_space import COARSE_VIEW_NEIGHBOURS, PoseFreeSpace, RangeView, pose_free_space
 from service.options import RegistrationOptions
 from service.quality import LOOSE_FIT  # the warning it overrules (quality.assess, stages.assess.off_the_surface)
 from service.result import RegistrationResult
@@ -41,7 +41,7 @@ CONFIRMS_BELOW = 0.03
 CONFIRMS_SEEING = 0.1
 # ... and at most this share where a view read over COARSE_VIEW_NEIGHBOURS takes part: its wider cells and tolerance
 # leave less of a wrong pose in front (true poses of noisy and thinned dragon pairs 0.010 at most, half-turned ones
-# seeing a tenth 0.015 and more; docs/decisions/0094)
+# seeing a tenth 0.015 and more; turns of 120-165 deg can leave less; docs/decisions/0094)
 COARSE_CONFIRMS_BELOW = 0.01
 # The warnings free space settles: a loose fit, and a pose found by the second, denser search only (0028: a few such
 # were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.038 and
@@ -72,7 +72,7 @@ def only_settled_doubts(result: RegistrationResult) -> bool:
 def confirms_below(views: tuple[RangeView | None, RangeView | None]) -> float:
     """The share of one scan in the other's free space up to which ``views`` confirm a pose: ``CONFIRMS_BELOW``, or
     ``COARSE_CONFIRMS_BELOW`` where a view read over ``COARSE_VIEW_NEIGHBOURS`` takes part."""
-    coarse = any(view is not None and view.neighbours != VIEW_NEIGHBOURS for view in views)
+    coarse = any(view is not None and view.neighbours == COARSE_VIEW_NEIGHBOURS for view in views)
     return COARSE_CONFIRMS_BELOW if coarse else CONFIRMS_BELOW
 
 

@@ -18,8 +18,10 @@ from service.free_space import (
     range_view,
     view_shares,
 )
-from service.quality import LOOSE_FIT
+from service.options import RegistrationOptions
+from service.quality import LOOSE_FIT, WORKING_LOOSE_FIT
 from service.result import RegistrationResult
+from service.stages.consensus import loose_between_range_images
 from service.stages.free_space import (
     COARSE_CONFIRMS_BELOW,
     CONFIRMED_BY_FREE_SPACE,
@@ -29,7 +31,7 @@ from service.stages.free_space import (
     free_space_of,
     only_settled_doubts,
 )
-from service.stages.normalise import normalise
+from service.stages.normalise import Working, normalise
 from service.stages.sample import sample
 from service.stages.search import RETRY_WARNING
 from service.stages.validate import validate
@@ -219,7 +221,8 @@ def noisy_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return source.astype(np.float32), target.astype(np.float32), source_to_target
 
 
-def working_of(source: np.ndarray, target: np.ndarray):
+def working_of(source: np.ndarray, target: np.ndarray) -> tuple[Working, RegistrationOptions]:
+    """The registration's working clouds of ``source`` and ``target`` as the pipeline makes them, and its options."""
     request = validate(source, target, None, {"refine": "icp-plane"}, 3, 128)
     return normalise(sample(request), general_reference_radius()), request.options
 
@@ -236,7 +239,25 @@ def test_noisy_range_images_are_confirmed_by_their_coarser_views_at_the_tighter_
     assert any(w.startswith(CONFIRMED_BY_FREE_SPACE) and f"<= {COARSE_CONFIRMS_BELOW}" in w for w in right.warnings)
     off = turn(np.array([1.0, 0.0, 0.0]), 4.0) @ source_to_target  # a few degrees off: a little in front of the scan
     shares = free_space_of(work, loose_result(off, np.zeros(3)), work.confirming_views)
-    assert shares is not None and COARSE_CONFIRMS_BELOW < shares.share <= CONFIRMS_BELOW  # fine views would confirm it
+    assert shares is not None and COARSE_CONFIRMS_BELOW < shares.share <= CONFIRMS_BELOW  # the 0.03 bound would pass it
+    assert not free_space(work, loose_result(off, np.zeros(3)), options, {}).reliable
+
+
+def test_a_coarser_view_beside_a_view_over_ten_neighbours_takes_part_at_the_tighter_bound() -> None:
+    """A clean target (a range image over 10 neighbours) and a noisy source (one over 40 only): a confirmation reads
+    both, so the tighter bound holds; a pose 3 deg off, which the 0.03 bound would pass, stays unconfirmed."""
+    rng = np.random.default_rng(1)
+    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
+    target = pixel_grid_scan(np.eye(3)).astype(np.float32)
+    source = pixel_grid_scan(np.eye(3), pixels=150) + rng.normal(scale=2 / 149, size=(150 * 150, 3))
+    work, options = working_of((source @ source_to_target).astype(np.float32), target)
+    views = work.confirming_views
+    assert [view.neighbours for view in views] == [COARSE_VIEW_NEIGHBOURS, 10], views
+    right = free_space(work, loose_result(source_to_target, np.zeros(3)), options, {})
+    assert any(w.startswith(CONFIRMED_BY_FREE_SPACE) and f"<= {COARSE_CONFIRMS_BELOW}" in w for w in right.warnings)
+    off = turn(np.array([1.0, 0.0, 0.0]), 3.0) @ source_to_target
+    shares = free_space_of(work, loose_result(off, np.zeros(3)), views)
+    assert shares is not None and COARSE_CONFIRMS_BELOW < shares.share <= CONFIRMS_BELOW
     assert not free_space(work, loose_result(off, np.zeros(3)), options, {}).reliable
 
 
@@ -260,3 +281,20 @@ def test_a_coarser_view_beside_a_cloud_with_no_view_confirms_nothing() -> None:
     assert range_view(source, neighbours=COARSE_VIEW_NEIGHBOURS) is not None
     assert work.confirming_views == (None, None)
     assert not free_space(work, loose_result(source_to_target, np.zeros(3)), options, {}).reliable
+
+
+def test_a_cloud_of_stacked_duplicate_points_gives_no_view() -> None:
+    """Where most points have a duplicate, the median nearest-neighbour distance is 0: the density is no sensor's, and
+    the mean spacing does not make it a view."""
+    scan = pixel_grid_scan(np.eye(3))
+    assert range_view(np.vstack([scan, scan])) is None
+
+
+def test_the_descriptors_leave_a_noisy_range_images_loose_fit_to_free_space() -> None:
+    """Free space judges a loose fit between noisy range images on their coarser views, so the consensus stage does
+    not settle it in its place (decisions/0093, 0094)."""
+    source, target, source_to_target = noisy_pair()
+    work, _ = working_of(source, target)
+    result = dataclasses.replace(loose_result(source_to_target, np.zeros(3)), warnings=[f"{WORKING_LOOSE_FIT} ..."])
+    assert work.range_views == (None, None)
+    assert loose_between_range_images(work, result)
