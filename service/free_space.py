@@ -10,7 +10,7 @@ still explains its density through range noise of a point spacing (a coarser rea
 cell follows the larger of the points' nearest-neighbour and mean spacings, so that a random share of a pixel grid,
 near pairs among wide gaps, still fills its cells.
 
-:func:`free_space_share` then counts the points of the other scan, moved by a pose, that lie well in front of what the
+:func:`view_shares` then counts the points of the other scan, moved by a pose, that lie well in front of what the
 sensor saw in a cell it saw: space the sensor looked through. Which end of the axis the sensor was on is not known
 from the points, so both are tried and the smaller share counts; surface hidden from the sensor (behind what it saw,
 or in cells it did not see) is no evidence either way. On the real range images measured, a right pose leaves a few
@@ -183,11 +183,6 @@ def view_shares(view: RangeView, points: np.ndarray) -> tuple[float, float]:
     plus = np.count_nonzero(seen & (depth > view.nearest[flat] + view.tolerance))
     minus = np.count_nonzero(seen & (depth < view.farthest[flat] - view.tolerance))
     return min(plus, minus) / len(points), np.count_nonzero(seen) / len(points)
-
-
-def free_space_share(view: RangeView, points: np.ndarray) -> float:
-    """The share of ``points [N, 3]`` in ``view``'s free space (the first of :func:`view_shares`)."""
-    return view_shares(view, points)[0]
 
 
 @dataclass(frozen=True)

@@ -53,11 +53,12 @@ CONFIRMED_BY_FREE_SPACE = "confirmed by free space"
 
 
 def free_space_of(work: Working, result: RegistrationResult,
-                  views: tuple[RangeView | None, RangeView | None] | None = None) -> PoseFreeSpace | None:
+                  views: tuple[RangeView | None, RangeView | None]) -> PoseFreeSpace | None:
     """The shares of one cloud's fine points that the pose of ``result`` puts where the other cloud's range-image
     sensor saw through and where it saw at all (each the larger of the two ways), or ``None`` where neither cloud is
-    a range image; ``views``: the source's and the target's (default :attr:`Working.range_views`)."""
-    source_view, target_view = work.range_views if views is None else views
+    a range image; ``views``: the source's and the target's (:attr:`Working.range_views` or
+    :attr:`Working.confirming_views`)."""
+    source_view, target_view = views
     if source_view is None and target_view is None:
         return None  # before the fine points are asked for: a cloud that skips the fine stage has none built
     return pose_free_space(source_view, target_view, work.fine_source, work.fine_target, result.rotation,

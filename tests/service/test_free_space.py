@@ -13,7 +13,6 @@ from real_scan_cases import general_reference_radius
 from service.free_space import (
     COARSE_VIEW_NEIGHBOURS,
     RANGE_IMAGE_CORRELATION,
-    free_space_share,
     pose_free_space,
     range_view,
     view_shares,
@@ -121,9 +120,9 @@ def test_points_hidden_behind_what_the_sensor_saw_are_no_evidence() -> None:
     view = range_view(target)
     assert view is not None
     behind = target[::7] - 0.5 * view.axis  # the same surface moved along the axis: behind it from one side
-    assert free_space_share(view, behind) == 0.0
+    assert view_shares(view, behind)[0] == 0.0
     beside = target[::7] + np.array([5.0, 0.0, 0.0])  # cells the sensor never saw
-    assert free_space_share(view, beside) == 0.0
+    assert view_shares(view, beside) == (0.0, 0.0)
 
 
 def perspective_scan(camera: np.ndarray, fov_deg: float, pixels: int) -> np.ndarray:
@@ -171,7 +170,7 @@ def test_a_stray_point_far_away_neither_widens_the_map_nor_overflows_its_cells()
         warnings.simplefilter("error")
         view = range_view(np.vstack([scan, [[1e30, 0.0, 0.0]]]))
         assert view is not None and view.nearest.size <= 2 * range_view(scan).nearest.size
-        assert free_space_share(view, np.array([[1e30, 1e30, 1e30], [-1e30, 0.0, 0.0]])) == 0.0
+        assert view_shares(view, np.array([[1e30, 1e30, 1e30], [-1e30, 0.0, 0.0]])) == (0.0, 0.0)
 
 
 def test_loose_fits_and_poses_only_the_second_search_found_are_the_doubts_it_settles() -> None:
