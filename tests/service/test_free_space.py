@@ -194,30 +194,21 @@ def loose_result(R: np.ndarray, t: np.ndarray) -> RegistrationResult:
                               timing_ms={})
 
 
-def test_free_space_confirms_a_pose_only_where_the_sensor_saw_the_other_scan() -> None:
-    """The truth is confirmed; a pose that moves the other scan beside the image, where its sensor saw nothing, puts
-    nothing in its free space either, and that is no evidence: it stays unconfirmed."""
-    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
-    target = pixel_grid_scan(np.eye(3))
-    source = pixel_grid_scan(np.eye(3), pixels=150) @ source_to_target
-    request = validate(source.astype(np.float32), target.astype(np.float32), None, {"refine": "icp-plane"}, 3, 128)
-    work = normalise(sample(request), general_reference_radius())
-    assert work.range_views != (None, None)
-    right = free_space(work, loose_result(source_to_target, np.zeros(3)), request.options, {})
-    assert right.reliable and any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in right.warnings), right.warnings
-    beside = free_space(work, loose_result(source_to_target, np.array([3.0, 0.0, 0.0])), request.options, {})
-    assert not beside.reliable and not any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in beside.warnings)
+SOURCE_TO_TARGET = turn(np.array([0.3, -1.0, 0.2]), 25.0)
 
 
-def noisy_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(source, target, src_to_tgt [3, 3])``: two pixel-grid scans of the bumpy surface, each with Gaussian noise of
-    one pixel spacing (float32)."""
+def scan_pair(noisy_source: bool, noisy_target: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(source, target)`` float32: pixel-grid scans of the bumpy surface (150 and 160 pixels a side), the source
+    moved by ``SOURCE_TO_TARGET.T``; each as asked with Gaussian noise of one pixel spacing (the target's drawn
+    first)."""
     rng = np.random.default_rng(1)
-    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
-    target = pixel_grid_scan(np.eye(3)) + rng.normal(scale=2 / 159, size=(160 * 160, 3))
-    source = pixel_grid_scan(np.eye(3), pixels=150) + rng.normal(scale=2 / 149, size=(150 * 150, 3))
-    source = source @ source_to_target
-    return source.astype(np.float32), target.astype(np.float32), source_to_target
+    target = pixel_grid_scan(np.eye(3))
+    if noisy_target:
+        target = target + rng.normal(scale=2 / 159, size=target.shape)
+    source = pixel_grid_scan(np.eye(3), pixels=150)
+    if noisy_source:
+        source = source + rng.normal(scale=2 / 149, size=source.shape)
+    return (source @ SOURCE_TO_TARGET).astype(np.float32), target.astype(np.float32)
 
 
 def working_of(source: np.ndarray, target: np.ndarray) -> tuple[Working, RegistrationOptions]:
@@ -226,17 +217,27 @@ def working_of(source: np.ndarray, target: np.ndarray) -> tuple[Working, Registr
     return normalise(sample(request), general_reference_radius()), request.options
 
 
+def test_free_space_confirms_a_pose_only_where_the_sensor_saw_the_other_scan() -> None:
+    """The truth is confirmed; a pose that moves the other scan beside the image, where its sensor saw nothing, puts
+    nothing in its free space either, and that is no evidence: it stays unconfirmed."""
+    work, options = working_of(*scan_pair(noisy_source=False, noisy_target=False))
+    assert work.range_views != (None, None)
+    right = free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {})
+    assert right.reliable and any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in right.warnings), right.warnings
+    beside = free_space(work, loose_result(SOURCE_TO_TARGET, np.array([3.0, 0.0, 0.0])), options, {})
+    assert not beside.reliable and not any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in beside.warnings)
+
+
 def test_noisy_range_images_are_confirmed_by_their_coarser_views_at_the_tighter_bound() -> None:
     """Over 10 neighbours neither noisy scan is a range image; a confirmation reads both over
     ``COARSE_VIEW_NEIGHBOURS`` and then holds the share to ``COARSE_CONFIRMS_BELOW``."""
-    source, target, source_to_target = noisy_pair()
-    work, options = working_of(source, target)
+    work, options = working_of(*scan_pair(noisy_source=True, noisy_target=True))
     assert work.range_views == (None, None)
     assert all(view is not None and view.neighbours == COARSE_VIEW_NEIGHBOURS for view in work.confirming_views)
-    right = free_space(work, loose_result(source_to_target, np.zeros(3)), options, {})
+    right = free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {})
     assert right.reliable, right.warnings
     assert any(w.startswith(CONFIRMED_BY_FREE_SPACE) and f"<= {COARSE_CONFIRMS_BELOW}" in w for w in right.warnings)
-    off = turn(np.array([1.0, 0.0, 0.0]), 4.0) @ source_to_target  # a few degrees off: a little in front of the scan
+    off = turn(np.array([1.0, 0.0, 0.0]), 4.0) @ SOURCE_TO_TARGET  # a few degrees off: a little in front of the scan
     shares = free_space_of(work, loose_result(off, np.zeros(3)), work.confirming_views)
     assert shares is not None and COARSE_CONFIRMS_BELOW < shares.share <= CONFIRMS_BELOW  # the 0.03 bound would pass it
     assert not free_space(work, loose_result(off, np.zeros(3)), options, {}).reliable
@@ -245,16 +246,12 @@ def test_noisy_range_images_are_confirmed_by_their_coarser_views_at_the_tighter_
 def test_a_coarser_view_beside_a_view_over_ten_neighbours_takes_part_at_the_tighter_bound() -> None:
     """A clean target (a range image over 10 neighbours) and a noisy source (one over 40 only): a confirmation reads
     both, so the tighter bound holds; a pose 3 deg off, which the 0.03 bound would pass, stays unconfirmed."""
-    rng = np.random.default_rng(1)
-    source_to_target = turn(np.array([0.3, -1.0, 0.2]), 25.0)
-    target = pixel_grid_scan(np.eye(3)).astype(np.float32)
-    source = pixel_grid_scan(np.eye(3), pixels=150) + rng.normal(scale=2 / 149, size=(150 * 150, 3))
-    work, options = working_of((source @ source_to_target).astype(np.float32), target)
+    work, options = working_of(*scan_pair(noisy_source=True, noisy_target=False))
     views = work.confirming_views
     assert [view.neighbours for view in views] == [COARSE_VIEW_NEIGHBOURS, 10], views
-    right = free_space(work, loose_result(source_to_target, np.zeros(3)), options, {})
+    right = free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {})
     assert any(w.startswith(CONFIRMED_BY_FREE_SPACE) and f"<= {COARSE_CONFIRMS_BELOW}" in w for w in right.warnings)
-    off = turn(np.array([1.0, 0.0, 0.0]), 3.0) @ source_to_target
+    off = turn(np.array([1.0, 0.0, 0.0]), 3.0) @ SOURCE_TO_TARGET
     shares = free_space_of(work, loose_result(off, np.zeros(3)), views)
     assert shares is not None and COARSE_CONFIRMS_BELOW < shares.share <= CONFIRMS_BELOW
     assert not free_space(work, loose_result(off, np.zeros(3)), options, {}).reliable
@@ -263,9 +260,8 @@ def test_a_coarser_view_beside_a_view_over_ten_neighbours_takes_part_at_the_tigh
 def test_a_reliable_result_is_judged_on_the_views_over_ten_neighbours_alone() -> None:
     """The veto never reads the coarser views (they cost about twice the first reading): a ``reliable`` result over
     two noisy scans is passed through without them."""
-    source, target, source_to_target = noisy_pair()
-    work, options = working_of(source, target)
-    result = dataclasses.replace(loose_result(source_to_target, np.zeros(3)), reliable=True, warnings=[])
+    work, options = working_of(*scan_pair(noisy_source=True, noisy_target=True))
+    result = dataclasses.replace(loose_result(SOURCE_TO_TARGET, np.zeros(3)), reliable=True, warnings=[])
     assert free_space(work, result, options, {}) is result
     assert "confirming_views" not in vars(work)
 
@@ -273,13 +269,13 @@ def test_a_reliable_result_is_judged_on_the_views_over_ten_neighbours_alone() ->
 def test_a_coarser_view_beside_a_cloud_with_no_view_confirms_nothing() -> None:
     """A fused fragment cut by a plane can pass the coarser reading alone; a coarser view counts only where the other
     cloud has a view too, so beside an even sample of the surface (no range image at any reading) none is kept."""
-    source, _, source_to_target = noisy_pair()
+    source, _ = scan_pair(noisy_source=True, noisy_target=True)  # the noisy source, as in the tests above
     even = even_sample()
     work, options = working_of(source, even.astype(np.float32))
     assert range_view(even, neighbours=COARSE_VIEW_NEIGHBOURS) is None
     assert range_view(source, neighbours=COARSE_VIEW_NEIGHBOURS) is not None
     assert work.confirming_views == (None, None)
-    assert not free_space(work, loose_result(source_to_target, np.zeros(3)), options, {}).reliable
+    assert not free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {}).reliable
 
 
 def test_a_cloud_of_stacked_duplicate_points_gives_no_view() -> None:
@@ -292,8 +288,7 @@ def test_a_cloud_of_stacked_duplicate_points_gives_no_view() -> None:
 def test_the_descriptors_leave_a_noisy_range_images_loose_fit_to_free_space() -> None:
     """Free space judges a loose fit between noisy range images on their coarser views, so the consensus stage does
     not settle it in its place (decisions/0093, 0094)."""
-    source, target, source_to_target = noisy_pair()
-    work, _ = working_of(source, target)
-    result = dataclasses.replace(loose_result(source_to_target, np.zeros(3)), warnings=[f"{WORKING_LOOSE_FIT} ..."])
+    work, _ = working_of(*scan_pair(noisy_source=True, noisy_target=True))
+    result = dataclasses.replace(loose_result(SOURCE_TO_TARGET, np.zeros(3)), warnings=[f"{WORKING_LOOSE_FIT} ..."])
     assert work.range_views == (None, None)
     assert loose_between_range_images(work, result)
