@@ -8,7 +8,7 @@ import warnings
 from types import SimpleNamespace
 
 import numpy as np
-from real_scan_cases import general_reference_radius
+from stage_inputs import result_at, working_clouds
 
 from service.free_space import (
     COARSE_VIEW_NEIGHBOURS,
@@ -17,7 +17,6 @@ from service.free_space import (
     range_view,
     view_shares,
 )
-from service.options import RegistrationOptions
 from service.quality import LOOSE_FIT, WORKING_LOOSE_FIT
 from service.result import RegistrationResult
 from service.stages.consensus import loose_between_range_images
@@ -30,10 +29,7 @@ from service.stages.free_space import (
     free_space_of,
     only_settled_doubts,
 )
-from service.stages.normalise import Working, normalise
-from service.stages.sample import sample
 from service.stages.search import RETRY_WARNING
-from service.stages.validate import validate
 
 
 def height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -187,11 +183,7 @@ def test_loose_fits_and_poses_only_the_second_search_found_are_the_doubts_it_set
 
 def loose_result(R: np.ndarray, t: np.ndarray) -> RegistrationResult:
     """A result at ``(R, t)`` that only a loose fit keeps from ``reliable`` (a doubt free space settles)."""
-    empty = np.zeros(0)
-    return RegistrationResult(rotation=R, translation=t, source_index=empty.astype(np.int64),
-                              target_index=empty.astype(np.int64), credibility=empty, weight=empty, inlier_ratio=0.6,
-                              residual_rms=0.0, reliable=False, warnings=[f"{LOOSE_FIT}: ..."], iterations=4,
-                              timing_ms={})
+    return result_at(R, t, reliable=False, inlier_ratio=0.6, warnings=[f"{LOOSE_FIT}: ..."], iterations=4)
 
 
 SOURCE_TO_TARGET = turn(np.array([0.3, -1.0, 0.2]), 25.0)
@@ -211,16 +203,10 @@ def scan_pair(noisy_source: bool, noisy_target: bool) -> tuple[np.ndarray, np.nd
     return (source @ SOURCE_TO_TARGET).astype(np.float32), target.astype(np.float32)
 
 
-def working_of(source: np.ndarray, target: np.ndarray) -> tuple[Working, RegistrationOptions]:
-    """The registration's working clouds of ``source`` and ``target`` as the pipeline makes them, and its options."""
-    request = validate(source, target, None, {"refine": "icp-plane"}, 3, 128)
-    return normalise(sample(request), general_reference_radius()), request.options
-
-
 def test_free_space_confirms_a_pose_only_where_the_sensor_saw_the_other_scan() -> None:
     """The truth is confirmed; a pose that moves the other scan beside the image, where its sensor saw nothing, puts
     nothing in its free space either, and that is no evidence: it stays unconfirmed."""
-    work, options = working_of(*scan_pair(noisy_source=False, noisy_target=False))
+    work, options = working_clouds(*scan_pair(noisy_source=False, noisy_target=False))
     assert work.range_views != (None, None)
     right = free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {})
     assert right.reliable and any(w.startswith(CONFIRMED_BY_FREE_SPACE) for w in right.warnings), right.warnings
@@ -231,7 +217,7 @@ def test_free_space_confirms_a_pose_only_where_the_sensor_saw_the_other_scan() -
 def test_noisy_range_images_are_confirmed_by_their_coarser_views_at_the_tighter_bound() -> None:
     """Over 10 neighbours neither noisy scan is a range image; a confirmation reads both over
     ``COARSE_VIEW_NEIGHBOURS`` and then holds the share to ``COARSE_CONFIRMS_BELOW``."""
-    work, options = working_of(*scan_pair(noisy_source=True, noisy_target=True))
+    work, options = working_clouds(*scan_pair(noisy_source=True, noisy_target=True))
     assert work.range_views == (None, None)
     assert all(view is not None and view.neighbours == COARSE_VIEW_NEIGHBOURS for view in work.confirming_views)
     right = free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {})
@@ -246,7 +232,7 @@ def test_noisy_range_images_are_confirmed_by_their_coarser_views_at_the_tighter_
 def test_a_coarser_view_beside_a_view_over_ten_neighbours_takes_part_at_the_tighter_bound() -> None:
     """A clean target (a range image over 10 neighbours) and a noisy source (one over 40 only): a confirmation reads
     both, so the tighter bound holds; a pose 3 deg off, which the 0.03 bound would pass, stays unconfirmed."""
-    work, options = working_of(*scan_pair(noisy_source=True, noisy_target=False))
+    work, options = working_clouds(*scan_pair(noisy_source=True, noisy_target=False))
     views = work.confirming_views
     assert [view.neighbours for view in views] == [COARSE_VIEW_NEIGHBOURS, 10], views
     right = free_space(work, loose_result(SOURCE_TO_TARGET, np.zeros(3)), options, {})
@@ -260,7 +246,7 @@ def test_a_coarser_view_beside_a_view_over_ten_neighbours_takes_part_at_the_tigh
 def test_a_reliable_result_is_judged_on_the_views_over_ten_neighbours_alone() -> None:
     """The veto never reads the coarser views (they cost about twice the first reading): a ``reliable`` result over
     two noisy scans is passed through without them."""
-    work, options = working_of(*scan_pair(noisy_source=True, noisy_target=True))
+    work, options = working_clouds(*scan_pair(noisy_source=True, noisy_target=True))
     result = dataclasses.replace(loose_result(SOURCE_TO_TARGET, np.zeros(3)), reliable=True, warnings=[])
     assert free_space(work, result, options, {}) is result
     assert "confirming_views" not in vars(work)
@@ -271,7 +257,7 @@ def test_a_coarser_view_beside_a_cloud_with_no_view_confirms_nothing() -> None:
     cloud has a view too, so beside an even sample of the surface (no range image at any reading) none is kept."""
     source, _ = scan_pair(noisy_source=True, noisy_target=True)  # the noisy source, as in the tests above
     even = even_sample()
-    work, options = working_of(source, even.astype(np.float32))
+    work, options = working_clouds(source, even.astype(np.float32))
     assert range_view(even, neighbours=COARSE_VIEW_NEIGHBOURS) is None
     assert range_view(source, neighbours=COARSE_VIEW_NEIGHBOURS) is not None
     assert work.confirming_views == (None, None)
@@ -288,7 +274,7 @@ def test_a_cloud_of_stacked_duplicate_points_gives_no_view() -> None:
 def test_the_descriptors_leave_a_noisy_range_images_loose_fit_to_free_space() -> None:
     """Free space judges a loose fit between noisy range images on their coarser views, so the consensus stage does
     not settle it in its place (decisions/0093, 0094)."""
-    work, _ = working_of(*scan_pair(noisy_source=True, noisy_target=True))
+    work, _ = working_clouds(*scan_pair(noisy_source=True, noisy_target=True))
     result = dataclasses.replace(loose_result(SOURCE_TO_TARGET, np.zeros(3)), warnings=[f"{WORKING_LOOSE_FIT} ..."])
     assert work.range_views == (None, None)
     assert loose_between_range_images(work, result)

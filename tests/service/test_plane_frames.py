@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from real_scan_cases import GENERAL, assert_registers, general_reference_radius, skip_without_general
+from real_scan_cases import GENERAL, assert_registers, skip_without_general
 from scipy.spatial.transform import Rotation
 from shapes import range_patch, room_scene
+from stage_inputs import working_clouds
 
 from bench.real_scans import pose_errors, turned
 from service.plane_frames import MIN_FRAME_SHARE, frame_rotations, overlap_scores, plane_frame
@@ -66,15 +67,12 @@ def test_one_frame_rotation_is_the_truth_and_it_overlays_the_rooms_among_the_bes
 
 
 def test_the_search_starts_from_the_plane_frames_of_a_room_and_not_of_a_range_patch():
-    radius = general_reference_radius()
     source, target = room_pair()
-    request = validate(source, target, None, {"refine": "icp-plane", "rotation_search": True}, 3, 128)
-    starts = plane_frame_starts(normalise(sample(request), radius))
+    starts = plane_frame_starts(working_clouds(source, target, {"refine": "icp-plane", "rotation_search": True})[0])
     assert starts is not None and len(starts) == SEARCH_KEEP
     assert min(angle(R, R_TRUE) for R in starts) < 3.0
     patch = range_patch(5000)
-    request = validate(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T, None, {"refine": "icp-plane"}, 3, 128)
-    assert plane_frame_starts(normalise(sample(request), radius)) is None
+    assert plane_frame_starts(working_clouds(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T)[0]) is None
 
 
 def test_turned_room_fragments_that_came_back_half_a_turn_off_register():

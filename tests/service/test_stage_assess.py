@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from shapes import room_scene
+from stage_inputs import working_clouds
 
 from bench.real_scans import load_cases, pose_errors, thresholds
 from bench.turntable_scans import analytic_shape, turntable_pairs
@@ -17,9 +18,6 @@ from service.quality import WORKING_LOOSE_FIT
 from service.registrar import Registrar
 from service.stability import WEAK_EIGENVALUE, Stability, weak_motion_warning
 from service.stages.assess import RELIABLE_STABILITY_ON_SURFACE, off_the_surface, turns_at_the_common_floor
-from service.stages.normalise import normalise
-from service.stages.sample import sample
-from service.stages.validate import validate
 
 GENERAL = Path(__file__).resolve().parents[2] / "service" / "models" / "general"
 R_TRUE = Rotation.from_euler("zyx", [20.0, 0.0, 0.0], degrees=True).as_matrix()
@@ -36,7 +34,7 @@ def room(target_points: int | None = None):
     source, target = scene[scene[:, 0] < 3.0], scene[scene[:, 0] > 1.0] @ R_TRUE.T + T_TRUE
     if target_points is not None:
         target = target[np.random.default_rng(0).choice(len(target), target_points, replace=False)]
-    return normalise(sample(validate(source, target, None, {"refine": "icp-plane"}, 3, 128)), 1.0)
+    return working_clouds(source, target, reference_radius=1.0)[0]
 
 
 def turned_about_the_target(work, degrees: float) -> tuple[np.ndarray, np.ndarray]:
@@ -94,15 +92,14 @@ def test_the_reliable_rule_judges_a_sparse_target_by_its_density_and_a_dense_one
 def test_poor_fit_is_the_reliable_rules_band_below_its_share_of_the_attainable_ratio(dense: bool):
     """A real range-image pair (dense: the surface estimate) and a synthetic room target of 1,500 points (the density
     estimate): poor fit from the fixed 0.3 up to the rule's share of what a right pose reaches."""
-    from real_scan_cases import general_reference_radius, real_case
+    from real_scan_cases import real_case
 
     from service.quality import RELIABLE_RELATIVE_RATIO, RELIABLE_RELATIVE_RATIO_ON_SURFACE
     from service.stages.assess import poor_fit, reliable_attainable
 
     if dense:
         case = real_case("dragon_48_24", 0, "scanned")
-        request = validate(case.source, case.target, None, {"refine": "icp-plane"}, 3, 128)
-        work = normalise(sample(request), general_reference_radius())
+        work, _ = working_clouds(case.source, case.target)
         attainable, on_surface = reliable_attainable(work)
         assert on_surface
         reach = RELIABLE_RELATIVE_RATIO_ON_SURFACE * attainable
@@ -149,7 +146,7 @@ def test_a_turntable_scan_of_a_smooth_blob_is_reliable_though_it_turns_below_the
 def test_the_reverse_fit_is_offered_on_dense_targets_that_are_not_rooms():
     """Sparse targets and rooms keep the source-side ratio alone (decisions/0084): there a wrong pose explains a cut
     target as well as a right one."""
-    from real_scan_cases import general_reference_radius, real_case
+    from real_scan_cases import real_case
 
     from service.quality import reverse_fit
     from service.stages.assess import reverse_fit_on
@@ -159,8 +156,7 @@ def test_the_reverse_fit_is_offered_on_dense_targets_that_are_not_rooms():
     assert plane_frames_on_the_surface(dense_room) and reverse_fit_on(dense_room, R_TRUE, T_TRUE) is None
     assert reverse_fit_on(room(target_points=1500), R_TRUE, T_TRUE) is None  # a sparse target
     case = real_case("dragon_48_24", 0, "scanned")
-    work = normalise(sample(validate(case.source, case.target, None, {"refine": "icp-plane"}, 3, 128)),
-                     general_reference_radius())
+    work, _ = working_clouds(case.source, case.target)
     R, t = case.src_to_tgt[:3, :3], case.src_to_tgt[:3, 3]
     offered = reverse_fit_on(work, R, t)
     assert "source_attainable_ratio" not in vars(work)  # measured only where quality.assess asks

@@ -11,14 +11,12 @@ import numpy as np
 from real_scan_cases import real_case, register_with_defaults
 from scipy.spatial.transform import Rotation
 from shapes import range_patch
+from stage_inputs import result_at, working_clouds
 
 from bench.real_scans import thresholds
 from service.result import RegistrationResult
 from service.stages import fine as fine_stage
 from service.stages.fine import applies, fine, fine_pose
-from service.stages.normalise import normalise
-from service.stages.sample import sample
-from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.3, -0.2, 0.5])
@@ -34,8 +32,7 @@ def working(target_points: int, **options):
     source = source[source[:, 0] < 0.7]
     source = source + rng.normal(0.0, NOISE, source.shape)
     target = range_patch(target_points, seed=3) + rng.normal(0.0, NOISE, (target_points, 3))
-    request = validate(source, target @ R_TRUE.T + T_TRUE, None, {"refine": "icp-plane", **options}, 3, 128)
-    return normalise(sample(request), 1.0), request.options
+    return working_clouds(source, target @ R_TRUE.T + T_TRUE, {"refine": "icp-plane", **options}, reference_radius=1.0)
 
 
 def two_degrees_off(work) -> tuple[np.ndarray, np.ndarray]:
@@ -51,11 +48,9 @@ def errors(work, R: np.ndarray, t: np.ndarray) -> tuple[float, float]:
     return float(degrees), float(np.linalg.norm(centroid @ R.T + t - (centroid @ R_TRUE.T + T_TRUE)))
 
 
-def result_at(R: np.ndarray, t: np.ndarray) -> RegistrationResult:
+def made_up_result(R: np.ndarray, t: np.ndarray) -> RegistrationResult:
     """A result with pose ``R, t`` and made-up quality figures."""
-    empty = np.zeros(0)
-    return RegistrationResult(R, t, empty.astype(np.int64), empty.astype(np.int64), empty, empty, inlier_ratio=0.42,
-                              residual_rms=0.003, reliable=True, warnings=["w"], iterations=4, timing_ms={})
+    return result_at(R, t, inlier_ratio=0.42, residual_rms=0.003, warnings=["w"], iterations=4)
 
 
 def test_a_pose_two_degrees_off_comes_to_within_a_quarter_degree_on_a_dense_target():
@@ -69,7 +64,7 @@ def test_a_pose_two_degrees_off_comes_to_within_a_quarter_degree_on_a_dense_targ
 
 def test_the_stage_changes_the_pose_only_and_counts_its_time_as_refinement():
     work, options = working(20_000)
-    before = result_at(*two_degrees_off(work))
+    before = made_up_result(*two_degrees_off(work))
     timing = {"refine": 10.0}
     after = fine(work, before, options, timing)
     assert errors(work, after.rotation, after.translation)[0] < 0.25
@@ -91,7 +86,7 @@ def test_a_pose_that_would_move_too_far_is_not_taken(monkeypatch):
 
 def test_a_target_no_denser_than_its_working_cloud_is_left_alone():
     work, options = working(2_000)  # under 4x the working cloud's 768 points
-    before = result_at(*two_degrees_off(work))
+    before = made_up_result(*two_degrees_off(work))
     assert not applies(work, options)
     assert fine(work, before, options, {}) is before
 
@@ -99,7 +94,7 @@ def test_a_target_no_denser_than_its_working_cloud_is_left_alone():
 def test_without_a_point_to_plane_refinement_or_with_chosen_refinement_clouds_nothing_is_done():
     for chosen in ({"refine": "icp"}, {"refine": "none"}, {"refine_points": 4096}):
         work, options = working(20_000, **chosen)
-        before = result_at(*two_degrees_off(work))
+        before = made_up_result(*two_degrees_off(work))
         assert fine(work, before, options, {}) is before, chosen
 
 
@@ -116,6 +111,5 @@ def test_on_a_plane_the_refinement_stops_and_the_pose_is_left_as_it_was():
     """A flat target leaves sliding within its plane unobserved: point-to-plane ICP stops on a degenerate system."""
     rng = np.random.default_rng(4)
     plane = np.column_stack([rng.random((20_000, 2)), np.zeros(20_000)])  # [20000, 3] in z = 0
-    request = validate(plane[plane[:, 0] < 0.7], plane @ R_TRUE.T + T_TRUE, None, {"refine": "icp-plane"}, 3, 128)
-    work = normalise(sample(request), 1.0)
+    work, _ = working_clouds(plane[plane[:, 0] < 0.7], plane @ R_TRUE.T + T_TRUE, reference_radius=1.0)
     assert fine_pose(work, R_TRUE, T_TRUE + np.array([0.0, 0.0, 0.002])) is None

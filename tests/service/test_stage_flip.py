@@ -7,17 +7,15 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from real_scan_cases import assert_registers, general_reference_radius
+from real_scan_cases import assert_registers
 from scipy.spatial.transform import Rotation
 from shapes import range_patch
+from stage_inputs import working_clouds
 
 from service.stages.flip import flip
-from service.stages.normalise import normalise
 from service.stages.partial import half_turns
 from service.stages.refine import Refined, refine
-from service.stages.sample import sample
 from service.stages.slide import fits_poorly
-from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.3, -0.2, 0.5])
@@ -26,8 +24,7 @@ T_TRUE = np.array([0.3, -0.2, 0.5])
 def working(target_points: int):
     """Part of the patch as the source, the whole patch moved by ``R_TRUE, T_TRUE`` as the target."""
     patch = range_patch(target_points)
-    request = validate(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T + T_TRUE, None, {"refine": "icp-plane"}, 3, 128)
-    return normalise(sample(request), general_reference_radius()), request.options
+    return working_clouds(patch[patch[:, 0] < 0.7], patch @ R_TRUE.T + T_TRUE)
 
 
 def angle(R_a: np.ndarray, R_b: np.ndarray) -> float:

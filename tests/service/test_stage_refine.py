@@ -8,15 +8,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob
+from stage_inputs import working_clouds
 
 from service.icp import IcpResult, Surface
 from service.multistart import multistart
 from service.options import RegistrationOptions
-from service.stages.normalise import SHORT_REFINE_STRIDE, normalise
+from service.stages.normalise import SHORT_REFINE_STRIDE
 from service.stages.ranking import rank_candidates
 from service.stages.refine import CANDIDATE_ITERATIONS, refine, refine_pose, short_refine
-from service.stages.sample import sample
-from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [6.0, -4.0, 3.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.05, -0.02, 0.03])
@@ -25,8 +24,7 @@ T_TRUE = np.array([0.05, -0.02, 0.03])
 def working(**overrides):
     src = asymmetric_blob(800, 0)
     tgt = asymmetric_blob(800, 1) @ R_TRUE.T + T_TRUE  # an independent sampling of the same surface
-    request = validate(src, tgt, None, {"working_size": 256, **overrides}, 3, 64)
-    return normalise(sample(request), 1.0), request.options
+    return working_clouds(src, tgt, {"working_size": 256, **overrides}, reference_radius=1.0, keypoints=64)
 
 
 def angle_deg(R_a, R_b) -> float:

@@ -9,6 +9,7 @@ import pytest
 from real_scan_cases import GENERAL, assert_registers
 from scipy.spatial.transform import Rotation
 from shapes import room_scene
+from stage_inputs import working_clouds
 
 from bench.real_scans import data_dir
 from service.icp import IcpResult
@@ -43,8 +44,7 @@ def room_pair():
 
 def working():
     source, target = room_pair()
-    request = validate(source, target, None, {"refine": "icp-plane"}, 3, 128)
-    return normalise(sample(request), 1.0), request.options
+    return working_clouds(source, target, reference_radius=1.0)
 
 
 def test_a_right_pose_fits_and_is_returned_unchanged():

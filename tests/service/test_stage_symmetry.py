@@ -11,18 +11,15 @@ room's dominant planes) at least as closely; results that are not reliable, or n
 from __future__ import annotations
 
 import numpy as np
-from real_scan_cases import general_reference_radius
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, room_scene
+from stage_inputs import result_at, working_clouds
 
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
-from service.result import RegistrationResult
 from service.rotation_search import rotation_between_deg
 from service.stages import symmetry as stage
-from service.stages.normalise import normalise
 from service.stages.ranking import plane_frames_on_the_surface
-from service.stages.sample import sample
 from service.stages.symmetry import (
     AXIS_TURN_STABILITY,
     WHOLE_OVERLAY,
@@ -34,7 +31,6 @@ from service.stages.symmetry import (
     quarter_turns,
     symmetry,
 )
-from service.stages.validate import validate
 
 R_TRUE = Rotation.from_euler("zyx", [40.0, -20.0, 10.0], degrees=True).as_matrix()
 T_TRUE = np.array([0.3, -0.2, 0.5])
@@ -110,37 +106,11 @@ def bowl_part_on_bowl():
     of it moved by the true pose."""
     cut = np.array([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
     part = open_bowl(6000, 0)
-    return working(part[part @ cut > -0.1], open_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
-
-
-def working(source: np.ndarray, target: np.ndarray, refine: str = "icp-plane"):
-    request = validate(source, target, None, {"refine": refine}, 3, 128)
-    return normalise(sample(request), general_reference_radius()), request.options
-
-
-def result_at(
-    R: np.ndarray, t: np.ndarray, reliable: bool = True, stability: float | None = None
-) -> RegistrationResult:
-    empty = np.zeros(0)
-    return RegistrationResult(
-        rotation=R,
-        translation=t,
-        source_index=empty.astype(np.int64),
-        target_index=empty.astype(np.int64),
-        credibility=empty,
-        weight=empty,
-        inlier_ratio=1.0,
-        residual_rms=0.0,
-        reliable=reliable,
-        warnings=[],
-        iterations=3,
-        timing_ms={},
-        stability=stability,
-    )
+    return working_clouds(part[part @ cut > -0.1], open_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
 
 
 def test_a_shape_a_half_turn_maps_onto_itself_is_ambiguous_and_keeps_its_pose():
-    work, options = working(open_tub(3000, 0), open_tub(3000, 1) @ R_TRUE.T + T_TRUE)
+    work, options = working_clouds(open_tub(3000, 0), open_tub(3000, 1) @ R_TRUE.T + T_TRUE)
     timing: dict[str, float] = {}
     checked = symmetry(work, result_at(R_TRUE, T_TRUE), options, timing)
     assert not checked.reliable
@@ -151,7 +121,7 @@ def test_a_shape_a_half_turn_maps_onto_itself_is_ambiguous_and_keeps_its_pose():
 
 def test_an_asymmetric_shape_stays_reliable():
     blob = asymmetric_blob(3000)
-    work, options = working(blob, asymmetric_blob(3000, seed=1) @ R_TRUE.T + T_TRUE)
+    work, options = working_clouds(blob, asymmetric_blob(3000, seed=1) @ R_TRUE.T + T_TRUE)
     assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None
     result = result_at(R_TRUE, T_TRUE)
     assert symmetry(work, result, options, {}) is result
@@ -177,7 +147,7 @@ def test_a_part_of_a_shape_of_revolution_is_turned_about_its_axis_where_its_stab
 def test_a_part_of_a_shape_a_turn_of_120_deg_maps_onto_itself_is_ambiguous():
     cut = np.array([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
     part = finned_bowl(6000, 0)
-    work, options = working(part[part @ cut > -0.1], finned_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
+    work, options = working_clouds(part[part @ cut > -0.1], finned_bowl(6000, 1) @ R_TRUE.T + T_TRUE)
     warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY)
     assert warning is not None and warning.startswith("ambiguous: a pose 120 deg away")
 
@@ -186,7 +156,7 @@ def test_a_part_of_a_shape_a_quarter_turn_maps_onto_itself_is_ambiguous_on_a_den
     cut = np.array([0.6, 0.3, 0.5]) / np.linalg.norm([0.6, 0.3, 0.5])
     part = four_legged_stool(6000, 0)
     part = part[part @ cut > 0.0]  # its centroid lies off the stool's axis: a quarter turn about it leaves the stool
-    work, options = working(part, four_legged_stool(6000, 1) @ R_TRUE.T + T_TRUE)  # 6,000 >= 4 x 768 target points
+    work, options = working_clouds(part, four_legged_stool(6000, 1) @ R_TRUE.T + T_TRUE)  # 6,000 >= 4 x 768 points
     warning = half_turn_ambiguity(work, R_TRUE, T_TRUE, options)  # stability unknown: no axis turns
     assert warning is not None and warning.startswith("ambiguous: a pose 90 deg away")
     checked = symmetry(work, result_at(R_TRUE, T_TRUE), options, {})
@@ -194,13 +164,13 @@ def test_a_part_of_a_shape_a_quarter_turn_maps_onto_itself_is_ambiguous_on_a_den
     assert np.array_equal(checked.rotation, R_TRUE) and np.array_equal(checked.translation, T_TRUE)
     turned = []  # one entry per time the pose was given its quarter turns
     monkeypatch.setattr(stage, "quarter_turns", lambda *args: turned.append(args) or quarter_turns(*args))
-    work, options = working(part, four_legged_stool(2000, 1) @ R_TRUE.T + T_TRUE)  # a target as sparse as a sample
+    work, options = working_clouds(part, four_legged_stool(2000, 1) @ R_TRUE.T + T_TRUE)  # as sparse as a sample
     assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options) is None and turned == []
 
 
 def test_a_room_view_turned_to_overlay_more_than_the_truth_is_ambiguous():
     room = room_scene(np.random.default_rng(1))  # floor and walls at x = 0, y = 0, x = 4 (4 x 3 m), eight boxes
-    work, options = working(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # two views overlapping on x in 0.8-3.2
+    work, options = working_clouds(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # views overlapping on x in 0.8-3.2
     assert plane_frames_on_the_surface(work)
     # turned 90 deg about the vertical, the source's corner of walls x = 0 and y = 0 lies in the target's corner of
     # y = 0 and x = 4: it overlays more of the source than the truth (the identity) does, only the boxes disagree
@@ -217,7 +187,7 @@ def test_a_room_view_turned_to_overlay_more_than_the_truth_is_ambiguous():
 
 def test_a_room_view_turned_a_quarter_turn_is_ambiguous_by_what_is_not_wall_or_floor():
     room = room_scene(np.random.default_rng(0))  # floor and walls at x = 0, y = 0, x = 4 (4 x 3 m), eight boxes
-    work, options = working(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # two views overlapping on x in 0.8-3.2
+    work, options = working_clouds(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # views overlapping on x in 0.8-3.2
     # turned 90 deg about the vertical, the source's corner of walls x = 0 and y = 0 lies in the target's corner of
     # y = 0 and x = 4; no turn fits what it overlays within PRECISION_GAP of it, but the boxes land off the target's
     R_wrong, t_wrong = Rotation.from_euler("z", 90.0, degrees=True).as_matrix(), np.array([4.0, 0.0, 0.0])
@@ -237,7 +207,7 @@ def test_a_room_view_turned_a_quarter_turn_is_ambiguous_by_what_is_not_wall_or_f
 
 def test_a_room_view_a_quarter_turn_off_its_place_is_ambiguous_by_its_turns_at_their_best_translations(monkeypatch):
     room = room_scene(np.random.default_rng(56))  # floor and walls at x = 0, y = 0, x = 4 (4 x 3 m), eight boxes
-    work, options = working(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # two views overlapping on x in 0.8-3.2
+    work, options = working_clouds(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8])  # views overlapping on x in 0.8-3.2
     # the source's corner of walls x = 0 and y = 0 in the target's corner of y = 0 and x = 4, as the pipeline returns
     # this room turned: the turns about the moved source's centroid, briefly refined, stay off the truth, and none
     # of them fits the boxes as closely as the pose
@@ -279,9 +249,7 @@ def test_the_off_plane_points_from_the_shared_frame_are_those_of_the_working_sou
     room = room_scene(np.random.default_rng(0))
     guess = np.eye(4)
     guess[:3, :3], guess[:3, 3] = Rotation.from_euler("zyx", [70.0, -25.0, 40.0], degrees=True).as_matrix(), [1, 2, 3]
-    request = validate(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8], None, {"initial_transform": guess.tolist()},
-                       3, 128)
-    work = normalise(sample(request), general_reference_radius())
+    work, _ = working_clouds(room[room[:, 0] < 3.2], room[room[:, 0] > 0.8], {"initial_transform": guess.tolist()})
     shared = work.source_frame.turned_back(work.R_init)  # found on src_n, which the guess turned
     alone = stage.off_plane_points(work.working_source, work.inlier_distance)  # [Ns] its own frame, afresh
     assert 0.1 < alone.mean() < 0.3
@@ -290,7 +258,7 @@ def test_the_off_plane_points_from_the_shared_frame_are_those_of_the_working_sou
 
 def test_overlay_precision_is_the_close_fit_among_the_points_overlaid():
     blob = asymmetric_blob(3000)
-    work, _ = working(blob, blob @ R_TRUE.T + T_TRUE)
+    work, _ = working_clouds(blob, blob @ R_TRUE.T + T_TRUE)
     far = T_TRUE + 100.0  # nothing overlaid
     near, precision = overlay_precision(work, stage.overlay_distances(work, np.stack([R_TRUE, R_TRUE]),
                                                                        np.stack([T_TRUE, far])))
@@ -325,16 +293,16 @@ def test_axis_turns_turn_the_pose_60_and_120_deg_either_way_about_the_axis_of_re
 
 def test_an_asymmetric_shape_has_no_free_turn_to_try():
     blob = asymmetric_blob(3000)
-    work, options = working(blob, asymmetric_blob(3000, seed=1) @ R_TRUE.T + T_TRUE)
+    work, options = working_clouds(blob, asymmetric_blob(3000, seed=1) @ R_TRUE.T + T_TRUE)
     assert half_turn_ambiguity(work, R_TRUE, T_TRUE, options, 0.5 * AXIS_TURN_STABILITY) is None
 
 
 def test_results_not_reliable_or_not_refined_are_not_checked():
     tub = open_tub(3000, 0)
-    work, options = working(tub, open_tub(3000, 1) @ R_TRUE.T + T_TRUE)
+    work, options = working_clouds(tub, open_tub(3000, 1) @ R_TRUE.T + T_TRUE)
     unreliable = result_at(R_TRUE, T_TRUE, reliable=False)
     assert symmetry(work, unreliable, options, {}) is unreliable
-    work, options = working(tub, open_tub(3000, 1) @ R_TRUE.T + T_TRUE, refine="none")
+    work, options = working_clouds(tub, open_tub(3000, 1) @ R_TRUE.T + T_TRUE, {"refine": "none"})
     unrefined = result_at(R_TRUE, T_TRUE)
     timing: dict[str, float] = {}
     assert symmetry(work, unrefined, options, timing) is unrefined and "postprocess" not in timing
