@@ -10,7 +10,12 @@
 * :func:`range_noise` -- noise along the view ray, its sigma proportional to the distance.
 * :func:`mixed_pixels` -- boundary artefacts: at depth discontinuities a pixel mixes the foreground and the
   background depth, giving points strung along the ray between the two surfaces ("flying pixels").
-* :func:`scan` -- frustum, hidden point removal (:func:`model.views.visible_indices`), density, artefacts, noise.
+* :func:`pixel_grid_returns` -- what a range camera's grid of rays returns of a surface sample: each ray through a
+  pixel centre meets the nearest of the sample's surfels (discs on its tangent planes), so the returns lie on the
+  pixel grid, a hidden surface returns nothing and the density on the surface falls with the incidence angle and the
+  squared distance, as a real range image's does, without the clumps and gaps of random thinning.
+* :func:`scan` -- frustum, then either density thinning and hidden point removal (:func:`model.views.visible_indices`)
+  or, where ``SensorEffects.pixel_pitch`` is set, :func:`pixel_grid_returns`; then artefacts and noise.
 """
 
 from __future__ import annotations
@@ -23,6 +28,8 @@ from scipy.spatial import cKDTree
 from model.views import visible_indices
 
 NORMAL_NEIGHBOURS = 12  # points of the local PCA behind each normal (the point itself included)
+SURFEL_SPACINGS = 3.5  # a surfel's radius, in the sample's median nearest-neighbour spacing: random samples leave no hole
+SURFEL_CHUNK = 50_000  # surfels splatted at once (bounds the memory of pixel_grid_returns)
 
 
 def estimate_normals(points: np.ndarray, k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
@@ -107,6 +114,64 @@ def mixed_pixels(points: np.ndarray, camera: np.ndarray, count: int, rng: np.ran
     return camera + rays[chosen] * depth[:, None]
 
 
+def camera_axes(look: np.ndarray) -> np.ndarray:
+    """``[3, 3]`` rows: the image's right and up axes and the unit viewing direction along ``look [3]`` (up is the
+    world's z as far as ``look`` allows, else its y)."""
+    forward = look / np.linalg.norm(look)
+    world_up = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    right = np.cross(forward, world_up)
+    right /= np.linalg.norm(right)
+    return np.stack([right, np.cross(right, forward), forward])
+
+
+def pixel_rays(pixels: np.ndarray, pitch: float) -> np.ndarray:
+    """``[..., 3]`` unit rays in the camera's axes through the centres of ``pixels [..., 2]`` (integer columns and
+    rows) of ``pitch`` on the image plane at unit depth."""
+    rays = np.concatenate([(pixels + 0.5) * pitch, np.ones((*pixels.shape[:-1], 1))], axis=-1)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
+
+def pixel_grid_returns(points: np.ndarray, normals: np.ndarray, camera: np.ndarray, look: np.ndarray,
+                       pitch: float) -> np.ndarray:
+    """``[M, 3]``: one return per pixel whose ray meets the surface of a dense sample ``points [N, 3]`` with unit
+    ``normals [N, 3]``, seen from ``camera [3]`` along ``look [3]``.
+
+    Pixels are squares of ``pitch`` on the image plane at unit depth (about ``pitch`` radians near the centre). Each
+    point is a surfel: a disc of ``SURFEL_SPACINGS`` median nearest-neighbour spacings on its tangent plane. A pixel's
+    ray meets every disc it passes through; the nearest meeting is its return (a depth buffer), so the returns lie on
+    the rays of the pixel grid and a hidden surface returns nothing."""
+    axes = camera_axes(look)  # [3, 3]
+    local = (points - camera) @ axes.T  # [N, 3]: right, up, depth
+    front = np.flatnonzero(local[:, 2] > 1e-9)
+    if len(front) < 2:
+        return np.empty((0, 3))
+    radius = SURFEL_SPACINGS * float(np.median(cKDTree(points[front]).query(points[front], 2)[0][:, 1]))
+    reach = int(np.ceil(radius / local[front, 2].min() / pitch))  # pixels a disc reaches from its centre's
+    offsets = np.stack(np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1)), -1).reshape(-1, 2)
+    centre_pixel = np.floor(local[front, :2] / local[front, 2:] / pitch).astype(np.int64)  # [F, 2]
+    met_pixels, met_depths = [], []
+    for start in range(0, len(front), SURFEL_CHUNK):
+        index = front[start:start + SURFEL_CHUNK]  # [S]
+        pixels = centre_pixel[start:start + SURFEL_CHUNK, None, :] + offsets  # [S, O, 2] pixels about each disc
+        rays = pixel_rays(pixels, pitch)  # [S, O, 3]
+        normal = normals[index] @ axes.T  # [S, 3] in the camera's axes
+        with np.errstate(divide="ignore", invalid="ignore"):  # a ray along the disc's plane never meets it
+            depth = np.einsum("si,si->s", local[index], normal)[:, None] / np.einsum("soi,si->so", rays, normal)
+            meets = np.linalg.norm(rays * depth[..., None] - local[index, None, :], axis=-1) <= radius  # [S, O]
+        meets &= np.isfinite(depth) & (depth > 0)
+        met_pixels.append(pixels[meets])
+        met_depths.append(depth[meets])
+    pixels, depths = np.concatenate(met_pixels), np.concatenate(met_depths)  # [K, 2], [K]
+    if len(depths) == 0:
+        return np.empty((0, 3))
+    order = np.lexsort((depths, pixels[:, 1], pixels[:, 0]))  # by pixel, the nearest meeting first
+    pixels, depths = pixels[order], depths[order]
+    nearest = np.ones(len(depths), dtype=bool)
+    nearest[1:] = np.any(pixels[1:] != pixels[:-1], axis=1)
+    returns = pixel_rays(pixels[nearest], pitch) * depths[nearest, None]  # [M, 3] in the camera's axes
+    return camera + returns @ axes
+
+
 @dataclass(frozen=True)
 class SensorEffects:
     """How one scan degrades the surface (:func:`scan`)."""
@@ -116,6 +181,7 @@ class SensorEffects:
     density_floor: float = 0.02  # least keep probability (grazing surfaces still return a few points)
     relative_noise: float = 0.002  # range noise sigma / distance
     mixed_share: float = 0.01  # flying points added at depth discontinuities, as a share of the kept points
+    pixel_pitch: float | None = None  # a range camera's pixel (radians): returns on its pixel grid, not thinning
 
 
 def scan(points: np.ndarray, normals: np.ndarray, camera: np.ndarray, look: np.ndarray, effects: SensorEffects,
@@ -126,13 +192,16 @@ def scan(points: np.ndarray, normals: np.ndarray, camera: np.ndarray, look: np.n
         else np.arange(len(points))
     if len(idx) == 0:
         return np.empty((0, 3))
-    # thinning does not depend on what hides what, so it comes first: the hull then has fewer points
-    keep = rng.random(len(idx)) < range_image_keep_probability(points[idx], normals[idx], camera,
-                                                               effects.distance_power, effects.density_floor)
-    idx = idx[keep]
-    if len(idx) > 3:
-        idx = idx[visible_indices(points[idx], camera)]
-    pts = points[idx]
+    if effects.pixel_pitch is not None:
+        pts = pixel_grid_returns(points[idx], normals[idx], camera, look, effects.pixel_pitch)
+    else:
+        # thinning does not depend on what hides what, so it comes first: the hull then has fewer points
+        keep = rng.random(len(idx)) < range_image_keep_probability(points[idx], normals[idx], camera,
+                                                                   effects.distance_power, effects.density_floor)
+        idx = idx[keep]
+        if len(idx) > 3:
+            idx = idx[visible_indices(points[idx], camera)]
+        pts = points[idx]
     flying = mixed_pixels(pts, camera, round(effects.mixed_share * len(pts)), rng)
     pts = np.vstack([pts, flying])
     return range_noise(pts, camera, effects.relative_noise, rng)

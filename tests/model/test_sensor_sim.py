@@ -1,17 +1,22 @@
-"""Sensor simulation (model.sensor_sim): normals, range-image density, range noise, flying pixels, one scan."""
+"""Sensor simulation (model.sensor_sim): normals, range-image density, range noise, flying pixels, the returns of a
+pixel grid, one scan."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from shapes import sphere_shapes
 
 from model.sensor_sim import (
     SensorEffects,
+    camera_axes,
     densify,
     estimate_normals,
     in_frustum,
     mixed_pixels,
     orient_to_camera,
+    pixel_grid_returns,
+    pixel_rays,
     range_image_keep_probability,
     range_noise,
     scan,
@@ -120,3 +125,56 @@ def test_a_scan_sees_the_facing_side_thinned_at_grazing_angles_and_is_seeded() -
     assert middle > 1.5 * rim
     again = scan(sphere, sphere, camera, np.array([0.0, 0.0, -1.0]), effects, np.random.default_rng(7))
     assert np.array_equal(seen, again)
+
+
+def plane_sample(rng: np.random.Generator, n: int, half: float, tilt_deg: float, depth: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` uniform points on a square of side ``2 half`` centred ``depth`` below the origin on z, turned by
+    ``tilt_deg`` about x, and its normals ``[n, 3]``."""
+    turn = Rotation.from_euler("x", tilt_deg, degrees=True).as_matrix()
+    points = square(rng, n, half, 0.0) @ turn.T + [0.0, 0.0, -depth]
+    return points, np.tile(turn[:, 2], (n, 1))
+
+
+LOOK_DOWN = np.array([0.0, 0.0, -1.0])
+PITCH = 0.004
+
+
+def test_pixel_grid_returns_lie_one_per_pixel_on_the_rays_of_the_grid_and_cover_a_facing_plane() -> None:
+    points, normals = plane_sample(np.random.default_rng(8), 40_000, 0.5, 0.0, 2.0)
+    returns = pixel_grid_returns(points, normals, np.zeros(3), LOOK_DOWN, PITCH)
+    local = returns @ camera_axes(LOOK_DOWN).T  # [M, 3] right, up, depth
+    np.testing.assert_allclose(local[:, 2], 2.0, atol=1e-9)  # on the plane
+    pixel = local[:, :2] / local[:, 2:] / PITCH - 0.5  # integer where a return lies on its pixel's ray
+    np.testing.assert_allclose(pixel, np.round(pixel), atol=1e-6)
+    assert len(np.unique(np.round(pixel), axis=0)) == len(returns)  # one return per pixel
+    inner = (np.abs(local[:, :2]) < 0.45).all(axis=1).sum()  # away from the square's edge: hardly a pixel left empty
+    assert 0.999 * (2 * round(0.45 / 2.0 / PITCH)) ** 2 <= inner <= (2 * round(0.45 / 2.0 / PITCH)) ** 2, inner
+    centre_ray = np.array([PITCH / 2, PITCH / 2, 1.0])
+    np.testing.assert_allclose(pixel_rays(np.zeros((1, 2)), PITCH)[0], centre_ray / np.linalg.norm(centre_ray))
+
+
+def test_pixel_grid_returns_thin_with_the_incidence_angle_and_the_squared_distance() -> None:
+    rng = np.random.default_rng(9)
+    def per_area(tilt_deg: float, depth: float) -> float:
+        points, normals = plane_sample(rng, 40_000, 0.5, tilt_deg, depth)
+        return len(pixel_grid_returns(points, normals, np.zeros(3), LOOK_DOWN, PITCH)) / 1.0  # the square's area: 1
+
+    facing = per_area(0.0, 3.0)
+    assert abs(per_area(60.0, 3.0) / facing - 0.5) < 0.05  # cos 60 deg
+    assert abs(per_area(0.0, 6.0) / facing - 0.25) < 0.02  # twice as far
+
+
+def test_a_hidden_surface_returns_nothing_and_a_scan_on_the_pixel_grid_is_seeded() -> None:
+    rng = np.random.default_rng(10)
+    near, near_normals = plane_sample(rng, 10_000, 0.2, 0.0, 1.0)
+    far, far_normals = plane_sample(rng, 40_000, 1.0, 0.0, 2.0)
+    points, normals = np.vstack([near, far]), np.vstack([near_normals, far_normals])
+    returns = pixel_grid_returns(points, normals, np.zeros(3), LOOK_DOWN, PITCH)
+    on_far = returns[np.abs(returns[:, 2] + 2.0) < 1e-6]
+    behind_near = (np.abs(on_far[:, :2] / 2.0) < 0.2 - 2 * PITCH).all(axis=1)  # the near square's shadow
+    assert len(on_far) > 0 and not behind_near.any()
+    effects = SensorEffects(relative_noise=0.001, mixed_share=0.01, pixel_pitch=PITCH)
+    scanned = scan(points, normals, np.zeros(3), LOOK_DOWN, effects, np.random.default_rng(11))
+    assert len(returns) <= len(scanned) <= 1.02 * len(returns)  # the returns and flying pixels at the near edge
+    assert np.array_equal(scanned, scan(points, normals, np.zeros(3), LOOK_DOWN, effects, np.random.default_rng(11)))
