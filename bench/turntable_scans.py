@@ -4,7 +4,10 @@ The real-scan set's range images are all of one object (the Stanford dragon). Th
 same way, with :func:`model.sensor_sim.scan`: each shape is centred and scaled to a radius of ``RADIUS`` (0.1 m, an
 object about 0.2 m across, as the dragon), stands on a turntable turning about its up axis (z, as ModelNet40's tall
 classes stand) and is seen by one fixed range camera ``CAMERA_DISTANCE`` from its centre, ``ELEVATION_DEG`` above the
-table, at 0 deg and at each of ``--angles`` (default 24 and 48 deg, as the dragon's pairs). Each scan at an angle is
+table, at 0 deg and at each of ``--angles`` (default 24 and 48 deg, as the dragon's pairs). The camera returns one
+point per pixel of ``PIXEL_PITCH`` (:func:`model.sensor_sim.pixel_grid_returns`): about 0.7 mm apart on the object,
+0.0035 of its size, as the dragon's images are 0.54 mm apart on a dragon 0.15 m across
+(``docs/decisions/0095-turntable-scans-on-a-pixel-grid.md``). Each scan at an angle is
 paired with the scan at 0 deg (``<shape>_<angle>_0``, sensor ``cyberware-range``: right within 5 deg and 1 cm, the data
 README's thresholds), and every pair is registered as scanned and at ``--turns`` seeded Haar-uniform rotations of the
 source for each of ``--seeds`` (:func:`bench.real_scans.pair_cases`; the as-scanned cases once).
@@ -77,7 +80,9 @@ SENSOR = "cyberware-range"  # judged by the data README's range-image thresholds
 RADIUS = 0.1  # metres from the shape's centre to its farthest point: an object about 0.2 m across, as the dragon
 CAMERA_DISTANCE = 3.5 * RADIUS  # from the turntable's axis to the camera
 ELEVATION_DEG = 15.0  # the camera's height above the table's plane through the shape's centre, as an angle
-EFFECTS = SensorEffects(relative_noise=0.0005, mixed_share=0.01)  # a laser range scanner's noise: 0.05% of the range
+PIXEL_PITCH = 0.002  # radians: the camera's pixel, about 0.7 mm on the object from 0.35 m
+# a laser range scanner's noise (0.05% of the range) and its flying pixels, on its pixel grid
+EFFECTS = SensorEffects(relative_noise=0.0005, mixed_share=0.01, pixel_pitch=PIXEL_PITCH)
 MODELNET_DENSIFY = 200  # 1,024-point ModelNet40 shapes -> 204,800 points on their surface before the scans
 ANALYTIC = {
     "lumpy_sphere": lumpy_sphere,
@@ -143,8 +148,9 @@ def about_up(degrees: float) -> np.ndarray:
     return Rotation.from_euler("xyz"[UP], degrees, degrees=True).as_matrix()
 
 
-def turntable_pairs(shape: Shape, angles: list[float]) -> list[ScanPair]:
-    """The scan at each of ``angles`` paired with the scan at 0 deg, in metres; ground truth: the turn back."""
+def turntable_pairs(shape: Shape, angles: list[float], effects: SensorEffects | None = None) -> list[ScanPair]:
+    """The scan at each of ``angles`` paired with the scan at 0 deg, in metres, each made with ``effects`` (default:
+    ``EFFECTS``); ground truth: the turn back."""
     centred = shape.points - shape.points.mean(0)
     points = centred * (RADIUS / np.linalg.norm(centred, axis=1).max())  # [N, 3]
     elevation = np.radians(ELEVATION_DEG)
@@ -155,7 +161,8 @@ def turntable_pairs(shape: Shape, angles: list[float]) -> list[ScanPair]:
     views = {}
     for angle in (0.0, *angles):  # the object turned by the table, the camera fixed
         turn = about_up(angle)
-        views[angle] = scan(points @ turn.T, shape.normals @ turn.T, camera, look, EFFECTS, rng).astype(np.float32)
+        views[angle] = scan(points @ turn.T, shape.normals @ turn.T, camera, look, effects or EFFECTS, rng
+                            ).astype(np.float32)
     pairs = []
     for angle in angles:
         truth = np.eye(4)
@@ -344,6 +351,7 @@ def main(argv: list[str] | None = None) -> dict:
             "elevation_deg": ELEVATION_DEG,
             "relative_noise": EFFECTS.relative_noise,
             "mixed_share": EFFECTS.mixed_share,
+            "pixel_pitch_rad": EFFECTS.pixel_pitch,
             "shapes": {s.name: s.kind for s in scanned},
         },
         "machine": machine_info(default_threads()),

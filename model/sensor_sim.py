@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from model.views import visible_indices
 
 NORMAL_NEIGHBOURS = 12  # points of the local PCA behind each normal (the point itself included)
-SURFEL_SPACINGS = 3.5  # a surfel's radius, in the sample's median nearest-neighbour spacing: random samples leave no hole
+SURFEL_SPACINGS = 3.5  # a surfel's radius, in the sample's median nearest-neighbour spacing: no hole in a random sample
 SURFEL_CHUNK = 50_000  # surfels splatted at once (bounds the memory of pixel_grid_returns)
 
 

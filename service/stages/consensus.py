@@ -32,8 +32,8 @@ nearly round about an axis), where the result keeps ``OBJECT_CONFIRMING_SHARE`` 
 (``0090-descriptors-settle-a-round-objects-turn.md``); where the stage put the feature pose in the result's place,
 that pose must also be the only place the descriptors point to: no other reaches ``UNIQUE_SHARE`` of its support
 (``0091-a-replaced-round-objects-turn-needs-one-place.md``). Where the feature pose is that one place, a weak slide
-and, where neither cloud is a range image (free space settles theirs where it is the only doubt), a loose fit of the
-working target are settled too (``ONE_PLACE_OBJECT_DOUBTS``, ``0093-one-place-settles-an-objects-slide.md``).
+and, where the clouds are not two range images (free space settles theirs where it is the only doubt), a loose fit of
+the working target are settled too (``ONE_PLACE_OBJECT_DOUBTS``, ``0093-one-place-settles-an-objects-slide.md``).
 """
 
 from __future__ import annotations
@@ -108,9 +108,9 @@ OBJECT_CONFIRMING_SHARE = 0.9
 UNIQUE_SHARE = 0.6
 # ... and where the feature pose is one place in that sense (kept or replaced), a slide that hardly changes the fit and
 # a loose fit of the working target (not the entered target's, which confirmed() asks of every result), the latter
-# only where neither cloud is a range image (free space, which runs before, settles theirs where it is the only doubt,
-# and declines it above 0.03 of a scan in free space, 0.01 on a coarser view, or where it saw under 0.1 of a scan;
-# decisions/0094): on the choosing sets 48 of 50 object results with such doubts
+# only where the clouds are not two range images (free space, which runs before, settles theirs where it is the only
+# doubt, and declines it above 0.03 of a scan in free space, 0.01 on a coarser view, or where it saw under 0.1 of a
+# scan; decisions/0094, 0096): on the choosing sets 48 of 50 object results with such doubts
 # alone were right, the 2 wrong ones kept 16 and 13 pairs; 30 right ones passed the rule. A poor fit stays unsettled:
 # none passed it (decisions/0093).
 ONE_PLACE_OBJECT_DOUBTS = (WEAK_SLIDE, WORKING_LOOSE_FIT)
@@ -168,12 +168,13 @@ def confirmed(work: Working, result: RegistrationResult, support: int, pose: Fea
 
 
 def loose_between_range_images(work: Working, result: RegistrationResult) -> bool:
-    """Whether ``result`` fits the working target loosely and a cloud is a range image, as free space reads it for a
-    confirmation (:attr:`Working.confirming_views`): such a loose fit is free space's to settle
-    (:mod:`service.stages.free_space`, where it is the result's only doubt), not the descriptors'. The views are built
-    only where the warning is there."""
+    """Whether ``result`` fits the working target loosely and both clouds are range images, as free space reads them
+    for a confirmation (:attr:`Working.confirming_views`): such a loose fit is free space's to settle
+    (:mod:`service.stages.free_space`, where it is the result's only doubt), not the descriptors'; beside one range
+    image alone free space confirms nothing (``docs/decisions/0096``). The views are built only where the warning is
+    there."""
     loose = any(w.startswith(WORKING_LOOSE_FIT) for w in result.warnings)
-    return loose and any(view is not None for view in work.confirming_views)
+    return loose and None not in work.confirming_views
 
 
 def after_guess(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

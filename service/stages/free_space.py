@@ -1,18 +1,21 @@
 """Stage 8, free space: a ``reliable`` result whose pose puts surface where a range image's sensor saw through is not.
 
-Where either entered cloud is a range image (:attr:`service.stages.normalise.Working.range_views`), the final pose
-moves the other cloud's fine points (:attr:`Working.fine_source`, :attr:`Working.fine_target`) into that image's
-view; more than ``RELIABLE_FREE_SPACE`` of them in front of the surface its sensor saw
-(:func:`service.free_space.pose_free_space`) takes ``reliable`` away, with a warning. Conversely, a result that only
-the doubts free space settles (``SETTLED_DOUBTS``) kept from ``reliable`` is ``reliable`` where at most
-``CONFIRMS_BELOW`` lie there and at least ``CONFIRMS_SEEING`` where a sensor saw at all: two range images that overlap
-in part overlay each other loosely, and a pose only the second, denser rotation search found is not half a turn off if
-it leaves the sensors' free space clear. A confirmation reads :attr:`Working.confirming_views`, where a range image
-with range noise has a view read over more neighbours (then at most ``COARSE_CONFIRMS_BELOW``). The pose itself is
-kept. It runs on the pose the caller gets (after the fine refinement), before the symmetry check, which still judges
-a confirmed result (``docs/decisions/0053-free-space-of-range-images.md``,
+Where either entered cloud is a range image (:attr:`service.stages.normalise.Working.range_views`), the final pose moves
+the other cloud's fine points (:attr:`Working.fine_source`, :attr:`Working.fine_target`) into that image's view; more
+than ``RELIABLE_FREE_SPACE`` of them in front of the surface its sensor saw (:func:`service.free_space.pose_free_space`)
+takes ``reliable`` away, with a warning. Conversely, a result that only the doubts free space settles
+(``SETTLED_DOUBTS``) kept from ``reliable`` is ``reliable`` where at most ``CONFIRMS_BELOW`` lie there and at least
+``CONFIRMS_SEEING`` where a sensor saw at all, both clouds being range images: two range images that overlap in part
+overlay each other loosely, and a pose only the second, denser rotation search found is not half a turn off if it leaves
+the sensors' free space clear. Beside one range image alone that is no evidence: a pose half a turn off about an axis
+across its view lays the other scan on or behind the surface it saw, where its free space holds nothing (a scanned
+toilet so turned left 0.014 of it in front). A confirmation reads :attr:`Working.confirming_views`, where a range image
+with range noise has a view read over more neighbours (then at most ``COARSE_CONFIRMS_BELOW``). The pose itself is kept.
+It runs on the pose the caller gets (after the fine refinement), before the symmetry check, which still judges a
+confirmed result (``docs/decisions/0053-free-space-of-range-images.md``,
 ``docs/decisions/0054-free-space-settles-the-second-search.md``,
-``docs/decisions/0094-free-space-through-range-noise-and-thinning.md``).
+``docs/decisions/0094-free-space-through-range-noise-and-thinning.md``,
+``docs/decisions/0096-free-space-confirms-between-two-range-images.md``).
 """
 
 from __future__ import annotations
@@ -81,9 +84,9 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
                timing: dict[str, float]) -> RegistrationResult:
     """``result`` judged by its free space (:func:`free_space_of`): a ``reliable`` one with more than
     ``RELIABLE_FREE_SPACE`` is not, with a ``through free space`` warning; one that only ``SETTLED_DOUBTS`` kept
-    from ``reliable`` is, judged by :attr:`Working.confirming_views`, with at most :func:`confirms_below` where at
-    least ``CONFIRMS_SEEING`` lie where a sensor saw (its warnings stay, and a note says so). The time is added to
-    ``timing["postprocess"]``."""
+    from ``reliable`` is, judged by :attr:`Working.confirming_views` where both are views, with at most
+    :func:`confirms_below` where at least ``CONFIRMS_SEEING`` lie where a sensor saw (its warnings stay, and a note says
+    so). The time is added to ``timing["postprocess"]``."""
     if not (result.reliable or only_settled_doubts(result)):
         return result
     started = time.perf_counter()
@@ -96,7 +99,7 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
         return dataclasses.replace(result, reliable=False,
                                    warnings=[*result.warnings, through_free_space(shares.share)])
     bound = confirms_below(views)
-    if not result.reliable and shares.share <= bound and shares.seen >= CONFIRMS_SEEING:
+    if not result.reliable and None not in views and shares.share <= bound and shares.seen >= CONFIRMS_SEEING:
         return dataclasses.replace(result, reliable=True,
                                    warnings=[*result.warnings, confirmed_by_free_space(shares.share, bound)])
     return result

@@ -14,6 +14,7 @@ from bench.turntable_scans import RADIUS, Shape, about_up, main, turntable_pairs
 from model.analytic_shapes import lumpy_sphere
 from model.data import data_dir
 from model.sensor_sim import estimate_normals
+from service.free_space import range_view
 
 needs_data = pytest.mark.skipif(not (data_dir() / "modelnet40_test.npz").exists(),
                                 reason="ModelNet40 absent (../shared/data/modelnet40 or $MFGNET_DATA)")
@@ -32,6 +33,17 @@ def test_the_ground_truth_turns_the_scan_back_onto_the_scan_at_0_deg() -> None:
         wrong_way = np.median(tree.query(pair.source @ about_up(angle).T)[0])  # the table turned on, not back
         assert right < 0.001  # metres: noise and sampling only
         assert right < wrong_way / 3
+
+
+def test_the_scans_are_range_images_on_a_pixel_grid_as_the_service_reads_them() -> None:
+    """Evenly spaced returns (random thinning left a tenth of the points at under half the median spacing) whose
+    density follows the viewing direction: the free-space stage reads each as a range image."""
+    points = lumpy_sphere(30_000, seed=1)
+    pair = turntable_pairs(Shape("lumpy", "lumpy_sphere", points, estimate_normals(points)), [24.0])[0]
+    for scan in (pair.source, pair.target):
+        spacing = cKDTree(scan).query(scan, 2)[0][:, 1]  # [N]
+        assert np.quantile(spacing, 0.1) > 0.8 * np.median(spacing)
+        assert range_view(scan.astype(np.float64)) is not None
 
 
 @needs_data
