@@ -158,11 +158,11 @@ def turntable_pairs(shape: Shape, angles: list[float], effects: SensorEffects | 
     camera[(UP + 1) % 3], camera[UP] = CAMERA_DISTANCE * np.cos(elevation), CAMERA_DISTANCE * np.sin(elevation)
     look = -camera / np.linalg.norm(camera)
     rng = shape_rng(shape.name)
+    effects = EFFECTS if effects is None else effects
     views = {}
     for angle in (0.0, *angles):  # the object turned by the table, the camera fixed
         turn = about_up(angle)
-        views[angle] = scan(points @ turn.T, shape.normals @ turn.T, camera, look, effects or EFFECTS, rng
-                            ).astype(np.float32)
+        views[angle] = scan(points @ turn.T, shape.normals @ turn.T, camera, look, effects, rng).astype(np.float32)
     pairs = []
     for angle in angles:
         truth = np.eye(4)

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from model.views import visible_indices
 
 NORMAL_NEIGHBOURS = 12  # points of the local PCA behind each normal (the point itself included)
-SURFEL_SPACINGS = 3.5  # a surfel's radius, in the sample's median nearest-neighbour spacing: no hole in a random sample
+SURFEL_SPACINGS = 3.5  # a surfel's radius, in median nearest-neighbour spacings: holes under 0.1% of a uniform sample
 SURFEL_CHUNK = 50_000  # surfels splatted at once (bounds the memory of pixel_grid_returns)
 
 
@@ -139,7 +139,9 @@ def pixel_grid_returns(points: np.ndarray, normals: np.ndarray, camera: np.ndarr
     Pixels are squares of ``pitch`` on the image plane at unit depth (about ``pitch`` radians near the centre). Each
     point is a surfel: a disc of ``SURFEL_SPACINGS`` median nearest-neighbour spacings on its tangent plane. A pixel's
     ray meets every disc it passes through; the nearest meeting is its return (a depth buffer), so the returns lie on
-    the rays of the pixel grid and a hidden surface returns nothing."""
+    the rays of the pixel grid and a hidden surface returns nothing. Each disc is tried on the pixels within its radius
+    at the nearest point's depth: meant for a surface well in front of the camera (a point much nearer widens that
+    window for every disc)."""
     axes = camera_axes(look)  # [3, 3]
     local = (points - camera) @ axes.T  # [N, 3]: right, up, depth
     front = np.flatnonzero(local[:, 2] > 1e-9)
@@ -186,8 +188,8 @@ class SensorEffects:
 
 def scan(points: np.ndarray, normals: np.ndarray, camera: np.ndarray, look: np.ndarray, effects: SensorEffects,
          rng: np.random.Generator) -> np.ndarray:
-    """What a range sensor at ``camera [3]`` looking along unit ``look [3]`` returns of a dense uniform sample
-    ``points [N, 3]`` with ``normals [N, 3]``: ``[M, 3]`` points (M varies)."""
+    """What a range sensor at ``camera [3]`` looking along unit ``look [3]`` returns of a dense surface sample
+    ``points [N, 3]`` with ``normals [N, 3]`` (uniform where ``effects`` thins it): ``[M, 3]`` points (M varies)."""
     idx = np.flatnonzero(in_frustum(points, camera, look, effects.half_angle_deg)) if effects.half_angle_deg < 180 \
         else np.arange(len(points))
     if len(idx) == 0:

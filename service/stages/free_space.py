@@ -91,6 +91,8 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
         return result
     started = time.perf_counter()
     views = work.range_views if result.reliable else work.confirming_views
+    if not result.reliable and None in views:
+        return result  # one range image confirms nothing: its free space is not asked
     shares = free_space_of(work, result, views)
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
     if shares is None:
@@ -99,7 +101,7 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
         return dataclasses.replace(result, reliable=False,
                                    warnings=[*result.warnings, through_free_space(shares.share)])
     bound = confirms_below(views)
-    if not result.reliable and None not in views and shares.share <= bound and shares.seen >= CONFIRMS_SEEING:
+    if not result.reliable and shares.share <= bound and shares.seen >= CONFIRMS_SEEING:
         return dataclasses.replace(result, reliable=True,
                                    warnings=[*result.warnings, confirmed_by_free_space(shares.share, bound)])
     return result

@@ -7,10 +7,12 @@ repository) or the bundled model ``general`` is absent.
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from bench.real_scans import Case, data_dir, load_cases, pose_errors, thresholds
-from model.sensor_sim import SensorEffects
+from bench.turntable_scans import EFFECTS
 from service.manifest import bundled_models_dir, load_manifest
 from service.registrar import Registrar
 from service.result import RegistrationResult
@@ -26,7 +28,7 @@ def skip_without_general() -> None:
 
 # The turntable scans as bench.turntable_scans made them before decision 0095 (random thinning, not a pixel grid): the
 # cases the consensus and assess tests pin were measured on them.
-THINNED_TURNTABLE = SensorEffects(relative_noise=0.0005, mixed_share=0.01)
+THINNED_TURNTABLE = dataclasses.replace(EFFECTS, pixel_pitch=None)
 
 
 def general_reference_radius() -> float:

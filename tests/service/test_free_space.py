@@ -268,7 +268,7 @@ def test_a_coarser_view_beside_a_cloud_with_no_view_confirms_nothing() -> None:
 def test_a_confirmation_needs_both_clouds_to_be_range_images() -> None:
     """Beside a cloud with no view, one range image's free space is no evidence: a pose half a turn off about an axis
     across its view puts the other scan's surface behind what its sensor saw, where nothing is known (a scanned toilet
-    so turned left 0.014 of its points in the target's free space, below the 0.03 bound; decisions/0095). So a
+    so turned left 0.014 of its points in the target's free space, below the 0.03 bound; decisions/0096). So a
     range image beside an even sample of the surface confirms not even the truth, and the descriptors, not free
     space, settle its loose fit."""
     source, _ = scan_pair(noisy_source=False, noisy_target=False)
