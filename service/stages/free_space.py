@@ -91,9 +91,8 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
         return result
     started = time.perf_counter()
     views = work.range_views if result.reliable else work.confirming_views
-    if not result.reliable and None in views:
-        return result  # one range image confirms nothing: its free space is not asked
-    shares = free_space_of(work, result, views)
+    one_view_confirms_nothing = not result.reliable and None in views
+    shares = None if one_view_confirms_nothing else free_space_of(work, result, views)
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
     if shares is None:
         return result
