@@ -14,7 +14,9 @@ A shape of revolution seen in part (a vase, a bowl) turns about its axis without
 need not be a principal axis of the part seen. Where the result's ``stability`` is low and its least constrained
 motion is a turn (:mod:`service.stability`), the pose also competes with itself turned by each of ``AXIS_TURN_DEGREES``
 either way about that motion's axis (``docs/decisions/0038-turns-about-the-least-constrained-axis.md``,
-``0073-turns-of-120-deg-about-the-least-constrained-axis.md``).
+``0073-turns-of-120-deg-about-the-least-constrained-axis.md``). The turn of 15 deg catches a round object left 20-30
+deg off about its axis, which fits about as well turned 15 deg and refined
+(``0097-turns-of-15-deg-about-the-least-constrained-axis.md``).
 
 A shape with four-fold symmetry (a four-legged stool, a square table or box) overlays its target about as well turned a
 quarter turn about its vertical axis, which is often a principal axis of the part seen, at a stability that need not
@@ -86,7 +88,7 @@ from service.stages.ranking import (
 from service.stages.refine import icp_distance, short_refine
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
-AXIS_TURN_DEGREES = (60.0, 120.0)  # ... by each of these angles either way
+AXIS_TURN_DEGREES = (15.0, 60.0, 120.0)  # ... by each of these angles either way
 QUARTER_TURN_ITERATIONS = 5  # more short-refinement updates for the best-fitting of the quarter turns
 # rooms whose pose overlays part of its source: a turn within PARTIAL_FIT_GAP of the pose's close fit whose
 # overlay_precision is at least the pose's less PRECISION_GAP makes the result ambiguous
