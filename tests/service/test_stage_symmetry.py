@@ -303,8 +303,8 @@ def registered_turntable_case(shape_class: str, index: int, angle: float, rng: n
     its source turned by the ``draw``-th rotation drawn from ``rng`` (as ``pair_cases`` draws them pair after pair),
     registered by ``general`` with the service's defaults -> the warnings, whether it is right and whether it is
     reliable."""
-    pairs = turntable_pairs(modelnet_shapes([shape_class], 2)[index], [24.0, 48.0])  # as the bench scans them
-    pair = pairs[[24.0, 48.0].index(angle)]
+    angles = [24.0, 48.0]  # the bench's default angles: one rng scans 0 deg, then each in turn
+    pair = turntable_pairs(modelnet_shapes([shape_class], 2)[index], angles)[angles.index(angle)]
     rotation = [Rotation.random(random_state=rng) for _ in range(draw)][-1].as_matrix()
     source, truth = turned(pair.source, pair.src_to_tgt, rotation)
     result = Registrar(bundled_models_dir() / "general").register(source, pair.target, **DEFAULTS)
