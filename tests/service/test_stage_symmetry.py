@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import numpy as np
 from pair_checks import needs_modelnet
+from real_scan_cases import register_with_defaults
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, room_scene
 from stage_inputs import result_at, working_clouds
 
-from bench.real_scans import pose_errors, thresholds, turned
-from bench.search_network import DEFAULTS
+from bench.real_scans import Case, case_thresholds, turned
 from bench.turntable_scans import modelnet_shapes, turntable_pairs
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar
@@ -301,15 +301,15 @@ def registered_turntable_case(shape_class: str, index: int, angle: float, rng: n
                               ) -> tuple[list[str], bool, bool]:
     """``bench.turntable_scans``' pair of the ``index``-th test shape of ``shape_class`` scanned at 0 and ``angle`` deg,
     its source turned by the ``draw``-th rotation drawn from ``rng`` (as ``pair_cases`` draws them pair after pair),
-    registered by ``general`` with the service's defaults -> the warnings, whether it is right and whether it is
-    reliable."""
+    registered by ``general`` with the service's defaults (:func:`real_scan_cases.register_with_defaults`) -> the
+    warnings, whether it is right and whether it is reliable."""
     angles = [24.0, 48.0]  # the bench's default angles: one rng scans 0 deg, then each in turn
     pair = turntable_pairs(modelnet_shapes([shape_class], 2)[index], angles)[angles.index(angle)]
     rotation = [Rotation.random(random_state=rng) for _ in range(draw)][-1].as_matrix()
     source, truth = turned(pair.source, pair.src_to_tgt, rotation)
-    result = Registrar(bundled_models_dir() / "general").register(source, pair.target, **DEFAULTS)
-    rotation_error, translation_error = pose_errors(result.rotation, result.translation, truth)
-    max_degrees, max_distance = thresholds(pair.sensor)
+    case = Case(pair.name, pair.sensor, f"turned, draw {draw}", 1.0, source, pair.target, truth)
+    result, rotation_error, translation_error = register_with_defaults(case)
+    max_degrees, max_distance = case_thresholds(case)
     return result.warnings, rotation_error < max_degrees and translation_error < max_distance, result.reliable
 
 
