@@ -22,8 +22,9 @@ TINY = ["--model", "clean", "--checkpoint", "clean", "--repeats", "2", "--http-r
 
 
 def test_bench_reports_every_section_and_compares_with_a_baseline(tmp_path) -> None:
-    out = tmp_path / "bench.json"
-    result = CliRunner().invoke(app, ["bench", *TINY, "--json", str(out)])
+    out, baseline = tmp_path / "bench.json", tmp_path / "baseline.json"
+    baseline.write_text(json.dumps({"pipeline_768": {"total": {"p50": 1000.0}}, "only_in_the_baseline": 1.0}))
+    result = CliRunner().invoke(app, ["bench", *TINY, "--json", str(out), "--compare", str(baseline)])
     assert result.exit_code == 0, result.output
     report = json.loads(out.read_text())
     assert report["pipeline_768"]["total"]["p50"] > 0
@@ -38,6 +39,8 @@ def test_bench_reports_every_section_and_compares_with_a_baseline(tmp_path) -> N
     assert {"torch_eager", "onnx_pipeline", "onnx_pipeline_icp_plane", "onnx_auto_search_icp_plane"} <= set(methods)
     assert all(m["n"] == 2 and m["ms_per_pair"] > 0 for m in methods.values())
 
-    again = CliRunner().invoke(app, ["bench", *TINY, "--compare", str(out)])
-    assert again.exit_code == 0, again.output
-    assert "pipeline_768.total.p50" in again.output and "%)" in again.output
+    # --compare: one line per figure in both reports, the baseline's value, this run's and the change
+    p50 = report["pipeline_768"]["total"]["p50"]
+    change = f"{100 * (p50 / 1000.0 - 1):+.1f}%"
+    assert f"{'pipeline_768.total.p50':45s} {1000.0:10.3f} -> {p50:10.3f} ({change})" in result.output
+    assert "only_in_the_baseline" not in result.output

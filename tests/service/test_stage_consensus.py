@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -55,10 +56,18 @@ def room_crop(label: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.nda
     """``bench.room_crops``' case ``label`` (``seed``, 3 turns): source, target, src_to_tgt and its thresholds."""
     fragment, overlap = label.split("/o")[0], int(label.split("/o")[1][:2]) / 100
     skip_without(fragment.split("/")[0])
-    for name, sensor, source, target, truth in cases(data_dir(), overlap, seed, 3, [fragment]):
-        if name == label:
-            return source, target, truth, thresholds(sensor)
-    raise AssertionError(f"no case {label}")
+    crops = fragment_crops(fragment, overlap, seed)
+    if label not in crops:
+        raise AssertionError(f"no case {label}")
+    sensor, *clouds = crops[label]
+    source, target, truth = (c.copy() for c in clouds)  # the cache's arrays stay as made
+    return source, target, truth, thresholds(sensor)
+
+
+@functools.cache
+def fragment_crops(fragment: str, overlap: float, seed: int) -> dict[str, tuple]:
+    """``label: (sensor, source, target, src_to_tgt)`` of one fragment's cases, made once per module."""
+    return {name: (sensor, *clouds) for name, sensor, *clouds in cases(data_dir(), overlap, seed, 3, [fragment])}
 
 
 def without_consensus() -> Registrar:
