@@ -35,7 +35,8 @@ SEARCH_ICP_ITERATIONS = 20
 SEARCH_ICP_STRIDE = 3
 # The hypotheses go through the network this many at a time: ONNX Runtime keeps each session's arena at the
 # largest batch it has run, and all 24 at once grew the process by ~1.2 GB, 4 at a time by ~180 MB, for ~3%
-# more time (docs/ROTATION_SEARCH.md, "Memory"). The caller embeds the target once for all of them.
+# more time (the arena growth: docs/decisions/0002-rotation-search-default-and-trigger.md, "Alternatives measured";
+# 8 at a time: docs/decisions/0012-search-on-128-points.md). The caller embeds the target once for all of them.
 SEARCH_BATCH = 4
 # With the short ICPs, every hypothesis goes through the first SEARCH_PRUNE_ITERATIONS network iterations and its
 # short ICP; only the SEARCH_KEEP best by rank_hypotheses go on through the remaining iterations (each exactly as
@@ -61,7 +62,8 @@ DUPLICATE_DISTANCE = 0.01  # normalised units
 # After the candidates' short refinements: another candidate more than AMBIGUOUS_DEGREES from the winner whose
 # inlier ratio is within AMBIGUOUS_RATIO_GAP of the winner's makes the result ambiguous (not reliable, a warning).
 # On 400 seeded searched pairs at 90 and 180 deg such results were wrong 36 times of 49; wrong results called
-# reliable 86 -> 59, right ones called unreliable 0 -> 13 of 289 (docs/ROTATION_SEARCH.md, "Ambiguous results").
+# reliable 86 -> 59, right ones called unreliable 0 -> 13 of 289
+# (docs/decisions/0003-reliable-rule-and-stability-threshold.md, rule 4).
 AMBIGUOUS_DEGREES = 10.0
 AMBIGUOUS_RATIO_GAP = 0.03
 

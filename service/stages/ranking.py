@@ -3,9 +3,10 @@ refinement and are ranked again: by their :func:`close_fit` to the caller's targ
 fit on the working clouds; the slide check ranks its places the same way.
 
 The search's own ranking (short point-to-point ICPs on its subsample) often put a wrong basin first: on 600
-seeded pairs at 90 and 180 degrees 359 -> 388 right for ~15 ms more (docs/ROTATION_SEARCH.md, "Ranking the kept
-candidates again"). A close second that is turned far from the winner, or that places the source far from it,
-makes the ranking ambiguous (``docs/decisions/0008-ambiguous-places.md``).
+seeded pairs at 90 and 180 degrees 359 -> 388 right for ~15 ms more
+(``docs/decisions/0002-rotation-search-default-and-trigger.md``, "Inside the search"). A close second that is turned
+far from the winner, or that places the source far from it, makes the ranking ambiguous
+(``docs/decisions/0008-ambiguous-places.md``).
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 # rotation_search="auto" searches when the plain result's inlier ratio is below this share of the ratio a
 # right pose can reach at the target's density (service.quality.attainable_inlier_ratio). Chosen on the
-# bundled `general` model with refine="icp-plane" (docs/ROTATION_SEARCH.md, "The trigger"):
+# bundled `general` model with refine="icp-plane" (docs/decisions/0002-rotation-search-default-and-trigger.md):
 # right poses reach 0.93-0.98 of it on dense and sparse pairs alike; at 0.8 "auto" matched the former fixed
 # threshold (inlier ratio 0.7) on dense pairs at 45/90/180 deg and on sparse pairs searched 5% instead of 77%
 # of 300 pairs within 45 deg (recall at 5 deg 0.860 vs 0.870), with equal or better recall at 90 and 180 deg.
