@@ -158,7 +158,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--scales", type=positive_float, nargs="+", default=[1.0, 1000.0])
     parser.add_argument("--pairs", nargs="+", default=None, help="only these pairs (file stems)")
     parser.add_argument("--derived", action="store_true",
-                        help="the pairs derived from the set instead of its own (the defaults were not fitted to them)")
+                        help="the pairs derived from the set instead of its own "
+                             "(the request defaults were not chosen on them)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     directory = scan_set(parser, args.data, args.pairs, args.derived)

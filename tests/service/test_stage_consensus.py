@@ -66,7 +66,7 @@ def room_crop(label: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.nda
 
 @functools.cache
 def fragment_crops(fragment: str, overlap: float, seed: int) -> dict[str, tuple]:
-    """``label: (sensor, source, target, src_to_tgt)`` of one fragment's cases, made once per module."""
+    """``label: (sensor, source, target, src_to_tgt)`` of one fragment's cases, made once per test process."""
     return {name: (sensor, *clouds) for name, sensor, *clouds in cases(data_dir(), overlap, seed, 3, [fragment])}
 
 
