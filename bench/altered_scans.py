@@ -29,9 +29,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.real_scans import scan_set, turned
-from bench.report_io import json_destination
+from bench.report_io import json_destination, provenance
 from bench.surface_resample import point_spacing
 from bench.variant_runs import general_registrar, registered, report
+from service.manifest import bundled_models_dir
 
 ALTERATIONS = ("sparse30", "sparse10", "noise", "crop", "scattered", "source10", "croptarget")
 CROP_KEEP = 0.6  # share of the cut cloud's points that `crop` (the source) and `croptarget` (the target) keep
@@ -91,10 +92,11 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     directory = scan_set(parser, args.dir, args.pairs)
     json_destination(args.json)
+    made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     registrar = general_registrar()
     groups = {kind: registered(cases(directory, kind, args.scattered, args.pairs), not args.no_fpfh, registrar)
               for kind in args.alterations}
-    return report("altered_scans", groups, args.json)
+    return report("altered_scans", groups, args.json, made_by)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ Registered as an ``mfgnet.commands`` entry point; the pair options are ``model.c
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
@@ -13,6 +14,7 @@ from typing import Annotated
 import typer
 
 from bench.baselines import METHODS as BASELINES  # Open3D is imported only when one runs (the bench extra)
+from bench.report_io import machine_info, provenance
 from model.cli import (
     MaxAngle,
     Noise,
@@ -102,7 +104,8 @@ def evaluate(
     ] = False,
 ) -> None:
     """The paper's metrics (RMSE/MAE of Euler angles and translation), isotropic errors, recall; with them, under
-    'evaluated', what was measured: the pairs, the checkpoint, model or baseline, and the options it ran with."""
+    'evaluated', what was measured: the pairs, the checkpoint, model or baseline, the options it ran with, the machine
+    and the code (``provenance``)."""
     from model.checkpoint import file_sha256
     from model.metrics import registration_metrics, save_per_pair
 
@@ -148,6 +151,8 @@ def evaluate(
             }
         }
     if checkpoint_path is not None:
+        import torch
+
         evaluated |= {
             "checkpoint": str(checkpoint_path),
             "checkpoint_sha256": file_sha256(checkpoint_path),
@@ -155,11 +160,18 @@ def evaluate(
             "keypoints": keypoints or network.cfg.keypoints,
             "batch_size": batch_size,
         }
+        threads = torch.get_num_threads()
     elif model_path is not None:
+        from service.registrar import default_threads
+
         evaluated |= runtime_model_fields(model_path, iterations, keypoints)
         evaluated |= {"refine": refine, "refine_points": refine_points, "rotation_search": search}
+        threads = default_threads()  # the Registrar's (bench.runtime_eval)
     else:
         evaluated["baseline"] = baseline
+        threads = os.cpu_count() or 1  # bench.baselines sets no thread count: Open3D's OpenMP takes every CPU
+    # before the run: the shared checkout may move on during it (a checkpoint is named by its sha256 above)
+    evaluated |= {"machine": machine_info(threads), "provenance": provenance([model_path] if model_path else [])}
     if by_label and "label" not in data_pairs:
         raise typer.BadParameter("--by-label needs pairs with a 'label' array")
     if model is not None:
@@ -179,9 +191,11 @@ def evaluate(
         R, t, secs = predict_poses(network, data_pairs, batch_size, iterations, keypoints, progress=True)
     metrics = registration_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], secs)
     if model is not None:
-        from model.metrics import reliability_metrics
+        from model.metrics import reliability_metrics, warnings_by_outcome
 
-        metrics.update(reliability_metrics(R, t, data_pairs["rotation"], data_pairs["translation"], run.reliable))
+        truth = data_pairs["rotation"], data_pairs["translation"]
+        metrics.update(reliability_metrics(R, t, *truth, run.reliable))
+        metrics["warnings_by_outcome"] = warnings_by_outcome(R, t, *truth, run.reliable, run.warnings)
         if search == "auto":
             metrics["rotation_search_share"] = run.searched / len(R)  # pairs on which "auto" ran the search
     if by_label:

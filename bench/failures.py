@@ -27,11 +27,19 @@ from collections import Counter
 from pathlib import Path
 
 from bench.real_scans import Case, judged, require_thresholds, scan_set
-from bench.report_io import checked, json_destination, non_negative_int, positive_float, positive_int, provenance
+from bench.report_io import (
+    checked,
+    json_destination,
+    machine_info,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    provenance,
+)
 from bench.search_network import DEFAULTS, cases, registered
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
-from service.registrar import Registrar
+from service.registrar import Registrar, default_threads
 from service.result import RegistrationResult
 
 CLASSES = ("truth leaves", "fits worse", "not reached")
@@ -104,7 +112,7 @@ def main(argv: list[str] | None = None) -> dict:
               "scales": args.scales, "pairs": args.pairs, "derived": args.derived,
               "units": "rotation errors in degrees; translation errors in the case's unit (x1: metres, x1000: "
                        "millimetres); seconds",
-              "provenance": made_by}
+              "machine": machine_info(default_threads()), "provenance": made_by}
     for row in report["rows"]:
         truth = row["from_truth"]
         print(f"{row['case']:<40} {row['class']:<13} {row['rotation_error_deg']:7.2f} deg"

@@ -289,8 +289,9 @@ def main(argv: list[str] | None = None) -> None:
     import argparse
     import json
 
-    from bench.report_io import checked, json_destination, positive_int, require_checkouts
+    from bench.report_io import checked, json_destination, machine_info, positive_int, provenance, require_checkouts
     from model.cli_inputs import require_shapes
+    from service.manifest import bundled_models_dir
 
     parser = argparse.ArgumentParser(description="What HTTP adds to the in-process pipeline (see module docstring).")
     parser.add_argument("--requests", type=positive_int, default=40, help="timed 768-point rounds")
@@ -303,7 +304,10 @@ def main(argv: list[str] | None = None) -> None:
     checked(require_shapes, "test", "clean", None)  # the 768-point pairs
     json_destination(args.json)
     require_checkouts(parser, args.compare_root)
-    report = bench_overhead(args.requests, args.big_requests, args.threads, (None, *args.compare_root))
+    # before the run: the checkout may move on during it; --compare-root servers run their roots' code
+    made_by = provenance([bundled_models_dir() / "clean"])  # the model every server gets
+    report = {**bench_overhead(args.requests, args.big_requests, args.threads, (None, *args.compare_root)),
+              "machine": machine_info(args.threads), "provenance": made_by}
     text = json.dumps(report, indent=1)
     print(text)
     if args.json:

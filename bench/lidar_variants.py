@@ -23,8 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bench.real_scans import scan_set, turned
-from bench.report_io import json_destination
+from bench.report_io import json_destination, provenance
 from bench.variant_runs import registered, report
+from service.manifest import bundled_models_dir
 
 PAIR = "lidar_small_gicp"
 RADII = (20.0, 30.0)  # m
@@ -97,9 +98,11 @@ def main(argv: list[str] | None = None) -> dict:
     if not (directory / f"{PAIR}.npz").is_file():
         parser.error(f"no LiDAR pair {PAIR}.npz in the real-scan set {directory}")
     json_destination(args.json)
+    made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(directory))
     guess = None if args.odometry is None else odometry_guesses(*args.odometry)
-    return report("lidar_variants", {"all": registered(cases, fpfh=not args.no_fpfh, guess=guess)}, args.json)
+    return report("lidar_variants", {"all": registered(cases, fpfh=not args.no_fpfh, guess=guess)}, args.json,
+                  made_by)
 
 
 if __name__ == "__main__":

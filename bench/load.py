@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from bench.http_latency import CONCURRENCY, Server, run_load
-from bench.report_io import json_destination, npz_arrays, positive_int, require_checkouts
+from bench.report_io import json_destination, machine_info, npz_arrays, positive_int, provenance, require_checkouts
+from service.core.config import Settings
 
 
 @dataclass(frozen=True)
@@ -87,10 +88,14 @@ def main(argv: list[str] | None = None) -> None:
     specs = [ServerSpec(None, t, c) for t, c in settings]
     specs += [ServerSpec(root, *settings[0]) for root in args.compare_root]
     started = time.strftime("%Y-%m-%d %H:%M:%S")
+    # before the run: the checkout may move on during it; --compare-root servers run their roots' code
+    made_by = provenance([Settings().default_model])  # the model a default request gets
     rows = compare_load(pairs, specs, args.requests, args.rounds, tuple(args.concurrency or CONCURRENCY))
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"started": started, "pairs": args.pairs, "rows": rows}, f, indent=1)
+            json.dump({"started": started, "pairs": args.pairs, "rows": rows,
+                       "machine": machine_info(max(spec.threads for spec in specs)),  # rows: each server's TxC
+                       "provenance": made_by}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ class RuntimeRun(NamedTuple):
     searched: int  # pairs on which the rotation search ran (``timing_ms["search"]``)
     reliable: np.ndarray  # [M] bool: ``quality.reliable``
     stability: np.ndarray  # [M] float: ``quality.stability`` (NaN where the runtime gives none)
+    warnings: list[tuple[str, ...]]  # [M] per pair its warnings' kinds (each the text before its colon), sorted
 
 
 def runtime_poses(model: str | Path, pairs: dict, iterations: int | None = None, keypoints: int | None = None,
@@ -30,7 +31,7 @@ def runtime_poses(model: str | Path, pairs: dict, iterations: int | None = None,
     from service.registrar import Registrar
 
     registrar = Registrar(model_folder(model))
-    Rs, ts, searched, reliable, stability = [], [], 0, [], []
+    Rs, ts, searched, reliable, stability, warnings = [], [], 0, [], [], []
     begin = time.perf_counter()
     pairs_in_order = list(zip(pairs["source"], pairs["target"], strict=True))
     for src, tgt in tqdm(pairs_in_order, desc="evaluate", unit="pair", disable=not progress):
@@ -41,5 +42,6 @@ def runtime_poses(model: str | Path, pairs: dict, iterations: int | None = None,
         searched += "search" in res.timing_ms
         reliable.append(res.reliable)
         stability.append(np.nan if res.stability is None else res.stability)
+        warnings.append(tuple(sorted({warning.split(":", 1)[0] for warning in res.warnings})))
     return RuntimeRun(np.stack(Rs), np.stack(ts), time.perf_counter() - begin, searched,
-                      np.array(reliable, dtype=bool), np.array(stability, dtype=np.float64))
+                      np.array(reliable, dtype=bool), np.array(stability, dtype=np.float64), warnings)

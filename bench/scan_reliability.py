@@ -16,7 +16,15 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.report_io import checked, json_destination, non_negative_int, positive_int, provenance, reliable_totals
+from bench.report_io import (
+    checked,
+    json_destination,
+    machine_info,
+    non_negative_int,
+    positive_int,
+    provenance,
+    reliable_totals,
+)
 from bench.runtime_eval import runtime_poses
 from model.cli_inputs import model_dir, require_shapes
 from model.data import class_names, make_test_pairs, protocol_for
@@ -70,6 +78,8 @@ def main(argv: list[str] | None = None) -> dict:
     checked(model_dir, args.model)
     checked(require_shapes, "test", "scans", args.data)
     json_destination(args.json)
+    from service.registrar import default_threads  # the runtime's (bench.runtime_eval)
+
     made_by = provenance([args.model])  # before the run: the shared checkout may move on during it
     rows: list[dict] = []
     for seed in args.seeds:
@@ -78,7 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
     out = {**report(rows, class_names(args.data)), "seeds": args.seeds, "count": args.count,
            "units": "rotation errors in degrees; translation errors in the shapes' unit (ModelNet40: about the unit "
                     "sphere)",
-           "provenance": made_by}
+           "machine": machine_info(default_threads()), "provenance": made_by}
     print("all", json.dumps(out["totals"]))
     for name, figures in out["by_class"].items():
         print(f"  {name}", json.dumps(figures))

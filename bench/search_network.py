@@ -29,6 +29,7 @@ from bench.real_scans import Case, judged, load_cases, require_thresholds, scan_
 from bench.report_io import (
     checked,
     json_destination,
+    machine_info,
     non_negative_int,
     positive_float,
     positive_int,
@@ -38,7 +39,7 @@ from bench.report_io import (
 from model.cli_inputs import model_dir
 from service.manifest import bundled_models_dir
 from service.refine_modes import SERVICE_DEFAULT_REFINE
-from service.registrar import Registrar
+from service.registrar import Registrar, default_threads
 from service.result import RegistrationResult
 from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 from service.stages.pipeline import Stages
@@ -176,7 +177,7 @@ def main(argv: list[str] | None = None) -> dict:
     require_thresholds(parser, all_cases)  # judged() would refuse a sensor of no class after its first registration
     # general and each candidate, before the run: the shared checkout may move on during it
     made_by = provenance([bundled_models_dir() / "general", *args.model_dirs])
-    report = {**compare(args.model_dirs, all_cases), "provenance": made_by}
+    report = {**compare(args.model_dirs, all_cases), "machine": machine_info(default_threads()), "provenance": made_by}
     for name, figures in report["totals"].items():
         print(name, json.dumps(figures))
     for row in report["differ"]:

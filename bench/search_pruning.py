@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.auto_trigger import pose_errors
-from bench.report_io import checked, json_destination
+from bench.report_io import checked, json_destination, machine_info, provenance
 from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
 
@@ -67,7 +67,10 @@ def main(argv: list[str] | None = None) -> None:
         checked(pairs_file, path)
     checked(model_dir, args.model)
     json_destination(args.json)
-    report = run(args.pairs, args.model)
+    from service.registrar import default_threads  # run's Registrar
+
+    made_by = provenance([args.model])  # before the run: the shared checkout may move on during it
+    report = {**run(args.pairs, args.model), "machine": machine_info(default_threads()), "provenance": made_by}
     for path, rows in report["files"].items():
         summary = {name: (round(r["recall_r5_t005"], 3), round(r["search_ms_median"])) for name, r in rows.items()}
         print(path, summary)

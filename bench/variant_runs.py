@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from bench.real_scans import fpfh_ransac_icp, pose_errors, thresholds
-from bench.report_io import reliable_totals
+from bench.report_io import machine_info, reliable_totals
 from service.manifest import bundled_models_dir
-from service.registrar import Registrar
+from service.registrar import Registrar, default_threads
 
 
 def general_registrar() -> Registrar:
@@ -66,12 +66,15 @@ def totals(rows: list[dict]) -> dict:
     return out
 
 
-def report(benchmark: str, groups: dict[str, list[dict]], json_path: Path | None) -> dict:
-    """The totals of each group of rows (printed), written with every row to ``json_path`` when given."""
+def report(benchmark: str, groups: dict[str, list[dict]], json_path: Path | None, made_by: dict | None = None) -> dict:
+    """The totals of each group of rows (printed), written with every row, the machine and ``made_by`` (what made
+    them: :func:`bench.report_io.provenance`, taken before the run) to ``json_path`` when given."""
     summary = {name: totals(rows) for name, rows in groups.items()}
     for name, figures in summary.items():
         print(name, json.dumps(figures))
-    result = {"benchmark": benchmark, "totals": summary, "rows": [r for rows in groups.values() for r in rows]}
+    result = {"benchmark": benchmark, "totals": summary, "machine": machine_info(default_threads()),
+              **({"provenance": made_by} if made_by is not None else {}),
+              "rows": [r for rows in groups.values() for r in rows]}
     if json_path:
         json_path.write_text(json.dumps(result, indent=1))
     return result

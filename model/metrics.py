@@ -4,6 +4,7 @@ errors and recall, pooled over all pairs. Pure numpy + scipy."""
 from __future__ import annotations
 
 import os
+from collections import Counter
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -92,6 +93,21 @@ def reliability_metrics(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray
         "reliable_wrong_share": float((reliable & ~right).mean()),
         "unreliable_right_share": float((~reliable & right).mean()),
     }
+
+
+def warnings_by_outcome(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray,
+                        reliable: np.ndarray, warnings: list[tuple[str, ...]]) -> dict[str, dict[str, int]]:
+    """What the runtime said where ``quality.reliable`` misled: for the right results flagged unreliable and the
+    wrong ones called reliable (right as in :func:`reliability_metrics`), how many carried each set of warning kinds
+    (``warnings [M]``: per pair its kinds; a set is its kinds joined by " + ", "none" for no warning)."""
+    iso_r, iso_t = isotropic_errors(R_pred, t_pred, R_gt, t_gt)  # [M], [M]
+    right = recall_hits(iso_r, iso_t)["recall_r5_t005"]  # [M]
+    reliable = np.asarray(reliable, dtype=bool)
+    out: dict[str, dict[str, int]] = {}
+    for outcome, mask in (("right_unreliable", right & ~reliable), ("wrong_reliable", ~right & reliable)):
+        counts = Counter(" + ".join(warnings[i]) or "none" for i in np.flatnonzero(mask))
+        out[outcome] = dict(sorted(counts.items(), key=lambda item: (-item[1], item[0])))
+    return out
 
 
 def recall_by_label(R_pred: np.ndarray, t_pred: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray, labels: np.ndarray,

@@ -34,9 +34,9 @@ SEARCH_ICP_ITERATIONS = 20
 # in farthest-point or coordinate order), 3x cheaper; the ranking then scores each hypothesis on all points.
 SEARCH_ICP_STRIDE = 3
 # The hypotheses go through the network this many at a time: ONNX Runtime keeps each session's arena at the
-# largest batch it has run, and all 24 at once grew the process by ~1.2 GB, 4 at a time by ~180 MB, for ~3%
-# more time (the arena growth: docs/decisions/0002-rotation-search-default-and-trigger.md, "Alternatives measured";
-# 8 at a time: docs/decisions/0012-search-on-128-points.md). The caller embeds the target once for all of them.
+# largest batch it has run, and all 24 at once grew the process by ~1.2 GB, 4 at a time by ~180 MB
+# (docs/decisions/0002-rotation-search-default-and-trigger.md, "Alternatives measured"); 8 at a time took 0.96-1.0x
+# the time of 4 (docs/decisions/0012-search-on-128-points.md). The caller embeds the target once for all of them.
 SEARCH_BATCH = 4
 # With the short ICPs, every hypothesis goes through the first SEARCH_PRUNE_ITERATIONS network iterations and its
 # short ICP; only the SEARCH_KEEP best by rank_hypotheses go on through the remaining iterations (each exactly as

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
+from provenance_check import assert_made_by_this_checkout
 
 from bench.altered_scans import ALTERATIONS, CROP_KEEP, altered, cases, main
 from bench.real_scans import data_dir
+from service.registrar import default_threads
 
 PAIR = "dragon_48_24"
 
@@ -63,4 +66,7 @@ def test_the_run_registers_each_case_with_both_methods_and_totals_them(tmp_path)
     assert figures["fpfh_successes"] == sum(r["fpfh_success"] for r in rows)
     assert figures["reliable_wrong"] == sum(r["reliable"] and not r["service_success"] for r in rows)
     assert all(r["service_seconds"] > 0 and r["fpfh_seconds"] > 0 for r in rows)
-    assert json.loads(out.read_text())["totals"]["sparse10"] == figures
+    written = json.loads(out.read_text())
+    assert written["totals"]["sparse10"] == figures
+    assert (written["machine"]["cpus"], written["machine"]["threads"]) == (os.cpu_count(), default_threads())
+    assert_made_by_this_checkout(written["provenance"])  # bench.variant_runs' report, as lidar_variants writes it

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
 from bad_files import NOT_A_CHECKPOINT, NOT_A_FILE, NOT_A_MODEL, NOT_AN_NPZ, assert_usage_error, bad_file, bad_model
+from provenance_check import assert_this_checkout
 from shapes import sphere_shapes
 from typer.testing import CliRunner
 
@@ -61,6 +63,8 @@ def test_evaluate_writes_every_metric_to_json(tmp_path, tiny_checkpoint, synthet
 
 
 def test_evaluate_json_records_the_pairs_file_and_the_checkpoint(tmp_path, tiny_checkpoint, synthetic_pairs) -> None:
+    import torch
+
     from model.checkpoint import file_sha256, load_model
 
     out = tmp_path / "metrics.json"
@@ -84,6 +88,9 @@ def test_evaluate_json_records_the_pairs_file_and_the_checkpoint(tmp_path, tiny_
     assert evaluated["checkpoint_sha256"] == file_sha256(tiny_checkpoint)
     assert (evaluated["iterations"], evaluated["keypoints"]) == (1, load_model(tiny_checkpoint).cfg.keypoints)
     assert evaluated["batch_size"] == 2
+    assert (evaluated["machine"]["cpus"], evaluated["machine"]["threads"]) == (os.cpu_count(), torch.get_num_threads())
+    assert_this_checkout(evaluated["provenance"])  # the checkpoint is named by its sha256: no model
+    assert evaluated["provenance"]["models"] == []
 
 
 def test_evaluate_json_records_the_setting_count_seed_and_protocol_of_made_pairs(
@@ -226,6 +233,9 @@ def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
     metrics = json.loads(out.read_text())
     assert set(metrics) == METRIC_KEYS | {"evaluated"} and metrics["n"] == 2 and metrics["ms_per_pair"] > 0
     assert metrics["evaluated"]["baseline"] == "fpfh-ransac-icp"
+    assert metrics["evaluated"]["machine"]["cpus"] == metrics["evaluated"]["machine"]["threads"] == os.cpu_count()
+    assert_this_checkout(metrics["evaluated"]["provenance"])
+    assert metrics["evaluated"]["provenance"]["models"] == []
 
 
 def broken_checkpoint(tiny_checkpoint, tmp_path, kind: str):

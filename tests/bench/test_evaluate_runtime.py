@@ -3,15 +3,18 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
+from provenance_check import assert_made_by_this_checkout
 from shapes import ellipsoid_surface
 from typer.testing import CliRunner
 
 from model.data import PairProtocol, make_pairs, save_pairs
 from service.cli import app
 from service.manifest import bundled_models_dir
+from service.registrar import default_threads
 
 pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "clean" / "manifest.json").exists(),
                                 reason="bundled model 'clean' absent")
@@ -34,6 +37,8 @@ def test_evaluate_model_through_the_runtime_writes_the_metrics(tmp_path, refine)
     assert evaluated["checkpoint_sha256"] == manifest["source_checkpoint_sha256"]
     assert (evaluated["refine"], evaluated["rotation_search"]) == (refine, False)
     assert evaluated["iterations"] == manifest["config"]["iterations"]
+    assert (evaluated["machine"]["cpus"], evaluated["machine"]["threads"]) == (os.cpu_count(), default_threads())
+    assert_made_by_this_checkout(evaluated["provenance"], "clean")
 
 
 def spy_on_register(monkeypatch, option: str) -> list:
@@ -111,3 +116,7 @@ def test_evaluate_model_per_pair_has_each_results_reliable_flag_and_stability(tm
     assert rows["reliable"].dtype == bool and rows["reliable"].shape == (2,)
     assert rows["reliable"].mean() == pytest.approx(metrics["reliable_share"])  # the flags the metrics counted
     assert rows["stability"].shape == (2,) and np.all(np.isfinite(rows["stability"]) & (rows["stability"] >= 0))
+    right = (rows["rotation_error_deg"] < 5.0) & (rows["translation_error"] < 0.05)
+    misled = metrics["warnings_by_outcome"]  # per outcome: how many carried each set of warning kinds
+    assert sum(misled["right_unreliable"].values()) == np.sum(right & ~rows["reliable"])
+    assert sum(misled["wrong_reliable"].values()) == np.sum(~right & rows["reliable"])

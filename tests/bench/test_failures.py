@@ -9,6 +9,7 @@ from provenance_check import assert_made_by_this_checkout
 
 from bench.failures import CLASSES, failure_class, main
 from bench.real_scans import data_dir, thresholds
+from service.registrar import default_threads
 
 LOW_OVERLAP = "3dlo_kitchen_34_21"  # 11-14% overlap: neither the service nor FPFH + RANSAC + ICP registers it
 DENSE = "dragon_24_0"  # registered as scanned and turned
@@ -43,3 +44,4 @@ def test_only_wrong_results_are_examined_and_each_gets_its_class(tmp_path) -> No
     assert written["classes"] == report["classes"]
     assert written["seeds"] == [0] and written["turns"] == 1 and written["scales"] == [1.0]  # how to rerun it
     assert_made_by_this_checkout(written["provenance"]) and "degrees" in written["units"]
+    assert written["machine"]["threads"] == default_threads() and written["machine"]["cpus"] > 0

@@ -3,12 +3,18 @@ set is seeded, and the odometry guesses lie as far off the truth as asked."""
 
 from __future__ import annotations
 
+import json
+import os
+
 import numpy as np
 import pytest
+from provenance_check import assert_made_by_this_checkout
 from scipy.spatial.transform import Rotation
 
-from bench.lidar_variants import PAIR, RADII, load_pair, odometry_guesses, seen_from, variants
+import bench.lidar_variants
+from bench.lidar_variants import PAIR, RADII, load_pair, main, odometry_guesses, seen_from, variants
 from bench.real_scans import data_dir
+from service.registrar import default_threads
 from service.rotation_search import rotation_between_deg
 
 needs_pair = pytest.mark.skipif(not (data_dir() / f"{PAIR}.npz").exists(),
@@ -54,3 +60,13 @@ def test_odometry_guesses_lie_as_far_off_the_truth_as_asked_and_are_seeded():
         assert np.isclose(np.linalg.norm(guess[:3, 3] - truth[:3, 3]), 1.0)  # the source's origin moved 1 m
     assert not np.allclose(first[0], first[1])  # a new axis and direction per case
     assert all(np.array_equal(a, again(truth)) for a in first)
+
+
+@needs_pair
+def test_the_report_names_the_machine_and_what_made_it(tmp_path, monkeypatch):
+    monkeypatch.setattr(bench.lidar_variants, "registered", lambda cases, **_: [])  # no registration: the report only
+    out = tmp_path / "lidar.json"
+    main([str(data_dir()), "--no-fpfh", "--json", str(out)])
+    written = json.loads(out.read_text())
+    assert (written["machine"]["cpus"], written["machine"]["threads"]) == (os.cpu_count(), default_threads())
+    assert_made_by_this_checkout(written["provenance"])

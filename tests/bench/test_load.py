@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from provenance_check import assert_made_by_this_checkout
 
 from bench.load import main, parse_setting
 from service.manifest import bundled_models_dir
@@ -24,7 +25,8 @@ def test_two_servers_take_turns_and_answer_every_request(tmp_path) -> None:
     out = tmp_path / "load.json"
     main(["--pairs", str(pairs), "--compare-root", str(ROOT), "--requests", "3", "--rounds", "2",
           "--concurrency", "1", "--concurrency", "2", "--settings", "1x1", "--json", str(out)])
-    rows = json.loads(out.read_text())["rows"]
+    written = json.loads(out.read_text())
+    rows = written["rows"]
     order = [(row["round"], row["concurrency"], row["server"]) for row in rows]
     this, other = "(this checkout), 1x1", f"{ROOT}, 1x1"
     assert order == [(0, 1, this), (0, 1, other), (0, 2, this), (0, 2, other),
@@ -32,6 +34,8 @@ def test_two_servers_take_turns_and_answer_every_request(tmp_path) -> None:
     for row in rows:
         assert row["statuses"] == {"200": 3}  # JSON keys
         assert row["throughput_rps"] > 0 and 0 < row["p50_ms"] <= row["p95_ms"]
+    assert written["machine"]["threads"] == 1 and written["machine"]["cpus"] > 0  # --settings 1x1
+    assert_made_by_this_checkout(written["provenance"])  # the default request's model
 
 
 def test_settings_name_threads_and_concurrency() -> None:

@@ -10,6 +10,7 @@ from provenance_check import assert_made_by_this_checkout
 
 from bench.report_io import reliable_totals as totals
 from bench.scan_reliability import kind, main, report
+from service.registrar import default_threads
 
 
 def row(success: bool, reliable: bool, degrees: float = 1.0, translation: float = 0.01, label: int = 0) -> dict:
@@ -50,3 +51,4 @@ def test_the_benchmark_registers_seeded_scans_through_the_runtime(tmp_path):
     assert out["totals"]["successes"] >= 2  # the defaults register most of these at any orientation
     assert written["seeds"] == [5] and written["count"] == 4 and "degrees" in written["units"]
     assert_made_by_this_checkout(written["provenance"])
+    assert written["machine"]["threads"] == default_threads() and written["machine"]["cpus"] > 0

@@ -11,6 +11,7 @@ from provenance_check import assert_made_by_this_checkout
 from bench.real_scans import data_dir, load_cases
 from bench.search_network import main
 from service.manifest import bundled_models_dir
+from service.registrar import default_threads
 
 PAIR = "dragon_96_48"  # its turned image still needs the search (too little overlap for the feature candidate)
 needs_data = pytest.mark.skipif(not (data_dir() / f"{PAIR}.npz").exists(),
@@ -30,6 +31,7 @@ def test_general_as_its_own_search_network_changes_nothing(tmp_path):
     written = json.loads(out.read_text())
     assert written["search_model"].endswith("general")
     assert_made_by_this_checkout(written["provenance"], "general", bundled_models_dir() / "general")  # both roles
+    assert written["machine"]["threads"] == default_threads() and written["machine"]["cpus"] > 0
 
 
 @needs_data

@@ -14,6 +14,7 @@ from model.metrics import (
     registration_metrics,
     reliability_metrics,
     rotation_angle_deg,
+    warnings_by_outcome,
 )
 
 KEYS = {"n", "rmse_r", "mae_r", "rmse_t", "mae_t", "iso_r_mean", "iso_r_median", "iso_t_mean", "iso_t_median",
@@ -125,6 +126,23 @@ def test_reliability_metrics_count_trusted_misses_and_doubted_hits_by_hand() -> 
     assert reliability_metrics(R_pred, t_pred, R_gt, t_gt, reliable) == {
         "reliable_share": 0.5, "reliable_wrong_share": 0.25, "unreliable_right_share": 0.25,
     }
+
+
+def test_warnings_by_outcome_counts_each_set_of_kinds_where_reliable_misled_by_hand() -> None:
+    R_gt = np.repeat(np.eye(3)[None], 6, axis=0)  # [6, 3, 3]
+    t_gt = np.zeros((6, 3))
+    R_pred = R_gt.copy()
+    R_pred[4] = zyx((10.0, 0.0, 0.0))  # wrong
+    R_pred[5] = zyx((0.0, 6.0, 0.0))  # wrong
+    t_pred = t_gt.copy()
+    reliable = np.array([False, False, False, True, True, False])  # 0-2 right but doubted, 4 trusted but wrong
+    warnings = [("weakly constrained",), ("ambiguous", "loose fit"), ("weakly constrained",), ("poor fit",), (),
+                ("poor fit",)]  # 3 right and trusted, 5 wrong and doubted: counted in neither
+    assert warnings_by_outcome(R_pred, t_pred, R_gt, t_gt, reliable, warnings) == {
+        "right_unreliable": {"weakly constrained": 2, "ambiguous + loose fit": 1}, "wrong_reliable": {"none": 1},
+    }
+    assert list(warnings_by_outcome(R_pred, t_pred, R_gt, t_gt, reliable, warnings)["right_unreliable"]) == [
+        "weakly constrained", "ambiguous + loose fit"]  # most frequent first
 
 
 def protocol_rotations(count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
