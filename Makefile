@@ -7,22 +7,31 @@ PORT ?= 8080
 
 .PHONY: serve test test-all lint dist install-serve install-dev install-browser clean
 
+# uv installs the extras: the same pinned requirements, resolved and unpacked in parallel (docs/decisions/0098).
+# pip stays in the venv: it installs torch (below) and runs the docs' commands.
+UV ?= uv==0.9.30
+
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 
-install-serve: $(BIN)/python
-	$(BIN)/pip install -q -e ".[serve]"
+$(BIN)/uv: $(BIN)/python
+	$(BIN)/pip install -q "$(UV)"
+
+install-serve: $(BIN)/uv
+	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[serve]"
 
 # torch first, from PyTorch's CPU index: PyPI's Linux torch wheel is the CUDA build (it requires cuda-toolkit and
 # nvidia-* packages). The extras then find it installed (TORCH is pyproject.toml's pin; a test checks they agree).
-# `make test TORCH_INDEX=<another PyTorch index>` installs another build (a CUDA one).
+# `make test TORCH_INDEX=<another PyTorch index>` installs another build (a CUDA one). pip, not uv, installs it: pip
+# also reads the machine's pip configuration (a local wheel through find-links) and goes on where an index cannot be
+# reached; uv stops there.
 TORCH ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
-install-dev: $(BIN)/python
+install-dev: $(BIN)/uv
 	$(BIN)/pip install -q --no-deps --index-url $(TORCH_INDEX) "$(TORCH)"
-	$(BIN)/pip install -q -e ".[train,dev]"
+	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[train,dev]"
 
 # Headless Chromium and its driver for the page's browser test (Debian packages; quick when present), and axe-core
 # (npm, into $(VENV)/node_modules) for its accessibility check. Without root or apt, or npm, those tests skip and say why.

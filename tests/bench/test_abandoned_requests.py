@@ -14,6 +14,8 @@ pytestmark = [
     pytest.mark.skipif(not (bundled_models_dir() / "general").is_dir(), reason="no bundled 'general' model"),
     pytest.mark.skipif(not data_dir().is_dir(), reason="ModelNet40 absent (set MFGNET_DATA)"),
     pytest.mark.serial,  # deadlines and client timeouts: timing-sensitive, run alone
+    pytest.mark.slow,  # the benchmark's whole run, on demand (make test-all; decisions/0098); test_reliability_faults
+    # checks in CI that a client that goes away frees its worker
 ]
 
 

@@ -19,6 +19,7 @@ pytestmark = [
 ]
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 def test_both_servers_answer_every_default_request(tmp_path) -> None:
     out = tmp_path / "default_request.json"
     main(["--compare-root", str(ROOT), "--requests", "3", "--pairs", "2", "--json", str(out)])

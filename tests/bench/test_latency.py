@@ -21,6 +21,7 @@ TINY = ["--model", "clean", "--checkpoint", "clean", "--repeats", "2", "--http-r
         "--accuracy-setting", "noise", "--accuracy-count", "2", "--no-classical"]
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 def test_bench_reports_every_section_and_compares_with_a_baseline(tmp_path) -> None:
     out, baseline = tmp_path / "bench.json", tmp_path / "baseline.json"
     baseline.write_text(json.dumps({"pipeline_768": {"total": {"p50": 1000.0}}, "only_in_the_baseline": 1.0}))

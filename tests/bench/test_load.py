@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.skipif(not (bundled_models_dir() / "general").is_dir(), reason="no bundled 'general' model")
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 def test_two_servers_take_turns_and_answer_every_request(tmp_path) -> None:
     rng = np.random.default_rng(0)
     source = rng.normal(size=(2, 300, 3)).astype(np.float32)

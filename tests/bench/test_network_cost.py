@@ -21,6 +21,7 @@ def test_a_shape_is_exported_as_asked_and_registers(tmp_path):
 
 @pytest.mark.skipif(not (data_dir() / f"{PAIR}.npz").exists(),
                     reason=f"real-scan set absent ({data_dir()}; set MFGNET_REAL_DATA)")
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 def test_the_report_has_one_row_per_shape_the_first_the_reference(tmp_path):
     out = tmp_path / "cost.json"
     report = main(["--pair", PAIR, "--rounds", "2", "--shapes", "{}", '{"iterations": 2}', "--json", str(out)])

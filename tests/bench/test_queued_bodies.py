@@ -26,6 +26,7 @@ def test_padded_body_is_the_pair_and_spaces_to_the_size() -> None:
         padded_body(5000, 1 << 16)
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 def test_every_slot_answered_and_the_peak_reported(tmp_path, monkeypatch) -> None:
     for name, value in {"MFGNET_MODELS": "general", "MFGNET_MAX_QUEUE": "2", "MFGNET_MAX_POINTS": "2000",
                         "MFGNET_MAX_BODY_BYTES": str(1 << 20), "MFGNET_MAX_BUFFERED_BYTES": str(2 << 20)}.items():

@@ -146,6 +146,7 @@ def test_fpfh_half_registers_the_pair_as_scanned():
     assert real_scans.judged(case, R, t)["success"]
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 @needs_data
 def test_compare_root_serves_another_checkout_taking_turns():
     root = Path(__file__).resolve().parents[2]  # this checkout again: the same code and models, the same poses
@@ -183,6 +184,7 @@ def test_near_truth_starts_are_the_angle_off_and_keep_the_centroid():
                                    atol=1e-9)
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 @needs_data
 def test_start_near_truth_is_sent_with_each_request():
     common = [str(DATA), "--pairs", PAIR, "--no-fpfh", "--scales", "1", "--options", '{"rotation_search": false}']

@@ -78,6 +78,7 @@ def test_derived_cases_are_the_held_out_pairs_once_as_scanned():
     assert all(c.name not in {p.stem for p in data_dir().glob("*.npz")} for c in picked)
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 @needs_data
 def test_several_candidates_take_turns_beside_one_general(tmp_path):
     import shutil

@@ -16,6 +16,7 @@ from model.data import make_test_pairs, save_pairs
 from model.metrics import registration_metrics
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 @needs_modelnet
 def test_the_bundled_checkpoint_scores_as_the_served_model_and_a_damaged_one_worse(tmp_path) -> None:
     pairs = make_test_pairs("resampled", "test", count=6, seed=3)

@@ -74,6 +74,7 @@ def test_one_model_server_reports_its_memory_at_each_phase(tmp_path) -> None:
     assert max(rss["after_start"], rss["after_small"], rss["after_big"]) <= rss["peak"]
 
 
+@pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
 @needs_model  # the aligned downloads' files are made here, no data set needed
 def test_aligned_downloads_report_each_server_peak(tmp_path) -> None:
     out = tmp_path / "aligned.json"

@@ -38,16 +38,34 @@ def pinned_torch() -> str:
     return pins[0]
 
 
+def installs(commands: list[list[str]]) -> list[int]:
+    """The indices of ``commands`` that install packages: ``pip install`` or ``uv pip install``."""
+    return [i for i, argv in enumerate(commands)
+            if (argv[0].endswith("/pip") and argv[1] == "install") or (argv[0].endswith("/uv") and argv[1:3] == [
+                "pip", "install"])]
+
+
 def test_make_test_installs_the_pinned_torch_from_the_cpu_index_before_the_extras(tmp_path) -> None:
     commands = make_commands("install-dev", tmp_path / "venv")
-    pip = [i for i, argv in enumerate(commands) if argv[0].endswith("/pip") and argv[1] == "install"]
+    pip = installs(commands)
     torch = [i for i in pip if pinned_torch() in commands[i]]
     extras = [i for i in pip if any(arg.startswith(".[train") for arg in commands[i])]
     assert torch and extras, commands
+    assert commands[torch[0]][0].endswith("/pip"), commands  # pip: it reads the machine's find-links (Makefile)
     argv = commands[torch[0]]
     assert argv[argv.index("--index-url") + 1] == CPU_INDEX, argv  # not PyPI's CUDA build
     assert "--no-deps" in argv, argv  # torch's own dependencies come from PyPI with the extras
     assert torch[0] < extras[0], commands  # else the extras' resolver takes torch from PyPI
+
+
+def test_uv_that_installs_the_extras_is_pinned_and_installed_into_the_venv_first(tmp_path) -> None:
+    venv = tmp_path / "venv"
+    commands = make_commands("install-dev", venv)
+    uv = [i for i, argv in enumerate(commands) if argv[0].endswith("/uv")]
+    bootstrap = [i for i in installs(commands) if any(re.fullmatch(r"uv==[\d.]+", arg) for arg in commands[i])]
+    assert uv and bootstrap and bootstrap[0] < uv[0], commands
+    for i in uv:  # into the venv's own interpreter, not whichever python uv finds first
+        assert commands[i][commands[i].index("--python") + 1] == str(venv / "bin" / "python"), commands[i]
 
 
 def test_docs_install_the_torch_extras_after_make_install_dev() -> None:

@@ -105,6 +105,7 @@ def test_a_failed_phase_is_retried_over_what_it_left_and_an_earlier_run_is_kept(
     assert (earlier / "a" / "log.jsonl").read_text() == '{"epoch": 7}\n'
 
 
+@pytest.mark.slow  # two more tiny training runs of the GPU script: on demand (make test-all; decisions/0098)
 def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
     data = tmp_path / "data"
     training_file(data, seed=3)
@@ -117,6 +118,7 @@ def test_a_cheaper_network_for_real_scans_trains_from_scratch(tmp_path) -> None:
     assert last["config"]["emb_dims"] == 16 and last["config"]["encoder_blocks"] == 2
 
 
+@pytest.mark.slow  # two more tiny training runs of the GPU script: on demand (make test-all; decisions/0098)
 def test_runs_side_by_side_each_come_back_as_one_archive(tmp_path) -> None:
     data = tmp_path / "data"
     training_file(data, seed=4)

@@ -3,6 +3,7 @@ own, where a wrong pose can fit better than the truth and right poses fit loosel
 
 from __future__ import annotations
 
+import functools
 from dataclasses import replace
 
 from real_scan_cases import GENERAL, real_case, register_with_defaults, skip_without
@@ -24,8 +25,14 @@ def derived_case(name: str, variant: str) -> Case:
 
 def without_free_space(case: Case) -> RegistrationResult:
     """``case`` registered with the defaults by a pipeline whose free-space stage passes every result through."""
-    unchecked = Registrar(GENERAL, stages=replace(Stages(), free_space=lambda work, result, options, timing: result))
-    return unchecked.register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+    return unchecked().register(case.source, case.target, refine="icp-plane", rotation_search="auto")
+
+
+@functools.cache
+def unchecked() -> Registrar:
+    """``general`` without the free-space stage, loaded once per test process (a registrar keeps nothing between
+    calls)."""
+    return Registrar(GENERAL, stages=replace(Stages(), free_space=lambda work, result, options, timing: result))
 
 
 def is_right(case: Case, degrees: float, error: float) -> bool:

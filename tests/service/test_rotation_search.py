@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ from shapes import asymmetric_blob, ellipsoid_surface
 
 from service.manifest import bundled_models_dir
 from service.registrar import InputError, Registrar, needs_search
+from service.result import RegistrationResult
 from service.rotation_search import (
     SEARCH_KEYPOINTS,
     SEARCH_POINTS,
@@ -34,6 +37,22 @@ def registrar() -> Registrar:
     if not (BUNDLED / "manifest.json").exists():
         pytest.skip("bundled model 'clean' absent")
     return Registrar(BUNDLED, threads=2)
+
+
+@pytest.fixture(scope="module")
+def blob_150(registrar) -> Callable[..., RegistrationResult]:
+    """``blob_pair(150.0)`` registered by ``registrar`` with the options given, each once per module: the recovery,
+    ``auto`` and symmetry tests ask for the same registrations (unpatched), and each gets a copy."""
+    source, target, _, _ = blob_pair(150.0)
+    results: dict[tuple, RegistrationResult] = {}
+
+    def register(**options) -> RegistrationResult:
+        key = tuple(sorted(options.items()))
+        if key not in results:
+            results[key] = registrar.register(source, target, **options)
+        return copy.deepcopy(results[key])
+
+    return register
 
 
 # --- the initial rotations ------------------------------------------------------------------------
@@ -168,18 +187,12 @@ def test_the_rotation_search_embeds_the_target_once(registrar, monkeypatch) -> N
 
 
 @needs_model
-def test_rotation_search_recovers_a_150_degree_rotation_that_plain_registration_misses(registrar) -> None:
-    source = asymmetric_blob(1024, 1)
-    axis = np.array([0.48, 0.85, -0.21])
-    R = Rotation.from_rotvec(np.radians(150) * axis / np.linalg.norm(axis)).as_matrix()
-    t = np.array([0.2, -0.1, 0.3])
-    subset = np.random.default_rng(5).permutation(1024)[:800]  # the target: 800 of the points, moved
-    target = source[subset] @ R.T + t
-
-    plain = registrar.register(source, target, refine="icp")
+def test_rotation_search_recovers_a_150_degree_rotation_that_plain_registration_misses(blob_150) -> None:
+    _, _, R, t = blob_pair(150.0)  # the target: 800 of the source's 1024 points, turned 150 deg and moved
+    plain = blob_150(refine="icp")
     assert angle_deg(plain.rotation, R) > 30.0  # without the search: far off (the network knows <= 45 degrees)
 
-    found = registrar.register(source, target, refine="icp", rotation_search=True)
+    found = blob_150(refine="icp", rotation_search=True)
     assert angle_deg(found.rotation, R) < 2.0
     assert np.abs(found.translation - t).max() < 0.05
     assert found.reliable and found.inlier_ratio > 0.9
@@ -355,7 +368,7 @@ def test_distinct_candidates_drops_poses_in_the_same_basin() -> None:
 
 
 @needs_model
-def test_a_symmetric_shape_found_by_the_search_is_ambiguous_and_not_reliable(registrar) -> None:
+def test_a_symmetric_shape_found_by_the_search_is_ambiguous_and_not_reliable(registrar, blob_150) -> None:
     """An ellipsoid's 180-degree flips about its axes fit as well as the true pose: the data cannot decide."""
     axis = np.array([0.48, 0.85, -0.21])
     R = Rotation.from_rotvec(np.radians(150) * axis / np.linalg.norm(axis)).as_matrix()
@@ -365,8 +378,7 @@ def test_a_symmetric_shape_found_by_the_search_is_ambiguous_and_not_reliable(reg
     assert result.inlier_ratio > 0.8  # it fits: only the ambiguity makes it unreliable
     assert not result.reliable
     assert any(w.startswith("ambiguous: a pose 180 deg away") for w in result.warnings)
-    blob_source, blob_target, _, _ = blob_pair(150.0)  # the asymmetric shape: one pose fits
-    clear = registrar.register(blob_source, blob_target, refine="icp-plane", rotation_search=True)
+    clear = blob_150(refine="icp-plane", rotation_search=True)  # the asymmetric shape: one pose fits
     assert clear.reliable and not any(w.startswith("ambiguous") for w in clear.warnings)
 
 
@@ -425,19 +437,19 @@ def test_auto_keeps_a_good_plain_result_without_searching(registrar, monkeypatch
 
 @needs_model
 @pytest.mark.parametrize("refine", ["icp", "icp-plane"])
-def test_auto_searches_when_the_plain_result_looks_wrong_and_recovers_150_degrees(registrar, refine) -> None:
-    source, target, R, t = blob_pair(150.0)  # the shape of the 150-degree test above
-    plain = registrar.register(source, target, refine=refine)
+def test_auto_searches_when_the_plain_result_looks_wrong_and_recovers_150_degrees(blob_150, refine) -> None:
+    _, _, R, t = blob_pair(150.0)  # the pair of the 150-degree test above
+    plain = blob_150(refine=refine)
     assert angle_deg(plain.rotation, R) > 30.0 and needs_search(plain)  # measured: 100-120 deg, inliers 0.32-0.39
 
-    auto = registrar.register(source, target, refine=refine, rotation_search="auto")
+    auto = blob_150(refine=refine, rotation_search="auto")
     assert angle_deg(auto.rotation, R) < 2.0  # measured 0.03 (icp) / 0.008 (icp-plane) deg
     assert np.abs(auto.translation - t).max() < 0.05
     assert auto.reliable and auto.inlier_ratio > 0.9
     assert {"search", "search_per_hypothesis", "encoder", "refine", "total"} <= set(auto.timing_ms)
     assert auto.timing_ms["search_per_hypothesis"] == pytest.approx(auto.timing_ms["search"] / 24)
     assert auto.timing_ms["total"] >= auto.timing_ms["search"]
-    searched = registrar.register(source, target, refine=refine, rotation_search=True)
+    searched = blob_150(refine=refine, rotation_search=True)
     np.testing.assert_array_equal(auto.transform, searched.transform)  # the search's winner, unchanged
 
 

@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
+import hashlib
 
 import numpy as np
 import pytest
@@ -48,8 +50,16 @@ from service.stages.pipeline import Stages
 
 @pytest.fixture(scope="module")
 def registrar() -> Registrar:
+    return general()
+
+
+@functools.cache
+def general(stage: bool = True) -> Registrar:
+    """``general`` with the consensus stage or without it, loaded once per test process (a registrar keeps nothing
+    between calls)."""
     skip_without_general()
-    return Registrar(GENERAL, threads=1)
+    stages = Stages() if stage else dataclasses.replace(Stages(), consensus=lambda *a: a[2])
+    return Registrar(GENERAL, threads=1, stages=stages)
 
 
 def room_crop(label: str, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, float]]:
@@ -71,12 +81,27 @@ def fragment_crops(fragment: str, overlap: float, seed: int) -> dict[str, tuple]
 
 
 def without_consensus() -> Registrar:
-    return Registrar(GENERAL, threads=1, stages=dataclasses.replace(Stages(), consensus=lambda *a: a[2]))
+    return general(stage=False)
+
+
+def clouds_key(*clouds: np.ndarray) -> tuple:
+    """What tells clouds from others in the caches below: their shapes and a digest of their values."""
+    return tuple((c.shape, c.dtype.str, hashlib.blake2b(np.ascontiguousarray(c).tobytes()).digest()) for c in clouds)
+
+
+# Several tests read one case's registration and working clouds: each is made once per test process.
+REGISTERED: dict[tuple, RegistrationResult] = {}
+WORKING: dict[tuple, Working] = {}
 
 
 def working(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> Working:
-    return registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
-        source, target, None, {"refine": "icp-plane"}, 3, 128)), registrar.reference_radius)
+    """The working clouds ``registrar`` makes of the pair, shared by the tests that ask (frozen; the stages only read
+    them, as in one registration)."""
+    key = (registrar, *clouds_key(source, target))
+    if key not in WORKING:
+        WORKING[key] = registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
+            source, target, None, {"refine": "icp-plane"}, 3, 128)), registrar.reference_radius)
+    return WORKING[key]
 
 
 def supported(work: Working, support: int) -> FeaturePose:
@@ -86,7 +111,12 @@ def supported(work: Working, support: int) -> FeaturePose:
 
 def registered(registrar: Registrar, source: np.ndarray, target: np.ndarray, truth: np.ndarray,
                limits: tuple[float, float]) -> tuple[RegistrationResult, bool]:
-    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    """The pair registered by ``registrar`` (a copy of its one registration per test process), and whether it is
+    right."""
+    key = (registrar, *clouds_key(source, target))
+    if key not in REGISTERED:
+        REGISTERED[key] = registrar.register(source, target, refine="icp-plane", rotation_search="auto")
+    result = copy.deepcopy(REGISTERED[key])
     degrees, error = pose_errors(result.rotation, result.translation, truth)
     return result, bool(degrees < limits[0] and error < limits[1])
 
@@ -183,7 +213,7 @@ def test_one_strong_place_needs_the_support_and_no_rival_near_it(registrar) -> N
     assert 0 < kitchen.rival() < ONE_PLACE_RIVAL * STRONG_SUPPORT
     assert one_strong_place(dataclasses.replace(kitchen, support=STRONG_SUPPORT))
     assert not one_strong_place(dataclasses.replace(kitchen, support=STRONG_SUPPORT - 1))
-    case = turntable_case(analytic_shape("lumpy_sphere"), 24.0, "scanned")
+    case = lumpy_sphere()
     sphere = working(registrar, case.source, case.target).feature_pose
     assert (sphere.support, sphere.rival()) == (95, 60) and not one_strong_place(sphere)
     assert not one_strong_place(dataclasses.replace(sphere, support=200))  # 60 = 0.3 * 200
@@ -343,6 +373,17 @@ def turntable_case(shape: Shape, angle: float, variant: str) -> Case:
     raise AssertionError(f"no case {variant}")
 
 
+def lumpy_sphere() -> Case:
+    """A lumpy sphere scanned 24 deg apart (``turntable_case``): a copy of the one made per test process (it takes
+    seconds to make, and three tests read it)."""
+    return copy.deepcopy(scanned_lumpy_sphere())
+
+
+@functools.cache
+def scanned_lumpy_sphere() -> Case:
+    return turntable_case(analytic_shape("lumpy_sphere"), 24.0, "scanned")
+
+
 def registered_case(registrar: Registrar, case: Case) -> tuple[RegistrationResult, bool]:
     return registered(registrar, case.source, case.target, case.src_to_tgt, case_thresholds(case))
 
@@ -350,7 +391,7 @@ def registered_case(registrar: Registrar, case: Case) -> tuple[RegistrationResul
 def test_a_round_objects_turn_the_descriptors_pin_is_confirmed(registrar) -> None:
     """A lumpy sphere scanned 24 deg apart on a turntable, right: a turn about its axis hardly changes the fit
     (`weakly constrained`), but 89 matched pairs, 0.94 of the feature pose's, agree with the pose: `reliable`."""
-    case = turntable_case(analytic_shape("lumpy_sphere"), 24.0, "scanned")
+    case = lumpy_sphere()
     result, right = registered_case(without_consensus(), case)
     assert right and not result.reliable and [w.split(":")[0] for w in result.warnings] == ["weakly constrained"]
     result, right = registered_case(registrar, case)
@@ -425,7 +466,7 @@ def test_over_objects_a_weak_turn_and_in_one_place_a_slide_are_settled(registrar
     of its support (its rival has 60 pairs), the doubt (a turn with a slide, a poor fit or another place is not
     settled over clouds that are not rooms, nor a loose fit of range images, which free space judges) and the
     target's surface."""
-    case = turntable_case(analytic_shape("lumpy_sphere"), 24.0, "scanned")
+    case = lumpy_sphere()
     result, _ = registered_case(without_consensus(), case)
     assert result.warnings[0].startswith(WEAK_TURN), result.warnings
     sphere = working(registrar, case.source, case.target)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -28,12 +29,17 @@ T_TRUE = np.array([0.4, 1.0, -2.0])
 
 
 def turned_pair(degrees: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Overlapping parts of two samples of one surface, the source turned ``degrees``: (source, target, R)."""
+    """Overlapping parts of two samples of one surface, the source turned ``degrees``: (source, target, R), copies of
+    the arrays made once per test process (most tests ask for one of three pairs)."""
+    return tuple(a.copy() for a in made_pair(degrees))
+
+
+@functools.cache
+def made_pair(degrees: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     source, target = lumpy_sphere(20_000, seed=1), lumpy_sphere(20_000, seed=2)
     source, target = source[source[:, 0] > -0.4], target[target[:, 0] < 0.4]
     R = Rotation.from_rotvec(np.radians(degrees) * AXIS).as_matrix()
     return (source - T_TRUE) @ R, target, R
-
 
 
 @pytest.fixture(scope="module")

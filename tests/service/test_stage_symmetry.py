@@ -304,7 +304,8 @@ def registered_turntable_case(shape_class: str, index: int, angle: float, rng: n
     registered by ``general`` with the service's defaults (:func:`real_scan_cases.register_with_defaults`) -> the
     warnings, whether it is right and whether it is reliable."""
     angles = [24.0, 48.0]  # the bench's default angles: one rng scans 0 deg, then each in turn
-    pair = turntable_pairs(modelnet_shapes([shape_class], 2)[index], angles)[angles.index(angle)]
+    scanned = angles[: angles.index(angle) + 1]  # so the angles after this one change nothing: not scanned
+    pair = turntable_pairs(modelnet_shapes([shape_class], 2)[index], scanned)[-1]
     rotation = [Rotation.random(random_state=rng) for _ in range(draw)][-1].as_matrix()
     source, truth = turned(pair.source, pair.src_to_tgt, rotation)
     case = Case(pair.name, pair.sensor, f"turned, draw {draw}", 1.0, source, pair.target, truth)
