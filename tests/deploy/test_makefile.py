@@ -73,3 +73,22 @@ def test_docs_install_the_torch_extras_after_make_install_dev() -> None:
             for number, line in enumerate(doc.read_text().splitlines(), 1)
             if re.search(r"pip install .*\[[^\]]*\b(train|bench)\b", line) and "make install-dev" not in line]
     assert not bare, bare
+
+
+def marks_serial(path: Path) -> bool:
+    """Whether the test file marks tests ``serial`` anywhere (a decorator, ``pytestmark``, a param's marks)."""
+    import ast
+
+    return any(isinstance(node, ast.Attribute) and node.attr == "serial" and isinstance(node.value, ast.Attribute)
+               and node.value.attr == "mark" for node in ast.walk(ast.parse(path.read_text())))
+
+
+def test_the_serial_run_collects_every_file_that_marks_serial_tests(tmp_path) -> None:
+    (serial,) = [argv for argv in make_commands("test", tmp_path / "venv")
+                 if "pytest" in argv and "serial and not slow" in argv]
+    named = {ROOT / arg for arg in serial[serial.index("serial and not slow") + 1:]}
+    marking = {path for path in (ROOT / "tests").rglob("test_*.py") if marks_serial(path)}
+    assert marking and named == marking, sorted(named ^ marking)
+    hooks = [*(ROOT / "tests").rglob("conftest.py"), *(ROOT / "tests" / "helpers").glob("*.py")]
+    adding = [path for path in hooks if "add_marker(" in path.read_text()]
+    assert not adding, adding  # a marker added at collection would escape the files named
