@@ -8,7 +8,9 @@ PORT ?= 8080
 .PHONY: serve test test-all lint dist install-serve install-dev install-browser clean
 
 # uv installs the extras: the same pinned requirements, resolved and unpacked in parallel (docs/decisions/0098).
-# pip stays in the venv: it installs torch (below) and runs the docs' commands.
+# uv reads no pip configuration (an index mirror, find-links, certificates set for pip only; uv's own are UV_*
+# variables), so where it cannot install them pip does. pip stays in the venv: it installs torch (below) and runs the
+# docs' commands.
 UV ?= uv==0.9.30
 
 $(BIN)/python:
@@ -19,7 +21,7 @@ $(BIN)/uv: $(BIN)/python
 	$(BIN)/pip install -q "$(UV)"
 
 install-serve: $(BIN)/uv
-	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[serve]"
+	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[serve]" || $(BIN)/pip install -q -e ".[serve]"
 
 # torch first, from PyTorch's CPU index: PyPI's Linux torch wheel is the CUDA build (it requires cuda-toolkit and
 # nvidia-* packages). The extras then find it installed (TORCH is pyproject.toml's pin; a test checks they agree).
@@ -31,7 +33,7 @@ TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
 install-dev: $(BIN)/uv
 	$(BIN)/pip install -q --no-deps --index-url $(TORCH_INDEX) "$(TORCH)"
-	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[train,dev]"
+	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[train,dev]" || $(BIN)/pip install -q -e ".[train,dev]"
 
 # Headless Chromium and its driver for the page's browser test (Debian packages; quick when present), and axe-core
 # (npm, into $(VENV)/node_modules) for its accessibility check. Without root or apt, or npm, those tests skip and say why.

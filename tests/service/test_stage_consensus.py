@@ -99,8 +99,12 @@ def working(registrar: Registrar, source: np.ndarray, target: np.ndarray) -> Wor
     them, as in one registration)."""
     key = (registrar, *clouds_key(source, target))
     if key not in WORKING:
-        WORKING[key] = registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
+        work = registrar.stages.normalise(registrar.stages.sample(registrar.stages.validate(
             source, target, None, {"refine": "icp-plane"}, 3, 128)), registrar.reference_radius)
+        for value in vars(work).values():  # shared: a test that wrote into its arrays would change the others'
+            if isinstance(value, np.ndarray):
+                value.flags.writeable = False
+        WORKING[key] = work
     return WORKING[key]
 
 
