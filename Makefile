@@ -7,7 +7,9 @@ PORT ?= 8080
 
 .PHONY: serve test test-all lint dist install-serve install-dev install-browser clean
 
-# uv installs the extras: the same pinned requirements, resolved and unpacked in parallel (docs/decisions/0098).
+# uv installs the extras: the same pinned requirements, resolved and unpacked in parallel (docs/decisions/0098), and
+# compiled to bytecode as pip compiles them: without it every Python process compiles the modules it imports again
+# where the environment sets PYTHONDONTWRITEBYTECODE (docs/decisions/0099).
 # uv reads no pip configuration (an index mirror, find-links, certificates set for pip only; uv's own are UV_*
 # variables), so where it cannot install them pip does. pip stays in the venv: it installs torch (below) and runs the
 # docs' commands.
@@ -21,7 +23,7 @@ $(BIN)/uv: $(BIN)/python
 	$(BIN)/pip install -q "$(UV)"
 
 install-serve: $(BIN)/uv
-	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[serve]" || $(BIN)/pip install -q -e ".[serve]"
+	$(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python -e ".[serve]" || $(BIN)/pip install -q -e ".[serve]"
 
 # torch first, from PyTorch's CPU index: PyPI's Linux torch wheel is the CUDA build (it requires cuda-toolkit and
 # nvidia-* packages). The extras then find it installed (TORCH is pyproject.toml's pin; a test checks they agree).
@@ -33,7 +35,7 @@ TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 
 install-dev: $(BIN)/uv
 	$(BIN)/pip install -q --no-deps --index-url $(TORCH_INDEX) "$(TORCH)"
-	$(BIN)/uv pip install -q --python $(BIN)/python -e ".[train,dev]" || $(BIN)/pip install -q -e ".[train,dev]"
+	$(BIN)/uv pip install -q --compile-bytecode --python $(BIN)/python -e ".[train,dev]" || $(BIN)/pip install -q -e ".[train,dev]"
 
 # Headless Chromium and its driver for the page's browser test (Debian packages; quick when present), and axe-core
 # (npm, into $(VENV)/node_modules) for its accessibility check. Without root or apt, or npm, those tests skip and say why.
@@ -59,13 +61,16 @@ serve: install-serve
 # Timing-sensitive checks (marked serial: signals, deadlines, load, timing ratios) then run alone, collected from
 # the files that mark them only (collecting every file takes ~15 s; with none found pytest collects them all).
 SERIAL_FILES = $(shell grep -rlE --include='test_*.py' 'mark\.serial' tests | sort)
+# The tests start hundreds of Python processes (servers, command lines): they may write the checkout's bytecode
+# (__pycache__, ignored by git) whatever PYTHONDONTWRITEBYTECODE says, so each process does not compile it again.
+PYTEST := PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
 test: install-dev install-browser
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow and not serial"
-	$(BIN)/python -m pytest -q -m "serial and not slow" $(SERIAL_FILES)
+	$(PYTEST) -q -n 2 --dist loadfile -m "not slow and not serial"
+	$(PYTEST) -q -m "serial and not slow" $(SERIAL_FILES)
 
 test-all: install-dev install-browser
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not serial"
-	$(BIN)/python -m pytest -q -m "serial" $(SERIAL_FILES)
+	$(PYTEST) -q -n 2 --dist loadfile -m "not serial"
+	$(PYTEST) -q -m "serial" $(SERIAL_FILES)
 
 lint: install-dev
 	$(BIN)/ruff check .

@@ -68,6 +68,19 @@ def test_uv_that_installs_the_extras_is_pinned_and_installed_into_the_venv_first
         assert commands[i][commands[i].index("--python") + 1] == str(venv / "bin" / "python"), commands[i]
 
 
+def test_uv_compiles_what_it_installs_to_bytecode(tmp_path) -> None:
+    for target in ("install-dev", "install-serve"):
+        commands = make_commands(target, tmp_path / "venv")
+        uv = [commands[i] for i in installs(commands) if commands[i][0].endswith("/uv")]
+        assert uv and all("--compile-bytecode" in argv for argv in uv), (target, uv)  # pip compiles by default
+
+
+def test_the_test_runs_may_write_bytecode_whatever_the_environment_says(tmp_path) -> None:
+    for target in ("test", "test-all"):
+        runs = [argv for argv in make_commands(target, tmp_path / "venv") if "pytest" in argv]
+        assert len(runs) == 2 and all(argv[0] == "PYTHONDONTWRITEBYTECODE=" for argv in runs), (target, runs)
+
+
 def test_docs_install_the_torch_extras_after_make_install_dev() -> None:
     bare = [f"{doc.name}:{number}: {line.strip()}" for doc in DOCS
             for number, line in enumerate(doc.read_text().splitlines(), 1)
