@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8080
 
-.PHONY: serve test test-all test-durations lint dist install-serve install-dev install-browser clean
+.PHONY: serve test test-all lint dist install-serve install-dev install-browser clean
 
 # uv installs the extras: the same pinned requirements, resolved and unpacked in parallel (docs/decisions/0098), and
 # compiled to bytecode as pip compiles them: without it every Python process compiles the modules it imports again
@@ -58,8 +58,6 @@ serve: install-serve
 
 # Two pytest workers, one test file each at a time (module fixtures such as servers stay per file): the suite waits
 # on servers, subprocesses and a browser much of the time, so two workers on two cores finish it about 1.35x sooner.
-# Files go to the workers heaviest first, in the order of tests/file_durations.json (tests/helpers/file_order.py;
-# `make test-durations` records it again), so that neither worker is left with a long file at the end.
 # Timing-sensitive checks (marked serial: signals, deadlines, load, timing ratios) then run alone, collected from
 # the files that mark them only (collecting every file takes ~15 s; with none found pytest collects them all).
 SERIAL_FILES = $(shell grep -rlE --include='test_*.py' 'mark\.serial' tests | sort)
@@ -67,16 +65,12 @@ SERIAL_FILES = $(shell grep -rlE --include='test_*.py' 'mark\.serial' tests | so
 # (__pycache__, ignored by git) whatever PYTHONDONTWRITEBYTECODE says, so each process does not compile it again.
 PYTEST := PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
 test: install-dev install-browser
-	$(PYTEST) -q -n 2 --dist loadfile --no-loadscope-reorder -m "not slow and not serial"
+	$(PYTEST) -q -n 2 --dist loadfile -m "not slow and not serial"
 	$(PYTEST) -q -m "serial and not slow" $(SERIAL_FILES)
 
 test-all: install-dev install-browser
-	$(PYTEST) -q -n 2 --dist loadfile --no-loadscope-reorder -m "not serial"
+	$(PYTEST) -q -n 2 --dist loadfile -m "not serial"
 	$(PYTEST) -q -m "serial" $(SERIAL_FILES)
-
-test-durations: install-dev install-browser
-	$(PYTEST) -q -n 2 --dist loadfile --no-loadscope-reorder -m "not slow and not serial" \
-		--record-file-durations tests/file_durations.json
 
 lint: install-dev
 	$(BIN)/ruff check .

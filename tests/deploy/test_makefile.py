@@ -81,12 +81,6 @@ def test_the_test_runs_may_write_bytecode_whatever_the_environment_says(tmp_path
         assert len(runs) == 2 and all(argv[0] == "PYTHONDONTWRITEBYTECODE=" for argv in runs), (target, runs)
 
 
-def test_the_two_worker_runs_hand_out_files_in_collection_order(tmp_path) -> None:
-    for target in ("test", "test-all", "test-durations"):  # the order tests/helpers/file_order.py gives them
-        runs = [argv for argv in make_commands(target, tmp_path / "venv") if "-n" in argv]
-        assert runs and all("--no-loadscope-reorder" in argv for argv in runs), (target, runs)  # else by test count
-
-
 def test_docs_install_the_torch_extras_after_make_install_dev() -> None:
     bare = [f"{doc.name}:{number}: {line.strip()}" for doc in DOCS
             for number, line in enumerate(doc.read_text().splitlines(), 1)
