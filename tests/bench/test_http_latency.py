@@ -8,6 +8,14 @@ import pytest
 from provenance_check import assert_made_by_this_checkout
 
 from bench.http_latency import main
+from model.data import data_dir
+from service.manifest import bundled_models_dir
+
+pytestmark = [
+    pytest.mark.skipif(not (data_dir() / "modelnet40_test.npz").exists(),
+                       reason=f"ModelNet40 not found at {data_dir()} (set $MFGNET_DATA)"),
+    pytest.mark.skipif(not (bundled_models_dir() / "clean").is_dir(), reason="no bundled 'clean' model"),
+]
 
 
 @pytest.mark.slow  # a benchmark's whole run: on demand (make test-all; decisions/0098)
