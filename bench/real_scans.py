@@ -314,6 +314,13 @@ def register_http(client: httpx.Client, url: str, source: np.ndarray, target: np
             "timing_ms": body.get("timing_ms", {})}
 
 
+def fpfh_threads() -> int:
+    """The threads FPFH + RANSAC + ICP runs on: Open3D's OpenMP default, ``OMP_NUM_THREADS`` where set, else one per
+    CPU (the service's own count is a report's ``machine.threads``)."""
+    given = os.environ.get("OMP_NUM_THREADS", "").split(",")[0].strip()
+    return int(given) if given.isdigit() and int(given) > 0 else os.cpu_count() or 1
+
+
 def fpfh_ransac_icp(source: np.ndarray, target: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """``src_to_tgt`` by Open3D FPFH + RANSAC + point-to-point ICP on the pair normalised to the unit sphere."""
     import open3d as o3d
@@ -596,7 +603,8 @@ def main(argv: list[str] | None = None) -> dict:
               "offset": args.offset,
               "thresholds": {sensor: list(limits) for sensor, limits in chosen.items()},
               "start_near_truth_deg": args.start_near_truth,
-              "machine": machine_info(2), "url": args.url, "provenance": made_by,
+              "machine": machine_info(2) | ({"fpfh_threads": fpfh_threads()} if fpfh else {}), "url": args.url,
+              "provenance": made_by,
               "units": "rotation errors in degrees; translation errors, offset and a row's translation threshold in "
                        "the case's unit (the pair files' unit times the scale; the set's files are in metres: scale "
                        "1 metres, 1000 millimetres); --thresholds' distances in the files' unit; seconds",

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.real_scans import fpfh_ransac_icp, pose_errors, thresholds
+from bench.real_scans import fpfh_ransac_icp, fpfh_threads, pose_errors, thresholds
 from bench.report_io import machine_info, reliable_totals
 from service.manifest import bundled_models_dir
 from service.registrar import Registrar, default_threads
@@ -72,9 +72,13 @@ def report(benchmark: str, groups: dict[str, list[dict]], json_path: Path | None
     summary = {name: totals(rows) for name, rows in groups.items()}
     for name, figures in summary.items():
         print(name, json.dumps(figures))
-    result = {"benchmark": benchmark, "totals": summary, "machine": machine_info(default_threads()),
+    rows = [r for group in groups.values() for r in group]
+    machine = machine_info(default_threads())  # threads: the service's
+    if any("fpfh_success" in r for r in rows):
+        machine["fpfh_threads"] = fpfh_threads()  # FPFH + RANSAC + ICP's, beside
+    result = {"benchmark": benchmark, "totals": summary, "machine": machine,
               **({"provenance": made_by} if made_by is not None else {}),
-              "rows": [r for rows in groups.values() for r in rows]}
+              "rows": rows}
     if json_path:
         json_path.write_text(json.dumps(result, indent=1))
     return result

@@ -10,7 +10,7 @@ import pytest
 from provenance_check import assert_made_by_this_checkout
 
 from bench.altered_scans import ALTERATIONS, CROP_KEEP, altered, cases, main
-from bench.real_scans import data_dir
+from bench.real_scans import data_dir, fpfh_threads
 from service.registrar import default_threads
 
 PAIR = "dragon_48_24"
@@ -69,4 +69,5 @@ def test_the_run_registers_each_case_with_both_methods_and_totals_them(tmp_path)
     written = json.loads(out.read_text())
     assert written["totals"]["sparse10"] == figures
     assert (written["machine"]["cpus"], written["machine"]["threads"]) == (os.cpu_count(), default_threads())
+    assert written["machine"]["fpfh_threads"] == fpfh_threads()  # FPFH + RANSAC + ICP's, beside the service's
     assert_made_by_this_checkout(written["provenance"])  # bench.variant_runs' report, as lidar_variants writes it

@@ -69,4 +69,5 @@ def test_the_report_names_the_machine_and_what_made_it(tmp_path, monkeypatch):
     main([str(data_dir()), "--no-fpfh", "--json", str(out)])
     written = json.loads(out.read_text())
     assert (written["machine"]["cpus"], written["machine"]["threads"]) == (os.cpu_count(), default_threads())
+    assert "fpfh_threads" not in written["machine"]  # FPFH + RANSAC + ICP did not run
     assert_made_by_this_checkout(written["provenance"])

@@ -1,5 +1,6 @@
 """bench.real_scans: the service half through a real server on one real pair; Open3D's half where installed."""
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +119,7 @@ def test_service_half_registers_a_real_pair_over_http(tmp_path):
                                                           ("scanned", 1000.0), ("turned", 1000.0)]
     scanned = rows[0]["service"]
     assert scanned["status"] == 200 and scanned["success"] and scanned["rotation_error_deg"] < 5
+    assert "fpfh_threads" not in report["machine"]  # FPFH + RANSAC + ICP did not run
     for scale in ("x1", "x1000"):
         assert report["totals"][scale]["cases"] == 2 and report["totals"][scale]["service_seconds"] > 0
         stages = report["totals"][scale]["stage_seconds"]  # the server's own time, summed per stage
@@ -136,6 +138,15 @@ def test_a_pair_2_km_from_its_frames_origin_registers_over_http():
     assert report["offset"] == [1000.0, -2000.0, 500.0]
     scanned = report["pairs"][0]["service"]
     assert report["pairs"][0]["variant"] == "scanned" and scanned["status"] == 200 and scanned["success"], scanned
+
+
+@pytest.mark.parametrize(("given", "threads"), [(None, None), ("3", 3), ("4,2", 4), ("", None), ("many", None)])
+def test_fpfh_runs_on_openmps_default_threads(monkeypatch, given, threads):
+    if given is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", given)
+    assert real_scans.fpfh_threads() == (threads or os.cpu_count())  # unset or unreadable: one per CPU
 
 
 @needs_data
