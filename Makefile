@@ -61,7 +61,7 @@ serve: install-serve
 # Timing-sensitive checks (marked serial: signals, deadlines, load, timing ratios) then run alone, collected from
 # the files that mark them only (collecting every file takes ~15 s; with none found pytest collects them all).
 SERIAL_FILES = $(shell grep -rlE --include='test_*.py' 'mark\.serial' tests | sort)
-# The tests start hundreds of Python processes (servers, command lines): they may write the checkout's bytecode
+# The tests start many Python processes (servers, command lines, workers): they may write the checkout's bytecode
 # (__pycache__, ignored by git) whatever PYTHONDONTWRITEBYTECODE says, so each process does not compile it again.
 PYTEST := PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest
 test: install-dev install-browser
