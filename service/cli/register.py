@@ -123,6 +123,7 @@ def register_command(
     if out == Path("-"):  # the record on standard output, nothing else there
         out, json_output = None, True
     _check_register_flags(write_aligned, out, source)
+    _check_outputs_spare_inputs(out, write_aligned, source, target, initial_transform)
     check_server_flags(server, model_dir, threads)
     options = registration_options(
         iterations, keypoints, refine, refine_points, drop_isolated, rotation_search, rotation_search_mode
@@ -169,6 +170,19 @@ def _check_register_flags(write_aligned: Path | None, out: Path | None = None, s
         )
     if source is not None:
         check_aligned_source(source, write_aligned.name)
+
+
+def _check_outputs_spare_inputs(out: Path | None, write_aligned: Path | None, source: Path, target: Path,
+                                initial_transform: Path | None) -> None:
+    """Usage errors where ``--out`` and ``--write-aligned`` name the same file, or one of them names an input
+    (SOURCE, TARGET, ``--initial-transform``): it would be overwritten."""
+    if out is not None and write_aligned is not None and out.resolve() == write_aligned.resolve():
+        fail(f"--out and --write-aligned are the same file, {out}")
+    inputs = {"SOURCE": source, "TARGET": target, "--initial-transform": initial_transform}
+    names = {path.resolve(): label for label, path in inputs.items() if path is not None}
+    for path, option in ((out, "--out"), (write_aligned, "--write-aligned")):
+        if path is not None and path.resolve() in names:
+            fail(f"{option} {path} is the {names[path.resolve()]} file; it would be overwritten")
 
 
 def _write_outputs(

@@ -432,6 +432,30 @@ def test_rejects_an_output_in_a_folder_or_a_missing_one_before_registering(tmp_p
     assert_clean_failure(register(src, tgt, option, missing, model_dir=model_dir), "does not exist")
 
 
+@pytest.mark.parametrize("option", ["--out", "--write-aligned"])
+@pytest.mark.parametrize("victim", ["SOURCE", "TARGET", "--initial-transform"])
+def test_an_output_that_names_an_input_is_refused_and_the_input_kept(tmp_path, model_dir, option, victim) -> None:
+    """--out or --write-aligned onto SOURCE, TARGET or the --initial-transform file (named another way too) replaced
+    the user's file; now a usage error before any registration, the file as it was."""
+    src, tgt = write_pair(tmp_path, "npy")
+    prior = tmp_path / "prior.npy"
+    np.save(prior, np.eye(4))
+    named = {"SOURCE": src, "TARGET": tgt, "--initial-transform": prior}[victim]
+    before = named.read_bytes()
+    other_name = tmp_path / "." / named.name  # the same file by another path
+    result = register(src, tgt, "--initial-transform", prior, option, other_name, model_dir=model_dir)
+    assert_clean_failure(result, f"is the {victim} file; it would be overwritten")
+    assert named.read_bytes() == before
+
+
+def test_out_and_write_aligned_may_not_name_one_file(tmp_path, model_dir) -> None:
+    src, tgt = write_pair(tmp_path, "npy")
+    result = register(src, tgt, "--out", tmp_path / "both.ply", "--write-aligned", tmp_path / "both.ply",
+                      model_dir=model_dir)
+    assert_clean_failure(result, "--out and --write-aligned are the same file")
+    assert not (tmp_path / "both.ply").exists()
+
+
 def test_a_corrupted_model_fails_with_exit_code_1(tmp_path, model_dir) -> None:
     broken = tmp_path / "clean"
     shutil.copytree(model_dir, broken)
