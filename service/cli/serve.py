@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from service.cli.common import SERVE_EXTRA_HINT, fail
 from service.cli.options import ModelDirs
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 
 def serve_command(
@@ -23,6 +27,8 @@ def serve_command(
     Settings come from MFGNET_* environment variables; options given here override them.
     """
     try:
+        from pydantic import ValidationError
+
         from service.api.app import run_server
         from service.api.registry import UnknownModelsError
         from service.core.config import Settings
@@ -36,9 +42,21 @@ def serve_command(
     }
     try:
         settings = Settings(**{key: value for key, value in overrides.items() if value is not None})
-    except ValueError as exc:  # pydantic's ValidationError is a ValueError
-        fail(f"invalid settings: {exc}")
+    except ValidationError as exc:
+        fail(f"invalid settings: {settings_problems(exc)}")
+    missing = [folder for folder in settings.model_dirs if not Path(folder).is_dir()]
+    if missing:
+        fail(f"model folder {missing[0]}: not a folder (--model-dir or MFGNET_MODEL_DIRS)")
     try:
         run_server(settings)
     except UnknownModelsError as exc:  # raised while the app is made, before it serves
         fail(str(exc))
+
+
+def settings_problems(exc: ValidationError) -> str:
+    """Each invalid setting of ``exc`` on one line's part: its environment variable, the problem and the value given
+    (pydantic's own text adds a URL and error codes)."""
+    return "; ".join(
+        f"MFGNET_{'_'.join(str(part) for part in error['loc']).upper()}: {error['msg']} (got {error['input']!r})"
+        for error in exc.errors()
+    )

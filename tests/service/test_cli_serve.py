@@ -74,7 +74,7 @@ def test_serve_without_the_http_stack_answers_with_the_install_hint(monkeypatch)
 
 
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
-def test_cli_options_override_mfgnet_environment_variables(monkeypatch) -> None:
+def test_cli_options_override_mfgnet_environment_variables(monkeypatch, tmp_path) -> None:
     import service.api.app
 
     seen = []
@@ -82,11 +82,33 @@ def test_cli_options_override_mfgnet_environment_variables(monkeypatch) -> None:
     monkeypatch.setenv("MFGNET_HOST", "0.0.0.0")
     monkeypatch.setenv("MFGNET_PORT", "9999")
     monkeypatch.setenv("MFGNET_THREADS", "3")
-    result = runner.invoke(app, ["serve", "--port", "1234", "--model-dir", "/m/a", "--model-dir", "/m/b"])
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    result = runner.invoke(app, ["serve", "--port", "1234", "--model-dir", str(tmp_path / "a"),
+                                 "--model-dir", str(tmp_path / "b")])
     assert result.exit_code == 0, result.output
     (settings,) = seen
     assert settings.port == 1234 and settings.host == "0.0.0.0" and settings.threads == 3
-    assert [str(d) for d in settings.model_dirs] == ["/m/a", "/m/b"]
+    assert [str(d) for d in settings.model_dirs] == [str(tmp_path / "a"), str(tmp_path / "b")]
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+@pytest.mark.parametrize("where", ["option", "environment"])
+def test_a_model_folder_that_is_not_there_stops_serve(monkeypatch, tmp_path, where) -> None:
+    """``--model-dir`` or ``MFGNET_MODEL_DIRS`` naming no folder served the bundled models alone, silently (``mfgnet
+    register`` and ``mfgnet models`` refuse it)."""
+    import service.api.app
+
+    monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
+    (tmp_path / "here").mkdir()
+    missing = tmp_path / "not_here"
+    if where == "option":
+        result = runner.invoke(app, ["serve", "--model-dir", str(tmp_path / "here"), "--model-dir", str(missing)])
+    else:
+        monkeypatch.setenv("MFGNET_MODEL_DIRS", f"{tmp_path / 'here'},{missing}")
+        result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2
+    assert f"model folder {missing}: not a folder (--model-dir or MFGNET_MODEL_DIRS)" in result.stderr
 
 
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
@@ -96,7 +118,12 @@ def test_invalid_settings_are_reported_without_a_traceback(monkeypatch) -> None:
     monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
     result = runner.invoke(app, ["serve", "--port", "70000"])
     assert result.exit_code == 2
-    assert "invalid settings" in result.stderr and "port" in result.stderr
+    assert "invalid settings: MFGNET_PORT: Input should be less than or equal to 65535 (got 70000)" in result.stderr
+    monkeypatch.setenv("MFGNET_MAX_QUEUE", "many")
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2
+    assert "invalid settings: MFGNET_MAX_QUEUE: Input should be a valid integer" in result.stderr
+    assert "(got 'many')" in result.stderr and "pydantic.dev" not in result.stderr  # one line, no URL
 
 
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
