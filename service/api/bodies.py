@@ -57,6 +57,10 @@ EXTRA_JSON_VALUES = 4096
 # few hundred of a few bytes each.
 MAX_JSON_STRINGS = 4096
 MAX_JSON_TEXT_BYTES = 64 * 1024
+# the bytes a JSON value begins with: json's NaN and Infinity literals among them, and UTF-8, 16 and 32 byte order
+# marks (the parse says what is wrong with those)
+JSON_VALUE_STARTS = frozenset(b'{["-0123456789tfnNI\xef\xff\xfe\x00')
+NEGATIVE_VALUE_SECOND = {bytes([c]) for c in b"0123456789I"}
 
 
 @dataclass
@@ -154,6 +158,7 @@ def check_json_values(body: bytes | bytearray, points: int, clouds: str) -> None
     calls them, :data:`VALUES_PER_POINT` each) and :data:`EXTRA_JSON_VALUES` more need, or more strings (keys and
     text values) than :data:`MAX_JSON_STRINGS` or more bytes of them than :data:`MAX_JSON_TEXT_BYTES`."""
     allowed = VALUES_PER_POINT * points + EXTRA_JSON_VALUES
+    _check_json_start(body)
     _check_json_text(body)
     if len(body) <= 2 * allowed:  # each takes two bytes at least (a value and its comma, or "[]"): no need to count
         return
@@ -162,12 +167,23 @@ def check_json_values(body: bytes | bytearray, points: int, clouds: str) -> None
         raise APIError(413, f"the JSON body holds {count} values, arrays and objects; {clouds} need at most {allowed}")
 
 
+def _check_json_start(body: bytes | bytearray) -> None:
+    """400 where ``body`` cannot begin a JSON value (a file, or a multipart body, sent as ``application/json``): said
+    before its bytes are counted as JSON's, which would call it too large."""
+    head = bytes(body[:64]).lstrip(b" \t\r\n")
+    negative = head[:1] == b"-"  # a number or -Infinity; a multipart body's boundary line begins with --
+    if head and (head[0] not in JSON_VALUE_STARTS or (negative and head[1:2] not in NEGATIVE_VALUE_SECOND)):
+        raise APIError(400, f"malformed JSON: the body begins with {head[:12]!r}, which begins no JSON value; send "
+                            "point-cloud files as multipart/form-data (file fields source and target)")
+
+
 def _check_json_text(body: bytes | bytearray) -> None:
     """413 where ``body``'s strings are more or longer than any request's keys and option values need: 4,000 unique
     keys of 16 KB in a 64 MiB body took 250 MiB to parse, and their 422 named every one."""
     quotes = body.count(b'"')
     if quotes > 2 * MAX_JSON_STRINGS:
-        raise APIError(413, f"the JSON body holds {quotes // 2} strings; requests need at most {MAX_JSON_STRINGS}")
+        raise APIError(413, f"the JSON body holds {quotes // 2} strings; requests need at most {MAX_JSON_STRINGS} "
+                            "(coordinates are JSON numbers, not strings)")
     text, start, position = 0, -1, body.find(b'"')
     while position >= 0:
         before = position

@@ -361,6 +361,14 @@ BAD_INPUTS: dict[str, Case] = {
                                             server="limited"),
     "oip_text_beyond_the_options": case(lambda: oip(_pair(SMALL)[0], _pair(SMALL)[1], id="a" * 70_000), 413,
                                         "bytes of strings", server="limited"),
+    "npy_file_sent_as_json": case(lambda: raw(npy(_pair(SMALL)[0]), "application/json"), 400, "malformed JSON",
+                                  "NUMPY", "begins no JSON value", "multipart/form-data"),
+    "multipart_body_sent_as_json": case(lambda: raw(b"--x\r\nContent-Disposition: form-data; name=source; "
+                                                    b"filename=s.npy\r\n\r\n" + npy(_pair(SMALL)[0]) + b"\r\n--x--\r\n",
+                                                    "application/json"), 400, "malformed JSON", "begins with b'--x"),
+    "json_coordinates_as_strings": case(lambda: jpost({"source": [[str(v) for v in p] for p in _pair(SMALL)[0]] * 5,
+                                                       "target": _pair(SMALL)[1].tolist()}), 413, "strings",
+                                        "coordinates are JSON numbers, not strings", server="limited"),
     "body_over_max_body_bytes": case(lambda: raw(b"[" * 250_000, "application/json"), 413, "max_body_bytes",
                                      server="limited"),
 }
