@@ -27,6 +27,7 @@ import orjson
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import parse_options_header
 from starlette.requests import Request
 from starlette.types import Message
@@ -433,8 +434,14 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
             del carry[:-(len(closing) - 1)]
         return message
 
-    form = await Request(request.scope, receive).form(max_files=len(file_fields), max_fields=32,
-                                                      max_part_size=MAX_FORM_FIELD_BYTES)
+    try:
+        form = await Request(request.scope, receive).form(max_files=len(file_fields), max_fields=32,
+                                                          max_part_size=MAX_FORM_FIELD_BYTES)
+    except StarletteHTTPException as exc:
+        if not str(exc.detail).startswith("Too many files"):
+            raise
+        raise APIError(400, f"more file uploads than {' and '.join(file_fields)}: the options (initial_transform "
+                            "among them) are text fields, not files") from None
     if not seen[0]:  # python-multipart takes a body cut short for a whole one, less its last part
         await form.close()
         raise APIError(400, f"multipart body ends before its closing boundary {closing.strip().decode('latin-1')!r}: "
