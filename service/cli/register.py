@@ -73,9 +73,9 @@ WriteAlignedOpt = Annotated[
 BinaryOpt = Annotated[
     bool,
     typer.Option(
-        help="with --server: upload the clouds as .npy files (file uploads take up "
+        help="with --server: upload the clouds as float32 .npy files (file uploads take up "
         "to the server's MFGNET_MAX_FILE_POINTS, 2,000,000 by default), or "
-        "with --no-binary as JSON (MFGNET_MAX_POINTS, 200,000)"
+        "with --no-binary as JSON, every float64 digit (MFGNET_MAX_POINTS, 200,000)"
     ),
 ]
 RequireReliableOpt = Annotated[
