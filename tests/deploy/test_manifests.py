@@ -133,6 +133,27 @@ def test_runs_non_root_on_a_read_only_root_filesystem(label, pod, container):
     assert "emptyDir" in volumes[mounts["/tmp"]], f"{label}: /tmp must be a writable emptyDir"
 
 
+QUANTITY = {"Ki": 2**10, "Mi": 2**20, "Gi": 2**30}
+
+
+@pytest.mark.parametrize(("label", "pod", "container"), WORKLOADS)
+def test_tmp_holds_the_uploads_the_server_admits_at_once(label, pod, container):
+    """Every admitted request (running or queued) reads its multipart upload into ``/tmp`` before it waits for a
+    worker: the emptyDir's ``sizeLimit`` must hold that many uploads of ``MFGNET_MAX_UPLOAD_BYTES`` and two of the
+    page's aligned answers (at most 512 MB each), or the kubelet evicts the pod (it was 256Mi: one upload)."""
+    from service.core.config import Settings
+
+    env = {e["name"]: e["value"] for e in container.get("env", []) if "value" in e}
+    settings = Settings(**{key.removeprefix("MFGNET_").lower(): value for key, value in env.items()
+                           if key.startswith("MFGNET_")})
+    mounts = {m["mountPath"]: m["name"] for m in container.get("volumeMounts", [])}
+    limit = {v["name"]: v for v in pod.get("volumes", [])}[mounts["/tmp"]]["emptyDir"]["sizeLimit"]
+    number, unit = re.fullmatch(r"(\d+)(Ki|Mi|Gi)", limit).groups()
+    admitted = settings.max_concurrency + settings.max_queue
+    needed = admitted * settings.max_upload_bytes + 2 * 512 * 10**6
+    assert int(number) * QUANTITY[unit] >= needed, f"{label}: sizeLimit {limit} < {needed / 2**30:.2f} GiB"
+
+
 @pytest.mark.parametrize(("label", "pod", "container"), WORKLOADS)
 def test_resources_are_requested_and_limited(label, pod, container):
     resources = container["resources"]
