@@ -53,6 +53,9 @@ def read_pcd(f: BinaryIO, max_points: int | None) -> np.ndarray:
     require("lzf", "reading PCD files")  # pypcd4 imports it for binary_compressed
     meta = read_metadata(pypcd4, f)
     check_count(meta.points, max_points)
+    if meta.width * meta.height != meta.points:  # as PCL's reader refuses it
+        raise PointCloudFormatError(f"invalid PCD header (WIDTH {meta.width} x HEIGHT {meta.height} = "
+                                    f"{meta.width * meta.height} points, but POINTS says {meta.points})")
     missing = [axis for axis in "xyz" if axis not in meta.fields]
     if missing:
         raise InvalidPointsError(f"PCD file lacks fields {missing}")

@@ -191,8 +191,11 @@ def test_pcd_fields_without_a_record_type_are_a_header_error(tmp_path: Path, ent
         (lambda: pcd_header().replace(b"DATA ascii", b"DATA text"), "DATA must be one of"),
         (lambda: pcd_header(fields="x y z " + " ".join(f"f{i}" for i in range(1000))), "a line longer than 4096 bytes"),
         (lambda: pcd_header().replace(b"WIDTH 24", b"WIDTH many"), "invalid PCD header"),
+        (lambda: pcd_header().replace(b"WIDTH 24", b"WIDTH 12"), "WIDTH 12 x HEIGHT 1 = 12 points, but POINTS says 24"),
+        (lambda: pcd_header().replace(b"HEIGHT 1", b"HEIGHT 2"), "WIDTH 24 x HEIGHT 2 = 48 points, but POINTS says 24"),
     ],
-    ids=["no_data_line", "bare_data", "unknown_data", "long_line", "width_not_a_number"],
+    ids=["no_data_line", "bare_data", "unknown_data", "long_line", "width_not_a_number", "width_short_of_points",
+         "grid_beyond_points"],
 )
 def test_pcd_header_errors_name_the_problem(tmp_path: Path, header, message: str) -> None:
     """pypcd4 took a missing or bare DATA line for binary_compressed ("data cut short", "declares 825637174 bytes"),
