@@ -61,7 +61,6 @@ MAX_JSON_TEXT_BYTES = 64 * 1024
 # the bytes a JSON value begins with: json's NaN and Infinity literals among them, and UTF-8, 16 and 32 byte order
 # marks (the parse says what is wrong with those)
 JSON_VALUE_STARTS = frozenset(b'{["-0123456789tfnNI\xef\xff\xfe\x00')
-NEGATIVE_VALUE_SECOND = {bytes([c]) for c in b"0123456789I"}
 
 
 @dataclass
@@ -159,7 +158,6 @@ def check_json_values(body: bytes | bytearray, points: int, clouds: str) -> None
     calls them, :data:`VALUES_PER_POINT` each) and :data:`EXTRA_JSON_VALUES` more need, or more strings (keys and
     text values) than :data:`MAX_JSON_STRINGS` or more bytes of them than :data:`MAX_JSON_TEXT_BYTES`."""
     allowed = VALUES_PER_POINT * points + EXTRA_JSON_VALUES
-    _check_json_start(body)
     _check_json_text(body)
     if len(body) <= 2 * allowed:  # each takes two bytes at least (a value and its comma, or "[]"): no need to count
         return
@@ -168,14 +166,14 @@ def check_json_values(body: bytes | bytearray, points: int, clouds: str) -> None
         raise APIError(413, f"the JSON body holds {count} values, arrays and objects; {clouds} need at most {allowed}")
 
 
-def _check_json_start(body: bytes | bytearray) -> None:
-    """400 where ``body`` cannot begin a JSON value (a file, or a multipart body, sent as ``application/json``): said
-    before its bytes are counted as JSON's, which would call it too large."""
-    head = bytes(body[:64]).lstrip(b" \t\r\n")
-    negative = head[:1] == b"-"  # a number or -Infinity; a multipart body's boundary line begins with --
-    if head and (head[0] not in JSON_VALUE_STARTS or (negative and head[1:2] not in NEGATIVE_VALUE_SECOND)):
-        raise APIError(400, f"malformed JSON: the body begins with {head[:12]!r}, which begins no JSON value; send "
-                            "point-cloud files as multipart/form-data (file fields source and target)")
+def check_json_start(body: bytes | bytearray, hint: str) -> None:
+    """400 where ``body`` cannot begin a JSON value (a file, or a multipart body, sent as ``application/json``), with
+    ``hint`` (what the route takes): said before its bytes are counted as JSON's, which would call it too large. Only
+    its first 4 KiB are looked at; a body of whitespace alone there passes (the parse answers it)."""
+    head = bytes(body[:4096]).lstrip(b" \t\r\n")
+    # "-" begins a number or -Infinity; a multipart body's boundary line begins with "--"
+    if head and (head[0] not in JSON_VALUE_STARTS or (head[:1] == b"-" and head[1:2] not in b"0123456789I")):
+        raise APIError(400, f"malformed JSON: the body begins with {head[:12]!r}, which begins no JSON value; {hint}")
 
 
 def _check_json_text(body: bytes | bytearray) -> None:
@@ -306,23 +304,28 @@ def _split_pair(body: bytes | bytearray, max_points: int) -> Pair | None:
 
 
 def check_register_values(body: bytes | bytearray, max_points: int) -> None:
-    """:func:`check_json_values` for a ``/v1/register`` body: two clouds of at most ``max_points``."""
+    """:func:`check_json_start` and :func:`check_json_values` for a ``/v1/register`` body: two clouds of at most
+    ``max_points``."""
+    check_json_start(body, "send point-cloud files as multipart/form-data (file fields source and target)")
     check_json_values(body, 2 * max_points, two_clouds(max_points))
 
 
 def check_batch_values(body: bytes | bytearray, max_points: int) -> None:
-    """:func:`check_json_values` for a ``/v1/register/batch`` body: at most ``2 * max_points`` points in all."""
+    """:func:`check_json_start` and :func:`check_json_values` for a ``/v1/register/batch`` body: at most
+    ``2 * max_points`` points in all."""
+    check_json_start(body, 'a batch is a JSON object {"pairs": [...]}')
     check_json_values(body, 2 * max_points, f"a batch's clouds, at most {2 * max_points} points in all "
                                             "(2 x max_points),")
 
 
 async def refuse_too_many_values(held: HeldBody, check: Callable[[bytes | bytearray, int], None],
                                  max_points: int) -> None:
-    """The 413 the decoder answers first for a JSON body of more values than ``max_points`` allow (``check``:
-    :func:`check_register_values` or :func:`check_batch_values`), before the request waits for a worker (where a
-    deadline passing in the queue would make it a 504), as :func:`refuse_oversized_uploads` does for files. It counts
-    bytes only (no parse), in a thread (off the event loop): a cloud of 1,000,000 points where 200,000 are allowed is
-    refused here; a body within the count but with a cloud over ``max_points`` is refused by the decoder's parse."""
+    """The 400 of a body that begins no JSON value and the 413 the decoder answers first for a JSON body of more
+    values than ``max_points`` allow (``check``: :func:`check_register_values` or :func:`check_batch_values`), before
+    the request waits for a worker (where a deadline passing in the queue would make it a 504), as
+    :func:`refuse_oversized_uploads` does for files. It counts bytes only (no parse), in a thread (off the event loop):
+    a cloud of 1,000,000 points where 200,000 are allowed is refused here; a body within the count but with a cloud
+    over ``max_points`` is refused by the decoder's parse."""
     await run_in_threadpool(check, held.peek(), max_points)
 
 
@@ -440,8 +443,8 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
     except StarletteHTTPException as exc:
         if not str(exc.detail).startswith("Too many files"):
             raise
-        raise APIError(400, f"more file uploads than {' and '.join(file_fields)}: the options (initial_transform "
-                            "among them) are text fields, not files") from None
+        raise APIError(400, f"more file uploads than {' and '.join(file_fields)}: every other field (the options) is a "
+                            "text field, not a file") from None
     if not seen[0]:  # python-multipart takes a body cut short for a whole one, less its last part
         await form.close()
         raise APIError(400, f"multipart body ends before its closing boundary {closing.strip().decode('latin-1')!r}: "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import NoReturn
 
@@ -24,6 +25,14 @@ def check_output_path(path: Path | None, option: str) -> None:
         fail(f"{option} {path}: a folder, not a file")
     if path is not None and not path.parent.is_dir():
         fail(f"{option} {path}: folder {path.parent} does not exist")
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file: the same inode where both exist (hard links, symbolic links, case-folding
+    file systems), else the same resolved path."""
+    if a.exists() and b.exists():
+        return os.path.samefile(a, b)
+    return a.resolve() == b.resolve()
 
 
 def require_regular_file(path: Path) -> None:

@@ -16,6 +16,7 @@ from service.cli.common import (
     fail,
     number,
     read_cloud,
+    same_file,
     write_aligned_cloud,
     write_text,
 )
@@ -176,13 +177,13 @@ def _check_outputs_spare_inputs(out: Path | None, write_aligned: Path | None, so
                                 initial_transform: Path | None) -> None:
     """Usage errors where ``--out`` and ``--write-aligned`` name the same file, or one of them names an input
     (SOURCE, TARGET, ``--initial-transform``): it would be overwritten."""
-    if out is not None and write_aligned is not None and out.resolve() == write_aligned.resolve():
+    if out is not None and write_aligned is not None and same_file(out, write_aligned):
         fail(f"--out and --write-aligned are the same file, {out}")
     inputs = {"SOURCE": source, "TARGET": target, "--initial-transform": initial_transform}
-    names = {path.resolve(): label for label, path in inputs.items() if path is not None}
     for path, option in ((out, "--out"), (write_aligned, "--write-aligned")):
-        if path is not None and path.resolve() in names:
-            fail(f"{option} {path} is the {names[path.resolve()]} file; it would be overwritten")
+        for label, named in inputs.items():
+            if path is not None and named is not None and same_file(path, named):
+                fail(f"{option} {path} is the {label} file; it would be overwritten")
 
 
 def _write_outputs(

@@ -19,6 +19,7 @@ from service.cli.common import (
     fail,
     number,
     read_cloud,
+    same_file,
     write_aligned_cloud,
 )
 from service.cli.model_lookup import load_registrar
@@ -226,11 +227,10 @@ def _check_sequence_outputs(frames: list[Path], out: Path | None, kitti: Path | 
     check_output_path(kitti, "--kitti")
     if kitti == Path("-"):
         fail("--kitti -: standard output holds the JSON lines; name a file")
-    if out is not None and kitti is not None and out.resolve() == kitti.resolve():
+    if out is not None and kitti is not None and same_file(out, kitti):
         fail(f"--out and --kitti are the same file, {out}")
-    inputs = {frame.resolve() for frame in frames}
     for path, option in ((out, "--out"), (kitti, "--kitti")):
-        if path is not None and path.resolve() in inputs:
+        if path is not None and any(same_file(path, frame) for frame in frames):
             fail(f"{option} {path} is one of the frames; it would be overwritten")
 
 

@@ -44,9 +44,10 @@ def serve_command(
         settings = Settings(**{key: value for key, value in overrides.items() if value is not None})
     except ValidationError as exc:
         fail(f"invalid settings: {settings_problems(exc)}")
-    missing = [folder for folder in settings.model_dirs if not Path(folder).is_dir()]
+    missing = [str(folder) for folder in settings.model_dirs if not Path(folder).is_dir()]
     if missing:
-        fail(f"model folder {missing[0]}: not a folder (--model-dir or MFGNET_MODEL_DIRS)")
+        fail(f"model folders {', '.join(missing)}: not a folder (--model-dir or MFGNET_MODEL_DIRS)"
+             if len(missing) > 1 else f"model folder {missing[0]}: not a folder (--model-dir or MFGNET_MODEL_DIRS)")
     try:
         run_server(settings)
     except UnknownModelsError as exc:  # raised while the app is made, before it serves
@@ -57,6 +58,7 @@ def settings_problems(exc: ValidationError) -> str:
     """Each invalid setting of ``exc`` on one line's part: its environment variable, the problem and the value given
     (pydantic's own text adds a URL and error codes)."""
     return "; ".join(
-        f"MFGNET_{'_'.join(str(part) for part in error['loc']).upper()}: {error['msg']} (got {error['input']!r})"
+        f"MFGNET_{str(error['loc'][0]).upper()}{''.join(f'[{part}]' for part in error['loc'][1:])}: {error['msg']} "
+        f"(got {error['input']!r})"
         for error in exc.errors()
     )

@@ -442,10 +442,12 @@ def test_an_output_that_names_an_input_is_refused_and_the_input_kept(tmp_path, m
     np.save(prior, np.eye(4))
     named = {"SOURCE": src, "TARGET": tgt, "--initial-transform": prior}[victim]
     before = named.read_bytes()
-    other_name = tmp_path / "." / named.name  # the same file by another path
-    result = register(src, tgt, "--initial-transform", prior, option, other_name, model_dir=model_dir)
-    assert_clean_failure(result, f"is the {victim} file; it would be overwritten")
-    assert named.read_bytes() == before
+    (tmp_path / "sub").mkdir()
+    os.link(named, tmp_path / f"hard_link{named.suffix}")
+    for other_name in (tmp_path / "sub" / ".." / named.name, tmp_path / f"hard_link{named.suffix}"):  # other paths
+        result = register(src, tgt, "--initial-transform", prior, option, other_name, model_dir=model_dir)
+        assert_clean_failure(result, f"is the {victim} file; it would be overwritten")
+        assert named.read_bytes() == before
 
 
 def test_out_and_write_aligned_may_not_name_one_file(tmp_path, model_dir) -> None:

@@ -363,7 +363,9 @@ BAD_INPUTS: dict[str, Case] = {
                                         "bytes of strings", server="limited"),
     "initial_transform_as_a_file": case(lambda: {**form(), "files": {**form()["files"], "initial_transform": (
         "prior.json", b"[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]")}}, 400, "more file uploads than source and target",
-        "initial_transform", "text fields"),
+        "the options) is a text field, not a file"),
+    "batch_npy_file_sent_as_json": case(lambda: raw(npy(_pair(SMALL)[0]), "application/json", "/v1/register/batch"),
+                                        400, "malformed JSON", "NUMPY", '{"pairs": [...]}'),
     "npy_file_sent_as_json": case(lambda: raw(npy(_pair(SMALL)[0]), "application/json"), 400, "malformed JSON",
                                   "NUMPY", "begins no JSON value", "multipart/form-data"),
     "multipart_body_sent_as_json": case(lambda: raw(b"--x\r\nContent-Disposition: form-data; name=source; "
