@@ -8,6 +8,7 @@ from service.quality import TARGET_EXPLAINED
 from service.stages.consensus import CONFIRMED_BY_DESCRIPTORS, DESCRIPTOR_CONSENSUS
 from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
 from service.stages.guess_check import FAR_FROM_GUESS
+from service.stages.scale_check import SIZE_MISMATCH
 from service.stages.search import RETRY_WARNING
 
 # No ``<counter>_created`` / ``<histogram>_created`` series: in the text format Prometheus stores each as one more gauge
@@ -24,6 +25,7 @@ WARNING_KINDS = frozenset({
       for kind in ("empty", "identical", "collinear", "few distinct points", "coplanar")),
     THROUGH_FREE_SPACE, CONFIRMED_BY_FREE_SPACE, RETRY_WARNING.split(":", 1)[0],  # the closing checks'
     FAR_FROM_GUESS,  # a result far from the caller's initial_transform (service.stages.guess_check)
+    SIZE_MISMATCH,  # clouds whose sizes differ as units do (service.stages.scale_check)
     TARGET_EXPLAINED,  # a result whose source explains a cut target (service.quality)
     DESCRIPTOR_CONSENSUS,  # a result the descriptors' consensus gave (service.stages.consensus)
     CONFIRMED_BY_DESCRIPTORS,  # a result the descriptors made `reliable` (service.stages.consensus)

@@ -22,6 +22,7 @@ from service.stages.network import network
 from service.stages.normalise import normalise
 from service.stages.refine import refine
 from service.stages.sample import sample
+from service.stages.scale_check import scale_check
 from service.stages.search import auto_search, search
 from service.stages.slide import slide
 from service.stages.symmetry import symmetry
@@ -53,3 +54,4 @@ class Stages:
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same
     guess_check: Callable = guess_check  # (Working, RegistrationResult, caller frames, Request, reference_radius)
+    scale_check: Callable = scale_check  # (Working, RegistrationResult) -> the same, warned of a unit mismatch
