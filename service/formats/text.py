@@ -21,6 +21,10 @@ from service.formats.errors import InvalidPointsError, PointCloudFormatError, To
 
 PROBE_LINES = 64  # lines read to find the header and the separator
 _DECIMAL_COMMA = re.compile(r"convert string '[-+]?\d+,\d+' ")  # numpy's error for a number such as 0,125
+# numpy's errors for a value it cannot convert and for a row with fewer columns than asked for
+_CANNOT_CONVERT = re.compile(
+    r"could not convert string (?P<value>.+) to float64 at row (?P<row>\d+), column (?P<column>\d+)")
+_SHORT_ROW = re.compile(r"invalid column index \d+ at row (?P<row>\d+) with (?P<columns>\d+) columns")
 
 
 def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -72,7 +76,8 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
         )  # [N, 3]
     except ValueError as exc:
         comma = " (a decimal comma? numbers need a decimal point)" if _DECIMAL_COMMA.search(str(exc)) else ""
-        raise InvalidPointsError(f"not rows of at least 3 numbers: {exc}{comma}") from None
+        raise InvalidPointsError(f"not rows of at least 3 numbers: {_on_its_line(stream, skip, str(exc))}{comma}"
+                                 ) from None
     if len(table) == 0:
         raise InvalidPointsError(_no_rows(header))
     if max_points is not None and len(table) > max_points:
@@ -80,6 +85,36 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
             f"has more than {max_points} points; the limit is {max_points} per cloud", len(table), max_points
         )
     return checked(table)
+
+
+def _on_its_line(stream: io.TextIOWrapper, skip: int, message: str) -> str:
+    """numpy's ``message`` with the row it names as the file's line (1-based): numpy counts rows of data from 0 in a
+    value it cannot convert and from 1 in a row short of columns, both without the ``skip`` lines, comments and blank
+    lines; else ``message`` as it is."""
+    convert, short = _CANNOT_CONVERT.search(message), _SHORT_ROW.search(message)
+    if convert is None and short is None:
+        return message
+    data_row = int(convert["row"]) if convert else int(short["row"]) - 1  # 0-based among the rows of data
+    line = _data_line(stream, skip, data_row)
+    if line is None:
+        return message
+    if convert:
+        return f"could not convert {convert['value']} to a number at line {line}, column {convert['column']}"
+    return f"line {line} has {short['columns']} columns, fewer than the x, y and z columns need"
+
+
+def _data_line(stream: io.TextIOWrapper, skip: int, data_row: int) -> int | None:
+    """The 1-based line number of the ``data_row``-th (0-based) row of data after the first ``skip`` lines, comments
+    and blank lines not counted, as numpy's ``loadtxt`` counts them."""
+    stream.seek(0)
+    rows = -1
+    for number, line in enumerate(stream, start=1):
+        if number <= skip or not line.split("#", 1)[0].strip():
+            continue
+        rows += 1
+        if rows == data_row:
+            return number
+    return None
 
 
 def _no_rows(header: str | None) -> str:

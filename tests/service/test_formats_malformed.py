@@ -1045,6 +1045,26 @@ def test_laz14_xyz_layer_sizes_are_checked_under_a_chunk_table_of_no_chunks(tmp_
     assert out.stdout.startswith("error a.laz: LAZ chunk 0 declares x, y and z layers of"), out.stdout
 
 
+@pytest.mark.parametrize(("before", "bad", "message"), [
+    ("", "1 x 3", "could not convert 'x' to a number at line 1001, column 2"),
+    ("x y z\n# a note\n\n", "1 x 3", "could not convert 'x' to a number at line 1004, column 2"),
+    ("", "1 2", "line 1001 has 2 columns, fewer than the x, y and z columns need"),
+    ("x y z\n\n", "1 2", "line 1003 has 2 columns, fewer than the x, y and z columns need"),
+])
+def test_a_bad_text_row_is_named_by_its_line_in_the_file(tmp_path: Path, before: str, bad: str, message: str) -> None:
+    """numpy named a value it could not convert by its row of data from 0 and a short row by its row from 1, both
+    without the header, comments and blank lines: the error names the line as an editor numbers it."""
+    rows = ["1 2 3"] * 1200
+    rows[1000] = bad
+    (tmp_path / "a.xyz").write_text(before + "\n".join(rows) + "\n")
+    with pytest.raises(InvalidPointsError) as caught:
+        read_cloud(tmp_path / "a.xyz")
+    assert message in str(caught.value)
+    lines = (tmp_path / "a.xyz").read_text().splitlines()
+    line = int(message.split("line ")[1].split()[0].rstrip(","))
+    assert lines[line - 1] == bad  # the named line is the bad one
+
+
 def test_a_decimal_comma_is_named_in_the_error(tmp_path: Path) -> None:
     """A semicolon CSV as a spreadsheet of a comma-decimal locale saves it: the error says what the numbers lack."""
     (tmp_path / "eu.csv").write_text("x;y;z\n0,125;-1,5;2,0\n1,0;2,0;3,0\n")
