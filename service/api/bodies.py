@@ -35,6 +35,7 @@ from starlette.types import Message
 from service.api.body_budget import BodyBudget, BodyHold
 from service.api.errors import APIError, from_pydantic
 from service.api.json_clouds import rows_array, split_register_body
+from service.api.json_shapes import check_cloud_shapes
 from service.api.schemas import (
     BatchRequest,
     RegisterOptions,
@@ -338,6 +339,7 @@ def register_pair_from_json(body: bytes | bytearray, max_points: int, values_che
         return pair
     obj = _require_object(load_json(body))  # the reference path: json's parse and RegisterRequest's verdict
     _count_clouds(obj, max_points)
+    check_cloud_shapes(obj)
     try:
         req = RegisterRequest.model_validate(obj, strict=True)  # JSON has types: no "1.5" or true for numbers
     except ValidationError as exc:
@@ -385,6 +387,10 @@ def batch_pairs_from_json(body: bytes | bytearray, max_points: int, max_batch: i
         return pairs
     obj = _require_object(load_json(body))  # the fast path's parse is freed: one parse of the body at a time
     _count_batch(obj, max_points, max_batch)
+    pairs = obj.get("pairs")
+    for i, pair in enumerate(pairs if isinstance(pairs, list) else []):
+        if isinstance(pair, dict):
+            check_cloud_shapes(pair, prefix=f"pairs[{i}].")
     try:
         batch = BatchRequest.model_validate(obj, strict=True)
     except ValidationError as exc:

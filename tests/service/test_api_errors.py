@@ -67,7 +67,7 @@ JSON_CASES = {
     "two_column_row": (with_row([0.1, 0.2]), 422, ["source[5]", "at least 3"]),
     "four_column_row": (with_row([0.1, 0.2, 0.3, 0.4]), 422, ["source[5]", "at most 3"]),
     "text_coordinate": (with_row([0.1, "x", 0.3]), 422, ["source[5][1]"]),
-    "flat_cloud": ({**valid(), "target": [0.1, 0.2, 0.3] * 40}, 422, ["target[0]", "list"]),
+    "flat_cloud": ({**valid(), "target": [0.1, 0.2, 0.3] * 40}, 422, ["target: a flat list of 120", "[40, 3]"]),
     "too_few_points": ({**valid(), "source": [[0.0, 0.0, 0.1 * i] for i in range(10)]}, 422, ["source", "32"]),
     "missing_target": ({"source": valid()["source"]}, 422, ["target", "required"]),
     "not_an_object": ([1, 2, 3], 422, ["object"]),

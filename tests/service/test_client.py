@@ -164,9 +164,10 @@ def test_initial_transform_reaches_the_server(mfgnet, binary) -> None:
 
 
 def test_register_sends_json_with_the_clouds_as_given(mfgnet) -> None:
-    with pytest.raises(MfgnetError) as info:  # the JSON body's validation names list items
+    with pytest.raises(MfgnetError) as info:  # the JSON body's validation names the shape sent
         mfgnet.register(EASY.source[:, :2], EASY.target)
-    assert info.value.status == 422 and "source[0]: List should have at least 3 items" in info.value.message
+    assert info.value.status == 422 and "source: expected shape [N, 3]" in info.value.message
+    assert f"got [{len(EASY.source)}, 2]" in info.value.message
     fine = EASY.source.astype(np.float64) + np.random.default_rng(0).normal(scale=1e-5, size=EASY.source.shape)
     as_float64 = mfgnet.register(fine, EASY.target, **FAST)
     as_float32 = mfgnet.register(fine.astype(np.float32), EASY.target, **FAST)

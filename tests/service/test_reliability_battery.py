@@ -106,6 +106,11 @@ def row(value, index: int = 5) -> dict:
     return out
 
 
+def columns(rows: list) -> dict:
+    """``rows`` of x, y, z as an object of three arrays (a struct of arrays)."""
+    return dict(zip("xyz", np.asarray(rows).T.tolist(), strict=True))
+
+
 def coord(value) -> dict:
     """The valid body with ``source[5][1]`` replaced by ``value``."""
     return row([0.1, value, 0.2])
@@ -218,7 +223,16 @@ BAD_INPUTS: dict[str, Case] = {
     "empty_row": case(lambda: jpost(row([])), 422, "source[5]", "at least 3"),
     "ragged_rows": case(lambda: jpost({**body(), "target": [[0.1, 0.2], [0.1, 0.2, 0.3, 0.4]] * 20}), 422,
                         "target[0]", "target[1]"),
-    "flat_cloud": case(lambda: jpost({**body(), "target": [0.1, 0.2, 0.3] * 40}), 422, "target[0]", "list"),
+    "flat_cloud": case(lambda: jpost({**body(), "target": [0.1, 0.2, 0.3] * 40}), 422, "target: a flat list of 120",
+                       "reshape it to [40, 3]"),
+    "two_columns": case(lambda: jpost({**body(), "source": [r[:2] for r in body()["source"]]}), 422,
+                        "source: expected shape [N, 3]", ", 2]"),
+    "six_columns": case(lambda: jpost({**body(), "source": [r + r for r in body()["source"]]}), 422,
+                        "source: expected shape [N, 3]", ", 6]", "x, y, z only"),
+    "one_row_per_axis": case(lambda: jpost({**body(), "target": np.asarray(body()["target"]).T.tolist()}), 422,
+                             "target: expected shape [N, 3], got [3, ", "one row per axis"),
+    "columns_as_an_object": case(lambda: jpost({**body(), "source": columns(body()["source"])}), 422,
+                                 "source: a JSON object", "send them as rows"),
     "cloud_is_a_string": case(lambda: jpost({**body(), "source": "0 0 0"}), 422, "source", "list"),
     "cloud_is_an_object": case(lambda: jpost({**body(), "source": {"x": [1.0]}}), 422, "source", "list"),
     # wrong types where numbers belong
