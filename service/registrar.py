@@ -368,6 +368,7 @@ class Registrar:
         result = anchors.result_to_caller(result)
         result = stages.guess_check(work, result, request, self.reference_radius)  # a warning far from the guess
         result = stages.scale_check(work, result)  # a warning where the clouds' sizes differ as units do
+        result = stages.float32_check(work, result, request)  # a warning where float32 rounds coordinates coarsely
         timing["total"] = 1000 * (time.perf_counter() - t0)
         return result
 

@@ -6,6 +6,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disa
 
 from service.quality import TARGET_EXPLAINED
 from service.stages.consensus import CONFIRMED_BY_DESCRIPTORS, DESCRIPTOR_CONSENSUS
+from service.stages.float32_check import FLOAT32_ROUNDING
 from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
 from service.stages.guess_check import FAR_FROM_GUESS
 from service.stages.scale_check import SIZE_MISMATCH
@@ -26,6 +27,7 @@ WARNING_KINDS = frozenset({
     THROUGH_FREE_SPACE, CONFIRMED_BY_FREE_SPACE, RETRY_WARNING.split(":", 1)[0],  # the closing checks'
     FAR_FROM_GUESS,  # a result far from the caller's initial_transform (service.stages.guess_check)
     SIZE_MISMATCH,  # clouds whose sizes differ as units do (service.stages.scale_check)
+    FLOAT32_ROUNDING,  # float32 coordinates far from the origin (service.stages.float32_check)
     TARGET_EXPLAINED,  # a result whose source explains a cut target (service.quality)
     DESCRIPTOR_CONSENSUS,  # a result the descriptors' consensus gave (service.stages.consensus)
     CONFIRMED_BY_DESCRIPTORS,  # a result the descriptors made `reliable` (service.stages.consensus)

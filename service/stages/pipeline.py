@@ -15,6 +15,7 @@ from service.stages.consensus import consensus
 from service.stages.features import feature_candidates
 from service.stages.fine import fine
 from service.stages.flip import flip
+from service.stages.float32_check import float32_check
 from service.stages.free_space import free_space
 from service.stages.guess import guess_candidate, unguessed_candidate
 from service.stages.guess_check import guess_check
@@ -55,3 +56,4 @@ class Stages:
     free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same
     guess_check: Callable = guess_check  # (Working, RegistrationResult, caller frames, Request, reference_radius)
     scale_check: Callable = scale_check  # (Working, RegistrationResult) -> the same, warned of a unit mismatch
+    float32_check: Callable = float32_check  # (Working, RegistrationResult, Request) -> the same, warned of float32

@@ -1,0 +1,58 @@
+"""Stage 12, float32 check: a warning where a cloud's coordinates are float32 values far enough from the origin that
+float32 rounds them coarsely.
+
+float32 keeps 24 bits: at 5,000,000 (a UTM northing in metres) its step is 0.5, so a scan stored as float32 in map
+coordinates has lost its shape to a half-metre grid before the service sees it, and the pose comes out degrees off,
+sometimes `reliable`. Where a cloud's working points are all float32 values (so the file or array held float32) and
+float32's step at their largest coordinate is at least ``STEP_SHARE`` of the cloud's RMS radius, the result carries a
+warning naming the distance, the step and what to send instead. The pose and ``reliable`` stay as they are. Clouds
+in float64 (JSON, float64 ``.npy`` or PLY/PCD doubles, LAS's scaled integers) or near the origin never get it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from service.result import RegistrationResult
+from service.stages.normalise import Working
+from service.stages.scale_check import rms_radius
+from service.stages.validate import Request
+
+# float32's step at the largest coordinate, as a share of the cloud's RMS radius, from which the warning is given: a
+# LiDAR frame 10 m across at a UTM northing (step 0.5 m) is 5% off its grid; one 1 km from the origin (step 6e-5 m)
+# is not warned.
+STEP_SHARE = 1e-3
+# The kind (the text before the colon) of the warning this stage adds
+FLOAT32_ROUNDING = "float32 rounding"
+
+
+def float32_check(work: Working, result: RegistrationResult, request: Request) -> RegistrationResult:
+    """``result`` with :func:`float32_rounding`'s warning for each cloud whose working points (in the caller's values,
+    ``request.src[work.idx_s]``) are all float32 values and lie far enough out that float32's step there reaches
+    ``STEP_SHARE`` of the cloud's RMS radius; else ``result`` itself. The pose and ``reliable`` are kept."""
+    warnings = [
+        float32_rounding(name, float(np.abs(points).max()), rms_radius(points))
+        for name, points in (("source", request.src[work.idx_s]), ("target", request.tgt[work.idx_t]))  # [Nw, 3]
+        if coarse_float32(points)
+    ]
+    return dataclasses.replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
+
+
+def coarse_float32(points: np.ndarray) -> bool:
+    """Whether ``points [N, 3]`` (float64) are all float32 values and float32's step at their largest coordinate is
+    at least ``STEP_SHARE`` of their RMS radius."""
+    step = float(np.spacing(np.float32(np.abs(points).max())))
+    radius = rms_radius(points)
+    if radius <= 0 or step < STEP_SHARE * radius:
+        return False
+    return bool(np.array_equal(points, points.astype(np.float32).astype(np.float64)))
+
+
+def float32_rounding(name: str, largest: float, radius: float) -> str:
+    """The warning of cloud ``name`` whose largest coordinate is ``largest`` and RMS radius ``radius``."""
+    step = float(np.spacing(np.float32(largest)))
+    return (f"{FLOAT32_ROUNDING}: the {name}'s coordinates are float32 values up to {largest:.4g} from the origin, "
+            f"where float32 holds them to {step:.3g} ({step / radius:.2%} of its RMS radius {radius:.4g}); send "
+            "float64 coordinates (JSON, a float64 .npy, PLY or PCD doubles) or subtract an offset first (a map origin)")
