@@ -32,6 +32,9 @@ MAX_ERROR_BODY_BYTES = 4096  # of an error response, read back for the access li
 # ``scope["state"]`` key of ``(status, message)`` where the HTTP protocol answered a request whose body it could not
 # parse (``http_protocol.py``); the app sees a disconnect
 ANSWERED_BELOW = "mfgnet.answered_below"
+# A request still running when the shutdown grace ends is cancelled: its answer (a 503 the client may send again)
+SHUTDOWN_MESSAGE = ("the server is shutting down and the request did not finish within its grace; send it again (to "
+                    "another replica or once the server is back)")
 
 
 def request_id_of(scope: Scope) -> str:
@@ -163,6 +166,11 @@ class RequestContextMiddleware:
                 await self.app(scope, receive_limited, send_with_id)
         except ClientDisconnect:
             state["status"] = state["status"] or 499  # the client went away; nothing to answer
+        except asyncio.CancelledError:  # the server's shutdown grace ended with this request still running
+            if state["started"]:
+                raise  # too late for an answer of its own: uvicorn closes the connection
+            await self._send_error(send_with_id, 503, SHUTDOWN_MESSAGE,
+                                   headers=[(b"retry-after", b"1"), (b"connection", b"close")])
         except Exception:
             app_log.exception("unhandled error", extra={"request_id": request_id, "path": shortened(path)})
             if not state["started"]:
@@ -194,11 +202,13 @@ class RequestContextMiddleware:
             access_log.info("request", extra=extra)
 
     @staticmethod
-    async def _send_error(send: Send, status: int, message: str, **extra) -> None:
+    async def _send_error(send: Send, status: int, message: str, headers: list[tuple[bytes, bytes]] | None = None,
+                          **extra) -> None:
         body = json.dumps({"error": message, **extra}).encode()
         await send({
             "type": "http.response.start",
             "status": status,
-            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                        *(headers or [])],
         })
         await send({"type": "http.response.body", "body": body})
