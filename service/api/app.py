@@ -19,7 +19,7 @@ from service.api.head import HeadAsGetMiddleware
 from service.api.limiter import InferenceLimiter
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContextMiddleware
-from service.api.registry import ModelEntry, ModelRegistry
+from service.api.registry import ModelEntry, ModelRegistry, UnknownModelsError
 from service.api.routes import docs, models, oip, page, register
 from service.api.routes import metrics as metrics_routes
 from service.api.runner import Runner
@@ -36,10 +36,17 @@ REQUEST_SCHEMAS = (RegisterRequest, BatchRequest, InferRequest)
 
 def effective_default_model(settings: Settings, registry: ModelRegistry) -> str:
     """``MFGNET_DEFAULT_MODEL``, or the only served model when that one is not served (e.g. a server
-    started on a single ``--model-dir`` model with the bundled models off)."""
-    if settings.default_model not in registry.entries and len(registry.entries) == 1:
-        return next(iter(registry.entries))
-    return settings.default_model
+    started on a single ``--model-dir`` model with the bundled models off). :class:`UnknownModelsError` where it is
+    not served among several: every request that names no model, the page's among them, would be a 404."""
+    served = registry.entries
+    if settings.default_model in served or not served:
+        return settings.default_model
+    if len(served) == 1:
+        return next(iter(served))
+    raise UnknownModelsError(
+        f"MFGNET_DEFAULT_MODEL is {settings.default_model!r}, which this server does not serve (it serves "
+        f"{', '.join(sorted(served))}): set MFGNET_DEFAULT_MODEL to one of them, or serve it (MFGNET_MODELS, "
+        "MFGNET_MODEL_DIRS)")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:

@@ -41,7 +41,7 @@ class ModelEntry:
 
 
 class UnknownModelsError(ValueError):
-    """``MFGNET_MODELS`` names a model that no model folder holds."""
+    """``MFGNET_MODELS`` names a model that no model folder holds, or ``MFGNET_DEFAULT_MODEL`` one not served."""
 
 
 class ModelRegistry:

@@ -92,7 +92,7 @@ def test_a_model_folder_of_model_dirs_takes_the_place_of_the_bundled_model_of_it
 
 def test_the_only_served_model_is_the_default_when_the_configured_one_is_not_served():
     from service.api.app import effective_default_model
-    from service.api.registry import ModelRegistry
+    from service.api.registry import ModelRegistry, UnknownModelsError
     from service.manifest import bundled_models_dir
 
     if not {"clean", "general"} <= {d.name for d in bundled_models_dir().iterdir()}:
@@ -100,5 +100,7 @@ def test_the_only_served_model_is_the_default_when_the_configured_one_is_not_ser
     settings = Settings()
     assert effective_default_model(settings, ModelRegistry.discover([], only=["clean"])) == "clean"
     assert effective_default_model(settings, ModelRegistry.discover([], only=["clean", "general"])) == "general"
-    explicit = Settings(default_model="unseen")  # several models and the configured one absent: kept (404s name it)
-    assert effective_default_model(explicit, ModelRegistry.discover([], only=["clean", "general"])) == "unseen"
+    explicit = Settings(default_model="unseen")  # several models and the configured one absent: every default 404
+    with pytest.raises(UnknownModelsError, match=r"MFGNET_DEFAULT_MODEL is 'unseen', which this server does not "
+                                                 r"serve \(it serves clean, general\)"):
+        effective_default_model(explicit, ModelRegistry.discover([], only=["clean", "general"]))

@@ -138,6 +138,19 @@ def test_models_that_are_not_found_are_reported_without_a_traceback() -> None:
     assert "Traceback" not in done.stderr and "general" in done.stderr
 
 
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_a_default_model_the_server_does_not_serve_stops_it() -> None:
+    """``MFGNET_MODELS`` without ``MFGNET_DEFAULT_MODEL``'s model (``general`` by default) started a server that was
+    ready and answered every request naming no model, the page's among them, with a 404."""
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("MFGNET_")}, "MFGNET_MODELS": "clean,noise",
+           "MFGNET_PORT": "0"}
+    done = subprocess.run([sys.executable, "-c", "from service.cli import main; main()", "serve"], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "MFGNET_DEFAULT_MODEL is 'general', which this server does not serve (it serves clean, noise)" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
 def test_register_against_an_unreachable_server_exits_1(tmp_path) -> None:
     with socket.socket() as sock:  # a port nobody listens on
         sock.bind(("127.0.0.1", 0))
