@@ -58,7 +58,8 @@ def settings_problems(exc: ValidationError) -> str:
     """Each invalid setting of ``exc`` on one line's part: its environment variable, the problem and the value given
     (pydantic's own text adds a URL and error codes)."""
     return "; ".join(
-        f"MFGNET_{str(error['loc'][0]).upper()}{''.join(f'[{part}]' for part in error['loc'][1:])}: {error['msg']} "
+        f"MFGNET_{str(error['loc'][0]).upper()}{''.join(f'[{part}]' for part in error['loc'][1:])}: "
+        f"{error['msg'].removeprefix('Value error, ')} "
         f"(got {error['input']!r})"
         for error in exc.errors()
     )

@@ -31,6 +31,8 @@ def _split(value: object, separators: str) -> object:
         return [part.strip() for part in re.split(separators, text) if part.strip()]
     return value
 
+LOG_LEVELS = ("debug", "info", "warning", "error", "critical")  # the logging levels a setting may name
+
 
 class Settings(BaseSettings):
     """Everything an operator can set; each field ``foo`` is read from ``MFGNET_FOO``."""
@@ -157,7 +159,14 @@ class Settings(BaseSettings):
     cors_origins: Annotated[list[str], NoDecode] = Field(
         default_factory=list, description="Allowed CORS origins, comma separated; empty = CORS off."
     )
-    log_level: str = "info"
+    log_level: str = Field("info", description="Log level: debug, info, warning, error or critical (any case).")
+
+    @field_validator("log_level")
+    @classmethod
+    def _known_level(cls, value: str) -> str:
+        if value.lower() not in LOG_LEVELS:
+            raise ValueError(f"expected one of {', '.join(LOG_LEVELS)}")
+        return value.lower()
 
     @field_validator("model_dirs", mode="before")
     @classmethod

@@ -124,6 +124,12 @@ def test_invalid_settings_are_reported_without_a_traceback(monkeypatch) -> None:
     assert result.exit_code == 2
     assert "invalid settings: MFGNET_MAX_QUEUE: Input should be a valid integer" in result.stderr
     assert "(got 'many')" in result.stderr and "pydantic.dev" not in result.stderr  # one line, no URL
+    monkeypatch.delenv("MFGNET_MAX_QUEUE")
+    monkeypatch.setenv("MFGNET_LOG_LEVEL", "verbose")  # was a traceback from logging, exit 1
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2
+    assert ("invalid settings: MFGNET_LOG_LEVEL: expected one of debug, info, warning, error, critical (got "
+            "'verbose')") in result.stderr
 
 
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
