@@ -11,7 +11,7 @@ import time
 import uuid
 
 from starlette.requests import ClientDisconnect
-from starlette.routing import Match, Mount, Route
+from starlette.routing import Match, Mount, Route, compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError, shortened
@@ -62,7 +62,8 @@ def _error_message(status: int, body: bytes) -> str | None:
 
 def _route_template(scope: Scope, path: str, root_path: str) -> str:
     """The route's path template; FastAPI routes set ``scope["route"]``, Starlette's plain routes and mounts
-    (``/openapi.json``, the page's and the API pages' assets) do not, so they are matched here again."""
+    (``/openapi.json``, the page's and the API pages' assets) do not, so they are matched here again, and a request
+    answered before routing (a 413 from its ``Content-Length``) is matched against the API's path templates."""
     route = scope.get("route")
     if route is not None and getattr(route, "path", None):
         return route.path
@@ -71,7 +72,25 @@ def _route_template(scope: Scope, path: str, root_path: str) -> str:
     for candidate in getattr(app, "routes", ()):
         if isinstance(candidate, Route | Mount) and candidate.matches(probe)[0] is not Match.NONE:
             return candidate.path
+    route_path = path[len(root_path):] if root_path and path.startswith(root_path) else path
+    for template, pattern in _api_templates(app):
+        if pattern.match(route_path):
+            return template
     return UNMATCHED_ROUTE
+
+
+def _api_templates(app: object) -> list[tuple[str, re.Pattern]]:
+    """``(path template, its regex)`` of every path the app's OpenAPI description lists (FastAPI's included routers
+    are no ``Route`` to match), computed once per app."""
+    state = getattr(app, "state", None)
+    templates = getattr(state, "route_templates", None) if state is not None else None
+    if templates is None:
+        openapi = getattr(app, "openapi", None)
+        paths = openapi().get("paths", {}) if callable(openapi) else {}
+        templates = [(template, compile_path(template)[0]) for template in paths]
+        if state is not None:
+            state.route_templates = templates
+    return templates
 
 
 def _content_length(scope: Scope) -> int | None:

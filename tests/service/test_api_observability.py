@@ -104,6 +104,32 @@ def test_metrics_name_the_api_description_and_static_files_by_their_route(client
     assert delta(route="<unmatched>", method="GET", status="404") == 0
 
 
+def test_head_probes_and_requests_refused_before_routing_are_named_by_their_route(server, client):
+    """HEAD requests (answered as GET on a copy of the request) and a 413 from ``Content-Length`` (before routing)
+    were counted and logged under ``<unmatched>``, which the docs keep for paths no route serves."""
+    before = client.get("/metrics").text
+    assert client.head("/v2/health/live").status_code == 200
+    assert client.head("/v1/models").status_code == 200
+    request_id = "huge-" + uuid.uuid4().hex
+    url = urlsplit(server.url)
+    with socket.create_connection((url.hostname, url.port)) as sock:
+        sock.sendall(f"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                     f"Content-Length: 1000000000\r\nX-Request-ID: {request_id}\r\n\r\n".encode())
+        assert sock.recv(4096).startswith(b"HTTP/1.1 413")
+    after = client.get("/metrics").text
+
+    def delta(**labels: str) -> float:
+        return count(after, **labels) - count(before, **labels)
+
+    assert delta(route="/v2/health/live", method="HEAD", status="200") == 1
+    assert delta(route="/v1/models", method="HEAD", status="200") == 1
+    assert delta(route="/v1/register", method="POST", status="413") == 1
+    assert delta(route="<unmatched>", method="HEAD", status="200") == 0
+    assert delta(route="<unmatched>", method="POST", status="413") == 0
+    line, _ = access_line(server, request_id)
+    assert line["route"] == "/v1/register" and line["status"] == 413
+
+
 def test_a_thousand_unknown_paths_add_no_series(client):
     rng = random.Random(0)
     for method in ("GET", "POST", "PUT", "DELETE"):  # each method's <unmatched> 404 series exists first
