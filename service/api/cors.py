@@ -14,7 +14,8 @@ from service.api.oip_request import HEADER_LENGTH
 
 ALLOW_METHODS = ["GET", "POST"]
 ALLOW_HEADERS = ["Authorization", "Content-Type", "X-Request-ID", HEADER_LENGTH]  # that requests may send
-EXPOSE_HEADERS = ["X-Request-ID", "Retry-After", HEADER_LENGTH]  # that responses show to the page's script
+# that responses show to the page's script (Content-Disposition: the aligned download's file name)
+EXPOSE_HEADERS = ["X-Request-ID", "Retry-After", "Content-Disposition", HEADER_LENGTH]
 
 
 class CORSMiddleware(cors.CORSMiddleware):

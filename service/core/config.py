@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 from typing import Annotated, Literal
+from urllib.parse import urlsplit
 
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -178,7 +179,25 @@ class Settings(BaseSettings):
     def _split_words(cls, value: object) -> object:
         return _split(value, r"[,\s]+")
 
+    @field_validator("cors_origins")
+    @classmethod
+    def _origins(cls, values: list[str]) -> list[str]:
+        """Each origin as browsers send it (``scheme://host[:port]``, lower case, no trailing ``/``), or ``*``."""
+        return [_origin(value) for value in values]
+
     @field_validator("api_key", mode="before")
     @classmethod
     def _empty_key_is_none(cls, value: object) -> object:
         return None if isinstance(value, str) and not value.strip() else value
+
+
+def _origin(value: str) -> str:
+    """``value`` as the ``Origin`` header browsers send: ``scheme://host[:port]`` in lower case, without a trailing
+    ``/``; ``*`` as it is. A ValueError where it holds a path, a query or no host."""
+    if value == "*":
+        return value
+    parts = urlsplit(value.strip())
+    if parts.scheme.lower() not in ("http", "https") or not parts.netloc or parts.path not in ("", "/") \
+            or parts.query or parts.fragment:
+        raise ValueError("not an origin: expected scheme://host[:port] (e.g. https://app.example.com), without a path")
+    return f"{parts.scheme.lower()}://{parts.netloc.lower()}"

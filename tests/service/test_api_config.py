@@ -43,6 +43,17 @@ def test_environment_sets_every_field(monkeypatch):
     assert s.cors_origins == ["https://a.example", "https://b.example:8443"]
 
 
+def test_cors_origins_are_compared_as_browsers_send_them(monkeypatch):
+    """An origin written with a trailing slash or upper case never matched the ``Origin`` header browsers send (lower
+    case, no slash): every preflight from it was refused, with nothing said at start."""
+    monkeypatch.setenv("MFGNET_CORS_ORIGINS", "https://App.Example.com/ , HTTPS://b.example:8443, *")
+    assert Settings().cors_origins == ["https://app.example.com", "https://b.example:8443", "*"]
+    for wrong in ("https://a.example/app", "a.example", "https://a.example?x=1", "ftp://a.example"):
+        monkeypatch.setenv("MFGNET_CORS_ORIGINS", wrong)
+        with pytest.raises(ValueError, match="not an origin: expected scheme://host"):
+            Settings()
+
+
 def test_empty_api_key_means_no_key(monkeypatch):
     monkeypatch.setenv("MFGNET_API_KEY", "  ")
     assert Settings().api_key is None

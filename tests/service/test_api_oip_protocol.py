@@ -232,6 +232,7 @@ def test_cors_allows_and_exposes_the_binary_extensions_header(cors_server):
         response = c.post(INFER, content=body, headers={"Origin": ORIGIN, HEADER: str(length)})
         assert response.status_code == 200, response.text[:300]
         assert HEADER.lower() in response.headers["access-control-expose-headers"].lower()
+        assert "content-disposition" in response.headers["access-control-expose-headers"].lower()  # aligned names
         assert response.headers["access-control-allow-origin"] == ORIGIN
 
 
