@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -44,6 +45,10 @@ def serve_command(
         settings = Settings(**{key: value for key, value in overrides.items() if value is not None})
     except ValidationError as exc:
         fail(f"invalid settings: {settings_problems(exc)}")
+    try:  # before the models load: a process leaving while ONNX Runtime builds a session aborts
+        socket.getaddrinfo(settings.host, settings.port)
+    except socket.gaierror as exc:
+        fail(f"MFGNET_HOST / --host {settings.host!r}: {exc.strerror}")
     missing = [str(folder) for folder in settings.model_dirs if not Path(folder).is_dir()]
     if missing:
         fail(f"model folders {', '.join(missing)}: not a folder (--model-dir or MFGNET_MODEL_DIRS)"

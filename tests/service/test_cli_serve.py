@@ -93,6 +93,17 @@ def test_cli_options_override_mfgnet_environment_variables(monkeypatch, tmp_path
 
 
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_a_host_name_that_does_not_resolve_stops_serve(monkeypatch) -> None:
+    """``MFGNET_HOST=not.a.host.invalid`` aborted the process (exit 134) once the models had begun to load."""
+    import service.api.app
+
+    monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
+    result = runner.invoke(app, ["serve", "--host", "not.a.host.invalid"])
+    assert result.exit_code == 2
+    assert "MFGNET_HOST / --host 'not.a.host.invalid': " in result.stderr
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
 @pytest.mark.parametrize("where", ["option", "environment"])
 def test_a_model_folder_that_is_not_there_stops_serve(monkeypatch, tmp_path, where) -> None:
     """``--model-dir`` or ``MFGNET_MODEL_DIRS`` naming no folder served the bundled models alone, silently (``mfgnet
