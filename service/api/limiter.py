@@ -30,7 +30,7 @@ class OverloadedError(APIError):
     def __init__(self, capacity: int):
         super().__init__(
             503,
-            f"server is busy ({capacity} registrations running or waiting); retry later",
+            f"server is busy ({capacity} registration{'' if capacity == 1 else 's'} running or waiting); retry later",
             headers={"Retry-After": str(RETRY_AFTER_OVERLOADED_S)},
         )
 

@@ -12,7 +12,7 @@ router = APIRouter(tags=["metrics"])
 
 @router.get(
     "/metrics", response_class=Response, summary="Prometheus metrics",
-    responses={200: {"description": "The Prometheus text exposition format (version 0.0.4).",
+    responses={200: {"description": "The Prometheus text exposition format, of the version its Content-Type names.",
                      "content": {"text/plain": {"schema": {"type": "string"}}}}},
 )
 async def metrics(request: Request) -> Response:

@@ -80,11 +80,13 @@ async def ready(request: Request) -> dict | JSONResponse:
     is_ready, reason = registry.readiness()
     errors = registry.errors()  # failed model -> reason (missing file, sha256 mismatch, ...)
     if not is_ready:
-        body = {"error": f"not ready: {reason}", "ready": False, "models": registry.statuses()}
+        statuses = registry.statuses()
+        body = {"error": f"not ready: {reason}", "ready": False, "models": statuses}
+        loading = any(status == "loading" for status in statuses.values())  # else it will not become ready by waiting
         return JSONResponse(
             {**body, "errors": errors} if errors else body,
             status_code=503,
-            headers={"Retry-After": str(RETRY_AFTER_LOADING_S)},
+            headers={"Retry-After": str(RETRY_AFTER_LOADING_S)} if loading else None,
         )
     return {"ready": True, "models": registry.statuses(), **({"errors": errors} if errors else {})}
 
