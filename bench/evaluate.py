@@ -36,6 +36,7 @@ from model.cli_inputs import (
     output_file,
     pairs_file,
 )
+from service.options import KEYPOINT_RANGE, MAX_ITERATIONS
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 
@@ -52,13 +53,19 @@ def evaluate(
     count: Annotated[
         int | None,
         typer.Option(
-            help="pairs to make from --setting: a seeded draw of the test split's shapes [default: one pair per shape]"
+            min=1,
+            help="pairs to make from --setting: a seeded draw of the test split's shapes [default: one pair per shape]",
         ),
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="seed of the pairs made from --setting")] = 0,
-    iterations: int | None = None,
-    keypoints: int | None = None,
-    batch_size: int = 16,
+    iterations: Annotated[
+        int | None, typer.Option(min=1, max=MAX_ITERATIONS, help="network iterations [default: the model's]")
+    ] = None,
+    keypoints: Annotated[
+        int | None,
+        typer.Option(min=KEYPOINT_RANGE[0], max=KEYPOINT_RANGE[1], help="keypoints per cloud [default: the model's]"),
+    ] = None,
+    batch_size: Annotated[int, typer.Option(min=1, help="pairs per network batch (--checkpoint)")] = 16,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the metrics here")] = None,
     data: Annotated[
         str | None, typer.Option(help="ModelNet40 directory of --setting's test shapes ($MFGNET_DATA)")

@@ -96,8 +96,8 @@ def make_pairs(
     out: Annotated[Path, typer.Option(help="output .npz (added to a name without it)")],
     setting: Setting = "clean",
     split: Annotated[str, typer.Option(help="train or test")] = "test",
-    count: Annotated[int | None, typer.Option(help="number of pairs (default: one per shape)")] = None,
-    seed: int = 0,
+    count: Annotated[int | None, typer.Option(min=1, help="number of pairs (default: one per shape)")] = None,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the shapes drawn and the pairs made")] = 0,
     data: Annotated[str | None, typer.Option(help="ModelNet40 directory ($MFGNET_DATA)")] = None,
     source_points: SourcePoints = None,
     target_points: TargetPoints = None,
@@ -520,6 +520,10 @@ def train(
             err=True,
         )
         raise typer.Exit(code)
+    if outcome.best is None and outcome.timed_out and not outcome.epochs:  # a time box shorter than an epoch
+        typer.echo(f"no best checkpoint yet: --max-minutes ended the run before its first validation; --resume --out "
+                   f"{out} continues from {out / 'last.pt'}")
+        return
     if outcome.best is None:  # a failed run: nothing to fine-tune, export or evaluate from
         why = (
             f"none of its {outcome.epochs} epochs had a finite validation MAE(R) (NaN or inf)"

@@ -419,6 +419,9 @@ def pairs_path(path: str | os.PathLike) -> Path:
     return Path(path) if os.fspath(path).endswith(".npz") else Path(f"{os.fspath(path)}.npz")
 
 
+ROTATION_TOLERANCE = 1e-4  # a pairs file's rotations: float32 rounding of a proper rotation is far within it
+
+
 def save_pairs(path: str | os.PathLike, pairs: dict[str, np.ndarray]) -> Path:
     """Write a pairs file: source [M,N,3], target [M,N',3], rotation [M,3,3], translation [M,3]; returns the path
     written (:func:`pairs_path`)."""
@@ -443,6 +446,17 @@ def load_pairs(path: str | os.PathLike) -> dict[str, np.ndarray]:
         raise ValueError(f"source/target must be [M, N, 3]; got {src.shape} and {tgt.shape}")
     if pairs["rotation"].shape != (M, 3, 3) or pairs["translation"].shape != (M, 3):
         raise ValueError("rotation must be [M, 3, 3] and translation [M, 3]")
+    if M == 0:
+        raise ValueError(f"pairs file {path} holds no pair")
+    for k in PAIR_KEYS:
+        finite = np.isfinite(pairs[k].reshape(M, -1)).all(axis=1)  # [M]
+        if not finite.all():
+            raise ValueError(f"pairs file {path}: {k} of pair {int(np.argmin(finite))} holds NaN or infinite values")
+    R = pairs["rotation"].astype(np.float64)  # [M, 3, 3]
+    off = np.abs(R.transpose(0, 2, 1) @ R - np.eye(3)).max(axis=(1, 2)) + np.abs(np.linalg.det(R) - 1)  # [M]
+    if (off > ROTATION_TOLERANCE).any():
+        raise ValueError(f"pairs file {path}: rotation of pair {int(np.argmax(off))} is no rotation (R^T R = I and "
+                         f"det R = +1 are off by {off.max():.3g})")
     for k in PAIR_KEYS:
         pairs[k] = pairs[k].astype(np.float32)
     return pairs

@@ -242,6 +242,7 @@ class TrainOutcome:
     best: Path | None  # the best checkpoint (best.pt); None where no epoch had a finite validation MAE(R)
     stopped_by: str | None = None  # the signal (SIGTERM, SIGINT) that stopped the run before its end; --resume goes on
     epochs: int = 0  # epochs the run has finished (validated), its earlier tries' included
+    timed_out: bool = False  # stopped by max_minutes before the run's end; --resume goes on
 
 
 def train(opts: TrainOptions) -> Path | None:
@@ -364,7 +365,7 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
 
     begin = time.time()
     last_save = time.time()
-    stopped_by = None
+    stopped_by, timed_out = None, False
     prefetch = device.type == "cuda" if opts.prefetch is None else opts.prefetch
     from tqdm import tqdm
 
@@ -426,7 +427,7 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
                 checkpoint(last_path)
                 why = f"on {stop.requested}" if stop.requested else f"after {opts.max_minutes} min"
                 print(f"stopped {why} at epoch {epoch} batch {state['batch']}; --resume continues there")
-                stopped_by = stop.requested
+                stopped_by, timed_out = stop.requested, not stop.requested
                 break
             R, t, secs = predict_poses(model, val_pairs, batch_size=16)
             val = registration_metrics(R, t, val_pairs["rotation"], val_pairs["translation"], secs)
@@ -463,7 +464,8 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
                 stopped_by = stop.requested
                 break
             if opts.max_minutes and time.time() - begin > 60 * opts.max_minutes:
+                timed_out = state["epoch"] < opts.epochs
                 break
     if state["best_epoch"] < 0:  # no epoch validated, or every validation MAE(R) NaN or inf: no best.pt written
-        return TrainOutcome(None, stopped_by, state["epoch"])
-    return TrainOutcome(best_path, stopped_by, state["epoch"])
+        return TrainOutcome(None, stopped_by, state["epoch"], timed_out)
+    return TrainOutcome(best_path, stopped_by, state["epoch"], timed_out)

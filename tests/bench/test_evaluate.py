@@ -219,6 +219,46 @@ def test_evaluate_takes_exactly_one_method(tiny_checkpoint, synthetic_pairs) -> 
     assert result.exit_code != 0 and "unknown baseline" in result.output
 
 
+def broken_pairs(path, kind: str):
+    """``path`` (a pairs file) rewritten with no pair, a NaN coordinate, or a rotation that is no rotation."""
+    with np.load(path) as archive:
+        pairs = {key: archive[key].copy() for key in archive.files}
+    if kind == "empty":
+        pairs = {key: value[:0] for key, value in pairs.items()}
+    elif kind == "nan":
+        pairs["target"][1, 7, 2] = np.nan
+    else:
+        pairs["rotation"][2] *= 2.0
+    out = path.with_name(f"{kind}.npz")
+    np.savez(out, **pairs)
+    return out
+
+
+@pytest.mark.parametrize(("kind", "words"), [("empty", ["holds no pair"]),
+                                             ("nan", ["target of pair 1 holds NaN or infinite values"]),
+                                             ("scaled", ["rotation of pair 2 is no rotation"])])
+@pytest.mark.parametrize("method", ["--checkpoint", "--model"])
+def test_evaluate_refuses_pairs_it_cannot_score(tiny_checkpoint, synthetic_pairs, kind, words, method) -> None:
+    """No pair, a NaN or a scaled ground-truth rotation ended in tracebacks (numpy's "need at least one array to
+    stack", the runtime's InputError, LinAlgError) or, for the rotation, contradictory metrics with exit 0."""
+    chosen = str(tiny_checkpoint) if method == "--checkpoint" else "general"
+    result = runner.invoke(app, ["evaluate", method, chosen, "--pairs", str(broken_pairs(synthetic_pairs, kind))])
+    assert_usage_error(result, "--pairs", *words)
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--count", "0"], ["--count", "1"]), (["--iterations", "0"], ["--iterations"]),
+    (["--keypoints", "8"], ["--keypoints"]), (["--iterations", "99"], ["--iterations"]),
+    (["--batch-size", "0"], ["--batch-size"]),
+])
+def test_evaluate_bounds_its_counts_to_what_the_runtime_takes(tiny_checkpoint, args, words) -> None:
+    """--count 0 and --batch-size 0 were tracebacks; --iterations and --keypoints out of the runtime's ranges were
+    tracebacks through --model and silently replaced or recorded as given through --checkpoint."""
+    result = runner.invoke(app, ["evaluate", "--checkpoint", str(tiny_checkpoint), *args])
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output and all(word in result.output for word in words), result.output
+
+
 def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
     pytest.importorskip("open3d", reason="the classical baselines need the bench extra (open3d-cpu)")
     shapes = np.random.default_rng(1).normal(size=(2, 2048, 3)) * [1.0, 0.6, 0.3]  # anisotropic blobs
@@ -346,7 +386,7 @@ def test_evaluate_help_says_what_count_and_seed_make() -> None:
     result = runner.invoke(app, ["evaluate", "--help"])
     text = " ".join(result.output.split())  # as wrapped to the terminal's width
     assert result.exit_code == 0
-    assert "--count <int> pairs to make from --setting: a seeded draw" in text
+    assert "--count <int range> pairs to make from --setting: a seeded draw" in text
     assert "--seed <int range> seed of the pairs made from --setting [default: 0; x>=0]" in text  # NumPy's seeds
 
 
@@ -383,4 +423,4 @@ def test_evaluate_refuses_a_count_numpy_cannot_draw_as_make_pairs_does(tmp_path,
     result = runner.invoke(app, [command, *method, "--count", "-1", "--data", str(folder)])
     assert result.exit_code == 2, result.output
     assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
-    assert "Invalid value: negative dimensions are not allowed" in result.output
+    assert "Invalid value for '--count': Input should be greater than or equal to 1" in result.output  # 0 too

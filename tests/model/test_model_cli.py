@@ -144,6 +144,20 @@ def test_train_init_fine_tunes_the_checkpoints_own_network(tmp_path) -> None:
     assert read_checkpoint(run / "best.pt")["config"] == network
 
 
+def test_a_time_box_shorter_than_an_epoch_exits_0_and_resume_goes_on(tmp_path) -> None:
+    """``--max-minutes`` that ends a run before its first validation exited 1 ("no best checkpoint"), though the help
+    says such a run exits 0: a scheduler's ``--max-minutes`` + ``--resume`` loop saw a failure at each slot."""
+    save_init_checkpoint(tmp_path / "init.pt")
+    run = tmp_path / "run"
+    args = ["train", "--out", str(run), "--init-from", str(tmp_path / "init.pt"), "--data",
+            tiny_training_data(tmp_path), "--epochs", "1", "--batch-size", "2", "--batches-per-epoch", "50",
+            "--val-pairs", "2", "--device", "cpu", "--max-minutes", "0.000001"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "--max-minutes ended the run before its first validation; --resume --out" in result.output
+    assert (run / "last.pt").is_file() and not (run / "best.pt").exists()
+
+
 @pytest.mark.parametrize(("flags", "named"), [
     (["--iterations", "4"], "--iterations 4 (the checkpoint's: 2)"),
     (["--share-weights"], "--share-weights True (the checkpoint's: False)"),
