@@ -15,11 +15,16 @@ BUNDLED_DIR = Path(__file__).resolve().parent / "checkpoints"
 
 
 def resolve_checkpoint(name_or_path: str | os.PathLike) -> Path:
-    """A path, or the name of a bundled checkpoint (``clean`` -> ``model/checkpoints/clean.pt``)."""
+    """A path, or the name of a bundled checkpoint (``clean`` -> ``model/checkpoints/clean.pt``); a bare name is the
+    bundled checkpoint's even beside a folder of that name (an export's ``--out general``; ``./general`` is that)."""
+    from service.manifest import is_bare_name
+
     path = Path(name_or_path)
+    bundled = BUNDLED_DIR / f"{name_or_path}.pt"
+    if is_bare_name(name_or_path) and bundled.exists():
+        return bundled
     if path.exists():
         return path
-    bundled = BUNDLED_DIR / f"{name_or_path}.pt"
     if bundled.exists():
         return bundled
     raise FileNotFoundError(f"no checkpoint file or bundled checkpoint named {name_or_path!r}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from importlib import resources
@@ -128,8 +129,18 @@ def bundled_models_dir() -> Path:
 
 
 def model_folder(model: str | Path) -> Path:
-    """A model's folder: ``model`` itself when it is a directory, else the bundled model of that name."""
-    return Path(model) if Path(model).is_dir() else bundled_models_dir() / model
+    """A model's folder: the bundled model of that name where ``model`` is a bare name (a folder of that name in the
+    working directory, e.g. an export's ``--out general``, does not hide it: write ``./general`` for that one), else
+    ``model`` itself when it is a directory, else the bundled model of that name."""
+    bundled = bundled_models_dir() / model
+    if is_bare_name(model) and bundled.is_dir():
+        return bundled
+    return Path(model) if Path(model).is_dir() else bundled
+
+
+def is_bare_name(model: str | Path) -> bool:
+    """Whether ``model`` is a name, not a path: a ``str`` with no folder separator that does not begin with ``.``."""
+    return isinstance(model, str) and not any(sep in model for sep in ("/", os.sep)) and not model.startswith(".")
 
 
 def discover_model_dirs(extra_dirs: list[str | Path] | None = None) -> list[Path]:

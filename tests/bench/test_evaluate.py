@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -257,6 +258,27 @@ def test_evaluate_bounds_its_counts_to_what_the_runtime_takes(tiny_checkpoint, a
     result = runner.invoke(app, ["evaluate", "--checkpoint", str(tiny_checkpoint), *args])
     assert result.exit_code == 2, result.output
     assert "Traceback" not in result.output and all(word in result.output for word in words), result.output
+
+
+def test_a_bundled_name_wins_over_a_folder_of_that_name_in_the_working_directory(
+        tmp_path, tiny_checkpoint, synthetic_pairs, monkeypatch) -> None:
+    """An export's ``--out clean`` in the working directory was taken for ``--model clean`` (its results reported as
+    the bundled model's) and made ``--checkpoint clean`` "a folder, not a file"; a path (``./clean``) still names it."""
+    from model.checkpoint import BUNDLED_DIR, resolve_checkpoint
+    from service.manifest import bundled_models_dir, model_folder
+
+    (tmp_path / "clean").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert model_folder("clean") == bundled_models_dir() / "clean"
+    assert model_folder("./clean") == Path("./clean") and model_folder(tmp_path / "clean") == tmp_path / "clean"
+    assert resolve_checkpoint("clean") == BUNDLED_DIR / "clean.pt"
+    result = runner.invoke(app, ["evaluate", "--model", "clean", "--pairs", str(synthetic_pairs),
+                                 "--json", str(tmp_path / "m.json")])
+    assert result.exit_code == 0, result.output
+    evaluated = json.loads((tmp_path / "m.json").read_text())["evaluated"]
+    assert evaluated["model"] == "clean" and evaluated["model_directory"] == str(bundled_models_dir() / "clean")
+    assert_usage_error(runner.invoke(app, ["evaluate", "--model", "./clean", "--pairs", str(synthetic_pairs)]),
+                       "./clean")  # the empty folder, named as a path
 
 
 def test_evaluate_a_classical_baseline_on_the_same_pairs(tmp_path) -> None:
