@@ -51,8 +51,8 @@ def serve_command(
         fail(f"MFGNET_HOST / --host {settings.host!r}: {exc.strerror}")
     missing = [str(folder) for folder in settings.model_dirs if not Path(folder).is_dir()]
     if missing:
-        fail(f"model folders {', '.join(missing)}: not a folder (--model-dir or MFGNET_MODEL_DIRS)"
-             if len(missing) > 1 else f"model folder {missing[0]}: not a folder (--model-dir or MFGNET_MODEL_DIRS)")
+        fail(f"model folder{'s' * (len(missing) > 1)} {', '.join(missing)}: not a folder (--model-dir or "
+             "MFGNET_MODEL_DIRS)")
     try:
         run_server(settings)
     except UnknownModelsError as exc:  # raised while the app is made, before it serves

@@ -86,16 +86,19 @@ def test_access_line_of_a_huge_path_stays_short(server, client):
         assert response.status_code == 404 and len(response.content) < 1_000, (path[:40], len(response.content))
 
 
+def request_count_delta(before: str, after: str):
+    """``delta(**labels)``: how much ``mfgnet_http_requests_total`` of those labels grew from scrape ``before`` to
+    scrape ``after``."""
+    return lambda **labels: count(after, **labels) - count(before, **labels)
+
+
 def test_metrics_name_the_api_description_and_static_files_by_their_route(client):
     """Starlette's plain routes and mounts set no FastAPI route: they were counted with the unknown paths."""
     before = client.get("/metrics").text
     assert client.get("/openapi.json").status_code == 200
     assert client.get("/page/page.js").status_code == 200
     assert client.get("/page/no-such-file.js").status_code == 404
-    after = client.get("/metrics").text
-
-    def delta(**labels: str) -> float:
-        return count(after, **labels) - count(before, **labels)
+    delta = request_count_delta(before, client.get("/metrics").text)
 
     assert delta(route="/openapi.json", method="GET", status="200") == 1
     assert delta(route="/page", method="GET", status="200") == 1
@@ -116,10 +119,7 @@ def test_head_probes_and_requests_refused_before_routing_are_named_by_their_rout
         sock.sendall(f"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
                      f"Content-Length: 1000000000\r\nX-Request-ID: {request_id}\r\n\r\n".encode())
         assert sock.recv(4096).startswith(b"HTTP/1.1 413")
-    after = client.get("/metrics").text
-
-    def delta(**labels: str) -> float:
-        return count(after, **labels) - count(before, **labels)
+    delta = request_count_delta(before, client.get("/metrics").text)
 
     assert delta(route="/v2/health/live", method="HEAD", status="200") == 1
     assert delta(route="/v1/models", method="HEAD", status="200") == 1
