@@ -99,7 +99,7 @@ def require_identity_encoding(request: Request) -> None:
 
 
 def too_many_points(name: str, count: int, max_points: int) -> APIError:
-    return APIError(413, f"{name} has {count} points; the limit is {max_points} per cloud (max_points)")
+    return APIError(413, f"{name} has {count} points; the limit is {max_points} per cloud (MFGNET_MAX_POINTS)")
 
 
 # -- JSON -------------------------------------------------------------------------------------------
@@ -202,7 +202,7 @@ def _check_json_text(body: bytes | bytearray) -> None:
 
 def two_clouds(max_points: int) -> str:
     """The clouds of one pair, as :func:`check_json_values` names them."""
-    return f"two clouds of at most {max_points} points (max_points)"
+    return f"two clouds of at most {max_points} points (MFGNET_MAX_POINTS)"
 
 
 def load_json(body: bytes | bytearray, fast: bool = False) -> Any:
@@ -316,7 +316,7 @@ def check_batch_values(body: bytes | bytearray, max_points: int) -> None:
     ``2 * max_points`` points in all."""
     check_json_start(body, 'a batch is a JSON object {"pairs": [...]}')
     check_json_values(body, 2 * max_points, f"a batch's clouds, at most {2 * max_points} points in all "
-                                            "(2 x max_points),")
+                                            "(2 x MFGNET_MAX_POINTS),")
 
 
 async def refuse_too_many_values(held: HeldBody, check: Callable[[bytes | bytearray, int], None],
@@ -366,7 +366,8 @@ def _count_batch(obj: dict, max_points: int, max_batch: int) -> None:
     pairs = obj.get("pairs")
     if isinstance(pairs, list):
         if len(pairs) > max_batch:
-            raise APIError(413, f"pairs has {len(pairs)} entries; the limit is {max_batch} per batch (max_batch)")
+            raise APIError(413, f"pairs has {len(pairs)} entries; the limit is {max_batch} per batch "
+                                "(MFGNET_MAX_BATCH)")
         total = 0
         for i, pair in enumerate(pairs):
             if isinstance(pair, dict):
@@ -374,7 +375,7 @@ def _count_batch(obj: dict, max_points: int, max_batch: int) -> None:
                 total += sum(len(pair[name]) for name in CLOUD_FIELDS if isinstance(pair.get(name), list))
         if total > 2 * max_points:
             raise APIError(413, f"pairs hold {total} points in all; the limit is {2 * max_points} per batch "
-                                "(2 x max_points)")
+                                "(2 x MFGNET_MAX_POINTS)")
 
 
 def batch_pairs_from_json(body: bytes | bytearray, max_points: int, max_batch: int,
@@ -512,7 +513,7 @@ def _upload_error(exc: PointCloudFormatError) -> APIError:
     if exc.status == 422:
         message = f"invalid request: {message}"
     elif exc.status == 413:
-        message = f"{message} (max_file_points)"
+        message = f"{message} (MFGNET_MAX_FILE_POINTS)"
     return APIError(exc.status, message)
 
 

@@ -40,20 +40,20 @@ class APIError(Exception):
 
 
 class BodyTooLargeError(APIError):
-    def __init__(self, limit: int, setting: str = "max_body_bytes"):
+    def __init__(self, limit: int, setting: str = "MFGNET_MAX_BODY_BYTES"):
         super().__init__(413, f"request body is larger than the limit of {limit} bytes ({setting})")
 
 
 class BodyTimeoutError(APIError):
     def __init__(self, timeout_s: float):
-        super().__init__(408, f"the request body stalled: no data for {timeout_s:g} s (body_timeout_s)",
+        super().__init__(408, f"the request body stalled: no data for {timeout_s:g} s (MFGNET_BODY_TIMEOUT_S)",
                          headers={"Connection": "close"})
 
 
 class BodyTooSlowError(APIError):
     def __init__(self, received: int, elapsed_s: float, min_rate: int):
         super().__init__(408, f"the request body arrived too slowly: {received} bytes in {elapsed_s:.0f} s, below "
-                         f"{min_rate} bytes/s after the first body_timeout_s (body_min_rate)",
+                         f"{min_rate} bytes/s after the first MFGNET_BODY_TIMEOUT_S (MFGNET_BODY_MIN_RATE)",
                          headers={"Connection": "close"})
 
 
@@ -164,18 +164,18 @@ ERROR_DOCS: dict[int, dict] = {
     401: _doc("Missing or wrong API key (only when MFGNET_API_KEY is set).",
               {"WWW-Authenticate": _header("Bearer")}),
     404: _doc("Unknown model (or, on the versioned /v2 routes, version)."),
-    408: _doc("The request body stalled (no data for body_timeout_s) or arrived slower than body_min_rate; the "
-              "connection is closed.", {"Connection": _header("close")}),
-    413: _doc("Body larger than max_body_bytes (max_upload_bytes for multipart uploads), a cloud with more than "
-              "max_points points (max_file_points for a file), a batch with too many pairs or points, or a JSON body "
-              "with more values or strings than its clouds need."),
+    408: _doc("The request body stalled (no data for MFGNET_BODY_TIMEOUT_S) or arrived slower than "
+              "MFGNET_BODY_MIN_RATE; the connection is closed.", {"Connection": _header("close")}),
+    413: _doc("Body larger than MFGNET_MAX_BODY_BYTES (MFGNET_MAX_UPLOAD_BYTES for multipart uploads), a cloud with "
+              "more than MFGNET_MAX_POINTS points (MFGNET_MAX_FILE_POINTS for a file), a batch with too many pairs or "
+              "points, or a JSON body with more values or strings than its clouds need."),
     415: _doc("A Content-Type (or Content-Encoding, or a file part's Content-Transfer-Encoding) this route does not "
               "read; the message names what it takes. Also a point-cloud format whose reader is not installed."),
     422: _doc("Validation failed: the message names the field and the problem (shape, dtype, NaN, range)."),
-    503: _doc("Overloaded (more than max_queue requests waiting), the model still loading (both with Retry-After), "
-              "or the model failed to load.", {"Retry-After": _header("Seconds to wait before retrying (while "
-                                                                     "overloaded or loading).")}),
-    504: _doc("The registration did not finish within timeout_s."),
+    503: _doc("Overloaded (more than MFGNET_MAX_QUEUE requests waiting), the model still loading (both with "
+              "Retry-After), or the model failed to load.",
+              {"Retry-After": _header("Seconds to wait before retrying (while overloaded or loading).")}),
+    504: _doc("The registration did not finish within MFGNET_TIMEOUT_S."),
 }
 
 

@@ -68,8 +68,8 @@ LINGER_IDLE_S = 5.0  # the rest of an answered request's body: closed once none 
 LINGER_MAX_S = 30.0  # ...or this long after the answer, whatever comes
 MAX_DETAIL_CHARS = 200  # of h11's complaint
 _QUOTED = re.compile(r":? (?=bytearray\(|b['\"])")  # where h11's complaint starts quoting the request's bytes
-ROOM_MESSAGE = ("the request headers were still arriving when a new connection needed the place (max_connections); "
-                "send them at once")
+ROOM_MESSAGE = ("the request headers were still arriving when a new connection needed the place "
+                "(MFGNET_MAX_CONNECTIONS); send them at once")
 
 
 class HeaderTimeoutH11Protocol(H11Protocol):
@@ -120,7 +120,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         """A JSON 503 before any request, the write side shut; the socket is closed after ``REFUSED_LINGER_S``."""
         self._refused = True
         message = (f"the server has {self.max_connections} connections open, each busy with a request "
-                   "(max_connections); retry later")
+                   "(MFGNET_MAX_CONNECTIONS); retry later")
         body = json.dumps({"error": message}).encode()
         self.transport.write(
             b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: application/json\r\ncontent-length: %d\r\n"
@@ -259,7 +259,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         if self.conn.their_state is not h11.IDLE or self.transport.is_closing():
             return
         if late:
-            message = f"the request headers did not arrive within {self.header_timeout_s:g} s (header_timeout_s)"
+            message = f"the request headers did not arrive within {self.header_timeout_s:g} s (MFGNET_HEADER_TIMEOUT_S)"
         body = json.dumps({"error": message}).encode()
         request_id = uuid.uuid4().hex  # as the request context's for a request without a usable X-Request-ID
         self.transport.write(  # h11 sends no response before a request: the bytes are written as they are
@@ -309,7 +309,7 @@ def connection_limits(max_connections: int) -> tuple[int, int]:
     backlog = min(UVICORN_BACKLOG, room // 2)
     cap = max(1, min(max_connections, room - backlog))
     logging.getLogger(APP_LOGGER).warning(
-        "max_connections and the listen backlog lowered to fit the open-file limit (nofile)",
+        "MFGNET_MAX_CONNECTIONS and the listen backlog lowered to fit the open-file limit (nofile)",
         extra={"max_connections": max_connections, "nofile": soft, "cap": cap, "backlog": backlog},
     )
     return cap, backlog

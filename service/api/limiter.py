@@ -37,7 +37,7 @@ class OverloadedError(APIError):
 
 class DeadlineExceededError(APIError):
     def __init__(self, timeout_s: float):
-        super().__init__(504, f"registration did not finish within {timeout_s:g} s (timeout_s)")
+        super().__init__(504, f"registration did not finish within {timeout_s:g} s (MFGNET_TIMEOUT_S)")
 
 
 class InferenceLimiter:

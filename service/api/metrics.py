@@ -45,12 +45,13 @@ class Metrics:
         self.header_timeouts = Counter(
             "mfgnet_http_header_timeouts",
             "Connections answered 408 and closed because a request's line and headers did not arrive within "
-            "header_timeout_s of its first byte (slow or stalled clients, slowloris).",
+            "MFGNET_HEADER_TIMEOUT_S of its first byte (slow or stalled clients, slowloris).",
             registry=self.registry,
         )
         self.connections_refused = Counter(
             "mfgnet_http_connections_refused",
-            "Connections answered 503 and closed on arrival because max_connections were open and none was idle.",
+            "Connections answered 503 and closed on arrival because MFGNET_MAX_CONNECTIONS were open and none was "
+            "idle.",
             registry=self.registry,
         )
         self.latency = Histogram(
@@ -72,7 +73,7 @@ class Metrics:
         )
         self.body_bytes = Gauge(
             "mfgnet_body_bytes_held", "Bytes of JSON and OIP bodies being read or waiting to be decoded "
-            "(at most max_buffered_bytes).", registry=self.registry,
+            "(at most MFGNET_MAX_BUFFERED_BYTES).", registry=self.registry,
         )
         self.running = Gauge("mfgnet_inference_running", "Registrations running in a worker.", registry=self.registry)
         self.model_load = Gauge(

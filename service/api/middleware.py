@@ -123,8 +123,8 @@ class RequestContextMiddleware:
         """The body limit for this request's content type, and the setting that holds it."""
         for key, value in scope.get("headers", ()):
             if key == b"content-type" and value.split(b";", 1)[0].strip().lower() == b"multipart/form-data":
-                return self.max_upload_bytes, "max_upload_bytes"
-        return self.max_body_bytes, "max_body_bytes"
+                return self.max_upload_bytes, "MFGNET_MAX_UPLOAD_BYTES"
+        return self.max_body_bytes, "MFGNET_MAX_BODY_BYTES"
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":

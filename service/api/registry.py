@@ -141,7 +141,7 @@ class ModelRegistry:
         if not served:
             return False, f"no model could be loaded (failed: {reasons})"
         if self.strict and failed:
-            return False, f"models failed to load: {reasons} (strict readiness)"
+            return False, f"models failed to load: {reasons} (MFGNET_STRICT_READINESS)"
         return True, "ready"
 
     def errors(self) -> dict[str, str]:

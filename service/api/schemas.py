@@ -24,7 +24,10 @@ FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]  # stric
 Point = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
 Cloud = Annotated[
     list[Point],
-    Field(min_length=MIN_POINTS, description=f"Points [N, 3] (x, y, z), N >= {MIN_POINTS}, at most max_points."),
+    Field(
+        min_length=MIN_POINTS,
+        description=f"Points [N, 3] (x, y, z), N >= {MIN_POINTS}, at most the server's MFGNET_MAX_POINTS.",
+    ),
 ]
 
 
@@ -318,7 +321,9 @@ class BatchRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     pairs: list[RegisterRequest] = Field(
-        min_length=1, description="At most max_batch pairs, whose clouds hold at most 2 x max_points points in all."
+        min_length=1,
+        description="At most the server's MFGNET_MAX_BATCH pairs, whose clouds hold at most 2 x MFGNET_MAX_POINTS "
+        "points in all.",
     )
 
 

@@ -69,7 +69,8 @@ def remote_record(
         response = client.register(src, tgt, model=model, return_correspondences=False, binary=binary, **options)
     except MfgnetError as exc:
         hint = " (--api-key or MFGNET_API_KEY)" if exc.status == 401 else ""
-        raise ServerError(f"server: {exc}{hint}", code=2 if 400 <= exc.status < 500 else 1) from exc
+        message = str(exc).replace(": busy_retries=", ": --busy-retries ")  # why it gave up: the flag, not the keyword
+        raise ServerError(f"server: {message}{hint}", code=2 if 400 <= exc.status < 500 else 1) from exc
     try:
         R, t = pose_from_response(response)
     except ValueError as exc:

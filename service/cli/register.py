@@ -134,7 +134,8 @@ def register_command(
     if server:
         record = _register_remote(server, api_key, src, tgt, model, options, binary, timeout, busy_retries)
     else:
-        record = _register_local(src, tgt, model, model_dir or [], threads, options)
+        record = _register_local(src, tgt, model, model_dir or [], threads, options,
+                                 initial_transform.name if initial_transform is not None else None)
     _write_outputs(record, src, out, write_aligned, source)
     typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
     if require_reliable and not record["quality"].get("reliable"):
@@ -212,17 +213,22 @@ def _read_transform(path: Path) -> list:
 
 
 def _register_local(
-    src: np.ndarray, tgt: np.ndarray, model: str | None, model_dirs: list[Path], threads: int | None, options: dict
+    src: np.ndarray, tgt: np.ndarray, model: str | None, model_dirs: list[Path], threads: int | None, options: dict,
+    transform_name: str | None = None,
 ) -> dict:
     """The record of ``src`` registered onto ``tgt`` in this process, as :class:`service.in_process.LocalRegistrar`
-    registers (the service's defaults for the options left ``None``)."""
+    registers (the service's defaults for the options left ``None``); ``transform_name``: the ``--initial-transform``
+    file's name, for the pipeline's complaints about its matrix."""
     from service.errors import InputError
 
     registrar = load_registrar(model, model_dirs, threads)
     try:
         return local_record(registrar, src, tgt, options)
     except InputError as exc:
-        fail(str(exc))
+        message = str(exc)
+        if transform_name is not None and message.startswith("initial_transform "):  # the option's, as the flag's
+            message = f"--initial-transform {transform_name}: {message.removeprefix('initial_transform ')}"
+        fail(message)
 
 
 def _register_remote(

@@ -157,7 +157,7 @@ BAD_UPLOADS = {
     "empty": (b"", 400, ["source (scan.ply)", "the file is empty"]),
     "too_many_points": (b"ply\nformat binary_little_endian 1.0\nelement vertex 2000001\nproperty float x\n"
                         b"property float y\nproperty float z\nend_header\n", 413,
-                        ["source (scan.ply)", "2000001", "max_file_points"]),
+                        ["source (scan.ply)", "2000001", "MFGNET_MAX_FILE_POINTS"]),
 }
 
 

@@ -64,7 +64,7 @@ def test_a_json_body_of_too_many_values_is_413_at_once_on_a_busy_server(held):
             for path, body in (("/v1/register", {"source": SMALL, "target": SMALL, **FAST}),
                                ("/v1/register", {"source": JUST_OVER, "target": SMALL, **FAST})):
                 response, took = post(server, path, body)
-                assert_error(response, 504, "timeout_s")  # waited for the worker, as before
+                assert_error(response, 504, "MFGNET_TIMEOUT_S")  # waited for the worker, as before
         finally:
             release.set()
         assert holder.result()[0].status_code == 200
@@ -73,6 +73,6 @@ def test_a_json_body_of_too_many_values_is_413_at_once_on_a_busy_server(held):
         response, _ = post(server, path, body)
         assert response.status_code == 413 and response.json() == early
     response, _ = post(server, "/v1/register", {"source": JUST_OVER, "target": SMALL, **FAST})
-    assert_error(response, 413, "source has 1001 points", "max_points")  # the decoder's parse
+    assert_error(response, 413, "source has 1001 points", "MFGNET_MAX_POINTS")  # the decoder's parse
     response, _ = post(server, "/v1/register", {"source": SMALL, "target": SMALL, **FAST})
     assert response.status_code == 200, response.text

@@ -74,7 +74,7 @@ def test_too_many_points_is_413_for_json_multipart_and_oip(client):
 def test_body_over_max_body_bytes_is_413_before_reading_it(client):
     body = b'{"source": [' + b"[0.0, 0.0, 0.0]," * (LIMITED["max_body_bytes"] // 15) + b"]}"
     response = client.post("/v1/register", content=body, headers={"content-type": "application/json"})
-    assert_error(response, 413, "max_body_bytes")
+    assert_error(response, 413, "MFGNET_MAX_BODY_BYTES")
 
 
 def test_body_over_limit_without_content_length_is_413(client):
@@ -86,12 +86,12 @@ def test_body_over_limit_without_content_length_is_413(client):
             yield chunk
 
     response = client.post("/v1/register", content=stream(), headers={"content-type": "application/json"})
-    assert_error(response, 413, "max_body_bytes")
+    assert_error(response, 413, "MFGNET_MAX_BODY_BYTES")
 
 
 def test_too_many_batch_pairs_is_413(client):
     pairs = [small_pair()] * (LIMITED["max_batch"] + 1)
-    assert_error(client.post("/v1/register/batch", json={"pairs": pairs}), 413, "max_batch")
+    assert_error(client.post("/v1/register/batch", json={"pairs": pairs}), 413, "MFGNET_MAX_BATCH")
 
 
 @pytest.mark.parametrize("headers", [{}, {"Authorization": "Bearer wrong"}, {"Authorization": KEY},
@@ -184,7 +184,7 @@ def test_oip_clients_read_the_not_ready_answers_as_false(strict_server):
 
 def test_past_the_deadline_is_504(strict_server):
     with strict_server.client() as c:
-        assert_error(c.post("/v1/register", json=small_pair()), 504, "timeout_s")
+        assert_error(c.post("/v1/register", json=small_pair()), 504, "MFGNET_TIMEOUT_S")
 
 
 SHORT_DEADLINE_S = 0.02  # the short-deadline server's: time to start a worker, but not to parse the clouds below
@@ -223,7 +223,7 @@ def test_too_many_points_is_413_whatever_the_deadline(short_deadline_server):
         aligned = {"transform": json.dumps(np.eye(4).tolist())}
         assert_error(c.post("/v1/register/aligned", files={"source": files["target"]}, data=aligned), 413, "source")
         assert_error(c.post(f"/v2/models/{MODEL}/infer", json=infer), 413, "SOURCE")
-        assert_error(c.post("/v1/register", json=pair_json(modelnet_pair(1))), 504, "timeout_s")
+        assert_error(c.post("/v1/register", json=pair_json(modelnet_pair(1))), 504, "MFGNET_TIMEOUT_S")
 
 
 def test_not_ready_and_deadline_answers_match_the_openapi_document(strict_server):

@@ -45,7 +45,7 @@ def test_content_length_over_the_limit_is_refused_before_routing():
     app = app_with_failing_route(max_body_bytes=2048)
     response = request(app, "POST", "/boom", content=b"x" * 4096)  # even a route that would fail
     assert response.status_code == 413
-    assert "max_body_bytes" in response.json()["error"]
+    assert "MFGNET_MAX_BODY_BYTES" in response.json()["error"]
 
 
 def test_readiness_without_models_explains_why():

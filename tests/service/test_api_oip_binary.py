@@ -244,7 +244,8 @@ def test_point_limit_is_checked_from_the_shape_before_the_data():
     headers = {HEADER: str(length), "Authorization": f"Bearer {LIMITED['api_key']}"}
     with server.client() as limited:
         # 700 points per cloud are above this server's max_points (400): the shape says so first
-        assert_error(limited.post(INFER, content=body, headers=headers), 413, "SOURCE", "1000000000", "max_points")
+        assert_error(limited.post(INFER, content=body, headers=headers), 413, "SOURCE", "1000000000",
+                     "MFGNET_MAX_POINTS")
 
 
 

@@ -51,8 +51,8 @@ def as_json(source: np.ndarray, target: np.ndarray) -> tuple[bytes, dict]:
 
 
 EARLY = [  # (what, (body, headers), words of the 413)
-    ("binary SOURCE over max_points", binary(HUGE, SMALL), ("SOURCE has 5000 points", "max_points")),
-    ("binary TARGET over max_points", binary(SMALL, HUGE), ("TARGET has 5000 points", "max_points")),
+    ("binary SOURCE over max_points", binary(HUGE, SMALL), ("SOURCE has 5000 points", "MFGNET_MAX_POINTS")),
+    ("binary TARGET over max_points", binary(SMALL, HUGE), ("TARGET has 5000 points", "MFGNET_MAX_POINTS")),
     ("a declared shape beyond its bytes", binary(SMALL, SMALL, [10**9, 3]), ("SOURCE has 1000000000 points",)),
     ("JSON data of too many values", as_json(HUGE, SMALL), ("values", "two clouds of at most 1000 points")),
 ]
@@ -101,7 +101,7 @@ def test_an_infer_body_over_max_points_is_413_at_once_on_a_busy_server(held):
         response, _ = post(server, INFER, body, headers)
         assert response.status_code == 413 and response.json() == early, what
     response, _ = post(server, INFER, *as_json(JUST_OVER, SMALL))
-    assert_error(response, 413, "SOURCE has 1001 points", "max_points")  # the decoder's parse
+    assert_error(response, 413, "SOURCE has 1001 points", "MFGNET_MAX_POINTS")  # the decoder's parse
     for what, (body, headers) in WAITING[:2]:
         response, _ = post(server, INFER, body, headers)
         assert response.status_code == 200, (what, response.text[:300])

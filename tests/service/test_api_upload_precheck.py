@@ -157,20 +157,20 @@ def test_an_oversized_upload_is_413_at_once_on_a_busy_server_and_a_right_sized_o
             cases.append(("/v1/register", files, {}, f"source (big{suffix})"))
         for path, files, data, named in cases:
             response, took = post(server, path, files=files, data=data)
-            assert_error(response, 413, named, f"has {LIMIT + 1} points", f"limit is {LIMIT}", "max_file_points")
+            assert_error(response, 413, named, f"has {LIMIT + 1} points", f"limit is {LIMIT}", "MFGNET_MAX_FILE_POINTS")
             assert took < DEADLINE_S, (path, named, took)
             assert limiter.taken == 1  # the holder's slot only: the refused request's is freed
         right_sized = {"source": ("s.npy", small), "target": ("t.npy", small)}
         response, took = post(server, "/v1/register", files=right_sized, data=FAST)
-        assert_error(response, 504, "timeout_s")  # it waited in the queue for the worker, as before
+        assert_error(response, 504, "MFGNET_TIMEOUT_S")  # it waited in the queue for the worker, as before
         assert took >= DEADLINE_S
         text = {"source": ("big.xyz", cloud_file(BIG, ".xyz", tmp_path)), "target": ("t.npy", small)}
         response, _ = post(server, "/v1/register", files=text)
-        assert_error(response, 504, "timeout_s")  # text: counted only once read, by the worker
+        assert_error(response, 504, "MFGNET_TIMEOUT_S")  # text: counted only once read, by the worker
         release.set()
         assert holder.result()[0].status_code == 200
     wait_for(lambda: limiter.taken == 0, what="the slots freed")
     response, _ = post(server, "/v1/register", files=right_sized, data=FAST)
     assert response.status_code == 200, response.text
     response, _ = post(server, "/v1/register", files=text)
-    assert_error(response, 413, "source (big.xyz)", f"limit is {LIMIT}", "max_file_points")  # the decoder's
+    assert_error(response, 413, "source (big.xyz)", f"limit is {LIMIT}", "MFGNET_MAX_FILE_POINTS")  # the decoder's

@@ -348,8 +348,10 @@ def test_rejects_too_few_points(tmp_path, model_dir) -> None:
     assert_clean_failure(register(small, tgt, model_dir=model_dir), "at least 32 points")
 
 
-@pytest.mark.parametrize(("matrix", "fragment"), [(np.diag([1.0, 1.0, -1.0, 1.0]), "rigid"),
-                                                   (np.eye(3), "4x4")])
+@pytest.mark.parametrize(("matrix", "fragment"), [
+    (np.diag([1.0, 1.0, -1.0, 1.0]), "--initial-transform init.json: must be rigid"),  # the pipeline's check
+    (np.eye(3), "--initial-transform init.json: expected a 4x4 matrix"),  # the file reader's
+])
 def test_rejects_a_bad_initial_transform(tmp_path, model_dir, matrix, fragment) -> None:
     init = tmp_path / "init.json"
     init.write_text(json.dumps(matrix.tolist()))

@@ -204,6 +204,7 @@ def test_register_server_retries_a_busy_server_and_busy_retries_0_fails_naming_r
     with holding_the_slot(busy) as holder:
         refused = runner.invoke(app, [*command, "--busy-retries", "0"])
         assert refused.exit_code == 1 and "503" in refused.stderr and "Retry-After" in refused.stderr, refused.output
+        assert "not retried: --busy-retries 0" in refused.stderr, refused.stderr  # the flag, not the client's keyword
         failed = answered(busy, 503)
         with ThreadPoolExecutor(1) as pool:
             call = pool.submit(runner.invoke, app, command)  # the default: retried

@@ -565,7 +565,7 @@ def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browse
         == "error"
     )
     status = status_text(browser)
-    assert status.startswith("413: ") and "600 points" in status and "max_file_points" in status, status
+    assert status.startswith("413: ") and "600 points" in status and "MFGNET_MAX_FILE_POINTS" in status, status
 
 
 def narrow_screen(driver, width: int, height: int, scale: float = 1) -> None:

@@ -350,25 +350,25 @@ BAD_INPUTS: dict[str, Case] = {
     "batch_content_type_csv": case(lambda: raw(b"x", "text/csv", "/v1/register/batch"), 415, "content type"),
     # limits (the limited server: max_points 400, max_body_bytes 200 kB)
     "json_over_max_points": case(lambda: jpost({"source": _pair(SMALL)[0].tolist(), "target": _pair()[1].tolist()}),
-                                 413, "target", "700", "max_points", server="limited"),
+                                 413, "target", "700", "MFGNET_MAX_POINTS", server="limited"),
     "npy_over_max_points": case(lambda: form(npy(_pair(SMALL)[0]), npy(np.zeros((BIG, 3)))), 413, "target",
-                                "max_file_points", server="limited"),
+                                "MFGNET_MAX_FILE_POINTS", server="limited"),
     "npy_header_claims_10M_points": case(lambda: form(source=npy_header("<f8", "(10000000, 3)")), 413, "source",
-                                         "max_file_points", server="limited"),
-    "oip_over_max_points": case(lambda: oip(_pair()[0][:BIG], _pair()[1][:SMALL]), 413, "SOURCE", "max_points",
+                                         "MFGNET_MAX_FILE_POINTS", server="limited"),
+    "oip_over_max_points": case(lambda: oip(_pair()[0][:BIG], _pair()[1][:SMALL]), 413, "SOURCE", "MFGNET_MAX_POINTS",
                                 server="limited"),
     "json_arrays_and_objects_beyond_the_clouds": case(lambda: jpost(small_body(x=[{}] * 6000)), 413,
-                                                      "arrays and objects", "max_points", server="limited"),
+                                                      "arrays and objects", "MFGNET_MAX_POINTS", server="limited"),
     "batch_arrays_and_objects_beyond_the_clouds": case(lambda: batch(small_body(x=[[]] * 20_000)), 413,
-                                                       "arrays and objects", "max_points", server="limited"),
+                                                       "arrays and objects", "MFGNET_MAX_POINTS", server="limited"),
     "batch_points_beyond_one_pairs": case(lambda: batch(small_body(), small_body()), 413, "points in all",
-                                          "2 x max_points", server="limited"),
-    "json_numbers_beyond_the_clouds": case(lambda: jpost(small_body(x=[1.5] * 8000)), 413, "values", "max_points",
-                                           server="limited"),
+                                          "2 x MFGNET_MAX_POINTS", server="limited"),
+    "json_numbers_beyond_the_clouds": case(lambda: jpost(small_body(x=[1.5] * 8000)), 413, "values",
+                                           "MFGNET_MAX_POINTS", server="limited"),
     "oip_numbers_beyond_the_clouds": case(lambda: oip(_pair(SMALL)[0], _pair(SMALL)[1], x=[1.5] * 8000), 413,
-                                          "values", "max_points", server="limited"),
+                                          "values", "MFGNET_MAX_POINTS", server="limited"),
     "oip_arrays_and_objects_beyond_the_clouds": case(lambda: oip({"shape": [SMALL, 3], "data": [[]] * 6000}), 413,
-                                                     "arrays and objects", "max_points", server="limited"),
+                                                     "arrays and objects", "MFGNET_MAX_POINTS", server="limited"),
     "json_key_text_beyond_the_options": case(lambda: jpost(small_body(**{f"k{i:04d}{'x' * 95}": 1 for i in range(999)})
                                                            ), 413, "bytes of strings", server="limited"),
     "json_strings_beyond_the_options": case(lambda: jpost(small_body(x=["a"] * 5000)), 413, "5003 strings", "4096",
@@ -388,7 +388,7 @@ BAD_INPUTS: dict[str, Case] = {
     "json_coordinates_as_strings": case(lambda: jpost({"source": [[str(v) for v in p] for p in _pair(SMALL)[0]] * 5,
                                                        "target": _pair(SMALL)[1].tolist()}), 413, "strings",
                                         "coordinates are JSON numbers, not strings", server="limited"),
-    "body_over_max_body_bytes": case(lambda: raw(b"[" * 250_000, "application/json"), 413, "max_body_bytes",
+    "body_over_max_body_bytes": case(lambda: raw(b"[" * 250_000, "application/json"), 413, "MFGNET_MAX_BODY_BYTES",
                                      server="limited"),
 }
 
@@ -432,14 +432,15 @@ def test_content_length_over_the_limit_is_refused_before_the_body_is_sent(target
             b"Content-Length: 1000000000\r\nAuthorization: " + AUTH["Authorization"].encode() + b"\r\n\r\n"
         )
         reply = b""
-        while b"max_body_bytes" not in reply and time.perf_counter() - started < 5:  # headers and body may come apart
+        # headers and body may come apart
+        while b"MFGNET_MAX_BODY_BYTES" not in reply and time.perf_counter() - started < 5:
             chunk = sock.recv(65536)
             if not chunk:
                 break
             reply += chunk
         reply = reply.decode("latin-1")
     assert reply.startswith("HTTP/1.1 413"), reply[:200]
-    assert "max_body_bytes" in reply and time.perf_counter() - started < 2
+    assert "MFGNET_MAX_BODY_BYTES" in reply and time.perf_counter() - started < 2
     assert_still_serves(targets["limited"])
 
 

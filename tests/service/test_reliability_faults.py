@@ -170,7 +170,7 @@ def test_stalled_bodies_are_408_and_free_their_slots_while_slow_ones_finish():
         assert time.monotonic() - started < 5
         for data in answers:
             assert data.startswith(b"HTTP/1.1 408"), data[:200]
-            assert b"stalled" in data and b"body_timeout_s" in data, data
+            assert b"stalled" in data and b"MFGNET_BODY_TIMEOUT_S" in data, data
         wait_for(lambda: metric(server, "mfgnet_inference_slots_taken") == 0, timeout=3.0, what="the slots freed")
 
         trickling = stalled_request(server, "/v1/register", "application/json")  # 8 bytes/s, each read within 1 s
@@ -183,7 +183,7 @@ def test_stalled_bodies_are_408_and_free_their_slots_while_slow_ones_finish():
                 trickling.close()  # ends the trickle
         assert time.monotonic() - started < 5
         assert data.startswith(b"HTTP/1.1 408"), data[:200]
-        assert b"too slowly" in data and b"body_min_rate" in data, data
+        assert b"too slowly" in data and b"MFGNET_BODY_MIN_RATE" in data, data
         wait_for(lambda: metric(server, "mfgnet_inference_slots_taken") == 0, timeout=3.0, what="the slot freed")
 
         reference = post(server, good)
@@ -414,7 +414,7 @@ def test_a_request_past_its_deadline_is_504_and_its_work_stops(lenient):
     started = time.perf_counter()
     response = post(lenient, big)
     elapsed = time.perf_counter() - started
-    assert_error(response, 504, "timeout_s", f"{DEADLINE_S:g} s")
+    assert_error(response, 504, "MFGNET_TIMEOUT_S", f"{DEADLINE_S:g} s")
     assert elapsed < DEADLINE_S + 3, elapsed  # the answer comes at the deadline, not when the work ends
     # the abandoned registration is cancelled (service.cancellation): it stops at its next network call and frees
     # its worker and its slot within a second or two, not when its search would have ended

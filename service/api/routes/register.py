@@ -22,8 +22,8 @@ router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(requir
 FILE_DESCRIPTION = (
     "A point-cloud file, its format found from its content: PLY (ascii, binary), PCD (ascii, binary, "
     "binary_compressed), LAS/LAZ, E57, .npy/.npz (numbers [N, >=3] or fields x, y, z), XYZ/CSV/TXT, Leica PTS/PTX. "
-    "The first three columns or the x, y, z fields are used (colours, intensity, normals ignored); at most "
-    "max_file_points points."
+    "The first three columns or the x, y, z fields are used (colours, intensity, normals ignored); at most the "
+    "server's MFGNET_MAX_FILE_POINTS points."
 )
 INITIAL_TRANSFORM_FIELD = (
     "The JSON option initial_transform (a rigid 4x4 src_to_tgt guess, row-major, in the clouds' units) as JSON text, "
