@@ -24,7 +24,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import httpx
 import numpy as np
@@ -36,10 +38,63 @@ NETWORK_ONLY = {"refine": "none"}
 
 _RUNNING: set[subprocess.Popen] = set()  # the servers this process started and has not stopped yet
 _sigterm_before: list = []  # SIGTERM's handler before the first of them started, while it is replaced
+_unraisable_before: list = []  # sys.unraisablehook before the first of them started, while it is replaced
+_holding: list[bool] = []  # not empty while a server is being started and registered (_holding_signals)
+_held: list[int] = []  # SIGTERM or SIGINT arrived then
+
+
+class _Terminated(SystemExit):
+    """What SIGTERM raises while servers run (:func:`_exit_on_sigterm`)."""
 
 
 def _exit_on_sigterm(signum: int, frame: object) -> None:
-    raise SystemExit(128 + signum)  # the shell's status of a process that signal ended
+    if _holding:
+        _held.append(signum)
+        return
+    raise _Terminated(128 + signum)  # the shell's status of a process that signal ended
+
+
+def _hold(signum: int, frame: object) -> None:
+    _held.append(signum)
+
+
+@contextmanager
+def _holding_signals() -> Iterator[None]:
+    """SIGTERM (ours) and Ctrl-C's SIGINT held back while a server is started and put in ``_RUNNING``: raised between
+    its fork and the end of ``Popen``, the exception would leave a server that no ``with`` block and no ``atexit``
+    handler knows of. Raised once it is registered."""
+    sigint = (threading.current_thread() is threading.main_thread()
+              and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+    if sigint:
+        signal.signal(signal.SIGINT, _hold)
+    _holding.append(True)
+    try:
+        yield
+    finally:
+        _holding.pop()
+        if sigint:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+    if _held:
+        signum = _held[0]
+        _held.clear()
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise _Terminated(128 + signum)
+
+
+def _deliver_again(unraisable: sys.UnraisableHookArgs) -> None:
+    """``sys.unraisablehook`` while servers run. Python runs a signal's handler wherever the main thread is, in a
+    finalizer or a weakref callback too (importlib runs one after each import: the first ``httpx.Client`` imports some
+    130 modules while the server starts; ``Popen.__del__``), and only prints what it raises there: SIGTERM's exit or
+    Ctrl-C's KeyboardInterrupt would be lost, and the benchmark would run on to its end and exit 0. That signal is sent
+    again once the main thread has left the callback; anything else is reported as before."""
+    exc = unraisable.exc_value
+    signum = (signal.SIGTERM if isinstance(exc, _Terminated) else
+              signal.SIGINT if isinstance(exc, KeyboardInterrupt) else None)
+    if signum is None:
+        _unraisable_before[0](unraisable)
+    else:
+        threading.Timer(0.05, os.kill, (os.getpid(), signum)).start()
 
 
 def _catch_sigterm() -> None:
@@ -49,12 +104,15 @@ def _catch_sigterm() -> None:
     if (not _sigterm_before and threading.current_thread() is threading.main_thread()
             and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL):
         _sigterm_before.append(signal.signal(signal.SIGTERM, _exit_on_sigterm))
+        _unraisable_before.append(sys.unraisablehook)
+        sys.unraisablehook = _deliver_again
 
 
 def _release_sigterm() -> None:
     """SIGTERM's own handler back, once no server of this process runs."""
     if _sigterm_before and not _RUNNING and threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _sigterm_before.pop())
+        sys.unraisablehook = _unraisable_before.pop()
 
 
 def _stop(proc: subprocess.Popen) -> None:
@@ -112,9 +170,10 @@ class Server:
         if cwd:  # "-c" puts the working directory first on sys.path: that checkout's service package runs
             env["PYTHONPATH"] = cwd
         _catch_sigterm()
-        self.proc = subprocess.Popen([sys.executable, "-c", "from service.api.app import run_server; run_server()"],
-                                     env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        _RUNNING.add(self.proc)
+        with _holding_signals():
+            self.proc = subprocess.Popen([sys.executable, "-c", "from service.api.app import run_server; run_server()"],
+                                         env=env, cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            _RUNNING.add(self.proc)
         self.url = f"http://127.0.0.1:{self.port}"
 
     def __enter__(self) -> Server:

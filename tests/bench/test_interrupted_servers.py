@@ -98,7 +98,7 @@ def test_real_scans_interrupted_while_its_server_starts_leaves_no_server(signum,
                                         signum, False, tmp_path)
     assert left == [], f"servers left running: {left}"
     if signum == signal.SIGTERM:
-        assert status == 128 + signal.SIGTERM and "Traceback" not in stderr
+        assert status == 128 + signal.SIGTERM and "Traceback" not in stderr, (status, stderr[-2000:])
     else:
         assert status == -signal.SIGINT, (status, stderr[-2000:])
 
@@ -110,3 +110,28 @@ def test_sigterm_while_measuring_stops_the_server(tmp_path):
               "    time.sleep(300)\n")
     status, stderr, left = _interrupted([sys.executable, "-c", script], signal.SIGTERM, True, tmp_path)
     assert left == [] and status == 128 + signal.SIGTERM and "Traceback" not in stderr
+
+
+SIGNAL_IN_A_FINALIZER = """
+import os, signal, sys, time
+from bench import http_latency
+http_latency._catch_sigterm()  # as a server's start does
+class Finalized:
+    def __del__(self):  # Python runs the handler here and only prints what it raises
+        os.kill(os.getpid(), signal.{name})
+        time.sleep(0.2)
+Finalized()
+time.sleep(3)
+print("ran on", flush=True)
+"""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_handled_inside_a_finalizer_still_stops_the_benchmark(signum: int) -> None:
+    """A signal whose handler runs inside a finalizer or an import's weakref callback (the first ``httpx.Client``
+    imports some 130 modules while a server starts) is not lost: the benchmark stops as it would anywhere else."""
+    script = SIGNAL_IN_A_FINALIZER.format(name=signal.Signals(signum).name)
+    done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert "ran on" not in done.stdout, done.stderr[-2000:]
+    expected = 128 + signal.SIGTERM if signum == signal.SIGTERM else -signal.SIGINT  # Ctrl-C: Python ends by SIGINT
+    assert done.returncode == expected, (done.returncode, done.stderr[-2000:])
