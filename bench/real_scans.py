@@ -520,7 +520,8 @@ def answering(parser: argparse.ArgumentParser, url: str) -> None:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("directory", nargs="?", help="the real-scan set (default: $MFGNET_REAL_DATA or ../shared/data/real)")
+    parser.add_argument("directory", nargs="?",
+                        help="the real-scan set (default: $MFGNET_REAL_DATA or ../shared/data/real)")
     parser.add_argument("--url", help="an already running server (default: start one on 127.0.0.1)")
     parser.add_argument("--model-dir", type=Path,
                         help="serve only this exported model (its folder name) instead of the bundled default")
