@@ -28,8 +28,10 @@ from scipy.spatial import cKDTree
 from bench.scan_pairs import positive_thresholds
 from service.checks import check_cloud, check_transform
 from service.errors import InputError
+from service.normalization import rms_radius
 from service.pointcloud_io import PointCloudFormatError, read_points
 from service.procrustes import to_matrix
+from service.stages.float32_check import STEP_SHARE
 from service.transform_file import TransformFileError, read_transform
 
 FIT_POINTS = 2000  # source points whose distance to the target tells how closely the pose lays one onto the other
@@ -130,6 +132,14 @@ def main(argv: list[str] | None = None) -> Path:
         + f"; float32 moved coordinates by at most {rounding:.3g}; median distance of the moved source to the "
         f"target {closeness:.4g} (with the inverse pose {inverse:.4g})"
     )
+    radius = min(rms_radius(source), rms_radius(target))
+    if rounding >= STEP_SHARE * radius:
+        print(
+            f"warning: float32 moved coordinates by up to {rounding:.3g}, {rounding / radius:.2g} of the smaller "
+            f"cloud's RMS radius ({radius:.4g}): the pair no longer holds the clouds' shape; move both clouds by one "
+            "offset first (and the pose with them)",
+            file=sys.stderr,
+        )
     if inverse < 0.5 * closeness:
         print(
             f"warning: the inverse of {args.transform.name} lays the source more closely onto the target: is it "

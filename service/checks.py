@@ -33,7 +33,10 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
 
     A float64 array comes back as itself (or a view of it), not copied: a 2,000,000-point cloud is 46 MiB, and no
     stage writes to the caller's clouds (the anchor stage only records their centroids)."""
-    arr = np.asarray(points)
+    try:
+        arr = np.asarray(points)
+    except ValueError:  # rows of different lengths
+        raise InputError(f"{name}: expected an [N, 3] array of numbers, got rows of different lengths") from None
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
         raise InputError(f"{name}: expected numbers, got dtype {arr.dtype}")
     if arr.ndim == 3 and arr.shape[0] == 1:
@@ -62,7 +65,10 @@ def check_transform(matrix: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     rotation (as it is when orthonormal to float64 rounding). A larger deviation is a scale or shear, which no
     rigid pose has, and is refused.
     """
-    T = np.asarray(matrix, dtype=np.float64)
+    try:
+        T = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):  # strings, rows of different lengths
+        raise InputError(f"initial_transform must be a 4x4 matrix of numbers, got {type(matrix).__name__}") from None
     if T.shape != (4, 4):
         raise InputError(f"initial_transform must be 4x4, got {list(T.shape)}")
     if not np.isfinite(T).all():

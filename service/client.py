@@ -170,16 +170,16 @@ class MfgnetClient:
         paths = _is_path(source) or _is_path(target)
         arrays = isinstance(source, np.ndarray) and isinstance(target, np.ndarray)
         if binary or paths or (arrays and (_non_finite(source) or _non_finite(target))):
-            offset = None if paths or not binary else shared_offset(source, target)
-            if offset is not None:  # float32 would round these coordinates: send both clouds recentred
-                source, target = _recentred(source, offset), _recentred(target, offset)
+            offsets = None if paths or not binary else cloud_offsets(source, target)
+            if offsets is not None:  # float32 would round these coordinates: send each cloud recentred
+                source, target = _recentred(source, offsets[0]), _recentred(target, offsets[1])
                 if "initial_transform" in options:
-                    options["initial_transform"] = recentred_transform(options["initial_transform"], offset)
-            dtype = np.float32 if binary or paths else np.float64  # a JSON request's non-finite clouds: as given
+                    options["initial_transform"] = recentred_transform(options["initial_transform"], *offsets)
+            dtype = np.float32 if binary else np.float64  # an array beside a path, or non-finite clouds: as given
             files = {name: _upload(name, cloud, dtype) for name, cloud in (("source", source), ("target", target))}
             form = {key: _form_value(value) for key, value in options.items()}
             response = self._request("POST", REGISTER_PATH, data=form, files=files)
-            return response if offset is None else pose_in_caller_frame(response, offset)
+            return response if offsets is None else pose_in_caller_frame(response, *offsets)
         body = {"source": _as_list(source), "target": _as_list(target), **options}
         content = json.dumps(body, separators=(",", ":"), default=_json_default)  # NaN literals: the server's 422
         return self._request("POST", REGISTER_PATH, content=content, headers={"Content-Type": "application/json"})
@@ -272,38 +272,51 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
     return R, t
 
 
-def shared_offset(source: ArrayLike, target: ArrayLike) -> np.ndarray | None:
-    """``None`` when every coordinate of both clouds is within ``LARGE_COORDINATE``, else one offset ``[3]``
-    (the source's centroid, rounded to whole units) that both clouds are moved by before float32.
+def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """``None`` when every coordinate of both clouds is within ``LARGE_COORDINATE``, else the offsets ``[3]``, ``[3]``
+    that the source and the target are moved by before float32: one for both (the source's centroid, rounded to whole
+    units), so that the server sees the clouds as the caller placed them, where that brings both within
+    ``LARGE_COORDINATE``; else each cloud's own centroid where it has a coordinate beyond ``LARGE_COORDINATE`` and zero
+    where not (a local scan beside a map in UTM keeps its coordinates, and the map comes near the origin too).
 
     Only the rows the server can take count (``x, y, z`` finite and within float32's range): a NaN row
     stays the one row the server names instead of turning the offset, and so every row, into NaN. Clouds
-    that are not ``(N, >=3)`` get ``None``: they are sent as they are, for the server to name their shape."""
+    that are not ``(N, >=3)`` numbers get ``None``: they are sent as they are, for the server to name them."""
+    if any(np.asarray(cloud).dtype.kind not in "iuf" for cloud in (source, target)):  # booleans, complex numbers
+        return None
     src, tgt = (_usable_rows(np.asarray(cloud, np.float64)) for cloud in (source, target))  # [N', 3], [M', 3]
     if src is None or tgt is None:
         return None
     if max(np.abs(src).max(initial=0.0), np.abs(tgt).max(initial=0.0)) <= LARGE_COORDINATE:
         return None
-    return np.round((src if len(src) else tgt).mean(0))
+    shared = np.round((src if len(src) else tgt).mean(0))
+    if max(np.abs(src - shared).max(initial=0.0), np.abs(tgt - shared).max(initial=0.0)) <= LARGE_COORDINATE:
+        return shared, shared
+    own = tuple(np.round(rows.mean(0)) if np.abs(rows).max(initial=0.0) > LARGE_COORDINATE else np.zeros(3)
+                for rows in (src, tgt))
+    return own[0], own[1]
 
 
-def recentred_transform(transform: ArrayLike, offset: np.ndarray) -> list:
-    """A caller-frame ``src_to_tgt`` 4x4 as the same motion between the clouds moved by ``-offset``."""
+def recentred_transform(transform: ArrayLike, source_offset: np.ndarray, target_offset: np.ndarray) -> list:
+    """A caller-frame ``src_to_tgt`` 4x4 as the same motion between the source moved by ``-source_offset`` and the
+    target moved by ``-target_offset``: ``t' = t + R source_offset - target_offset``."""
     T = np.array(transform, dtype=np.float64)  # [4, 4]
-    T[:3, 3] += T[:3, :3] @ offset - offset
+    T[:3, 3] += T[:3, :3] @ source_offset - target_offset
     return T.tolist()
 
 
-def pose_in_caller_frame(response: dict, offset: np.ndarray) -> dict:
-    """A response for clouds moved by ``-offset``, with its poses (final and per iteration) moved back:
-    ``t = t' + offset - R offset``; rotations and every other field are the same in both frames."""
+def pose_in_caller_frame(response: dict, source_offset: np.ndarray, target_offset: np.ndarray) -> dict:
+    """A response for the source moved by ``-source_offset`` and the target by ``-target_offset``, with its poses
+    (final and per iteration) moved back: ``t = t' + target_offset - R source_offset``; rotations and every other
+    field are the same in both frames."""
     from service.pose_json import pose_fields
 
     R, t = pose_from_response(response)
-    response.update(pose_fields(R, t + offset - R @ offset))
+    response.update(pose_fields(R, t + target_offset - R @ source_offset))
     for pose in response.get("iteration_poses") or []:
         R_i = np.asarray(pose["rotation"], np.float64)
-        pose["translation"] = (np.asarray(pose["translation"], np.float64) + offset - R_i @ offset).tolist()
+        moved_back = np.asarray(pose["translation"], np.float64) + target_offset - R_i @ source_offset
+        pose["translation"] = moved_back.tolist()
     return response
 
 
@@ -352,6 +365,8 @@ def _json_default(value: Any) -> Any:
     """``json.dumps``'s ``default``: numpy values left inside lists (rows of a ragged cloud) as plain Python."""
     if isinstance(value, (np.ndarray, np.generic)):
         return _plain(value)
+    if isinstance(value, complex):  # not a coordinate: sent as text, which the server names
+        return str(value)
     raise TypeError(f"Object of type {type(value).__name__} is not JSON serializable")
 
 
@@ -370,9 +385,12 @@ def _upload(name: str, cloud: ArrayLike | str | os.PathLike[str],
 
 
 def _npy_bytes(points: ArrayLike, dtype: type[np.floating] = np.float32) -> bytes:
+    """``points`` as ``.npy`` bytes of ``dtype`` where they are numbers; others (booleans, complex numbers, strings)
+    unconverted, so that the server names their type rather than registering what a cast made of them."""
+    array = np.asarray(points)
     buffer = io.BytesIO()
     with np.errstate(over="ignore"):  # beyond float32's range: inf, which the server names as such
-        np.save(buffer, np.asarray(points, dtype=dtype), allow_pickle=False)
+        np.save(buffer, array.astype(dtype) if array.dtype.kind in "iuf" else array, allow_pickle=False)
     return buffer.getvalue()
 
 

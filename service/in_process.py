@@ -19,6 +19,7 @@ from typing import Any
 from numpy.typing import ArrayLike
 
 from service.manifest import Manifest, bundled_models_dir
+from service.options import check_flag
 from service.registrar import Registrar
 from service.request_defaults import DEFAULT_MODEL, request_defaults
 from service.result import RegistrationResult
@@ -62,7 +63,8 @@ class LocalRegistrar:
         :func:`service.pointcloud_io.read_points`). ``options``: the fields of
         :class:`service.options.RegistrationOptions` (``refine``, ``rotation_search``, ``keypoints``,
         ``initial_transform`` as a 4x4 ``src_to_tgt``, ...); ``refine`` and ``rotation_search`` left out or ``None``
-        get the service's defaults.
+        get the service's defaults. ``return_correspondences`` (the HTTP API's) is taken and changes nothing: the
+        result always holds the correspondences.
 
         Raises:
             service.errors.InputError: a bad cloud or option (the server's 422), naming it.
@@ -71,6 +73,8 @@ class LocalRegistrar:
         """
         if "options" in options:  # Registrar.register's RegistrationOptions: its refine=None would mean "none"
             raise TypeError("LocalRegistrar.register takes options as keywords (refine=..., keypoints=...)")
+        if "return_correspondences" in options:  # the HTTP option; a result in process always holds them
+            check_flag(options.pop("return_correspondences"), "return_correspondences")
         refine, rotation_search = request_defaults(options.pop("refine", None), options.pop("rotation_search", None))
         return self.registrar.register(read_cloud(source), read_cloud(target), refine=refine,
                                        rotation_search=rotation_search, **options)

@@ -63,11 +63,32 @@ def check_network(iterations: int, keypoints: int, working_size: int) -> None:
     check_keypoints(keypoints, working_size)
 
 
+def whole_number(value: object, name: str) -> int:
+    """``value`` as an ``int`` where it is a whole number (``64``, ``64.0``, ``"64"``, a numpy integer), else
+    ``InputError`` naming ``name``: ``64.7`` is refused, not cut to 64, as the server refuses it."""
+    if isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name} must be a whole number, got {value!r}")
+    try:
+        number = float(value)
+        whole = int(value) if not isinstance(value, str) else int(number)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name} must be a whole number, got {value!r}") from None
+    if number != whole:
+        raise InputError(f"{name} must be a whole number, got {value!r}")
+    return whole
+
+
+def check_flag(value: object, name: str) -> None:
+    """``InputError`` unless ``value`` is ``True`` or ``False`` (a numpy bool too): ``"false"`` is not ``False``."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name} must be true or false, got {value!r}")
+
+
 def check_refinement(refine: str | None, refine_points: int | None) -> None:
-    if (refine or "none") not in REFINE_MODES:
+    if refine is not None and refine not in REFINE_MODES:
         raise InputError(f"refine must be one of {REFINE_MODES}, got {refine!r}")
     low, high = REFINE_POINTS_RANGE
-    if refine_points is not None and not low <= int(refine_points) <= high:
+    if refine_points is not None and not low <= whole_number(refine_points, "refine_points") <= high:
         raise InputError(f"refine_points must be in {low}..{high}, got {refine_points}")
 
 
@@ -150,13 +171,20 @@ class RegistrationOptions:
     def __post_init__(self) -> None:
         """Every check that needs no model; the first bad option raises ``InputError``."""
         if self.iterations is not None:
-            check_iterations(int(self.iterations))
-        check_working_size(self.working_size)
+            check_iterations(whole_number(self.iterations, "iterations"))
+        check_working_size(whole_number(self.working_size, "working_size"))
         if self.keypoints is not None:
-            check_keypoints(int(self.keypoints), self.working_size)
+            check_keypoints(whole_number(self.keypoints, "keypoints"), self.working_size)
         check_refinement(self.refine, self.refine_points)
+        check_flag(self.return_iterations, "return_iterations")
+        check_flag(self.drop_isolated, "drop_isolated")
+        if self.icp_max_distance is not None and not (
+                isinstance(self.icp_max_distance, (int, float, np.number)) and 0 < self.icp_max_distance < np.inf):
+            raise InputError(f"icp_max_distance must be a positive number, got {self.icp_max_distance!r}")
+        if whole_number(self.icp_max_iterations, "icp_max_iterations") < 1:
+            raise InputError(f"icp_max_iterations must be at least 1, got {self.icp_max_iterations}")
         if self.search != "off":
-            search_rotations_for(int(self.search_rotations))
+            search_rotations_for(whole_number(self.search_rotations, "search_rotations"))
         if self.initial_transform is not None:
             check_transform(self.initial_transform)
 

@@ -29,5 +29,5 @@ def request_defaults(
     ``rotation_search``: the request's, else ``default_rotation_search`` (``"off"``, ``"on"`` or ``"auto"``; the
     server's ``MFGNET_DEFAULT_ROTATION_SEARCH``) for a refined request and ``False`` with ``refine="none"``.
     """
-    refine = refine or default_refine
+    refine = default_refine if refine is None else refine
     return refine, service_rotation_search(rotation_search, refine, default_rotation_search)

@@ -159,8 +159,8 @@ def _check_register_flags(write_aligned: Path | None, out: Path | None = None, s
     suffix = write_aligned.suffix.lower()
     if suffix not in (*SUFFIXES, *OWN_FORMAT_ONLY):
         fail(
-            f"--write-aligned {write_aligned.name}: unknown extension {write_aligned.suffix!r}; expected "
-            f"{(*SUFFIXES, *OWN_FORMAT_ONLY)}"
+            f"--write-aligned {write_aligned}: unknown extension {write_aligned.suffix!r}; expected one of "
+            f"{' '.join((*SUFFIXES, *OWN_FORMAT_ONLY))}"
         )
     kind = source_format(source) if source is not None else None
     own = OWN_FORMAT_ONLY.get(suffix)
@@ -168,7 +168,7 @@ def _check_register_flags(write_aligned: Path | None, out: Path | None = None, s
     if own is not None and kind is not None and kind != own:
         fail(
             f"--write-aligned {write_aligned.name}: {article} {FORMAT_NAMES[own]} file is written only from {article} "
-            f"{FORMAT_NAMES[own]} source; {source.name} is {FORMAT_NAMES[kind]} (write one of {SUFFIXES})"
+            f"{FORMAT_NAMES[own]} source; {source.name} is {FORMAT_NAMES[kind]} (write one of {' '.join(SUFFIXES)})"
         )
     if source is not None:
         check_aligned_source(source, write_aligned.name)

@@ -32,7 +32,8 @@ def write_cloud(path: str | os.PathLike[str], points: np.ndarray) -> None:
     suffix = path.suffix.lower()
     writer = _WRITERS.get(suffix)
     if writer is None:
-        raise PointCloudFormatError(f"{path.name}: unknown extension {path.suffix!r}; expected {WRITE_SUFFIXES}")
+        raise PointCloudFormatError(
+            f"{path}: unknown extension {path.suffix!r}; expected one of {' '.join(WRITE_SUFFIXES)}")
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 3 or points.dtype.kind not in "fiu":
         raise PointCloudFormatError(f"{path.name}: points must be numbers (N, 3), got {points.dtype} {points.shape}")

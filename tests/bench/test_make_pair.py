@@ -352,3 +352,19 @@ def test_make_pair_warns_of_a_pose_given_the_other_way_round(tmp_path, capsys):
         ]
     )
     assert "warning" not in capsys.readouterr().err
+
+
+def test_make_pair_warns_where_float32_rounds_the_clouds_out_of_shape(tmp_path, capsys):
+    """Clouds in UTM (float64 files): float32 rounds them by 0.25-0.5 m, most of a 1 m object; the pair is written and
+    the warning says so and what to do. The same clouds near the origin get no warning (above)."""
+    utm = np.array([512_345.0, 4_123_456.0, 87.0])
+    source = tmp_path / "far_source.npy"
+    target = tmp_path / "far_target.npy"
+    np.save(source, lumpy_sphere(POINTS, seed=1) + utm)
+    np.save(target, lumpy_sphere(POINTS, seed=2) + utm)
+    np.savetxt(tmp_path / "T.txt", np.eye(4))
+    make_pair.main([str(source), str(target), "--transform", str(tmp_path / "T.txt"), "--sensor", "lab",
+                    "--out", str(tmp_path / "pair.npz")])
+    err = capsys.readouterr().err
+    assert "of the smaller cloud's RMS radius" in err and "move both clouds by one offset first" in err, err
+    assert (tmp_path / "pair.npz").exists()

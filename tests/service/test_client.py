@@ -357,3 +357,25 @@ def test_context_manager_closes_the_http_client(keyed_server) -> None:
     with MfgnetClient(keyed_server.url) as client:
         assert client.ready()
     assert client._http.is_closed
+
+
+def test_an_array_beside_a_file_path_keeps_its_float64_digits(mfgnet, tmp_path) -> None:
+    """Without ``binary``, arrays travel with their float64 digits, as in JSON, also beside a file path (uploaded as
+    it is): the array's pose is the one two float64 arrays give, not the one of its float32 rounding."""
+    target = tmp_path / "target.npy"
+    np.save(target, EASY.target.astype(np.float64))
+    fine = EASY.source.astype(np.float64) + np.random.default_rng(0).normal(scale=1e-5, size=EASY.source.shape)
+    beside_a_path = mfgnet.register(fine, str(target), **FAST)
+    as_float64 = mfgnet.register(fine, EASY.target.astype(np.float64), **FAST)
+    as_float32 = mfgnet.register(fine.astype(np.float32), EASY.target.astype(np.float64), **FAST)
+    assert same_pose(beside_a_path, as_float64) and not same_pose(beside_a_path, as_float32)
+
+
+@pytest.mark.parametrize("binary", [False, True])
+@pytest.mark.parametrize("kind", [bool, complex], ids=["bool", "complex"])
+def test_clouds_that_are_not_numbers_are_the_servers_422(mfgnet, binary, kind) -> None:
+    """Booleans (0 and 1 as coordinates) and complex numbers (their imaginary part dropped) are not sent as cast
+    coordinates: the server refuses them, naming the source."""
+    with pytest.raises(MfgnetError) as info:
+        mfgnet.register(EASY.source.astype(kind), EASY.target, binary=binary, **FAST)
+    assert info.value.status == 422 and "source" in info.value.message, info.value.message

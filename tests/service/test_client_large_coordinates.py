@@ -1,4 +1,5 @@
-"""The Python client with UTM-sized arrays: sent recentred as float32, the pose comes back in the caller's frame."""
+"""The Python client with UTM-sized arrays: each cloud sent recentred as float32, the pose comes back in the caller's
+frame, also for a local scan registered into a map in UTM."""
 
 from __future__ import annotations
 
@@ -6,13 +7,13 @@ import numpy as np
 import pytest
 from api_server import main_server, modelnet_pair
 
-from service.client import MfgnetClient, MfgnetError, pose_from_response, recentred_transform, shared_offset
+from service.client import MfgnetClient, MfgnetError, cloud_offsets, pose_from_response, recentred_transform
 
 UTM = np.array([512_345.0, 4_123_456.0, 87.0])  # metres: float32 keeps only ~0.25-0.5 m here
 
 
 def test_small_coordinates_are_sent_as_they_are():
-    assert shared_offset(np.ones((5, 3)), np.zeros((5, 3))) is None
+    assert cloud_offsets(np.ones((5, 3)), np.zeros((5, 3))) is None
 
 
 def test_recentred_transform_is_the_same_motion():
@@ -22,9 +23,10 @@ def test_recentred_transform_is_the_same_motion():
     T[:3, :3] *= np.sign(np.linalg.det(T[:3, :3]))
     T[:3, 3] = [1.0, 2.0, 3.0]
     points = rng.normal(size=(10, 3)) + UTM
-    moved = np.asarray(recentred_transform(T, UTM))
-    np.testing.assert_allclose((points - UTM) @ moved[:3, :3].T + moved[:3, 3],
-                               points @ T[:3, :3].T + T[:3, 3] - UTM, atol=1e-6)
+    for source_offset, target_offset in ((UTM, UTM), (UTM, np.zeros(3)), (np.zeros(3), UTM)):
+        moved = np.asarray(recentred_transform(T, source_offset, target_offset))
+        np.testing.assert_allclose((points - source_offset) @ moved[:3, :3].T + moved[:3, 3],
+                                   points @ T[:3, :3].T + T[:3, 3] - target_offset, atol=1e-6)
 
 
 def test_utm_arrays_register_like_the_same_clouds_near_the_origin():
@@ -40,13 +42,39 @@ def test_utm_arrays_register_like_the_same_clouds_near_the_origin():
     np.testing.assert_allclose(t1, t0 + UTM - R0 @ UTM, atol=1e-6 * extent + 1e-9 * np.abs(UTM).max())
 
 
-def test_shared_offset_leaves_out_the_rows_the_server_refuses():
+def test_cloud_offsets_leave_out_the_rows_the_server_refuses():
     points = np.random.default_rng(1).normal(size=(50, 3)) + UTM
     with_bad_rows = np.array(points)
     with_bad_rows[3, 0], with_bad_rows[9, 2], with_bad_rows[11, 1] = np.nan, -np.inf, 1e39
     kept = np.delete(with_bad_rows, [3, 9, 11], axis=0)
-    np.testing.assert_array_equal(shared_offset(with_bad_rows, points), shared_offset(kept, points))
-    np.testing.assert_array_equal(shared_offset(list(kept), kept.tolist()), np.round(kept.mean(0)))
+    np.testing.assert_array_equal(cloud_offsets(with_bad_rows, points), cloud_offsets(kept, points))
+    np.testing.assert_array_equal(cloud_offsets(list(kept), kept.tolist())[0], np.round(kept.mean(0)))
+
+
+def test_each_cloud_gets_its_own_offset_and_a_local_one_none():
+    local = np.random.default_rng(2).normal(size=(50, 3))
+    far = local + UTM
+    source_offset, target_offset = cloud_offsets(local, far)
+    np.testing.assert_array_equal(source_offset, np.zeros(3))
+    np.testing.assert_array_equal(target_offset, np.round(far.mean(0)))
+
+
+@pytest.mark.parametrize("far", ["target", "source"])
+def test_a_local_scan_and_a_map_in_utm_register_as_in_process(far):
+    """A local scan registered into a map in UTM (or the map onto the scan): the far cloud is recentred on its own, so
+    float32 keeps its shape, and the pose is the one of the same clouds near each other (it was 60-150 deg off: the
+    far cloud had been moved by the local one's centroid, which left it in UTM)."""
+    pair = modelnet_pair(3)
+    source, target = np.asarray(pair.source, np.float64), np.asarray(pair.target, np.float64)
+    moved = (source, target + UTM) if far == "target" else (source + UTM, target)
+    with MfgnetClient(main_server().url, timeout=60) as client:
+        R0, t0 = pose_from_response(client.register(source, target, binary=True, rotation_search=False))
+        R1, t1 = pose_from_response(client.register(*moved, binary=True, rotation_search=False))
+    angle = np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1, 1))
+    assert angle < 1e-6
+    expected = t0 + UTM if far == "target" else t0 - R0 @ UTM  # target = R source + t, in the moved frames
+    extent = np.ptp(source, axis=0).max()
+    np.testing.assert_allclose(t1, expected, atol=1e-6 * extent + 1e-9 * np.abs(UTM).max())
 
 
 def test_utm_array_with_a_nan_row_is_refused_naming_that_row():

@@ -129,6 +129,42 @@ def test_a_bad_option_is_an_input_error_naming_it(local):
         local.register(source, target, keypoints=4)
 
 
+BAD_OPTIONS = [  # each the server's 422; in process they were cut (64.7 -> 64), read as truthy or raised raw errors
+    ({"keypoints": 64.7}, "keypoints must be a whole number"),
+    ({"iterations": 2.9}, "iterations must be a whole number"),
+    ({"keypoints": "abc"}, "keypoints must be a whole number"),
+    ({"refine_points": "x"}, "refine_points must be a whole number"),
+    ({"refine": ""}, "refine must be one of"),
+    ({"return_iterations": "false"}, "return_iterations must be true or false"),
+    ({"drop_isolated": "false"}, "drop_isolated must be true or false"),
+    ({"return_correspondences": "no"}, "return_correspondences must be true or false"),
+    ({"icp_max_distance": -1.0}, "icp_max_distance must be a positive number"),
+    ({"initial_transform": "pose.json"}, "initial_transform must be a 4x4 matrix of numbers"),
+    ({"initial_transform": [[1, 0, 0], [0, 1, 0, 0]]}, "initial_transform must be a 4x4 matrix of numbers"),
+]
+
+
+@pytest.mark.parametrize(("options", "message"), BAD_OPTIONS, ids=[json.dumps(options) for options, _ in BAD_OPTIONS])
+def test_a_wrongly_typed_option_is_an_input_error_naming_it(local, options, message):
+    source, target = synthetic_pair()
+    with pytest.raises(InputError, match=message):
+        local.register(source, target, **options)
+
+
+def test_whole_numbers_and_numpy_flags_are_taken_as_the_server_takes_them(local):
+    source, target = synthetic_pair()
+    plain = local.register(source, target, keypoints=64, iterations=2, drop_isolated=False)
+    spelled = local.register(source, target, keypoints=64.0, iterations="2", drop_isolated=np.bool_(False),
+                             return_correspondences=False)
+    np.testing.assert_array_equal(plain.transform, spelled.transform)
+
+
+def test_a_ragged_cloud_is_an_input_error(local):
+    source, target = synthetic_pair()
+    with pytest.raises(InputError, match="source: expected an \\[N, 3\\] array of numbers, got rows of different"):
+        local.register([*source.tolist(), [1.0, 2.0]], target)
+
+
 def test_an_options_object_is_refused_for_keywords(local):
     from service.options import RegistrationOptions
 

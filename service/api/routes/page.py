@@ -123,7 +123,8 @@ _ALIGNED_SCHEMA = {
         "source": {
             "type": "string",
             "format": "binary",
-            "description": "Point-cloud file [N, 3] (PLY, PCD, LAS/LAZ come back as themselves, moved).",
+            "description": ("Point-cloud file [N, 3] in any format the service reads; it comes back in its own format, "
+                            "moved (PLY, PCD, LAS/LAZ, E57, PTX, PTS, XYZ/TXT/CSV, NPY, NPZ)."),
         },
         "transform": {"type": "string", "description": "JSON 4x4 rigid src_to_tgt matrix."},
     },
