@@ -115,6 +115,8 @@ def test_sigterm_while_measuring_stops_the_server(tmp_path):
 SIGNAL_IN_A_FINALIZER = """
 import os, signal, sys, time
 from bench import http_latency
+signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])  # as an interactive shell starts it (_as_from_a_shell)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 http_latency._catch_sigterm()  # as a server's start does
 class Finalized:
     def __del__(self):  # Python runs the handler here and only prints what it raises
