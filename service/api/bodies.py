@@ -92,8 +92,9 @@ def require_media_type(request: Request, *allowed: str) -> str:
 def require_identity_encoding(request: Request) -> None:
     """415 for a compressed body (``Content-Encoding: gzip``...), naming the one coding read (RFC 7694): its bytes
     were read as JSON or multipart, a 400 "not UTF-8 text" or a form parse error."""
-    encoding = request.headers.get("content-encoding", "").strip().lower()
-    if encoding not in ("", "identity"):
+    codings = [part.strip().lower() for line in request.headers.getlist("content-encoding") for part in line.split(",")]
+    encoding = ", ".join(coding for coding in codings if coding not in ("", "identity"))  # every header line counts
+    if encoding:
         raise APIError(415, f"unsupported Content-Encoding {encoding[:40]!r}; send the body uncompressed",
                        headers={"Accept-Encoding": "identity"})
 
@@ -448,6 +449,10 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
         form = await Request(request.scope, receive).form(max_files=len(file_fields), max_fields=32,
                                                           max_part_size=MAX_FORM_FIELD_BYTES)
     except StarletteHTTPException as exc:
+        if str(exc.detail).startswith("Part exceeded maximum size"):  # a cloud sent as a text field (curl -F 'x=<f')
+            raise APIError(400, f"a text field is over {MAX_FORM_FIELD_BYTES // 1024} KiB: send "
+                                f"{' and '.join(file_fields)} as file uploads (curl -F {file_fields[0]}=@FILE; a "
+                                "Content-Disposition with filename=), the options as text fields") from None
         if not str(exc.detail).startswith("Too many files"):
             raise
         raise APIError(400, f"more file uploads than {' and '.join(file_fields)}: every other field (the options) is a "

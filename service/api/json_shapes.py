@@ -40,6 +40,10 @@ def shape_problem(cloud: Any) -> str | None:
     lengths = {len(row) for row in cloud if isinstance(row, list)}
     if len(lengths) != 1 or any(not isinstance(row, list) for row in cloud):
         return None
+    if all(row and all(isinstance(value, list) for value in row) for row in cloud):  # [N, 1, 3]: OpenCV's layout
+        inner = {len(value) for row in cloud for value in row}
+        return (f"expected shape [N, 3], rows of [x, y, z], got [{len(cloud)}, {lengths.pop()}, "
+                f"{inner.pop() if len(inner) == 1 else '...'}]: rows hold lists, not numbers; reshape it to [N, 3]")
     (columns,) = lengths
     if columns == 3:
         return None

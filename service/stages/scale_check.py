@@ -20,6 +20,9 @@ from service.stages.normalise import Working
 # clouds of the development set's 18 pairs by at most 1.20x); a frame against a map many times its size may reach it,
 # and only gets the warning.
 UNITS_RATIO = 30.0
+# A cloud whose RMS radius is below this share of the other's is one repeated point (its centroid's rounding leaves
+# ~1e-15 of it), which the degenerate-cloud warning names; no size comparison then
+DEGENERATE_SHARE = 1e-9
 # The kind (the text before the colon) of the warning this stage adds
 SIZE_MISMATCH = "size mismatch"
 
@@ -34,8 +37,9 @@ def scale_check(work: Working, result: RegistrationResult) -> RegistrationResult
     """``result`` with :func:`size_mismatch`'s warning where the working clouds' RMS radii differ by ``UNITS_RATIO``
     or more; else ``result`` itself. The pose and ``reliable`` are kept."""
     source, target = rms_radius(work.src_w), rms_radius(work.tgt_w)
-    if min(source, target) <= 0 or max(source, target) < UNITS_RATIO * min(source, target):
-        return result  # an empty or one-point cloud is degenerate, which its own warning says
+    if min(source, target) <= DEGENERATE_SHARE * max(source, target) or max(source, target) < UNITS_RATIO * min(
+            source, target):
+        return result  # a cloud of one repeated point (a radius of rounding) is degenerate, which its own warning says
     return dataclasses.replace(result, warnings=[*result.warnings, size_mismatch(source, target)])
 
 
@@ -43,6 +47,6 @@ def size_mismatch(source: float, target: float) -> str:
     """The warning of clouds whose RMS radii are ``source`` and ``target`` (the clouds' units)."""
     larger, smaller = ("source", "target") if source > target else ("target", "source")
     ratio = max(source, target) / min(source, target)
-    return (f"{SIZE_MISMATCH}: the {larger}'s RMS radius is {ratio:.0f}x the {smaller}'s ({source:.4g} against "
-            f"{target:.4g}); if the clouds are in different units (millimetres against metres: 1000x), convert one "
-            "to the other's: the pose is rigid and keeps the source's size")
+    return (f"{SIZE_MISMATCH}: the {larger}'s RMS radius is {ratio:.0f}x the {smaller}'s ({max(source, target):.4g} "
+            f"against {min(source, target):.4g}); if the clouds are in different units (millimetres against metres: "
+            "1000x), convert one to the other's: the pose is rigid and keeps the source's size")

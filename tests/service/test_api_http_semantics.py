@@ -52,6 +52,15 @@ def test_a_compressed_body_is_a_415_naming_content_encoding_on_every_v1_route(cl
     assert plain.status_code == 200, plain.text
 
 
+def test_a_coding_on_a_second_content_encoding_line_is_a_415(server):
+    """Each header line counts: ``identity`` on the first line and ``gzip`` on the second was read as an uncompressed
+    body (a 400 "malformed JSON" for the gzip bytes)."""
+    head = (b"POST /v1/register HTTP/1.1\r\nHost: test\r\nContent-Type: application/json\r\n"
+            b"Content-Encoding: identity\r\nContent-Encoding: gzip\r\n")
+    reply = raw_request(server, head, gzip.compress(json.dumps(pair()).encode()))
+    assert reply.startswith(b"HTTP/1.1 415 ") and b"gzip" in reply, reply[:400]
+
+
 def raw_request(server, head: bytes, body: bytes) -> bytes:
     url = httpx.URL(server.url)
     with socket.create_connection((url.host, url.port), timeout=30) as sock:

@@ -378,6 +378,12 @@ BAD_INPUTS: dict[str, Case] = {
     "initial_transform_as_a_file": case(lambda: {**form(), "files": {**form()["files"], "initial_transform": (
         "prior.json", b"[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]")}}, 400, "more file uploads than source and target",
         "the options) is a text field, not a file"),
+    "cloud_sent_as_a_text_field": case(lambda: {**form(), "files": {"target": form()["files"]["target"]},
+                                            "data": {"source": "0.125 0.25 0.5\n" * 6000}}, 400,
+                                       "a text field is over 64 KiB", "source and target as file uploads",
+                                       "-F source=@FILE"),
+    "cloud_rows_of_one_row": case(lambda: jpost({**body(), "source": [[r] for r in body()["source"]]}), 422,
+                                  "source: expected shape [N, 3]", ", 1, 3]", "reshape it to [N, 3]"),
     "batch_npy_file_sent_as_json": case(lambda: raw(npy(_pair(SMALL)[0]), "application/json", "/v1/register/batch"),
                                         400, "malformed JSON", "NUMPY", '{"pairs": [...]}'),
     "npy_file_sent_as_json": case(lambda: raw(npy(_pair(SMALL)[0]), "application/json"), 400, "malformed JSON",

@@ -17,8 +17,8 @@ from service.registrar import Registrar
 from service.stages.pipeline import Stages
 from service.stages.scale_check import SIZE_MISMATCH, UNITS_RATIO, rms_radius, size_mismatch
 
-RATIO = re.compile(r"RMS radius is (?P<ratio>\d+)x the (?P<smaller>source|target)'s \((?P<src>[\d.e+-]+) against "
-                   r"(?P<tgt>[\d.e+-]+)\)")
+RATIO = re.compile(r"RMS radius is (?P<ratio>\d+)x the (?P<smaller>source|target)'s \((?P<larger_size>[\d.e+-]+) "
+                   r"against (?P<smaller_size>[\d.e+-]+)\)")
 
 
 def mismatched(warnings: list[str]) -> list[str]:
@@ -46,7 +46,7 @@ def test_a_source_in_other_units_is_warned_with_both_sizes(general, scale, large
     ratio = max(scale, 1 / scale)
     assert float(found["ratio"]) == pytest.approx(ratio, rel=0.05), warning
     assert warning.startswith(f"{SIZE_MISMATCH}: the {larger}'s") and "different units" in warning
-    assert float(found["src"]) / float(found["tgt"]) == pytest.approx(scale, rel=0.05)
+    assert float(found["larger_size"]) / float(found["smaller_size"]) == pytest.approx(ratio, rel=0.05)  # in order
 
 
 @pytest.mark.parametrize(("source_scale", "target_scale"), [(1.0, 1.0), (1000.0, 1000.0), (20.0, 1.0)])
@@ -55,6 +55,14 @@ def test_clouds_of_one_unit_are_not_warned(general, source_scale, target_scale) 
     source = asymmetric_blob(3000, seed=1) * source_scale
     target = asymmetric_blob(3000, seed=2) * target_scale
     assert mismatched(general.register(source, target, refine="icp-plane").warnings) == []
+
+
+def test_a_cloud_of_one_repeated_point_is_not_compared(general) -> None:
+    """Its RMS radius is the centroid's rounding (~1e-15): the degenerate-cloud warning says what is wrong, not a size
+    mismatch of 1e14x (it was counted among the size mismatches)."""
+    target = asymmetric_blob(200, seed=2)
+    result = general.register(np.tile([[1.0, 2.0, 3.0]], (100, 1)), target, refine="icp-plane")
+    assert mismatched(result.warnings) == [] and any("identical" in w for w in result.warnings), result.warnings
 
 
 def test_the_threshold_lies_between_the_sizes_of_one_scene_and_units() -> None:
