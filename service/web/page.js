@@ -135,6 +135,8 @@
       clearInterval(ticker);
       $("elapsed").textContent = "";
       $("cancel").removeEventListener("click", cancel);
+      // hiding the focused Cancel would drop the keyboard focus to the page's start: back to Register
+      if (document.activeElement === $("cancel")) $("register").focus();
       $("cancel").hidden = true;
       $("register").removeAttribute("aria-disabled");
       running = false;
@@ -176,7 +178,10 @@
 
   function showResult(result) {
     $("result").hidden = false;
-    $("transform").textContent = result.transform.map((row) => row.map((v) => fmt(v, 5).padStart(10)).join(" ")).join("\n");
+    // every digit: 5 significant ones moved map (UTM) coordinates by tens of metres; the block scrolls sideways
+    const cells = result.transform.map((row) => row.map((v) => String(v)));
+    const width = Math.max(...cells.flat().map((c) => c.length));
+    $("transform").textContent = cells.map((row) => row.map((c) => c.padStart(width)).join(" ")).join("\n");
     $("euler").textContent = result.euler_zyx_deg.map((v) => fmt(v, 5)).join(", ");
     const q = result.quality;
     $("reliable").textContent = q.reliable ? "(reliable)" : "(not reliable)";
@@ -193,8 +198,11 @@
     $("model").textContent = `${result.model.name} ${result.model.version}`;
   }
 
+  let downloading = false;
   $("download").addEventListener("click", async () => {
-    if (!last) return;
+    if (!last || downloading) return;  // a second press while one is prepared: one file, not two
+    const pair = last;  // a registration started meanwhile owns the status line from then on
+    downloading = true;
     const form = new FormData();
     form.append("source", last.files.source, last.files.source.name);
     form.append("transform", JSON.stringify(last.result.transform));
@@ -213,9 +221,11 @@
       link.click();
       link.remove();
       setTimeout(() => URL.revokeObjectURL(link.href), 10000);
-      setStatus("Aligned source downloaded.");
+      if (last === pair) setStatus("Aligned source downloaded.");
     } catch (err) {
-      setStatus(failureText(err), true);
+      if (last === pair) setStatus(failureText(err), true);
+    } finally {
+      downloading = false;
     }
   });
 })();
