@@ -70,7 +70,7 @@ def whole_number(value: object, name: str) -> int:
         raise InputError(f"{name} must be a whole number, got {value!r}")
     try:
         number = float(value)
-        whole = int(value) if not isinstance(value, str) else int(number)
+        whole = int(number)
     except (TypeError, ValueError, OverflowError):
         raise InputError(f"{name} must be a whole number, got {value!r}") from None
     if number != whole:
@@ -181,8 +181,8 @@ class RegistrationOptions:
         if self.icp_max_distance is not None and not (
                 isinstance(self.icp_max_distance, (int, float, np.number)) and 0 < self.icp_max_distance < np.inf):
             raise InputError(f"icp_max_distance must be a positive number, got {self.icp_max_distance!r}")
-        if whole_number(self.icp_max_iterations, "icp_max_iterations") < 1:
-            raise InputError(f"icp_max_iterations must be at least 1, got {self.icp_max_iterations}")
+        if whole_number(self.icp_max_iterations, "icp_max_iterations") < 0:  # 0: the refinement's start, unrefined
+            raise InputError(f"icp_max_iterations must be at least 0, got {self.icp_max_iterations}")
         if self.search != "off":
             search_rotations_for(whole_number(self.search_rotations, "search_rotations"))
         if self.initial_transform is not None:
