@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from service.cli.model_lookup import default_model_dir
 from service.cli.options import ModelDirs
+
+if TYPE_CHECKING:
+    from service.manifest import Manifest
 
 # What each bundled model is for, shown by `mfgnet models` (a manifest's own "description" wins). The table shows
 # no accuracy figures: each manifest's are on that model's own validation pairs, not comparable across models.
@@ -43,6 +46,17 @@ def models_command(
         raise typer.Exit(code=1)
 
 
+def _bundled_purpose(manifest: Manifest) -> str | None:
+    """``MODEL_PURPOSES``' line for a bundled model, or for a copy of it (the same manifest); ``None`` for any other
+    model, also one that shares a bundled model's name (a fine-tune exported as ``general``)."""
+    from service.manifest import bundled_models_dir, sha256_file
+
+    bundled = bundled_models_dir() / manifest.name / "manifest.json"
+    if manifest.name not in MODEL_PURPOSES or not bundled.is_file() or sha256_file(bundled) != manifest.sha256:
+        return None
+    return MODEL_PURPOSES[manifest.name]
+
+
 def _model_entry(directory: Path, default: bool) -> dict:
     """One model folder as ``mfgnet models --json`` lists it (``status`` ``ok`` or ``failed`` with ``error``)."""
     from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
@@ -57,7 +71,7 @@ def _model_entry(directory: Path, default: bool) -> dict:
         "status": "ok",
         "default": default,
         "version": manifest.version,
-        "purpose": description if isinstance(description, str) else MODEL_PURPOSES.get(manifest.name),
+        "purpose": description if isinstance(description, str) else _bundled_purpose(manifest),
         "iterations": manifest.config.get("iterations"),
         "keypoints": manifest.config.get("keypoints"),
         "size_bytes": sum(path.stat().st_size for path in manifest.graphs.values()),

@@ -114,3 +114,18 @@ def test_a_model_dir_that_is_not_a_folder_is_a_usage_error(tmp_path) -> None:
     """It was ignored: the bundled models were listed (or used) as if it had not been given."""
     code, _, err = list_models("--model-dir", tmp_path / "nonexistent")
     assert code == 2 and "not a folder" in err
+
+
+def test_a_model_named_like_a_bundled_one_is_not_given_its_purpose(tmp_path, models_root) -> None:
+    """A user's model exported under a bundled model's name (its manifest differs) is described by its own manifest
+    only: it was listed as the bundled model's purpose. A copy of the bundled model keeps it."""
+    own = tmp_path / "clean"
+    shutil.copytree(models_root / "clean", own)
+    manifest = json.loads((own / "manifest.json").read_text())
+    manifest["version"] = "9.9.9"
+    (own / "manifest.json").write_text(json.dumps(manifest))
+    code, out, _ = list_models("--json", "--model-dir", own, "--model-dir", models_root)
+    entries = {e["directory"]: e for e in json.loads(out)}
+    assert code == 0 and entries[str(own)]["status"] == "ok"
+    assert entries[str(own)]["purpose"] is None
+    assert entries[str(models_root / "clean")]["purpose"] == "paper protocol: shared points, clean"

@@ -270,7 +270,12 @@ def attachment(name: str) -> str:
 
 
 def _aligned_transform(fields: dict[str, str]) -> tuple[np.ndarray, np.ndarray]:
-    """The form's ``transform`` field as a rigid ``(R [3, 3], t [3])``, or a 422 naming what is wrong."""
+    """The form's ``transform`` field as a rigid ``(R [3, 3], t [3])``, or a 422 naming what is wrong (another field
+    too: ``/v1/register``'s options do nothing here, and a caller who sends them should hear so, as there)."""
+    for name in fields:
+        if name != "transform":
+            raise APIError(422, f"invalid request: {name[:64]}: Extra inputs are not permitted (this route takes the "
+                                "file source and the field transform)")
     if "transform" not in fields:
         raise APIError(422, "invalid request: transform: missing (a JSON 4x4 array)")
     matrix = _json_field(fields["transform"], "transform")
