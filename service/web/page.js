@@ -114,8 +114,10 @@
       const body = await response.json();
       last = {result: body.result, files};
       viewer.setClouds([
-        {name: "target", points: decodePoints(body.display.target.xyz), color: COLORS.target},
-        {name: "source", points: decodePoints(body.display.source.xyz), color: COLORS.source},
+        {name: "target", points: decodePoints(body.display.target.xyz), origin: body.display.target.origin,
+          color: COLORS.target},
+        {name: "source", points: decodePoints(body.display.source.xyz), origin: body.display.source.origin,
+          color: COLORS.source},
       ]);
       showView(true);
       showResult(body.result);

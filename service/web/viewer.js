@@ -69,19 +69,37 @@
     return m;
   }
 
-  // A row-major 4x4 src_to_tgt (nested arrays, as the API returns it) for points stored relative to
-  // `centre`: x - c  ->  R (x - c) + (R c + t - c), so large coordinates stay small on the GPU.
-  function centredTransform(rowMajor, centre) {
+  // The model matrix of points p stored relative to their cloud's `origin` (p + origin in the caller's frame), moved by
+  // the row-major 4x4 src_to_tgt `rowMajor` (nested arrays, as the API returns it; null: as uploaded) and drawn
+  // relative to `centre`: p -> R p + (R origin + t - centre). The shift is formed in doubles, so that clouds in map
+  // (UTM) coordinates stay small on the GPU.
+  function placedTransform(rowMajor, origin, centre) {
     const m = identity();
     for (let row = 0; row < 3; row++) {
-      let shift = rowMajor[row][3] - centre[row];
+      let shift = (rowMajor ? rowMajor[row][3] : 0) - centre[row];
       for (let col = 0; col < 3; col++) {
-        m[col * 4 + row] = rowMajor[row][col];
-        shift += rowMajor[row][col] * centre[col];
+        const r = rowMajor ? rowMajor[row][col] : (row === col ? 1 : 0);
+        m[col * 4 + row] = r;
+        shift += r * origin[col];
       }
       m[12 + row] = shift;
     }
     return m;
+  }
+
+  // The bounding box [lo, hi] of a cloud's points as placed (p + origin, moved by rowMajor), in doubles.
+  function placedBox(points, origin, rowMajor) {
+    const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    const R = rowMajor || [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]];
+    for (let i = 0; i < points.length; i += 3) {
+      const x = points[i] + origin[0], y = points[i + 1] + origin[1], z = points[i + 2] + origin[2];
+      for (let k = 0; k < 3; k++) {
+        const v = R[k][0] * x + R[k][1] * y + R[k][2] * z + R[k][3];
+        if (v < lo[k]) lo[k] = v;
+        if (v > hi[k]) hi[k] = v;
+      }
+    }
+    return [lo, hi];
   }
 
   function compileProgram(gl) {
@@ -102,7 +120,7 @@
     // options.renderer: "webgl" (default, falls back to "2d") or "2d".
     constructor(canvas, options = {}) {
       this.canvas = canvas;
-      this.clouds = []; // {name, points (relative to this.centre), color [r, g, b] 0-255, model (Float32Array)}
+      this.clouds = []; // {name, points (relative to origin), origin, pose, color [r, g, b] 0-255, model (Float32Array)}
       this.centre = [0, 0, 0];
       this.radius = 1;
       this.yaw = 0.6;
@@ -136,42 +154,52 @@
       this.gl = gl;
     }
 
-    // clouds: [{name, points: Float32Array [n * 3], color}]; the view centres on their common bounding box.
+    // clouds: [{name, points: Float32Array [n * 3] relative to origin, origin: [3] (default 0), color}]; the view
+    // centres on their common bounding box.
     setClouds(clouds) {
-      const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
-      for (const cloud of clouds) {
-        const p = cloud.points;
-        for (let i = 0; i < p.length; i += 3) {
-          for (let k = 0; k < 3; k++) {
-            if (p[i + k] < lo[k]) lo[k] = p[i + k];
-            if (p[i + k] > hi[k]) hi[k] = p[i + k];
-          }
-        }
-      }
-      this.centre = lo.map((v, k) => (v + hi[k]) / 2);
-      this.radius = Math.max(1e-9, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) / 2);
       const gl = this.gl;
       for (const old of this.clouds) if (gl && old.buffer) gl.deleteBuffer(old.buffer);
       this.clouds = clouds.map((cloud) => {
-        const points = new Float32Array(cloud.points.length);
-        for (let i = 0; i < points.length; i++) points[i] = cloud.points[i] - this.centre[i % 3];
-        const entry = {name: cloud.name, points, color: cloud.color, model: identity(), visible: true};
+        const entry = {name: cloud.name, points: cloud.points, origin: cloud.origin || [0, 0, 0], pose: null,
+                       color: cloud.color, model: identity(), visible: true};
         if (gl) {
           entry.buffer = gl.createBuffer();
           gl.bindBuffer(gl.ARRAY_BUFFER, entry.buffer);
-          gl.bufferData(gl.ARRAY_BUFFER, points, gl.STATIC_DRAW);
+          gl.bufferData(gl.ARRAY_BUFFER, entry.points, gl.STATIC_DRAW);
         }
         return entry;
       });
+      this.frame();
       this.resetView();
     }
 
-    // The row-major 4x4 pose to draw the named cloud with (null: as given).
+    // The row-major 4x4 pose to draw the named cloud with (null: as given); the view centres on the clouds as now
+    // placed (a scan moved into a map far from where it was uploaded is framed with the map), keeping its angle and
+    // its distance in cloud radii.
     setPose(name, rowMajor) {
       const cloud = this.clouds.find((c) => c.name === name);
       if (!cloud) return;
-      cloud.model = rowMajor ? centredTransform(rowMajor, this.centre) : identity();
+      cloud.pose = rowMajor;
+      const radius = this.radius;
+      this.frame();
+      this.distance *= this.radius / radius;
       this.draw();
+    }
+
+    // Centre and radius of the clouds' common bounding box as placed, and each cloud's model matrix about that centre.
+    frame() {
+      const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+      for (const cloud of this.clouds) {
+        const [cloudLo, cloudHi] = placedBox(cloud.points, cloud.origin, cloud.pose);
+        for (let k = 0; k < 3; k++) {
+          lo[k] = Math.min(lo[k], cloudLo[k]);
+          hi[k] = Math.max(hi[k], cloudHi[k]);
+        }
+      }
+      const empty = !(hi[0] >= lo[0]);
+      this.centre = empty ? [0, 0, 0] : lo.map((v, k) => (v + hi[k]) / 2);
+      this.radius = empty ? 1 : Math.max(1e-9, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) / 2);
+      for (const cloud of this.clouds) cloud.model = placedTransform(cloud.pose, cloud.origin, this.centre);
     }
 
     resetView() {

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from api_server import REPO, assert_error, synthetic_pair
 
-from service.api.routes.page import DISPLAY_CAP, WEB_DIR, decimated
+from service.api.routes.page import DISPLAY_CAP, WEB_DIR, decimated_rows, display_cloud
 from service.pointcloud_io import parse_points, write_points
 
 
@@ -53,13 +53,31 @@ def test_view_answers_what_register_answers_plus_the_display_clouds(client, tmp_
 
 def test_decimated_keeps_at_most_the_cap_rows_of_the_cloud_in_order():
     points = np.arange(3 * 250, dtype=np.float64).reshape(250, 3)  # row i starts with 3 i
-    kept = decimated(points, cap=100)
-    assert kept.shape == (100, 3) and kept.dtype == np.dtype("<f4")
+    kept = decimated_rows(points, cap=100)
+    assert kept.shape == (100, 3)
     rows = kept[:, 0].astype(int) // 3
     assert np.all(np.diff(rows) > 0)  # distinct rows, file order
     np.testing.assert_array_equal(kept, points[rows])
-    np.testing.assert_array_equal(decimated(points, cap=100), kept)  # seeded
-    np.testing.assert_array_equal(decimated(points, cap=250), points)
+    np.testing.assert_array_equal(decimated_rows(points, cap=100), kept)  # seeded
+    np.testing.assert_array_equal(decimated_rows(points, cap=250), points)
+
+
+def test_display_rows_of_a_cloud_in_utm_are_sent_relative_to_its_box():
+    """float32 keeps a UTM cloud's shape only near its own box: the rows come relative to its centre, the origin sent
+    beside them in float64 (they were float32 in the caller's frame, on a 0.25-0.5 m grid); a local cloud's rows are
+    its own, origin zero."""
+    rng = np.random.default_rng(0)
+    local = rng.normal(scale=0.1, size=(500, 3))  # [500, 3] metres
+    far = local + np.array([512_345.25, 5_412_345.5, 229.75])
+    sent = display_cloud(far)
+    origin = np.asarray(sent["origin"])
+    rows = np.frombuffer(base64.b64decode(sent["xyz"]), dtype="<f4").reshape(-1, 3).astype(np.float64)
+    np.testing.assert_array_equal(origin, np.round((far.min(0) + far.max(0)) / 2))
+    assert np.abs(rows + origin - far).max() < 1e-6  # micrometres, not decimetres
+    near = display_cloud(local)
+    assert near["origin"] == [0.0, 0.0, 0.0]
+    np.testing.assert_array_equal(np.frombuffer(base64.b64decode(near["xyz"]), dtype="<f4").reshape(-1, 3),
+                                  local.astype(np.float32))
 
 
 def test_aligned_returns_every_source_point_moved_by_the_transform_as_ply(client, tmp_path):

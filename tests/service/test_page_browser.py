@@ -301,6 +301,19 @@ def test_the_pose_shown_is_the_answers_to_the_last_digit_for_a_map_in_utm(browse
     np.testing.assert_array_equal(shown_transform(browser), np.asarray(answer["transform"]))
 
 
+def test_a_scan_registered_into_a_map_in_utm_is_drawn_with_the_map(browser, server, ply_files, tmp_path):
+    """A local scan registered into a map in UTM coordinates: "After" frames the two clouds where the pose puts them,
+    both drawn (the view had stayed on the uploaded clouds' box, thousands of kilometres across: one pixel)."""
+    pair, source_file, _ = ply_files
+    target_file = tmp_path / "map.npy"
+    np.save(target_file, pair.target.astype(np.float64) + np.array([512_345.25, 5_412_345.5, 229.75]))
+    assert register(browser, server.url, source_file, target_file) == "done"
+    browser.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    png = browser.find_element("id", "canvas").screenshot_as_png
+    source_px, target_px = colour_pixels(png, SOURCE_RGB), colour_pixels(png, TARGET_RGB)
+    assert source_px >= MIN_PIXELS and target_px >= MIN_PIXELS, (source_px, target_px)
+
+
 @pytest.mark.parametrize(
     ("path", "ready"),
     [

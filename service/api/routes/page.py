@@ -44,6 +44,7 @@ from service.registrar import check_transform
 WEB_DIR = Path(__file__).resolve().parents[2] / "web"  # service/web: index.html, page.js, page.css
 DISPLAY_CAP = 100_000  # points per cloud sent to the page
 DISPLAY_SEED = 0
+DISPLAY_FAR = 1.0e4  # a coordinate beyond this: display rows relative to their box (as service.client recentres)
 # Nothing loaded from elsewhere, and no other site frames the page.
 PAGE_POLICY = {"Content-Security-Policy": page_policy("default-src 'self'; img-src 'self' data: blob:")}
 OCTET_STREAM = "application/octet-stream"
@@ -84,17 +85,34 @@ def _json_field(text: str, name: str) -> Any:
 
 
 # -- display clouds -------------------------------------------------------------------------------
-def decimated(points: np.ndarray, cap: int = DISPLAY_CAP) -> np.ndarray:
-    """At most ``cap`` rows of ``points [N, 3]`` (a seeded random subset, in file order) as float32."""
+def decimated_rows(points: np.ndarray, cap: int = DISPLAY_CAP) -> np.ndarray:
+    """At most ``cap`` rows of ``points [N, 3]`` (a seeded random subset, in file order), as they are."""
     if len(points) > cap:
         keep = np.sort(np.random.default_rng(DISPLAY_SEED).choice(len(points), cap, replace=False))
         points = points[keep]
-    return np.ascontiguousarray(points, dtype="<f4")  # [n, 3]
+    return points
+
+
+def decimated(points: np.ndarray, cap: int = DISPLAY_CAP) -> np.ndarray:
+    """:func:`decimated_rows` as float32."""
+    return np.ascontiguousarray(decimated_rows(points, cap), dtype="<f4")  # [n, 3]
+
+
+def display_origin(points: np.ndarray) -> np.ndarray:
+    """``[3]`` the point the display rows of ``points [N, 3]`` are relative to: the centre of their bounding box,
+    rounded to whole units, where a coordinate lies beyond ``DISPLAY_FAR`` (float32 would round a map's UTM
+    coordinates by decimetres); else the origin (the rows are the caller's own)."""
+    if not len(points) or np.abs(points).max() <= DISPLAY_FAR:
+        return np.zeros(3)
+    return np.round((points.min(axis=0) + points.max(axis=0)) / 2)
 
 
 def display_cloud(points: np.ndarray) -> dict[str, Any]:
-    shown = decimated(points)
-    return {"points": len(points), "shown": len(shown), "xyz": base64.b64encode(shown.tobytes()).decode("ascii")}
+    rows = decimated_rows(points)  # [n, 3] float64
+    origin = display_origin(rows)
+    shown = np.ascontiguousarray(rows - origin, dtype="<f4")  # [n, 3]
+    return {"points": len(points), "shown": len(shown), "origin": origin.tolist(),
+            "xyz": base64.b64encode(shown.tobytes()).decode("ascii")}
 
 
 class DisplayCloud(BaseModel):
@@ -102,7 +120,9 @@ class DisplayCloud(BaseModel):
         description="Points read from the uploaded cloud (an organized PCD's missing returns left out)."
     )
     shown: int = Field(description=f"Points sent for display: all, or {DISPLAY_CAP} chosen at random.")
-    xyz: str = Field(description="base64 of float32 little-endian [shown, 3] rows, caller's units and frame.")
+    origin: list[float] = Field(description="The point the rows are relative to (caller's units and frame): [0, 0, 0], "
+                                "or the centre of the cloud's box where float32 would round its coordinates.")
+    xyz: str = Field(description="base64 of float32 little-endian [shown, 3] rows, caller's units, relative to origin.")
 
 
 class Display(BaseModel):
