@@ -93,11 +93,6 @@ def decimated_rows(points: np.ndarray, cap: int = DISPLAY_CAP) -> np.ndarray:
     return points
 
 
-def decimated(points: np.ndarray, cap: int = DISPLAY_CAP) -> np.ndarray:
-    """:func:`decimated_rows` as float32."""
-    return np.ascontiguousarray(decimated_rows(points, cap), dtype="<f4")  # [n, 3]
-
-
 def display_origin(points: np.ndarray) -> np.ndarray:
     """``[3]`` the point the display rows of ``points [N, 3]`` are relative to: the centre of their bounding box,
     rounded to whole units, where a coordinate lies beyond ``DISPLAY_FAR`` (float32 would round a map's UTM
