@@ -189,7 +189,7 @@ def model_dir(model: str | Path, option: str = "--model") -> Path:
     from service.manifest import ModelIntegrityError, discover_model_dirs, load_manifest, model_folder
 
     folder = model_folder(model)
-    if not folder.exists():
+    if not str(model) or not folder.exists():  # "" would name the folder of bundled models
         bundled = ", ".join(path.name for path in discover_model_dirs([])) or "none"
         fail(f"{option} {model}: no such model folder, nor a bundled model (bundled: {bundled})")
     if not folder.is_dir():

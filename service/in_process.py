@@ -86,9 +86,9 @@ def model_directory(model: str | Path) -> Path:
     if isinstance(model, Path):
         return model
     bundled = bundled_models_dir()
-    if (bundled / model).is_dir():
+    if model and (bundled / model).is_dir():  # "" would name the folder of bundled models
         return bundled / model
-    if Path(model).is_dir():
+    if model and Path(model).is_dir():  # "" would name the working directory
         return Path(model)
     names = sorted(d.name for d in bundled.iterdir() if d.is_dir() and not d.name.startswith(("_", ".")))
     raise ValueError(f"model {model!r}: no bundled model of that name (bundled: {', '.join(names) or 'none'}) "

@@ -68,6 +68,7 @@ LINGER_IDLE_S = 5.0  # the rest of an answered request's body: closed once none 
 LINGER_MAX_S = 30.0  # ...or this long after the answer, whatever comes
 MAX_DETAIL_CHARS = 200  # of h11's complaint
 _QUOTED = re.compile(r":? (?=bytearray\(|b['\"])")  # where h11's complaint starts quoting the request's bytes
+_HEAD_END = re.compile(rb"\n\r?\n")  # the blank line that ends the headers, as h11 finds it
 ROOM_MESSAGE = ("the request headers were still arriving when a new connection needed the place "
                 "(MFGNET_MAX_CONNECTIONS); send them at once")
 
@@ -176,9 +177,22 @@ class HeaderTimeoutH11Protocol(H11Protocol):
             self._first_byte_at = self.loop.time()
             self._header_timer = self.loop.call_later(self.header_timeout_s, self._headers_late)
             self.arriving[self] = None
+        if self.conn.their_state is h11.IDLE:
+            data = self._head_within_limit(data)
         super().data_received(data)
         if self.conn.their_state is not h11.IDLE:  # its headers are complete (or it was refused)
             self._cancel_header_timer()
+
+    def _head_within_limit(self, data: bytes) -> bytes:
+        """``data``, or where the request line and headers run on past ``h11_max_incomplete_event_size``, the part of it
+        that takes h11's buffer one byte past the limit. h11 checks the limit only while the headers are incomplete,
+        so headers that arrived whole in one read passed at any size; cut, they get the 431 of headers sent in parts."""
+        limit = self.config.h11_max_incomplete_event_size or DEFAULT_MAX_INCOMPLETE_EVENT_SIZE
+        buffered = self.conn.trailing_data[0]
+        if len(buffered) + len(data) <= limit:
+            return data
+        head = buffered + data[:limit + 1 - len(buffered)]  # [limit + 1] bytes
+        return data if _HEAD_END.search(head) else data[:limit + 1 - len(buffered)]
 
     def send_400_response(self, msg: str) -> None:
         """uvicorn's answer to a request h11 cannot parse, called while h11's ``RemoteProtocolError`` is handled: a

@@ -124,7 +124,8 @@ class RegisterOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    model: str | None = Field(None, max_length=128, description="Model name (GET /v1/models); default: the server's.")
+    model: str | None = Field(None, min_length=1, max_length=128,
+                              description="Model name (GET /v1/models); default: the server's.")
     iterations: int | None = Field(
         None, ge=1, le=MAX_ITERATIONS, description="Network iterations; default: the model's."
     )

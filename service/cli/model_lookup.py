@@ -43,7 +43,7 @@ def resolve_model_dir(model: str | None, model_dirs: list[Path]) -> Path:
     for directory in [*extra, *bundled]:
         if directory.name == name:
             return directory
-    if model is not None and Path(model).is_dir():
+    if model and Path(model).is_dir():  # "" would name the working directory
         return Path(model)
     names = sorted({d.name for d in [*extra, *bundled]})
     where = ", ".join(str(d) for d in [bundled_models_dir(), *model_dirs])

@@ -15,7 +15,7 @@ NOT_A_CHECKPOINT = {"random": "not a PyTorch checkpoint", "empty": "not a PyTorc
                     "text": "not a PyTorch checkpoint"}
 NOT_AN_NPZ = {"random": "not an .npz archive", "empty": "empty", "text": "not an .npz archive",
               "npy": "not an .npz archive"}
-NOT_A_MODEL = {"missing": "no such model folder", "unknown-name": "nor a bundled model",
+NOT_A_MODEL = {"missing": "no such model folder", "unknown-name": "nor a bundled model", "empty": "nor a bundled model",
                "file": "a file, not a model folder", "no-manifest": "manifest.json is missing",
                "damaged-manifest": "malformed manifest.json"}
 
@@ -39,11 +39,13 @@ def bad_file(tmp_path: Path, kind: str) -> Path:
 
 def bad_model(tmp_path: Path, kind: str) -> str:
     """A ``--model`` under ``tmp_path`` that is ``kind``: missing, unknown-name (no bundled model of that name),
-    file, no-manifest (a folder of a graph without one) or damaged-manifest."""
+    empty, file, no-manifest (a folder of a graph without one) or damaged-manifest."""
     if kind == "missing":
         return str(tmp_path / "none")
     if kind == "unknown-name":
         return "nosuch"
+    if kind == "empty":  # named the folder of bundled models
+        return ""
     if kind == "file":
         (tmp_path / "model.onnx").write_bytes(b"onnx?")
         return str(tmp_path / "model.onnx")

@@ -24,6 +24,9 @@ SECRET = "s3cret-key"  # in a header line h11 refuses: neither answered nor logg
 CASES = {  # name: (bytes sent (or parts, 0.1 s apart), status, words of the error, whether the request reached the app)
     "headers too large": (b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 1_000_000 + b"\r\n\r\n",
                           431, ("headers", "16384 bytes"), False),
+    "headers too large in one read": (  # h11 checks the limit only while the headers are incomplete
+        b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * 20_000 + b"\r\n\r\n", 431,
+        ("headers", "16384 bytes"), False),
     "bad request line": (b"GARBAGE\r\n\r\n", 400, ("invalid HTTP request", "illegal request line"), False),
     "invalid header name": (b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nBad Header: y\r\n\r\n", 400,
                             ("invalid HTTP request", "illegal header line"), False),
@@ -115,3 +118,12 @@ def test_a_well_formed_request_after_a_malformed_one_is_served():
     with connect() as sock:
         sock.sendall(b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
         assert until_closed(sock).startswith(b"HTTP/1.1 200 ")
+
+
+def test_headers_within_the_limit_sent_whole_with_a_long_body_reach_the_app():
+    body = b'{"x": [' + b"0," * 50_000 + b"0]}"
+    with connect() as sock:
+        sock.sendall(REGISTER + b"X-Big: " + b"a" * 16_000 + b"\r\nConnection: close\r\nContent-Length: "
+                     + str(len(body)).encode() + b"\r\n\r\n" + body)
+        status, _, reply = parse(until_closed(sock))
+    assert status == 422 and b"source" in reply, reply[:300]  # the body read and validated: not the headers' 431

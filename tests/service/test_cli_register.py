@@ -413,9 +413,10 @@ def test_rejects_out_of_range_options(tmp_path, model_dir) -> None:
     assert_clean_failure(register(src, tgt, "--keypoints", "4", model_dir=model_dir, fast=False), "keypoints")
 
 
-def test_rejects_an_unknown_model_and_lists_the_available_ones(tmp_path, model_dir) -> None:
+@pytest.mark.parametrize("name", ["nope", ""])  # "" named the working directory
+def test_rejects_an_unknown_model_and_lists_the_available_ones(tmp_path, model_dir, name) -> None:
     src, tgt = write_pair(tmp_path, "npy")
-    assert_clean_failure(register(src, tgt, "--model", "nope", model_dir=model_dir), "'nope' not found", "clean")
+    assert_clean_failure(register(src, tgt, "--model", name, model_dir=model_dir), f"'{name}' not found", "clean")
 
 
 def test_rejects_an_unwritable_aligned_format_before_registering(tmp_path, model_dir) -> None:

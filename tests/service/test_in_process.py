@@ -118,9 +118,10 @@ def test_a_model_folder_loads_like_its_name(local):
     assert isinstance(folder.registrar, Registrar) and folder.manifest.sha256 == local.manifest.sha256
 
 
-def test_an_unknown_model_is_a_value_error_naming_the_bundled_ones():
-    with pytest.raises(ValueError, match=r"'nope'.*general"):
-        LocalRegistrar("nope")
+@pytest.mark.parametrize("name", ["nope", ""])  # "" named the folder of bundled models
+def test_an_unknown_model_is_a_value_error_naming_the_bundled_ones(name):
+    with pytest.raises(ValueError, match=rf"'{name}'.*general"):
+        LocalRegistrar(name)
 
 
 def test_a_bad_option_is_an_input_error_naming_it(local):

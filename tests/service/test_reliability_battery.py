@@ -18,6 +18,7 @@ import io
 import json
 import os
 import pickle
+import re
 import socket
 import tempfile
 import time
@@ -266,6 +267,8 @@ BAD_INPUTS: dict[str, Case] = {
     "model_is_a_real_model_folder": case(lambda: jpost(body(model=str(model_root() / MODEL))), 404,
                                          "unknown model"),
     "model_name_too_long": case(lambda: jpost(body(model="m" * 200)), 422, "model", "128"),
+    "model_name_empty": case(lambda: jpost(body(model="")), 422, "model", "at least 1 character"),
+    "multipart_model_name_empty": case(lambda: form(model=""), 422, "model", "at least 1 character"),
     # fields
     "missing_source": case(lambda: jpost({"target": body()["target"]}), 422, "source", "required"),
     "missing_target": case(lambda: jpost({"source": body()["source"]}), 422, "target", "required"),
@@ -431,6 +434,15 @@ def test_bad_input_is_a_clear_4xx_and_the_server_carries_on(targets, name):
     assert response.headers.get("x-request-id")
     assert not MARKER.exists(), "the server unpickled an upload"
     assert_still_serves(target)
+
+
+def test_the_reliability_table_lists_every_case_as_it_is_run():
+    rows = re.findall(r"^\| (\d+) \| `([^`]+)` \| [^|]+ \| (\w+) \| (\d{3}) \| (.+) \|$",
+                      (REPO / "docs" / "RELIABILITY.md").read_text(), re.MULTILINE)
+    listed = [(int(number), name, server, int(status), tuple(re.findall(r"`([^`]+)`", words)))
+              for number, name, server, status, words in rows]
+    run = [(number, name, c.server, c.status, c.words) for number, (name, c) in enumerate(BAD_INPUTS.items(), 1)]
+    assert listed == run
 
 
 def test_content_length_over_the_limit_is_refused_before_the_body_is_sent(targets):
