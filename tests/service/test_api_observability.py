@@ -72,16 +72,17 @@ def test_access_line_of_a_client_that_went_away_says_so(server):
 
 
 def test_access_line_of_a_huge_path_stays_short(server, client):
-    """uvicorn takes request lines of over 100 KB: each was written whole into the access line (and the error)."""
+    """A request line of up to 16 KiB is read (h11's limit on the request line and headers): each was written whole
+    into the access line (and the error)."""
     request_id = "long-" + uuid.uuid4().hex
-    response = client.get("/" + "a" * 50_000, headers={"X-Request-ID": request_id})
+    response = client.get("/" + "a" * 15_000, headers={"X-Request-ID": request_id})
     assert response.status_code == 404 and len(response.content) < 1_000  # the 404 named the whole path
     assert response.json()["error"].endswith("...")
     line, raw = access_line(server, request_id)
     assert line["path"].startswith("/aaaa") and line["path"].endswith("...")
     assert len(raw) < 1_000
     assert line["error"].startswith("not found: GET /aaaa")  # the 404's message, read back whole
-    for path in ("/v2/models/" + "m" * 50_000, "/v2/models/" + "m" * 50_000 + "/ready"):  # a model name that long
+    for path in ("/v2/models/" + "m" * 15_000, "/v2/models/" + "m" * 15_000 + "/ready"):  # a model name that long
         response = client.get(path)
         assert response.status_code == 404 and len(response.content) < 1_000, (path[:40], len(response.content))
 
