@@ -277,7 +277,9 @@ def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.
     that the source and the target are moved by before float32: one for both (the source's centroid, rounded to whole
     units), so that the server sees the clouds as the caller placed them, where that brings both within
     ``LARGE_COORDINATE``; else each cloud's own centroid where it has a coordinate beyond ``LARGE_COORDINATE`` and zero
-    where not (a local scan beside a map in UTM keeps its coordinates, and the map comes near the origin too).
+    where not (a local scan beside a map in UTM keeps its coordinates, and the map comes near the origin too). A far
+    cloud whose coordinates are float32 values already is not moved (offset zero, and no shared offset): it loses
+    nothing to float32, and the server sees it as it is.
 
     Only the rows the server can take count (``x, y, z`` finite and within float32's range): a NaN row
     stays the one row the server names instead of turning the offset, and so every row, into NaN. Clouds
@@ -287,13 +289,21 @@ def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.
     src, tgt = (_usable_rows(np.asarray(cloud, np.float64)) for cloud in (source, target))  # [N', 3], [M', 3]
     if src is None or tgt is None:
         return None
-    if max(np.abs(src).max(initial=0.0), np.abs(tgt).max(initial=0.0)) <= LARGE_COORDINATE:
+    far = [np.abs(rows).max(initial=0.0) > LARGE_COORDINATE for rows in (src, tgt)]
+    if not any(far):
         return None
-    shared = np.round((src if len(src) else tgt).mean(0))
-    if max(np.abs(src - shared).max(initial=0.0), np.abs(tgt - shared).max(initial=0.0)) <= LARGE_COORDINATE:
-        return shared, shared
-    own = tuple(np.round(rows.mean(0)) if np.abs(rows).max(initial=0.0) > LARGE_COORDINATE else np.zeros(3)
-                for rows in (src, tgt))
+    # float32 values already (a float32 file or array): nothing rounds them, so they are sent as they are and the
+    # server sees what the caller has (its float32 rounding warning, the pose an in-process run gives)
+    exact = [is_far and np.array_equal(rows, rows.astype(np.float32))
+             for rows, is_far in zip((src, tgt), far, strict=True)]
+    if all(is_exact or not is_far for is_exact, is_far in zip(exact, far, strict=True)):
+        return None
+    if not any(exact):
+        shared = np.round((src if len(src) else tgt).mean(0))
+        if max(np.abs(src - shared).max(initial=0.0), np.abs(tgt - shared).max(initial=0.0)) <= LARGE_COORDINATE:
+            return shared, shared
+    own = tuple(np.round(rows.mean(0)) if is_far and not is_exact else np.zeros(3)
+                for rows, is_far, is_exact in zip((src, tgt), far, exact, strict=True))
     return own[0], own[1]
 
 

@@ -17,10 +17,9 @@ import numpy as np
 from service.checks import MIN_POINTS, check_transform
 from service.errors import InputError
 from service.refine_modes import REFINE_MODES, REFINE_POINTS_RANGE
+from service.request_defaults import KEYPOINT_RANGE, MAX_ITERATIONS
 from service.rotation_search import search_rotations_for
 
-MAX_ITERATIONS = 8
-KEYPOINT_RANGE = (16, 512)
 WORKING_SIZE_RANGE = (MIN_POINTS, 4096)
 DEFAULT_WORKING_SIZE = 768
 SearchMode = bool | Literal["auto"]  # rotation_search: False, True or "auto"

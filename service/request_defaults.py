@@ -14,6 +14,11 @@ from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH, service_rotatio
 # independently sampled scans; clean/noise/unseen reproduce the paper.
 DEFAULT_MODEL = "general"
 
+# What a request's network options may be (the model's own are defaults within them): the HTTP schema, the command
+# line and the pipeline check these.
+MAX_ITERATIONS = 8
+KEYPOINT_RANGE = (16, 512)
+
 
 def request_defaults(
     refine: str | None = None,

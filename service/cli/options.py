@@ -10,7 +10,7 @@ import typer
 
 from service.cli.common import fail
 from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
-from service.request_defaults import DEFAULT_MODEL
+from service.request_defaults import DEFAULT_MODEL, KEYPOINT_RANGE, MAX_ITERATIONS
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 ModelDirs = Annotated[
@@ -26,8 +26,13 @@ ModelOpt = Annotated[
         "name of a model the server serves [default: its MFGNET_DEFAULT_MODEL]"
     ),
 ]
-IterationsOpt = Annotated[int | None, typer.Option(help="network iterations (default: the model's)")]
-KeypointsOpt = Annotated[int | None, typer.Option(help="keypoints K (default: the model's)")]
+IterationsOpt = Annotated[
+    int | None, typer.Option(min=1, max=MAX_ITERATIONS, help="network iterations (default: the model's)")
+]
+KeypointsOpt = Annotated[
+    int | None,
+    typer.Option(min=KEYPOINT_RANGE[0], max=KEYPOINT_RANGE[1], help="keypoints K (default: the model's)"),
+]
 RefineOpt = Annotated[
     Refine | None,
     typer.Option(

@@ -304,7 +304,7 @@ def test_a_pair_the_pipeline_refuses_exits_2_naming_both_frames(tmp_path, frames
 
 
 @pytest.mark.parametrize("case", ["one-frame", "missing", "extension", "folder", "output-is-a-frame", "kitti-folder",
-                                  "same-outputs", "kitti-on-stdout"])
+                                  "same-outputs", "kitti-on-stdout", "keypoints", "iterations"])
 def test_usage_errors_exit_2_before_any_registration(tmp_path, frames, model_dir, case) -> None:
     out = tmp_path / "poses.jsonl"
     f0, f1, f2 = map(str, frames[:3])
@@ -317,6 +317,8 @@ def test_usage_errors_exit_2_before_any_registration(tmp_path, frames, model_dir
         "kitti-folder": ([f0, f1, "--kitti", tmp_path / "no" / "poses.txt"], ["--kitti", "does not exist"]),
         "same-outputs": ([f0, f1, "--kitti", out], ["--out and --kitti are the same file"]),
         "kitti-on-stdout": ([f0, f1, "--kitti", "-"], ["--kitti -", "name a file"]),
+        "keypoints": ([f0, f1, "--keypoints", "600"], ["--keypoints", "512"]),  # it failed at step 1, --out emptied
+        "iterations": ([f0, f1, "--iterations", "0"], ["--iterations", "1"]),
     }[case]
     (tmp_path / "scan.bin").write_bytes(np.zeros((100, 3), np.float32).tobytes())
     before = frames[1].read_bytes()

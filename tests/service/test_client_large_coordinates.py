@@ -59,6 +59,16 @@ def test_each_cloud_gets_its_own_offset_and_a_local_one_none():
     np.testing.assert_array_equal(target_offset, np.round(far.mean(0)))
 
 
+def test_a_far_cloud_of_float32_values_is_not_moved():
+    local = np.random.default_rng(2).normal(size=(50, 3))
+    far = local + UTM
+    as_float32 = far.astype(np.float32)
+    assert cloud_offsets(as_float32, as_float32.astype(np.float64)) is None  # nothing to round: sent as they are
+    source_offset, target_offset = cloud_offsets(as_float32, far)  # no shared offset: the float64 map moves alone
+    np.testing.assert_array_equal(source_offset, np.zeros(3))
+    np.testing.assert_array_equal(target_offset, np.round(far.mean(0)))
+
+
 @pytest.mark.parametrize("far", ["target", "source"])
 def test_a_local_scan_and_a_map_in_utm_register_as_in_process(far):
     """A local scan registered into a map in UTM (or the map onto the scan): the far cloud is recentred on its own, so

@@ -14,6 +14,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from real_scan_cases import GENERAL, skip_without_general
 from shapes import asymmetric_blob
 
+from service.client import MfgnetClient
 from service.registrar import Registrar
 from service.stages.float32_check import FLOAT32_ROUNDING, STEP_SHARE, coarse_float32
 from service.stages.pipeline import Stages
@@ -101,3 +102,15 @@ def test_over_http_a_float32_upload_in_map_coordinates_is_warned_and_counted(cli
     assert response.status_code == 200, response.text
     assert rounded(response.json()["warnings"]) == []
     assert rounding_count(client) == before + 2
+
+
+def test_the_python_client_sends_float32_clouds_in_map_coordinates_as_they_are(server, client) -> None:
+    """Their values lose nothing to float32: moved near the origin by the client, as float64 clouds are, they were
+    not warned, and their pose was not the one of the clouds as they are."""
+    source, target = scans(UTM, np.float32)
+    files = {"source": ("s.npy", npy(source)), "target": ("t.npy", npy(target))}
+    expected = client.post("/v1/register", files=files).json()
+    with MfgnetClient(server.url, timeout=60) as mfgnet:
+        response = mfgnet.register(source, target, binary=True)
+    assert len(rounded(response["warnings"])) == 2
+    np.testing.assert_array_equal(response["transform"], expected["transform"])
