@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import re
+
 from service.formats.errors import PointCloudFormatError
 
 HEAD_BYTES = 1024  # enough for every magic number and the first lines of a PCD header
 MAX_HEAD_BYTES = 1 << 16  # how far comment lines may put off a PCD header's first keyword
 FORMATS = ("ply", "pcd", "las", "e57", "npy", "npz", "pts", "ptx", "text")
 _PCD_KEYS = (b"VERSION", b"FIELDS")
+# text mesh formats whose numbers the XYZ reader would take for points: OFF's keyword (ModelNet40's files may run the
+# counts on: 'OFF490 518 0'), OBJ's statements, ASCII STL's 'solid' before its facets
+_OFF = re.compile(rb"(ST)?C?N?4?n?OFF(\d[\d ]*)?")
+_OBJ_STATEMENTS = (b"v", b"vn", b"vt", b"o", b"g", b"f", b"mtllib", b"usemtl")
 
 
 def detect(head: bytes) -> str:
@@ -33,6 +39,11 @@ def detect(head: bytes) -> str:
     if _pcd_header(head):
         return "pcd"
     if head and b"\0" not in head and _is_utf8(head):
+        mesh = _text_mesh(head)
+        if mesh:
+            raise PointCloudFormatError(
+                f"an {mesh} mesh, not a point cloud format read here: save its vertices as PLY (a mesh PLY is read as "
+                "its vertices) or as XYZ rows")
         return _leica(head) or "text"
     if _utf16(head):
         raise PointCloudFormatError("text in UTF-16 (as Windows PowerShell writes it): save the file as UTF-8")
@@ -40,6 +51,23 @@ def detect(head: bytes) -> str:
         f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, E57, .npy, .npz or "
         "XYZ/CSV/TXT/PTS/PTX file"
     )
+
+
+def _text_mesh(head: bytes) -> str | None:
+    """``OFF``, ``OBJ`` or ``STL`` where text starts as that mesh format does (its first line that is not a ``#``
+    comment), else ``None``: read as XYZ rows, their counts, face indices and vertices would all be points."""
+    lines = [line.split() for line in head.splitlines() if line.strip() and not line.lstrip().startswith(b"#")]
+    if not lines:
+        return None
+    first = lines[0]
+    if _OFF.fullmatch(b" ".join(first)):
+        return "OFF"
+    vertex = any(line[0] == b"v" and len(line) >= 4 and _numbers(line[1:4]) for line in lines)  # v x y z
+    if first[0] in _OBJ_STATEMENTS and vertex:
+        return "OBJ"
+    if first[0] == b"solid" and any(line[:1] == [b"facet"] for line in lines[1:]):
+        return "STL"
+    return None
 
 
 def _leica(head: bytes) -> str | None:

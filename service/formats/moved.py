@@ -81,7 +81,10 @@ KEPT_FORMATS = {
 # The extensions written only from a source of their format (no writer of x, y, z alone is named by them)
 OWN_FORMAT_ONLY = {".las": "las", ".laz": "las", ".pts": "pts", ".ptx": "ptx", ".e57": "e57"}
 LEICA_COLUMNS = ("intensity", "red", "green", "blue")  # a PTS or PTX row's values after x, y, z
-NORMALS = {"ply": ("nx", "ny", "nz"), "pcd": ("normal_x", "normal_y", "normal_z")}
+# the normals each format's rows may carry, rotated (the first triple a record holds whole, as floats): PLY's
+# nx ny nz (Open3D, CloudCompare, MeshLab) or normal_x normal_y normal_z (PCL's PLY writer), PCD's normal_x ...
+PCL_NORMALS = ("normal_x", "normal_y", "normal_z")
+NORMALS = {"ply": (("nx", "ny", "nz"), PCL_NORMALS), "pcd": (PCL_NORMALS,)}
 FORMAT_NAMES = {
     "ply": "PLY",
     "pcd": "PCD",
@@ -298,7 +301,8 @@ def _widened(record: np.dtype, widen: bool) -> np.dtype:
     return np.dtype([(name, kept(record[name]) if name in ("x", "y", "z") else record[name]) for name in record.names])
 
 
-def _move_rows(rows: np.ndarray, written: np.ndarray, R: np.ndarray, t: np.ndarray, normals: tuple[str, ...]) -> None:
+def _move_rows(rows: np.ndarray, written: np.ndarray, R: np.ndarray, t: np.ndarray,
+               normals: tuple[tuple[str, ...], ...]) -> None:
     """``written [n]`` (records of ``rows``' fields, perhaps ``rows`` itself): x, y, z of ``rows [n]`` moved, its
     float normals rotated, every other field copied."""
     if written is not rows:
@@ -308,9 +312,11 @@ def _move_rows(rows: np.ndarray, written: np.ndarray, R: np.ndarray, t: np.ndarr
     moved = xyz @ R.T + t  # [n, 3]
     for axis, name in enumerate("xyz"):
         written[name] = moved[:, axis]
-    if normals and all(n in rows.dtype.names and rows.dtype[n].kind == "f" for n in normals):
-        turned = np.stack([rows[n].astype(np.float64) for n in normals], axis=1) @ R.T  # [n, 3]
-        for axis, name in enumerate(normals):
+    triple = next((names for names in normals
+                   if all(n in rows.dtype.names and rows.dtype[n].kind == "f" for n in names)), None)
+    if triple is not None:
+        turned = np.stack([rows[n].astype(np.float64) for n in triple], axis=1) @ R.T  # [n, 3]
+        for axis, name in enumerate(triple):
             written[name] = turned[:, axis]
 
 
@@ -322,7 +328,7 @@ def _moved_blocks(
     count: int,
     R: np.ndarray,
     t: np.ndarray,
-    normals: tuple[str, ...],
+    normals: tuple[tuple[str, ...], ...],
     what: str,
 ) -> None:
     """The ``count`` binary rows of ``record`` at ``src``'s position, moved, to ``dst`` as rows of ``written``: a

@@ -2,10 +2,10 @@
 
 The first three columns are x, y, z, or the columns a header line names ``x``, ``y`` and ``z`` (pandas'
 ``to_csv`` puts its index first: ``,x,y,z``); further columns (intensity, colours, normals) are ignored.
-``#`` comments and blank lines are skipped, and so is one header line: a first row that is not numbers
-(``x,y,z``, CloudCompare's ``//X,Y,Z``), or a single number (a point count before rows that are not whitespace-
-separated; a count before such rows is Leica PTS, read and checked by :mod:`service.formats.leica`). Values may be in
-double quotes (pandas' ``QUOTE_ALL``).
+``#`` comments and blank lines are skipped, and so is one header line: a first row whose first three values are not
+numbers (``x,y,z``, CloudCompare's ``//X,Y,Z``; a row of numbers followed by a label is a row), or a single number (a
+point count before rows that are not whitespace-separated; a count before such rows is Leica PTS, read and checked by
+:mod:`service.formats.leica`). Values may be in double quotes (pandas' ``QUOTE_ALL``).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ def layout(stream: io.TextIOWrapper) -> tuple[int, str | None, str | None, bool]
         if not text or text.startswith("#"):
             continue
         separator = _separator(text)  # from the first data line
-        if header is None and (not _numeric(text, separator) or len(text.split(separator)) == 1):
+        if header is None and _is_header(text, separator):
             skip, header = number + 1, text  # one header line: skip it and the comments before it
             continue
         return skip, separator, header, True
@@ -144,9 +144,14 @@ def header_names(header: str | None, separator: str | None) -> list[str]:
     return [token.strip().strip('"').removeprefix("//").lower() for token in (header or "").split(separator)]
 
 
-def _numeric(line: str, separator: str | None) -> bool:
+def _is_header(line: str, separator: str | None) -> bool:
+    """Whether ``line``, the first line of a file that is not a comment, is its header: one value (a point count), or
+    first three values (a trailing ``#`` comment left out, as numpy leaves it) that are not all numbers. A row of
+    numbers followed by a label, a timestamp or a hex colour is a row: taken for a header, it lost the file's first
+    point."""
+    values = [token.strip().strip('"') for token in line.split("#", 1)[0].split(separator) if token.strip()]
     try:
-        [float(token.strip().strip('"')) for token in line.split(separator) if token.strip()]
+        [float(value) for value in values[:3]]
     except ValueError:
-        return False
-    return True
+        return True
+    return len(values) == 1

@@ -10,9 +10,9 @@ import numpy as np
 import pypcd4
 
 from bench import scan_files
-from bench.scan_files import PCD_NORMALS, PLY_NORMALS, coloured_ply
+from bench.scan_files import PCD_NORMALS, PLY_NORMALS, coloured_ply, unit_normals
 
-__all__ = ["PCD_NORMALS", "PLY_NORMALS", "coloured_ply", "pcd_with_fields", "survey_las"]
+__all__ = ["PCD_NORMALS", "PLY_NORMALS", "coloured_ply", "pcd_with_fields", "survey_las", "unit_normals"]
 
 
 def pcd_with_fields(path: Path, xyz: np.ndarray, encoding: str) -> np.ndarray:

@@ -125,6 +125,16 @@ def test_a_whitespace_xyz_without_header_keeps_its_intensity_comments_spacing_an
     np.testing.assert_allclose(read_points(out), moved(read_points(source)), rtol=0, atol=0.5e-4 + 1e-9)
 
 
+def test_a_file_without_header_whose_rows_end_in_labels_has_its_first_row_moved_too(tmp_path) -> None:
+    source, out = tmp_path / "labelled.xyz", tmp_path / "aligned.xyz"
+    text = "".join(f"{x:.4f} {y:.4f} {z:.4f} class_{i % 3}\n" for i, (x, y, z) in enumerate(XYZ))
+    source.write_text(text)
+    write(source, out)
+    assert len(read_points(source)) == len(XYZ)  # the first row was taken for a header and left where it was
+    assert_rows(text, out.read_text(), None, (0, 1, 2), moved(read_points(source)))
+    np.testing.assert_allclose(read_points(out), moved(read_points(source)), rtol=0, atol=0.5e-4 + 1e-9)
+
+
 def test_named_normals_are_rotated_and_other_columns_kept(tmp_path) -> None:
     """CloudCompare's header (``//X Y Z R G B Nx Ny Nz``): the normals turn with the points, colours stay."""
     source, out = tmp_path / "scan.txt", tmp_path / "aligned.txt"

@@ -296,11 +296,11 @@ def test_rejects_an_unknown_refine_mode(tmp_path, model_dir) -> None:
 
 
 def test_rejects_content_that_is_no_point_cloud(tmp_path, model_dir) -> None:
-    """The content decides, not the extension: an OBJ mesh is text whose rows are not numbers."""
+    """The content decides, not the extension: an OBJ mesh is named as one, and bytes of no format are unrecognised."""
     bad = tmp_path / "cloud.obj"
-    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 1\n")  # the first line could be a header; the rest is not numbers
+    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 1\n")
     _, tgt = write_pair(tmp_path, "npy")
-    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "not rows of at least 3 numbers")
+    assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "an OBJ mesh")
     bad.write_bytes(bytes(range(256)))
     assert_clean_failure(register(bad, tgt, model_dir=model_dir), "cloud.obj", "unrecognised content")
 

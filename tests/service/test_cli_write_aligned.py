@@ -18,7 +18,7 @@ import pypcd4
 import pytest
 from aligned_runs import FAST, pose, register, runner, sequence
 from cli_support import synthetic_pair
-from moved_files import PCD_NORMALS, PLY_NORMALS, coloured_ply, pcd_with_fields, survey_las
+from moved_files import PCD_NORMALS, PLY_NORMALS, coloured_ply, pcd_with_fields, survey_las, unit_normals
 from scipy.spatial.transform import Rotation
 
 from service.cli import app
@@ -72,6 +72,20 @@ def test_ply_keeps_colours_and_faces_and_rotates_its_normals(tmp_path, text) -> 
         body = before.index(b"end_header\n") + len(b"end_header\n")
         rows_end = body + len(vertex) * vertex.dtype.itemsize
         assert after[:body] == before[:body] and after[rows_end:] == before[rows_end:]
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["binary", "ascii"])
+def test_ply_normals_named_as_pcl_names_them_are_rotated(tmp_path, text) -> None:
+    """PCL's PLY writer names normals normal_x, normal_y, normal_z: they were copied unturned."""
+    source, out = tmp_path / "pcl.ply", tmp_path / "aligned.ply"
+    names = ("x", "y", "z", *PCD_NORMALS)
+    vertex = np.empty(len(SOURCE), dtype=[(name, "<f4") for name in names])
+    for name, column in zip(names, np.column_stack([SOURCE, unit_normals(len(SOURCE))]).T, strict=True):
+        vertex[name] = column
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex")], text=text).write(str(source))
+    write(source, out)
+    rows = plyfile.PlyData.read(str(out))["vertex"].data
+    np.testing.assert_allclose(stacked(rows, PCD_NORMALS), moved(stacked(vertex, PCD_NORMALS), R, 0), atol=1e-6)
 
 
 def test_ply_moved_into_map_coordinates_holds_them_in_double(tmp_path) -> None:

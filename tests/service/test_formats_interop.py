@@ -37,6 +37,13 @@ def test_a_header_without_x_y_z_names_keeps_the_first_three_columns(tmp_path: Pa
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.csv"), XYZ)
 
 
+@pytest.mark.parametrize("tail", [" ground", " 2024-05-01T10:00:00", " 0xff00ff", " # first return"])
+def test_a_first_row_of_numbers_followed_by_a_label_is_a_row(tmp_path: Path, tail: str) -> None:
+    # it was taken for a header line: the file's first point was lost, and every index after it shifted by one
+    (tmp_path / "a.xyz").write_text("".join(" ".join(f"{v:g}" for v in row) + tail + "\n" for row in XYZ))
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.xyz"), XYZ)
+
+
 @pytest.mark.parametrize("header", ["x;y;z;r;g;b\n", ""])
 def test_semicolon_separated_text_reads(tmp_path: Path, header: str) -> None:
     (tmp_path / "a.csv").write_text(header + rows(";", np.hstack([XYZ, RGB])))  # pandas' sep=";", Excel's locales

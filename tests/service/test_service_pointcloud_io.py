@@ -158,6 +158,13 @@ BAD_FILES = {
     "nan": (b"1 2 3\nnan 5 6\n", InvalidPointsError, "NaN/Inf"),
     "empty_text": (b"# nothing\n", InvalidPointsError, "empty"),
     "las_truncated": (None, PointCloudFormatError, "LAS"),
+    # text meshes: their counts, face indices and vertices were read as points
+    "off_mesh": (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", PointCloudFormatError, "an OFF mesh"),
+    "off_as_modelnet40_writes_it": (b"OFF3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", PointCloudFormatError, "an OFF mesh"),
+    "obj_mesh": (b"# exported\nmtllib a.mtl\no Cube\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n", PointCloudFormatError,
+                 "an OBJ mesh"),
+    "stl_ascii": (b"solid part\n facet normal 0 0 1\n  outer loop\n   vertex 0 0 0\n", PointCloudFormatError,
+                  "an STL mesh"),
 }
 
 
