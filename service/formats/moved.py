@@ -58,7 +58,7 @@ from service.formats.moved_arrays import check_moved_npy, check_moved_npz, moved
 from service.formats.moved_arrays import other_fields as array_fields
 from service.formats.moved_e57 import check_moved_e57, moved_e57
 from service.formats.moved_e57 import other_fields as e57_fields
-from service.formats.moved_text import moved_pts, moved_ptx, moved_text
+from service.formats.moved_text import moved_pts, moved_ptx, moved_rows, moved_text
 from service.formats.read import detect_at as detect_format
 from service.formats.read import read_cloud
 from service.formats.write import FLOAT32_EXACT_ENOUGH
@@ -354,11 +354,10 @@ def _moved_ply(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen
     vertex = header["vertex"]
     if any(isinstance(prop, plyfile.PlyListProperty) for prop in vertex.properties):
         raise InvalidPointsError("PLY vertex element with list properties")
-    if header.text:
-        src.seek(0)
-        _moved_ply_text(plyfile, src, dst, R, t, widen)
-        return
     at = [element.name for element in header.elements].index("vertex")
+    if header.text:
+        _moved_ply_text(plyfile, src, dst, header, body, at, R, t, widen)
+        return
     before = header.elements[:at]
     if any(isinstance(prop, plyfile.PlyListProperty) for element in before for prop in element.properties):
         raise InvalidPointsError("binary PLY whose vertex element follows an element of lists")
@@ -391,27 +390,26 @@ def _ply_header(plyfile: ModuleType, header: PlyData, at: int, written: np.dtype
     ).header
 
 
-def _moved_ply_text(
-    plyfile: ModuleType, src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen: bool
-) -> None:
-    try:
-        data = plyfile.PlyData.read(src)
-    except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as exc:
-        raise PointCloudFormatError(f"corrupt PLY data ({exc})") from None
-    vertex = data["vertex"]
-    rows = vertex.data
-    written = _widened(rows.dtype, widen)
-    out = rows if written == rows.dtype else np.empty(len(rows), dtype=written)
-    _move_rows(rows, out, R, t, NORMALS["ply"])
-    if out is not rows:
-        at = [element.name for element in data.elements].index("vertex")
-        moved = plyfile.PlyElement.describe(out, "vertex", comments=vertex.comments)
-        kinds = {p.name: p for p in vertex.properties}  # the file's own type names where they are kept
-        moved.properties = [p if p.name in ("x", "y", "z") else kinds[p.name] for p in moved.properties]
-        elements = list(data.elements)
-        elements[at] = moved
-        data.elements = elements
-    data.write(dst)
+def _moved_ply_text(plyfile: ModuleType, src: BinaryIO, dst: BinaryIO, header: PlyData, body: int, at: int,
+                    R: np.ndarray, t: np.ndarray, widen: bool) -> None:
+    """ASCII PLY: the header copied (rewritten where x, y, z change type), then the body's lines, one an element's row,
+    as they are but the vertex rows (``header.elements[at]``), whose x, y, z are moved and normals rotated as the text
+    formats' are (:func:`service.formats.moved_text.moved_rows`): a chunk of lines at a time, so that time and memory
+    stay those of reading the file (plyfile read and wrote it whole: minutes and gigabytes for a mesh of millions of
+    faces)."""
+    vertex = header.elements[at]
+    record = ply_format.row_record(vertex, "=")
+    written = _widened(record, widen)
+    names = list(record.names)
+    triple = next((group for group in NORMALS["ply"] if all(n in names and record[n].kind == "f" for n in group)), ())
+    src.seek(0)
+    if written == record:
+        _copy(src, dst, body, "PLY header")
+    else:
+        dst.write(_ply_header(plyfile, header, at, written).encode("ascii") + b"\n")
+    before = sum(element.count for element in header.elements[:at])
+    moved_rows(src, dst, body, before, vertex.count, tuple(names.index(a) for a in "xyz"),
+               tuple(names.index(n) for n in triple), R, t, "PLY vertex rows")
 
 
 # ---------------------------------------------------------------------------------------------- PCD

@@ -59,6 +59,14 @@ def moved_text(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray) -> No
     _rewrite(src, dst, lambda: _TextRows(skip), separator, xyz, normals, R, t, "text")
 
 
+def moved_rows(src: BinaryIO, dst: BinaryIO, start: int, before: int, count: int, xyz: tuple[int, ...],
+               normals: tuple[int, ...], R: np.ndarray, t: np.ndarray, what: str) -> None:
+    """``src``'s lines from byte ``start`` on to ``dst``: after ``before`` lines that are not blank, ``count`` rows of
+    whitespace-separated values whose columns ``xyz`` are moved by ``R [3, 3]``, ``t [3]`` and ``normals`` rotated,
+    every other line and character as it is (an ASCII PLY body: the vertex rows among the other elements' lines)."""
+    _rewrite(src, dst, lambda: _CountedRows(before, count, what), None, xyz, normals, R, t, what, start)
+
+
 def moved_pts(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray) -> None:
     """PTS ``src`` to ``dst``: every block's rows moved by ``R [3, 3]``, ``t [3]``, their other values kept."""
     _rewrite(src, dst, _PtsRows, None, (0, 1, 2), (), R, t, "PTS")
@@ -125,11 +133,12 @@ def _rewrite(
     R: np.ndarray,
     t: np.ndarray,
     what: str,
+    start: int = 0,
 ) -> None:
-    """``src``'s lines to ``dst``: the rows ``layout`` finds with the values of columns ``xyz`` moved and those of
-    ``normals`` rotated, every other line and character as it is."""
+    """``src``'s lines (from byte ``start``) to ``dst``: the rows ``layout`` finds with the values of columns ``xyz``
+    moved and those of ``normals`` rotated, every other line and character as it is."""
     rows = _Rows(separator, (*xyz, *normals), what)
-    with _text(src) as lines:
+    with _text(src, start) as lines:
         decimals = np.zeros(len(rows.columns), dtype=np.int64)  # [C] the most any value of each column carries
         largest = 0.0  # the largest |x|, |y| or |z|
         for _, tokens in _pieces(lines, layout(), rows, values_only=True):
@@ -139,7 +148,7 @@ def _rewrite(
     written = [_number_format(max(int(decimals[: len(xyz)].max()), _significant_decimals(largest)))] * 3
     if normals:
         written += [_number_format(max(int(decimals[len(xyz) :].max()), MIN_NORMAL_DECIMALS))] * 3
-    with _text(src) as lines, _text_out(src, dst) as out:
+    with _text(src, start) as lines, _text_out(src, dst) as out:
         for split, tokens in _pieces(lines, layout(), rows):
             if tokens is None:
                 out.writelines(split)
@@ -238,6 +247,35 @@ class _PtsRows:
     def end(self) -> None:
         if self.left:
             raise PointCloudFormatError(f"PTS line {self.at}: fewer rows follow it than it declares")
+
+
+class _CountedRows:
+    """After ``before`` lines that are not blank (other elements' rows), ``count`` rows; blank lines are none, as the
+    ASCII PLY reader skips them."""
+
+    def __init__(self, before: int, count: int, what: str):
+        self.before, self.left, self.what = before, count, what
+
+    def rows_ahead(self, first: int, count: int) -> bool:
+        return not self.before and self.left >= count
+
+    def took(self, count: int) -> None:
+        self.left -= count
+
+    def is_row(self, number: int, line: str) -> bool:
+        if not line.strip():
+            return False
+        if self.before:
+            self.before -= 1
+            return False
+        if self.left:
+            self.left -= 1
+            return True
+        return False
+
+    def end(self) -> None:
+        if self.left or self.before:
+            raise PointCloudFormatError(f"{self.what}: fewer rows follow than the header declares")
 
 
 class _Rows:
@@ -427,10 +465,10 @@ def _replaced(line: str, values: np.ndarray, written: Callable[[float], str]) ->
 
 
 @contextmanager
-def _text(src: BinaryIO) -> Iterator[io.TextIOWrapper]:
-    """``src``'s lines from its start, decoded as the readers decode them (UTF-8, a byte-order mark left out, lines
-    ending at ``\\n``, ``\\r\\n`` or ``\\r``) with their endings kept; ``src`` stays open."""
-    src.seek(0)
+def _text(src: BinaryIO, start: int = 0) -> Iterator[io.TextIOWrapper]:
+    """``src``'s lines from byte ``start``, decoded as the readers decode them (UTF-8, a byte-order mark left out,
+    lines ending at ``\\n``, ``\\r\\n`` or ``\\r``) with their endings kept; ``src`` stays open."""
+    src.seek(start)
     stream = io.TextIOWrapper(src, encoding="utf-8-sig", newline="")
     try:
         yield stream
@@ -456,4 +494,4 @@ def _text_out(src: BinaryIO, dst: BinaryIO) -> Iterator[io.TextIOWrapper]:
         stream.detach()
 
 
-__all__ = ["CHUNK_CHARS", "moved_pts", "moved_ptx", "moved_text"]
+__all__ = ["CHUNK_CHARS", "moved_pts", "moved_ptx", "moved_rows", "moved_text"]
