@@ -12,6 +12,7 @@ header first. Vertex elements with list properties are refused.
 from __future__ import annotations
 
 import io
+import itertools
 import os
 import warnings
 from types import ModuleType
@@ -27,6 +28,7 @@ if TYPE_CHECKING:
     from plyfile import PlyData, PlyElement
 
 MAX_HEADER_BYTES = 256 * 1024  # plyfile parses a header one byte at a time (about 1.5 us a byte)
+ASCII_BLOCK_ROWS = 1 << 16  # ASCII vertex rows parsed at a time: only x, y, z of each block are kept
 
 
 def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -99,23 +101,32 @@ def _ascii_vertices(f: BinaryIO, vertex: PlyElement, skip: int = 0) -> np.ndarra
             if not line:
                 raise PointCloudFormatError(f"corrupt PLY data: {skipped} of the {skip} rows before the vertices")
             skipped += bool(line.strip())
-        with warnings.catch_warnings():  # numpy warns of blank lines (not counted as rows) and of no rows at all
+        columns = [names.index(axis) for axis in "xyz"]
+        table = np.empty((vertex.count, 3))  # [N, 3]: x, y, z only; the other properties are dropped block by block
+        rows = 0
+        with warnings.catch_warnings():  # numpy warns of no rows at all
             warnings.simplefilter("ignore", UserWarning)
-            table = np.loadtxt(text, dtype=np.float64, max_rows=vertex.count, ndmin=2, comments=None)  # [N, P]
+            while rows < vertex.count:
+                # at most as many lines as rows are missing: the rows of the elements after the vertices stay unread
+                lines = list(itertools.islice(text, min(vertex.count - rows, ASCII_BLOCK_ROWS)))
+                if not lines:
+                    break  # the end of the file
+                block = np.loadtxt([line for line in lines if line.strip()], dtype=np.float64, ndmin=2,
+                                   comments=None)  # [n, P]; blank lines are no rows
+                if len(block) and block.shape[1] != len(names):
+                    raise PointCloudFormatError(f"corrupt PLY data: vertex rows of {block.shape[1]} values, the "
+                                                f"header declares {len(names)} properties")
+                table[rows:rows + len(block)] = block[:, columns] if len(block) else block.reshape(0, 3)
+                rows += len(block)
     except (ValueError, UnicodeDecodeError) as exc:  # rows of different lengths among them
         raise PointCloudFormatError(f"corrupt PLY data ({exc})") from None
     finally:
         text.detach()  # the caller's file stays open
-    if len(table) != vertex.count:
-        raise PointCloudFormatError(f"corrupt PLY data: {len(table)} vertex rows, the header says {vertex.count}")
-    if not len(table):
-        table = np.empty((0, len(names)))  # [0, P]: no rows, no columns to count
-    elif table.shape[1] != len(names):
-        raise PointCloudFormatError(f"corrupt PLY data: vertex rows of {table.shape[1]} values, the header declares "
-                                    f"{len(names)} properties")
+    if rows != vertex.count:
+        raise PointCloudFormatError(f"corrupt PLY data: {rows} vertex rows, the header says {vertex.count}")
     kinds = {prop.name: prop for prop in vertex.properties}
-    return xyz_columns([as_declared(table[:, names.index(axis)], np.dtype(kinds[axis].dtype()), f"PLY vertex {axis}")
-                        for axis in "xyz"])
+    return xyz_columns([as_declared(table[:, k], np.dtype(kinds[axis].dtype()), f"PLY vertex {axis}")
+                        for k, axis in enumerate("xyz")])
 
 
 def _check_rows_fit(plyfile: ModuleType, header: PlyData, body: int) -> None:

@@ -21,6 +21,8 @@ from service.formats import (
     TooManyPointsError,
     read_cloud,
 )
+from service.formats import checks as format_checks
+from service.formats import ply as ply_format
 from service.pointcloud_io import SUFFIXES, parse_points, read_points, write_points
 
 REPO = Path(__file__).resolve().parents[2]
@@ -135,6 +137,25 @@ def test_a_full_resolution_npy_is_read_without_cloud_sized_temporaries(tmp_path:
         tracemalloc.stop()
     np.testing.assert_array_equal(read, points)
     assert peak < extra_mib * 2**20, f"{peak / 2**20:.0f} MiB above the cloud"
+
+
+def test_an_ascii_ply_of_many_properties_is_read_keeping_only_x_y_z(tmp_path: Path, monkeypatch) -> None:
+    """Its rows were parsed whole, every property a float64: a 210 MB file of 64 properties took 1 GB to read."""
+    monkeypatch.setattr(ply_format, "ASCII_BLOCK_ROWS", 1_000)
+    monkeypatch.setattr(format_checks, "BLOCK_BYTES", 1 << 16)  # the line check's pieces
+    rng = np.random.default_rng(0)
+    rows = rng.normal(size=(20_000, 43)).round(4)  # [N, 43]: x, y, z and 40 more
+    names = ["x", "y", "z", *(f"f{k}" for k in range(40))]
+    header = f"ply\nformat ascii 1.0\nelement vertex {len(rows)}\n" + "".join(f"property float {n}\n" for n in names)
+    (tmp_path / "wide.ply").write_text(header + "end_header\n" + "".join(" ".join(map(str, r)) + "\n" for r in rows))
+    tracemalloc.start()
+    try:
+        read = read_cloud(tmp_path / "wide.ply")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_array_equal(read, rows[:, :3].astype(np.float32))
+    assert peak < 4 * 2**20, f"{peak / 2**20:.1f} MiB for {rows[:, :3].nbytes / 2**20:.1f} MiB of x, y, z"
 
 
 def test_text_skips_comments_header_and_extra_columns(tmp_path: Path) -> None:
