@@ -432,29 +432,21 @@ def _moved_pcd(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, widen
         dst.write(moved_meta.compose_header().encode("ascii"))
         _moved_blocks(src, dst, record, written, meta.points, R, t, NORMALS["pcd"], "PCD binary data")
         return
-    if meta.data == pypcd4.Encoding.ASCII:
-        text = io.TextIOWrapper(src, encoding="ascii")
-        rows = np.loadtxt(text, dtype=record, max_rows=meta.points, ndmin=1, comments=None)
-        text.detach()  # the source stays open (a caller's file is the caller's to close)
-    else:
-        rows = pypcd4.pypcd4._parse_pc_data(src, meta)
+    if meta.data == pypcd4.Encoding.ASCII:  # rows moved as text rows are, a chunk of lines at a time
+        data = src.tell()
+        dst.write(moved_meta.compose_header().encode("ascii"))
+        first = dict(zip(meta.fields, np.cumsum((0, *meta.count)).tolist(), strict=False))  # each field's column
+        triple = next((group for group in NORMALS["pcd"] if all(n in first and record[n].kind == "f" for n in group)),
+                      ())
+        moved_rows(src, dst, data, 0, meta.points, tuple(first[a] for a in "xyz"), tuple(first[n] for n in triple),
+                   R, t, "PCD ASCII data")
+        return
+    rows = pypcd4.pypcd4._parse_pc_data(src, meta)
     if len(rows) != meta.points:
         raise PointCloudFormatError(f"PCD data holds {len(rows)} points; the header says {meta.points}")
     out = rows if written == record and rows.flags.writeable else np.empty(len(rows), dtype=written)
     _move_rows(rows, out, R, t, NORMALS["pcd"])
-    if meta.data == pypcd4.Encoding.ASCII:
-        dst.write(moved_meta.compose_header().encode("ascii"))
-        formats = [
-            "%.9g"
-            if written[n].kind == "f" and written[n].itemsize <= 4
-            else "%.17g"
-            if written[n].kind == "f"
-            else "%d"
-            for n in written.names
-        ]
-        np.savetxt(dst, out, fmt=formats, delimiter=" ")
-    else:
-        pypcd4.PointCloud(moved_meta, out).save(dst, encoding=encoding)
+    pypcd4.PointCloud(moved_meta, out).save(dst, encoding=encoding)
 
 
 def _moved_viewpoint(viewpoint: tuple[float, ...], R: np.ndarray, t: np.ndarray) -> tuple[float, ...]:

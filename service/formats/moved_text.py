@@ -403,9 +403,10 @@ def _decimals(tokens: np.ndarray) -> np.ndarray:
 def _largest(tokens: np.ndarray, what: str) -> float:
     """The largest absolute value of ``tokens [n, 3]`` (numbers as text)."""
     try:
-        return float(np.abs(tokens.astype(np.float64)).max(initial=0.0))
+        values = np.abs(tokens.astype(np.float64))  # [n, 3]
     except ValueError as exc:
         raise PointCloudFormatError(f"{what}: a row changed since it was read ({exc})") from None
+    return float(values[np.isfinite(values)].max(initial=0.0))  # an organized PCD's NaN rows stay NaN
 
 
 def _significant_decimals(largest: float) -> int:
