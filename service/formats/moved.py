@@ -51,7 +51,7 @@ from scipy.spatial.transform import Rotation
 from service.formats import pcd as pcd_format
 from service.formats import ply as ply_format
 from service.formats import text as text_format
-from service.formats.checks import BLOCK_BYTES
+from service.formats.checks import BLOCK_BYTES, MAX_ROW_BYTES
 from service.formats.deps import require
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 from service.formats.moved_arrays import check_moved_npy, check_moved_npz, moved_npy, moved_npz
@@ -462,6 +462,17 @@ def _moved_viewpoint(viewpoint: tuple[float, ...], R: np.ndarray, t: np.ndarray)
 
 def _moved_las(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray, compress: bool) -> None:
     laspy = require("laspy", "writing LAS/LAZ files")
+    start = src.tell()
+    try:
+        with laspy.open(src, closefd=False) as reader:
+            size, packed = reader.header.point_format.size, reader.header.are_points_compressed
+    except Exception as exc:  # laspy's LaspyException
+        raise PointCloudFormatError(f"corrupt LAS/LAZ data ({type(exc).__name__}: {exc})") from None
+    if packed and size > MAX_ROW_BYTES:  # its records are read whole below; a LAZ file's size does not bound them
+        raise PointCloudFormatError(
+            f"LAZ points of {size} bytes each (extra bytes included): a LAZ file is decompressed whole to be moved, "
+            f"so its points may take at most {MAX_ROW_BYTES} bytes each; send it as LAS")
+    src.seek(start)
     try:
         las = laspy.read(src, closefd=False, laz_backend=laspy.LazBackend.Lazrs)
     except Exception as exc:  # laspy's LaspyException, what the LAZ backend raises

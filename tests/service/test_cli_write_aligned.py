@@ -23,7 +23,7 @@ from moved_files import PCD_NORMALS, PLY_NORMALS, coloured_ply, pcd_with_fields,
 from scipy.spatial.transform import Rotation
 
 from service.cli import app
-from service.formats import moved_text
+from service.formats import PointCloudFormatError, moved_text
 from service.formats.moved import write_moved
 from service.pointcloud_io import read_points
 
@@ -241,6 +241,25 @@ def test_an_organized_pcd_keeps_its_grid_and_its_missing_returns(tmp_path) -> No
 
 
 # ----------------------------------------------------------------------------------------- LAS/LAZ
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_points_of_many_extra_bytes_are_moved_as_las_and_refused_as_laz(tmp_path, suffix) -> None:
+    """A LAZ file is decompressed whole to be moved, and its size does not bound its records (4,000 extra bytes a
+    point that never change compress to almost nothing: 1.1 MB of LAZ held 800 MB)."""
+    las = laspy.create(point_format=6, file_version="1.4")
+    las.add_extra_dims([laspy.ExtraBytesParams(name=f"band_{k}", type="f8") for k in range(25)])  # 30 + 200 bytes
+    las.header.scales = np.full(3, 1e-4)
+    las.x, las.y, las.z = SOURCE[:, 0], SOURCE[:, 1], SOURCE[:, 2]
+    source, out = tmp_path / f"wide{suffix}", tmp_path / f"aligned{suffix}"
+    las.write(source)
+    if suffix == ".las":
+        write(source, out)
+        np.testing.assert_allclose(read_points(out), moved(read_points(source)), rtol=0, atol=1e-4)
+        return
+    with pytest.raises(PointCloudFormatError, match=r"LAZ points of 2\d\d bytes each .* send it as LAS"):
+        write(source, out)
+    assert not out.exists()
 
 
 @pytest.mark.parametrize(("suffix", "out_suffix"), [(".las", ".las"), (".laz", ".laz"), (".las", ".laz")])
