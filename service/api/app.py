@@ -105,7 +105,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(HeadAsGetMiddleware)  # inside the request context: the access log and metrics say HEAD
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,
-                       body_min_rate=settings.body_min_rate)
+                       body_min_rate=settings.body_min_rate, cors_origins=settings.cors_origins)
     app.add_middleware(SecurityHeadersMiddleware)  # outermost: on the request context's own 413s and 500s too
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app

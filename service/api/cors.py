@@ -8,6 +8,7 @@ from fastapi import FastAPI
 from starlette.datastructures import Headers
 from starlette.middleware import cors
 from starlette.responses import Response
+from starlette.types import ASGIApp
 
 from service.api.errors import error_response
 from service.api.oip_request import HEADER_LENGTH
@@ -30,5 +31,15 @@ class CORSMiddleware(cors.CORSMiddleware):
 
 
 def install(app: FastAPI, origins: list[str]) -> None:
-    app.add_middleware(CORSMiddleware, allow_origins=origins, allow_methods=ALLOW_METHODS,
-                       allow_headers=ALLOW_HEADERS, expose_headers=EXPOSE_HEADERS)
+    app.add_middleware(CORSMiddleware, **_options(origins))
+
+
+def with_cors(app: ASGIApp, origins: list[str]) -> ASGIApp:
+    """``app`` behind the middleware :func:`install` adds: for answers given outside it (the request context's own
+    413s, 400s, 500s and 503s), which a cross-origin page could not read without its headers."""
+    return CORSMiddleware(app, **_options(origins))
+
+
+def _options(origins: list[str]) -> dict:
+    return {"allow_origins": origins, "allow_methods": ALLOW_METHODS, "allow_headers": ALLOW_HEADERS,
+            "expose_headers": EXPOSE_HEADERS}

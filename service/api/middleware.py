@@ -14,6 +14,7 @@ from starlette.requests import ClientDisconnect
 from starlette.routing import Match, Mount, Route, compile_path
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.cors import with_cors
 from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError, shortened
 from service.api.metrics import Metrics
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
@@ -111,8 +112,10 @@ def _differing_content_types(scope: Scope) -> bool:
 
 class RequestContextMiddleware:
     def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None,
-                 body_timeout_s: float | None = None, body_min_rate: int | None = None):
+                 body_timeout_s: float | None = None, body_min_rate: int | None = None,
+                 cors_origins: list[str] | None = None):
         self.app = app
+        self.cors_origins = cors_origins  # the app's CORS origins: its own answers get the app's CORS headers
         self.metrics = metrics
         self.max_body_bytes = max_body_bytes  # JSON and every other body
         self.max_upload_bytes = max_body_bytes if max_upload_bytes is None else max_upload_bytes  # multipart files
@@ -177,10 +180,10 @@ class RequestContextMiddleware:
             length = _content_length(scope)
             if length is not None and length > limit:  # refuse before reading anything
                 too_large = BodyTooLargeError(limit, setting)
-                await self._send_error(send_with_id, too_large.status, too_large.message)
+                await self._answer(scope, receive, send_with_id, too_large.status, too_large.message)
             elif _differing_content_types(scope):
-                await self._send_error(send_with_id, 400, "the request has Content-Type headers that differ; send "
-                                                          "one (RFC 9110 5.3)")
+                await self._answer(scope, receive, send_with_id, 400, "the request has Content-Type headers that "
+                                                                       "differ; send one (RFC 9110 5.3)")
             else:
                 await self.app(scope, receive_limited, send_with_id)
         except ClientDisconnect:
@@ -188,12 +191,12 @@ class RequestContextMiddleware:
         except asyncio.CancelledError:  # the server's shutdown grace ended with this request still running
             if state["started"]:
                 raise  # too late for an answer of its own: uvicorn closes the connection
-            await self._send_error(send_with_id, 503, SHUTDOWN_MESSAGE,
-                                   headers=[(b"retry-after", b"1"), (b"connection", b"close")])
+            await self._answer(scope, receive, send_with_id, 503, SHUTDOWN_MESSAGE,
+                               headers=[(b"retry-after", b"1"), (b"connection", b"close")])
         except Exception:
             app_log.exception("unhandled error", extra={"request_id": request_id, "path": shortened(path)})
             if not state["started"]:
-                await self._send_error(send_with_id, 500, "internal server error", request_id=request_id)
+                await self._answer(scope, receive, send_with_id, 500, "internal server error", request_id=request_id)
             else:
                 state["status"] = 500
         finally:
@@ -219,6 +222,15 @@ class RequestContextMiddleware:
             if error is not None:
                 extra["error"] = error
             access_log.info("request", extra=extra)
+
+    async def _answer(self, scope: Scope, receive: Receive, send: Send, status: int, message: str,
+                      headers: list[tuple[bytes, bytes]] | None = None, **extra) -> None:
+        """:meth:`_send_error`, through the app's CORS middleware where CORS is on."""
+
+        async def answer(scope: Scope, receive: Receive, send: Send) -> None:
+            await self._send_error(send, status, message, headers, **extra)
+
+        await (answer if not self.cors_origins else with_cors(answer, self.cors_origins))(scope, receive, send)
 
     @staticmethod
     async def _send_error(send: Send, status: int, message: str, headers: list[tuple[bytes, bytes]] | None = None,

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import io
 import json
+import socket
 from concurrent.futures import ThreadPoolExecutor
+from urllib.parse import urlsplit
 
 import numpy as np
 import pytest
@@ -245,3 +247,22 @@ def test_cors_allows_only_the_configured_origins(strict_server):
         assert allowed.status_code == 200 and allowed.headers["access-control-allow-origin"] == CORS_ORIGIN
         other = c.options("/v1/register", headers={"Origin": "https://evil.example", **preflight})
         assert "access-control-allow-origin" not in other.headers
+
+
+def test_the_request_contexts_own_refusals_carry_the_cors_headers(strict_server):
+    """A 413 from the Content-Length (every oversized browser upload) and a 400 for two Content-Types were answered
+    outside the CORS middleware: a cross-origin page saw "Failed to fetch" instead of the message."""
+    url = urlsplit(strict_server.url)
+    with socket.create_connection((url.hostname, url.port), timeout=10) as sock:
+        sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nOrigin: "
+                     + CORS_ORIGIN.encode() + b"\r\nContent-Length: 100000000000\r\n\r\n")
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += sock.recv(65536)
+    status_line, *lines = head.split(b"\r\n\r\n")[0].decode("latin-1").split("\r\n")
+    headers = {name.strip().lower(): value.strip() for name, _, value in (line.partition(":") for line in lines)}
+    assert status_line.split()[1] == "413" and headers["access-control-allow-origin"] == CORS_ORIGIN
+    with strict_server.client() as c:
+        two_types = [("Content-Type", "application/json"), ("Content-Type", "text/plain"), ("Origin", CORS_ORIGIN)]
+        response = c.post("/v1/register", content=b"{}", headers=two_types)
+    assert response.status_code == 400 and response.headers["access-control-allow-origin"] == CORS_ORIGIN
