@@ -5,7 +5,9 @@ The first three columns are x, y, z, or the columns a header line names ``x``, `
 ``#`` comments and blank lines are skipped, and so is one header line: a first row whose first three values are not
 numbers (``x,y,z``, CloudCompare's ``//X,Y,Z``; a row of numbers followed by a label is a row), or a single number (a
 point count before rows that are not whitespace-separated; a count before such rows is Leica PTS, read and checked by
-:mod:`service.formats.leica`). Values may be in double quotes (pandas' ``QUOTE_ALL``).
+:mod:`service.formats.leica`). Without one, the last ``#`` comment before the rows names the columns where it names
+x, y, z among as many names as the first row has values (numpy's ``savetxt(header=...)``). Values may be in double
+quotes (pandas' ``QUOTE_ALL``).
 """
 
 from __future__ import annotations
@@ -42,19 +44,29 @@ def layout(stream: io.TextIOWrapper) -> tuple[int, str | None, str | None, bool]
     """How the text at ``stream``'s start is laid out, from its first :data:`PROBE_LINES` lines: the lines before the
     rows (the header line and the comments before it; 0 without a header), the separator (``;``, ``,`` or ``None``:
     whitespace), the header line (``None`` without one), and whether rows of numbers may follow."""
-    skip, separator, header = 0, None, None
+    skip, separator, header, comment = 0, None, None, None
     for number, line in enumerate(stream):
         if number >= PROBE_LINES:
             return skip, separator, header, True  # not known yet: loadtxt reads on
         text = line.strip()
+        if text.startswith("#"):
+            comment = text.lstrip("#").strip()
         if not text or text.startswith("#"):
             continue
         separator = _separator(text)  # from the first data line
         if header is None and _is_header(text, separator):
             skip, header = number + 1, text  # one header line: skip it and the comments before it
             continue
+        if header is None and comment is not None and _names_the_columns(comment, text, separator):
+            header = comment  # numpy's savetxt(header=...): the names as a comment before the rows
         return skip, separator, header, True
     return skip, separator, header, False
+
+
+def _names_the_columns(comment: str, row: str, separator: str | None) -> bool:
+    """Whether ``comment`` (a ``#`` line's text) names the columns of ``row``: x, y and z among as many names."""
+    names = header_names(comment, separator)
+    return {"x", "y", "z"} <= set(names) and len(names) == len([v for v in row.split(separator) if v.strip()])
 
 
 def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:

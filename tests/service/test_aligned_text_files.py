@@ -135,6 +135,15 @@ def test_a_file_without_header_whose_rows_end_in_labels_has_its_first_row_moved_
     np.testing.assert_allclose(read_points(out), moved(read_points(source)), rtol=0, atol=0.5e-4 + 1e-9)
 
 
+def test_columns_named_in_a_numpy_savetxt_comment_are_the_ones_moved(tmp_path) -> None:
+    source, out = tmp_path / "scan.txt", tmp_path / "aligned.txt"
+    np.savetxt(source, np.column_stack([RGB[:, 0], XYZ]), fmt="%.6f", header="intensity x y z")
+    write(source, out)
+    moved_rows = np.loadtxt(out)  # [N, 4]
+    np.testing.assert_array_equal(moved_rows[:, 0], RGB[:, 0])
+    np.testing.assert_allclose(moved_rows[:, 1:], moved(read_points(source)), rtol=0, atol=0.5e-6 + 1e-9)
+
+
 def test_named_normals_are_rotated_and_other_columns_kept(tmp_path) -> None:
     """CloudCompare's header (``//X Y Z R G B Nx Ny Nz``): the normals turn with the points, colours stay."""
     source, out = tmp_path / "scan.txt", tmp_path / "aligned.txt"

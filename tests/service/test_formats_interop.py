@@ -37,6 +37,17 @@ def test_a_header_without_x_y_z_names_keeps_the_first_three_columns(tmp_path: Pa
     np.testing.assert_array_equal(read_cloud(tmp_path / "a.csv"), XYZ)
 
 
+@pytest.mark.parametrize("delimiter", [" ", ","])
+def test_numpy_savetxt_column_names_in_a_comment_are_read(tmp_path: Path, delimiter: str) -> None:
+    # np.savetxt(header=...) writes the names as a '#' comment: the first three columns were read (intensity, x, y)
+    index = np.arange(len(XYZ))[:, None]
+    np.savetxt(tmp_path / "a.txt", np.hstack([index, XYZ]), header=delimiter.join(["intensity", "x", "y", "z"]),
+               delimiter=delimiter)
+    np.testing.assert_array_equal(read_cloud(tmp_path / "a.txt"), XYZ)
+    np.savetxt(tmp_path / "b.txt", np.hstack([XYZ, index]), header="scanner A, 2 returns")  # names no columns
+    np.testing.assert_array_equal(read_cloud(tmp_path / "b.txt"), XYZ)
+
+
 @pytest.mark.parametrize("tail", [" ground", " 2024-05-01T10:00:00", " 0xff00ff", " # first return"])
 def test_a_first_row_of_numbers_followed_by_a_label_is_a_row(tmp_path: Path, tail: str) -> None:
     # it was taken for a header line: the file's first point was lost, and every index after it shifted by one
