@@ -47,6 +47,9 @@ def detect(head: bytes) -> str:
         return _leica(head) or "text"
     if _utf16(head):
         raise PointCloudFormatError("text in UTF-16 (as Windows PowerShell writes it): save the file as UTF-8")
+    if _single_byte_text(head):
+        raise PointCloudFormatError("text that is not UTF-8 (Latin-1 or Windows-1252, as Excel may save a CSV): save "
+                                    "the file as UTF-8")
     raise PointCloudFormatError(
         f"unrecognised content (starts with {head[:8]!r}): not a PLY, PCD, LAS/LAZ, E57, .npy, .npz or "
         "XYZ/CSV/TXT/PTS/PTX file"
@@ -109,6 +112,18 @@ def _pcd_header(head: bytes) -> bool:
         if line and not line.startswith(b"#"):
             return line.split()[0].upper() in _PCD_KEYS
     return False
+
+
+def _single_byte_text(head: bytes) -> bool:
+    """Text in a single-byte code page: no NUL, and every byte printable in Windows-1252 or a line break or tab, with
+    at least nine in ten of them ASCII (a header's accented names, not binary data)."""
+    if b"\0" in head or sum(byte < 128 for byte in head) < 0.9 * len(head):
+        return False
+    try:
+        text = head.decode("cp1252")
+    except UnicodeDecodeError:
+        return False
+    return all(c.isprintable() or c in "\r\n\t" for c in text)
 
 
 def _is_utf8(head: bytes) -> bool:

@@ -179,6 +179,8 @@ BAD_FILES = {
     "nan": (b"1 2 3\nnan 5 6\n", InvalidPointsError, "NaN/Inf"),
     "empty_text": (b"# nothing\n", InvalidPointsError, "empty"),
     "las_truncated": (None, PointCloudFormatError, "LAS"),
+    "latin1_csv": ("x,y,z,intensité\n1,2,3,4\n5,6,7,8\n".encode("cp1252"), PointCloudFormatError,
+                   "not UTF-8 (Latin-1 or Windows-1252"),  # it was "unrecognised content"
     # text meshes: their counts, face indices and vertices were read as points
     "off_mesh": (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", PointCloudFormatError, "an OFF mesh"),
     "off_as_modelnet40_writes_it": (b"OFF3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", PointCloudFormatError, "an OFF mesh"),
