@@ -15,8 +15,10 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
+from typing import TYPE_CHECKING
 
-import onnxruntime as ort
+if TYPE_CHECKING:  # loaded with the first Cancellation: the file formats check cancelled() without ONNX Runtime
+    import onnxruntime as ort
 
 
 class RegistrationCancelledError(Exception):
@@ -27,6 +29,8 @@ class Cancellation:
     """The cancellation of one request's registration, settable from any thread."""
 
     def __init__(self) -> None:
+        import onnxruntime as ort
+
         self.run_options = ort.RunOptions()
         self._cancelled = threading.Event()
 
@@ -63,6 +67,13 @@ def run_options() -> ort.RunOptions | None:
     if cancellation.cancelled:
         raise RegistrationCancelledError
     return cancellation.run_options
+
+
+def stop_if_cancelled() -> None:
+    """:class:`RegistrationCancelledError` where the current cancellation was cancelled: long work between network
+    calls (an aligned download's file, written a block at a time) stops at its next block."""
+    if cancelled():
+        raise RegistrationCancelledError
 
 
 def cancelled() -> bool:

@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, BinaryIO
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from service.cancellation import stop_if_cancelled
 from service.formats import pcd as pcd_format
 from service.formats import ply as ply_format
 from service.formats import text as text_format
@@ -335,6 +336,7 @@ def _moved_blocks(
     block of ``BLOCK_BYTES`` at a time."""
     per_block = max(1, BLOCK_BYTES // record.itemsize)
     for begin in range(0, count, per_block):
+        stop_if_cancelled()  # an aligned download past its deadline: its worker is free again
         n = min(per_block, count - begin)
         data = bytearray(n * record.itemsize)
         if src.readinto(data) != len(data):

@@ -41,6 +41,7 @@ from typing import BinaryIO, NamedTuple
 
 import numpy as np
 
+from service.cancellation import stop_if_cancelled
 from service.formats.arrays import cloud_member, npy_layout, opened_archive
 from service.formats.checks import BLOCK_BYTES, MAX_ROW_BYTES
 from service.formats.errors import PointCloudFormatError
@@ -227,8 +228,7 @@ def _moved_array(
     if dtype.names is not None:
         from service.formats.moved import _moved_blocks
 
-        normals = next((names for names in NORMAL_FIELDS if all(n in dtype.names for n in names)), ())
-        _moved_blocks(src, dst, dtype, written, rows, R, t, normals, ".npy records")
+        _moved_blocks(src, dst, dtype, written, rows, R, t, NORMAL_FIELDS, ".npy records")  # the first float triple
     elif fortran:
         _moved_columns(src, dst, dtype, written, rows, shape[-1], R, t)
     else:
@@ -363,6 +363,7 @@ def _skip(src: BinaryIO, size: int, rows: int) -> None:
 
 def _read(src: BinaryIO, size: int, rows: int) -> bytearray:
     """``size`` bytes of ``src`` in a writable buffer, or a format error."""
+    stop_if_cancelled()  # an aligned download past its deadline: its worker is free again
     data = bytearray(size)
     view, done = memoryview(data), 0
     while done < size:

@@ -32,6 +32,7 @@ from typing import Any, BinaryIO, Protocol
 
 import numpy as np
 
+from service.cancellation import stop_if_cancelled
 from service.formats.errors import PointCloudFormatError
 from service.formats.text import header_names, layout, xyz_columns
 
@@ -171,6 +172,7 @@ def _pieces(
     time."""
     number = 0  # lines taken
     while chunk := lines.readlines(CHUNK_CHARS):
+        stop_if_cancelled()  # an aligned download past its deadline: its worker is free again
         first, number = number + 1, number + len(chunk)
         if layout.rows_ahead(first, len(chunk)) and (bare := rows.bare(chunk, values_only)) is not None:
             layout.took(len(chunk))

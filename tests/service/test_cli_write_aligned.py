@@ -22,6 +22,7 @@ from cli_support import synthetic_pair
 from moved_files import PCD_NORMALS, PLY_NORMALS, coloured_ply, pcd_with_fields, survey_las, unit_normals
 from scipy.spatial.transform import Rotation
 
+from service.cancellation import Cancellation, RegistrationCancelledError, cancellable
 from service.cli import app
 from service.formats import PointCloudFormatError, moved_text
 from service.formats.moved import write_moved
@@ -412,3 +413,21 @@ def test_sequence_aligned_folder_errors_come_before_any_registration(tmp_path, m
     coloured_ply(own[0], SOURCE)
     itself = runner.invoke(app, ["sequence", *map(str, own), "--write-aligned", str(tmp_path / "a")])
     assert itself.exit_code == 2 and "is one of the frames; it would be overwritten" in itself.stderr
+
+
+@pytest.mark.parametrize("kind", ["xyz", "ply", "npy"])
+def test_an_aligned_file_of_a_cancelled_request_stops_and_leaves_nothing(tmp_path, kind) -> None:
+    """An aligned download past its deadline (504) wrote its file to the end, holding its worker: each block now
+    looks at the request's cancellation first."""
+    source, out = tmp_path / f"scan.{kind}", tmp_path / f"aligned.{kind}"
+    if kind == "ply":
+        coloured_ply(source, SOURCE)
+    elif kind == "npy":
+        np.save(source, SOURCE)
+    else:
+        np.savetxt(source, SOURCE)
+    cancellation = Cancellation()
+    cancellation.cancel()
+    with cancellable(cancellation), pytest.raises(RegistrationCancelledError):
+        write(source, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [source.name]
