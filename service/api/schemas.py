@@ -55,7 +55,7 @@ REFINE_DESCRIPTION = (
     "'icp-plane' = a wide robust symmetric point-to-plane stage, then point-to-plane ICP with target normals "
     "(closer and more often right for two independently sampled scans); 'icp-plane-multistart' = icp-plane, then "
     "12 turns of the pose (+-15 and +-30 deg about each axis) refined and compared by a two-way point-to-plane fit "
-    "(more often right on sparse or ambiguous clouds; 4.0-5.5x the refinement time, about twice a registration's). "
+    "(more often right on sparse or ambiguous clouds; 3.3-3.9x the refinement time, 1.8x a registration's). "
     "Default: the server's "
     "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
 )

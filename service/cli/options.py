@@ -39,7 +39,7 @@ RefineOpt = Annotated[
         help="refine the network's pose: icp = point-to-point ICP, icp-plane = wide robust "
         "symmetric stage, then point-to-plane ICP (best for two independently sampled scans), "
         "icp-plane-multistart = icp-plane, then 12 turned restarts kept by a two-way fit (sparse "
-        "clouds; 4.0-5.5x the refinement time, about twice a registration's), "
+        "clouds; 3.3-3.9x the refinement time, 1.8x a registration's), "
         f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
         "server's MFGNET_DEFAULT_REFINE with --server]"
     ),
