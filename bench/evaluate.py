@@ -6,7 +6,6 @@ Registered as an ``mfgnet.commands`` entry point; the pair options are ``model.c
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated
@@ -176,7 +175,9 @@ def evaluate(
         threads = default_threads()  # the Registrar's (bench.runtime_eval)
     else:
         evaluated["baseline"] = baseline
-        threads = os.cpu_count() or 1  # bench.baselines sets no thread count: Open3D's OpenMP takes every CPU
+        from bench.real_scans import fpfh_threads
+
+        threads = fpfh_threads()  # bench.baselines sets no thread count: Open3D's OpenMP default (OMP_NUM_THREADS)
     # before the run: the shared checkout may move on during it (a checkpoint is named by its sha256 above)
     evaluated |= {"machine": machine_info(threads), "provenance": provenance([model_path] if model_path else [])}
     if by_label and "label" not in data_pairs:
