@@ -52,6 +52,17 @@ def write(source: Path, out: Path, rotation: np.ndarray = R, translation: np.nda
     )
 
 
+def traced_write(source: Path, out: Path) -> int:
+    """:func:`write` of ``source`` to ``out``, and the most memory Python allocated during it (bytes)."""
+    largest = float(np.abs(moved(read_points(source))).max())  # read first: the reader's memory is not the writer's
+    tracemalloc.start()
+    try:
+        write_moved(source, out, R, T, largest=largest)
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
 # --------------------------------------------------------------------------------------------- PLY
 
 
@@ -106,13 +117,7 @@ def test_an_ascii_ply_mesh_is_moved_a_chunk_of_lines_at_a_time(tmp_path, monkeyp
     rows = [" ".join(f"{v:.6f}" for v in row) for row in np.column_stack([SOURCE, normals])]
     lines = [*header, *(f"4 {a} {b} {c} {d}" for a, b, c, d in faces), *rows]
     source.write_text("\n".join(lines) + "\n")
-    largest = float(np.abs(moved(read_points(source))).max())
-    tracemalloc.start()
-    try:
-        write_moved(source, out, R, T, largest=largest)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    peak = traced_write(source, out)
     assert peak < 4 * 2**20, peak  # the file: 1.7 MB
     written = out.read_text().splitlines()
     assert written[: len(header) + len(faces)] == lines[: len(header) + len(faces)]  # header and faces as they were
@@ -200,13 +205,7 @@ def test_an_ascii_pcd_is_moved_a_chunk_of_lines_at_a_time(tmp_path, monkeypatch)
               f"COUNT 1 1 1 1 1 1 40\nWIDTH {len(rows)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(rows)}\n"
               "DATA ascii\n")
     source.write_text(header + "\n".join(rows) + "\n")
-    largest = float(np.abs(moved(read_points(source))).max())
-    tracemalloc.start()
-    try:
-        write_moved(source, out, R, T, largest=largest)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    peak = traced_write(source, out)
     assert peak < 2 * 2**20, peak  # the file: 2.5 MB; its rows as records: 2.2 MB
     lines = out.read_text().splitlines()
     written = lines[next(k for k, line in enumerate(lines) if line.startswith("DATA")) + 1:]
