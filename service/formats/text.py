@@ -43,7 +43,8 @@ def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
 def layout(stream: io.TextIOWrapper) -> tuple[int, str | None, str | None, bool]:
     """How the text at ``stream``'s start is laid out, from its first :data:`PROBE_LINES` lines: the lines before the
     rows (the header line and the comments before it; 0 without a header), the separator (``;``, ``,`` or ``None``:
-    whitespace), the header line (``None`` without one), and whether rows of numbers may follow."""
+    whitespace), the header line or the ``#`` comment's text that names the columns (``None`` without either), and
+    whether rows of numbers may follow."""
     skip, separator, header, comment = 0, None, None, None
     for number, line in enumerate(stream):
         if number >= PROBE_LINES:
