@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from service.quality import IDENTICAL
 from service.result import RegistrationResult
 from service.stages.normalise import Working
 
@@ -20,9 +21,9 @@ from service.stages.normalise import Working
 # clouds of the development set's 18 pairs by at most 1.20x); a frame against a map many times its size may reach it,
 # and only gets the warning.
 UNITS_RATIO = 30.0
-# A cloud whose RMS radius is below this share of the other's is one repeated point (its centroid's rounding leaves
-# ~1e-15 of it), which the degenerate-cloud warning names; no size comparison then
-DEGENERATE_SHARE = 1e-9
+# A cloud of one repeated point has a radius of its centroid's rounding, which no unit explains: its own warning
+# (``quality.degeneracy_warnings``: "source identical: ...") says what is wrong, and no size is compared
+ONE_POINT = (f"source {IDENTICAL}", f"target {IDENTICAL}")
 # The kind (the text before the colon) of the warning this stage adds
 SIZE_MISMATCH = "size mismatch"
 
@@ -36,10 +37,11 @@ def rms_radius(points: np.ndarray) -> float:
 def scale_check(work: Working, result: RegistrationResult) -> RegistrationResult:
     """``result`` with :func:`size_mismatch`'s warning where the working clouds' RMS radii differ by ``UNITS_RATIO``
     or more; else ``result`` itself. The pose and ``reliable`` are kept."""
+    if any(warning.startswith(ONE_POINT) for warning in result.warnings):
+        return result
     source, target = rms_radius(work.src_w), rms_radius(work.tgt_w)
-    if min(source, target) <= DEGENERATE_SHARE * max(source, target) or max(source, target) < UNITS_RATIO * min(
-            source, target):
-        return result  # a cloud of one repeated point (a radius of rounding) is degenerate, which its own warning says
+    if max(source, target) < UNITS_RATIO * min(source, target):
+        return result
     return dataclasses.replace(result, warnings=[*result.warnings, size_mismatch(source, target)])
 
 

@@ -65,6 +65,14 @@ def test_a_cloud_of_one_repeated_point_is_not_compared(general) -> None:
     assert mismatched(result.warnings) == [] and any("identical" in w for w in result.warnings), result.warnings
 
 
+@pytest.mark.parametrize("scale", [1e-12, 1e12])
+def test_a_cloud_of_another_size_by_far_is_still_compared(general, scale) -> None:
+    """A shaped cloud 1e12 times smaller or larger is no repeated point: it was taken for one past 1e9x, unwarned."""
+    source, target = asymmetric_blob(500, seed=1) * scale, asymmetric_blob(500, seed=2)
+    warnings = general.register(source, target, refine="none").warnings
+    assert len(mismatched(warnings)) == 1 and not any("identical" in w for w in warnings), warnings
+
+
 def test_the_threshold_lies_between_the_sizes_of_one_scene_and_units() -> None:
     assert size_mismatch(UNITS_RATIO * 2.0, 2.0).startswith(f"{SIZE_MISMATCH}: the source's RMS radius is 30x")
     assert UNITS_RATIO <= 39.37 / 1.2  # inches against metres is caught, with the set's spread of sizes (1.2x)
