@@ -156,6 +156,11 @@ def _decode_json_tensor(tensor: InferInputTensor, max_points: int) -> np.ndarray
             raise APIError(422, f"invalid request: {name}: data holds a number beyond the FP32 range") from None
     if array.dtype.kind not in "fiu":
         raise APIError(422, f"invalid request: {name}: data must be numbers only")
+    # flat (row-major) or nested as the declared shape: a [3, N] nesting declared [N, 3], or lists nested deeper than
+    # the shape (below the depth the numbers check reads, where numpy turned a true into 1.0), were reshaped silently
+    if array.ndim != 1 and list(array.shape) != list(tensor.shape):
+        raise APIError(422, f"invalid request: {name}: data is nested as {list(array.shape)}; give it flat "
+                            f"(row-major) or nested as the shape {list(tensor.shape)}")
     if array.size != 3 * n:
         raise APIError(
             422, f"invalid request: {name}: data has {array.size} values; shape {tensor.shape} needs {3 * n}"

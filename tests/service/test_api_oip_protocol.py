@@ -176,6 +176,22 @@ def test_integers_beyond_fp32_are_named(client, big):
     assert_error(client.post(INFER, content=json.dumps(request).encode()), 422, "TARGET", "beyond the FP32 range")
 
 
+@pytest.mark.parametrize("nesting", ["columns", "deeper"])
+def test_data_nested_otherwise_than_its_shape_is_named(client, nesting):
+    """A [3, N] nesting declared [N, 3] registered 46 deg off, and lists nested deeper than the shape turned a true
+    into 1.0: nested data must follow the shape (flat data stays row-major)."""
+    request = infer_json()
+    source = PAIR.source.astype(np.float64)
+    if nesting == "columns":
+        request["inputs"][0]["data"] = source.T.tolist()  # [3, N]
+    else:
+        request["inputs"][0]["data"] = [[[[[float(v)] for v in row]] for row in source.tolist()]]  # [1, N, 1, 3, 1]
+        request["inputs"][0]["data"][0][5][0][1] = [True]
+    nested = "[3, " if nesting == "columns" else "[1, "
+    assert_error(client.post(INFER, content=json.dumps(request).encode()), 422, "SOURCE", "nested as " + nested,
+                 "flat")
+
+
 # -- a binary body without its header length ----------------------------------------------------------
 def binary_request(**parameters) -> tuple[bytes, int]:
     """A body of JSON and then SOURCE's and TARGET's float32 bytes, and the JSON's length."""

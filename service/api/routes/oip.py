@@ -142,7 +142,7 @@ async def model_version_ready(name: str, version: str, request: Request) -> dict
 INFER_DESCRIPTION = f"""Register SOURCE onto TARGET.
 
 **Inputs** SOURCE and TARGET: FP32, shape [N, 3] or [1, N, 3] (x, y, z rows, any units: the outputs are in the
-same units), each either as JSON `data` (flat or nested, row-major) or as binary tensor data. Optional
+same units), each either as JSON `data` (flat and row-major, or nested as the shape) or as binary tensor data. Optional
 INITIAL_TRANSFORM: FP32, shape [4, 4] or [1, 4, 4], a rigid src_to_tgt guess (row-major, the clouds' units), as
 `initial_transform` of `/v1/register`: the network starts from it, and with a refinement it is kept where it fits
 better than the network's poses.
