@@ -430,7 +430,8 @@ class InferInputTensor(BaseModel):
         "values follow the JSON as binary data (then no 'data')."
     )
     data: list[Any] | None = Field(
-        None, description="Row-major numbers, flat or nested as the shape; absent when the tensor is sent as binary data."
+        None,
+        description="Row-major numbers, flat or nested as the shape; absent when the tensor is sent as binary data.",
     )
 
 
