@@ -238,6 +238,7 @@ def _require_object(obj: Any, what: str = "the body") -> dict:
 
 
 def _count_clouds(obj: dict, max_points: int, prefix: str = "") -> None:
+    check_cloud_shapes(obj, prefix)  # a flat list of numbers holds a third as many points: named by its shape
     for name in CLOUD_FIELDS:
         value = obj.get(name)
         if isinstance(value, list) and len(value) > max_points:
@@ -339,8 +340,7 @@ def register_pair_from_json(body: bytes | bytearray, max_points: int, values_che
     if pair is not None:
         return pair
     obj = _require_object(load_json(body))  # the reference path: json's parse and RegisterRequest's verdict
-    _count_clouds(obj, max_points)
-    check_cloud_shapes(obj)
+    _count_clouds(obj, max_points)  # and their shapes
     try:
         req = RegisterRequest.model_validate(obj, strict=True)  # JSON has types: no "1.5" or true for numbers
     except ValidationError as exc:
@@ -388,11 +388,7 @@ def batch_pairs_from_json(body: bytes | bytearray, max_points: int, max_batch: i
     if pairs is not None:
         return pairs
     obj = _require_object(load_json(body))  # the fast path's parse is freed: one parse of the body at a time
-    _count_batch(obj, max_points, max_batch)
-    pairs = obj.get("pairs")
-    for i, pair in enumerate(pairs if isinstance(pairs, list) else []):
-        if isinstance(pair, dict):
-            check_cloud_shapes(pair, prefix=f"pairs[{i}].")
+    _count_batch(obj, max_points, max_batch)  # and each pair's clouds' shapes
     try:
         batch = BatchRequest.model_validate(obj, strict=True)
     except ValidationError as exc:

@@ -139,6 +139,8 @@ def _read_cloud(body: bytes | bytearray, start: int, end: int, max_points: int) 
             return None
         if not rows:  # "[ ]" pieces would not join into a valid array
             return None
+        if type(rows[0]) is not list:  # not rows (a flat list of numbers): the reference path names its shape
+            return None
         count += len(rows)
         if count <= max_points:
             array = rows_array(rows)

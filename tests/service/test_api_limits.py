@@ -266,3 +266,13 @@ def test_the_request_contexts_own_refusals_carry_the_cors_headers(strict_server)
         two_types = [("Content-Type", "application/json"), ("Content-Type", "text/plain"), ("Origin", CORS_ORIGIN)]
         response = c.post("/v1/register", content=b"{}", headers=two_types)
     assert response.status_code == 400 and response.headers["access-control-allow-origin"] == CORS_ORIGIN
+
+
+@pytest.mark.parametrize("route", ["/v1/register", "/v1/register/batch"])
+def test_a_flat_list_of_numbers_over_the_point_limit_is_named_by_its_shape(client, route):
+    """It got the 413 of a cloud of as many points as numbers (1,200 numbers: 400 points, within the limit)."""
+    pair = small_pair()
+    pair["source"] = np.asarray(modelnet_pair(1).source[:LIMITED["max_points"]]).ravel().tolist()  # [3 N]
+    body, name = (pair, "source") if route == "/v1/register" else ({"pairs": [small_pair(), pair]}, "pairs[1].source")
+    assert_error(client.post(route, json=body), 422, f"{name}: a flat list of {3 * LIMITED['max_points']} numbers",
+                 f"reshape it to [{LIMITED['max_points']}, 3]")
