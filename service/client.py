@@ -87,6 +87,9 @@ class MfgnetClient:
                  transport: httpx.BaseTransport | None = None, busy_retries: int = BUSY_RETRIES):
         headers = {"Accept": "application/json"}
         if api_key:
+            if not (api_key.isascii() and api_key.isprintable()) or api_key != api_key.strip():
+                raise ValueError("api_key must be printable ASCII without spaces or line breaks around it (a key read "
+                                 "from a file keeps its line break: strip it)")
             headers["Authorization"] = f"Bearer {api_key}"
         busy_retries = _plain(busy_retries)
         if isinstance(busy_retries, bool) or not isinstance(busy_retries, int) or busy_retries < 0:
@@ -95,7 +98,10 @@ class MfgnetClient:
         self.busy_retries = busy_retries
         timeout = _plain(timeout)
         self._budget_s = float(timeout) if isinstance(timeout, (int, float)) else None  # None: no timeout to keep
-        self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+        try:
+            self._http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout, transport=transport)
+        except httpx.InvalidURL as exc:
+            raise ValueError(f"base_url {base_url!r} is not a URL ({exc})") from None
 
     # -- lifecycle ---------------------------------------------------------------------------
     def close(self) -> None:

@@ -54,7 +54,11 @@ def server_client(server: str, api_key: str | None, timeout: float, busy_retries
         from service.client import MfgnetClient
     except ImportError as exc:
         fail(f"--server needs httpx: {SERVE_EXTRA_HINT} ({exc})")
-    with MfgnetClient(server, api_key=api_key, timeout=timeout, busy_retries=busy_retries) as client:
+    try:
+        client = MfgnetClient(server, api_key=api_key, timeout=timeout, busy_retries=busy_retries)
+    except ValueError as exc:  # a key with a line break, a URL httpx cannot parse
+        fail(str(exc).replace("base_url", "--server").replace("api_key", "--api-key"))
+    with client:
         yield client
 
 

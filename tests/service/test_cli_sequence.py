@@ -251,12 +251,17 @@ def test_an_unreachable_server_exits_1_naming_the_first_step(frames, tmp_path) -
     assert "Traceback" not in result.output and out.read_text() == ""
 
 
-@pytest.mark.parametrize("case", ["model-dir", "threads", "no-scheme"])
+@pytest.mark.parametrize("case", ["model-dir", "threads", "no-scheme", "no-url", "key-with-a-line-break",
+                                  "key-not-ascii"])
 def test_server_usage_errors_exit_2_before_any_request(tmp_path, frames, model_dir, case) -> None:
+    """The last three were a traceback, or exit 1 as if the server could not be reached."""
     args, fragment = {
         "model-dir": (["--server", "http://127.0.0.1:9", "--model-dir", str(model_dir)], "--model-dir only applies"),
         "threads": (["--server", "http://127.0.0.1:9", "--threads", "2"], "--threads only applies in-process"),
         "no-scheme": (["--server", "127.0.0.1:8080"], "http://"),
+        "no-url": (["--server", "http://[::1"], "is not a URL"),
+        "key-with-a-line-break": (["--server", "http://127.0.0.1:9", "--api-key", "s3cret\n"], "--api-key must be"),
+        "key-not-ascii": (["--server", "http://127.0.0.1:9", "--api-key", "ключ"], "printable ASCII"),
     }[case]
     assert_usage_error(runner.invoke(app, ["sequence", *map(str, frames[:2]), *args]), fragment)
 

@@ -235,6 +235,16 @@ def test_no_api_key_sends_no_authorization_header() -> None:
         assert client.models() == [{"name": "clean"}]
 
 
+@pytest.mark.parametrize(("key", "url", "words"), [("s3cret\n", "http://127.0.0.1:9", "api_key must be printable"),
+                                                   ("ключ", "http://127.0.0.1:9", "api_key must be printable"),
+                                                   ("s3cret", "http://[::1", "is not a URL")])
+def test_a_key_or_url_no_request_can_carry_is_a_value_error(key, url, words) -> None:
+    """A key read from a file with its line break was an MfgnetError as if the server could not be reached, and a
+    non-ASCII key or an unparsable URL a UnicodeEncodeError or httpx's InvalidURL."""
+    with pytest.raises(ValueError, match=words):
+        MfgnetClient(url, api_key=key)
+
+
 # -- what the client makes of the answers -----------------------------------------------------------------
 def test_4xx_raises_mfgnet_error_with_the_servers_error_text(keyed_server, mfgnet) -> None:
     with pytest.raises(MfgnetError) as info:
