@@ -67,8 +67,8 @@ class MfgnetClient:
     ``MFGNET_API_KEY``).
     ``timeout``: seconds httpx waits for each step of one try (connecting, sending, the answer). It also bounds a
     call's retries: a retry is sent only if its wait ends within ``timeout`` seconds of the call's start, and httpx
-    then waits for it only as long as is left of those seconds (so a 503 is raised at once when Retry-After is
-    longer than ``timeout``).
+    then waits for it only as long as is left of those seconds (so a 503 is raised at once where its wait, below,
+    would end past ``timeout``).
     ``busy_retries``: how many times a call sends its request again after a 503 with ``Retry-After`` (the server
     busy, ``MFGNET_MAX_CONCURRENCY`` registrations running and ``MFGNET_MAX_QUEUE`` waiting; or its model still
     loading), each after the header's seconds (at most ``MAX_RETRY_WAIT_S``, 10, plus up to 20% random jitter).
