@@ -51,13 +51,16 @@ class MfgnetError(Exception):
     """The server answered with an error status (or could not be reached: ``status == 0``).
 
     ``retry_after``: the seconds a 503's ``Retry-After`` asked for (the server busy or loading) when the client gave
-    up on it (``busy_retries`` spent, or a wait past ``timeout``); ``None`` for every other error."""
+    up on it (``busy_retries`` spent, or a wait past ``timeout``); ``None`` for every other error.
+    ``request_id``: the answer's ``X-Request-ID``, which the server's access line and logs carry (``None`` without
+    an answer)."""
 
-    def __init__(self, status: int, message: str, retry_after: float | None = None):
+    def __init__(self, status: int, message: str, retry_after: float | None = None, request_id: str | None = None):
         super().__init__(f"HTTP {status}: {message}" if status else message)
         self.status = status
         self.message = message
         self.retry_after = retry_after
+        self.request_id = request_id
 
 
 class MfgnetClient:
@@ -224,8 +227,9 @@ class MfgnetClient:
             if response.status_code < 400:
                 break
             retry_after = _retry_after(response) if response.status_code == 503 else None
+            request_id = response.headers.get("x-request-id")
             if retry_after is None:
-                raise MfgnetError(response.status_code, _error_message(response))
+                raise MfgnetError(response.status_code, _error_message(response), request_id=request_id)
             wait_s = min(retry_after, MAX_RETRY_WAIT_S) * random.uniform(1.0, 1.0 + RETRY_JITTER)
             left_s = None if self._budget_s is None else self._budget_s - (time.monotonic() - started) - wait_s
             if retries >= self.busy_retries or (left_s is not None and left_s <= 0):
@@ -234,7 +238,7 @@ class MfgnetClient:
                 done = f"given up after {retries} retr{'y' if retries == 1 else 'ies'}" if retries else "not retried"
                 header = response.headers["Retry-After"]
                 raise MfgnetError(503, f"{_error_message(response)} (Retry-After: {header}; {done}: {why})",
-                                  retry_after=retry_after)
+                                  retry_after=retry_after, request_id=request_id)
             time.sleep(wait_s)
             retries += 1
             if left_s is not None:
@@ -243,7 +247,8 @@ class MfgnetClient:
             return response.json()
         except ValueError as exc:
             text = response.text[:200]
-            raise MfgnetError(response.status_code, f"the server's answer is not JSON: {text!r}") from exc
+            raise MfgnetError(response.status_code, f"the server's answer is not JSON: {text!r}",
+                              request_id=response.headers.get("x-request-id")) from exc
 
     def _send(self, method: str, path: str, retries: int, **kwargs) -> httpx.Response:
         """One try; no answer raises ``MfgnetError`` with status 0 (never retried: the request may be running)."""

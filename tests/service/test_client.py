@@ -11,6 +11,7 @@ More real-server checks of the client: ``test_cli_server.py`` and ``test_client_
 from __future__ import annotations
 
 import json
+import re
 import socket
 import threading
 from collections.abc import Callable, Iterator
@@ -254,6 +255,8 @@ def test_4xx_raises_mfgnet_error_with_the_servers_error_text(keyed_server, mfgne
     assert info.value.status == answer.status_code == 422
     assert info.value.message == answer.json()["error"] and "32" in info.value.message
     assert "HTTP 422" in str(info.value)
+    request_id = info.value.request_id  # the server's access line of that request carries it
+    assert re.fullmatch(r"[0-9a-f]{32}", request_id) and request_id != answer.headers["x-request-id"]
 
 
 def test_models_returns_a_bare_list_as_it_is() -> None:
