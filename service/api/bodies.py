@@ -66,11 +66,13 @@ JSON_VALUE_STARTS = frozenset(b'{["-0123456789tfnNI\xef\xff\xfe\x00')
 
 @dataclass
 class Pair:
-    """One registration to run: options plus the two clouds as float64 ``[N, 3]``, ``[M, 3]``."""
+    """One registration to run: options plus the two clouds as float64 ``[N, 3]``, ``[M, 3]``; ``names``: what a 422
+    calls the source, the target and the initial transform (OIP's input names there)."""
 
     options: RegisterOptions
     source: np.ndarray
     target: np.ndarray
+    names: tuple[str, str, str] = ("source", "target", "initial_transform")
 
 
 def media_type(request: Request) -> str:

@@ -422,4 +422,5 @@ def infer_call(body: bytes | bytearray, length: int | None, max_points: int, oct
         initial_transform=None if guess is None else _decode_transform(guess, parts.get(GUESS_INPUT)),
         return_correspondences=True,
     )
-    return InferCall(checked.req.id, Pair(options, clouds[0], clouds[1]), checked.outputs, checked.binary_outputs)
+    pair = Pair(options, clouds[0], clouds[1], names=("SOURCE", "TARGET", GUESS_INPUT))  # a 422 names the input
+    return InferCall(checked.req.id, pair, checked.outputs, checked.binary_outputs)

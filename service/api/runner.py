@@ -113,17 +113,22 @@ class Runner:
             kwargs["rotation_search"] = search  # True or "auto"
         elif search and o.rotation_search:  # asked for explicitly; a server default is simply not applied
             raise APIError(422, f"invalid request: {prefix}rotation_search: not supported by this server")
+        source_name, target_name, transform_name = pair.names
         try:
-            check_cloud(pair.source, "source")
-            check_cloud(pair.target, "target")
+            check_cloud(pair.source, source_name)
+            check_cloud(pair.target, target_name)
             registrar.check_options(o.iterations, o.keypoints, DEFAULT_WORKING_SIZE, refine)  # schema: refine_points
-            if o.initial_transform is not None:
+        except InputError as exc:
+            raise APIError(422, f"invalid request: {prefix}{exc}") from None
+        if o.initial_transform is not None:
+            try:
                 _, translation = check_transform(o.initial_transform)
                 reach = max_abs(translation) + max_abs(pair.source)
                 if not reach <= FLOAT32_MAX:  # the moved source would overflow the pipeline's sums
                     raise InputError("initial_transform: moves the source beyond the float32 range")
-        except InputError as exc:
-            raise APIError(422, f"invalid request: {prefix}{exc}") from None
+            except InputError as exc:  # its messages begin with the option's name
+                message = str(exc).removeprefix("initial_transform")
+                raise APIError(422, f"invalid request: {prefix}{transform_name}{message}") from None
         return entry, kwargs
 
     def register(self, entry: ModelEntry, pair: Pair, kwargs: dict[str, Any], which: str = "") -> RegistrationResult:

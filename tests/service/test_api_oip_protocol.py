@@ -226,8 +226,17 @@ def test_an_initial_transform_with_a_wrong_last_row_is_told_so(client):
     guess = np.eye(4)
     guess[3] = [1, 2, 3, 4]
     response = client.post(INFER, json=infer_json(PAIR.source, PAIR.target, tensor("INITIAL_TRANSFORM", guess)))
-    body = assert_error(response, 422, "initial_transform", "last row", "0 0 0 1", "1 2 3 4")
+    body = assert_error(response, 422, "last row", "0 0 0 1", "1 2 3 4")
     assert "off by" not in body["error"]
+    assert "INITIAL_TRANSFORM must be rigid" in body["error"]  # the input's name, as every other OIP 422 gives it
+
+
+@pytest.mark.parametrize("which", ["SOURCE", "TARGET"])
+def test_a_cloud_of_too_few_points_is_named_as_its_input(client, which):
+    clouds = {"SOURCE": PAIR.source, "TARGET": PAIR.target}
+    clouds[which] = clouds[which][:2]
+    body = assert_error(client.post(INFER, json=infer_json(clouds["SOURCE"], clouds["TARGET"])), 422, "at least")
+    assert f"{which}: needs at least" in body["error"]
 
 
 # -- CORS ---------------------------------------------------------------------------------------------
