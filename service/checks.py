@@ -15,6 +15,10 @@ EXACT_TOLERANCE = 1e-12  # orthonormal to float64 rounding: taken as it is, not 
 # A Python float: compared with one, a float64 stays float64 (NumPy 2 compared it with np.float32's max in float32,
 # whose cast of 1e39 overflowed with a RuntimeWarning on the caller's stderr)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+# The smallest largest |coordinate| of a cloud (all zeros aside: one repeated point, which the quality stage names).
+# Clouds scaled down to it register as at their own size; near float32's smallest normal number (1.2e-38) poses drift
+# and lose `reliable`, and below 1e-154 float64's squared distances underflow (docs/decisions/0104-...).
+SMALLEST_COORDINATES = 1e-30
 
 
 def max_abs(values: np.ndarray) -> float:
@@ -29,7 +33,8 @@ LEAVE_NAN_ROWS_OUT = "leave such rows out (e.g. points[np.isfinite(points).all(a
 
 
 def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
-    """``points`` as float64 ``[N, 3]`` with ``N >= MIN_POINTS`` and finite values, or ``InputError``.
+    """``points`` as float64 ``[N, 3]`` with ``N >= MIN_POINTS`` and finite values, none beyond float32's largest
+    and not all below ``SMALLEST_COORDINATES`` (all zero aside), or ``InputError``.
 
     A float64 array comes back as itself (or a view of it), not copied: a 2,000,000-point cloud is 46 MiB, and no
     stage writes to the caller's clouds (the anchor stage only records their centroids)."""
@@ -50,10 +55,15 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
         bad = ~np.isfinite(arr).all(axis=1)  # [N]
         raise InputError(f"{name}: contains NaN or infinite coordinates in {int(bad.sum())} of {len(arr)} rows, first "
                          f"at row {int(np.argmax(bad))}; {LEAVE_NAN_ROWS_OUT}")
-    if max_abs(arr) > FLOAT32_MAX:
+    largest = max_abs(arr)
+    if largest > FLOAT32_MAX:
         beyond = (np.abs(arr) > FLOAT32_MAX).any(axis=1)  # [N]
         raise InputError(f"{name}: coordinates overflow float32 (|value| > {FLOAT32_MAX:.4g}) in {int(beyond.sum())} "
                          f"of {len(arr)} rows, first at row {int(np.argmax(beyond))}; {LEAVE_NAN_ROWS_OUT}")
+    if 0 < largest < SMALLEST_COORDINATES:
+        raise InputError(f"{name}: coordinates too small: the largest |value| is {largest:.3g}, below "
+                         f"{SMALLEST_COORDINATES:g}; send the cloud in a unit that gives it a size (metres, "
+                         "millimetres)")
     return arr
 
 

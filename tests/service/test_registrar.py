@@ -16,6 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, bumpy_ellipsoid, ellipsoid_surface
 
+from service.checks import SMALLEST_COORDINATES
 from service.manifest import ModelIntegrityError, bundled_models_dir, load_manifest
 from service.normalization import Normalization
 from service.quality import assess
@@ -62,6 +63,24 @@ def test_scaling_and_offsetting_both_inputs_maps_the_pose(registrar):
     assert np.allclose(scaled.rotation, base.rotation, atol=1e-4)
     # tgt ~ R src + t  =>  a tgt + o ~ R (a src + o) + a t + o - R o
     assert np.allclose(scaled.translation, a * base.translation + offset - base.rotation @ offset, atol=1e-3 * a)
+
+
+def test_clouds_scaled_down_to_the_floor_register_as_at_their_own_size(registrar):
+    """At 1e-165 the pipeline's squared distances underflowed: a ZeroDivisionError (a 500 over HTTP), and at 1e-160
+    a pose 108 deg off. Clouds whose largest |value| is below SMALLEST_COORDINATES are refused, naming it; at the
+    floor the pose is the one of the clouds at their own size."""
+    R = Rotation.from_euler("z", 25, degrees=True).as_matrix()
+    src, tgt = bumpy_ellipsoid(768, 3), bumpy_ellipsoid(768, 4) @ R.T
+    base = registrar.register(src, tgt)
+    floor = SMALLEST_COORDINATES / min(np.abs(src).max(), np.abs(tgt).max())  # the smaller cloud's largest at it
+    small = registrar.register(src * floor, tgt * floor)
+    assert np.allclose(small.rotation, base.rotation, atol=1e-4)
+    assert np.allclose(small.translation, floor * base.translation, atol=1e-3 * floor)
+    assert small.reliable == base.reliable
+    for scale in (floor / 2, 1e-165, 1e-300):
+        with pytest.raises(InputError, match=r"^source: coordinates too small: the largest \|value\| is .* 1e-30;"):
+            registrar.register(src * scale, tgt)
+    assert registrar.register(np.zeros((100, 3)), tgt).warnings[0].startswith("source identical")  # no size at all
 
 
 def test_permuting_input_points_does_not_change_the_pose(registrar):

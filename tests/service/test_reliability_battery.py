@@ -308,6 +308,8 @@ BAD_INPUTS: dict[str, Case] = {
     "npy_2_columns": case(lambda: form(source=npy(_pair()[0][:, :2])), 422, "source", "[N, 3]"),
     "npy_nan": case(lambda: form(source=npy(np.full((40, 3), np.nan))), 422, "source", "nan"),
     "npy_float32_overflow": case(lambda: form(source=npy(_pair()[0] * 1e39)), 422, "source", "float32"),
+    "npy_float64_1e-165": case(lambda: form(source=npy(_pair()[0].astype(np.float64) * 1e-165)), 422, "source",
+                               "too small"),
     "npy_31_points": case(lambda: form(source=npy(_pair()[0][:31])), 422, "source", "32"),
     "multipart_missing_target": case(lambda: form(target=b""), 422, "target", "missing"),
     "multipart_source_as_text": case(lambda: {"method": "POST", "url": "/v1/register", "data": {"source": "1,2,3"},
