@@ -16,8 +16,9 @@ EXACT_TOLERANCE = 1e-12  # orthonormal to float64 rounding: taken as it is, not 
 # whose cast of 1e39 overflowed with a RuntimeWarning on the caller's stderr)
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 # The smallest largest |coordinate| of a cloud (all zeros aside: one repeated point, which the quality stage names).
-# Clouds scaled down to it register as at their own size; near float32's smallest normal number (1.2e-38) poses drift
-# and lose `reliable`, and below 1e-154 float64's squared distances underflow (docs/decisions/0104-...).
+# Clouds scaled down to it register as at their own size; float32 uploads drift and lose `reliable` near float32's
+# smallest normal number (1.2e-38), float64 clouds fail below about 1e-155, where squared distances underflow
+# (docs/decisions/0104-a-floor-for-tiny-coordinates.md).
 SMALLEST_COORDINATES = 1e-30
 
 
