@@ -24,6 +24,23 @@ app = typer.Typer(
     add_completion=False,
     rich_markup_mode=None,
 )  # plain click help: flag names never cut at 80 columns
+
+
+def _keep_flags_whole() -> None:
+    """Help text wrapped at spaces only: textwrap's default also breaks after a hyphen, which cut flag names that a
+    help text mentions (``--rotation-`` / ``search``, ``--lr-`` / ``drop-at``) at 80 columns. Typer vendors click
+    (``typer._click``); its ``wrap_text`` builds a ``TextWrapper`` from ``_textwrap`` at each call."""
+    from typer._click import _textwrap
+
+    class WholeWords(_textwrap.TextWrapper):
+        def __init__(self, *args, **kwargs):
+            kwargs.setdefault("break_on_hyphens", False)
+            super().__init__(*args, **kwargs)
+
+    _textwrap.TextWrapper = WholeWords
+
+
+_keep_flags_whole()
 app.command("serve")(serve_command)
 app.command("register")(register_command)
 app.command("sequence")(sequence_command)

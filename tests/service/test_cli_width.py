@@ -75,6 +75,9 @@ def test_every_help_fits_80_columns_with_whole_flag_names(helps) -> None:
         for flag in page["flags"]:
             assert flag in page["help"].split() or f"{flag}," in page["help"], f"{name}: {flag} cut"
     assert "--rotation-search-mode" in helps["register"]["help"].split()
+    for name, page in helps.items():  # nor cut where a help text names a flag (`--rotation-` / `search)`)
+        cut = [line for line in page["help"].splitlines() if re.search(r"(?<![\w-])--[a-z][\w-]*-$", line)]
+        assert not cut, f"{name}: {cut}"
 
 
 def test_every_flag_a_help_names_is_one_of_its_commands(helps) -> None:
