@@ -12,6 +12,7 @@ settings; the bare :meth:`service.registrar.Registrar.register` runs the paper's
 
 from __future__ import annotations
 
+import numbers
 import os
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,7 @@ from numpy.typing import ArrayLike
 from service.manifest import Manifest, bundled_models_dir
 from service.options import check_flag
 from service.registrar import Registrar
-from service.request_defaults import DEFAULT_MODEL, request_defaults
+from service.request_defaults import DEFAULT_MODEL, THREAD_RANGE, request_defaults
 from service.result import RegistrationResult
 
 Cloud = ArrayLike | str | os.PathLike[str]  # an [N, 3] array-like of numbers, or a point-cloud file
@@ -41,12 +42,13 @@ class LocalRegistrar:
     (built on another, it gives the same poses, more slowly under load; ``OMP_NUM_THREADS=1`` does the same).
 
     Raises:
-        ValueError: ``model`` names no bundled model and no folder.
+        ValueError: ``model`` names no bundled model and no folder, or ``threads`` is no whole number in
+            ``THREAD_RANGE`` (1..64, as ``mfgnet register --threads``).
         service.manifest.ModelIntegrityError: the model's files are missing or do not match its manifest.
     """
 
     def __init__(self, model: str | Path = DEFAULT_MODEL, *, threads: int | None = None, warmup: bool = True):
-        self.registrar = Registrar(model_directory(model), threads=threads, warmup=warmup)
+        self.registrar = Registrar(model_directory(model), threads=checked_threads(threads), warmup=warmup)
 
     @property
     def manifest(self) -> Manifest:
@@ -84,6 +86,8 @@ def model_directory(model: str | Path) -> Path:
     """The folder of ``model``: a ``Path`` as it is; a ``str`` naming a bundled model, that model's folder (the name
     wins over a folder of that name in the working directory, as in ``mfgnet register --model``), else a folder."""
     if isinstance(model, Path):
+        if not model.is_dir():  # not a damaged model: a mistyped path
+            raise ValueError(f"model {str(model)!r}: no such folder")
         return model
     bundled = bundled_models_dir()
     if model and (bundled / model).is_dir():  # "" would name the folder of bundled models
@@ -93,6 +97,18 @@ def model_directory(model: str | Path) -> Path:
     names = sorted(d.name for d in bundled.iterdir() if d.is_dir() and not d.name.startswith(("_", ".")))
     raise ValueError(f"model {model!r}: no bundled model of that name (bundled: {', '.join(names) or 'none'}) "
                      "and no folder")
+
+
+def checked_threads(threads: int | None) -> int | None:
+    """``threads`` where it is ``None`` or a whole number in ``THREAD_RANGE``, else ``ValueError`` naming it (ONNX
+    Runtime took 300 and started 1,500 threads, took -1, and answered 2.5 with a binding's ``TypeError``)."""
+    low, high = THREAD_RANGE
+    if threads is None:
+        return None
+    if isinstance(threads, bool) or not isinstance(threads, numbers.Integral) or not low <= threads <= high:
+        raise ValueError(f"threads must be a whole number in {low}..{high} (as mfgnet register --threads), "
+                         f"got {threads!r}")
+    return int(threads)
 
 
 def read_cloud(cloud: Cloud) -> ArrayLike:

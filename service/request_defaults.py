@@ -18,6 +18,8 @@ DEFAULT_MODEL = "general"
 # line and the pipeline check these.
 MAX_ITERATIONS = 8
 KEYPOINT_RANGE = (16, 512)
+# ONNX Runtime threads per graph a server, `mfgnet register --threads` or LocalRegistrar may ask for
+THREAD_RANGE = (1, 64)
 
 
 def request_defaults(

@@ -10,7 +10,7 @@ import typer
 
 from service.cli.common import fail
 from service.refine_modes import REFINE_POINTS_RANGE, SERVICE_DEFAULT_REFINE, Refine
-from service.request_defaults import DEFAULT_MODEL, KEYPOINT_RANGE, MAX_ITERATIONS
+from service.request_defaults import DEFAULT_MODEL, KEYPOINT_RANGE, MAX_ITERATIONS, THREAD_RANGE
 from service.search_mode import RotationSearchMode, rotation_search_from_options
 
 ModelDirs = Annotated[
@@ -94,7 +94,9 @@ RotationSearchModeOpt = Annotated[
         "none; with --server the server's MFGNET_DEFAULT_ROTATION_SEARCH]"
     ),
 ]
-ThreadsOpt = Annotated[int | None, typer.Option(min=1, max=64, help="ONNX Runtime threads (in-process)")]
+ThreadsOpt = Annotated[
+    int | None, typer.Option(min=THREAD_RANGE[0], max=THREAD_RANGE[1], help="ONNX Runtime threads (in-process)")
+]
 
 
 def check_server_flags(server: str | None, model_dir: list[Path] | None, threads: int | None) -> None:

@@ -10,6 +10,7 @@ import typer
 
 from service.cli.common import SERVE_EXTRA_HINT, fail
 from service.cli.options import ModelDirs
+from service.request_defaults import THREAD_RANGE
 
 if TYPE_CHECKING:
     from pydantic import ValidationError
@@ -20,7 +21,10 @@ def serve_command(
     port: Annotated[int | None, typer.Option(help="TCP port (env MFGNET_PORT)")] = None,
     model_dir: ModelDirs = None,
     threads: Annotated[
-        int | None, typer.Option(min=1, max=64, help="ONNX Runtime threads per model (env MFGNET_THREADS)")
+        int | None,
+        typer.Option(
+            min=THREAD_RANGE[0], max=THREAD_RANGE[1], help="ONNX Runtime threads per model (env MFGNET_THREADS)"
+        ),
     ] = None,
 ) -> None:
     """Run the HTTP service (POST /v1/register, GET /v1/models, GET /v2/health/ready).

@@ -16,7 +16,7 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from service.refine_modes import SERVICE_DEFAULT_REFINE
-from service.request_defaults import DEFAULT_MODEL
+from service.request_defaults import DEFAULT_MODEL, THREAD_RANGE
 from service.search_mode import SERVICE_DEFAULT_ROTATION_SEARCH
 
 KiB = 1024
@@ -73,7 +73,9 @@ class Settings(BaseSettings):
     )
     host: str = "127.0.0.1"
     port: int = Field(8080, ge=0, le=65535)
-    threads: int = Field(2, ge=1, le=64, description="ONNX Runtime intra-op threads per session.")
+    threads: int = Field(
+        2, ge=THREAD_RANGE[0], le=THREAD_RANGE[1], description="ONNX Runtime intra-op threads per session."
+    )
     max_points: int = Field(
         200_000, ge=32, description="Most points per cloud sent as JSON or OIP tensors; more is answered with 413."
     )

@@ -124,6 +124,22 @@ def test_an_unknown_model_is_a_value_error_naming_the_bundled_ones(name):
         LocalRegistrar(name)
 
 
+def test_a_missing_model_folder_is_a_value_error_not_a_damaged_model(tmp_path):
+    with pytest.raises(ValueError, match="no such folder"):  # was ModelIntegrityError: manifest.json is missing
+        LocalRegistrar(tmp_path / "no" / "such" / "folder")
+
+
+@pytest.mark.parametrize("threads", [0, -1, 65, 300, 2.5, "2", True])
+def test_threads_out_of_the_command_lines_range_are_a_value_error(threads):
+    """ONNX Runtime took 300 (1,500 OS threads) and -1, and answered 2.5 with a binding's TypeError."""
+    with pytest.raises(ValueError, match=r"threads must be a whole number in 1\.\.64"):
+        LocalRegistrar(threads=threads, warmup=False)
+
+
+def test_threads_as_a_numpy_integer_are_taken():
+    assert LocalRegistrar(threads=np.int64(1), warmup=False).manifest.name == "general"
+
+
 def test_a_bad_option_is_an_input_error_naming_it(local):
     source, target = synthetic_pair()
     with pytest.raises(InputError, match="keypoints"):
