@@ -129,6 +129,14 @@ def evaluate(
 
         if refine not in REFINE_MODES:
             raise typer.BadParameter(f"unknown --refine {refine!r}; expected one of {', '.join(REFINE_MODES)}")
+        if refine_points is not None:  # as mfgnet register checks them: before any pair runs, not a traceback
+            from service.refine_modes import REFINE_POINTS_RANGE
+
+            low, high = REFINE_POINTS_RANGE
+            if not low <= refine_points <= high:
+                fail(f"--refine-points {refine_points}: must be in {low}..{high}")
+            if refine == "none":
+                fail("--refine-points sets the refinement's clouds; --refine none runs no refinement")
     try:
         search = rotation_search_from_options(rotation_search, rotation_search_mode) or False  # evaluate: off
     except ValueError as err:

@@ -220,12 +220,13 @@ def reference_radius(setting: str = "clean", count: int = 512, seed: int = 0, da
     return float(np.median([rms_radius(src) for src in pairs["source"]]))
 
 
-def search_section(protocol: dict | None) -> dict | None:
-    """The manifest's ``search`` section for a checkpoint trained with ``protocol`` (its pair protocol as saved):
-    a subsample for models trained on independently sampled pairs, none (full clouds) for shared points."""
+def search_section(protocol: dict | None, recipe: str | None = None) -> dict | None:
+    """The manifest's ``search`` section for a checkpoint trained with ``protocol`` (its pair protocol as saved) or a
+    ``recipe`` (whose pairs are independently sampled whatever ``--setting`` validated on): a subsample for models
+    trained on independently sampled pairs, none (full clouds) for shared points."""
     from service.rotation_search import SEARCH_KEYPOINTS, SEARCH_POINTS
 
-    if (protocol or {}).get("sampling", "shared") == "shared":
+    if recipe is None and (protocol or {}).get("sampling", "shared") == "shared":
         return None
     return {"points": SEARCH_POINTS, "keypoints": SEARCH_KEYPOINTS}
 
@@ -241,7 +242,17 @@ def write_model_folder(out_dir: Path, checkpoint_path: Path, model: MFGNet, chec
     files = export_graphs(model, out_dir)
     write_manifest(out_dir, out_dir.name, model, files, file_sha256(checkpoint_path), accuracy,
                    reference_radius(setting, data=data), version, source=checkpoint_path.name,
-                   search=search_section(checkpoint.get("protocol")), training=training_section(checkpoint))
+                   search=search_section(checkpoint.get("protocol"), trained_recipe(checkpoint)),
+                   training=training_section(checkpoint))
+
+
+def trained_recipe(checkpoint: dict) -> str | None:
+    """The ``--recipe`` the checkpoint's run trained with, as its ``provenance`` records it (``None``: none, or no
+    record)."""
+    run = (checkpoint.get("provenance") or {}).get("run") if isinstance(checkpoint.get("provenance"), dict) else None
+    options = run.get("options") if isinstance(run, dict) else None
+    recipe = options.get("recipe") if isinstance(options, dict) else None
+    return recipe if isinstance(recipe, str) else None
 
 
 def training_section(checkpoint: dict) -> dict | None:

@@ -24,17 +24,30 @@ from model.cli_inputs import (
     output_folder,
     require_shapes,
 )
-from model.data import SETTINGS, PairProtocol, class_names, make_test_pairs, pairs_path, protocol_for, save_pairs
+from model.data import (
+    DENSE_SETTINGS,
+    SETTINGS,
+    PairProtocol,
+    class_names,
+    make_test_pairs,
+    pairs_path,
+    protocol_for,
+    save_pairs,
+)
 from model.recipes import recipe_draw
 
 if TYPE_CHECKING:  # torch is imported only when a command trains
     from model.train import TrainOptions
 
 Setting = Annotated[str, typer.Option(help=f"one of {', '.join(SETTINGS)}")]
+TrainSetting = Annotated[str, typer.Option(
+    help=f"one of {', '.join(s for s in SETTINGS if s not in DENSE_SETTINGS)} ({' and '.join(DENSE_SETTINGS)} have "
+    "test shapes only)"
+)]
 SourcePoints = Annotated[int | None, typer.Option(help="source points kept after the crop (default: the crop size)")]
 TargetPoints = Annotated[int | None, typer.Option(help="target points kept after the crop (default: the crop size)")]
 Overlap = Annotated[float | None, typer.Option(help="fraction of each cloud kept by the crop, 0.5-1.0")]
-Noise = Annotated[float | None, typer.Option(help="Gaussian noise sigma, clipped at +-5 sigma")]
+Noise = Annotated[float | None, typer.Option(help="Gaussian noise sigma, 0-1, clipped at +-5 sigma")]
 MaxAngle = Annotated[float | None, typer.Option(help="largest Euler angle per axis in degrees, up to 180")]
 Outliers = Annotated[
     float | None,
@@ -87,9 +100,13 @@ def setting_pairs(
     shapes = require_shapes(split, setting, data)
     try:
         with finite_shapes():
-            return make_test_pairs(setting, split, count, seed, data, protocol=protocol), shapes
+            pairs = make_test_pairs(setting, split, count, seed, data, protocol=protocol)
     except ValueError as err:
         raise typer.BadParameter(str(err)) from err
+    if count is not None and len(pairs["source"]) < count:  # else evaluate's 'evaluated' records a count it never ran
+        raise typer.BadParameter(f"--count {count}: {shapes.name} holds {len(pairs['source'])} shapes, one pair each; "
+                                 "give at most that many, or leave --count out")
+    return pairs, shapes
 
 
 def make_pairs(
@@ -283,10 +300,10 @@ GROWING_OPTIONS = ("epochs", "patience")  # with --resume: given, they extend (o
 def resumed_options(ctx: typer.Context, opts: TrainOptions, checkpoint: dict) -> TrainOptions:
     """``opts`` of ``mfgnet train --resume`` made the run's: each run option left out takes the saved value (its
     ``config.json``, the network from ``last.pt``); a usage error names those given with another value."""
-    from model.train import RUN_OPTIONS
+    from model.train import RUN_OPTIONS, checkpoint_run_options
 
     out = Path(opts.out)
-    saved = {}
+    saved = checkpoint_run_options(checkpoint)  # no config.json (a device run's folder): what last.pt records
     if (out / "config.json").exists():
         config = json_file(out / "config.json", "--resume")
         if not isinstance(config, dict) or not isinstance(config.get("train"), dict):
@@ -322,7 +339,7 @@ def resumed_options(ctx: typer.Context, opts: TrainOptions, checkpoint: dict) ->
 
 def train(
     ctx: typer.Context,
-    setting: Setting = "clean",
+    setting: TrainSetting = "clean",
     out: Annotated[Path, typer.Option(help="run directory (checkpoints, log.jsonl)")] = Path("runs/clean"),
     epochs: Annotated[int, typer.Option(help="epochs of the run (with --resume: left out, the run's)")] = 50,
     batch_size: Annotated[int, typer.Option(help="pairs per training batch")] = 8,

@@ -191,8 +191,8 @@ def protocol_for(
             raise ValueError(f"overlap must be in {OVERLAP_RANGE[0]}..{OVERLAP_RANGE[1]}, got {overlap}")
         changes["keep"] = round(overlap * changes.get("points", protocol.points))
     if noise is not None:
-        if not noise >= 0:
-            raise ValueError(f"noise must be >= 0, got {noise}")
+        if not 0 <= noise <= 1:  # inf or NaN (or a sigma beyond the unit ball's shapes) makes non-finite clouds
+            raise ValueError(f"noise must be in 0..1 (a sigma in the shapes' unit-ball units), got {noise}")
         changes["noise_sigma"], changes["noise_clip"] = float(noise), NOISE_CLIP_SIGMAS * float(noise)
     if max_angle is not None:
         if not 0 <= max_angle <= MAX_ANGLE_LIMIT:

@@ -198,6 +198,16 @@ RUN_OPTIONS = ("setting", "seed", "batch_size", "max_batches_per_epoch", "lr", "
                "outliers", "recipe", "views_share", "sensor_share", "init")
 
 
+def checkpoint_run_options(ckpt: dict) -> dict:
+    """The run's options as its checkpoint records them (``provenance``: the latest resume's, else the start's), for
+    a run folder without ``config.json`` (``scripts/device_train.py`` removes it); empty where it records none."""
+    made_by = ckpt.get("provenance") if isinstance(ckpt.get("provenance"), dict) else {}
+    for record in (*reversed(made_by.get("resumes") or []), made_by.get("run")):
+        if isinstance(record, dict) and isinstance(record.get("options"), dict):
+            return dict(record["options"])
+    return {}
+
+
 def resume_conflicts(opts: TrainOptions, saved: dict, saved_network: MFGNetConfig) -> list[str]:
     """The options of ``opts`` that differ from those of the run being resumed: ``saved`` (its ``config.json``
     ``train`` options; only the keys it holds are compared) and ``saved_network`` (its checkpoint's network)."""
@@ -302,7 +312,8 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
     if opts.resume and last_path.exists():
         ckpt = read_checkpoint(last_path)
         cfg = MFGNetConfig.from_dict(ckpt["config"])
-        saved = json.loads((out / "config.json").read_text())["train"] if (out / "config.json").exists() else {}
+        saved = (json.loads((out / "config.json").read_text())["train"] if (out / "config.json").exists()
+                 else checkpoint_run_options(ckpt))
         conflicts = resume_conflicts(opts, {"setting": ckpt.get("setting", opts.setting), **saved}, cfg)
         if conflicts:
             raise ValueError(f"resuming {out}: {', '.join(conflicts)} differ from the run's; a resumed run keeps them")

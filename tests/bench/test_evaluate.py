@@ -447,3 +447,29 @@ def test_evaluate_refuses_a_count_numpy_cannot_draw_as_make_pairs_does(tmp_path,
     assert result.exit_code == 2, result.output
     assert result.exception is None or isinstance(result.exception, SystemExit), repr(result.exception)
     assert "Invalid value for '--count': Input should be greater than or equal to 1" in result.output  # 0 too
+
+
+@pytest.mark.parametrize("command", ["evaluate", "make-pairs"])
+def test_a_count_beyond_the_splits_shapes_is_refused_not_recorded(tmp_path, tiny_checkpoint, command) -> None:
+    """One pair per shape: --count 1000 on 4 shapes made 4 pairs, and evaluate's JSON recorded a count of 1000."""
+    folder = tmp_path / "data"
+    folder.mkdir()
+    np.savez(folder / "modelnet40_test.npz", points=sphere_shapes(4, seed=3).astype(np.float32), labels=np.arange(4))
+    method = ["--checkpoint", str(tiny_checkpoint)] if command == "evaluate" else ["--out", str(tmp_path / "p.npz")]
+    result = runner.invoke(app, [command, *method, "--count", "1000", "--data", str(folder)])
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    assert "--count 1000" in result.output and "holds 4 shapes" in result.output, result.output
+    ok = runner.invoke(app, [command, *method, "--count", "4", "--data", str(folder)])
+    assert ok.exit_code == 0, ok.output
+
+
+@pytest.mark.parametrize(("args", "words"), [
+    (["--refine", "icp-plane", "--refine-points", "5"], ["--refine-points 5", "32..8192"]),
+    (["--refine", "icp-plane", "--refine-points", "100000"], ["--refine-points 100000", "32..8192"]),
+    (["--refine", "none", "--refine-points", "1000"], ["--refine-points", "--refine none"]),
+])
+def test_evaluate_checks_refine_points_before_any_pair(synthetic_pairs, args, words) -> None:
+    """Out of range it was the pipeline's InputError traceback at the first pair; with --refine none it was recorded
+    in `evaluated` and ignored, where mfgnet register refuses it."""
+    result = runner.invoke(app, ["evaluate", "--model", "general", "--pairs", str(synthetic_pairs), *args])
+    assert_usage_error(result, *words)

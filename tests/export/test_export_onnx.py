@@ -13,7 +13,7 @@ import torch
 from pair_checks import needs_modelnet
 from shapes import ellipsoid_surface
 
-from export.onnx_export import export_graphs, fold_batchnorm, search_section, write_manifest
+from export.onnx_export import export_graphs, fold_batchnorm, search_section, trained_recipe, write_manifest
 from export.parity import check_parity
 from model.config import MFGNetConfig
 from model.data import PairProtocol, make_pairs
@@ -75,6 +75,11 @@ def test_the_search_section_follows_the_training_sampling(exported, tmp_path):
     assert search_section({"sampling": "shared"}) is None
     for sampling in ("disjoint", "independent"):
         assert search_section({"sampling": sampling}) == {"points": SEARCH_POINTS, "keypoints": SEARCH_KEYPOINTS}
+    # a --recipe run (independent samples) validated on the default --setting clean: its protocol says shared
+    assert search_section({"sampling": "shared"}, "general") == {"points": SEARCH_POINTS, "keypoints": SEARCH_KEYPOINTS}
+    assert trained_recipe({"provenance": {"run": {"options": {"recipe": "real"}}}}) == "real"
+    assert trained_recipe({"provenance": {"run": {"options": {"recipe": None}}}}) is None
+    assert trained_recipe({}) is None and trained_recipe({"provenance": "old"}) is None
     model, out = exported
     assert "search" not in json.loads((out / "manifest.json").read_text())
     copy = tmp_path / "tiny"

@@ -94,6 +94,21 @@ def test_make_pairs_rejects_a_data_folder_without_modelnet(tmp_path, data, monke
     assert not (tmp_path / "p.npz").exists()
 
 
+@pytest.mark.parametrize("noise", ["inf", "1e308", "nan", "-0.1"])
+@pytest.mark.parametrize("command", ["make-pairs", "train"])
+def test_a_noise_no_cloud_survives_is_a_usage_error(tmp_path, command, noise) -> None:
+    """`--noise inf` made clouds of non-finite points (make-pairs exit 0), or a LinAlgError / RuntimeError traceback."""
+    data = tiny_training_data(tmp_path)
+    out = tmp_path / ("p.npz" if command == "make-pairs" else "run")
+    args = [command, "--out", str(out), "--data", data, "--noise", noise]
+    if command == "make-pairs":
+        args += ["--count", "2"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    assert "noise must be in 0..1" in result.output, result.output
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("kind", [*NOT_A_FILE, *NOT_A_CHECKPOINT])
 def test_train_rejects_an_init_file_that_is_not_a_checkpoint(tmp_path, kind) -> None:
     path = bad_file(tmp_path, kind)
@@ -254,6 +269,26 @@ def test_train_resume_keeps_the_run_options_and_exits_143_on_sigterm(tmp_path, m
     assert f"best checkpoint: {run / 'best.pt'}" in finished.stdout
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [(r["epoch"], r["batches"]) for r in records] == [(0, 2), (1, 2), (2, 2)]
+
+
+def test_resume_without_config_json_takes_the_options_the_checkpoint_records(tmp_path) -> None:
+    """scripts/device_train.py brings runs back without config.json: --resume then ran the default lr, batch size,
+    recipe and batch cap, silently."""
+    from model.train import TrainOptions, train
+
+    data = tiny_training_data(tmp_path)
+    run = tmp_path / "run"
+    train(TrainOptions(setting="resampled", out=str(run), data=data, epochs=1, batch_size=2, max_batches_per_epoch=2,
+                       lr=1e-5, val_pairs=2, device="cpu", config=dict(TINY_MODEL)))
+    (run / "config.json").unlink()
+    resume = ["train", "--out", str(run), "--data", data, "--resume"]
+    assert_usage_error(runner.invoke(app, [*resume, "--lr", "1e-3"]), "--lr 0.001 (the run's: 1e-05)")
+    finished = runner.invoke(app, [*resume, "--epochs", "2"])
+    assert finished.exit_code == 0, finished.output
+    saved = json.loads((run / "config.json").read_text())["train"]
+    assert (saved["lr"], saved["batch_size"], saved["max_batches_per_epoch"]) == (1e-5, 2, 2)
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [(r["epoch"], r["batches"]) for r in records] == [(0, 2), (1, 2)]
 
 
 def tiny_test_data(tmp_path) -> str:
