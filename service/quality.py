@@ -40,6 +40,9 @@ RELIABLE_RELATIVE_RATIO = 0.5
 # ... or where the attainable ratio is that of the target's surface (attainable_on_surface), this much of it: range
 # images 48 deg apart overlap by about half (docs/decisions/0026-reliable-at-045-of-the-surface-ratio.md)
 RELIABLE_RELATIVE_RATIO_ON_SURFACE = 0.45
+# ... and with refine="none", the network's pose as it is, this much of either: a raw pose 30-40 deg off kept 0.5-0.6
+# of it and passed (docs/decisions/0105-an-unrefined-pose-needs-more-of-the-fit.md)
+RELIABLE_RELATIVE_RATIO_UNREFINED = 0.8
 NEAR_SURFACE_FACTOR = 3.0  # near_surface_share: points within this many inlier distances count as near the target
 # ... and of the moved source points near the target (within NEAR_SURFACE_FACTOR inlier distances), a share within
 # one (near_surface_share) of at least this much of the attainable inlier ratio: a right pose lies on the target
@@ -246,7 +249,7 @@ def poor_fit(inlier_ratio: float, attainable: float, on_surface: bool) -> bool:
 
 def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlier_distance: float,
            tree: KDTree | None = None, attainable: float | None = None, on_surface: bool = True,
-           reverse: Callable[[], ReverseFit] | None = None) -> Quality:
+           reverse: Callable[[], ReverseFit] | None = None, unrefined: bool = False) -> Quality:
     """Quality of the ``src_to_tgt`` pose ``(R (3, 3), t (3,))`` for ``src (N, 3)``, ``tgt (M, 3)``.
 
     A moved source point ``R p + t`` is an inlier when its nearest target point is at most
@@ -257,6 +260,8 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
     this computes the latter. ``reverse``: where the caller knows the target samples its surface densely, the
     :func:`reverse_fit` of this pose, asked only where the inlier ratio alone keeps the result from ``reliable``; if
     the source :func:`explains_the_target` the ratio check passes, with a note instead of its warning.
+    ``unrefined``: the pose is the network's, unrefined; a reliable one also keeps ``RELIABLE_RELATIVE_RATIO_UNREFINED``
+    of the attainable ratio.
     """
     src = np.asarray(src, dtype=np.float64)
     tgt = np.asarray(tgt, dtype=np.float64)
@@ -305,4 +310,9 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         warnings.append(f"{WORKING_LOOSE_FIT} {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
                         f"{allows}; a right pose lies on the target where they overlap")
     reliable = not degenerate and ratio_passes and tight
+    if reliable and unrefined and inlier_ratio < RELIABLE_RELATIVE_RATIO_UNREFINED * attainable:
+        warnings.append(f"{POOR_FIT}: the unrefined pose's inlier ratio {inlier_ratio:.2f} < "
+                        f"{RELIABLE_RELATIVE_RATIO_UNREFINED} of the {attainable:.2f} {allows}; a refinement "
+                        "(refine: icp-plane) settles it or shows it wrong")
+        reliable = False
     return Quality(inlier_ratio=inlier_ratio, residual_rms=residual_rms, reliable=reliable, warnings=warnings)

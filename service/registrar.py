@@ -441,4 +441,5 @@ class Registrar:
             refined = stages.flip(work, refined, o)
         if o.refine_mode != "none":
             timing["refine"] = 1000 * (time.perf_counter() - started)
-        return stages.assess(work, found, refined, request.iterations, o.return_iterations, timing)
+        return stages.assess(work, found, refined, request.iterations, o.return_iterations, timing,
+                             unrefined=o.refine_mode == "none")

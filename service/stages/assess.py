@@ -114,9 +114,11 @@ def assess_result(
     iterations: int,
     return_iterations: bool,
     timing: dict[str, float],
+    unrefined: bool = False,
 ) -> RegistrationResult:
-    """Inlier ratio, residual and ``reliable`` (:func:`service.quality.assess`), the pose's stability
-    (:func:`service.stability.pose_stability`) and the winning candidate's correspondences as a result.
+    """Inlier ratio, residual and ``reliable`` (:func:`service.quality.assess`; ``unrefined``: the pose is the
+    network's, ``refine="none"``), the pose's stability (:func:`service.stability.pose_stability`) and the winning
+    candidate's correspondences as a result.
 
     Not reliable when the quality says so, the candidate ranking was ambiguous, the motion is weakly constrained
     (:func:`weak_below`), or the pose lies off a dense target's surface (:func:`off_the_surface`); records
@@ -129,7 +131,8 @@ def assess_result(
     tree, working = work.working_target_lookup(surface)  # shared by the two checks below
     src = work.working_source  # [Ns, 3] caller's frame
     attainable, on_surface = reliable_attainable(work)
-    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface, reverse_fit_on(work, R, t))
+    quality = assess(src, tgt_w, R, t, work.inlier_distance, tree, attainable, on_surface, reverse_fit_on(work, R, t),
+                     unrefined)
     stability = pose_stability(src @ R.T + t, tgt_w, tree, ICP_DISTANCE * work.norm.scale, working, weak_below(work))
     weak = weak_motion_warning(turns_at_the_common_floor(stability))
     reliable = bool(quality.reliable) and refined.ambiguity is None and weak is None  # assess(): degenerate

@@ -45,7 +45,7 @@ class Stages:
     refine: Callable = refine  # (Working, starts, RegistrationOptions) -> Refined
     slide: Callable = slide  # (Working, Refined, RegistrationOptions) -> Refined
     flip: Callable = flip  # (Working, Refined, RegistrationOptions) -> Refined; after a search only
-    assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing)
+    assess: Callable = assess_result  # (Working, Candidates, Refined, iterations, return_iterations, timing, unrefined)
     # (solve, Working, plain, hypotheses, timing, retry_points, confirmed, guided, strayed) -> RegistrationResult
     auto_search: Callable = auto_search
     # (registrar, Working, RegistrationResult, RegistrationOptions, iterations, keypoints, timing) -> the same or the

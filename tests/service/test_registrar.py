@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pair_checks import needs_dense
 from scipy.spatial.transform import Rotation
 from shapes import asymmetric_blob, bumpy_ellipsoid, ellipsoid_surface
 
@@ -346,3 +347,19 @@ def test_runtime_never_imports_torch():
         "assert not bad, bad\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+@needs_dense
+def test_an_unrefined_pose_30_deg_off_is_not_reliable():
+    """Scan pair 150 of `make-pairs --setting scans --seed 0`: `general`'s pose, unrefined, is 30 deg off and kept
+    0.5-0.8 of the attainable inlier ratio; it came back `reliable` with no warning."""
+    from model.data import make_test_pairs
+
+    pairs = make_test_pairs("scans", "test", None, 0)
+    src, tgt = pairs["source"][150], pairs["target"][150]
+    general = Registrar(bundled_models_dir() / "general", threads=1, warmup=False)
+    result = general.register(src, tgt, refine="none")
+    cos = (np.trace(result.rotation.T @ pairs["rotation"][150]) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) > 15  # the network's pose, wrong
+    assert not result.reliable
+    assert any(w.startswith("poor fit: the unrefined pose's inlier ratio") for w in result.warnings), result.warnings

@@ -12,6 +12,7 @@ from service.quality import (
     RELIABLE_NEAR_SHARE_ON_SURFACE,
     RELIABLE_RELATIVE_RATIO,
     RELIABLE_RELATIVE_RATIO_ON_SURFACE,
+    RELIABLE_RELATIVE_RATIO_UNREFINED,
     RELIABLE_REVERSE_RATIO,
     TARGET_EXPLAINED,
     ReverseFit,
@@ -129,6 +130,22 @@ def test_reliability_also_needs_a_share_of_what_the_target_density_allows(inlier
     quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
     assert quality.inlier_ratio == pytest.approx(inliers / 100) and quality.reliable is reliable
     assert any(w.startswith("poor fit") for w in quality.warnings) is (not reliable)  # 0.3 <= ratio < 0.5
+
+
+@pytest.mark.parametrize(("inliers", "reliable"), [(80, True), (79, False), (60, False)])
+def test_an_unrefined_pose_needs_08_of_what_the_target_density_allows(inliers: int, reliable: bool) -> None:
+    """With refine="none" raw network poses 30-40 deg off kept 0.5-0.6 of the attainable ratio and passed."""
+    assert RELIABLE_RELATIVE_RATIO_UNREFINED == 0.8
+    grid = np.stack(np.meshgrid(*[np.arange(5) * 0.05] * 2, np.arange(4) * 0.05), -1).reshape(-1, 3)  # [100, 3]
+    tgt = grid + np.random.default_rng(0).normal(scale=1e-3, size=grid.shape)
+    src = tgt.copy()
+    src[inliers:] = np.random.default_rng(1).normal(scale=1000.0, size=(100 - inliers, 3))  # far, in 3D
+    refined = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert refined.reliable and not refined.warnings  # the rule for refined poses: 0.5 of it
+    unrefined = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1, unrefined=True)
+    assert unrefined.reliable is reliable and unrefined.inlier_ratio == refined.inlier_ratio
+    expected = f"poor fit: the unrefined pose's inlier ratio {inliers / 100:.2f} < 0.8 of the 1.00 the target's density"
+    assert [w.startswith(expected) for w in unrefined.warnings] == ([] if reliable else [True])
 
 
 @pytest.mark.parametrize(("loose", "reliable"), [(27, True), (28, False)])
