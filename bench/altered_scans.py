@@ -28,8 +28,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.real_scans import scan_set, turned
+from bench.real_scans import scan_set, thresholds, turned
 from bench.report_io import json_destination, provenance
+from bench.scan_pairs import THRESHOLD_FIELDS, read_pair, read_pairs
 from bench.surface_resample import point_spacing
 from bench.variant_runs import general_registrar, registered, report
 from service.manifest import bundled_models_dir
@@ -72,13 +73,11 @@ def cases(directory: Path, kind: str, scattered: float = 0.1, names: list[str] |
         if names and file.stem not in names:
             continue
         rng = np.random.default_rng([ALTERATIONS.index(kind), sum(map(ord, file.stem))])
-        with np.load(file) as data:
-            source, target = data["source"].astype(np.float32), data["target"].astype(np.float32)
-            truth, sensor = data["transform"].astype(np.float64), str(data["sensor"])
-        source, target = altered(kind, source, target, rng, scattered)
-        yield f"{kind}/{file.stem}/scanned", sensor, source, target, truth
-        src_t, truth_t = turned(source, truth, Rotation.random(random_state=rng).as_matrix())
-        yield f"{kind}/{file.stem}/turned", sensor, src_t, target, truth_t
+        pair = read_pair(file)  # with the file's own thresholds, which judge it before its sensor class's
+        source, target = altered(kind, pair.source, pair.target, rng, scattered)
+        yield f"{kind}/{file.stem}/scanned", pair.sensor, source, target, pair.src_to_tgt, pair.limits
+        src_t, truth_t = turned(source, pair.src_to_tgt, Rotation.random(random_state=rng).as_matrix())
+        yield f"{kind}/{file.stem}/turned", pair.sensor, src_t, target, truth_t, pair.limits
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -91,6 +90,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
     directory = scan_set(parser, args.dir, args.pairs)
+    for pair in read_pairs(directory, args.pairs):  # before any registration, as bench.real_scans refuses them
+        if pair.limits is None:
+            try:
+                thresholds(pair.sensor)
+            except ValueError as err:
+                parser.error(f"{pair.name}: {err}; give them with {' and '.join(THRESHOLD_FIELDS)} in its pair file")
     json_destination(args.json)
     made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     registrar = general_registrar()

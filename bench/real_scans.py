@@ -388,6 +388,7 @@ def run_services(cases: list[Case], urls: list[str], options: dict | None = None
                 row = judged(case, out.get("rotation"), out.get("translation"))
                 row.update(seconds=round(out["seconds"], 4), reliable=out.get("reliable"),
                            status=out.get("status", 200), warnings=out.get("warnings", []),
+                           **({"error": out["error"]} if "error" in out else {}),
                            timing_ms={key: round(v, 1) for key, v in out.get("timing_ms", {}).items()})
                 rows[k].append(row)
     return rows

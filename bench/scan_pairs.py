@@ -20,6 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from service.checks import check_transform
+from service.errors import InputError
+
 PAIR_NAME = re.compile(r"^(?P<prefix>.+)_(?P<source>\d+)_(?P<target>\d+)$")  # <prefix>_<j>_<i>
 
 
@@ -89,11 +92,19 @@ def read_pair(file: Path) -> ScanPair:
         cloud = arrays[key]
         if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or cloud.dtype.kind not in "fiu":
             raise refuse(f"{key} is {cloud.dtype} {list(cloud.shape)}, not [N, 3] numbers")
-        if not np.isfinite(cloud).all():
-            raise refuse(f"{key} has {int((~np.isfinite(cloud).all(axis=1)).sum())} rows that are not finite")
+        with np.errstate(over="ignore"):
+            as_uploaded = cloud.astype(np.float32)  # as the benchmark reads and uploads it
+        if not np.isfinite(as_uploaded).all():
+            raise refuse(f"{key} has {int((~np.isfinite(as_uploaded).all(axis=1)).sum())} rows that are not finite "
+                         "as float32")
+        arrays[key] = as_uploaded
     transform, sensor = arrays["transform"], arrays["sensor"]
     if transform.shape != (4, 4) or transform.dtype.kind not in "fiu" or not np.isfinite(transform).all():
         raise refuse(f"transform is {transform.dtype} {list(transform.shape)}, not a finite [4, 4]")
+    try:  # as bench.make_pair and mfgnet register --initial-transform take a pose; the file's values are kept
+        check_transform(transform)
+    except InputError as err:
+        raise refuse(f"transform is not a rigid pose ({str(err).removeprefix('initial_transform ')})") from None
     if sensor.shape != () or sensor.dtype.kind != "U":
         raise refuse(f"sensor is {sensor.dtype} {list(sensor.shape)}, not a string")
     given = [key for key in THRESHOLD_FIELDS if key in arrays]

@@ -105,9 +105,9 @@ def cases(directory: Path, seeds: list[int], turns: int, scales: tuple[float, ..
     """The cases of every seed, the as-scanned ones only with the first; ``derived``: of the pairs derived from the set
     (:func:`bench.scan_pairs.derived_pairs`) instead of its own."""
     out = []
-    for i, seed in enumerate(seeds):
-        out += [c for c in load_cases(directory, seed, scales, pairs, turns, derived)
-                if i == 0 or c.variant != "scanned"]
+    for i, seed in enumerate(seeds):  # a later seed's turns named apart: "turned@seed1", ... (rows are keyed by it)
+        out += [c if i == 0 else dataclasses.replace(c, variant=f"{c.variant}@seed{seed}")
+                for c in load_cases(directory, seed, scales, pairs, turns, derived) if i == 0 or c.variant != "scanned"]
     return out
 
 

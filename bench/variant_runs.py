@@ -34,8 +34,8 @@ def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarra
     truth (none without it; FPFH + RANSAC + ICP never takes one)."""
     registrar = general_registrar() if registrar is None else registrar
     rows = []
-    for label, sensor, src, tgt, truth in cases:
-        max_deg, max_error = thresholds(sensor)
+    for label, sensor, src, tgt, truth, *own in cases:
+        max_deg, max_error = own[0] if own and own[0] is not None else thresholds(sensor)  # the pair file's first
         options = {} if guess is None else {"initial_transform": guess(truth)}
         started = time.perf_counter()
         result = registrar.register(src, tgt, refine="icp-plane", rotation_search="auto", **options)

@@ -8,7 +8,7 @@ for each small motion. Its smallest eigenvalue is the fit's sensitivity to the m
 (its eigenvector): near zero when a shape of revolution can turn about its axis, or a flat or elongated overlap
 can slide, without leaving the surface. Such a pose is a guess along that motion however well it fits, and on
 the sparse test pairs most wrong results that every fit statistic called reliable are of this kind
-(``docs/RELIABILITY.md``, "Weakly constrained poses").
+(``docs/RELIABILITY.md``, "What `reliable` means").
 
 The surface is not the only thing that can pin a motion down: where the two clouds share their sample points
 (synthetic pairs, or one scan registered to a copy of itself) the points themselves fix the turn of a shape of

@@ -48,8 +48,8 @@ def test_the_cases_are_seeded_and_the_turned_one_keeps_the_truth(kind: str):
     first, again = list(cases(data_dir(), kind, names=[PAIR])), list(cases(data_dir(), kind, names=[PAIR]))
     assert [c[0] for c in first] == [f"{kind}/{PAIR}/scanned", f"{kind}/{PAIR}/turned"]
     for one, two in zip(first, again, strict=True):
-        assert all(np.array_equal(a, b) for a, b in zip(one[2:], two[2:], strict=True))
-    (_, _, src, _, truth), (_, _, src_t, _, truth_t) = first
+        assert all(np.array_equal(a, b) for a, b in zip(one[2:5], two[2:5], strict=True))
+    (_, _, src, _, truth, _), (_, _, src_t, _, truth_t, _) = first
     moved = [c.astype(np.float64) @ T[:3, :3].T + T[:3, 3] for c, T in ((src, truth), (src_t, truth_t))]
     assert np.abs(moved[0] - moved[1]).max() < 1e-5  # both land on the same points of the target's frame
 
@@ -71,3 +71,15 @@ def test_the_run_registers_each_case_with_both_methods_and_totals_them(tmp_path)
     assert (written["machine"]["cpus"], written["machine"]["threads"]) == (os.cpu_count(), default_threads())
     assert written["machine"]["fpfh_threads"] == fpfh_threads()  # FPFH + RANSAC + ICP's, beside the service's
     assert_made_by_this_checkout(written["provenance"])  # bench.variant_runs' report, as lidar_variants writes it
+
+
+
+def test_a_pair_files_own_thresholds_come_with_its_altered_cases(tmp_path):
+    """They were dropped: a `lidar` pair in millimetres was judged by the metre thresholds, and a sensor of no class
+    ended the run in a traceback (`bench.variant_runs.registered` takes a case's own thresholds first)."""
+    cloud = _cloud(400, 3)
+    np.savez(tmp_path / "mine_1_0.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="lidar",
+             rotation_threshold_deg=2.0, translation_threshold=0.005)
+    yielded = list(cases(tmp_path, "sparse30"))
+    assert [c[0] for c in yielded] == ["sparse30/mine_1_0/scanned", "sparse30/mine_1_0/turned"]
+    assert [c[5] for c in yielded] == [(2.0, 0.005), (2.0, 0.005)]

@@ -110,6 +110,7 @@ CASES = [
     ("search_network", ["{empty}", "--data", "{nopose}"], "cases", "not a scan pair (no transform)"),
     ("real_scans", ["{unjudged}"], "Server", "sensor 'sonar' is of no class with success thresholds"),
     ("failures", ["--data", "{unjudged}"], "Registrar", "sensor 'sonar' is of no class with success thresholds"),
+    ("altered_scans", ["{unjudged}"], "general_registrar", "sensor 'sonar' is of no class with success thresholds"),
     ("search_network", ["general", "--data", "{unjudged}"], "compare", "sensor 'sonar' is of no class"),
     ("real_scans", ["--seed", "-1"], "load_cases", "--seed: must be at least 0, got -1"),
     ("failures", ["--seeds", "0", "-1"], "cases", "--seeds: must be at least 0, got -1"),

@@ -114,7 +114,13 @@ def test_the_dragon_scans_give_the_wider_turntable_pairs():
     ({"target": np.array([[0, 0, 0], [np.nan, 0, 0]])}, "target has 1 rows that are not finite"),
     ({"transform": np.eye(3)}, "transform is float64 [3, 3], not a finite [4, 4]"),
     ({"sensor": np.array(3)}, "sensor is int64 [], not a string"),
-], ids=["2d source", "empty target", "text points", "nan", "3x3 pose", "sensor number"])
+    # a scaled rotation judged a pose 0 deg off, a last row of 0 0 0 2 passed: the ground truth must be a rigid pose
+    ({"transform": np.diag([2.0, 2.0, 2.0, 1.0])}, "transform is not a rigid pose (must be rigid: its rotation"),
+    ({"transform": np.diag([1.0, 1.0, 1.0, 2.0])}, "its last row must be 0 0 0 1"),
+    # finite as float64, infinite as the float32 the benchmark uploads: every case was a silent 422 miss
+    ({"source": np.full((5, 3), 1e39)}, "source has 5 rows that are not finite as float32"),
+], ids=["2d source", "empty target", "text points", "nan", "3x3 pose", "sensor number", "scaled rotation",
+        "last row", "beyond float32"])
 def test_a_file_that_is_no_pair_is_refused_naming_it_and_the_problem(arrays, problem, tmp_path):
     pair = {"source": np.ones((5, 3)), "target": np.ones((5, 3)), "transform": np.eye(4), "sensor": "lidar", **arrays}
     np.savez(tmp_path / "a_1_0.npz", **pair)

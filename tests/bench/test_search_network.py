@@ -74,7 +74,7 @@ def test_derived_cases_are_the_held_out_pairs_once_as_scanned():
 
     picked = cases(data_dir(), [0, 1], 2, (1.0,), ["dragon_72_0"], derived=True)
     assert [(c.name, c.variant) for c in picked] == [("dragon_72_0", v) for v in ("scanned", "turned", "turned-2",
-                                                                                   "turned", "turned-2")]
+                                                                                   "turned@seed1", "turned-2@seed1")]
     assert all(c.name not in {p.stem for p in data_dir().glob("*.npz")} for c in picked)
 
 
