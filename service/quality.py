@@ -108,7 +108,7 @@ def degeneracy_warnings(points: np.ndarray) -> list[str]:
     centred = points - points.mean(axis=0)  # [N, 3]
     magnitude = max(float(np.abs(points).max()), np.finfo(np.float64).tiny)
     if float(np.abs(centred).max()) <= IDENTICAL_TOLERANCE * magnitude:
-        return [f"{IDENTICAL}: all {points.shape[0]} points are the same; no pose can be determined"]
+        return [f"{IDENTICAL}: all its points are the same; no pose can be determined"]  # of a sample: no count
     spread = np.linalg.svd(centred, compute_uv=False) / np.sqrt(points.shape[0])  # [3] RMS per axis
     if spread[1] <= DEGENERACY_RATIO * spread[0]:
         return [

@@ -84,6 +84,12 @@ def test_clouds_scaled_down_to_the_floor_register_as_at_their_own_size(registrar
     assert registrar.register(np.zeros((100, 3)), tgt).warnings[0].startswith("source identical")  # no size at all
 
 
+def test_a_cloud_of_one_repeated_point_is_named_without_the_samples_count(registrar):
+    """2,000,000 identical points were "all 32 points are the same": the count of the sample judged, not the cloud's."""
+    warning = registrar.register(np.ones((5000, 3)), bumpy_ellipsoid(768, 3)).warnings[0]
+    assert warning == "source identical: all its points are the same; no pose can be determined"
+
+
 def test_permuting_input_points_does_not_change_the_pose(registrar):
     src, tgt = bumpy_ellipsoid(3000, 5), bumpy_ellipsoid(2500, 6) + 0.2
     rng = np.random.default_rng(0)
