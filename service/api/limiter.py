@@ -40,6 +40,16 @@ class DeadlineExceededError(APIError):
         super().__init__(504, f"registration did not finish within {timeout_s:g} s (MFGNET_TIMEOUT_S)")
 
 
+class AlignedBusyError(APIError):
+    def __init__(self, capacity: int):
+        super().__init__(
+            503,
+            f"server is busy ({capacity} aligned file{'' if capacity == 1 else 's'} being written or sent); "
+            "retry later",
+            headers={"Retry-After": str(RETRY_AFTER_OVERLOADED_S)},
+        )
+
+
 class InferenceLimiter:
     """One thread pool shared by all requests (the ONNX sessions are thread-safe and shared too)."""
 
@@ -51,6 +61,7 @@ class InferenceLimiter:
         self._lock = threading.Lock()
         self._taken = 0
         self._running = 0
+        self._answers = 0  # aligned answers being made or sent (admit_answer)
 
     @property
     def taken(self) -> int:
@@ -68,6 +79,24 @@ class InferenceLimiter:
                 raise OverloadedError(self.capacity)
             self._taken += 1
         return Slot(self)
+
+    def admit_answer(self) -> Callable[[], None]:
+        """A place for one aligned answer (``/v1/register/aligned``) from its upload until its moved file has been
+        sent, or :class:`AlignedBusyError` when ``max_concurrency`` are taken: the moved files on disk (up to twice
+        their upload) stay as many as the workers. Returns its release, which may be called more than once."""
+        with self._lock:
+            if self._answers >= self.max_concurrency:
+                raise AlignedBusyError(self.max_concurrency)
+            self._answers += 1
+        released = threading.Event()
+
+        def release() -> None:
+            with self._lock:
+                if not released.is_set():
+                    released.set()
+                    self._answers -= 1
+
+        return release
 
     def _release(self) -> None:
         with self._lock:

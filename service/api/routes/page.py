@@ -12,11 +12,12 @@ seeded random subset when a cloud has more).
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import json
 import shutil
 import tempfile
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path, PurePath
 from typing import Any, BinaryIO
 from urllib.parse import quote
@@ -27,6 +28,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
 
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
@@ -214,7 +216,16 @@ _BINARY = {"schema": {"type": "string", "format": "binary"}}
 async def register_aligned(request: Request) -> Response:
     settings, runner = get_settings(request), get_runner(request)
     bodies.require_media_type(request, bodies.MULTIPART)
-    with runner.admit() as slot:  # a 2,000,000-point file decoded and moved: a slot as a registration's
+    # a 2,000,000-point file decoded and moved: a slot as a registration's and a place among the aligned answers, both
+    # held until the moved file (in /tmp until then) has been sent, so at most MFGNET_MAX_CONCURRENCY moved files
+    # are on disk and a client that reads nothing holds them for MFGNET_BODY_TIMEOUT_S only
+    release_answer = runner.limiter.admit_answer()
+    try:
+        slot = runner.admit()
+    except BaseException:
+        release_answer()
+        raise
+    try:
         form = await bodies.read_register_form(request, ("source",))  # the file stays spooled until decoded
         await bodies.refuse_oversized_uploads(form, settings.max_file_points)
         try:
@@ -237,13 +248,42 @@ async def register_aligned(request: Request) -> Response:
             (content, suffix), _ = await runner.run(slot, work, request, decode)
         finally:
             form.close()
+    except BaseException:
+        slot.release()
+        release_answer()
+        raise
     stem = PurePath(upload.filename).stem or "source"
     headers = {"Content-Disposition": attachment(f"{_safe(stem)}_aligned{suffix}")}
     size = content.seek(0, 2)
     content.seek(0)
-    return StreamingResponse(
-        streamed(content), media_type=ALIGNED_MEDIA_TYPES[suffix], headers={**headers, "Content-Length": str(size)}
+    return MovedFileResponse(
+        content, (slot.release, release_answer), settings.body_timeout_s, media_type=ALIGNED_MEDIA_TYPES[suffix],
+        headers={**headers, "Content-Length": str(size)},
     )
+
+
+class MovedFileResponse(StreamingResponse):
+    """The moved file streamed; the file is closed and ``releases`` called (the request's slot and aligned place) when
+    the answer ends however it ends, and a client that reads none of it for ``stall_s`` (MFGNET_BODY_TIMEOUT_S) is
+    dropped (499), as a stalled upload is."""
+
+    def __init__(self, file: BinaryIO, releases: tuple[Callable[[], None], ...], stall_s: float, **kwargs: Any):
+        super().__init__(streamed(file), **kwargs)
+        self._file, self._releases, self._stall_s = file, releases, stall_s
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        async def send_within(message: Any) -> None:
+            async with asyncio.timeout(self._stall_s):
+                await send(message)
+
+        try:
+            await super().__call__(scope, receive, send_within)
+        except TimeoutError:
+            raise ClientDisconnect from None
+        finally:
+            self._file.close()
+            for release in self._releases:
+                release()
 
 
 def moved_upload(upload: bodies.Upload, suffix: str, R: np.ndarray, t: np.ndarray, largest: float) -> BinaryIO:

@@ -1,0 +1,87 @@
+"""``/v1/register/aligned`` holds its slot until the moved file has been sent: a client that does not read its answer
+keeps one place in MFGNET_MAX_CONCURRENCY + MFGNET_MAX_QUEUE (not an unbounded count of moved files in /tmp), and is
+dropped after MFGNET_BODY_TIMEOUT_S without reading."""
+
+from __future__ import annotations
+
+import io
+import socket
+import time
+
+import httpx
+import numpy as np
+import pytest
+from api_server import start_subprocess_server, synthetic_pair
+
+STALL_S = 2.0
+BOUNDARY = b"b0undary"
+
+
+@pytest.fixture(scope="module")
+def one_slot_server():
+    server = start_subprocess_server("aligned_slot", MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="0",
+                                     MFGNET_BODY_TIMEOUT_S=str(STALL_S))
+    yield server
+    server.stop()
+
+
+def aligned_request(points: np.ndarray) -> bytes:
+    """A raw ``POST /v1/register/aligned`` of ``points [N, 3]`` as ``.npy``, moved by a shift."""
+    buffer = io.BytesIO()
+    np.save(buffer, points)
+    body = (b"--" + BOUNDARY + b'\r\nContent-Disposition: form-data; name="transform"\r\n\r\n'
+            b"[[1,0,0,0.5],[0,1,0,0],[0,0,1,0],[0,0,0,1]]\r\n--" + BOUNDARY
+            + b'\r\nContent-Disposition: form-data; name="source"; filename="scan.npy"\r\n'
+              b"Content-Type: application/octet-stream\r\n\r\n" + buffer.getvalue() + b"\r\n--" + BOUNDARY + b"--\r\n")
+    return (b"POST /v1/register/aligned HTTP/1.1\r\nHost: test\r\nContent-Type: multipart/form-data; boundary="
+            + BOUNDARY + b"\r\nContent-Length: " + str(len(body)).encode() + b"\r\n\r\n" + body)
+
+
+def test_an_unread_aligned_answer_keeps_its_slot_until_the_stall_limit(one_slot_server):
+    pair = synthetic_pair(0)
+    small = {"source": pair.source.tolist(), "target": pair.target.tolist(), "refine": "none"}
+    points = np.random.default_rng(0).uniform(-1, 1, size=(2_000_000, 3)).astype(np.float32)  # a 24 MB answer
+    url = httpx.URL(one_slot_server.url)
+    with socket.create_connection((url.host, url.port), timeout=30) as reader:
+        reader.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        reader.sendall(aligned_request(points))
+        head = reader.recv(4096)  # the status line and headers; the rest is left unread
+        assert head.startswith(b"HTTP/1.1 200"), head[:200]
+        with one_slot_server.client() as client:
+            busy = client.post("/v1/register", json=small)
+            assert busy.status_code == 503, busy.text  # the unread answer holds the one slot (before: 200)
+            deadline = time.monotonic() + STALL_S + 10
+            while (answer := client.post("/v1/register", json=small)).status_code == 503:
+                assert time.monotonic() < deadline, "the stalled answer kept its slot"
+                time.sleep(0.5)
+            assert answer.status_code == 200, answer.text
+
+
+@pytest.fixture(scope="module")
+def one_worker_server():
+    server = start_subprocess_server("aligned_answers", MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="2",
+                                     MFGNET_BODY_TIMEOUT_S=str(STALL_S))
+    yield server
+    server.stop()
+
+
+def test_aligned_answers_at_once_are_as_many_as_the_workers(one_worker_server):
+    """With one worker and free queue places, a second aligned request while the first answer is unread is a 503
+    naming the aligned files (the moved files on disk stay as many as MFGNET_MAX_CONCURRENCY); a registration is
+    not held up."""
+    pair = synthetic_pair(0)
+    small = {"source": pair.source.tolist(), "target": pair.target.tolist(), "refine": "none"}
+    points = np.random.default_rng(1).uniform(-1, 1, size=(2_000_000, 3)).astype(np.float32)
+    url = httpx.URL(one_worker_server.url)
+    with socket.create_connection((url.host, url.port), timeout=30) as reader:
+        reader.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        reader.sendall(aligned_request(points))
+        assert reader.recv(4096).startswith(b"HTTP/1.1 200")
+        with socket.create_connection((url.host, url.port), timeout=30) as second:
+            second.sendall(aligned_request(points[:1000]))
+            answer = b""
+            while not answer.endswith(b"}") and (chunk := second.recv(65536)):  # headers, then the JSON error
+                answer += chunk
+        assert answer.startswith(b"HTTP/1.1 503") and b"aligned file being written or sent" in answer, answer[:300]
+        with one_worker_server.client() as client:
+            assert client.post("/v1/register", json=small).status_code == 200  # the worker is free
