@@ -83,7 +83,11 @@ class ModelRegistry:
             UnknownModelsError: when ``only`` names a model that was not found.
         """
         root = bundled_models_dir().resolve()
-        found = discover_model_dirs(extra_dirs)
+        try:
+            found = discover_model_dirs(extra_dirs)
+        except OSError as exc:  # a folder this user may not read (a volume of another owner): one line, exit code 2
+            raise UnknownModelsError(f"model folder {exc.filename}: {exc.strerror} (MFGNET_MODEL_DIRS or "
+                                     "--model-dir)") from None
         in_bundle = [d for d in found if d.resolve().parent == root]
         found = [d for d in found if d not in in_bundle] + (in_bundle if bundled else [])
         if only:

@@ -57,10 +57,25 @@ def serve_command(
     if missing:
         fail(f"model folder{'s' * (len(missing) > 1)} {', '.join(missing)}: not a folder (--model-dir or "
              "MFGNET_MODEL_DIRS)")
+    empty = [str(folder) for folder in settings.model_dirs if holds_no_model(Path(folder))]
+    if empty:  # an empty or mis-mounted volume: it would serve no model, without a word
+        fail(f"model folder{'s' * (len(empty) > 1)} {', '.join(empty)}: no model in it (a manifest.json or .onnx "
+             "files, in it or in its subfolders; --model-dir or MFGNET_MODEL_DIRS)")
     try:
         run_server(settings)
     except UnknownModelsError as exc:  # raised while the app is made, before it serves
         fail(str(exc))
+
+
+def holds_no_model(folder: Path) -> bool:
+    """Whether the model folder ``folder`` holds no model, in it or in a subfolder (an empty or mis-mounted volume);
+    ``False`` where it cannot be read, which the model registry names."""
+    from service.manifest import looks_like_model
+
+    try:
+        return not looks_like_model(folder) and not any(looks_like_model(sub) for sub in folder.iterdir())
+    except OSError:
+        return False
 
 
 def settings_problems(exc: ValidationError) -> str:
@@ -69,6 +84,6 @@ def settings_problems(exc: ValidationError) -> str:
     return "; ".join(
         f"MFGNET_{str(error['loc'][0]).upper()}{''.join(f'[{part}]' for part in error['loc'][1:])}: "
         f"{error['msg'].removeprefix('Value error, ')} "
-        f"(got {error['input']!r})"
+        f"(got {'the value, not shown' if error['loc'][0] == 'api_key' else repr(error['input'])})"
         for error in exc.errors()
     )

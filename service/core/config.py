@@ -117,6 +117,7 @@ class Settings(BaseSettings):
     timeout_s: float = Field(
         30.0,
         gt=0,
+        allow_inf_nan=False,  # inf would turn the deadline off without a word
         description="Deadline per request after its body is read, not "
         "counting the decoding of its clouds (a body over a size limit is a 413 whatever the "
         "deadline); then 504, and its registration stops at its next network call.",
@@ -124,6 +125,7 @@ class Settings(BaseSettings):
     body_timeout_s: float = Field(
         15.0,
         gt=0,
+        allow_inf_nan=False,  # inf would turn the deadline off without a word
         description="Longest wait for the next piece of a request body; then 408 and the request's slot "
         "is freed (a request takes its slot before its body arrives, so stalled uploads would hold them all).",
     )
@@ -137,6 +139,7 @@ class Settings(BaseSettings):
     header_timeout_s: float = Field(
         15.0,
         gt=0,
+        allow_inf_nan=False,  # inf would turn the deadline off without a word
         description="Longest time from a request's first byte to the end of its headers; then 408 and the "
         "connection is closed (slowloris: uvicorn alone waits for ever). A new connection that sends nothing is "
         "closed after keep_alive_s, as an idle one between requests is.",
@@ -190,7 +193,14 @@ class Settings(BaseSettings):
     @field_validator("api_key", mode="before")
     @classmethod
     def _empty_key_is_none(cls, value: object) -> object:
-        return None if isinstance(value, str) and not value.strip() else value
+        if isinstance(value, str) and not value.strip():
+            return None
+        if isinstance(value, str) and (value != value.strip() or not (value.isascii() and value.isprintable())):
+            # no client can send it in 'Authorization: Bearer <key>': every request would be a 401 (MfgnetClient
+            # refuses such a key too)
+            raise ValueError("must be printable ASCII without spaces or line breaks around it (a key read from a "
+                             "file often ends in a newline)")
+        return value
 
 
 def _origin(value: str) -> str:

@@ -184,3 +184,55 @@ def test_model_dir_is_refused_with_server(tmp_path) -> None:
     np.save(cloud, np.zeros((64, 3), np.float32))
     result = runner.invoke(app, ["register", str(cloud), str(cloud), "--server", "http://x", "--model-dir", "m"])
     assert result.exit_code == 2 and "--model-dir only applies in-process" in result.stderr
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+@pytest.mark.parametrize(("variable", "value", "words"), [
+    ("MFGNET_API_KEY", "s3cret\n", "MFGNET_API_KEY: must be printable ASCII"),  # a Secret made from a file
+    ("MFGNET_API_KEY", "clé", "MFGNET_API_KEY: must be printable ASCII"),
+    ("MFGNET_TIMEOUT_S", "inf", "MFGNET_TIMEOUT_S: Input should be a finite number"),
+    ("MFGNET_BODY_TIMEOUT_S", "inf", "MFGNET_BODY_TIMEOUT_S: Input should be a finite number"),
+    ("MFGNET_HEADER_TIMEOUT_S", "inf", "MFGNET_HEADER_TIMEOUT_S: Input should be a finite number"),
+])
+def test_a_setting_no_request_could_meet_stops_serve(monkeypatch, variable, value, words) -> None:
+    """A key with a line break or a non-ASCII letter started a ready server that answered every request 401 (no
+    client can send it); an infinite deadline turned the deadline, or the slowloris guard, off without a word."""
+    import service.api.app
+
+    monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
+    monkeypatch.setenv(variable, value)
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2 and words in result.stderr, result.stderr
+    assert "s3cret" not in result.stderr and "clé" not in result.stderr  # a key's value is never printed
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_a_model_folder_without_a_model_stops_serve(monkeypatch, tmp_path) -> None:
+    """An empty (or mis-mounted) MFGNET_MODEL_DIRS folder was accepted: the server served the bundled models alone,
+    or, without them, stayed live and never ready, with no line saying why."""
+    import service.api.app
+
+    monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
+    (tmp_path / "empty" / "nothing_here").mkdir(parents=True)
+    monkeypatch.setenv("MFGNET_MODEL_DIRS", str(tmp_path / "empty"))
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2
+    assert f"model folder {tmp_path / 'empty'}: no model in it" in result.stderr
+
+
+@pytest.mark.skipif(not HAS_API or os.geteuid() != 0 or shutil.which("setpriv") is None,
+                    reason="needs root and setpriv to read as a user without the permission override")
+def test_a_model_folder_the_server_cannot_read_stops_it_in_one_line(tmp_path) -> None:
+    """A volume of another owner (uid 10001 in the image) ended start-up in a 94-line PermissionError traceback."""
+    folder = tmp_path / "unreadable"
+    folder.mkdir()
+    folder.chmod(0)
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("MFGNET_")}, "MFGNET_MODEL_DIRS": str(folder),
+           "MFGNET_PORT": "0"}
+    done = subprocess.run(["setpriv", "--bounding-set", "-dac_override,-dac_read_search", sys.executable, "-c",
+                           "from service.cli import main; main()", "serve"], env=env, capture_output=True, text=True,
+                          timeout=60)
+    folder.chmod(0o755)
+    assert done.returncode == 2, done.stderr
+    assert f"model folder {folder}" in done.stderr and "Permission denied" in done.stderr
+    assert "Traceback" not in done.stderr
