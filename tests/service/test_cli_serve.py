@@ -82,8 +82,9 @@ def test_cli_options_override_mfgnet_environment_variables(monkeypatch, tmp_path
     monkeypatch.setenv("MFGNET_HOST", "0.0.0.0")
     monkeypatch.setenv("MFGNET_PORT", "9999")
     monkeypatch.setenv("MFGNET_THREADS", "3")
-    (tmp_path / "a").mkdir()
-    (tmp_path / "b").mkdir()
+    for folder in ("a", "b"):  # a model folder each (its manifest is read once the server starts)
+        (tmp_path / folder / "mine").mkdir(parents=True)
+        (tmp_path / folder / "mine" / "manifest.json").write_text("{}")
     result = runner.invoke(app, ["serve", "--port", "1234", "--model-dir", str(tmp_path / "a"),
                                  "--model-dir", str(tmp_path / "b")])
     assert result.exit_code == 0, result.output

@@ -34,7 +34,7 @@ def test_a_cut_room_fragment_half_a_turn_off_is_weakly_constrained_on_its_dense_
     patch pins the pose down less than a dense target pins a right one (decisions/0050). Judged before the consensus
     stage, which gives this not-reliable result another pose (16 matched patches against 5, also wrong)."""
     skip_without("3dlo_kitchen_34_21")
-    _, sensor, source, target, truth = next(
+    _, sensor, source, target, truth, _ = next(
         c for c in cases(data_dir(), "crop", names=["3dlo_kitchen_34_21"]) if c[0].endswith("/turned"))
     no_consensus = Registrar(GENERAL, stages=dataclasses.replace(Stages(), consensus=lambda *a: a[2]))
     result = no_consensus.register(source, target, refine="icp-plane", rotation_search="auto")
@@ -52,7 +52,7 @@ def test_a_range_image_registered_to_a_cut_partner_is_reliable_where_the_source_
     only 0.27 of the source lies on the smaller target: the source-side ratio alone called it ``low overlap``. Measured
     the other way, 0.98 of the target lies on the moved source (decisions/0084)."""
     skip_without("dragon_144_96")
-    label, sensor, source, target, truth = next(cases(data_dir(), "croptarget", names=["dragon_144_96"]))
+    label, sensor, source, target, truth, _ = next(cases(data_dir(), "croptarget", names=["dragon_144_96"]))
     result, degrees, error = register_with_defaults(Case(label, sensor, "scanned", 1.0, source, target, truth))
     max_degrees, max_error = thresholds(sensor)
     assert degrees < max_degrees and error < max_error, (degrees, error)

@@ -77,7 +77,7 @@ def test_a_noisy_range_images_loose_fit_is_confirmed() -> None:
     right, but loose. Read over 10 neighbours neither image looks like a range image any more; over
     ``COARSE_VIEW_NEIGHBOURS`` both do, and their free space confirms the pose (decisions/0094)."""
     skip_without("dragon_96_48")
-    label, sensor, source, target, truth = next(altered_cases(data_dir(), "noise", names=["dragon_96_48"]))
+    label, sensor, source, target, truth, _ = next(altered_cases(data_dir(), "noise", names=["dragon_96_48"]))
     case = Case("dragon_96_48", sensor, label, 1.0, source, target, truth)
     result, degrees, error = register_with_defaults(case)
     assert is_right(case, degrees, error), (degrees, error)
