@@ -14,7 +14,7 @@
   for (const name of ["source", "target"]) {
     const input = $(name), zone = $("drop-" + name);
     const show = () => { $(name + "-name").textContent = input.files.length ? input.files[0].name : "choose or drop a file"; };
-    input.addEventListener("change", show);
+    input.addEventListener("change", () => { show(); filesChanged(); });
     zone.addEventListener("dragover", (e) => { e.preventDefault(); zone.classList.add("over"); });
     zone.addEventListener("dragleave", () => zone.classList.remove("over"));
     zone.addEventListener("drop", (e) => {
@@ -25,8 +25,19 @@
         one.items.add(e.dataTransfer.files[0]);
         input.files = one.files;
         show();
+        filesChanged();
       }
     });
+  }
+
+  let cancelRun = null;  // aborts the registration in flight, if any
+  // A file chosen anew: the shown pose, view and download were another pair's.
+  function filesChanged() {
+    if (cancelRun) cancelRun();
+    if (last) {
+      clearResult();
+      setStatus("Files changed: press Register for this pair.");
+    }
   }
 
   $("api_key").addEventListener("input", () => {
@@ -36,6 +47,12 @@
 
   function headers() {
     const key = $("api_key").value.trim();
+    if (/[^\x20-\x7e]/.test(key)) {  // fetch() refuses header values outside Latin-1 with a TypeError
+      $("api_key").setAttribute("aria-invalid", "true");
+      $("api_key").setAttribute("aria-describedby", "status");
+      $("api_key").focus();
+      throw new Error("The API key holds a character that cannot be sent (only printable ASCII): check the \"API key\" field.");
+    }
     return key ? {Authorization: "Bearer " + key} : {};
   }
 
@@ -59,8 +76,9 @@
   // POST a form; the response, or an Error whose message says what went wrong in the user's words.
   async function post(url, form, signal) {
     let response;
+    const sent = headers();  // an Error naming the key field where the key cannot be sent
     try {
-      response = await fetch(url, {method: "POST", body: form, headers: headers(), signal});
+      response = await fetch(url, {method: "POST", body: form, headers: sent, signal});
     } catch (err) {
       if (err.name === "AbortError") throw err;
       // fetch() rejects (a TypeError: "Failed to fetch") only when no answer arrives
@@ -88,8 +106,18 @@
   $("form").addEventListener("submit", async (e) => {
     e.preventDefault();
     if (running) return;  // Enter again on Register or in a field while this pair runs
-    const files = {source: $("source").files[0], target: $("target").files[0]};
-    if (!files.source || !files.target) return setStatus("Choose a source and a target file.", true);
+    const chosen = {source: $("source").files[0], target: $("target").files[0]};
+    if (!chosen.source || !chosen.target) return setStatus("Choose a source and a target file.", true);
+    let files;
+    running = true;  // from here: a second Enter while the source is read sends nothing
+    document.body.dataset.state = "running";
+    try {  // the bytes registered, kept for the download: the file on disk may be rewritten meanwhile
+      files = {source: new File([await chosen.source.arrayBuffer()], chosen.source.name), target: chosen.target};
+    } catch (err) {
+      running = false;
+      document.body.dataset.state = "error";
+      return setStatus(`Could not read ${chosen.source.name}: ${err.message}`, true);
+    }
     const form = new FormData();
     form.append("source", files.source, files.source.name);
     form.append("target", files.target, files.target.name);
@@ -107,6 +135,7 @@
     const ticker = setInterval(() => { $("elapsed").textContent = `${elapsed()} so far`; }, 1000);
     const abort = new AbortController();
     const cancel = () => abort.abort();
+    cancelRun = cancel;
     $("cancel").hidden = false;
     $("cancel").addEventListener("click", cancel);
     try {
@@ -137,6 +166,7 @@
       clearInterval(ticker);
       $("elapsed").textContent = "";
       $("cancel").removeEventListener("click", cancel);
+      if (cancelRun === cancel) cancelRun = null;
       // hiding the focused Cancel would drop the keyboard focus to the page's start: back to Register
       if (document.activeElement === $("cancel")) $("register").focus();
       $("cancel").hidden = true;
@@ -184,7 +214,8 @@
     const cells = result.transform.map((row) => row.map((v) => String(v)));
     const width = Math.max(...cells.flat().map((c) => c.length));
     $("transform").textContent = cells.map((row) => row.map((c) => c.padStart(width)).join(" ")).join("\n");
-    $("euler").textContent = result.euler_zyx_deg.map((v) => fmt(v, 5)).join(", ");
+    $("euler").textContent = result.euler_zyx_deg.map((v) => fmt(v, 9)).join(", ");
+    $("ypr").textContent = result.yaw_pitch_roll_deg.map((v) => fmt(v, 9)).join(", ");
     const q = result.quality;
     $("reliable").textContent = q.reliable ? "(reliable)" : "(not reliable)";
     $("reliable").className = q.reliable ? "yes" : "no";
@@ -200,11 +231,11 @@
     $("model").textContent = `${result.model.name} ${result.model.version}`;
   }
 
-  let downloading = false;
+  let downloading = null;  // the pair whose aligned source is being prepared
   $("download").addEventListener("click", async () => {
-    if (!last || downloading) return;  // a second press while one is prepared: one file, not two
+    if (!last || downloading === last) return;  // a second press for this pair while it is prepared: one file, not two
     const pair = last;  // a registration started meanwhile owns the status line from then on
-    downloading = true;
+    downloading = pair;
     const form = new FormData();
     form.append("source", last.files.source, last.files.source.name);
     form.append("transform", JSON.stringify(last.result.transform));
@@ -227,7 +258,7 @@
     } catch (err) {
       if (last === pair) setStatus(failureText(err), true);
     } finally {
-      downloading = false;
+      if (downloading === pair) downloading = null;
     }
   });
 })();

@@ -21,6 +21,8 @@
   const ORBIT_KEYS = new Map([["ArrowLeft", [-1, 0]], ["ArrowRight", [1, 0]], ["ArrowUp", [0, -1]], ["ArrowDown", [0, 1]]]);
   const ZOOM_KEYS = new Map([["+", 1 / KEY_ZOOM], ["=", 1 / KEY_ZOOM], ["-", KEY_ZOOM]]); // key -> distance factor
   const RESET_KEYS = new Set(["Home", "0"]);
+  // Point clouds (LAS, E57, PTX, maps) are Z-up: world +z is drawn up and the orbit turns about it.
+  const Z_UP = (() => { const m = new Float32Array(16); m[0] = 1; m[6] = -1; m[9] = 1; m[15] = 1; return m; })();
 
   function identity() {
     const m = new Float32Array(16);
@@ -259,7 +261,8 @@
       const aspect = canvas.width / Math.max(1, canvas.height);
       const near = Math.max(this.distance - 2 * this.radius, this.distance * 0.01);
       const far = this.distance + 2 * this.radius;
-      const view = multiply(translation(0, 0, -this.distance), multiply(rotationX(this.pitch), rotationY(this.yaw)));
+      const view = multiply(translation(0, 0, -this.distance),
+        multiply(rotationX(this.pitch), multiply(rotationY(this.yaw), Z_UP)));
       return multiply(perspective(Math.PI / 4, aspect, near, far), view);
     }
 

@@ -358,6 +358,78 @@ def test_every_control_is_labelled_and_reached_by_tab_in_order(browser, server):
 VIEW_JS = "JSON.parse(document.getElementById('canvas').dataset.view)"
 
 
+
+# -- the pose's angles, a changed choice, the download's bytes, an unsendable key, the up axis ------------------------
+def test_the_pose_is_shown_as_yaw_pitch_roll_and_extrinsic_zyx_to_9_digits(browser, server, ply_files):
+    """The page showed only `euler_zyx_deg` (extrinsic, R = Rx(c) Ry(b) Rz(a)), labelled "Euler z-y-x", to 5 digits:
+    read as yaw, pitch, roll (R = Rz Ry Rx) a 30 / 20 / 10 deg turn was 11 deg off in roll."""
+    _, source_file, target_file = ply_files
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    with open(source_file, "rb") as source, open(target_file, "rb") as target:
+        answer = httpx.post(f"{server.url}/v1/register", files={"source": source, "target": target}, timeout=60).json()
+    for element, key in (("ypr", "yaw_pitch_roll_deg"), ("euler", "euler_zyx_deg")):
+        shown = [float(v) for v in browser.find_element("id", element).text.split(", ")]
+        np.testing.assert_allclose(shown, answer[key], rtol=1e-8, atol=1e-6)
+    assert "R = Rz(yaw) Ry(pitch) Rx(roll)" in browser.find_element("id", "result").text
+
+
+def test_choosing_another_file_clears_the_last_pairs_result(browser, server, ply_files, tmp_path):
+    """A new file under the old pair's pose, view and Download: the download moved the old source by the old pose."""
+    pair, source_file, target_file = ply_files
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    other = tmp_path / "other.ply"
+    write_points(other, pair.target)
+    browser.find_element("id", "source").send_keys(str(other))
+    assert not browser.find_element("id", "result").is_displayed()
+    assert "Files changed: press Register for this pair." in status_text(browser)
+
+
+def test_the_download_moves_the_bytes_registered_not_the_file_as_it_is_now(browser, server, ply_files, tmp_path):
+    """The file was read again at Download: overwritten on disk meanwhile, its new content came back moved by the
+    old pose (and in its new format)."""
+    pair, _, target_file = ply_files
+    source_file = tmp_path / "work.ply"
+    write_points(source_file, pair.source)
+    assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
+    T = shown_transform(browser)
+    source_file.write_text("1 2 3\n4 5 6\n")  # re-exported meanwhile
+    browser.find_element("id", "download").click()
+    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
+    download = browser.downloads / "work_aligned.ply"
+    for _ in range(100):
+        if download.is_file() and download.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
+            break
+        time.sleep(0.05)
+    expected = pair.source.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    assert np.abs(read_points(download) - expected).max() < 1e-4
+
+
+def test_an_api_key_that_cannot_be_sent_names_the_key_field(browser, server, ply_files):
+    """fetch() refuses a header value beyond Latin-1 (a pasted em dash): the page said the server did not answer."""
+    _, source_file, target_file = ply_files
+    assert register(browser, server.url, source_file, target_file, key="abc\u2014def") == "error"
+    assert "API key" in status_text(browser) and "No answer from the server" not in status_text(browser)
+    assert browser.find_element("id", "api_key").get_attribute("aria-invalid") == "true"
+
+
+def test_the_view_draws_z_up(browser, server, tmp_path):
+    """Point clouds (LAS, E57, maps, LiDAR) are Z-up: a pole along +z was drawn lying down, the ground upright."""
+    rng = np.random.default_rng(0)
+    pole = rng.uniform([-0.2, -0.2, 0.0], [0.2, 0.2, 4.0], size=(700, 3))  # [N, 3] a tall box along z
+    source_file, target_file = tmp_path / "pole_a.ply", tmp_path / "pole_b.ply"
+    write_points(source_file, pole)
+    write_points(target_file, pole + rng.normal(scale=0.01, size=pole.shape))
+    register(browser, server.url, source_file, target_file)
+    browser.execute_script("return new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))")
+    from PIL import Image
+
+    png = browser.find_element("id", "canvas").screenshot_as_png
+    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)  # [H, W, 3]
+    drawn = (np.abs(pixels - np.array(TARGET_RGB)) <= 12).all(axis=-1)  # [H, W]
+    rows, cols = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    assert len(rows) and rows[-1] - rows[0] > 2 * (cols[-1] - cols[0])  # taller than wide
+
+
 def view_state(driver) -> dict[str, float]:
     """The camera the view last drew: ``{"yaw_deg", "pitch_deg", "distance"}`` (``canvas.dataset.view``)."""
     return driver.execute_script(f"return {VIEW_JS}")
