@@ -17,12 +17,17 @@ STALL_S = 2.0
 BOUNDARY = b"b0undary"
 
 
-@pytest.fixture(scope="module")
-def one_slot_server():
-    server = start_subprocess_server("aligned_slot", MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="0",
+def one_worker(name: str, queue: int):
+    """A server of one worker and ``queue`` queue places whose stalled bodies and answers wait ``STALL_S``."""
+    server = start_subprocess_server(name, MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE=str(queue),
                                      MFGNET_BODY_TIMEOUT_S=str(STALL_S))
     yield server
     server.stop()
+
+
+@pytest.fixture(scope="module")
+def one_slot_server():
+    yield from one_worker("aligned_slot", 0)
 
 
 def aligned_request(points: np.ndarray) -> bytes:
@@ -59,10 +64,7 @@ def test_an_unread_aligned_answer_keeps_its_slot_until_the_stall_limit(one_slot_
 
 @pytest.fixture(scope="module")
 def one_worker_server():
-    server = start_subprocess_server("aligned_answers", MFGNET_MAX_CONCURRENCY="1", MFGNET_MAX_QUEUE="2",
-                                     MFGNET_BODY_TIMEOUT_S=str(STALL_S))
-    yield server
-    server.stop()
+    yield from one_worker("aligned_answers", 2)
 
 
 def test_aligned_answers_at_once_are_as_many_as_the_workers(one_worker_server):

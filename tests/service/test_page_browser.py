@@ -148,6 +148,19 @@ def register_a_broken_source(driver, folder: Path) -> str:
     )
 
 
+def downloaded(driver, name: str) -> Path:
+    """Press "Download aligned source" and wait for the status to say so and for ``name`` to be complete in the
+    download folder; its path."""
+    driver.find_element("id", "download").click()
+    wait_for(driver, "document.getElementById('status').textContent.includes('downloaded')", "the download")
+    download = driver.downloads / name
+    for _ in range(100):
+        if download.is_file() and download.stat().st_size > 0 and not list(driver.downloads.glob("*.crdownload")):
+            break
+        time.sleep(0.05)
+    return download
+
+
 def status_text(driver) -> str:
     return driver.execute_script("return document.getElementById('status').textContent")
 
@@ -272,13 +285,7 @@ def test_page_downloads_a_coloured_ply_mesh_as_itself_moved(browser, server, tmp
     vertex = coloured_ply(source_file, pair.source)
     write_points(target_file, pair.target)
     assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
-    browser.find_element("id", "download").click()
-    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
-    download = browser.downloads / "mesh_aligned.ply"  # the name the answer's Content-Disposition gives
-    for _ in range(100):
-        if download.is_file() and download.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
-            break
-        time.sleep(0.05)
+    download = downloaded(browser, "mesh_aligned.ply")  # the name the answer's Content-Disposition gives
     written = plyfile.PlyData.read(str(download))
     rows = written["vertex"].data
     for name in ("red", "green", "blue", "quality"):
@@ -393,13 +400,7 @@ def test_the_download_moves_the_bytes_registered_not_the_file_as_it_is_now(brows
     assert register(browser, server.url, source_file, target_file) == "done", status_text(browser)
     T = shown_transform(browser)
     source_file.write_text("1 2 3\n4 5 6\n")  # re-exported meanwhile
-    browser.find_element("id", "download").click()
-    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
-    download = browser.downloads / "work_aligned.ply"
-    for _ in range(100):
-        if download.is_file() and download.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
-            break
-        time.sleep(0.05)
+    download = downloaded(browser, "work_aligned.ply")
     expected = pair.source.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
     assert np.abs(read_points(download) - expected).max() < 1e-4
 
@@ -644,13 +645,7 @@ def test_with_an_api_key_the_page_explains_a_401_and_matches_the_json_api(browse
     reliable = api["quality"]["reliable"]
     assert browser.find_element("id", "reliable").text == ("(reliable)" if reliable else "(not reliable)")
 
-    browser.find_element("id", "download").click()  # with the key, as the registration
-    wait_for(browser, "document.getElementById('status').textContent.includes('downloaded')", "the download")
-    download = browser.downloads / "small_src_aligned.ply"
-    for _ in range(100):
-        if download.is_file() and download.stat().st_size > 0 and not list(browser.downloads.glob("*.crdownload")):
-            break
-        time.sleep(0.05)
+    download = downloaded(browser, "small_src_aligned.ply")  # with the key, as the registration
     expected = pair.source.astype(np.float64) @ T[:3, :3].T + T[:3, 3]  # the API's pose at full precision
     assert np.abs(read_points(download) - expected).max() < 1e-5
 
