@@ -187,6 +187,15 @@ class RegistrationOptions:
         if self.initial_transform is not None:
             check_transform(self.initial_transform)
 
+    @property
+    def extra_refine_points(self) -> int | None:
+        """``refine_points`` where it asks for more points than the working clouds hold, else ``None``: the
+        refinement never runs on fewer points than the network's working clouds (a thinner refinement moves a right
+        pose off by degrees while ``quality``, measured on the working clouds, can stay ``reliable``)."""
+        if self.refine_points is None or int(self.refine_points) <= int(self.working_size):
+            return None
+        return int(self.refine_points)
+
     @classmethod
     def of(cls, options: RegistrationOptions | None = None, **overrides) -> RegistrationOptions:
         """``options`` (default: all defaults) with ``overrides`` (field names; ``TypeError`` for others)."""

@@ -36,7 +36,7 @@ FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a w
 def applies(work: Working, options: RegistrationOptions) -> bool:
     """Whether the fine refinement runs: a point-to-plane refinement on the working clouds (no ``refine_points``)
     and a target dense enough that its working samples lie far apart."""
-    return options.refine_mode in PLANE_MODES and options.refine_points is None and samples_the_surface(work)
+    return options.refine_mode in PLANE_MODES and options.extra_refine_points is None and samples_the_surface(work)
 
 
 def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

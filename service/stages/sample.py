@@ -44,9 +44,9 @@ def sample(request: Request) -> Sampled:
     local_t = resample_indices(tgt_e, o.working_size, o.drop_isolated)  # [Nt] rows of tgt_e
     working_source, src_w, tgt_w = src_e[local_s], src_moved[local_s], tgt_e[local_t]
     src_r, tgt_r = working_source, tgt_w
-    if o.refine_points is not None and o.refine_mode != "none":
-        src_r = src_e[spread_indices(src_moved, int(o.refine_points), o.drop_isolated)]  # [Nr, 3]
-        tgt_r = tgt_e[spread_indices(tgt_e, int(o.refine_points), o.drop_isolated)]  # [Mr, 3]
+    if o.extra_refine_points is not None and o.refine_mode != "none":
+        src_r = src_e[spread_indices(src_moved, o.extra_refine_points, o.drop_isolated)]  # [Nr, 3]
+        tgt_r = tgt_e[spread_indices(tgt_e, o.extra_refine_points, o.drop_isolated)]  # [Mr, 3]
     return Sampled(working_source, to_s(local_s), to_t(local_t), src_w, tgt_w, src_r, tgt_r, request.R_init,
                    request.t_init, src_e, tgt_e)
 
