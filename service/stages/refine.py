@@ -19,7 +19,7 @@ from service.icp_batch import refine_plane_many
 from service.multistart import multistart
 from service.options import RegistrationOptions
 from service.stages.normalise import ICP_DISTANCE, Working
-from service.stages.ranking import rank_candidates, with_translations
+from service.stages.ranking import rank_candidates, settled_ambiguity, with_translations
 
 CANDIDATE_ITERATIONS = 3  # updates per stage of each search candidate's short refinement
 
@@ -110,6 +110,14 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
         ranked = rank_candidates(work, poses, short)
         pick, ambiguity, R, t = origin[ranked.pick], ranked.ambiguity, ranked.rotation, ranked.translation
     refined = refine_pose(work, R, t, mode, distance, options.icp_max_iterations, surface)
+    if ambiguity is not None and options.initial_transform is not None:
+        # the caller's guess among the candidates: judged again on full refinements, short ones only rank the basins
+        # (docs/decisions/0108-a-guess-ranked-apart-from-its-own-basin.md)
+        def refine_full(R_c: np.ndarray, t_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            full = refine_pose(work, R_c, t_c, mode, distance, options.icp_max_iterations, surface)
+            return full.rotation, full.translation
+
+        ambiguity = settled_ambiguity(work, ranked, refined.rotation, refined.translation, refine_full)
     if mode == "icp-plane-multistart":
         refined = multistart(work.src_r, work.tgt_r, refined, scale, distance, options.icp_max_iterations, surface)
     return Refined(refined.rotation, refined.translation, pick, refined.warnings, ambiguity, surface)
