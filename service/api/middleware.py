@@ -141,12 +141,25 @@ class RequestContextMiddleware:
         error_body = bytearray()  # the start of a 4xx/5xx body: its "error" goes into the access line
         limit, setting = self._limit(scope)
 
+        counted: list[bool] = []  # the request's count and latency, recorded once
+
+        def count() -> None:
+            if not counted:
+                counted.append(True)
+                route = _route_template(scope, path, root_path)
+                method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
+                self.metrics.requests.labels(route=route, method=method, status=str(state["status"])).inc()
+                self.metrics.latency.labels(route=route).observe(time.perf_counter() - started)
+
         async def send_with_id(message: Message) -> None:
             if message["type"] == "http.response.start":
                 state["status"], state["started"] = message["status"], True
                 message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
-            elif message["type"] == "http.response.body" and state["status"] >= 400:
-                error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
+            elif message["type"] == "http.response.body":
+                if state["status"] >= 400:
+                    error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
+                if not message.get("more_body", False) and scope["state"].get(ANSWERED_BELOW) is None:
+                    count()  # before the last bytes leave: a scrape the client sends after its answer counts it
             await send(message)
 
         async def receive_limited() -> Message:
@@ -207,8 +220,7 @@ class RequestContextMiddleware:
             elapsed = time.perf_counter() - started
             route = _route_template(scope, path, root_path)
             method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
-            self.metrics.requests.labels(route=route, method=method, status=str(state["status"])).inc()
-            self.metrics.latency.labels(route=route).observe(elapsed)
+            count()  # where no last body went out: a disconnect, a 499, the protocol's own answer
             extra = {
                 "request_id": request_id,
                 "method": scope["method"] if method != OTHER_METHOD else shortened(scope["method"]),

@@ -265,7 +265,7 @@ async def register_aligned(request: Request) -> Response:
 class MovedFileResponse(StreamingResponse):
     """The moved file streamed; the file is closed and ``releases`` called (the request's slot and aligned place) when
     the answer ends however it ends, and a client that reads none of it for ``stall_s`` (MFGNET_BODY_TIMEOUT_S) is
-    dropped (499), as a stalled upload is."""
+    dropped, as a stalled upload is."""
 
     def __init__(self, file: BinaryIO, releases: tuple[Callable[[], None], ...], stall_s: float, **kwargs: Any):
         super().__init__(streamed(file), **kwargs)
