@@ -45,10 +45,11 @@ def serve_command(
         "threads": threads,
         "model_dirs": [str(d) for d in model_dir] if model_dir else None,
     }
+    given = {key: value for key, value in overrides.items() if value is not None}
     try:
-        settings = Settings(**{key: value for key, value in overrides.items() if value is not None})
+        settings = Settings(**given)
     except ValidationError as exc:
-        fail(f"invalid settings: {settings_problems(exc)}")
+        fail(f"invalid settings: {settings_problems(exc, given)}")
     try:  # before the models load: a process leaving while ONNX Runtime builds a session aborts
         socket.getaddrinfo(settings.host, settings.port)
     except socket.gaierror as exc:
@@ -78,11 +79,17 @@ def holds_no_model(folder: Path) -> bool:
         return False
 
 
-def settings_problems(exc: ValidationError) -> str:
-    """Each invalid setting of ``exc`` on one line's part: its environment variable, the problem and the value given
-    (pydantic's own text adds a URL and error codes)."""
+OPTION_OF = {"host": "--host", "port": "--port", "threads": "--threads", "model_dirs": "--model-dir"}
+
+
+def settings_problems(exc: ValidationError, options: dict | None = None) -> str:
+    """Each invalid setting of ``exc`` on one line's part: its environment variable (and its option where ``options``,
+    the settings given as options, holds it), the problem and the value given (pydantic's own text adds a URL and
+    error codes)."""
+    options = options or {}
     return "; ".join(
-        f"MFGNET_{str(error['loc'][0]).upper()}{''.join(f'[{part}]' for part in error['loc'][1:])}: "
+        f"MFGNET_{str(error['loc'][0]).upper()}{''.join(f'[{part}]' for part in error['loc'][1:])}"
+        f"{' / ' + OPTION_OF[error['loc'][0]] if error['loc'][0] in options else ''}: "
         f"{error['msg'].removeprefix('Value error, ')} "
         f"(got {'the value, not shown' if error['loc'][0] == 'api_key' else repr(error['input'])})"
         for error in exc.errors()

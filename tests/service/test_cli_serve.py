@@ -130,7 +130,8 @@ def test_invalid_settings_are_reported_without_a_traceback(monkeypatch) -> None:
     monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
     result = runner.invoke(app, ["serve", "--port", "70000"])
     assert result.exit_code == 2
-    assert "invalid settings: MFGNET_PORT: Input should be less than or equal to 65535 (got 70000)" in result.stderr
+    assert ("invalid settings: MFGNET_PORT / --port: Input should be less than or equal to 65535 (got 70000)"
+            in result.stderr)  # the option as well as the variable: it was given as the option
     monkeypatch.setenv("MFGNET_MAX_QUEUE", "many")
     result = runner.invoke(app, ["serve"])
     assert result.exit_code == 2
