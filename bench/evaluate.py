@@ -186,6 +186,10 @@ def evaluate(
         from bench.real_scans import fpfh_threads
 
         threads = fpfh_threads()  # bench.baselines sets no thread count: Open3D's OpenMP default (OMP_NUM_THREADS)
+    if "keypoints" in evaluated:  # a cloud of fewer points than the keypoints asked gives all of its points
+        fewest = min(data_pairs["source"].shape[1], data_pairs["target"].shape[1])
+        if evaluated["keypoints"] is not None and evaluated["keypoints"] > fewest:
+            evaluated["keypoints_used"] = fewest
     # before the run: the shared checkout may move on during it (a checkpoint is named by its sha256 above)
     evaluated |= {"machine": machine_info(threads), "provenance": provenance([model_path] if model_path else [])}
     if by_label and "label" not in data_pairs:

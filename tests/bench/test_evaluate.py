@@ -473,3 +473,18 @@ def test_evaluate_checks_refine_points_before_any_pair(synthetic_pairs, args, wo
     in `evaluated` and ignored, where mfgnet register refuses it."""
     result = runner.invoke(app, ["evaluate", "--model", "general", "--pairs", str(synthetic_pairs), *args])
     assert_usage_error(result, *words)
+
+
+@pytest.mark.parametrize("method", ["checkpoint", "model"])
+def test_keypoints_beyond_the_clouds_points_are_recorded_as_used(tmp_path, tiny_checkpoint, synthetic_pairs, method):
+    """`--keypoints 512` on clouds of 192 points ran with 192 (every point) and was recorded as 512."""
+    out = tmp_path / "metrics.json"
+    chosen = ["--checkpoint", str(tiny_checkpoint)] if method == "checkpoint" else ["--model", "general"]
+    result = runner.invoke(app, ["evaluate", *chosen, "--pairs", str(synthetic_pairs), "--keypoints", "512",
+                                 "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    evaluated = json.loads(out.read_text())["evaluated"]
+    assert (evaluated["keypoints"], evaluated["keypoints_used"]) == (512, 192)
+    assert runner.invoke(app, ["evaluate", *chosen, "--pairs", str(synthetic_pairs), "--keypoints", "64", "--json",
+                               str(out)]).exit_code == 0
+    assert "keypoints_used" not in json.loads(out.read_text())["evaluated"]
