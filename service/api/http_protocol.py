@@ -56,7 +56,7 @@ from h11._connection import DEFAULT_MAX_INCOMPLETE_EVENT_SIZE  # as uvicorn's h1
 from uvicorn.protocols.http.h11_impl import STATUS_PHRASES, H11Protocol
 
 from service.api.metrics import Metrics
-from service.api.middleware import ANSWERED_BELOW, request_id_of
+from service.api.middleware import ABORT_CONNECTION, ANSWERED_BELOW, request_id_of
 from service.api.security_headers import CSP, HEADERS, NOTHING_ALLOWED
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
@@ -182,6 +182,11 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         super().data_received(data)
         if self.conn.their_state is not h11.IDLE:  # its headers are complete (or it was refused)
             self._cancel_header_timer()
+
+    def handle_events(self) -> None:
+        super().handle_events()
+        if self.cycle is not None:  # an answer that gives up on its client can close the connection at once
+            self.cycle.scope.setdefault("state", {}).setdefault(ABORT_CONNECTION, self.transport.abort)
 
     def _head_within_limit(self, data: bytes) -> bytes:
         """``data``, or where the request line and headers run on past ``h11_max_incomplete_event_size``, the part of it

@@ -69,7 +69,10 @@ class Metrics:
             ["model", "stage"], buckets=LATENCY_BUCKETS, registry=self.registry,
         )
         self.slots = Gauge(
-            "mfgnet_inference_slots_taken", "Registrations being read, waiting or running.", registry=self.registry
+            "mfgnet_inference_slots_taken",
+            "Registrations being read, waiting or running, and aligned answers (/v1/register/aligned) until their file "
+            "is sent.",
+            registry=self.registry,
         )
         self.body_bytes = Gauge(
             "mfgnet_body_bytes_held", "Bytes of JSON and OIP bodies being read or waiting to be decoded "

@@ -33,6 +33,11 @@ MAX_ERROR_BODY_BYTES = 4096  # of an error response, read back for the access li
 # ``scope["state"]`` key of ``(status, message)`` where the HTTP protocol answered a request whose body it could not
 # parse (``http_protocol.py``); the app sees a disconnect
 ANSWERED_BELOW = "mfgnet.answered_below"
+# ``scope["state"]`` keys: the connection's ``transport.abort`` (set by ``http_protocol.py``: an answer that gives up on
+# its client closes the connection at once, its unsent bytes dropped, rather than leaving it open until they drain),
+# and a flag set by an answer that gave up on a client that read none of it (logged and counted as 499)
+ABORT_CONNECTION = "mfgnet.abort_connection"
+DROPPED_CLIENT = "mfgnet.dropped_client"
 # A request still running when the shutdown grace ends is cancelled: its answer (a 503 the client may send again)
 SHUTDOWN_MESSAGE = ("the server is shutting down and the request did not finish within its grace; send it again (to "
                     "another replica or once the server is back)")
@@ -200,7 +205,8 @@ class RequestContextMiddleware:
             else:
                 await self.app(scope, receive_limited, send_with_id)
         except ClientDisconnect:
-            state["status"] = state["status"] or 499  # the client went away; nothing to answer
+            # the client went away (nothing to answer), or an answer under way gave up on a client reading none of it
+            state["status"] = 499 if scope["state"].get(DROPPED_CLIENT) else state["status"] or 499
         except asyncio.CancelledError:  # the server's shutdown grace ended with this request still running
             if state["started"]:
                 raise  # too late for an answer of its own: uvicorn closes the connection

@@ -60,6 +60,11 @@ def test_an_unread_aligned_answer_keeps_its_slot_until_the_stall_limit(one_slot_
                 assert time.monotonic() < deadline, "the stalled answer kept its slot"
                 time.sleep(0.5)
             assert answer.status_code == 200, answer.text
+        # the dropped answer's connection is closed by the server, not left open until its buffers drain, and logged
+        # as a 499 (it was a 200 that never completed, with uvicorn's "without completing response" error)
+        lines = [line for line in one_slot_server.log_lines() if line.get("route") == "/v1/register/aligned"]
+        assert [line["status"] for line in lines] == [499], lines
+        assert not [line for line in one_slot_server.log_lines() if "without completing response" in str(line)]
 
 
 @pytest.fixture(scope="module")

@@ -33,6 +33,7 @@ from starlette.requests import ClientDisconnect
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
 from service.api.errors import APIError, error_docs
+from service.api.middleware import ABORT_CONNECTION, DROPPED_CLIENT
 from service.api.responses import RenderedJSON
 from service.api.routes.register import _MULTIPART_SCHEMA
 from service.api.runner import register_response
@@ -66,7 +67,7 @@ ALIGNED_MEDIA_TYPES = {
     ".npy": OCTET_STREAM,
     ".npz": OCTET_STREAM,
 }
-STREAM_CHUNK_BYTES = 1 << 20
+STREAM_CHUNK_BYTES = 1 << 16  # each send must drain within MFGNET_BODY_TIMEOUT_S: ~4.4 KiB/s at the default
 
 page_router = APIRouter(include_in_schema=False)
 router = APIRouter(prefix="/v1", tags=["page"], dependencies=[Depends(require_api_key)])
@@ -279,6 +280,14 @@ class MovedFileResponse(StreamingResponse):
         try:
             await super().__call__(scope, receive, send_within)
         except TimeoutError:
+            # dropped: closed now, what is still buffered for it discarded (transport.close() would keep the
+            # connection, its buffers and its place under MFGNET_MAX_CONNECTIONS until the client reads them)
+            state = scope.setdefault("state", {})
+            state[DROPPED_CLIENT] = True
+            abort = state.get(ABORT_CONNECTION)
+            if abort is not None:
+                abort()
+                await asyncio.sleep(0)  # connection_lost runs: uvicorn sees a disconnect, not an unfinished answer
             raise ClientDisconnect from None
         finally:
             self._file.close()
