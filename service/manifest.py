@@ -145,13 +145,15 @@ def is_bare_name(model: str | Path) -> bool:
 
 def discover_model_dirs(extra_dirs: list[str | Path] | None = None) -> list[Path]:
     """Bundled model folders, then every model folder inside (or equal to) each extra directory."""
-    found: list[Path] = []
-    for root in [bundled_models_dir(), *[Path(d) for d in extra_dirs or []]]:
-        if looks_like_model(root):
-            found.append(root)
-        elif root.is_dir():
-            found.extend(sorted(p for p in root.iterdir() if p.is_dir() and looks_like_model(p)))
-    return found
+    roots = [bundled_models_dir(), *[Path(d) for d in extra_dirs or []]]
+    return [folder for root in roots for folder in models_in(root)]
+
+
+def models_in(root: Path) -> list[Path]:
+    """``[root]`` where it is a model folder, else the model folders inside it (none where it is no folder)."""
+    if looks_like_model(root):
+        return [root]
+    return sorted(p for p in root.iterdir() if p.is_dir() and looks_like_model(p)) if root.is_dir() else []
 
 
 def looks_like_model(path: Path) -> bool:

@@ -146,13 +146,12 @@ class RequestContextMiddleware:
         error_body = bytearray()  # the start of a 4xx/5xx body: its "error" goes into the access line
         limit, setting = self._limit(scope)
 
-        counted: list[bool] = []  # the request's count and latency, recorded once
+        counted: dict[str, str] = {}  # the route and method the request was counted under, once counted
 
         def count() -> None:
             if not counted:
-                counted.append(True)
-                route = _route_template(scope, path, root_path)
-                method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
+                counted["route"] = route = _route_template(scope, path, root_path)
+                counted["method"] = method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
                 self.metrics.requests.labels(route=route, method=method, status=str(state["status"])).inc()
                 self.metrics.latency.labels(route=route).observe(time.perf_counter() - started)
 
@@ -224,9 +223,8 @@ class RequestContextMiddleware:
             if (answered := scope["state"].get(ANSWERED_BELOW)) is not None:  # a malformed body: the protocol's 4xx
                 state["status"], error = answered
             elapsed = time.perf_counter() - started
-            route = _route_template(scope, path, root_path)
-            method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
             count()  # where no last body went out: a disconnect, a 499, the protocol's own answer
+            route, method = counted["route"], counted["method"]
             extra = {
                 "request_id": request_id,
                 "method": scope["method"] if method != OTHER_METHOD else shortened(scope["method"]),

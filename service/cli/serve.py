@@ -71,10 +71,10 @@ def serve_command(
 def holds_no_model(folder: Path) -> bool:
     """Whether the model folder ``folder`` holds no model, in it or in a subfolder (an empty or mis-mounted volume);
     ``False`` where it cannot be read, which the model registry names."""
-    from service.manifest import looks_like_model
+    from service.manifest import models_in
 
     try:
-        return not looks_like_model(folder) and not any(looks_like_model(sub) for sub in folder.iterdir())
+        return not models_in(folder)
     except OSError:
         return False
 
