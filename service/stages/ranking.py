@@ -17,12 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.rotation_search import (
-    AMBIGUOUS_DEGREES,
     AMBIGUOUS_RATIO_GAP,
     ambiguity_warning,
     close_second,
     rank_hypotheses,
-    rotation_between_deg,
 )
 from service.stages.normalise import Working, samples_densely
 from service.translation_search import translation_candidates
@@ -60,9 +58,9 @@ class Ranked:
     ambiguity: str | None  # service.rotation_search.ambiguity_warning of the ranking
     rotation: np.ndarray  # [3, 3] the winner's briefly refined src_to_tgt (caller's units)
     translation: np.ndarray  # [3]
-    rotations: np.ndarray | None = None  # [C, 3, 3] every candidate, briefly refined
-    translations: np.ndarray | None = None  # [C, 3]
-    fits: np.ndarray | None = None  # [C] the fit they were ranked by
+    rotations: np.ndarray  # [C, 3, 3] every candidate, briefly refined
+    translations: np.ndarray  # [C, 3]
+    fits: np.ndarray  # [C] the fit they were ranked by
 
 
 def close_fit(work: Working, rotations: np.ndarray, translations: np.ndarray) -> np.ndarray:
@@ -113,23 +111,22 @@ def settled_ambiguity(work: Working, ranked: Ranked, rotation: np.ndarray, trans
                       refine_full: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
                       most: int = 3) -> str | None:
     """The ranking's ambiguity once the winner has its full refinement (``rotation [3, 3]``, ``translation [3]``):
-    the close seconds of the short ranking (at most ``most``) get the same full refinement (``refine_full``); the
-    warning goes only where every one of them then lands in the winner's own basin (within ``AMBIGUOUS_DEGREES`` and
-    ``AMBIGUOUS_SHIFT`` of it): two short refinements of one basin, stopped apart, are not two places that fit."""
-    if ranked.ambiguity is None or ranked.fits is None:
-        return ranked.ambiguity
+    the close seconds of the short ranking (at most ``most``) get the same full refinement (``refine_full``), and the
+    ranking's own test (:func:`ranking_ambiguity`) is asked again of those poses; the warning goes where it then
+    finds none (every close second in the winner's basin): two short refinements of one basin, stopped apart, are not
+    two places that fit."""
+    if ranked.ambiguity is None:
+        return None
     fits, pick = ranked.fits, ranked.pick
     close = [int(i) for i in np.argsort(-fits, kind="stable")
              if i != pick and fits[i] >= fits[pick] - AMBIGUOUS_RATIO_GAP]
     if len(close) > most:
         return ranked.ambiguity
-    centre = work.working_source.mean(axis=0)  # [3]
+    rotations, translations = ranked.rotations.copy(), ranked.translations.copy()  # [C, 3, 3], [C, 3]
+    rotations[pick], translations[pick] = rotation, translation
     for i in close:
-        R_c, t_c = refine_full(ranked.rotations[i], ranked.translations[i])
-        shift = float(np.linalg.norm((R_c @ centre + t_c) - (rotation @ centre + translation)))
-        if rotation_between_deg(rotation, R_c) > AMBIGUOUS_DEGREES or shift > AMBIGUOUS_SHIFT * work.norm.scale:
-            return ranked.ambiguity
-    return None
+        rotations[i], translations[i] = refine_full(rotations[i], translations[i])
+    return ranked.ambiguity if ranking_ambiguity(work, rotations, translations, fits, pick) else None
 
 
 def candidate_fits(work: Working, rotations: np.ndarray, translations: np.ndarray, ratios: np.ndarray | None = None
