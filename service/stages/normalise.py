@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from functools import cached_property
 
 import numpy as np
 
@@ -13,6 +12,7 @@ from service.icp import NORMAL_NEIGHBOURS, Surface
 from service.kdtree import KDTree
 from service.neighbours import knn_graph
 from service.normalization import Normalization
+from service.per_instance_cache import per_instance_cached_property
 from service.plane_frames import CloudFrame, cloud_frame, frame_rotations
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio, attainable_on_surface, degenerate, nearest_other_distances
@@ -53,19 +53,19 @@ class Working(Sampled):
         """``INLIER_DISTANCE`` in the caller's units."""
         return INLIER_DISTANCE * self.norm.scale
 
-    @cached_property
+    @per_instance_cached_property
     def searchable(self) -> bool:
         """Whether neither working cloud is degenerate (:func:`service.quality.degenerate`): ``auto`` searches, or
         starts its search ahead, only then."""
         return not (degenerate(self.src_w) or degenerate(self.tgt_w))
 
-    @cached_property
+    @per_instance_cached_property
     def target_spacings(self) -> np.ndarray:
         """``[Nt]`` each working target point's distance to its nearest other one
         (:func:`service.quality.nearest_other_distances`; needs ``Nt >= 2``), measured once per registration."""
         return nearest_other_distances(self.tgt_w)
 
-    @cached_property
+    @per_instance_cached_property
     def attainable_ratio(self) -> float:
         """The inlier ratio a right pose can reach at the working target's density
         (:func:`service.quality.attainable_inlier_ratio`), computed once per registration."""
@@ -73,14 +73,14 @@ class Working(Sampled):
             return 1.0
         return attainable_inlier_ratio(self.tgt_w, self.inlier_distance, nearest_other=self.target_spacings)
 
-    @cached_property
+    @per_instance_cached_property
     def surface_attainable_ratio(self) -> float:
         """The inlier ratio a right pose reaches on the target's surface: :func:`service.quality.attainable_on_surface`
         of :attr:`fine_target` against the working target, computed once per registration (the plain pass and the
         search both assess a pose)."""
         return attainable_on_surface(self.fine_target, self.tgt_w, self.inlier_distance)
 
-    @cached_property
+    @per_instance_cached_property
     def source_attainable_ratio(self) -> float:
         """The inlier ratio a right pose reaches measured from the target's side (:func:`service.quality.reverse_fit`):
         :func:`service.quality.attainable_on_surface` of :attr:`fine_source` against the working source where the
@@ -92,7 +92,7 @@ class Working(Sampled):
             return 1.0
         return attainable_inlier_ratio(self.working_source, self.inlier_distance)
 
-    @cached_property
+    @per_instance_cached_property
     def feature_pose(self) -> FeaturePose | None:
         """The coarse pose of the entered source, moved by the initial guess, onto the entered target from matched
         local descriptors (:func:`service.feature_match.feature_pose`), on a grid of the larger of the two working
@@ -102,7 +102,7 @@ class Working(Sampled):
         voxel = float(max(np.median(nearest_other_distances(self.src_w)), np.median(self.target_spacings)))
         return feature_pose(self.src_e @ self.R_init.T + self.t_init, self.tgt_e, voxel)
 
-    @cached_property
+    @per_instance_cached_property
     def range_views(self) -> tuple[RangeView | None, RangeView | None]:
         """The entered source's and target's :func:`service.free_space.range_view`, each ``None`` unless the cloud
         samples its surface densely (``CLOSE_FIT_DENSITY`` times its working cloud's points) as a range image does;
@@ -111,7 +111,7 @@ class Working(Sampled):
         return (range_view(self.src_e, self.entered_source_tree) if samples_densely(self.src_e, self.src_w) else None,
                 range_view(self.tgt_e, self.entered_target_tree) if samples_densely(self.tgt_e, self.tgt_w) else None)
 
-    @cached_property
+    @per_instance_cached_property
     def confirming_views(self) -> tuple[RangeView | None, RangeView | None]:
         """The views a confirmation by free space reads: :attr:`range_views`, where a dense cloud has none, its view
         read over ``COARSE_VIEW_NEIGHBOURS`` (a range image with range noise of a point spacing), kept only where the
@@ -128,38 +128,38 @@ class Working(Sampled):
             return fine_source, fine_target
         return source_view, target_view
 
-    @cached_property
+    @per_instance_cached_property
     def source_frame(self) -> CloudFrame:
         """The normalised working source's normals and plane frame (:func:`service.plane_frames.cloud_frame`), found
         once per registration: the frame rotations and the symmetry check's off-plane points both ask."""
         return cloud_frame(self.src_n)
 
-    @cached_property
+    @per_instance_cached_property
     def plane_frame_rotations(self) -> np.ndarray | None:
         """``[24, 3, 3]``: the rotations between the normalised working clouds' plane frames
         (:func:`service.plane_frames.frame_rotations`), or ``None`` unless both are built of orthogonal planes;
         found once per registration (``auto`` and the search both ask)."""
         return frame_rotations(self.src_n, self.tgt_n, self.source_frame)
 
-    @cached_property
+    @per_instance_cached_property
     def entered_source_tree(self) -> KDTree:
         """KD-tree of the entered source ``src_e``, built when its range views are first read."""
         return KDTree(np.asarray(self.src_e, dtype=np.float64))
 
-    @cached_property
+    @per_instance_cached_property
     def entered_target_tree(self) -> KDTree:
         """KD-tree of the entered target ``tgt_e`` (all of the caller's target up to the entry limit), built when a
         stage first measures distances to the target's surface rather than to its working samples."""
         return KDTree(np.asarray(self.tgt_e, dtype=np.float64))
 
-    @cached_property
+    @per_instance_cached_property
     def working_graphs(self) -> tuple[np.ndarray, np.ndarray]:
         """``[Ns, K]``, ``[Nt, K]`` (``K = NORMAL_NEIGHBOURS``): each normalised working cloud's nearest rows, nearest
         first, itself included; one query per cloud for the network's neighbour graph and, where the refinement
         moves the working clouds themselves, for its normals."""
         return knn_graph(self.src_n[None], NORMAL_NEIGHBOURS)[0], knn_graph(self.tgt_n[None], NORMAL_NEIGHBOURS)[0]
 
-    @cached_property
+    @per_instance_cached_property
     def target_surface(self) -> Surface:
         """KD-tree and normals of the refinement's target ``tgt_r``, built once per registration."""
         nearest = self.working_graphs[1] if self.tgt_r is self.tgt_w else None
@@ -172,37 +172,37 @@ class Working(Sampled):
         working = surface if surface is not None and self.tgt_r is self.tgt_w else None
         return (KDTree(self.tgt_w) if working is None else working.tree), working
 
-    @cached_property
+    @per_instance_cached_property
     def source_surface(self) -> Surface:
         """KD-tree and normals of the refinement's source ``src_r`` in its own frame, built once per registration:
         every start of every refinement moves the same points."""
         nearest = self.working_graphs[0] if self.src_r is self.working_source else None  # src_w: the same rows, moved
         return Surface.of(np.asarray(self.src_r, dtype=np.float64), nearest_rows=nearest)
 
-    @cached_property
+    @per_instance_cached_property
     def fine_source(self) -> np.ndarray:
         """``[Nf, 3]`` float64: up to ``FINE_SOURCE_POINTS`` points of the entered source ``src_e``, a uniform
         subsample (:func:`service.sampling.hashed_indices`), caller's frame: what the fine refinement moves."""
         return np.asarray(self.src_e[hashed_indices(self.src_e, FINE_SOURCE_POINTS)], dtype=np.float64)
 
-    @cached_property
+    @per_instance_cached_property
     def fine_target(self) -> np.ndarray:
         """``[Mf, 3]`` float64: up to ``FINE_TARGET_POINTS`` points of the entered target ``tgt_e``, a uniform
         subsample as :attr:`fine_source`."""
         return np.asarray(self.tgt_e[hashed_indices(self.tgt_e, FINE_TARGET_POINTS)], dtype=np.float64)
 
-    @cached_property
+    @per_instance_cached_property
     def fine_target_surface(self) -> Surface:
         """KD-tree and normals of :attr:`fine_target`, built once per registration."""
         return Surface.of(self.fine_target)
 
-    @cached_property
+    @per_instance_cached_property
     def short_points(self) -> np.ndarray:
         """Every ``SHORT_REFINE_STRIDE``-th row of ``src_r`` ``[Nr', 3]`` (float64; a spread subsample: the working
         cloud is in farthest-point order): what the candidates' short refinements move."""
         return np.asarray(self.src_r, dtype=np.float64)[::SHORT_REFINE_STRIDE]
 
-    @cached_property
+    @per_instance_cached_property
     def short_surface(self) -> Surface:
         """The surface of :attr:`short_points`: its own KD-tree, the full source's normals."""
         full = self.source_surface
