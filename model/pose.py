@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import torch
 
-WEIGHT_EPS = 1e-8
-ZERO_WEIGHT_TOL = 1e-12
+ZERO_WEIGHT_TOL = 1e-12  # as service.procrustes: uniform weights below it, the exact sum's normalisation above
 
 
 def weighted_procrustes(
@@ -31,7 +30,7 @@ def weighted_procrustes(
     w = weights.clamp_min(0)  # [B, K]
     total = w.sum(dim=-1, keepdim=True)  # [B, 1]
     w = torch.where(total > ZERO_WEIGHT_TOL, w, torch.ones_like(w))
-    w = w / (w.sum(dim=-1, keepdim=True) + WEIGHT_EPS)  # [B, K]
+    w = w / w.sum(dim=-1, keepdim=True)  # [B, K] summing to 1
 
     src_sum = torch.einsum("bk,bkc->bc", w, src)  # [B, 3]
     tgt_sum = torch.einsum("bk,bkc->bc", w, tgt)

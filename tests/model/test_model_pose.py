@@ -51,6 +51,17 @@ def test_torch_twin_matches_numpy_without_weights() -> None:
     np.testing.assert_allclose(t_pt.numpy(), t_np, atol=1e-10)
 
 
+def test_torch_twin_matches_numpy_with_tiny_weights() -> None:
+    src = torch.randn(2, 64, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    tgt = src + torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    weights = torch.full((2, 64), 1e-10, dtype=torch.float64)
+    R, t = procrustes_torch(src, tgt, weights)
+    R_np, t_np = procrustes_numpy(src.numpy(), tgt.numpy(), weights.numpy())
+    np.testing.assert_allclose(t.numpy(), t_np, atol=1e-9)
+    np.testing.assert_allclose(t.numpy(), [[1.0, 2.0, 3.0]] * 2, atol=1e-9)
+    np.testing.assert_allclose(R.numpy(), R_np, atol=1e-9)
+
+
 def test_torch_rotations_are_proper() -> None:
     src, tgt, weights = random_batch(4)
     R, _ = procrustes_torch(torch.from_numpy(src), torch.from_numpy(-tgt), torch.from_numpy(weights))

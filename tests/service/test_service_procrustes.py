@@ -72,6 +72,16 @@ def test_all_zero_weights_fall_back_to_uniform() -> None:
     np.testing.assert_allclose(zero[1], uniform[1], atol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [1e-6, 1e-9, 1e-11])
+def test_tiny_weights_give_the_same_pose_as_their_multiples(scale: float) -> None:
+    """Weights summing to far less than one (credibilities of a network that trusts no pair) still average the pairs:
+    exact pairs of a shift give the shift, whatever the weights' scale."""
+    src = np.random.default_rng(11).normal(size=(64, 3))
+    R, t = weighted_procrustes(src, src + np.array([1.0, 2.0, 3.0]), np.full(64, scale))
+    np.testing.assert_allclose(R, np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(t, [1.0, 2.0, 3.0], atol=1e-9)
+
+
 def test_zero_weighted_outliers_are_ignored() -> None:
     R, t = random_pose(11)
     src = np.random.default_rng(11).normal(size=(40, 3))
