@@ -89,7 +89,8 @@ def icp(
             source point (mutual nearest neighbours); ``False`` gives plain point-to-point ICP.
 
     Returns:
-        :class:`IcpResult`; with fewer than ``MIN_INLIERS`` pairs the pose is not changed.  Its
+        :class:`IcpResult`; with fewer than ``MIN_INLIERS`` pairs the pose is kept from there on,
+        ``converged`` is False and ``warnings`` says so (as :func:`icp_plane`'s).  Its
         ``inlier_ratio`` and ``residual_rms`` use the distance rule only (as
         :func:`service.quality.assess` does), whatever ``reciprocal`` is.
 
@@ -100,11 +101,13 @@ def icp(
     tree = KDTree(tgt)
     src_tree = KDTree(src) if reciprocal else None
     translation_tolerance = tolerance * rms_radius(tgt)
-    iterations = 0
+    iterations, warnings = 0, []
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
         inlier, nearest = _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance)  # [N], [N]
         if np.count_nonzero(inlier) < MIN_INLIERS:
+            warnings.append(f"refinement: point-to-point ICP found {np.count_nonzero(inlier)} pairs closer than "
+                            f"{max_distance:.3g} (needs {MIN_INLIERS}); kept the pose after {iterations} updates")
             break
         R_step, t_step = weighted_procrustes(src_in_tgt[inlier], tgt[nearest[inlier]], None, "weighted")
         R, t = compose(R_step, t_step, R, t)
@@ -112,7 +115,7 @@ def icp(
         angle = np.linalg.norm(R_step - np.eye(3)) / np.sqrt(2.0)  # ~ rotation angle when small
         if angle < tolerance and np.linalg.norm(t_step) < translation_tolerance:
             break
-    return _result(tree, src, R, t, iterations, max_distance)
+    return _result(tree, src, R, t, iterations, max_distance, tuple(warnings))
 
 
 def icp_many(
@@ -405,7 +408,8 @@ def icp_plane(
             )
             fallback = icp(src, tgt, R, t, max_distance=max_distance, max_iterations=max_iterations - iterations,
                            tolerance=tolerance, reciprocal=reciprocal)
-            return dataclasses.replace(fallback, iterations=iterations + fallback.iterations, warnings=tuple(warnings))
+            return dataclasses.replace(fallback, iterations=iterations + fallback.iterations,
+                                       warnings=(*warnings, *fallback.warnings))
         R_step, t_step, rotated, moved = step
         R, t = compose(R_step, t_step, R, t)
         iterations += 1

@@ -382,3 +382,13 @@ def test_refine_points_at_or_below_the_working_size_changes_nothing():
         thin = general.register(src, tgt, refine="icp-plane", rotation_search="auto", refine_points=points)
         np.testing.assert_array_equal(thin.transform, default.transform)
         assert thin.reliable == default.reliable
+
+
+@pytest.mark.parametrize("mode", ["icp", "icp-plane"])
+def test_a_refinement_that_finds_no_pairs_says_so_in_either_mode(registrar, mode):
+    rng = np.random.default_rng(0)
+    source = rng.normal(size=(500, 3)).astype(np.float32)
+    target = (rng.normal(size=(500, 3)) @ Rotation.from_euler("z", 10, degrees=True).as_matrix().T + 0.05)
+    result = registrar.register(source, target.astype(np.float32), refine=mode, icp_max_distance=1e-6,
+                                rotation_search=False)
+    assert any(" 0 pairs closer than 1e-06" in warning for warning in result.warnings), result.warnings

@@ -290,8 +290,8 @@ def test_plane_icp_continues_with_point_to_point_on_a_planar_target() -> None:
     np.testing.assert_array_equal(result.translation, point.translation)
 
 
-@pytest.mark.parametrize("method", [icp_plane, icp_symmetric], ids=["plane", "symmetric"])
-def test_plane_icp_keeps_the_initial_pose_and_warns_without_pairs(method) -> None:
+@pytest.mark.parametrize("method", [icp, icp_plane, icp_symmetric], ids=["point", "plane", "symmetric"])
+def test_every_icp_keeps_the_initial_pose_and_warns_without_pairs(method) -> None:
     src, tgt, R, t = partial_pair(5)
     result = method(src, tgt, R, t + 100.0, max_distance=0.2)
     assert not result.converged and result.iterations == 0 and "0 pairs" in result.warnings[0]
