@@ -61,10 +61,6 @@ class Manifest:
         count = sum(1 for role in self.graphs if role.startswith("matcher_"))
         return [f"matcher_{i}" for i in range(count)]
 
-    @property
-    def matcher_files(self) -> list[Path]:
-        return [self.graphs[role] for role in self.matcher_roles]
-
 
 def load_manifest(directory: str | Path) -> Manifest:
     """Read ``directory/manifest.json`` and verify every graph's sha256.

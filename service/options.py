@@ -102,9 +102,9 @@ class RegistrationOptions:
     ``working_size``: points per working cloud; ``return_iterations``: the pose after every network iteration.
 
     ``rotation_search=True`` starts the network from ``search_rotations`` initial rotations of the
-    source about its centroid (:mod:`service.rotation_search`: 24 or 60), all in one batched
-    encoder call and one matcher call per iteration, keeps the hypothesis whose pose has the
-    highest inlier ratio on the working clouds (ties: lower residual), then refines it. With
+    source about its centroid (:mod:`service.rotation_search`: 24 or 60), ``SEARCH_BATCH`` starts per encoder and
+    matcher call against a target embedded once; without a refinement it keeps the hypothesis whose pose has the
+    highest inlier ratio on the working clouds (ties: lower residual). With
     ``refine="icp"`` every hypothesis first gets a short wide-basin ICP (``SEARCH_ICP_*``) and
     the ranking uses those poses (with an early-training network the raw poses rarely land
     close enough to rank the right basin first; ``docs/ROTATION_SEARCH.md``); the winner then
@@ -180,7 +180,9 @@ class RegistrationOptions:
         if self.icp_max_distance is not None and not (
                 isinstance(self.icp_max_distance, (int, float, np.number)) and 0 < self.icp_max_distance < np.inf):
             raise InputError(f"icp_max_distance must be a positive number, got {self.icp_max_distance!r}")
-        if whole_number(self.icp_max_iterations, "icp_max_iterations") < 0:  # 0: the refinement's start, unrefined
+        # 0: the refinement stage keeps its start; the slide check and the fine refinement after it still move the
+        # pose (their own caps), so an unrefined pose, judged as one, is refine="none"
+        if whole_number(self.icp_max_iterations, "icp_max_iterations") < 0:
             raise InputError(f"icp_max_iterations must be at least 0, got {self.icp_max_iterations}")
         if self.search != "off":
             search_rotations_for(whole_number(self.search_rotations, "search_rotations"))
@@ -207,9 +209,6 @@ class RegistrationOptions:
     def names(cls) -> frozenset[str]:
         """The option names ``Registrar.register`` takes as keyword overrides."""
         return frozenset(f.name for f in dataclasses.fields(cls))
-
-    def as_dict(self) -> dict[str, object]:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
 
     @property
     def refine_mode(self) -> str:
