@@ -19,6 +19,7 @@ class RuntimeRun(NamedTuple):
     reliable: np.ndarray  # [M] bool: ``quality.reliable``
     stability: np.ndarray  # [M] float: ``quality.stability`` (NaN where the runtime gives none)
     warnings: list[tuple[str, ...]]  # [M] per pair its warnings' kinds (each the text before its colon), sorted
+    inlier_ratio: np.ndarray  # [M] float: ``quality.inlier_ratio``
 
 
 def runtime_poses(model: str | Path, pairs: dict, iterations: int | None = None, keypoints: int | None = None,
@@ -31,7 +32,7 @@ def runtime_poses(model: str | Path, pairs: dict, iterations: int | None = None,
     from service.registrar import Registrar
 
     registrar = Registrar(model_folder(model))
-    Rs, ts, searched, reliable, stability, warnings = [], [], 0, [], [], []
+    Rs, ts, searched, reliable, stability, warnings, ratios = [], [], 0, [], [], [], []
     begin = time.perf_counter()
     pairs_in_order = list(zip(pairs["source"], pairs["target"], strict=True))
     for src, tgt in tqdm(pairs_in_order, desc="evaluate", unit="pair", disable=not progress):
@@ -43,5 +44,7 @@ def runtime_poses(model: str | Path, pairs: dict, iterations: int | None = None,
         reliable.append(res.reliable)
         stability.append(np.nan if res.stability is None else res.stability)
         warnings.append(tuple(sorted({warning.split(":", 1)[0] for warning in res.warnings})))
+        ratios.append(res.inlier_ratio)
     return RuntimeRun(np.stack(Rs), np.stack(ts), time.perf_counter() - begin, searched,
-                      np.array(reliable, dtype=bool), np.array(stability, dtype=np.float64), warnings)
+                      np.array(reliable, dtype=bool), np.array(stability, dtype=np.float64), warnings,
+                      np.array(ratios, dtype=np.float64))

@@ -7,15 +7,24 @@ service's defaults (``refine="icp-plane"``, ``rotation_search="auto"``; :func:`b
 Right = within (5 deg, 5 cm). It prints and writes (``--json``) the pooled successes, ``reliable`` results given and
 wrong, their precision (the share of them that are right) and coverage (the share of the successes given it), the same
 per class, and every wrong ``reliable`` result with its kind: ``half turn`` (more than 170 deg off), ``turned``
-(5-170 deg off) or ``slid`` (the rotation within 5 deg, the translation 5 cm or more off).
+(5-170 deg off) or ``slid`` (the rotation within 5 deg, the translation 5 cm or more off), and its failure class as
+``bench.failures`` classes a real scan's: registered again from its true pose (``initial_transform``, no search), it
+``truth leaves`` (ends wrong), ``fits worse`` (stays right, with an inlier ratio no higher than the wrong result's:
+the fit itself prefers the wrong pose, so no check that compares fits can withhold ``reliable``) or ``not reached``
+(stays right and fits better: a turn or search that reached it would flag or replace the wrong pose).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from bench.failures import CLASSES, failure_class
 from bench.report_io import (
     checked,
     json_destination,
@@ -30,6 +39,9 @@ from model.cli_inputs import model_dir, require_shapes
 from model.data import class_names, make_test_pairs, protocol_for
 from model.metrics import RECALL_THRESHOLDS, isotropic_errors, recall_hits
 
+if TYPE_CHECKING:
+    from service.registrar import Registrar
+
 RIGHT = "recall_r5_t005"  # right: within (5 deg, 5 cm)
 MAX_DEGREES = RECALL_THRESHOLDS[RIGHT][0]
 HALF_TURN_DEGREES = 170.0  # a wrong result further off than this is a half turn
@@ -37,14 +49,43 @@ SEEDS = (5, 11, 12, 13, 14, 15)
 
 
 def seed_rows(model: str, seed: int, count: int, data: str | None = None) -> list[dict]:
-    """One row per pair of ``count`` seeded simulated scans at any orientation: class, errors, success, ``reliable``."""
+    """One row per pair of ``count`` seeded simulated scans at any orientation: class, errors, success, ``reliable``,
+    inlier ratio; a wrong ``reliable`` result's row also its :func:`from_truth` run and failure class."""
     pairs = make_test_pairs("scans", count=count, seed=seed, path=data, protocol=protocol_for("scans", max_angle=180))
     run = runtime_poses(model, pairs, refine="icp-plane", rotation_search="auto", progress=False)
     degrees, errors = isotropic_errors(run.rotation, run.translation, pairs["rotation"], pairs["translation"])  # [M]
     right = recall_hits(degrees, errors)[RIGHT]  # [M]
-    return [{"seed": seed, "pair": i, "label": int(pairs["label"][i]), "rotation_error_deg": round(float(d), 3),
-             "translation_error": round(float(e), 4), "success": bool(right[i]),
-             "reliable": bool(run.reliable[i])} for i, (d, e) in enumerate(zip(degrees, errors, strict=True))]
+    rows = [{"seed": seed, "pair": i, "label": int(pairs["label"][i]), "rotation_error_deg": round(float(d), 3),
+             "translation_error": round(float(e), 4), "success": bool(right[i]), "reliable": bool(run.reliable[i]),
+             "inlier_ratio": round(float(run.inlier_ratio[i]), 4)}
+            for i, (d, e) in enumerate(zip(degrees, errors, strict=True))]
+    wrong = [row for row in rows if row["reliable"] and not row["success"]]
+    if wrong:
+        from service.manifest import model_folder
+        from service.registrar import Registrar
+
+        registrar = Registrar(model_folder(model))
+        for row in wrong:
+            row.update(from_truth(registrar, pairs, row))
+    return rows
+
+
+def from_truth(registrar: Registrar, pairs: dict, row: dict) -> dict:
+    """The wrong result ``row`` of ``pairs`` registered again from its true pose (``initial_transform``, the default
+    refinement, no search): its errors and inlier ratio, and its failure class
+    (:func:`bench.failures.failure_class`)."""
+    i = row["pair"]
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = pairs["rotation"][i], pairs["translation"][i]
+    res = registrar.register(pairs["source"][i], pairs["target"][i], refine="icp-plane", rotation_search=False,
+                             initial_transform=truth)
+    degrees, errors = isotropic_errors(res.rotation[None], res.translation[None], pairs["rotation"][i : i + 1],
+                                       pairs["translation"][i : i + 1])  # [1]
+    stayed = bool(recall_hits(degrees, errors)[RIGHT][0])
+    return {"failure": failure_class(stayed, res.inlier_ratio, row["inlier_ratio"]),
+            "from_truth": {"rotation_error_deg": round(float(degrees[0]), 3),
+                           "translation_error": round(float(errors[0]), 4),
+                           "inlier_ratio": round(float(res.inlier_ratio), 4)}}
 
 
 def kind(row: dict) -> str:
@@ -55,15 +96,17 @@ def kind(row: dict) -> str:
 
 
 def report(rows: list[dict], names: list[str] | None) -> dict:
-    """The pooled totals (:func:`bench.report_io.reliable_totals`), those of each class, and every wrong ``reliable``
-    result with its :func:`kind`."""
+    """The pooled totals (:func:`bench.report_io.reliable_totals`), those of each class, the wrong ``reliable``
+    results' count per failure class (:func:`from_truth`), and every wrong ``reliable`` result with its :func:`kind`."""
     def name(label: int) -> str:
         return names[label] if names and label < len(names) else str(label)
 
     by_class = {name(label): reliable_totals([r for r in rows if r["label"] == label])
                 for label in sorted({r["label"] for r in rows})}
     wrong = [{**r, "class": name(r["label"]), "kind": kind(r)} for r in rows if r["reliable"] and not r["success"]]
+    failures = Counter(r.get("failure") for r in wrong)
     return {"benchmark": "scan_reliability", "totals": reliable_totals(rows), "by_class": by_class,
+            "reliable_wrong_by_failure": {failure: failures[failure] for failure in CLASSES},
             "reliable_wrong": wrong, "rows": rows}
 
 
@@ -92,9 +135,11 @@ def main(argv: list[str] | None = None) -> dict:
     print("all", json.dumps(out["totals"]))
     for name, figures in out["by_class"].items():
         print(f"  {name}", json.dumps(figures))
+    print("wrong reliable by failure class", json.dumps(out["reliable_wrong_by_failure"]))
     for row in out["reliable_wrong"]:
         print("  wrong reliable:", json.dumps({k: row[k] for k in ("seed", "pair", "class", "rotation_error_deg",
-                                                                   "translation_error", "kind")}))
+                                                                   "translation_error", "kind", "inlier_ratio",
+                                                                   "failure")}))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return out

@@ -9,7 +9,7 @@ from pair_checks import needs_dense
 from provenance_check import assert_made_by_this_checkout
 
 from bench.report_io import reliable_totals as totals
-from bench.scan_reliability import kind, main, report
+from bench.scan_reliability import from_truth, kind, main, report
 from service.registrar import default_threads
 
 
@@ -52,3 +52,26 @@ def test_the_benchmark_registers_seeded_scans_through_the_runtime(tmp_path):
     assert written["seeds"] == [5] and written["count"] == 4 and "degrees" in written["units"]
     assert_made_by_this_checkout(written["provenance"])
     assert written["machine"]["threads"] == default_threads() and written["machine"]["cpus"] > 0
+
+
+def test_the_report_counts_wrong_reliable_results_by_failure_class():
+    rows = [{**row(False, True, 179.0), "failure": "fits worse"}, {**row(False, True, 90.0), "failure": "not reached"},
+            {**row(False, True, 179.0), "failure": "fits worse"}, row(True, True)]
+    assert report(rows, None)["reliable_wrong_by_failure"] == {"truth leaves": 0, "fits worse": 2, "not reached": 1}
+
+
+@needs_dense
+def test_a_wrong_result_is_classed_by_a_registration_from_its_true_pose():
+    from model.data import make_test_pairs, protocol_for
+    from service.manifest import model_folder
+    from service.registrar import Registrar
+
+    pairs = make_test_pairs("scans", count=1, seed=5, protocol=protocol_for("scans", max_angle=180))
+    registrar = Registrar(model_folder("general"))
+    # a made-up wrong result that fitted perfectly: the truth, staying right, fits no better
+    worse = from_truth(registrar, pairs, {**row(False, True, 179.0), "inlier_ratio": 1.0})
+    # ... and one that fitted nothing: the truth fits better, so no candidate reached it
+    unreached = from_truth(registrar, pairs, {**row(False, True, 179.0), "inlier_ratio": 0.0})
+    assert worse["failure"] == "fits worse" and unreached["failure"] == "not reached"
+    assert worse["from_truth"] == unreached["from_truth"]
+    assert worse["from_truth"]["rotation_error_deg"] < 5 and 0 < worse["from_truth"]["inlier_ratio"] <= 1
