@@ -140,7 +140,14 @@ def main(argv: list[str] | None = None) -> Path:
             "offset first (and the pose with them)",
             file=sys.stderr,
         )
-    if inverse < 0.5 * closeness:
+    if min(closeness, inverse) >= radius:
+        print(
+            f"warning: neither {args.transform.name} nor its inverse lays the source onto the target (median "
+            f"distance {closeness:.4g}, more than the smaller cloud's RMS radius {radius:.4g}): check the pose's "
+            "frames and units; clouds moved by an offset need the pose moved with them (t' = t + R o - o)",
+            file=sys.stderr,
+        )
+    elif inverse < 0.5 * closeness:
         print(
             f"warning: the inverse of {args.transform.name} lays the source more closely onto the target: is it "
             "T_source_target? --transform takes T_target_source (target ~ R source + t)",

@@ -152,8 +152,11 @@ class MfgnetClient:
             drop_isolated: ``False`` keeps isolated points as sampling candidates (``None``: the server's, true).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds). Coordinates
-                beyond ``LARGE_COORDINATE`` (e.g. UTM) are first moved by one shared offset
-                (:func:`shared_offset`), and the returned pose is moved back: it is in the caller's frame.
+                beyond ``LARGE_COORDINATE`` (e.g. UTM) are first moved near the origin (:func:`cloud_offsets`: one
+                offset for both where that serves, else each cloud its own), and the returned pose is moved back: it
+                is in the caller's frame. Where the clouds need offsets of their own and an ``initial_transform`` is
+                given, they go as float64 ``.npy`` unmoved instead, so that the server can still tell a prior given
+                target-to-source. An array beside a file path goes as float64 too.
                 Without ``binary``, a cloud with NaN or infinite values is sent as a float64 ``.npy`` file, for the
                 server's 422 to name its rows.
 
@@ -180,11 +183,18 @@ class MfgnetClient:
         arrays = isinstance(source, np.ndarray) and isinstance(target, np.ndarray)
         if binary or paths or (arrays and (_non_finite(source) or _non_finite(target))):
             offsets = None if paths or not binary else cloud_offsets(source, target)
+            exact = False  # float64 .npy: nothing rounded, nothing moved
+            if offsets is not None and "initial_transform" in options and not np.array_equal(*offsets):
+                # each cloud moved by its own offset conjugates the prior differently on each side: the server could no
+                # longer see a prior given target-to-source as the result's inverse (its T_source_target hint)
+                offsets, exact = None, True
             if offsets is not None:  # float32 would round these coordinates: send each cloud recentred
                 source, target = _recentred(source, offsets[0]), _recentred(target, offsets[1])
                 if "initial_transform" in options:
                     options["initial_transform"] = recentred_transform(options["initial_transform"], *offsets)
-            dtype = np.float32 if binary else np.float64  # an array beside a path, or non-finite clouds: as given
+            # an array beside a path is sent as given (float64): it is neither recentred nor would float32 hold a
+            # map's coordinates; non-finite clouds too
+            dtype = np.float32 if binary and not paths and not exact else np.float64
             files = {name: _upload(name, cloud, dtype) for name, cloud in (("source", source), ("target", target))}
             form = {key: _form_value(value) for key, value in options.items()}
             response = self._request("POST", REGISTER_PATH, data=form, files=files)

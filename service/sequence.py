@@ -47,6 +47,15 @@ class Step:
     record: dict  # the `mfgnet register --json` record of the pair: "transform" is T_{i-1}_i
     initial_transform: list | None  # [4, 4] the guess passed (--constant-velocity), else None
     accumulated: np.ndarray  # [4, 4] T_0_i: frame i in frame 0's coordinates
+    source_centroid: np.ndarray  # [3] the mean of frame i's points, in its own coordinates
+
+    @property
+    def centroid_motion(self) -> float:
+        """How far the step's pose moves the source's centroid: the frame's motion whatever its coordinates' origin
+        (the translation alone grows with the origin's distance: kilometres for a turn of georeferenced frames)."""
+        T = np.asarray(self.record["transform"], dtype=np.float64)  # [4, 4] T_{i-1}_i
+        c = self.source_centroid
+        return float(np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - c))
 
     @property
     def reliable(self) -> bool:
@@ -79,7 +88,8 @@ def register_sequence(frames: Sequence[Path], read: ReadFrame, register: Registe
         guess = previous if constant_velocity else None
         record = register(source_points, target_points, guess)
         T_0_source = T_0_target @ np.asarray(record["transform"], dtype=np.float64)  # T_0_i = T_0_{i-1} @ T_{i-1}_i
-        yield Step(index, frames[index], frames[index - 1], record, guess, T_0_source)
+        centroid = np.asarray(source_points, dtype=np.float64)[:, :3].mean(axis=0)  # [3]
+        yield Step(index, frames[index], frames[index - 1], record, guess, T_0_source, centroid)
         target_points, T_0_target, previous = source_points, T_0_source, record["transform"]
 
 

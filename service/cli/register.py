@@ -251,9 +251,18 @@ def _register_remote(
             fail(str(exc), code=exc.code)
 
 
+def summary_decimals(T: np.ndarray) -> int:
+    """Decimals that print the pose ``T [4, 4]`` closely enough to apply: 6, and one more per digit of its largest
+    translation above 1 (a pose about a far origin, such as map coordinates 4e6 m out, turns points metres away from
+    a rotation rounded to 6 decimals)."""
+    reach = float(np.abs(T[:3, 3]).max())
+    return min(17, 6 + max(0, int(np.ceil(np.log10(reach)))) if reach > 1.0 else 6)
+
+
 def _summary(record: dict) -> str:
     T = np.asarray(record["transform"])
-    matrix = np.array2string(T, precision=6, suppress_small=True, floatmode="fixed", sign=" ")
+    matrix = np.array2string(T, precision=summary_decimals(T), suppress_small=True, floatmode="fixed", sign=" ",
+                             max_line_width=400)
     model, quality = record["model"], record["quality"]
     total = record["timing_ms"].get("total")
     lines = [

@@ -318,9 +318,10 @@ def _write_line(handle: TextIO, line: str, path: Path | None) -> None:
 
 
 def _step_progress(step: Step, count: int) -> str:
-    """One short line per step for standard error: the pair, reliable or not, the turn, the shift and the time."""
+    """One short line per step for standard error: the pair, reliable or not, the turn, the shift (how far the pose
+    moves the source's centroid) and the time."""
     turn = np.degrees(2 * np.arccos(min(1.0, abs(step.record["quaternion_xyzw"][3]))))
-    shift = float(np.linalg.norm(step.record["translation"]))
+    shift = step.centroid_motion
     total = step.record["timing_ms"].get("total")
     state = "reliable" if step.reliable else "NOT reliable"
     return (

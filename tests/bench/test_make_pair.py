@@ -14,6 +14,7 @@ from shapes import lumpy_sphere
 
 from bench import make_pair, real_scans
 from bench.scan_pairs import derived_pairs, read_pair
+from service.pointcloud_io import read_points
 
 POINTS = 3000
 
@@ -368,3 +369,16 @@ def test_make_pair_warns_where_float32_rounds_the_clouds_out_of_shape(tmp_path, 
     err = capsys.readouterr().err
     assert "of the smaller cloud's RMS radius" in err and "move both clouds by one offset first" in err, err
     assert (tmp_path / "pair.npz").exists()
+
+
+def test_make_pair_warns_where_clouds_were_moved_without_their_pose(tmp_path, capsys):
+    """Both clouds moved by one offset with the pose kept as it was: the pose lays the source nowhere near the target,
+    and the warning says how to move the pose with them."""
+    source, target, _ = scans(tmp_path)
+    offset = np.array([40.0, -25.0, 3.0])
+    for name, path in (("moved_source.npy", source), ("moved_target.npy", target)):
+        np.save(tmp_path / name, read_points(path).astype(np.float64) - offset)
+    make_pair.main([str(tmp_path / "moved_source.npy"), str(tmp_path / "moved_target.npy"), "--transform",
+                    str(tmp_path / "T_0_1.txt"), "--sensor", "lab", "--out", str(tmp_path / "pair.npz")])
+    err = capsys.readouterr().err
+    assert "nor its inverse lays the source onto the target" in err and "t' = t + R o - o" in err, err

@@ -189,6 +189,19 @@ def test_summary_prints_the_matrix_model_quality_and_time(tmp_path, model_dir) -
     assert "wrote" in result.stderr and "wrote" not in out
 
 
+def test_the_printed_matrix_places_map_coordinates_as_the_record_does(tmp_path, model_dir) -> None:
+    offset = np.array([512345.25, 4000000.5, 120.0])  # a UTM easting and northing
+    np.save(tmp_path / "src.npy", SOURCE.astype(np.float64) + offset)
+    np.save(tmp_path / "tgt.npy", TARGET.astype(np.float64) + offset)
+    result = register(tmp_path / "src.npy", tmp_path / "tgt.npy", "--out", tmp_path / "pose.json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    printed = np.array([[float(v) for v in line.strip(" []").split()] for line in result.stdout.splitlines()[1:5]])
+    record = np.asarray(json.loads((tmp_path / "pose.json").read_text())["transform"])
+    source = SOURCE.astype(np.float64) + offset
+    moved = source @ printed[:3, :3].T + printed[:3, 3]  # as a user applies the printed pose
+    assert np.abs(moved - (source @ record[:3, :3].T + record[:3, 3])).max() < 1e-4  # 6 decimals: metres off
+
+
 def test_json_flag_prints_only_the_record(tmp_path, model_dir, reference) -> None:
     src, tgt = write_pair(tmp_path, "npz")
     result = register(src, tgt, "--json", model_dir=model_dir)

@@ -148,6 +148,24 @@ def test_progress_goes_to_stderr_one_line_per_step(plain_run) -> None:
     assert all("-> frame_" in line and ": reliable," in line for line in progress), progress
 
 
+def test_progress_shift_is_the_frames_motion_in_georeferenced_coordinates(tmp_path, frames, model_dir) -> None:
+    """Frames in one far frame (a UTM map's): each step's translation grows with the origin's distance (a 10 deg turn
+    at 500 km: 87 km), the shift printed is how far the pose moves the source's centroid."""
+    offset = np.array([512_345.0, 4_123_456.0, 87.0])
+    far = []
+    for path in frames:
+        far.append(tmp_path / path.name)
+        np.save(far[-1], np.load(path) + offset)
+    result = sequence(*far, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    shifts = [float(line.split("shift ")[1].split(",")[0]) for line in result.stderr.splitlines() if "shift " in line]
+    steps = steps_of(result.stdout)
+    assert len(shifts) == 4 and max(np.linalg.norm(step["translation"]) for step in steps) > 1e4
+    for shift, path, step in zip(shifts, far[1:], steps, strict=True):
+        T, c = np.asarray(step["transform"]), np.load(path).mean(axis=0)
+        assert shift == pytest.approx(np.linalg.norm(T[:3, :3] @ c + T[:3, 3] - c), rel=1e-3) and shift < 1.0
+
+
 @pytest.fixture(scope="module")
 def velocity_run(frames, model_dir) -> list[dict]:
     """The whole sequence with ``--constant-velocity``, its JSON lines on standard output."""

@@ -105,3 +105,30 @@ def test_utm_arrays_with_a_fourth_column_register_on_their_first_three():
         expected = client.register(*far, binary=True, rotation_search=False)
         response = client.register(*with_intensity, binary=True, rotation_search=False)
     np.testing.assert_allclose(response["transform"], expected["transform"], atol=1e-9)
+
+
+def test_a_prior_given_the_wrong_way_round_is_named_for_a_local_scan_onto_a_utm_map():
+    """Each cloud moved by its own offset would conjugate the prior differently on either side, and the server could no
+    longer see an inverted prior as the result's inverse: such clouds go unmoved, as float64."""
+    pair = modelnet_pair(3)
+    source, target = np.asarray(pair.source, np.float64), np.asarray(pair.target, np.float64) + UTM
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = pair.rotation, pair.translation + UTM
+    with MfgnetClient(main_server().url, timeout=60) as client:
+        response = client.register(source, target, binary=True, initial_transform=np.linalg.inv(truth))
+    R, t = pose_from_response(response)
+    assert np.abs(source @ R.T + t - (source @ truth[:3, :3].T + truth[:3, 3])).max() < 0.05
+    assert any("looks given target-to-source" in warning for warning in response["warnings"]), response["warnings"]
+
+
+def test_an_array_beside_a_file_keeps_its_utm_coordinates(tmp_path):
+    pair = modelnet_pair(3)
+    source, target = np.asarray(pair.source, np.float64) + UTM, np.asarray(pair.target, np.float64) + UTM
+    np.save(tmp_path / "target.npy", target)
+    with MfgnetClient(main_server().url, timeout=60) as client:
+        both_arrays = client.register(source, target, binary=True, rotation_search=False)
+        beside_a_file = client.register(source, tmp_path / "target.npy", binary=True, rotation_search=False)
+    R0, t0 = pose_from_response(both_arrays)
+    R1, t1 = pose_from_response(beside_a_file)
+    moved = source @ R1.T + t1 - (source @ R0.T + t0)  # float32 of the array alone: 0.25-0.5 m steps, poses cm apart
+    assert np.abs(moved).max() < 1e-3
