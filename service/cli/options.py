@@ -99,8 +99,20 @@ ThreadsOpt = Annotated[
 ]
 
 
-def check_server_flags(server: str | None, model_dir: list[Path] | None, threads: int | None) -> None:
-    """Usage errors of ``--server``: a URL without its scheme, or in-process options with it."""
+CLIENT_FLAGS = {"api_key": "--api-key", "binary": "--binary/--no-binary", "timeout": "--timeout",
+                "busy_retries": "--busy-retries"}  # the command's parameters that only a --server run reads
+
+
+def check_server_flags(server: str | None, model_dir: list[Path] | None, threads: int | None,
+                       ctx: typer.Context | None = None) -> None:
+    """Usage errors of ``--server``: a URL without its scheme, in-process options with it, or options of a server's
+    client given on the command line without it (``ctx``: the command's; ``--api-key`` from ``MFGNET_API_KEY`` does not
+    count)."""
+    if not server and ctx is not None:
+        for name, flag in CLIENT_FLAGS.items():
+            source = ctx.get_parameter_source(name)
+            if source is not None and source.name == "COMMANDLINE":
+                fail(f"{flag} only applies with --server; an in-process run has no server to send it to")
     if server and model_dir:
         fail("--model-dir only applies in-process; a server uses its own model folders")
     if server and not server.lower().startswith(("http://", "https://")):

@@ -86,6 +86,7 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="print the JSON record ins
 
 
 def register_command(
+    ctx: typer.Context,
     source: SourceArg,
     target: TargetArg,
     model: ModelOpt = None,
@@ -125,7 +126,7 @@ def register_command(
         out, json_output = None, True
     _check_register_flags(write_aligned, out, source)
     _check_outputs_spare_inputs(out, write_aligned, source, target, initial_transform)
-    check_server_flags(server, model_dir, threads)
+    check_server_flags(server, model_dir, threads, ctx)
     options = registration_options(
         iterations, keypoints, refine, refine_points, drop_isolated, rotation_search, rotation_search_mode
     )

@@ -93,6 +93,7 @@ SequenceReliableOpt = Annotated[
 
 
 def sequence_command(
+    ctx: typer.Context,
     frames: FramesArg,
     out: SequenceOutOpt = None,
     kitti: KittiOpt = None,
@@ -148,7 +149,7 @@ def sequence_command(
             fail(f"frame {index} {path}: {problem}")
     _check_sequence_outputs(frames, out, kitti)
     _check_aligned_folder(frames, write_aligned)
-    check_server_flags(server, model_dir, threads)
+    check_server_flags(server, model_dir, threads, ctx)
     options = registration_options(
         iterations, keypoints, refine, refine_points, drop_isolated, rotation_search, rotation_search_mode
     )

@@ -8,10 +8,11 @@ so) are rotated, not translated; every other per-point field is copied as the fi
 
 - PLY (``plyfile`` parses the header): binary files are copied a block of rows at a time, the vertex rows' x, y, z
   and normals replaced, the bytes of every other element (faces, edges, ...) and the header copied as they are; ASCII
-  files are read and written whole by ``plyfile`` (``%.18g``).
+  files' lines are copied a chunk at a time, the vertex rows' x, y, z moved and normals rotated as the text formats'
+  are (:func:`service.formats.moved_text.moved_rows`: the decimals the source's coordinates carry).
 - PCD (``pypcd4`` parses and composes the header): binary records are copied a block at a time, ``binary_compressed``
-  read and written whole by ``pypcd4``, ASCII read whole and written with ``%.9g`` for 4-byte floats and ``%.17g``
-  for 8-byte ones (``pypcd4``'s ``%.10f`` loses small values and colours packed in a float). The header is composed by
+  read and written whole by ``pypcd4``, ASCII rows moved as text rows are, a chunk of lines at a time (as ASCII PLY's;
+  not ``pypcd4``'s ``%.10f``, which loses small values and colours packed in a float). The header is composed by
   ``pypcd4`` (``VERSION 0.7``, comments dropped); ``VIEWPOINT``, the sensor's pose in the file's frame, is moved with
   the points.
 - LAS/LAZ (``laspy``, ``lazrs``): the points, VLRs (a CRS among them), EVLRs and point format kept; x, y, z at the

@@ -188,6 +188,25 @@ def test_model_dir_is_refused_with_server(tmp_path) -> None:
     assert result.exit_code == 2 and "--model-dir only applies in-process" in result.stderr
 
 
+@pytest.mark.parametrize("command", ["register", "sequence"])
+@pytest.mark.parametrize(("args", "flag"), [
+    (["--timeout", "5"], "--timeout"), (["--busy-retries", "0"], "--busy-retries"),
+    (["--no-binary"], "--binary/--no-binary"), (["--api-key", "k"], "--api-key")])
+def test_a_servers_client_options_are_refused_without_server(tmp_path, monkeypatch, command, args, flag) -> None:
+    """They were silently ignored in process, while in-process options with --server are refused. An API key from
+    MFGNET_API_KEY is not refused: the variable may be set for other runs."""
+    if command == "sequence" and flag.startswith("--binary"):
+        pytest.skip("mfgnet sequence always uploads .npy files")
+    cloud = tmp_path / "cloud.npy"
+    np.save(cloud, np.zeros((64, 3), np.float32))
+    result = runner.invoke(app, [command, str(cloud), str(cloud), *args])
+    assert result.exit_code == 2 and f"{flag} only applies with --server" in result.stderr, result.output
+    monkeypatch.setenv("MFGNET_API_KEY", "k")
+    result = runner.invoke(app, [command, str(cloud), str(cloud), "--json"] if command == "register" else
+                           [command, str(cloud), str(cloud)])
+    assert "only applies with --server" not in result.stderr
+
+
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
 @pytest.mark.parametrize(("variable", "value", "words"), [
     ("MFGNET_API_KEY", "s3cret\n", "MFGNET_API_KEY: must be printable ASCII"),  # a Secret made from a file
