@@ -22,6 +22,10 @@ T = TypeVar("T")
 
 NPZ_KEYS = ("points", "positions")  # the arrays of an .npz read, the first found: ours, Open3D's (o3d.t.io)
 MAX_HEADER_BYTES = 10_000  # numpy's own limit (max_header_size), checked before numpy reads a header that long
+# Largest .npz central directory read: zipfile makes a Python object of every entry, so a 57 MB archive listing
+# 1,000,000 members took 494 MiB to open. np.savez of a few arrays writes under 100 bytes of it per array.
+MAX_DIRECTORY_BYTES = 1 << 20
+MAX_LISTED_KEYS = 20  # array names an error message lists
 
 
 def read_npy(f: BinaryIO, max_points: int | None, size: int | None = None) -> np.ndarray:
@@ -110,12 +114,30 @@ def _with_member(f: BinaryIO, use: Callable[[BinaryIO, int], T]) -> T:
 def opened_archive(f: BinaryIO) -> Iterator[zipfile.ZipFile]:
     """The ``.npz`` archive ``f`` open (closed afterwards; ``f`` left open), what opening it and reading its members
     raise as :class:`PointCloudFormatError` (:func:`archive_errors`)."""
+    _check_directory(f)
     try:
         archive = zipfile.ZipFile(f)
     except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:  # a zip version beyond 6.3
         raise PointCloudFormatError(f"not a valid .npz archive ({exc})") from None
     with archive, archive_errors():
         yield archive
+
+
+def _check_directory(f: BinaryIO) -> None:
+    """:class:`PointCloudFormatError` where the archive's central directory (its end record read as zipfile reads it)
+    is larger than :data:`MAX_DIRECTORY_BYTES`, before zipfile parses an entry of it; ``f``'s position is kept."""
+    position = f.tell()
+    try:
+        end = zipfile._EndRecData(f)  # the (ZIP64) end of central directory record; None: zipfile says what is wrong
+    except OSError:
+        end = None
+    finally:
+        f.seek(position)
+    if end is not None and end[zipfile._ECD_SIZE] > MAX_DIRECTORY_BYTES:
+        raise PointCloudFormatError(
+            f"not a usable .npz archive: its directory of members takes {end[zipfile._ECD_SIZE]} bytes, at most "
+            f"{MAX_DIRECTORY_BYTES} are read (np.savez writes under 100 bytes per array)"
+        )
 
 
 def cloud_member(archive: zipfile.ZipFile) -> str:
@@ -128,8 +150,10 @@ def cloud_member(archive: zipfile.ZipFile) -> str:
     if len(names) == 1:
         return names[0]
     keys = [name[:-4] for name in names]
+    more = len(keys) - MAX_LISTED_KEYS
+    listed = f"{keys[:MAX_LISTED_KEYS]}" + (f" and {more} more" if more > 0 else "")
     raise PointCloudFormatError(
-        f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and not exactly one array: {keys}"
+        f".npz archive has no array named {' or '.join(map(repr, NPZ_KEYS))} and not exactly one array: {listed}"
     )
 
 

@@ -105,7 +105,9 @@ RECORD_COUNT = re.compile(r"[0-9]+")  # ASCII digits: str.isdigit() takes "²", 
 MAX_QUATERNION_NORM_ERROR = 1e-4
 VALUE_TYPES = ("Float", "Integer", "ScaledInteger", "String")  # elements whose text is their value
 POSE_ROTATION = ["data3D", "vectorChild", "pose", "rotation"]  # under the root: a scan's quaternion w, x, y, z
+POSE_TRANSLATION = ["data3D", "vectorChild", "pose", "translation"]  # under the root: a scan's x, y, z shift
 PROTOTYPE = ["data3D", "vectorChild", "points", "prototype"]  # under the root: a scan's fields, one bytestream each
+COORDINATES = (("cartesianX", "cartesianY", "cartesianZ"), ("sphericalRange", "sphericalAzimuth", "sphericalElevation"))
 INVALID_STATES = ("cartesianInvalidState", "sphericalInvalidState")  # 0 a return, 1 a direction only, 2 none
 
 
@@ -397,7 +399,9 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
     values = [False]  # whether each open element is a value the library reads from its text (Float, Integer, ...)
     names: list[str] = []  # the open elements' local names
     scans: list[int | None] = []  # each /data3D/vectorChild Structure's record count; None: no points element (yet)
+    fields: list[set[str]] = []  # each such scan's prototype field names
     quaternion: dict[str, str] = {}  # the text of the open pose rotation's w, x, y, z
+    shift: dict[str, str] = {}  # the text of the open pose translation's x, y, z
     elements = data3d = 0
 
     def refuse(reason: str) -> None:
@@ -433,6 +437,7 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
                 refuse("has a data3D element other than the root's (an E57 file has one, under its root)")
         if len(names) == 3 and names[1:] == ["data3D", "vectorChild"] and attributes.get("type") == "Structure":
             scans.append(None)  # the library skips a child of another type, or none
+            fields.append(set())
         if len(names) == 4 and names[1:] == ["data3D", "vectorChild", "points"] and structures[3]:
             count = attributes.get("recordCount", "")
             if not RECORD_COUNT.fullmatch(count):
@@ -441,6 +446,7 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
             if sections is not None:
                 sections.append(Section(len(scans) - 1, attributes.get("fileOffset", ""), int(count), []))
         if len(names) == 6 and names[1:5] == PROTOTYPE and structures[3]:
+            fields[-1].add(names[5])
             if names[5] in INVALID_STATES:
                 _check_invalid_state(names[5], attributes, len(scans) - 1)
             width = _bits(names[5], attributes, len(scans) - 1)
@@ -448,6 +454,8 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
                 sections[-1].bits.append(width)
         if names[1:] == POSE_ROTATION and structures[3]:
             quaternion.clear()
+        if names[1:] == POSE_TRANSLATION and structures[3]:
+            shift.clear()
         children.append(0)
         structures.append(attributes.get("type") == "Structure")
         values.append(attributes.get("type") in VALUE_TYPES)
@@ -462,10 +470,20 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
     def characters(data: str) -> None:
         if len(names) == 6 and names[1:5] == POSE_ROTATION and names[5] in ("w", "x", "y", "z"):
             quaternion[names[5]] = quaternion.get(names[5], "") + data
+        if len(names) == 6 and names[1:5] == POSE_TRANSLATION and names[5] in ("x", "y", "z"):
+            shift[names[5]] = shift.get(names[5], "") + data
 
     def end(name: str) -> None:
         if names[1:] == POSE_ROTATION and structures[3]:
             _check_quaternion(quaternion, len(scans) - 1)
+        if names[1:] == POSE_TRANSLATION and structures[3]:
+            try:
+                finite = all(abs(float(shift.get(axis, "").strip() or 0)) <= 3.4e38 for axis in "xyz")
+            except ValueError:
+                finite = True  # not a number: the library says so
+            if not finite:
+                refuse(f"gives scan {len(scans) - 1}'s pose the translation {dict(sorted(shift.items()))}, not finite "
+                       "numbers within float32's range")
         children.pop()
         structures.pop()
         values.pop()
@@ -485,6 +503,11 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
             f"is not well-formed XML ({xml.parsers.expat.errors.messages[exc.code]} at line {exc.lineno}, "
             f"column {exc.offset})"
         )
+    for scan, (count, names_) in enumerate(zip(scans, fields, strict=True)):
+        if count is not None and not any(set(axes) <= names_ for axes in COORDINATES):
+            have = sorted(names_ & {axis for axes in COORDINATES for axis in axes})
+            refuse(f"gives scan {scan} no coordinates: its points' fields hold {have or 'none'} of cartesianX, "
+                   "cartesianY, cartesianZ (or sphericalRange, sphericalAzimuth, sphericalElevation)")
     return [count for count in scans if count is not None]
 
 

@@ -48,6 +48,9 @@ if TYPE_CHECKING:
     from laspy import LasHeader, LasReader
 
 VLR_HEADER_BYTES = 54
+# Most VLRs read: laspy makes Python objects of each, several times an empty 54-byte VLR's size; files carry a
+# handful (projection, LAZ, extra bytes, classification names), and the header's count field would allow 4e9
+MAX_VLRS = 65_535
 BATCH_BYTES = 16 * 2**20
 # LAZ 1.4 layered items (type -> layers per chunk; Byte14: one per extra byte). A chunk starts with its first point
 # raw, its point count and each layer's size (u32); Point14's first two layers are x/y (with returns, channel) and z.
@@ -176,6 +179,14 @@ def _check_header(f: BinaryIO, size: int) -> None:
     if len(head) < 227:
         return  # laspy says what is missing
     offset, vlrs = struct.unpack_from("<II", head, 96)
+    scales, offsets = struct.unpack_from("<3d", head, 131), struct.unpack_from("<3d", head, 155)
+    if not all(np.isfinite(scale) and scale > 0 for scale in scales) or not np.isfinite(offsets).all():
+        raise PointCloudFormatError(
+            f"LAS header scales {list(scales)} and offsets {list(offsets)}: each scale must be a positive number and "
+            "each offset finite (x = integer * scale + offset)"
+        )
+    if vlrs > MAX_VLRS:
+        raise PointCloudFormatError(f"LAS header declares {vlrs} VLRs; at most {MAX_VLRS} are read")
     if offset > size:
         raise PointCloudFormatError(f"LAS header puts the points at byte {offset}; the file has {size} bytes")
     if vlrs * VLR_HEADER_BYTES > size:

@@ -114,7 +114,7 @@ class _Lines:
 def _read_pts(lines: _Lines, max_points: int | None) -> np.ndarray:
     blocks, total, at = [], 0, 0
     while (line := lines.next_nonblank()) is not None:
-        if blocks and (len(line.split()) != 1 or not line.isdigit()):
+        if blocks and (len(line.split()) != 1 or not (line.isdigit() and line.isascii())):
             raise PointCloudFormatError(
                 f"PTS line {at} declares {len(blocks[-1])} points; more rows follow them "
                 f"(line {lines.number}: {line[:60]!r})"
@@ -144,6 +144,12 @@ def _read_ptx(lines: _Lines, max_points: int | None) -> np.ndarray:
         matrix = np.array(
             [_numbers(_header_line(lines, what), 4, f"{what} header line {lines.number}") for _ in range(4)]
         )  # [4, 4], row-vector convention
+        if not np.allclose(matrix[:, 3], [0, 0, 0, 1], rtol=0, atol=1e-9):
+            raise PointCloudFormatError(
+                f"{what}: the 4x4 transform's last column is {matrix[:, 3].tolist()}, not 0 0 0 1: PTX puts the "
+                "translation in the last row (a matrix written column by column, its translation in the last column, "
+                "would be read without it)"
+            )
         count = columns * rows
         total += count
         check_count(total, max_points)
@@ -171,7 +177,7 @@ def _header_line(lines: _Lines, what: str) -> str:
 
 def _integer(line: str, where: str, meaning: str) -> int:
     tokens = line.split()
-    if len(tokens) != 1 or not tokens[0].isdigit():
+    if len(tokens) != 1 or not (tokens[0].isdigit() and tokens[0].isascii()):  # '²' is a digit int() refuses
         raise PointCloudFormatError(f"{where}: expected {meaning} (one integer), got {line[:60]!r}")
     return int(tokens[0])
 

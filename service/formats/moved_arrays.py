@@ -119,7 +119,7 @@ def other_fields(f: BinaryIO, kind: str) -> list[str]:
     array's other fields, a plain array's other columns (``column 4``, ...), an archive's other arrays."""
     if kind == "npy":
         return _other_columns(f, None)
-    with zipfile.ZipFile(f) as archive:
+    with opened_archive(f) as archive:
         member = cloud_member(archive)
         with archive.open(member) as stream:
             fields = _other_columns(stream, archive.getinfo(member).file_size)

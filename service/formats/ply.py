@@ -29,6 +29,9 @@ if TYPE_CHECKING:
 
 MAX_HEADER_BYTES = 256 * 1024  # plyfile parses a header one byte at a time (about 1.5 us a byte)
 ASCII_BLOCK_ROWS = 1 << 16  # ASCII vertex rows parsed at a time: only x, y, z of each block are kept
+# ASCII values parsed at a time (rows x properties): numpy's reader returns every property as float64, so a block of
+# ASCII_BLOCK_ROWS rows of a vertex with thousands of one-digit properties took several times its text at once
+ASCII_BLOCK_VALUES = 1 << 21
 
 
 def read_ply(f: BinaryIO, max_points: int | None) -> np.ndarray:
@@ -102,13 +105,14 @@ def _ascii_vertices(f: BinaryIO, vertex: PlyElement, skip: int = 0) -> np.ndarra
                 raise PointCloudFormatError(f"corrupt PLY data: {skipped} of the {skip} rows before the vertices")
             skipped += bool(line.strip())
         columns = [names.index(axis) for axis in "xyz"]
+        block_rows = max(1, min(ASCII_BLOCK_ROWS, ASCII_BLOCK_VALUES // len(names)))
         table = np.empty((vertex.count, 3))  # [N, 3]: x, y, z only; the other properties are dropped block by block
         rows = 0
         with warnings.catch_warnings():  # numpy warns of no rows at all
             warnings.simplefilter("ignore", UserWarning)
             while rows < vertex.count:
                 # at most as many lines as rows are missing: the rows of the elements after the vertices stay unread
-                lines = list(itertools.islice(text, min(vertex.count - rows, ASCII_BLOCK_ROWS)))
+                lines = list(itertools.islice(text, min(vertex.count - rows, block_rows)))
                 if not lines:
                     break  # the end of the file
                 block = np.loadtxt([line for line in lines if line.strip()], dtype=np.float64, ndmin=2,

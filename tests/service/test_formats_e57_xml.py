@@ -215,3 +215,23 @@ def test_a_comment_inside_a_value_is_refused_as_the_library_reads_only_up_to_it(
     between = edited(posed, b'<x type="Float">5</x>', b'<!-- c --><x type="Float">5</x><?pi a?>')  # not inside
     np.testing.assert_allclose(read_cloud(between, "a.e57"), XYZ + np.array([5.0, 0, 0]), rtol=1e-12)
     refused(edited(posed, b'<x type="Float">5</x>', b'<x type="Float">%s</x>' % value), what, "inside the value of <x>")
+
+
+@pytest.mark.parametrize("value", [b"nan", b"1e400"])
+def test_a_pose_translation_that_is_not_finite_is_refused_naming_the_pose(tmp_path, value) -> None:
+    """It was read as NaN or infinite coordinates, and the 422 blamed the point rows."""
+    path = tmp_path / "shifted.e57"
+    with pye57.E57(str(path), mode="w") as writer:
+        columns = {f"cartesian{axis}": np.ascontiguousarray(XYZ[:, k]) for k, axis in enumerate("XYZ")}
+        writer.write_scan_raw(columns, rotation=np.array([1.0, 0, 0, 0]), translation=np.array([1.5, 2.5, 3.5]))
+    refused(edited(path.read_bytes(), b'<x type="Float">1.5</x>', b'<x type="Float">' + value + b"</x>"),
+            "scan 0's pose the translation", "not finite")
+
+
+def test_a_scan_without_all_three_coordinates_is_refused_naming_what_it_has(e57) -> None:
+    """It was refused as 'all points marked invalid (no return)', which the file does not say."""
+    xml = xml_of(e57)
+    z_field = re.search(rb'<cartesianZ [^>]*/>|<cartesianZ [^>]*>.*?</cartesianZ>', xml, re.S)
+    assert z_field is not None
+    refused(with_xml(e57, xml.replace(z_field.group(0), b"", 1)), "gives scan 0 no coordinates",
+            "['cartesianX', 'cartesianY']")

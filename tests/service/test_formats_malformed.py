@@ -1074,3 +1074,106 @@ def test_a_decimal_comma_is_named_in_the_error(tmp_path: Path) -> None:
     with pytest.raises(InvalidPointsError) as word:
         read_cloud(tmp_path / "word.csv")
     assert "decimal comma" not in str(word.value)
+
+
+def test_an_npz_directory_listing_too_many_members_is_refused_before_zipfile_parses_it(tmp_path):
+    """zipfile makes an object of every entry: an archive listing 1,000,000 members took 494 MiB to open."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_STORED) as archive:
+        array = io.BytesIO()
+        np.save(array, cloud())
+        archive.writestr("points.npy", array.getvalue())
+        for k in range(20_000):  # 20,000 x 56-byte entries: a directory over MAX_DIRECTORY_BYTES
+            archive.writestr(f"member_{k:08d}_padding_padding.npy", b"")
+    with pytest.raises(PointCloudFormatError, match="its directory of members takes") as caught:
+        read_cloud(buffer.getvalue(), "a.npz", max_points=LIMIT)
+    assert caught.value.status == 400
+
+
+def test_an_npz_error_lists_at_most_20_of_its_arrays():
+    buffer = io.BytesIO()
+    np.savez(buffer, **{f"a{k}": cloud() for k in range(50)})
+    with pytest.raises(PointCloudFormatError) as caught:
+        read_cloud(buffer.getvalue(), "a.npz", max_points=LIMIT)
+    assert "and 30 more" in str(caught.value) and "a49" not in str(caught.value)
+
+
+@pytest.mark.parametrize("text", [b'"1 2 3\n4 5 6\n7 8 9\n', b'1,2,3\n"4,5,6\n', b'1 2 3\n4 5 "6'])
+def test_an_unclosed_double_quote_in_a_text_file_is_refused(text):
+    """numpy's reader carries a quoted value across line breaks: one unclosed quote made the rest of a file one value
+    (held whole: a large upload's memory grew many times its size)."""
+    with pytest.raises(PointCloudFormatError, match="an unclosed double quote") as caught:
+        read_cloud(text, "a.xyz", max_points=LIMIT)
+    assert caught.value.status == 400
+
+
+def test_quotes_in_comments_and_closed_quotes_across_reads_are_kept():
+    rows = "".join(f'"{k}","{k + 1}","{k + 2}"\n' for k in range(200_000))  # quoted values, pieces cut mid-line
+    text = ('# a comment with an odd " quote\nx,y,z\n' + rows).encode()
+    np.testing.assert_array_equal(read_cloud(text, "a.csv", max_points=LIMIT)[-1], [199_999, 200_000, 200_001])
+    assert len(text) > checks.COUNT_BLOCK_BYTES
+
+
+def test_wide_ascii_ply_vertices_are_parsed_a_bounded_number_of_values_at_a_time(monkeypatch):
+    """Every property of a block is parsed as float64 before x, y, z are kept: a vertex of 2,000 properties is parsed in
+    blocks of fewer rows."""
+    from service.formats import ply as ply_reader
+
+    names = ["x", "y", "z", *(f"p{k}" for k in range(2_000))]
+    header = "ply\nformat ascii 1.0\nelement vertex 40\n" + "".join(f"property float {n}\n" for n in names)
+    body = "".join(" ".join(["1", "2", "3", *["0"] * 2_000]) + "\n" for _ in range(40))
+    calls, original = [], np.loadtxt
+
+    def counted(rows, *args, **kwargs):
+        calls.append(len(rows))
+        return original(rows, *args, **kwargs)
+
+    monkeypatch.setattr(ply_reader.np, "loadtxt", counted)
+    monkeypatch.setattr(ply_reader, "ASCII_BLOCK_VALUES", 20_000)
+    points = read_cloud((header + "end_header\n" + body).encode(), "a.ply", max_points=LIMIT)
+    assert points.shape == (40, 3) and max(calls) <= 9  # 20,000 values // 2,003 properties
+
+
+@pytest.mark.parametrize(("field", "value", "words"), [
+    (131, struct.pack("<d", -0.001), "each scale must be a positive number"),
+    (131, struct.pack("<d", 0.0), "each scale must be a positive number"),
+    (139, struct.pack("<d", float("nan")), "each scale must be a positive number"),
+    (155, struct.pack("<d", float("inf")), "each offset finite"),
+])
+def test_a_las_header_scale_or_offset_that_places_no_point_is_refused(field, value, words):
+    """A negative scale read, then failed as a 500 when written moved; 0 put every point on the offset; NaN blamed
+    the points."""
+    data = bytearray(las_bytes("1.2", 0, False))
+    data[field:field + 8] = value
+    with pytest.raises(PointCloudFormatError, match=words) as caught:
+        read_cloud(bytes(data), "a.las", max_points=LIMIT)
+    assert caught.value.status == 400
+
+
+def test_a_las_header_declaring_more_than_65535_vlrs_is_refused():
+    data = bytearray(las_bytes("1.2", 0, False))
+    data[100:104] = struct.pack("<I", 70_000)
+    with pytest.raises(PointCloudFormatError, match="declares 70000 VLRs; at most 65535"):
+        read_cloud(bytes(data), "a.las", max_points=LIMIT)
+
+
+@pytest.mark.parametrize(("text", "name"), [
+    (b"2\n0 0 0\n1 1 1\n\xc2\xb2\n2 2 2\n", "a.pts"),  # a superscript 2 as a later block's count
+    (b"1\n1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n1 2 3 0.5\n"
+     b"\xc2\xb2\n1\n", "a.ptx"),  # ... as a later scan's column count
+])
+def test_a_unicode_digit_as_a_leica_count_is_refused_not_a_500(text, name):
+    with pytest.raises(PointCloudFormatError) as caught:
+        read_cloud(text, name, max_points=LIMIT)
+    assert caught.value.status == 400
+
+
+def test_a_ptx_transform_with_its_translation_in_the_last_column_is_refused():
+    """It was read without the translation: PTX puts it in the last row."""
+    header = b"1\n1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n"
+    column_major = b"1 0 0 100\n0 1 0 200\n0 0 1 300\n0 0 0 1\n"
+    with pytest.raises(PointCloudFormatError, match="last column is"):
+        read_cloud(header + column_major + b"1 2 3 0.5\n", "a.ptx", max_points=LIMIT)
+    row_major = b"1 0 0 0\n0 1 0 0\n0 0 1 0\n100 200 300 1\n"
+    np.testing.assert_allclose(read_cloud(header + row_major + b"1 2 3 0.5\n", "a.ptx", max_points=LIMIT),
+                               [[101, 202, 303]])
