@@ -58,6 +58,7 @@ from service.stages.network import Candidates
 from service.stages.normalise import Working
 from service.stages.ranking import SHIFT_AMBIGUITY, plane_frames_on_the_surface
 from service.stages.refine import Refined
+from service.stages.withdraw import CONFIRMED_BY_DESCRIPTORS  # the note on a result it made `reliable`
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -117,7 +118,6 @@ ONE_PLACE_OBJECT_DOUBTS = (WEAK_SLIDE, WORKING_LOOSE_FIT)
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
 CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
 DESCRIPTOR_CONSENSUS = "descriptor consensus"  # first words of the note on a result this stage gave
-CONFIRMED_BY_DESCRIPTORS = "confirmed by descriptors"  # ... and of the note on a result it made `reliable`
 
 
 def consensus_note(support: int, kept: int) -> str:

@@ -29,6 +29,7 @@ from service.quality import LOOSE_FIT  # the warning it overrules (quality.asses
 from service.result import RegistrationResult
 from service.stages.normalise import Working
 from service.stages.search import RETRY_WARNING  # the other doubt it settles
+from service.stages.withdraw import CONFIRMED_BY_FREE_SPACE, withdrawn
 
 # Right poses on the real range images leave a few percent of the other scan in front of what a sensor saw; wrong ones
 # 0.038 and more, and those the other checks left `reliable` (half a turn off, or low-overlap poses that overlay the
@@ -50,9 +51,8 @@ COARSE_CONFIRMS_BELOW = 0.01
 # were half a turn off; on the real range images right ones leave at most 0.010 in free space, wrong ones 0.038 and
 # more, each with another doubt besides).
 SETTLED_DOUBTS = (LOOSE_FIT, RETRY_WARNING)
-# The kinds (the text before the colon) of what this stage adds to the warnings: a doubt, and a note
+# The kind (the text before the colon) of the doubt this stage adds (its note: withdraw.CONFIRMED_BY_FREE_SPACE)
 THROUGH_FREE_SPACE = "through free space"
-CONFIRMED_BY_FREE_SPACE = "confirmed by free space"
 
 
 def free_space_of(work: Working, result: RegistrationResult,
@@ -97,8 +97,7 @@ def free_space(work: Working, result: RegistrationResult, options: RegistrationO
     if shares is None:
         return result
     if result.reliable and shares.share > RELIABLE_FREE_SPACE:
-        return dataclasses.replace(result, reliable=False,
-                                   warnings=[*result.warnings, through_free_space(shares.share)])
+        return withdrawn(result, through_free_space(shares.share))
     bound = confirms_below(views)
     if not result.reliable and shares.share <= bound and shares.seen >= CONFIRMS_SEEING:
         return dataclasses.replace(result, reliable=True,

@@ -65,7 +65,6 @@ check's half turns are) and briefly refined (:func:`placed_turns_ambiguity`;
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
@@ -86,6 +85,7 @@ from service.stages.ranking import (
     with_translations,
 )
 from service.stages.refine import icp_distance, short_refine
+from service.stages.withdraw import withdrawn
 
 AXIS_TURN_STABILITY = 0.05  # below this stability a result also competes with turns about its least constrained axis
 AXIS_TURN_DEGREES = (15.0, 60.0, 120.0)  # ... by each of these angles either way
@@ -116,7 +116,7 @@ def symmetry(
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
     if warning is None:
         return result
-    return dataclasses.replace(result, reliable=False, warnings=[*result.warnings, warning])
+    return withdrawn(result, warning)
 
 
 def half_turn_ambiguity(

@@ -362,3 +362,28 @@ def test_the_registrar_does_not_call_a_symmetric_shape_reliable():
     )
     assert not result.reliable
     assert any(w.startswith("ambiguous") for w in result.warnings)
+
+
+def closed_tank(rng: np.random.Generator, points: int) -> np.ndarray:
+    """``[N, 3]``: a cylinder 2 long and 1 across (its side lightly noisy) with both end caps: round about z, without
+    features."""
+    side = int(points * 0.7)
+    z, a = rng.uniform(0.0, 2.0, side), rng.uniform(0.0, 2 * np.pi, side)
+    wall = np.c_[0.5 * np.cos(a), 0.5 * np.sin(a), z] + rng.normal(0.0, 0.002, (side, 3))
+    k = points - side
+    r, b = 0.5 * np.sqrt(rng.uniform(0.0, 1.0, k)), rng.uniform(0.0, 2 * np.pi, k)
+    return np.r_[wall, np.c_[r * np.cos(b), r * np.sin(b), np.where(rng.uniform(size=k) < 0.5, 0.0, 2.0)]]
+
+
+def test_a_withdrawn_result_drops_the_note_that_confirmed_it():
+    """A tank turned 50 deg about its axis: the descriptors confirm a pose the symmetry check then finds ambiguous; the
+    note 'confirmed by descriptors' stood beside the refusal."""
+    registrar = Registrar(bundled_models_dir() / "general")
+    rng = np.random.default_rng(50)
+    R = Rotation.from_rotvec([0.0, 0.0, np.radians(50)]).as_matrix()
+    source = closed_tank(rng, 4000)
+    target = closed_tank(rng, 4000) @ R.T + [0.3, -0.2, 0.1]
+    result = registrar.register(source, target, refine="icp-plane", rotation_search="auto")  # the service's defaults
+    kinds = [w.split(":")[0] for w in result.warnings]
+    assert not result.reliable and "ambiguous" in kinds, result.warnings
+    assert "confirmed by descriptors" not in kinds and "confirmed by free space" not in kinds, result.warnings
