@@ -57,6 +57,7 @@ class Stability:
     centre: np.ndarray | None = None  # [3] the point the rotation part turns about (the pairs' centroid)
     scale: float = 1.0  # the target's RMS radius: the translation part per unit step is ``motion[3:] * scale``
     weak_below: float = WEAK_EIGENVALUE  # the eigenvalue below which the pose counts as weakly constrained
+    next_motion: np.ndarray | None = None  # [6] the second least constrained motion, where it is below weak_below too
 
     @property
     def turn_share(self) -> float:
@@ -113,7 +114,8 @@ def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_di
     probe = None
     if eigenvalue < weak_below:  # only then does it matter whether the samples pin the motion down
         probe = _probe_ratio(p, dist[paired], tgt, tree, centre, scale, motion)
-    return Stability(eigenvalue, motion, len(p), probe, centre, scale, weak_below)
+    next_motion = eigenvectors[:, 1] if eigenvalues[1] < weak_below else None  # a pipe: its slide and its turn
+    return Stability(eigenvalue, motion, len(p), probe, centre, scale, weak_below, next_motion)
 
 
 def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree, centre: np.ndarray,
@@ -139,20 +141,26 @@ def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree,
 
 
 def weak_motion_warning(stability: Stability | None) -> str | None:
-    """The warning of a weakly constrained pose, naming its least constrained motion; None otherwise."""
+    """The warning of a weakly constrained pose, naming its least constrained motion, and its second where that one is
+    below the same bar (a pipe's slide along its axis and turn about it); None otherwise."""
     if stability is None or not stability.weak:
         return None
-    turn, slide = stability.motion[:3], stability.motion[3:]
-    turn_share, slide_share = stability.turn_share, float(np.linalg.norm(slide))  # their squares sum to 1
+    what, why = _motion_words(stability.motion)
+    also = ""
+    if stability.next_motion is not None:
+        also = f"; {_motion_words(stability.next_motion)[0]} hardly changes it either"
+    return (f"{WEAKLY_CONSTRAINED}: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
+            f"{stability.weak_below:g}); {why}, and the pose along it is a guess{also}")
+
+
+def _motion_words(motion: np.ndarray) -> tuple[str, str]:
+    """What the unit motion ``[6]`` (rotation part, then translation part) is, in words, and why a shape allows it."""
+    turn, slide = motion[:3], motion[3:]
+    turn_share, slide_share = float(np.linalg.norm(turn)), float(np.linalg.norm(slide))  # their squares sum to 1
     axis, direction = turn / max(turn_share, 1e-12), slide / max(slide_share, 1e-12)
     if turn_share >= ROTATION_SHARE:
-        what = f"{TURN_ABOUT} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})"
-        why = "the shape may be symmetric about it"
-    elif slide_share >= TRANSLATION_SHARE:
-        what = f"{SLIDE_ALONG} ({direction[0]:.2f}, {direction[1]:.2f}, {direction[2]:.2f})"
-        why = "the overlap may be flat or elongated along it"
-    else:
-        what = f"a turn about ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) with a slide"
-        why = "the overlap may be symmetric"
-    return (f"{WEAKLY_CONSTRAINED}: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
-            f"{stability.weak_below:g}); {why}, and the pose along it is a guess")
+        return f"{TURN_ABOUT} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})", "the shape may be symmetric about it"
+    if slide_share >= TRANSLATION_SHARE:
+        return (f"{SLIDE_ALONG} ({direction[0]:.2f}, {direction[1]:.2f}, {direction[2]:.2f})",
+                "the overlap may be flat or elongated along it")
+    return f"a turn about ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) with a slide", "the overlap may be symmetric"

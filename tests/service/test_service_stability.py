@@ -156,3 +156,20 @@ def test_the_probe_of_paired_points_that_coincide_is_one_and_finite() -> None:
         warnings.simplefilter("error")
         ratio = _probe_ratio(p, np.full(40, 0.01), tgt, KDTree(tgt), centre, 1.0, turn_only)
     assert ratio == 1.0
+
+
+def test_a_pipe_is_warned_of_its_slide_along_and_its_turn_about_its_axis() -> None:
+    """Two samples of an open pipe: both the slide along its axis and the turn about it leave the fit; the warning
+    named only the least constrained one."""
+    def pipe(n: int, seed: int) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        z, a = rng.uniform(0.0, 4.0, n), rng.uniform(0.0, 2 * np.pi, n)
+        return np.c_[0.5 * np.cos(a), 0.5 * np.sin(a), z]
+
+    stability = stability_of(pipe(3000, 1), pipe(3000, 2))
+    assert stability is not None and stability.weak and stability.next_motion is not None
+    warning = weak_motion_warning(stability)
+    assert ("a slide along (" in warning and "a turn about the axis (" in warning), warning
+    assert warning.endswith("hardly changes it either"), warning
+    blob = stability_of(asymmetric_blob(2000, 1), asymmetric_blob(2000, 1))
+    assert blob is not None and blob.next_motion is None  # one shape pinned every way: nothing to add
