@@ -23,10 +23,9 @@ class per_instance_cached_property(Generic[T]):  # noqa: N801 -- a decorator, na
     def __init__(self, func: Callable[[Any], T]) -> None:
         self.func = func
         self.__doc__ = func.__doc__
-        self.name = func.__name__
-        self.lock_name = f"_{func.__name__}_lock"
+        self.__set_name__(None, func.__name__)
 
-    def __set_name__(self, owner: type, name: str) -> None:
+    def __set_name__(self, owner: type | None, name: str) -> None:
         self.name = name
         self.lock_name = f"_{name}_lock"
 
@@ -36,7 +35,8 @@ class per_instance_cached_property(Generic[T]):  # noqa: N801 -- a decorator, na
         cache = instance.__dict__
         if self.name in cache:
             return cache[self.name]
-        lock = cache.setdefault(self.lock_name, threading.Lock())  # dict.setdefault is atomic: one lock per instance
+        # dict.setdefault is atomic: one lock per instance and attribute, whichever thread asks first
+        lock = cache.setdefault(self.lock_name, threading.Lock())
         with lock:
             if self.name not in cache:
                 cache[self.name] = self.func(instance)

@@ -108,6 +108,7 @@ POSE_ROTATION = ["data3D", "vectorChild", "pose", "rotation"]  # under the root:
 POSE_TRANSLATION = ["data3D", "vectorChild", "pose", "translation"]  # under the root: a scan's x, y, z shift
 PROTOTYPE = ["data3D", "vectorChild", "points", "prototype"]  # under the root: a scan's fields, one bytestream each
 COORDINATES = (("cartesianX", "cartesianY", "cartesianZ"), ("sphericalRange", "sphericalAzimuth", "sphericalElevation"))
+FLOAT32_MAX = float(np.finfo(np.float32).max)  # a pose translation beyond it (or NaN) moves every point off the map
 INVALID_STATES = ("cartesianInvalidState", "sphericalInvalidState")  # 0 a return, 1 a direction only, 2 none
 
 
@@ -478,7 +479,7 @@ def _parse_xml(text: bytes, sections: list[Section] | None = None) -> list[int]:
             _check_quaternion(quaternion, len(scans) - 1)
         if names[1:] == POSE_TRANSLATION and structures[3]:
             try:
-                finite = all(abs(float(shift.get(axis, "").strip() or 0)) <= 3.4e38 for axis in "xyz")
+                finite = all(abs(float(shift.get(axis, "").strip() or 0)) <= FLOAT32_MAX for axis in "xyz")
             except ValueError:
                 finite = True  # not a number: the library says so
             if not finite:
