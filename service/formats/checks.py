@@ -97,6 +97,14 @@ def _unclosed_quote(data: np.ndarray, breaks: np.ndarray, ends: np.ndarray, stat
     if not odd and not quote.any():  # no quote to count: only whether the last line has begun a comment
         tail = data[ends[-1] + 1:] if len(ends) else data
         return None, (False, bool((tail == 35).any()) or (comment and not len(ends)))
+    if not comment and not (data == 35).any():  # no comment: each line's count from the running count at its break
+        running = np.cumsum(quote, dtype=np.int64) + odd  # [B] quotes so far, the line run on from before included
+        per_break = np.diff(running[ends], prepend=0)  # [E] quotes of each line that ends in the piece
+        unclosed = ends[per_break % 2 == 1]  # [U]
+        if len(unclosed):
+            return int(unclosed[0]), (True, False)
+        tail = int(running[-1] - (running[ends[-1]] if len(ends) else 0))  # the last line's quotes so far
+        return None, (bool(tail % 2), False)
     line = np.concatenate(([0], np.cumsum(breaks[:-1]))).astype(np.intp)  # [B] each byte's line in the piece
     hashes = np.flatnonzero(data == 35)  # [H]
     first_hash = np.full(int(line[-1]) + 1, len(data))  # [L] where each line's comment begins (none: the piece's end)

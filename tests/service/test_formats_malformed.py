@@ -1177,3 +1177,30 @@ def test_a_ptx_transform_with_its_translation_in_the_last_column_is_refused():
     row_major = b"1 0 0 0\n0 1 0 0\n0 0 1 0\n100 200 300 1\n"
     np.testing.assert_allclose(read_cloud(header + row_major + b"1 2 3 0.5\n", "a.ptx", max_points=LIMIT),
                                [[101, 202, 303]])
+
+
+def _first_unclosed_quote(text: bytes) -> int | None:
+    """The reference: the offset of the line break ending the first line (split at ``\\n`` or ``\\r``) with an odd
+    number of double quotes before its first ``#``; ``len(text)`` for such a last line without a break; else None."""
+    start = 0
+    for at in [i for i, byte in enumerate(text) if byte in b"\r\n"] + [len(text)]:
+        line = text[start:at].split(b"#", 1)[0]
+        if line.count(b'"') % 2:
+            return at
+        start = at + 1
+    return None
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_unclosed_quote_check_agrees_with_a_line_by_line_count_across_pieces(monkeypatch, seed):
+    rng = np.random.default_rng(seed)
+    text = bytes(rng.choice(list(b'1 ,"#\n\r'), size=int(rng.integers(1, 120)), p=[.3, .15, .1, .1, .05, .2, .1]))
+    monkeypatch.setattr(checks, "COUNT_BLOCK_BYTES", int(rng.integers(1, 9)))  # pieces cut lines anywhere
+    expected = _first_unclosed_quote(text)
+    if expected is None:
+        checks.check_text_lines(io.BytesIO(text), "t", quotes=True)
+        return
+    with pytest.raises(PointCloudFormatError, match="an unclosed double quote") as caught:
+        checks.check_text_lines(io.BytesIO(text), "t", quotes=True)
+    where = f"byte {expected}" if expected < len(text) else "its last line"
+    assert where in str(caught.value), (text, str(caught.value))
