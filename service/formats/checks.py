@@ -29,28 +29,20 @@ def check_count(count: int, max_points: int | None) -> None:
         raise TooManyPointsError(f"has {count} points; the limit is {max_points} per cloud", count, max_points)
 
 
-def check_text_lines(f: BinaryIO, what: str, rows: int = 0, values: int = 0, rows_what: str = "",
-                     quotes: bool = False) -> None:
+def check_text_lines(f: BinaryIO, what: str, rows: int = 0, values: int = 0, rows_what: str = "") -> None:
     """One pass over the text from ``f``'s position to its end, before a text reader holds a line; ``f``'s position is
     kept. :class:`PointCloudFormatError` starting with ``what`` where a line (split at ``\\n`` or ``\\r``) is longer
-    than ``MAX_TEXT_LINE_BYTES``; with ``quotes``, where a line holds an odd number of double quotes before any ``#``
-    (a reader that takes quoted values, as numpy's does, would carry an unclosed one across every line break after
-    it: one value of the rest of the file); else, starting with ``rows_what``, where one of the first ``rows``
-    non-blank rows holds other than ``values`` values split on whitespace, counted without parsing a number (so a
-    reader may parse only the columns it keeps)."""
+    than ``MAX_TEXT_LINE_BYTES``; else, starting with ``rows_what``, where one of the first ``rows`` non-blank rows
+    holds other than ``values`` values split on whitespace, counted without parsing a number (so a reader may parse
+    only the columns it keeps)."""
     start = f.tell()
     line_start = position = start  # where the current line began; bytes scanned so far
-    too_long_at = unclosed_at = None
-    quote_state = (False, False)  # the line the last piece ended in: an odd number of quotes, a comment begun
+    too_long_at = None
     seen, wrong = 0, None  # non-blank rows checked; the error of the first row of another count
     open_values, in_value = 0, False  # values of the row the last piece ended in; whether it ended inside one
     for data in _pieces(f):  # [B] bytes
         breaks = (data == 10) | (data == 13)  # [B]
         ends = np.flatnonzero(breaks)  # [E] offsets of the line breaks in the piece
-        if quotes and unclosed_at is None:
-            bad, quote_state = _unclosed_quote(data, breaks, ends, quote_state)
-            if bad is not None:
-                unclosed_at = position + bad
         if seen < rows and not wrong:
             gap = breaks | (data == 32) | (data == 9)  # [B] separators and line breaks
             begins = ~gap & np.concatenate(([not in_value], gap[:-1]))  # [B] the first byte of each value
@@ -72,55 +64,16 @@ def check_text_lines(f: BinaryIO, what: str, rows: int = 0, values: int = 0, row
         position += len(data)
         if too_long_at is None and position - line_start > MAX_TEXT_LINE_BYTES:
             too_long_at = line_start
-        if too_long_at is not None or unclosed_at is not None:
+        if too_long_at is not None:
             break
     f.seek(start)
     if too_long_at is not None:
         raise PointCloudFormatError(f"{what}: a line longer than {MAX_TEXT_LINE_BYTES} bytes (from byte "
                                     f"{too_long_at}); rows of numbers are far shorter")
-    if unclosed_at is not None or (quotes and quote_state[0]):
-        where = f"the line ending at byte {unclosed_at}" if unclosed_at is not None else "its last line"
-        raise PointCloudFormatError(f"{what}: an unclosed double quote on {where} (quoted values end on their line)")
     if seen < rows and not wrong and open_values:  # a last row without a line break
         seen, wrong = _check_counts(np.array([open_values]), seen, rows, values, rows_what)
     if wrong:
         raise PointCloudFormatError(wrong)
-
-
-def _unclosed_quote(data: np.ndarray, breaks: np.ndarray, ends: np.ndarray, state: tuple[bool, bool]
-                    ) -> tuple[int | None, tuple[bool, bool]]:
-    """The offset in the piece ``data [B]`` (``breaks [B]``: its line breaks, at ``ends [E]``) of the first line break
-    that ends a line with an odd number of double quotes before any ``#``, or ``None``; and the state the piece leaves
-    for the next (:func:`check_text_lines`: whether the line it ends in has an odd number so far, and a ``#``)."""
-    odd, comment = state
-    quote = data == 34  # [B]
-    if not odd and not quote.any():  # no quote to count: only whether the last line has begun a comment
-        tail = data[ends[-1] + 1:] if len(ends) else data
-        return None, (False, bool((tail == 35).any()) or (comment and not len(ends)))
-    if not comment and not (data == 35).any():  # no comment: each line's count from the running count at its break
-        running = np.cumsum(quote, dtype=np.int64) + odd  # [B] quotes so far, the line run on from before included
-        per_break = np.diff(running[ends], prepend=0)  # [E] quotes of each line that ends in the piece
-        unclosed = ends[per_break % 2 == 1]  # [U]
-        if len(unclosed):
-            return int(unclosed[0]), (True, False)
-        tail = int(running[-1] - (running[ends[-1]] if len(ends) else 0))  # the last line's quotes so far
-        return None, (bool(tail % 2), False)
-    line = np.concatenate(([0], np.cumsum(breaks[:-1]))).astype(np.intp)  # [B] each byte's line in the piece
-    hashes = np.flatnonzero(data == 35)  # [H]
-    first_hash = np.full(int(line[-1]) + 1, len(data))  # [L] where each line's comment begins (none: the piece's end)
-    np.minimum.at(first_hash, line[hashes], hashes)
-    if comment:
-        first_hash[0] = -1  # the line that runs on from the last piece is a comment already
-    counted = quote & (np.arange(len(data)) < first_hash[line])  # [B] quotes before the line's comment
-    per_line = np.bincount(line[counted], minlength=len(first_hash))  # [L]
-    per_line[0] += odd
-    unclosed = ends[per_line[line[ends]] % 2 == 1]  # [U] line breaks ending a line with an odd count
-    if len(unclosed):
-        return int(unclosed[0]), (True, False)
-    last = int(line[-1])
-    if breaks[-1]:
-        return None, (False, False)
-    return None, (bool(per_line[last] % 2), bool(first_hash[last] < len(data)))
 
 
 def _pieces(f: BinaryIO) -> Iterator[np.ndarray]:

@@ -30,7 +30,7 @@ _SHORT_ROW = re.compile(r"invalid column index \d+ at row (?P<row>\d+) with (?P<
 
 
 def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
-    check_text_lines(f, "text file", quotes=True)
+    check_text_lines(f, "text file")
     stream = io.TextIOWrapper(f, encoding="utf-8-sig", newline=None)
     try:
         return _read(stream, max_points)
