@@ -10,6 +10,7 @@ started ahead) still compute an attribute once.
 from __future__ import annotations
 
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Any, Generic, TypeVar
 
@@ -18,16 +19,18 @@ T = TypeVar("T")
 
 class per_instance_cached_property(Generic[T]):  # noqa: N801 -- a decorator, named as functools' is
     """``@per_instance_cached_property``: computed on the first read, kept in the instance's ``__dict__`` (which frozen
-    dataclasses allow, as for ``functools.cached_property``), read from there afterwards without a lock."""
+    dataclasses allow, as for ``functools.cached_property``), read from there afterwards without a lock. The locks
+    live beside the instances (weakly keyed), not in them: an instance copies and pickles as it did."""
 
     def __init__(self, func: Callable[[Any], T]) -> None:
         self.func = func
         self.__doc__ = func.__doc__
-        self.__set_name__(None, func.__name__)
+        self.name = func.__name__
+        self.locks: weakref.WeakKeyDictionary[Any, threading.Lock] = weakref.WeakKeyDictionary()
+        self.guard = threading.Lock()  # held only to find or make an instance's lock
 
-    def __set_name__(self, owner: type | None, name: str) -> None:
+    def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
-        self.lock_name = f"_{name}_lock"
 
     def __get__(self, instance: Any, owner: type | None = None) -> T:
         if instance is None:
@@ -35,8 +38,8 @@ class per_instance_cached_property(Generic[T]):  # noqa: N801 -- a decorator, na
         cache = instance.__dict__
         if self.name in cache:
             return cache[self.name]
-        # dict.setdefault is atomic: one lock per instance and attribute, whichever thread asks first
-        lock = cache.setdefault(self.lock_name, threading.Lock())
+        with self.guard:
+            lock = self.locks.setdefault(instance, threading.Lock())
         with lock:
             if self.name not in cache:
                 cache[self.name] = self.func(instance)

@@ -57,7 +57,8 @@ class Stability:
     centre: np.ndarray | None = None  # [3] the point the rotation part turns about (the pairs' centroid)
     scale: float = 1.0  # the target's RMS radius: the translation part per unit step is ``motion[3:] * scale``
     weak_below: float = WEAK_EIGENVALUE  # the eigenvalue below which the pose counts as weakly constrained
-    next_motion: np.ndarray | None = None  # [6] the second least constrained motion, where it is below weak_below too
+    next_motion: np.ndarray | None = None  # [6] the second least constrained motion
+    next_eigenvalue: float = np.inf  # its eigenvalue: the warning names it where it is below weak_below (callers lower)
 
     @property
     def turn_share(self) -> float:
@@ -114,8 +115,8 @@ def pose_stability(src_in_tgt: np.ndarray, tgt: np.ndarray, tree: KDTree, max_di
     probe = None
     if eigenvalue < weak_below:  # only then does it matter whether the samples pin the motion down
         probe = _probe_ratio(p, dist[paired], tgt, tree, centre, scale, motion)
-    next_motion = eigenvectors[:, 1] if eigenvalues[1] < weak_below else None  # a pipe: its slide and its turn
-    return Stability(eigenvalue, motion, len(p), probe, centre, scale, weak_below, next_motion)
+    return Stability(eigenvalue, motion, len(p), probe, centre, scale, weak_below, eigenvectors[:, 1],
+                     float(eigenvalues[1]))
 
 
 def _probe_ratio(p: np.ndarray, dist: np.ndarray, tgt: np.ndarray, tree: KDTree, centre: np.ndarray,
@@ -147,7 +148,7 @@ def weak_motion_warning(stability: Stability | None) -> str | None:
         return None
     what, why = _motion_words(stability.motion)
     also = ""
-    if stability.next_motion is not None:
+    if stability.next_motion is not None and stability.next_eigenvalue < stability.weak_below:  # a pipe: slide, turn
         also = f"; {_motion_words(stability.next_motion)[0]} hardly changes it either"
     return (f"{WEAKLY_CONSTRAINED}: {what} hardly changes the fit (stability {stability.eigenvalue:.2g} < "
             f"{stability.weak_below:g}); {why}, and the pose along it is a guess{also}")

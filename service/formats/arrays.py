@@ -129,7 +129,7 @@ def _check_directory(f: BinaryIO) -> None:
     position = f.tell()
     try:
         end = zipfile._EndRecData(f)  # the (ZIP64) end of central directory record; None: zipfile says what is wrong
-    except OSError:
+    except (OSError, zipfile.BadZipFile):  # e.g. a ZIP64 locator naming several disks: zipfile.ZipFile says so below
         end = None
     finally:
         f.seek(position)

@@ -1176,3 +1176,15 @@ def test_a_ptx_transform_with_its_translation_in_the_last_column_is_refused():
     row_major = b"1 0 0 0\n0 1 0 0\n0 0 1 0\n100 200 300 1\n"
     np.testing.assert_allclose(read_cloud(header + row_major + b"1 2 3 0.5\n", "a.ptx", max_points=LIMIT),
                                [[101, 202, 303]])
+
+
+def test_an_npz_whose_zip64_locator_names_several_disks_is_a_format_error():
+    """zipfile raises BadZipFile reading its end record: the directory check let it out as a 500."""
+    buffer = io.BytesIO()
+    np.savez(buffer, points=cloud())
+    good = buffer.getvalue()
+    end = good.rfind(b"PK\x05\x06")
+    multi_disk = good[:end] + struct.pack("<4sIQI", b"PK\x06\x07", 0, 0, 2) + good[end:]
+    with pytest.raises(PointCloudFormatError) as caught:
+        read_cloud(multi_disk, "a.npz", max_points=LIMIT)
+    assert caught.value.status == 400

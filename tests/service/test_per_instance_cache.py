@@ -72,3 +72,23 @@ def test_every_cached_working_attribute_locks_per_instance():
     cached = [name for name, value in vars(Working).items() if hasattr(value, "__get__") and hasattr(value, "func")]
     assert len(cached) >= 20 and all(isinstance(vars(Working)[name], CACHED) for name in cached)
     assert CACHED.__module__ == "service.per_instance_cache"
+
+
+def test_an_instance_copies_and_pickles_after_a_cached_read():
+    """The locks live beside the instances: one kept in the instance's dict made deepcopy and pickle fail."""
+    import copy
+    import pickle
+
+    one = Plain(3)
+    assert one.doubled == 6
+    assert copy.deepcopy(one).doubled == 6 and pickle.loads(pickle.dumps(one)).doubled == 6
+
+
+@dataclass(frozen=True, eq=False)
+class Plain:
+    value: int
+
+    @CACHED
+    def doubled(self) -> int:
+        """Twice the value."""
+        return 2 * self.value
