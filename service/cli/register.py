@@ -257,7 +257,7 @@ def summary_decimals(T: np.ndarray) -> int:
     translation above 1 (a pose about a far origin, such as map coordinates 4e6 m out, turns points metres away from
     a rotation rounded to 6 decimals)."""
     reach = float(np.abs(T[:3, 3]).max())
-    return min(17, 6 + max(0, int(np.ceil(np.log10(reach)))) if reach > 1.0 else 6)
+    return min(17, 6 + int(np.ceil(np.log10(reach)))) if 1.0 < reach < np.inf else 6
 
 
 def _summary(record: dict) -> str:
