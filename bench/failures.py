@@ -26,6 +26,8 @@ import json
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
 from bench.real_scans import Case, judged, require_thresholds, scan_set
 from bench.report_io import (
     checked,
@@ -60,11 +62,17 @@ def examine(registrar: Registrar, case: Case) -> dict | None:
     return None if returned["success"] else failure_row(registrar, case, result, returned, seconds)
 
 
+def from_true_pose(registrar: Registrar, source: np.ndarray, target: np.ndarray, truth: np.ndarray
+                   ) -> RegistrationResult:
+    """``source`` registered onto ``target`` from its true pose ``truth [4, 4]`` (``initial_transform``: a candidate
+    beside the plain network's pose) with the service's refinement and no search: where the pipeline goes from there."""
+    return registrar.register(source, target, refine=DEFAULTS["refine"], rotation_search=False, initial_transform=truth)
+
+
 def failure_row(registrar: Registrar, case: Case, result: RegistrationResult, returned: dict, seconds: float) -> dict:
     """The row of a wrong ``result`` of ``case`` (``returned``: its :func:`judged` errors; ``seconds``: its time),
     classed after ``registrar`` registers the case again from its true pose (module docstring)."""
-    from_truth = registrar.register(case.source, case.target, refine=DEFAULTS["refine"], rotation_search=False,
-                                    initial_transform=case.src_to_tgt)
+    from_truth = from_true_pose(registrar, case.source, case.target, case.src_to_tgt)
     stayed = judged(case, from_truth.rotation, from_truth.translation)
     return {"case": f"{case.name}/{case.variant}/x{case.scale:g}", "sensor": case.sensor,
             "class": failure_class(stayed["success"], from_truth.inlier_ratio, result.inlier_ratio),

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from bench.failures import CLASSES, failure_class
+from bench.failures import CLASSES, failure_class, from_true_pose
 from bench.report_io import (
     checked,
     json_destination,
@@ -71,14 +71,13 @@ def seed_rows(model: str, seed: int, count: int, data: str | None = None) -> lis
 
 
 def from_truth(registrar: Registrar, pairs: dict, row: dict) -> dict:
-    """The wrong result ``row`` of ``pairs`` registered again from its true pose (``initial_transform``, the default
-    refinement, no search): its errors and inlier ratio, and its failure class
+    """The wrong result ``row`` of ``pairs`` registered again from its true pose
+    (:func:`bench.failures.from_true_pose`): its errors and inlier ratio, and its failure class
     (:func:`bench.failures.failure_class`)."""
     i = row["pair"]
     truth = np.eye(4)
     truth[:3, :3], truth[:3, 3] = pairs["rotation"][i], pairs["translation"][i]
-    res = registrar.register(pairs["source"][i], pairs["target"][i], refine="icp-plane", rotation_search=False,
-                             initial_transform=truth)
+    res = from_true_pose(registrar, pairs["source"][i], pairs["target"][i], truth)
     degrees, errors = isotropic_errors(res.rotation[None], res.translation[None], pairs["rotation"][i : i + 1],
                                        pairs["translation"][i : i + 1])  # [1]
     stayed = bool(recall_hits(degrees, errors)[RIGHT][0])
