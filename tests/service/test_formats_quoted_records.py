@@ -1,0 +1,126 @@
+"""Double-quoted values in XYZ/CSV/TXT text (``service.formats.quoted_records``): a record that a quote carries over
+line breaks is refused past ``MAX_TEXT_LINE_BYTES``, as a line is, and found as numpy's reader finds it."""
+
+from __future__ import annotations
+
+import io
+import random
+import tracemalloc
+import warnings
+
+import numpy as np
+import pytest
+
+from service.formats import PointCloudFormatError, read_cloud
+from service.formats import quoted_records as quoted
+
+LIMIT = 2_000_000  # the server's max_file_points
+ROW = "1.000000,2.000000,3.000000\n"
+# pieces of fields: numbers, quoted values (closed, open, over a line break, with "" and '#'), inch marks, comments,
+# ASCII and Unicode whitespace, a carriage return
+PIECES = ['1', '2.5', '"1"', '"1,2"', '"1\n2"', '1"', '"1"x', '""', '"a""b"', '"a""', '"', ' ', '#c', '# "', '\t',
+          '"1 2"', 'x"y', '\u3000', '\r', ';', '"#"', '"\n"']
+
+
+def peak_bytes(read) -> int:
+    """Peak bytes traced (numpy arrays and Python buffers) while ``read()`` runs."""
+    tracemalloc.start()
+    try:
+        read()
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return peak
+
+
+def test_an_unclosed_quote_is_refused_before_numpy_reads_the_rest_of_the_file_as_one_value() -> None:
+    """numpy read the 24 MB after the quote as one value at about four bytes a character; a 240 MB upload held 1.6 GB,
+    over the server's 1 GiB."""
+    text = ("x,y,z\n1,2,3\n4,5,\"6\n" + ROW * 900_000).encode()
+
+    def read() -> None:
+        with pytest.raises(PointCloudFormatError, match=r"a double-quoted value opened on line 3 runs on for more "
+                                                        r"than 1048576 characters \(an unclosed quote\?\)"):
+            read_cloud(text, "a.csv", max_points=LIMIT)
+
+    assert len(text) > 24_000_000 and peak_bytes(read) < 48 << 20
+
+
+@pytest.mark.parametrize("text", [
+    'x,y,z,label\n1,2,3,"two\nlines"\n4,5,6,b\n',  # a label over a line break
+    'x y z label\n1 2 3 "two\r\nlines"\r\n4 5 6 b\r\n',  # whitespace-separated, CRLF
+    'x,y,z,label\n1,2,3,"a ""quoted""\nname"\n4,5,6,"b"\n',
+])
+def test_a_quoted_value_over_line_breaks_within_the_limit_is_read_as_numpy_reads_it(text: str) -> None:
+    np.testing.assert_array_equal(read_cloud(text.encode(), "a.csv", max_points=LIMIT), [[1, 2, 3], [4, 5, 6]])
+
+
+def test_the_limit_is_on_the_record_a_quote_joins(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each line is short; the record the quote makes of them is not."""
+    monkeypatch.setattr(quoted, "MAX_TEXT_LINE_BYTES", 40)
+    within = 'x,y,z,note\n1,2,3,"ab\ncd\nef"\n4,5,6,g\n'  # a record of 17 characters
+    beyond = 'x,y,z,note\n1,2,3,"' + "abcdefgh\n" * 5 + '"\n4,5,6,g\n'  # 53
+    np.testing.assert_array_equal(read_cloud(within.encode(), "a.csv", max_points=LIMIT), [[1, 2, 3], [4, 5, 6]])
+    with pytest.raises(PointCloudFormatError, match="opened on line 2 runs on for more than 40 characters"):
+        read_cloud(beyond.encode(), "a.csv", max_points=LIMIT)
+
+
+def test_the_line_named_counts_the_lines_of_every_block_before_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(quoted, "BLOCK_BYTES", 10)
+    monkeypatch.setattr(quoted, "MAX_TEXT_LINE_BYTES", 30)
+    text = "x,y,z\n" + '1,2,"3"\n' * 20 + '1,2,"3\n' + "4,5,6\n" * 20
+    with pytest.raises(PointCloudFormatError, match="opened on line 22 runs on"):
+        read_cloud(text.encode(), "a.csv", max_points=LIMIT)
+
+
+def numpy_joins_lines(text: str, separator: str | None) -> bool | None:
+    """Whether numpy's reader makes a value of a line break (a quote carried over it), reading ``text`` as the text
+    reader does; ``None`` where numpy refuses it (rows of different lengths)."""
+    stream = io.TextIOWrapper(io.BytesIO(text.encode()), encoding="utf-8", newline=None)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # no rows
+            values = np.loadtxt(stream, dtype=str, comments="#", delimiter=separator, quotechar='"', ndmin=2)
+    except ValueError:
+        return None
+    return any("\n" in value for value in values.ravel())
+
+
+def check_joins_lines(text: str, separator: str | None) -> bool:
+    stream = io.TextIOWrapper(io.BytesIO(text.encode()), encoding="utf-8", newline=None)
+    try:
+        quoted.check_quoted_records(stream, separator, "text")
+    except PointCloudFormatError:
+        return True
+    return False
+
+
+def random_text(rng: random.Random, separator: str | None) -> str:
+    lines = []
+    for _ in range(rng.randint(1, 4)):
+        if rng.random() < 0.3:  # anything
+            lines.append("".join(rng.choice([*PIECES, ",", "\n"]) for _ in range(rng.randint(1, 8))))
+        else:  # fields and separators
+            gap = separator or rng.choice([" ", "  ", "\t"])
+            lines.append(gap.join(rng.choice(PIECES) for _ in range(rng.randint(1, 4))))
+    return "\n".join(lines) + rng.choice(["", "\n", "\r\n"])
+
+
+@pytest.mark.parametrize("block", [quoted.BLOCK_BYTES, 7])
+def test_the_check_finds_the_records_numpy_carries_over_a_line_break(monkeypatch: pytest.MonkeyPatch, block: int
+                                                                     ) -> None:
+    """On random texts of quoted and unquoted fields (with a limit of 0 characters, any record over a line break is
+    refused), in blocks longer than the text and shorter than a line."""
+    monkeypatch.setattr(quoted, "MAX_TEXT_LINE_BYTES", 0)
+    monkeypatch.setattr(quoted, "BLOCK_BYTES", block)
+    rng, compared, joined, disagree = random.Random(0), 0, 0, []
+    for _ in range(4_000):
+        separator = rng.choice([",", ";", None])
+        text = random_text(rng, separator)
+        expected = numpy_joins_lines(text, separator)
+        if expected is None:
+            continue
+        compared, joined = compared + 1, joined + expected
+        if check_joins_lines(text, separator) != expected:
+            disagree.append((separator, text, expected))
+    assert compared > 1_000 and joined > 300 and not disagree[:5]
