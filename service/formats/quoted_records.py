@@ -54,9 +54,19 @@ def holds_a_quote(f: BinaryIO) -> bool:
 
 
 def check_quoted_records(stream: io.TextIOBase, separator: str | None, what: str) -> None:
-    """One pass over ``stream`` (text with ``\\n`` line breaks, from its position): :class:`PointCloudFormatError`
-    starting with ``what`` where a record that a quoted value carries over a line break (numpy's reading, values
-    separated by ``separator`` or whitespace) is longer than ``MAX_TEXT_LINE_BYTES`` characters."""
+    """:class:`PointCloudFormatError` starting with ``what`` where a record that a quoted value carries over a line
+    break (:func:`quoted_record_over`) is longer than ``MAX_TEXT_LINE_BYTES`` characters."""
+    line = quoted_record_over(stream, separator, MAX_TEXT_LINE_BYTES)
+    if line is not None:
+        raise PointCloudFormatError(
+            f"{what}: a double-quoted value opened on line {line} runs on for more than {MAX_TEXT_LINE_BYTES} "
+            "characters (an unclosed quote?); a quote opening a value must close it")
+
+
+def quoted_record_over(stream: io.TextIOBase, separator: str | None, limit: int) -> int | None:
+    """One pass over ``stream`` (text with ``\n`` line breaks, from its position): the line (1-based) on which the
+    first record begins that a quoted value carries over a line break (numpy's reading, values separated by
+    ``separator`` or whitespace) and that is longer than ``limit`` characters; ``None`` where none is."""
     spans, rest, tail = _grammar(separator)
     buffer, lines_before, done = "\n", 0, False  # text from a line start, after a line break; lines dropped before it
     while not done:
@@ -67,21 +77,19 @@ def check_quoted_records(stream: io.TextIOBase, separator: str | None, what: str
         position = 0
         while buffer.find('"', position, cut) >= 0 and (found := spans.search(buffer, position, cut + 1)) is not None:
             start = found.start() + 1  # the record's first character
-            while not done and len(buffer) - start <= MAX_TEXT_LINE_BYTES:  # hold enough text to measure it
+            while not done and len(buffer) - start <= limit:  # hold enough text to measure it
                 more = stream.read(BLOCK_BYTES)
                 done = not more
                 buffer += more
             end = _record_end(buffer, found.end(), rest, tail)
-            if end - start > MAX_TEXT_LINE_BYTES:
-                line = lines_before + buffer.count("\n", 0, start)
-                raise PointCloudFormatError(
-                    f"{what}: a double-quoted value opened on line {line} runs on for more than "
-                    f"{MAX_TEXT_LINE_BYTES} characters (an unclosed quote?); a quote opening a value must close it")
+            if end - start > limit:
+                return lines_before + buffer.count("\n", 0, start)
             position = end
             cut = len(buffer) if done else buffer.rfind("\n")
         drop = max(cut, position)  # the line break that ends the lines searched
         lines_before += buffer.count("\n", 1, drop + 1)
         buffer = "\n" + buffer[drop + 1:]
+    return None
 
 
 def _record_end(buffer: str, open_at_line_end: int, rest: re.Pattern, tail: re.Pattern) -> int:
