@@ -34,7 +34,6 @@ import numpy as np
 
 from service.cancellation import stop_if_cancelled
 from service.formats.errors import PointCloudFormatError
-from service.formats.quoted_records import holds_a_quote, quoted_record_over
 from service.formats.text import header_names, layout, xyz_columns
 
 CHUNK_CHARS = 1 << 20  # lines are moved about this many characters at a time
@@ -54,29 +53,11 @@ def moved_text(src: BinaryIO, dst: BinaryIO, R: np.ndarray, t: np.ndarray) -> No
     """XYZ/CSV/TXT ``src`` to ``dst``, its x, y, z moved by ``R [3, 3]``, ``t [3]`` and its named normals rotated."""
     with _text(src) as probe:
         skip, separator, header, _ = layout(probe)
-    if (line := _quote_over_a_line_break(src, separator)) is not None:
-        raise PointCloudFormatError(
-            f"text line {line}: a double-quoted value runs over a line break; the moved copy keeps the file's lines, "
-            "a row each, so it cannot be written for this file (save it without line breaks in quoted values, or as "
-            "PLY, PCD or .npy)")
     names = header_names(header, separator) if header is not None else []
     xyz = xyz_columns(header, separator)
     normals = next((tuple(names.index(n) for n in group) for group in TEXT_NORMALS if set(group) <= set(names)), ())
 
     _rewrite(src, dst, lambda: _TextRows(skip), separator, xyz, normals, R, t, "text")
-
-
-def _quote_over_a_line_break(src: BinaryIO, separator: str | None) -> int | None:
-    """The line on which a double-quoted value opens that runs over a line break, as the text reader reads ``src``
-    (values separated by ``separator`` or whitespace); ``None`` where none does."""
-    src.seek(0)
-    if not holds_a_quote(src):
-        return None
-    stream = io.TextIOWrapper(src, encoding="utf-8-sig", newline=None)
-    try:
-        return quoted_record_over(stream, separator, 0)
-    finally:
-        stream.detach()
 
 
 def moved_rows(src: BinaryIO, dst: BinaryIO, start: int, before: int, count: int, xyz: tuple[int, ...],

@@ -7,7 +7,7 @@ numbers (``x,y,z``, CloudCompare's ``//X,Y,Z``; a row of numbers followed by a l
 point count before rows that are not whitespace-separated; a count before such rows is Leica PTS, read and checked by
 :mod:`service.formats.leica`). Without one, the last ``#`` comment before the rows names the columns where it names
 x, y, z among as many names as the first row has values (numpy's ``savetxt(header=...)``). Values may be in double
-quotes (pandas' ``QUOTE_ALL``).
+quotes (pandas' ``QUOTE_ALL``), each closed on its line (:mod:`service.formats.quoted_records`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 
 from service.formats.checks import check_text_lines, checked
 from service.formats.errors import InvalidPointsError, PointCloudFormatError, TooManyPointsError
-from service.formats.quoted_records import check_quoted_records, holds_a_quote
+from service.formats.quoted_records import holds_a_quote, quote_over_a_line_break
 
 PROBE_LINES = 64  # lines read to find the header and the separator
 _DECIMAL_COMMA = re.compile(r"convert string '[-+]?\d+,\d+' ")  # numpy's error for a number such as 0,125
@@ -79,7 +79,9 @@ def _read(stream: io.TextIOWrapper, max_points: int | None, quoted: bool) -> np.
         raise InvalidPointsError(_no_rows(header))
     if quoted:
         stream.seek(0)
-        check_quoted_records(stream, separator, "text file")
+        if (line := quote_over_a_line_break(stream, separator)) is not None:
+            raise PointCloudFormatError(f"text file: a double-quoted value opened on line {line} runs over a line "
+                                        "break (an unclosed quote?); each point's row must be one line")
     stream.seek(0)
     try:
         table = np.loadtxt(

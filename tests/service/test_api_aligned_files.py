@@ -132,12 +132,11 @@ def test_a_las_file_whose_moved_points_leave_its_integers_is_a_422_naming_it(cli
     assert_error(answer, 422, "wide.las", "32-bit integers", "scale 0.001")
 
 
-def test_a_csv_whose_quoted_label_runs_over_a_line_break_is_registered_but_not_written_moved(client, tmp_path) -> None:
-    """The reader reads such a record as numpy does; the moved copy keeps a row per line, so it names the line instead
-    of "a row changed since it was read"."""
+def test_a_csv_whose_quoted_label_runs_over_a_line_break_is_a_400_naming_the_line(client, tmp_path) -> None:
+    """numpy's reader joins the two lines into one row; the moved copy, a row per line, then failed as "a row changed
+    since it was read"."""
     source = tmp_path / "labelled.csv"
     rows = "".join(f"{x:.4f},{y:.4f},{z:.4f},plain\n" for x, y, z in XYZ[1:])
     source.write_text(f'x,y,z,label\n{XYZ[0, 0]:.4f},{XYZ[0, 1]:.4f},{XYZ[0, 2]:.4f},"two\nlines"\n' + rows)
-    assert read_points(source).shape == (500, 3)
     answer = post(client, source)
-    assert_error(answer, 422, "labelled.csv", "text line 2: a double-quoted value runs over a line break")
+    assert_error(answer, 400, "labelled.csv", "a double-quoted value opened on line 2 runs over a line break")
