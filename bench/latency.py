@@ -269,10 +269,10 @@ def flatten(d: dict, prefix: str = "") -> dict[str, float]:
 def bench(
     model: Annotated[str, typer.Option(help="bundled model name or model folder")] = "clean",
     checkpoint: Annotated[str, typer.Option(help="checkpoint with the same weights (torch eager)")] = "clean",
-    repeats: int = 30,
+    repeats: Annotated[int, typer.Option(min=1, help="timed calls per figure")] = 30,
     setting: str = "clean",
     seed: Annotated[int, typer.Option(min=0, help="seed of the test pairs")] = 0,
-    threads: int = 2,
+    threads: Annotated[int, typer.Option(min=1, help="ONNX Runtime and torch threads")] = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the report here")] = None,
     compare: Annotated[Path | None, typer.Option(help="baseline report: print the change per figure")] = None,
     accuracy_setting: Annotated[list[str] | None, typer.Option(help="settings for the side-by-side accuracy")] = None,
@@ -280,11 +280,14 @@ def bench(
         int, typer.Option(min=0, help="pairs per accuracy figure (0: skip the accuracy stages)")
     ] = 30,
     classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR")] = True,
-    http_requests: Annotated[int, typer.Option(help="requests per concurrency level over HTTP (0: skip)")] = 100,
+    http_requests: Annotated[
+        int, typer.Option(min=0, help="requests per concurrency level over HTTP (0: skip)")
+    ] = 100,
 ) -> None:
     """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager, and accuracy and
     time side by side with Open3D FPFH + RANSAC + ICP and FGR on the same seeded pairs."""
     from model.cli_inputs import checkpoint_model, model_dir, output_file, require_shapes
+    from model.data import DATA_ENV
 
     if json_out:
         output_file(json_out, "--json", create_folders=True)
@@ -292,7 +295,7 @@ def bench(
     folder = model_dir(model)
     network = checkpoint_model(checkpoint)[2]
     for name in (setting, *(accuracy_setting or () if accuracy_count else ())):
-        require_shapes("test", name, None)
+        require_shapes("test", name, None, hint=f"set ${DATA_ENV}")
     report = run_bench(
         model,
         checkpoint,

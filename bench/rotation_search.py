@@ -154,7 +154,7 @@ def search_bench(
     from tqdm import tqdm
 
     from model.cli_inputs import model_dir, output_file, require_shapes
-    from model.data import make_test_pairs, protocol_for
+    from model.data import DATA_ENV, make_test_pairs, protocol_for
     from service.manifest import load_manifest, model_folder
     from service.registrar import Registrar
 
@@ -162,7 +162,7 @@ def search_bench(
     output_file(json_out, "--json")  # before any work: the report is first written after the cost stage
     model_dir(model)
     for setting in dict.fromkeys(["dense", *settings]):  # the cost stage's pairs, then each setting's
-        require_shapes("test", setting, None)
+        require_shapes("test", setting, None, hint=f"set ${DATA_ENV}")
     angles = angles or [45.0, 90.0, 180.0]
     model_dir = model_folder(model)
     registrar = Registrar(model_dir, threads=threads)

@@ -216,17 +216,18 @@ def pairs_file(path: Path, option: str = "--pairs") -> dict[str, np.ndarray]:
         fail(f"{option}: {short(err, 200)}")
 
 
-def require_shapes(split: str, setting: str, data: str | None) -> Path:
+def require_shapes(split: str, setting: str, data: str | None, hint: str = f"set --data or ${DATA_ENV}") -> Path:
     """The ModelNet40 file of ``split`` and ``setting`` under ``--data`` / ``$MFGNET_DATA``, checked to be an
-    ``.npz`` with ``points`` and ``labels``; else a usage error."""
+    ``.npz`` with ``points`` and ``labels``; else a usage error, ``hint`` saying where the folder is set (a command
+    without ``--data``: ``"set $MFGNET_DATA"``)."""
     try:
         file = shapes_file(split, setting, data)
     except ValueError as err:  # an unknown split or setting
         fail(str(err))
     if not file.parent.is_dir():
-        fail(f"ModelNet40 folder not found: {file.parent} (set --data or ${DATA_ENV})")
+        fail(f"ModelNet40 folder not found: {file.parent} ({hint})")
     if not file.is_file():
-        fail(f"ModelNet40 file not found: {file} (set --data or ${DATA_ENV})")
+        fail(f"ModelNet40 file not found: {file} ({hint})")
     require_zip(file, "ModelNet40 file", "a ModelNet40 .npz")
     try:
         archive = np.load(file, allow_pickle=False)

@@ -77,7 +77,10 @@ def load_manifest(directory: str | Path) -> Manifest:
         raw = json.loads(path.read_text())
         name, version, graphs = raw["name"], str(raw["version"]), raw["graphs"]
         config, normalization = raw["config"], raw["normalization"]
-    except (ValueError, KeyError, TypeError) as exc:
+    except KeyError as exc:
+        raise ModelIntegrityError(f"model {directory.name!r}: malformed {MANIFEST} (no {exc.args[0]!r} field)"
+                                  ) from None
+    except (ValueError, TypeError) as exc:
         raise ModelIntegrityError(f"model {directory.name!r}: malformed {MANIFEST} ({exc})") from None
     if name != directory.name or not MODEL_NAME.match(name):
         raise ModelIntegrityError(f"model folder {directory.name!r} does not match manifest name {name!r}")

@@ -52,14 +52,28 @@ def resolve_model_dir(model: str | None, model_dirs: list[Path]) -> Path:
 
 def extra_and_bundled_dirs(model_dirs: list[Path]) -> tuple[list[Path], list[Path]]:
     """``(the model folders under --model-dir that are not bundled, the bundled ones)``; a usage error where a
-    ``--model-dir`` is not a folder (it was ignored)."""
+    ``--model-dir`` is not a folder or holds no model (it was ignored)."""
     from service.manifest import discover_model_dirs
 
     missing = [str(d) for d in model_dirs if not d.is_dir()]
     if missing:
         fail(f"--model-dir {missing[0]}: not a folder")
+    empty = [str(d) for d in model_dirs if holds_no_model(d)]
+    if empty:  # as `mfgnet serve` refuses it: the bundled models ran instead, without a word
+        fail(f"--model-dir {empty[0]}: no model in it (a manifest.json or .onnx files, in it or in its subfolders)")
     bundled = discover_model_dirs([])
     return [d for d in discover_model_dirs(model_dirs) if d not in bundled], bundled
+
+
+def holds_no_model(folder: Path) -> bool:
+    """Whether the model folder ``folder`` holds no model, in it or in a subfolder (an empty or mis-mounted volume);
+    ``False`` where it cannot be read, which the model registry names."""
+    from service.manifest import models_in
+
+    try:
+        return not models_in(folder)
+    except OSError:
+        return False
 
 
 def default_model_dir(model_dirs: list[Path]) -> Path | None:

@@ -64,7 +64,8 @@ def _model_entry(directory: Path, default: bool) -> dict:
     try:
         manifest = load_manifest(directory)
     except ModelIntegrityError as exc:
-        return {"name": directory.name, "status": "failed", "error": str(exc), "directory": str(directory)}
+        return {"name": directory.name, "status": "failed", "default": default, "error": str(exc),
+                "directory": str(directory)}
     description = manifest.raw.get("description")
     return {
         "name": manifest.name,
@@ -107,6 +108,8 @@ def _models_table(entries: list[dict]) -> str:
     if any(e["default"] for e in ok):
         lines.append("* the default: what `mfgnet register` runs without --model (a server: MFGNET_DEFAULT_MODEL)")
     lines += [_elide(f"FAILED {e['name']}: {e['error']}", MODELS_TABLE_WIDTH) for e in entries if e["status"] != "ok"]
+    lines += [f"the default, {e['name']}, failed: `mfgnet register` without --model stops on it" for e in entries
+              if e["status"] != "ok" and e["default"]]
     return "\n".join(lines)
 
 

@@ -319,13 +319,13 @@ def _write_line(handle: TextIO, line: str, path: Path | None) -> None:
 
 
 def _step_progress(step: Step, count: int) -> str:
-    """One short line per step for standard error: the pair, reliable or not, the turn, the shift (how far the pose
-    moves the source's centroid) and the time."""
+    """One short line per step for standard error: the pair, reliable or not, the turn, how far the pose moves the
+    source's centroid (not ``|t|``, which names the turn's centre as well) and the time."""
     turn = np.degrees(2 * np.arccos(min(1.0, abs(step.record["quaternion_xyzw"][3]))))
     shift = step.centroid_motion
     total = step.record["timing_ms"].get("total")
     state = "reliable" if step.reliable else "NOT reliable"
     return (
         f"[{step.index}/{count}] {step.source.name} -> {step.target.name}: {state}, turn {turn:.2f} deg, "
-        f"shift {shift:.4g}, {number(total, '.0f')} ms"
+        f"centroid moved {shift:.4g}, {number(total, '.0f')} ms"
     )

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from service.cli.common import SERVE_EXTRA_HINT, fail
+from service.cli.model_lookup import holds_no_model
 from service.cli.options import ModelDirs
 from service.request_defaults import THREAD_RANGE
 
@@ -66,17 +67,6 @@ def serve_command(
         run_server(settings)
     except UnknownModelsError as exc:  # raised while the app is made, before it serves
         fail(str(exc))
-
-
-def holds_no_model(folder: Path) -> bool:
-    """Whether the model folder ``folder`` holds no model, in it or in a subfolder (an empty or mis-mounted volume);
-    ``False`` where it cannot be read, which the model registry names."""
-    from service.manifest import models_in
-
-    try:
-        return not models_in(folder)
-    except OSError:
-        return False
 
 
 OPTION_OF = {"host": "--host", "port": "--port", "threads": "--threads", "model_dirs": "--model-dir"}

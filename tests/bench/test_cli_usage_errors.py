@@ -239,3 +239,28 @@ def test_negative_seed_of_a_typer_bench_is_a_usage_error(command):
     result = CliRunner().invoke(app, [*command, "--seed", "-1"])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert "Invalid value for '--seed'" in result.output, result.output
+
+
+@pytest.mark.parametrize("option", [["--repeats", "0"], ["--threads", "0"], ["--http-requests", "-1"]])
+def test_mfgnet_bench_counts_below_their_least_are_usage_errors(option):
+    """`--repeats 0` ran the whole benchmark, then ended in an IndexError of an empty percentile; `--threads 0` in
+    torch's RuntimeError."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "--model", "nope", *option])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert f"Invalid value for '{option[0]}'" in result.output, result.output
+
+
+def test_mfgnet_bench_without_modelnet_names_the_variable_it_reads(files, monkeypatch):
+    """It said "set --data or $MFGNET_DATA"; `mfgnet bench` has no --data."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    monkeypatch.setenv("MFGNET_DATA", files["empty"])
+    result = CliRunner().invoke(app, ["bench", "--model", "general", "--checkpoint", "general"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "ModelNet40 file not found" in result.output and "(set $MFGNET_DATA)" in result.output, result.output

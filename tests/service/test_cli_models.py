@@ -7,6 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cli_support import snapshot_model
 from typer.testing import CliRunner
@@ -37,7 +38,11 @@ def tampered_model(tmp_path_factory, models_root) -> Path:
 
 
 def list_models(*args) -> tuple[int, object, str]:
-    result = runner.invoke(app, ["models", *map(str, args)])
+    return invoke("models", *args)
+
+
+def invoke(*args) -> tuple[int, object, str]:
+    result = runner.invoke(app, [*map(str, args)])
     return result.exit_code, result.stdout, result.stderr
 
 
@@ -105,15 +110,32 @@ def test_exit_code_1_when_no_model_is_usable(tmp_path, monkeypatch) -> None:
     (tmp_path / "bare" / "encoder.onnx").write_bytes(b"\0")
     code, out, _ = list_models("--model-dir", tmp_path)
     assert code == 1 and out.startswith("FAILED bare:")
-    (tmp_path / "empty").mkdir()
-    code, out, _ = list_models("--model-dir", tmp_path / "empty")
+    code, out, _ = list_models()
     assert code == 1 and "no models found" in out
 
 
-def test_a_model_dir_that_is_not_a_folder_is_a_usage_error(tmp_path) -> None:
-    """It was ignored: the bundled models were listed (or used) as if it had not been given."""
-    code, _, err = list_models("--model-dir", tmp_path / "nonexistent")
-    assert code == 2 and "not a folder" in err
+def test_a_model_dir_that_is_not_a_folder_or_holds_no_model_is_a_usage_error(tmp_path) -> None:
+    """It was ignored: the bundled models were listed (or used) as if it had not been given, as `mfgnet serve` refuses
+    it."""
+    (tmp_path / "empty" / "sub").mkdir(parents=True)
+    clouds = [tmp_path / "a.npy", tmp_path / "b.npy"]
+    for path in clouds:
+        np.save(path, np.random.default_rng(0).normal(size=(64, 3)).astype(np.float32))
+    for command in (["models"], ["register", *clouds], ["sequence", *clouds]):
+        code, _, err = invoke(*command, "--model-dir", tmp_path / "nonexistent")
+        assert code == 2 and "not a folder" in err, command
+        code, _, err = invoke(*command, "--model-dir", tmp_path / "empty")
+        assert code == 2 and f"--model-dir {tmp_path / 'empty'}: no model in it" in err, command
+
+
+def test_a_failed_default_is_named_below_the_table(tmp_path) -> None:
+    """The only --model-dir model is the default even when it fails: `mfgnet register` stopped on it, while the table
+    marked no default. A missing manifest field is named as one (it printed "('name')")."""
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "manifest.json").write_text("{}")
+    code, out, _ = list_models("--model-dir", tmp_path / "mine")
+    assert code == 0 and "FAILED mine: model 'mine': malformed manifest.json (no 'name' field)" in out
+    assert "the default, mine, failed: `mfgnet register` without --model stops on it" in out
 
 
 def test_a_model_named_like_a_bundled_one_is_not_given_its_purpose(tmp_path, models_root) -> None:

@@ -148,9 +148,11 @@ def test_progress_goes_to_stderr_one_line_per_step(plain_run) -> None:
     assert all("-> frame_" in line and ": reliable," in line for line in progress), progress
 
 
-def test_progress_shift_is_the_frames_motion_in_georeferenced_coordinates(tmp_path, frames, model_dir) -> None:
+def test_progress_names_how_far_the_centroid_moves_also_in_georeferenced_coordinates(tmp_path, frames, model_dir
+                                                                                     ) -> None:
     """Frames in one far frame (a UTM map's): each step's translation grows with the origin's distance (a 10 deg turn
-    at 500 km: 87 km), the shift printed is how far the pose moves the source's centroid."""
+    at 500 km: 87 km); the line prints how far the pose moves the source's centroid, and says so (a bare "shift" read
+    as |t|, which it is not even near the origin)."""
     offset = np.array([512_345.0, 4_123_456.0, 87.0])
     far = []
     for path in frames:
@@ -158,7 +160,8 @@ def test_progress_shift_is_the_frames_motion_in_georeferenced_coordinates(tmp_pa
         np.save(far[-1], np.load(path) + offset)
     result = sequence(*far, model_dir=model_dir)
     assert result.exit_code == 0, result.output
-    shifts = [float(line.split("shift ")[1].split(",")[0]) for line in result.stderr.splitlines() if "shift " in line]
+    shifts = [float(line.split("centroid moved ")[1].split(",")[0]) for line in result.stderr.splitlines()
+              if "centroid moved " in line]
     steps = steps_of(result.stdout)
     assert len(shifts) == 4 and max(np.linalg.norm(step["translation"]) for step in steps) > 1e4
     for shift, path, step in zip(shifts, far[1:], steps, strict=True):
