@@ -43,11 +43,13 @@ RUN --mount=type=bind,from=build,source=/wheels,target=/wheels \
 
 # Settings: every MFGNET_* variable (service/core/config.py); these are the container defaults.
 # OMP_NUM_THREADS=1 keeps OpenMP/BLAS from spawning a thread per core on top of ONNX Runtime's own
-# MFGNET_THREADS intra-op threads. Bytecode was compiled at install time; the root filesystem may
+# MFGNET_THREADS intra-op threads. ORT_DISABLE_TELEMETRY=1: ONNX Runtime sends no telemetry and writes no
+# device id under $HOME (the service sets it too). Bytecode was compiled at install time; the root filesystem may
 # be read-only at run time, so nothing is written next to the code.
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     OMP_NUM_THREADS=1 \
+    ORT_DISABLE_TELEMETRY=1 \
     MFGNET_HOST=0.0.0.0 \
     MFGNET_PORT=8080 \
     MFGNET_THREADS=2

@@ -112,6 +112,7 @@ def test_environment_defaults(parser):
     assert env["MFGNET_THREADS"] == "2"
     assert env["OMP_NUM_THREADS"] == "1"
     assert env["PYTHONDONTWRITEBYTECODE"] == "1" and env["PYTHONUNBUFFERED"] == "1"
+    assert env["ORT_DISABLE_TELEMETRY"] == "1"  # no telemetry, no device id under HOME (/nonexistent here)
 
 
 def test_runtime_stage_installs_only_the_serve_extra(parser):
