@@ -35,13 +35,14 @@ REQUEST_SCHEMAS = (RegisterRequest, BatchRequest, InferRequest)
 
 
 def effective_default_model(settings: Settings, registry: ModelRegistry) -> str:
-    """``MFGNET_DEFAULT_MODEL``, or the only served model when that one is not served (e.g. a server
-    started on a single ``--model-dir`` model with the bundled models off). :class:`UnknownModelsError` where it is
-    not served among several: every request that names no model, the page's among them, would be a 404."""
+    """``MFGNET_DEFAULT_MODEL``, or the only served model when that one is not served and the variable is not set (a
+    server started on a single ``--model-dir`` model with the bundled models off). :class:`UnknownModelsError` where a
+    default set by name, or ``general`` among several models, is not served: every request that names no model, the
+    page's among them, would be a 404."""
     served = registry.entries
     if settings.default_model in served or not served:
         return settings.default_model
-    if len(served) == 1:
+    if len(served) == 1 and "default_model" not in settings.model_fields_set:  # set by name: not replaced
         return next(iter(served))
     raise UnknownModelsError(
         f"MFGNET_DEFAULT_MODEL is {settings.default_model!r}, which this server does not serve (it serves "

@@ -33,7 +33,7 @@ from starlette.requests import Request
 from starlette.types import Message
 
 from service.api.body_budget import BodyBudget, BodyHold
-from service.api.errors import APIError, from_pydantic
+from service.api.errors import APIError, TempStorageError, from_pydantic
 from service.api.json_clouds import rows_array, split_register_body
 from service.api.json_shapes import check_cloud_shapes
 from service.api.schemas import (
@@ -446,6 +446,8 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
     try:
         form = await Request(request.scope, receive).form(max_files=len(file_fields), max_fields=32,
                                                           max_part_size=MAX_FORM_FIELD_BYTES)
+    except OSError as exc:  # a file past 1 MiB is spooled to the temporary folder
+        raise TempStorageError(exc, "the upload") from None
     except StarletteHTTPException as exc:
         if str(exc.detail).startswith("Part exceeded maximum size"):  # a cloud sent as a text field (curl -F 'x=<f')
             raise APIError(400, f"a text field is over {MAX_FORM_FIELD_BYTES // 1024} KiB: send "

@@ -57,6 +57,15 @@ class BodyTooSlowError(APIError):
                          headers={"Connection": "close"})
 
 
+class TempStorageError(APIError):
+    """The server's temporary folder (``TMPDIR``, else ``/tmp``: uploads past 1 MiB and aligned answers are written
+    there) is full or not writable: a 503 to retry, not a 500."""
+
+    def __init__(self, exc: OSError, what: str):
+        super().__init__(503, f"the server could not write {what} to its temporary folder ({exc.strerror or exc}): it "
+                              "is full or not writable; retry later", headers={"Retry-After": "5"})
+
+
 def error_response(status: int, message: str, headers: dict[str, str] | None = None, **extra: Any) -> JSONResponse:
     return JSONResponse({"error": message, **extra}, status_code=status, headers=headers)
 

@@ -63,10 +63,28 @@ def serve_command(
     if empty:  # an empty or mis-mounted volume: it would serve no model, without a word
         fail(f"model folder{'s' * (len(empty) > 1)} {', '.join(empty)}: no model in it (a manifest.json or .onnx "
              "files, in it or in its subfolders; --model-dir or MFGNET_MODEL_DIRS)")
+    if not settings.bundled_models and not settings.model_dirs:  # it would start, never be ready, and say nothing
+        fail("no model to serve: MFGNET_BUNDLED_MODELS is false and MFGNET_MODEL_DIRS (--model-dir) names no folder")
+    if (problem := temp_folder_problem()) is not None:  # every upload past 1 MiB and aligned answer would fail
+        fail(problem)
     try:
         run_server(settings)
     except UnknownModelsError as exc:  # raised while the app is made, before it serves
         fail(str(exc))
+
+
+def temp_folder_problem() -> str | None:
+    """Why no temporary file can be written (``TMPDIR``, else ``/tmp``, missing or read-only: a read-only root
+    filesystem without a ``/tmp`` volume), or ``None``."""
+    import tempfile
+
+    try:
+        with tempfile.TemporaryFile() as probe:
+            probe.write(b"\0")
+    except OSError as exc:
+        return (f"no writable temporary folder ({tempfile.gettempdir()}: {exc.strerror or exc}; TMPDIR, else /tmp): "
+                "uploads past 1 MiB and aligned answers are written there; mount a writable volume on /tmp")
+    return None
 
 
 OPTION_OF = {"host": "--host", "port": "--port", "threads": "--threads", "model_dirs": "--model-dir"}

@@ -257,3 +257,43 @@ def test_a_model_folder_the_server_cannot_read_stops_it_in_one_line(tmp_path) ->
     assert done.returncode == 2, done.stderr
     assert f"model folder {folder}" in done.stderr and "Permission denied" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_serve_with_no_model_at_all_stops(monkeypatch) -> None:
+    """It started, answered readiness with 503 for ever and logged nothing."""
+    import service.api.app
+
+    monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
+    monkeypatch.setenv("MFGNET_BUNDLED_MODELS", "false")
+    monkeypatch.delenv("MFGNET_MODEL_DIRS", raising=False)
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2
+    assert "no model to serve: MFGNET_BUNDLED_MODELS is false and MFGNET_MODEL_DIRS (--model-dir) names no folder" \
+        in result.stderr
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_serve_without_a_writable_temporary_folder_stops(monkeypatch, tmp_path) -> None:
+    """A read-only root filesystem without a /tmp volume: the server was ready, and every upload past 1 MiB a 500."""
+    import tempfile
+
+    import service.api.app
+
+    monkeypatch.setattr(service.api.app, "run_server", lambda settings: pytest.fail("must not start"))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "gone"))
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2
+    assert f"no writable temporary folder ({tmp_path / 'gone'}: No such file or directory; TMPDIR, else /tmp)" \
+        in result.stderr
+
+
+@pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
+def test_a_default_model_set_by_name_and_not_served_stops_serve_also_beside_one_model() -> None:
+    """With one model served, MFGNET_DEFAULT_MODEL=noise was replaced by it without a word."""
+    env = {**{k: v for k, v in os.environ.items() if not k.startswith("MFGNET_")}, "MFGNET_MODELS": "general",
+           "MFGNET_DEFAULT_MODEL": "noise", "MFGNET_PORT": "0"}
+    done = subprocess.run([sys.executable, "-c", "from service.cli import main; main()", "serve"], env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2, done.stderr
+    assert "MFGNET_DEFAULT_MODEL is 'noise', which this server does not serve (it serves general)" in done.stderr

@@ -32,7 +32,7 @@ from starlette.requests import ClientDisconnect
 
 from service.api import bodies
 from service.api.deps import get_runner, get_settings, require_api_key
-from service.api.errors import APIError, error_docs
+from service.api.errors import APIError, TempStorageError, error_docs
 from service.api.middleware import ABORT_CONNECTION, DROPPED_CLIENT
 from service.api.responses import RenderedJSON
 from service.api.routes.register import _MULTIPART_SCHEMA
@@ -301,13 +301,18 @@ def moved_upload(upload: bodies.Upload, suffix: str, R: np.ndarray, t: np.ndarra
     reading; its name is already removed, so the disk space is freed when it is closed, whatever becomes of the
     request. A 422 where the moved points do not fit the format (a LAS span beyond its 32-bit integers at its scale)
     or the upload cannot be written moved."""
-    folder = tempfile.mkdtemp(prefix="mfgnet-aligned-")
+    try:
+        folder = tempfile.mkdtemp(prefix="mfgnet-aligned-")
+    except OSError as exc:
+        raise TempStorageError(exc, "the moved file") from None
     try:
         out = Path(folder) / f"aligned{suffix}"
         try:
             write_moved(upload.file, out, R, t, largest)
         except PointCloudFormatError as exc:
             raise APIError(422, f"invalid request: {upload.label} cannot be written moved: {exc}") from None
+        except OSError as exc:  # writing it: the folder is full
+            raise TempStorageError(exc, "the moved file") from None
         return open(out, "rb")  # closed by streamed()
     finally:
         shutil.rmtree(folder, ignore_errors=True)
