@@ -18,7 +18,7 @@ import tempfile
 from pathlib import Path
 
 from bench.report_io import checked, json_destination
-from model.cli_inputs import checkpoint_file, pairs_file
+from model.cli_inputs import checkpoint_model, pairs_file
 
 COLUMNS = ("recall_r5_t005", "recall_r1_t001", "mae_r", "iso_r_median", "reliable_wrong_share")
 
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.refine not in REFINE_MODES:
         parser.error(f"unknown --refine {args.refine!r}; expected one of {', '.join(REFINE_MODES)}")
     for checkpoint in args.checkpoint:
-        checked(checkpoint_file, checkpoint)
+        checked(checkpoint_model, checkpoint)  # weights that fit their config: a usage error, not a traceback
     for path in args.pairs:
         checked(pairs_file, path)
     json_destination(args.json)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -170,7 +171,8 @@ def _graph_diff(out: np.ndarray, ref: torch.Tensor) -> float:
     that is above 1: float32 sums round relative to the size of their terms (a matcher's credibility logits reach 11,
     with rounding differences of 1e-4 on values near 1; its scores reach the clamp at 20)."""
     ref_np = ref.numpy()
-    return float(np.abs(out - ref_np).max() / max(1.0, float(np.abs(ref_np).max())))
+    diff = float(np.abs(out - ref_np).max() / max(1.0, float(np.abs(ref_np).max())))
+    return diff if math.isfinite(diff) else math.inf  # NaN would vanish in max(); a NaN output is no match
 
 
 def _same_graph(a: np.ndarray, b: np.ndarray) -> bool:

@@ -543,7 +543,7 @@ def train(
         return
     if outcome.best is None:  # a failed run: nothing to fine-tune, export or evaluate from
         why = (
-            f"none of its {outcome.epochs} epochs had a finite validation MAE(R) (NaN or inf)"
+            f"none of its {outcome.epochs} epochs had a finite validation MAE(R) (NaN or inf) from finite weights"
             if outcome.epochs
             else "it stopped before its first validation"
         )

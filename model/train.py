@@ -249,7 +249,7 @@ def batch_generator(seed: int, epoch: int, batch: int) -> torch.Generator:
 
 @dataclass
 class TrainOutcome:
-    best: Path | None  # the best checkpoint (best.pt); None where no epoch had a finite validation MAE(R)
+    best: Path | None  # the best checkpoint (best.pt); None where no epoch had a finite validation MAE(R) and weights
     stopped_by: str | None = None  # the signal (SIGTERM, SIGINT) that stopped the run before its end; --resume goes on
     epochs: int = 0  # epochs the run has finished (validated), its earlier tries' included
     timed_out: bool = False  # stopped by max_minutes before the run's end; --resume goes on
@@ -349,6 +349,12 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
         if init is not None:
             model.load_state_dict(init["model"])
             print(f"initialised from {opts.init} (its network: {cfg.to_dict()})")
+            trained_on = init.get("setting")
+            if trained_on and trained_on != opts.setting:  # --setting is the run's own, not the checkpoint's
+                print(f"note: {opts.init} was trained on the {trained_on!r} setting; this run trains and validates on "
+                      f"{opts.setting!r} (--setting{'' if opts.recipe else ', no --recipe'}), and its export takes "
+                      f"{opts.setting!r}'s protocol (reference radius, rotation search section); give --setting "
+                      f"{trained_on} (and the checkpoint's --recipe) to fine-tune it on its own pairs", file=sys.stderr)
         init_file = resolve_checkpoint(opts.init).resolve() if opts.init else None
         made_by = {"run": run_record(asdict(opts), data_file, init=init_file and {
             "checkpoint": portable_path(init_file), "sha256": file_sha256(init_file),
@@ -457,6 +463,12 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
             print(json.dumps(record))
             state["epoch"], state["batch"] = epoch + 1, 0
             metric = val["mae_r"]
+            if not all(bool(torch.isfinite(v).all()) for v in model.state_dict().values() if v.is_floating_point()):
+                # a diverged network (NaN or inf weights) still yields finite poses (NaN credibilities fall back to
+                # uniform weights over arbitrary matches), so its MAE(R) must not make it the best checkpoint
+                print(f"epoch {epoch}: the network's weights hold NaN or inf (training diverged; lower --lr); "
+                      "not a candidate for best.pt", file=sys.stderr)
+                metric = math.inf
             if metric < state["best"]:
                 state["best"], state["best_epoch"], state["stale"] = metric, epoch, 0
                 checkpoint(best_path, val=val)

@@ -86,6 +86,9 @@ def load_manifest(directory: str | Path) -> Manifest:
         raise ModelIntegrityError(f"model folder {directory.name!r} does not match manifest name {name!r}")
     if raw.get("format", FORMAT) != FORMAT:  # written by an export newer (or other) than this runtime
         raise ModelIntegrityError(f"model {name!r}: manifest format {raw['format']!r}; this runtime reads {FORMAT}")
+    problems = config_problems(config)
+    if problems:
+        raise ModelIntegrityError(f"model {name!r}: malformed config in {MANIFEST}: {'; '.join(problems)}")
     radius = normalization.get("reference_radius") if isinstance(normalization, dict) else None
     if type(radius) not in (int, float) or not math.isfinite(radius) or radius <= 0:
         raise ModelIntegrityError(f"model {name!r}: normalization.reference_radius is {radius!r}, not a number "
@@ -104,6 +107,22 @@ def load_manifest(directory: str | Path) -> Manifest:
         directory, name, version, sha256_file(path), config, verified, normalization, raw.get("accuracy", {}), raw,
         _search_subsample(name, raw.get("search")),
     )
+
+
+def config_problems(config: object) -> list[str]:
+    """What in a manifest's ``config`` the runtime cannot run (a hand-edited or damaged manifest), each named; the
+    graphs' own shapes are checked against it when they load (``Registrar``)."""
+    from service.request_defaults import KEYPOINT_RANGE, MAX_ITERATIONS
+
+    if not isinstance(config, dict):
+        return [f"config is {type(config).__name__}, not an object"]
+    wanted = {
+        "iterations": lambda v: type(v) is int and 1 <= v <= MAX_ITERATIONS,
+        "keypoints": lambda v: type(v) is int and KEYPOINT_RANGE[0] <= v <= KEYPOINT_RANGE[1],
+        "knn": lambda v: type(v) is int and v >= 1,
+        "centroid": lambda v: v in ("weighted", "unweighted"),
+    }
+    return [f"{key} {config[key]!r}" for key, ok in wanted.items() if key in config and not ok(config[key])]
 
 
 def _search_subsample(name: str, section: dict | None) -> tuple[int, int] | None:

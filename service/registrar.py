@@ -27,7 +27,7 @@ from service.blas_threads import use_one_blas_thread
 from service.bounded_runs import ENCODE_POINTS_PER_CALL, MATCH_PAIRS_PER_CALL, run_bounded, share_one_cpu_arena
 from service.checks import MIN_POINTS, check_cloud, check_transform
 from service.errors import InputError
-from service.manifest import Manifest, load_manifest
+from service.manifest import Manifest, ModelIntegrityError, load_manifest
 from service.neighbours import knn_graph
 from service.network_loop import NetworkLoop, NetworkOutput, gather_rows
 from service.options import (
@@ -137,6 +137,11 @@ class Registrar:
         self.encoder_takes_neighbours = any(i.name == "neighbours" for i in self.encoder.get_inputs())
         self.matcher_takes_distance = any(i.name == "emb_dist" for i in self.matchers[0].get_inputs())
         self.knn = int(self.config.get("knn", 12))
+        if self.encoder_takes_neighbours:
+            k = next(i for i in self.encoder.get_inputs() if i.name == "neighbours").shape[-1]
+            if isinstance(k, int) and k != self.knn:
+                raise ModelIntegrityError(f"model {self.name!r}: config knn {self.knn}, but its encoder graph takes "
+                                          f"{k} neighbours per point")
         self.default_iterations = int(self.config.get("iterations", len(self.matchers)))
         self.default_keypoints = int(self.config.get("keypoints", 128))
         self.ready = threading.Event()

@@ -47,12 +47,19 @@ def files(tmp_path, monkeypatch):
     cloud = rng.normal(size=(20, 3)).astype(np.float32)
     np.savez(tmp_path / "unjudged" / "a.npz", source=cloud, target=cloud, transform=np.eye(4), sensor="sonar")
     (tmp_path / "checkout").mkdir()  # a folder, but no checkout of the project
+    import torch
+
+    from model.config import MFGNetConfig
+
+    other = torch.nn.Sequential(torch.nn.Linear(3, 8), torch.nn.ReLU(), torch.nn.Linear(8, 1))
+    torch.save({"model": other.state_dict(), "config": MFGNetConfig().to_dict()}, tmp_path / "other_arch.pt")
     monkeypatch.setenv("MFGNET_REAL_DATA", str(scans))
     with socket.socket() as s:  # a port with no server behind it
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     return {
         "pairs": str(good),
+        "other_arch": str(tmp_path / "other_arch.pt"),  # weights of another network beside MFGNet's config
         "wrong": str(tmp_path / "wrong.npz"),
         "text": str(tmp_path / "text.npz"),
         "list": str(tmp_path / "list.json"),
@@ -85,6 +92,7 @@ CASES = [
     ("search_pruning", ["--pairs", "{missing}"], "run", "no such file"),
     ("select", ["--checkpoint", "nope", "--pairs", "{pairs}"], "select", "--checkpoint nope: no checkpoint"),
     ("select", ["--checkpoint", "clean", "--pairs", "{pairs}", "--json", "{missing}"], "select", "does not exist"),
+    ("select", ["--checkpoint", "{other_arch}", "--pairs", "{pairs}"], "select", "other_arch.pt"),  # a traceback
     ("refine_http", ["--pairs", "{pairs}", "--model", "nope"], "Server", "--model nope: not a bundled model"),
     ("refine_http", ["--pairs", "{pairs}", "--count", "0"], "Server", "--count: must be at least 1"),
     ("auto_trigger", ["report", "{list}", "--pairs", "{pairs}"], "report", "not what collect wrote"),

@@ -245,3 +245,16 @@ def test_parity_at_keypoint_boundary_ties_on_read_only_pairs_raises_no_warning()
                           min_compared=0)
     assert report.keypoint_boundary_ties == 2  # the rerun on the runtime's keypoints happened
     assert report.max_encoder_diff <= 1e-4 and report.max_matcher_diff <= 1e-4
+
+
+def test_a_nan_graph_output_is_no_match_in_the_parity_report() -> None:
+    """Python's max() drops NaN: a NaN network's encoder and matchers reported differences of 0.0."""
+    import math
+
+    import torch
+
+    from export.parity import _graph_diff
+
+    assert _graph_diff(np.array([1.0, np.nan]), torch.tensor([1.0, 2.0])) == math.inf
+    assert max(0.0, _graph_diff(np.array([np.nan]), torch.tensor([np.nan]))) == math.inf
+    assert _graph_diff(np.array([1.0, 2.5]), torch.tensor([1.0, 2.0])) == pytest.approx(0.25)

@@ -339,3 +339,30 @@ def test_training_commands_reject_shapes_with_nan_or_infinite_points_naming_them
                        "1 shape with NaN or infinite coordinates", "index 7")
     assert not (out / "config.json").exists() and not (out / "last.pt").exists()
     assert not (tmp_path / "p.npz").exists() and not (tmp_path / "m.json").exists()
+
+
+def test_a_diverged_run_writes_no_best_and_fails(tmp_path) -> None:
+    """At lr 1e6 the weights turn NaN; NaN credibilities fall back to uniform weights, so the validation's poses stay
+    finite and the run wrote best.pt of NaN weights with a finite MAE(R), and exited 0."""
+    run = tmp_path / "run"
+    result = runner.invoke(app, ["train", "--out", str(run), "--data", tiny_training_data(tmp_path), "--epochs", "2",
+                                 "--batch-size", "2", "--batches-per-epoch", "2", "--val-pairs", "2", "--device",
+                                 "cpu", "--iterations", "1", "--lr", "1e6"])
+    assert result.exit_code == 1, result.output
+    assert "the network's weights hold NaN or inf (training diverged; lower --lr)" in result.stderr
+    assert "none of its 2 epochs had a finite validation MAE(R) (NaN or inf) from finite weights" in result.stderr
+    assert not (run / "best.pt").exists() and (run / "last.pt").exists()
+
+
+def test_a_fine_tune_on_another_setting_than_its_checkpoint_says_so(tmp_path) -> None:
+    """`--init` takes the network, not the setting: the README's fine-tune of `general` trained on `clean` pairs (the
+    default) without a word, and its export took `clean`'s protocol."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    data = tiny_training_data(tmp_path)
+    common = ["--data", data, "--epochs", "1", "--batch-size", "2", "--batches-per-epoch", "1", "--val-pairs", "2",
+              "--device", "cpu", "--iterations", "1"]
+    assert runner.invoke(app, ["train", "--out", str(first), "--setting", "noise", *common]).exit_code == 0
+    result = runner.invoke(app, ["train", "--out", str(second), "--init", str(first / "best.pt"), *common[:-2]])
+    assert result.exit_code == 0, result.output
+    assert f"note: {first / 'best.pt'} was trained on the 'noise' setting; this run trains and validates on 'clean'" \
+        in result.stderr
