@@ -266,6 +266,20 @@ def flatten(d: dict, prefix: str = "") -> dict[str, float]:
     return out
 
 
+def same_network(folder: Path, path: Path, model: str, checkpoint: str) -> None:
+    """A usage error where the model ``folder``'s manifest records the checkpoint it was exported from and ``path`` is
+    another: the eager figures would time another network than the ONNX ones."""
+    from model.checkpoint import file_sha256
+    from model.cli_inputs import fail
+    from service.manifest import load_manifest
+
+    raw = load_manifest(folder).raw
+    exported_from = raw.get("source_checkpoint_sha256")
+    if exported_from and exported_from != file_sha256(path):
+        fail(f"--checkpoint {checkpoint}: not the checkpoint --model {model} was exported from ({raw.get('source')}, "
+             "by its manifest); give --checkpoint that file, so that the eager and ONNX figures time one network")
+
+
 def bench(
     model: Annotated[str, typer.Option(help="bundled model name or model folder")] = "clean",
     checkpoint: Annotated[str, typer.Option(help="checkpoint with the same weights (torch eager)")] = "clean",
@@ -293,7 +307,8 @@ def bench(
         output_file(json_out, "--json", create_folders=True)
     baseline = bench_report(compare, "--compare") if compare else None
     folder = model_dir(model)
-    network = checkpoint_model(checkpoint)[2]
+    path, _, network = checkpoint_model(checkpoint)
+    same_network(folder, path, model, checkpoint)
     for name in (setting, *(accuracy_setting or () if accuracy_count else ())):
         require_shapes("test", name, None, hint=f"set ${DATA_ENV}")
     report = run_bench(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
@@ -18,6 +19,7 @@ from model.cli_inputs import fail, finite_shapes, require_shapes, short
 from service.manifest import MANIFEST, looks_like_model
 
 STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
+MODEL_VERSION = re.compile(r"[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}")  # a manifest's version: one table cell, no space
 DESCRIPTION_CHARS = 60  # longest manifest description: one cell of the 100-column `mfgnet models` table
 
 
@@ -70,6 +72,9 @@ def export(
     from model.data import make_test_pairs
     from service.registrar import Registrar
 
+    if not MODEL_VERSION.fullmatch(version):  # written to the manifest, shown in `mfgnet models` and /v1/models
+        fail(f"--version {version!r}: up to 64 letters, digits, '.', '+', '_' or '-', starting with a letter or digit "
+             "(e.g. 1.2.0)")
     if min_comparable > parity_pairs:
         fail(f"--min-comparable {min_comparable}: more than the {parity_pairs} --parity-pairs (about half the pairs "
              "can be excluded as ties: give at least twice as many pairs)")
@@ -87,6 +92,9 @@ def export(
         with finite_shapes():  # the reference radius' training shapes, the parity pairs' test shapes
             write_model_folder(stage, path, model, data, setting, version, accuracy, shapes_folder)
             pairs = make_test_pairs(parity_setting, "test", count=parity_pairs, seed=seed, path=shapes_folder)
+            if len(pairs["source"]) < parity_pairs:  # one pair per test shape at most
+                typer.echo(f"note: the test split holds {len(pairs['source'])} shapes: parity on as many pairs, not "
+                           f"--parity-pairs {parity_pairs}", err=True)
         registrar = Registrar(stage, warmup=False)
         try:
             report = check_parity(model, registrar, pairs, min_compared=min_comparable)
@@ -262,6 +270,8 @@ def import_checkpoint(
     from model.config import OFFICIAL_CONFIG
     from model.network import MFGNet
 
+    if out.exists() and not out.is_dir():  # a checkpoint (a training run's) is not replaced without a word
+        fail(f"--out {out}: already exists; remove it or name another file")
     output_file(out, "--out", create_folders=True)
     official = torch_file(source, "SOURCE")
     if isinstance(official, dict) and all(isinstance(official.get(key), dict) for key in ("model", "config")):

@@ -130,7 +130,8 @@ def check_parity(
     if trans_diff > TRANSLATION_TOL:
         problems.append(f"translation differs by {trans_diff:.2e} > {TRANSLATION_TOL}")
     if compared < min_compared:
-        more = "" if collapsed else " (more pairs give more comparable ones)"
+        more = "" if collapsed else (" (more --parity-pairs give more comparable ones where the test split holds the "
+                                     "shapes; a split of fewer shapes: a lower --min-comparable)")
         problems.append(f"only {compared} comparable pairs (< {min_compared}); {excluded} of {len(pairs['source'])} "
                         f"excluded as ties{more}")
     if problems:

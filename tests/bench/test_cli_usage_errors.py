@@ -272,3 +272,15 @@ def test_mfgnet_bench_without_modelnet_names_the_variable_it_reads(files, monkey
     result = CliRunner().invoke(app, ["bench", "--model", "general", "--checkpoint", "general"])
     assert result.exit_code == 2 and "Traceback" not in result.output
     assert "ModelNet40 file not found" in result.output and "(set $MFGNET_DATA)" in result.output, result.output
+
+
+def test_mfgnet_bench_refuses_a_checkpoint_other_than_the_models_source():
+    """`--model general` beside the default `--checkpoint clean` timed PyTorch's clean against ONNX's general and
+    reported a speed-up between two networks."""
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "--model", "general"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "--checkpoint clean: not the checkpoint --model general was exported from (general.pt" in result.output

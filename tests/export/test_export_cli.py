@@ -219,7 +219,7 @@ def test_export_of_a_barely_trained_network_fails_parity_and_says_why_and_what_t
     assert "What to do: train longer (this checkpoint records 1 epoch, validation MAE(R)" in message
     assert "bundled checkpoints (clean, noise, unseen, general) export cleanly" in message
     assert f"mfgnet evaluate --checkpoint {run / 'best.pt'}" in message
-    assert "more pairs give more comparable ones" not in message  # they would not: the scores tie
+    assert "more --parity-pairs give more comparable ones" not in message  # they would not: the scores tie
     assert not out.exists()
 
 
@@ -432,3 +432,33 @@ def test_export_rejects_a_description_that_is_not_one_short_line(tmp_path, tiny_
     result = runner.invoke(app, [*export_args(tiny_checkpoint, tmp_path / "m"), "--description", description])
     assert_usage_error(result, "--description", "one line of 1 to 60 printable characters")
     assert not (tmp_path / "m").exists()
+
+
+def test_import_checkpoint_does_not_replace_an_existing_out(tmp_path, tiny_checkpoint) -> None:
+    """It replaced the file without a word (a training run's checkpoint among them); export and train refuse."""
+    out = tmp_path / "mine.pt"
+    shutil.copy(tiny_checkpoint, out)
+    before = out.read_bytes()
+    result = runner.invoke(app, ["import-checkpoint", str(tmp_path / "any.t7"), "--out", str(out)])
+    assert_usage_error(result, "--out", str(out), "already exists")
+    assert out.read_bytes() == before
+
+
+@pytest.mark.parametrize("version", ["", " 1.0", "1.0\nnext", "v" * 65])
+def test_export_refuses_a_version_that_is_no_table_cell(tmp_path, tiny_checkpoint, version) -> None:
+    """An empty version or one holding a line break went into the manifest and broke `mfgnet models`' table."""
+    result = runner.invoke(app, ["export", "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "m"),
+                                 "--version", version])
+    assert_usage_error(result, "--version", "up to 64 letters, digits")
+    assert not (tmp_path / "m").exists()
+
+
+def test_parity_on_a_test_split_of_fewer_shapes_says_so(tmp_path, tiny_checkpoint, monkeypatch) -> None:
+    """A dataset of 3 test shapes: --parity-pairs 100 was cut to 3 without a word (and a failure for too few comparable
+    pairs said only "more pairs give more comparable ones", which the split cannot; it names --min-comparable now)."""
+    tiny_modelnet(tmp_path, monkeypatch)
+    result = runner.invoke(app, ["export", "--checkpoint", str(tiny_checkpoint), "--out", str(tmp_path / "m"),
+                                 "--parity-pairs", "10", "--min-comparable", "5"])
+    message = " ".join(result.stderr.split())
+    assert "note: the test split holds 3 shapes: parity on as many pairs, not --parity-pairs 10" in message
+    assert result.exit_code == 1  # an untrained network: its parity fails for its own reason
