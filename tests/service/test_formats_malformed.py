@@ -10,7 +10,6 @@ import re
 import struct
 import subprocess
 import sys
-import tracemalloc
 import warnings
 import zipfile
 from pathlib import Path
@@ -21,6 +20,7 @@ import plyfile
 import pypcd4
 import pytest
 from api_server import MODEL, assert_error
+from traced_peak import peak_bytes
 from typer.testing import CliRunner
 
 from service.cli import app
@@ -34,17 +34,6 @@ LAS12_HEADER, LAS14_HEADER = 227, 375
 
 def cloud(n: int = 24) -> np.ndarray:
     return np.random.default_rng(0).normal(size=(n, 3)).astype(np.float32)  # [N, 3]
-
-
-def peak_bytes(read) -> int:
-    """Peak bytes traced (numpy arrays and Python buffers) while ``read()`` runs."""
-    tracemalloc.start()
-    try:
-        read()
-    finally:
-        peak = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
-    return peak
 
 
 def read_in_subprocess(path: Path, memory_mib: int = 3000) -> subprocess.CompletedProcess:

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import io
 import random
-import tracemalloc
 import warnings
 
 import numpy as np
 import pytest
+from traced_peak import peak_bytes
 
 from service.formats import PointCloudFormatError, read_cloud
 from service.formats import quoted_records as quoted
@@ -20,17 +20,6 @@ ROW = "1.000000,2.000000,3.000000\n"
 # ASCII and Unicode whitespace, a carriage return
 PIECES = ['1', '2.5', '"1"', '"1,2"', '"1\n2"', '1"', '"1"x', '""', '"a""b"', '"a""', '"', ' ', '#c', '# "', '\t',
           '"1 2"', 'x"y', '\u3000', '\r', ';', '"#"', '"\n"']
-
-
-def peak_bytes(read) -> int:
-    """Peak bytes traced (numpy arrays and Python buffers) while ``read()`` runs."""
-    tracemalloc.start()
-    try:
-        read()
-    finally:
-        peak = tracemalloc.get_traced_memory()[1]
-        tracemalloc.stop()
-    return peak
 
 
 def test_an_unclosed_quote_is_refused_before_numpy_reads_the_rest_of_the_file_as_one_value() -> None:
