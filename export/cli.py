@@ -16,7 +16,7 @@ import typer
 
 from export import MIN_COMPARED
 from model.cli_inputs import fail, finite_shapes, require_shapes, short
-from service.manifest import MANIFEST, looks_like_model
+from service.manifest import MANIFEST, ModelIntegrityError, looks_like_model
 
 STAGING_PREFIX = ".export-"  # the hidden folder a model is written and checked in before it is moved to --out
 MODEL_VERSION = re.compile(r"[0-9A-Za-z][0-9A-Za-z.+_-]{0,63}")  # a manifest's version: one table cell, no space
@@ -95,7 +95,10 @@ def export(
             if len(pairs["source"]) < parity_pairs:  # one pair per test shape at most
                 typer.echo(f"note: the test split holds {len(pairs['source'])} shapes: parity on as many pairs, not "
                            f"--parity-pairs {parity_pairs}", err=True)
-        registrar = Registrar(stage, warmup=False)
+        try:
+            registrar = Registrar(stage, warmup=False)
+        except ModelIntegrityError as exc:  # a config the runtime refuses
+            fail(f"export failed, {out} left as it was: {exc}", code=1)
         try:
             report = check_parity(model, registrar, pairs, min_compared=min_comparable)
         except ParityError as exc:

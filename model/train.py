@@ -104,7 +104,10 @@ def option_problems(opts: TrainOptions) -> dict[str, str]:
         "snapshot_every": (opts.snapshot_every, at_least(opts.snapshot_every, 0), "0 or more"),
     }
     iterations = opts.config.get("iterations", MFGNetConfig.iterations)
-    checks["iterations"] = (iterations, at_least(iterations, 1), "1 or more")
+    from service.request_defaults import MAX_ITERATIONS  # what an exported model may default to
+
+    checks["iterations"] = (iterations, at_least(iterations, 1) and iterations <= MAX_ITERATIONS,
+                            f"1 to {MAX_ITERATIONS}")
     problems = {name: f"{value}: must be {rule}" for name, (value, ok, rule) in checks.items() if not ok}
     try:
         device = torch.device("cpu" if opts.device == "auto" else opts.device)

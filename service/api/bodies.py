@@ -511,6 +511,8 @@ def decode_upload(upload: Upload, max_points: int) -> np.ndarray:
         return read_cloud(upload.file, upload.label, max_points)
     except PointCloudFormatError as exc:
         raise _upload_error(exc) from None
+    except OSError as exc:  # a small upload copied to a real file (binary PLY, E57): the temporary folder
+        raise TempStorageError(exc, "a copy of the upload") from None
 
 
 def _upload_error(exc: PointCloudFormatError) -> APIError:

@@ -76,13 +76,15 @@ def serve_command(
 def temp_folder_problem() -> str | None:
     """Why no temporary file can be written (``TMPDIR``, else ``/tmp``, missing or read-only: a read-only root
     filesystem without a ``/tmp`` volume), or ``None``."""
+    import os
     import tempfile
 
     try:
         with tempfile.TemporaryFile() as probe:
             probe.write(b"\0")
-    except OSError as exc:
-        return (f"no writable temporary folder ({tempfile.gettempdir()}: {exc.strerror or exc}; TMPDIR, else /tmp): "
+    except OSError as exc:  # gettempdir() itself raises where no candidate folder is writable: not called again here
+        folder = tempfile.tempdir or os.environ.get("TMPDIR") or "/tmp"
+        return (f"no writable temporary folder ({folder}: {exc.strerror or exc}; TMPDIR, else /tmp): "
                 "uploads past 1 MiB and aligned answers are written there; mount a writable volume on /tmp")
     return None
 

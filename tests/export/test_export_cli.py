@@ -462,3 +462,17 @@ def test_parity_on_a_test_split_of_fewer_shapes_says_so(tmp_path, tiny_checkpoin
     message = " ".join(result.stderr.split())
     assert "note: the test split holds 3 shapes: parity on as many pairs, not --parity-pairs 10" in message
     assert result.exit_code == 1  # an untrained network: its parity fails for its own reason
+
+
+def test_an_export_whose_config_the_runtime_refuses_fails_and_says_so(tmp_path, tiny_checkpoint, monkeypatch) -> None:
+    """A checkpoint whose config asks for 100,000 keypoints: the model folder's check refused it with a traceback
+    (before that check, the exported model refused every request naming no keypoints)."""
+    tiny_modelnet(tmp_path, monkeypatch)
+    data = torch.load(tiny_checkpoint, weights_only=False)
+    data["config"]["keypoints"] = 100_000
+    torch.save(data, tiny_checkpoint)
+    out = tmp_path / "m"
+    result = runner.invoke(app, export_args(tiny_checkpoint, out))
+    assert result.exit_code == 1 and "Traceback" not in result.output
+    assert f"export failed, {out} left as it was" in result.stderr and "keypoints 100000" in result.stderr
+    assert not out.exists()

@@ -366,3 +366,11 @@ def test_a_fine_tune_on_another_setting_than_its_checkpoint_says_so(tmp_path) ->
     assert result.exit_code == 0, result.output
     assert f"note: {first / 'best.pt'} was trained on the 'noise' setting; this run trains and validates on 'clean'" \
         in result.stderr
+
+
+def test_train_refuses_more_iterations_than_a_model_may_run(tmp_path) -> None:
+    """A network of 9 iterations trained, then its export ended in a traceback ("malformed config ... iterations 9"),
+    and the service refused every request that names no iterations."""
+    result = runner.invoke(app, ["train", "--out", str(tmp_path / "run"), "--data", tiny_training_data(tmp_path),
+                                 "--iterations", "9", "--device", "cpu"])
+    assert result.exit_code == 2 and "--iterations 9: must be 1 to 8" in result.output, result.output

@@ -286,6 +286,13 @@ def test_serve_without_a_writable_temporary_folder_stops(monkeypatch, tmp_path) 
     assert result.exit_code == 2
     assert f"no writable temporary folder ({tmp_path / 'gone'}: No such file or directory; TMPDIR, else /tmp)" \
         in result.stderr
+    # none of Python's candidate folders writable: gettempdir() itself raises, and naming the folder raised again
+    monkeypatch.setattr(tempfile, "tempdir", None)
+    monkeypatch.setattr(tempfile, "_candidate_tempdir_list", lambda: [str(tmp_path / "gone")])
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "gone"))
+    result = runner.invoke(app, ["serve"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert f"no writable temporary folder ({tmp_path / 'gone'}: No usable temporary directory found" in result.stderr
 
 
 @pytest.mark.skipif(not HAS_API, reason="service/api/app.py does not exist yet")
