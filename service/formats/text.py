@@ -78,8 +78,8 @@ def _read(stream: io.TextIOWrapper, max_points: int | None, quoted: bool) -> np.
     if not rows_follow:  # checked here: numpy's loadtxt would warn on stderr, then return no rows
         raise InvalidPointsError(_no_rows(header))
     if quoted:
-        stream.seek(0)
-        if (line := quote_over_a_line_break(stream, separator)) is not None:
+        stream.seek(0)  # the bytes from the start (the wrapper's state reset): read below, then again as text
+        if (line := quote_over_a_line_break(stream.buffer, separator)) is not None:
             raise PointCloudFormatError(f"text file: a double-quoted value opened on line {line} runs over a line "
                                         "break (an unclosed quote?); each point's row must be one line")
     stream.seek(0)

@@ -19,7 +19,7 @@ ROW = "1.000000,2.000000,3.000000\n"
 # pieces of fields: numbers, quoted values (closed, open, over a line break, with "" and '#'), inch marks, comments,
 # ASCII and Unicode whitespace, a carriage return
 PIECES = ['1', '2.5', '"1"', '"1,2"', '"1\n2"', '1"', '"1"x', '""', '"a""b"', '"a""', '"', ' ', '#c', '# "', '\t',
-          '"1 2"', 'x"y', '\u3000', '\r', ';', '"#"', '"\n"']
+          '"1 2"', 'x"y', '\u3000', '\xa0', '\x1c', '\r', '\r\n', ';', '"#"', '"\n"', '"""', '""""', 'é']
 
 
 def test_an_unclosed_quote_is_refused_before_numpy_reads_the_rest_of_the_file_as_one_value() -> None:
@@ -66,7 +66,7 @@ def test_the_line_named_counts_the_lines_of_every_block_before_it(monkeypatch: p
 def numpy_joins_lines(text: str, separator: str | None) -> bool | None:
     """Whether numpy's reader makes a value of a line break (a quote carried over it), reading ``text`` as the text
     reader does; ``None`` where numpy refuses it (rows of different lengths)."""
-    stream = io.TextIOWrapper(io.BytesIO(text.encode()), encoding="utf-8", newline=None)
+    stream = io.TextIOWrapper(io.BytesIO(text.encode()), encoding="utf-8-sig", newline=None)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # no rows
@@ -77,8 +77,7 @@ def numpy_joins_lines(text: str, separator: str | None) -> bool | None:
 
 
 def check_joins_lines(text: str, separator: str | None) -> bool:
-    stream = io.TextIOWrapper(io.BytesIO(text.encode()), encoding="utf-8", newline=None)
-    return quoted.quote_over_a_line_break(stream, separator) is not None
+    return quoted.quote_over_a_line_break(io.BytesIO(text.encode()), separator) is not None
 
 
 def random_text(rng: random.Random, separator: str | None) -> str:
@@ -89,7 +88,7 @@ def random_text(rng: random.Random, separator: str | None) -> str:
         else:  # fields and separators
             gap = separator or rng.choice([" ", "  ", "\t"])
             lines.append(gap.join(rng.choice(PIECES) for _ in range(rng.randint(1, 4))))
-    return "\n".join(lines) + rng.choice(["", "\n", "\r\n"])
+    return rng.choice(["", "", "\ufeff"]) + "\n".join(lines) + rng.choice(["", "\n", "\r\n"])
 
 
 @pytest.mark.parametrize("block", [quoted.BLOCK_BYTES, 7])
