@@ -15,8 +15,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-from service.formats.checks import BLOCK_BYTES
-
+# Bytes searched at a time: a block of line breaks alone holds ~40 bytes of index arrays per byte while it is searched
+BLOCK_BYTES = 1 << 20
 UTF8_BOM = b"\xef\xbb\xbf"
 _ASCII_SPACES = np.array([9, 11, 12, 28, 29, 30, 31, 32], dtype=np.uint8)  # str.isspace, line breaks aside
 _IN_QUOTES = r'[^"\n]*+(?:""[^"\n]*+)*+'  # a quoted value's characters on its line: ``""`` is one quote

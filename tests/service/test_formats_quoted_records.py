@@ -107,3 +107,9 @@ def test_the_check_finds_the_records_numpy_carries_over_a_line_break(monkeypatch
         if check_joins_lines(text, separator) != expected:
             disagree.append((separator, text, expected))
     assert compared > 1_000 and joined > 300 and not disagree[:5]
+
+
+def test_a_block_of_line_breaks_is_searched_in_bounded_memory() -> None:
+    """Index arrays of every line of a block: 4 MiB blocks of bare line breaks held 168 MiB at once."""
+    text = b'x,y,z\n1,2,"3"\n' + b"\n" * 24_000_000 + b"4,5,6\n"
+    assert peak_bytes(lambda: quoted.quote_over_a_line_break(io.BytesIO(text), ",")) < 64 << 20
