@@ -8,13 +8,15 @@ steps, so runs can be compared on a quiet machine.
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
 
-from bench.report_io import checked, positive_int
+from bench.report_io import checked, json_destination, machine_info, positive_int, provenance
 from model.allocator import keep_freed_memory
 from model.cli_inputs import require_shapes
 from model.config import MFGNetConfig
@@ -41,8 +43,10 @@ def main(argv: list[str] | None = None) -> None:
         help="keep glibc's default mmap / trim thresholds (training raises them: model.allocator)",
     )
     parser.add_argument("--data", default=None, help="ModelNet40 folder (default: MFGNET_DATA or ../shared)")
+    parser.add_argument("--json", type=Path, default=None, help="also write the timings here")
     args = parser.parse_args(argv)
     checked(require_shapes, "train", args.setting, args.data)
+    json_destination(args.json)
 
     torch.set_num_threads(args.threads)
     allocator = "default" if args.default_allocator or not keep_freed_memory() else "keep freed memory"
@@ -82,6 +86,14 @@ def main(argv: list[str] | None = None) -> None:
         print(f"ms per training pair ({layers} layers): {[round(x, 1) for x in times]}, median "
               f"{np.median(times):.1f} ({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
     print(f"minor page faults per step: {faults:.0f} (allocator: {allocator})")
+    if args.json:
+        report = {"benchmark": "train_profile", "setting": args.setting, "batch_size": args.batch_size,
+                  "steps": args.steps, "allocator": allocator, "minor_page_faults_per_step": round(faults),
+                  "ms_per_training_pair": {"fused" if fused else "eager": {"steps": [round(x, 2) for x in times],
+                                                                           "median": round(float(np.median(times)), 2)}
+                                           for fused, times in ms.items()},
+                  "machine": machine_info(args.threads), "provenance": provenance([])}
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
     model.set_fused_training(True)
     if args.profile:
         from torch.profiler import ProfilerActivity, profile
