@@ -36,47 +36,41 @@ def _line_ending_in_quotes(separator: str | None) -> re.Pattern:
     return re.compile(rf'\n(?=[^"\n]*+"){fields}"{_IN_QUOTES}(?=\n)')  # only lines holding a quote are tried
 
 
-def holds_a_quote(f: BinaryIO) -> bool:
-    """Whether the bytes from ``f``'s position to its end hold a double quote; ``f``'s position is kept."""
-    start = f.tell()
-    try:
-        while block := f.read(BLOCK_BYTES):
-            if b'"' in block:
-                return True
-        return False
-    finally:
-        f.seek(start)
-
-
 def quote_over_a_line_break(f: BinaryIO, separator: str | None) -> int | None:
     """The first line (1-based, ``\\r\\n``, ``\\r`` and ``\\n`` each ending one) of the UTF-8 text from ``f``'s
     position whose last value is a double quote still open at its end, as numpy reads values separated by
     ``separator`` (``None``: whitespace); ``None`` where no quoted value runs over a line break.
 
-    The text is read ``BLOCK_BYTES`` at a time, whole lines searched. A line can end inside quotes only where its last
-    run of an odd number of quotes (the opening quote and the ``""`` after it; every run after it is ``""`` pairs)
-    starts a field: those lines (:func:`_candidate_lines`, vectorised) are read as numpy reads them (the pattern of
-    :func:`_line_ending_in_quotes`). ``UnicodeDecodeError`` where such a line is not UTF-8."""
+    The text is read ``BLOCK_BYTES`` at a time, whole lines searched, blocks without a quote skipped. A line can end
+    inside quotes only where its last run of an odd number of quotes (the opening quote and the ``""`` after it;
+    every run after it is ``""`` pairs) starts a field: those lines (:func:`_candidate_lines`, vectorised) are read
+    as numpy reads them (the pattern of :func:`_line_ending_in_quotes`). ``UnicodeDecodeError`` where such a line is
+    not UTF-8."""
     pattern = _line_ending_in_quotes(separator)
-    unfinished, lines_before, after_cr = b"", 0, False  # the last block's line without its break; lines before it
     head = f.read(len(UTF8_BOM))
-    data = (b"" if head == UTF8_BOM else head) + f.read(BLOCK_BYTES)  # a byte-order mark is no character of a line
-    while data:
+    text_start = f.tell() - len(head) + (len(UTF8_BOM) if head == UTF8_BOM else 0)  # a byte-order mark: no character
+    f.seek(text_start)
+    offset, unfinished = text_start, b""  # where ``data`` starts in ``f``; the last block's line without its break
+    while more := f.read(BLOCK_BYTES):
+        data = unfinished + more
         cut = max(data.rfind(b"\n"), data.rfind(b"\r")) + 1  # whole lines before it
-        whole, unfinished = data[:cut], data[cut:]
-        if b'"' in whole:
-            for begin, end in _candidate_lines(whole, separator):
-                if pattern.match("\n" + whole[begin:end].decode("utf-8") + "\n"):
-                    return lines_before + _line_breaks(whole[:begin], after_cr) + 1
-        lines_before += _line_breaks(whole, after_cr)
-        after_cr = whole.endswith(b"\r") or (after_cr and not whole)
-        data = (more := f.read(BLOCK_BYTES)) and unfinished + more
+        if data.find(b'"', 0, cut) >= 0:
+            for begin, end in _candidate_lines(data[:cut], separator):
+                if pattern.match("\n" + data[begin:end].decode("utf-8") + "\n"):
+                    return _line_breaks_before(f, text_start, offset + begin) + 1
+        offset, unfinished = offset + cut, data[cut:]
     return None
 
 
-def _line_breaks(text: bytes, after_cr: bool) -> int:
-    """Line breaks in ``text`` (``\\r\\n`` one; a leading ``\\n`` none where the text before ended in ``\\r``)."""
-    return text.count(b"\n") + text.count(b"\r") - text.count(b"\r\n") - (after_cr and text.startswith(b"\n"))
+def _line_breaks_before(f: BinaryIO, start: int, stop: int) -> int:
+    """Line breaks (``\\r\\n`` one) in ``f``'s bytes from ``start`` to ``stop``."""
+    f.seek(start)
+    breaks, left, after_cr = 0, stop - start, False
+    while left > 0 and (block := f.read(min(BLOCK_BYTES, left))):
+        left -= len(block)
+        breaks += block.count(b"\n") + block.count(b"\r") - block.count(b"\r\n") - (after_cr and block[:1] == b"\n")
+        after_cr = block.endswith(b"\r")
+    return breaks
 
 
 def _candidate_lines(text: bytes, separator: str | None) -> list[tuple[int, int]]:
@@ -88,12 +82,14 @@ def _candidate_lines(text: bytes, separator: str | None) -> list[tuple[int, int]
     edges = np.flatnonzero(np.diff(quote, prepend=np.int8(0), append=np.int8(0)))  # [2R] each run's first byte, end
     first, after = edges[0::2], edges[1::2]  # [R] each
     odd = first[((after - first) & 1).astype(bool)]  # [O] the runs of an odd number of quotes
+    if not len(odd):
+        return []
     ends = np.flatnonzero((data == 10) | (data == 13))  # [L] each line's break
     begins = np.concatenate(([0], ends[:-1] + 1))  # [L] each line's first byte
-    last = odd[np.maximum(np.searchsorted(odd, ends) - 1, 0)] if len(odd) else np.zeros(len(ends), np.int64)  # [L]
-    before = data[np.maximum(last - 1, 0)]  # [L] the byte before each line's last odd run
+    last = odd[np.maximum(np.searchsorted(odd, ends) - 1, 0)]  # [L] the last odd run before each line's break
+    before = data[np.maximum(last - 1, 0)]  # [L] the byte before it (a line's start: below)
     starts = (last == begins) | (before == (32 if separator is None else ord(separator)))
     if separator is None:
         starts |= np.isin(before, _ASCII_SPACES) | (before >= 0x80)
-    lines = np.flatnonzero(starts & (last >= begins) & (last < ends)) if len(odd) else []  # [C] lines holding it
+    lines = np.flatnonzero(starts & (last >= begins) & (last < ends))  # [C] the lines it starts a field of
     return [(int(begins[k]), int(ends[k])) for k in lines]

@@ -20,7 +20,7 @@ import numpy as np
 
 from service.formats.checks import check_text_lines, checked
 from service.formats.errors import InvalidPointsError, PointCloudFormatError, TooManyPointsError
-from service.formats.quoted_records import holds_a_quote, quote_over_a_line_break
+from service.formats.quoted_records import quote_over_a_line_break
 
 PROBE_LINES = 64  # lines read to find the header and the separator
 _DECIMAL_COMMA = re.compile(r"convert string '[-+]?\d+,\d+' ")  # numpy's error for a number such as 0,125
@@ -32,10 +32,9 @@ _SHORT_ROW = re.compile(r"invalid column index \d+ at row (?P<row>\d+) with (?P<
 
 def read_text(f: BinaryIO, max_points: int | None) -> np.ndarray:
     check_text_lines(f, "text file")
-    quoted = holds_a_quote(f)
     stream = io.TextIOWrapper(f, encoding="utf-8-sig", newline=None)
     try:
-        return _read(stream, max_points, quoted)
+        return _read(stream, max_points)
     except UnicodeDecodeError as exc:
         raise PointCloudFormatError(f"not UTF-8 text ({exc.reason} at byte {exc.start} of a block)") from None
     finally:
@@ -72,16 +71,14 @@ def _names_the_columns(comment: str, row: str, separator: str | None) -> bool:
     return {"x", "y", "z"} <= set(names) and len(names) == len([v for v in row.split(separator) if v.strip()])
 
 
-def _read(stream: io.TextIOWrapper, max_points: int | None, quoted: bool) -> np.ndarray:
-    """The rows of the text from ``stream``; ``quoted``: whether it holds a double quote."""
+def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
     skip, separator, header, rows_follow = layout(stream)
     if not rows_follow:  # checked here: numpy's loadtxt would warn on stderr, then return no rows
         raise InvalidPointsError(_no_rows(header))
-    if quoted:
-        stream.seek(0)  # the bytes from the start (the wrapper's state reset): read below, then again as text
-        if (line := quote_over_a_line_break(stream.buffer, separator)) is not None:
-            raise PointCloudFormatError(f"text file: a double-quoted value opened on line {line} runs over a line "
-                                        "break (an unclosed quote?); each point's row must be one line")
+    stream.seek(0)  # the bytes from the start (the wrapper's state reset): read below, then again as text
+    if (line := quote_over_a_line_break(stream.buffer, separator)) is not None:
+        raise PointCloudFormatError(f"text file: a double-quoted value opened on line {line} runs over a line break "
+                                    "(an unclosed quote?); each point's row must be one line")
     stream.seek(0)
     try:
         table = np.loadtxt(
