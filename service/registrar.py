@@ -134,14 +134,13 @@ class Registrar:
             ort.InferenceSession(self.manifest.graph_bytes(role), options, providers=providers)
             for role in self.manifest.matcher_roles
         ]
-        self.encoder_takes_neighbours = any(i.name == "neighbours" for i in self.encoder.get_inputs())
+        neighbours = next((i for i in self.encoder.get_inputs() if i.name == "neighbours"), None)
+        self.encoder_takes_neighbours = neighbours is not None
         self.matcher_takes_distance = any(i.name == "emb_dist" for i in self.matchers[0].get_inputs())
         self.knn = int(self.config.get("knn", 12))
-        if self.encoder_takes_neighbours:
-            k = next(i for i in self.encoder.get_inputs() if i.name == "neighbours").shape[-1]
-            if isinstance(k, int) and k != self.knn:
-                raise ModelIntegrityError(f"model {self.name!r}: config knn {self.knn}, but its encoder graph takes "
-                                          f"{k} neighbours per point")
+        if neighbours is not None and isinstance(neighbours.shape[-1], int) and neighbours.shape[-1] != self.knn:
+            raise ModelIntegrityError(f"model {self.name!r}: config knn {self.knn}, but its encoder graph takes "
+                                      f"{neighbours.shape[-1]} neighbours per point")
         self.default_iterations = int(self.config.get("iterations", len(self.matchers)))
         self.default_keypoints = int(self.config.get("keypoints", 128))
         self.ready = threading.Event()
