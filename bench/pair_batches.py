@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> None:
               "batches": args.batches, "shapes": SHAPES,
               "ms_per_batch": {str(s): round(ms_per_batch(args.recipe, s, args.batch_size, args.batches, args.data), 2)
                                for s in shares},
-              "machine": machine_info(1), "provenance": provenance([])}
+              "machine": machine_info(1), "provenance": provenance([])}  # one Python thread makes the pairs
     emit_report(report, args.json)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import re
+import warnings
 from typing import BinaryIO
 
 import numpy as np
@@ -81,17 +82,19 @@ def _read(stream: io.TextIOWrapper, max_points: int | None) -> np.ndarray:
                                     "(an unclosed quote?); each point's row must be one line")
     stream.seek(0)
     try:
-        table = np.loadtxt(
-            stream,
-            dtype=np.float64,
-            comments="#",
-            delimiter=separator,
-            skiprows=skip,
-            quotechar='"',
-            usecols=xyz_columns(header, separator),
-            ndmin=2,
-            max_rows=None if max_points is None else max_points + 1,
-        )  # [N, 3]
+        with warnings.catch_warnings():  # a blank or comment line among the rows: numpy's note on max_rows, to stderr
+            warnings.filterwarnings("ignore", message=r"Input line \d+ contained no data", category=UserWarning)
+            table = np.loadtxt(
+                stream,
+                dtype=np.float64,
+                comments="#",
+                delimiter=separator,
+                skiprows=skip,
+                quotechar='"',
+                usecols=xyz_columns(header, separator),
+                ndmin=2,
+                max_rows=None if max_points is None else max_points + 1,
+            )  # [N, 3]
     except ValueError as exc:
         comma = " (a decimal comma? numbers need a decimal point)" if _DECIMAL_COMMA.search(str(exc)) else ""
         raise InvalidPointsError(f"not rows of at least 3 numbers: {_on_its_line(stream, skip, str(exc))}{comma}"
