@@ -59,9 +59,9 @@ def measure(cwd: str | None, body: bytes, small: dict, requests: int, aligned: P
                                    headers={"content-type": "application/json"}).status_code
 
         started = time.perf_counter()
-        moved = [downloads.submit(aligned_download, server.url, aligned) for _ in range(MAX_CONCURRENCY)] \
-            if aligned else []
+        moved = []  # the aligned downloads that hold the workers
         if aligned:
+            moved = [downloads.submit(aligned_download, server.url, aligned) for _ in range(MAX_CONCURRENCY)]
             wait_until_running(server.url, MAX_CONCURRENCY)
         with ThreadPoolExecutor(requests) as pool:
             statuses = list(pool.map(send, range(requests)))
