@@ -11,7 +11,9 @@ import argparse
 import json
 import resource
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -24,6 +26,9 @@ from model.data import TrainPairStream, load_shapes, protocol_for
 from model.losses import registration_losses, sample_training_keypoints
 from model.network import MFGNet
 
+if TYPE_CHECKING:
+    from torch.autograd.profiler_util import FunctionEventAvg
+
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -31,7 +36,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--setting", default="noise")
     parser.add_argument("--batch-size", type=positive_int, default=8)
     parser.add_argument("--steps", type=positive_int, default=4, help="timed steps (after two warm-up steps)")
-    parser.add_argument("--profile", action="store_true", help="print the torch profiler's op table too")
+    parser.add_argument(
+        "--profile",
+        action="store_true",
+        help="print the torch profiler's op table of one step too (with --json, store its top ops and the matrix "
+        "products' share by inner size)",
+    )
     parser.add_argument(
         "--compare-eager",
         action="store_true",
@@ -86,6 +96,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"ms per training pair ({layers} layers): {[round(x, 1) for x in times]}, median "
               f"{np.median(times):.1f} ({args.threads} threads, batch {args.batch_size}, setting {args.setting})")
     print(f"minor page faults per step: {faults:.0f} (allocator: {allocator})")
+    report = {}
     if args.json:
         report = {"benchmark": "train_profile", "setting": args.setting, "batch_size": args.batch_size,
                   "steps": args.steps, "allocator": allocator, "minor_page_faults_per_step": round(faults),
@@ -93,15 +104,65 @@ def main(argv: list[str] | None = None) -> None:
                                                                            "median": round(float(np.median(times)), 2)}
                                            for fused, times in ms.items()},
                   "machine": machine_info(args.threads), "provenance": provenance([])}
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
     model.set_fused_training(True)
     if args.profile:
-        from torch.profiler import ProfilerActivity, profile
+        ops = profiled_ops(step, batches[-1])
+        print(ops["table"])
+        if args.json:
+            report["profile"] = {key: value for key, value in ops.items() if key != "table"}
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
 
-        with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
-            step(batches[-1])
-        print(prof.key_averages(group_by_input_shape=True).table(sort_by="self_cpu_time_total", row_limit=30))
 
+PRODUCTS = {"aten::mm": 0, "aten::bmm": 0, "aten::addmm": 1, "aten::addmm_": 1}  # op -> its first factor's input
+
+
+def product_dims(op: str, shapes: list) -> tuple[int, int, int, int] | None:
+    """``(batch, M, K, N)`` of a matrix product ``[.., M, K] x [.., K, N]`` from the profiler's input shapes of ``op``
+    (one of :data:`PRODUCTS`), or ``None`` for another op or shapes it did not record."""
+    if op not in PRODUCTS or len(shapes) < PRODUCTS[op] + 2:
+        return None
+    a, b = shapes[PRODUCTS[op]], shapes[PRODUCTS[op] + 1]
+    if len(a) < 2 or len(b) < 2 or a[-1] != b[-2]:
+        return None
+    return int(np.prod(a[:-2], dtype=np.int64)), int(a[-2]), int(a[-1]), int(b[-1])
+
+
+def profiled_ops(step: Callable[[dict[str, np.ndarray]], None], batch: dict[str, np.ndarray], rows: int = 30) -> dict:
+    """One ``step`` of ``batch`` under torch's profiler: the op table (``table``), the ``rows`` ops with the most self
+    CPU time by input shape (``ops``: with the rate of products, from their shapes), and the matrix products' share of
+    the step by width (``products_by_width``: the narrowest of a product's M, K and N, so that a layer's forward
+    product and its gradients count together; no rate, as sparse products, which the profiler does not tell apart,
+    would count as dense)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        step(batch)
+    averages = prof.key_averages(group_by_input_shape=True)
+    total_us = sum(event.self_cpu_time_total for event in averages)
+
+    def summary(us: float, flops: float | None) -> dict:
+        return {"self_cpu_ms": round(us / 1000, 3), "share": round(us / total_us, 4),
+                "gflops": round(flops / (us * 1e3), 1) if flops and us else None}
+
+    def flops(event: FunctionEventAvg) -> float | None:
+        dims = product_dims(event.key, event.input_shapes)
+        return None if dims is None else 2.0 * float(np.prod(dims)) * event.count
+
+    ops = [{"op": event.key, "input_shapes": str(event.input_shapes), "calls": event.count,
+            **summary(event.self_cpu_time_total, flops(event))}
+           for event in sorted(averages, key=lambda event: event.self_cpu_time_total, reverse=True)[:rows]]
+    by_width: dict[int, float] = {}
+    for event in averages:
+        dims = product_dims(event.key, event.input_shapes)
+        if dims is not None:
+            by_width[min(dims[1:])] = by_width.get(min(dims[1:]), 0.0) + event.self_cpu_time_total
+    return {
+        "table": averages.table(sort_by="self_cpu_time_total", row_limit=rows),
+        "self_cpu_ms": round(total_us / 1000, 3),
+        "products_by_width": {str(width): summary(us, None) for width, us in sorted(by_width.items())},
+        "ops": ops,
+    }
 
 if __name__ == "__main__":
     main()
