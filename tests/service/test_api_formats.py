@@ -201,20 +201,14 @@ def test_2m_point_binary_ply_parses_in_under_twice_the_npy_time(client, tmp_path
 def test_2m_point_ascii_ply_parses_faster_than_plyfile_and_laz_is_timed(client, tmp_path) -> None:
     """Upload + parse only, as above, for the formats read point by point before: ASCII PLY (plyfile's Python loop
     took 7.5-9.0 s in process) and LAZ (lazrs's single-threaded decompressor)."""
-    big = np.random.default_rng(0).normal(size=(2_000_000, 3)).astype(np.float32)  # [2M, 3]
-    np.save(tmp_path / "big.npy", big)
-    with open(tmp_path / "big.ply", "w") as out:
-        out.write("ply\nformat ascii 1.0\nelement vertex 2000000\nproperty float x\nproperty float y\n"
-                  "property float z\nend_header\n")
-        np.savetxt(out, big, fmt="%.6f")
-    header = laspy.LasHeader(point_format=1, version="1.2")
-    header.scales, header.offsets = [1e-4] * 3, [0.0] * 3
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = big.T.astype(np.float64)
-    las.write(tmp_path / "big.laz", do_compress=True, laz_backend=laspy.LazBackend.Lazrs)
-    seconds = upload_parse_seconds(client, tmp_path, ("big.npy", "big.ply", "big.laz"), big[:31])
+    from bench.full_resolution import parse_files
+
+    paths = parse_files(tmp_path, 2_000_000)  # one seeded float32 cloud as .npy, binary and ASCII PLY, LAZ
+    few = np.load(paths["npy"])[:31]
+    seconds = upload_parse_seconds(client, tmp_path, ("big.npy", "big_ascii.ply", "big.laz"), few)
+    seconds["big.ply"] = seconds.pop("big_ascii.ply")
     started = time.perf_counter()
-    plyfile.PlyData.read(str(tmp_path / "big.ply"))  # what the service read the file with before
+    plyfile.PlyData.read(str(paths["ply-ascii"]))  # what the service read the file with before
     by_plyfile = time.perf_counter() - started
     print(f"2M points upload+parse: npy {seconds['big.npy']:.3f} s, ASCII PLY {seconds['big.ply']:.3f} s "
           f"(plyfile alone, in process: {by_plyfile:.3f} s), LAZ {seconds['big.laz']:.3f} s")

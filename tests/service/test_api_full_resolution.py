@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -10,18 +9,13 @@ import httpx
 import numpy as np
 import pytest
 from api_server import assert_error, main_server, start_subprocess_server
-from scipy.spatial.transform import Rotation
-from shapes import asymmetric_blob
+
+from bench.full_resolution import full_resolution_pair, rotation_error_deg
+from bench.full_resolution import npy_bytes as npy
 
 POINTS = 2_000_000  # the default per-cloud limit of file uploads (MFGNET_MAX_FILE_POINTS)
 PEAK_MIB = 2048  # the largest accepted request must fit in this much server memory
 DEPLOYMENT = Path(__file__).resolve().parents[2] / "deploy" / "k8s" / "deployment.yaml"
-
-
-def npy(points: np.ndarray) -> bytes:
-    buffer = io.BytesIO()
-    np.save(buffer, points.astype(np.float32))
-    return buffer.getvalue()
 
 
 def peak_rss_mib(pid: int) -> float:
@@ -30,19 +24,16 @@ def peak_rss_mib(pid: int) -> float:
 
 
 def full_resolution_upload(seed: int, degrees: float) -> tuple[dict, np.ndarray]:
-    """Two 2,000,000-point float32 ``.npy`` files, the target turned ``degrees`` about z, -10 about y and 5 about x:
-    the multipart files and the true rotation ``[3, 3]``."""
-    rotation = Rotation.from_euler("zyx", [degrees, -10.0, 5.0], degrees=True).as_matrix()
-    source = asymmetric_blob(POINTS, 2 * seed)  # [2M, 3] independent samples of one surface
-    target = asymmetric_blob(POINTS, 2 * seed + 1) @ rotation.T + [0.2, -0.1, 0.05]
+    """The two 2,000,000-point clouds of ``bench.full_resolution`` as float32 ``.npy`` files: the multipart files and
+    the true rotation ``[3, 3]``."""
+    source, target, rotation = full_resolution_pair(seed, degrees, POINTS)
     return {"source": ("source.npy", npy(source)), "target": ("target.npy", npy(target))}, rotation
 
 
 def assert_registered(response: httpx.Response, rotation: np.ndarray) -> None:
     assert response.status_code == 200, response.text[:300]
     body = response.json()
-    error = np.degrees(np.arccos(np.clip((np.trace(np.array(body["rotation"]).T @ rotation) - 1) / 2, -1, 1)))
-    assert error < 1.0 and body["quality"]["reliable"]
+    assert rotation_error_deg(np.array(body["rotation"]), rotation) < 1.0 and body["quality"]["reliable"]
 
 
 def test_two_full_resolution_clouds_register_within_the_memory_bound():
