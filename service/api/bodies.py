@@ -17,6 +17,7 @@ the body goes through the reference path: ``json`` plus ``RegisterRequest`` vali
 
 from __future__ import annotations
 
+import asyncio
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -137,7 +138,8 @@ class HeldBody:
         self._hold.release()
 
 
-async def read_body(request: Request, budget: BodyBudget, max_body_bytes: int) -> HeldBody:
+async def read_body(request: Request, budget: BodyBudget, max_body_bytes: int,
+                    wait_s: float | None = None) -> HeldBody:
     """The request body, read into one growing buffer once the budget holds its Content-Length (or
     ``max_body_bytes``, which the middleware enforces, when it has none).
 
@@ -145,7 +147,12 @@ async def read_body(request: Request, budget: BodyBudget, max_body_bytes: int) -
     not cache the body on the request, so it can be freed as soon as it is parsed.
     """
     declared = request.headers.get("content-length", "")
-    hold = await budget.hold(int(declared) if declared.isdigit() else max_body_bytes)
+    try:  # a wait for the budget is bounded as a wait for a worker is (MFGNET_TIMEOUT_S): then 503, the slot freed
+        async with asyncio.timeout(wait_s):
+            hold = await budget.hold(int(declared) if declared.isdigit() else max_body_bytes)
+    except TimeoutError:
+        raise APIError(503, f"server is busy reading other request bodies (MFGNET_MAX_BUFFERED_BYTES); waited "
+                            f"{wait_s:g} s; retry later", headers={"Retry-After": "1"}) from None
     try:
         body = bytearray()
         async for chunk in request.stream():

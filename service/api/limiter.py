@@ -103,16 +103,24 @@ class InferenceLimiter:
             self._taken -= 1
 
     def _submit(self, fn: Callable[[], T]) -> Future:
+        # The executor keeps a cancelled job's work item in its queue until a worker takes it off; the job's callable
+        # (and through it the request's spooled upload files or body) must not live that long: it is dropped here as
+        # soon as the job is cancelled before it started (the client gone, or its deadline passed in the queue).
+        held: list[Callable[[], T]] = [fn]
+
         def job() -> T:
             with self._lock:
                 self._running += 1
             try:
-                return fn()
+                return held[0]()
             finally:
+                held.clear()
                 with self._lock:
                     self._running -= 1
 
-        return self._executor.submit(job)
+        future = self._executor.submit(job)
+        future.add_done_callback(lambda f: held.clear() if f.cancelled() else None)
+        return future
 
     def shutdown(self) -> None:
         self._executor.shutdown(wait=False, cancel_futures=True)

@@ -141,7 +141,8 @@ class RequestContextMiddleware:
         started = time.perf_counter()
         request_id = scope.get("state", {}).get("request_id") or request_id_of(scope)  # the protocol's, if it answered
         scope.setdefault("state", {})["request_id"] = request_id
-        state = {"status": 0, "started": False, "received": 0, "body_done": False, "body_started": 0.0}
+        state = {"status": 0, "started": False, "answered": False, "received": 0, "body_done": False,
+                 "body_started": 0.0}
         path, root_path = scope.get("path", ""), scope.get("root_path", "")  # before routing changes them
         error_body = bytearray()  # the start of a 4xx/5xx body: its "error" goes into the access line
         limit, setting = self._limit(scope)
@@ -162,8 +163,10 @@ class RequestContextMiddleware:
             elif message["type"] == "http.response.body":
                 if state["status"] >= 400:
                     error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
-                if not message.get("more_body", False) and scope["state"].get(ANSWERED_BELOW) is None:
-                    count()  # before the last bytes leave: a scrape the client sends after its answer counts it
+                if not message.get("more_body", False):
+                    state["answered"] = True  # the whole answer was handed to the server
+                    if scope["state"].get(ANSWERED_BELOW) is None:
+                        count()  # before the last bytes leave: a scrape the client sends after its answer counts it
             await send(message)
 
         async def receive_limited() -> Message:
@@ -219,6 +222,8 @@ class RequestContextMiddleware:
                 state["status"] = 500
         finally:
             self.metrics.in_flight.dec()
+            if state["started"] and not state["answered"] and state["status"] < 400:
+                state["status"] = 499  # an answer cut short: the client left part way through a download
             error = _error_message(state["status"], bytes(error_body))
             if (answered := scope["state"].get(ANSWERED_BELOW)) is not None:  # a malformed body: the protocol's 4xx
                 state["status"], error = answered

@@ -96,7 +96,8 @@ class Settings(BaseSettings):
         ge=1024,
         description="Most bytes of JSON and OIP bodies held in memory at once, from their reading "
         "until their registration has decoded them (each counted at its Content-Length, else max_body_bytes); a "
-        "request whose body does not fit waits, unread, for earlier ones (in arrival order). Queued requests held "
+        "request whose body does not fit waits, unread, for earlier ones (in arrival order), at most timeout_s: then "
+        "503 with Retry-After and its slot is freed. Queued requests held "
         "their whole bodies: 18 of 64 MiB peaked above 1.1 GiB. A body larger than this is read alone.",
     )
     max_upload_bytes: int = Field(

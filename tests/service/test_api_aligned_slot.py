@@ -12,6 +12,7 @@ import httpx
 import numpy as np
 import pytest
 from api_server import start_subprocess_server, synthetic_pair
+from prometheus_client.parser import text_string_to_metric_families
 
 STALL_S = 2.0
 BOUNDARY = b"b0undary"
@@ -92,3 +93,40 @@ def test_aligned_answers_at_once_are_as_many_as_the_workers(one_worker_server):
         assert answer.startswith(b"HTTP/1.1 503") and b"aligned file being written or sent" in answer, answer[:300]
         with one_worker_server.client() as client:
             assert client.post("/v1/register", json=small).status_code == 200  # the worker is free
+
+
+def downloads_counted(server, status: str) -> float:
+    """``mfgnet_http_requests_total`` of the aligned route at ``status``, from the server's ``/metrics``."""
+    with server.client() as client:
+        families = text_string_to_metric_families(client.get("/metrics").text)
+    return sum(sample.value for family in families for sample in family.samples
+               if sample.name == "mfgnet_http_requests_total" and sample.labels.get("status") == status
+               and sample.labels.get("route") == "/v1/register/aligned")
+
+
+def aligned_downloads(server) -> list[dict]:
+    """The access lines of the server's aligned downloads (not its busy refusals)."""
+    return [line for line in server.log_lines()
+            if line.get("route") == "/v1/register/aligned" and line["status"] != 503]
+
+
+def test_an_aligned_answer_the_client_closes_part_way_is_a_499(one_worker_server):
+    """A client that reads the start of its download and hangs up is counted and logged as 499, as a client that
+    stops reading is (before: a 200, as if the whole file had been sent)."""
+    points = np.random.default_rng(2).uniform(-1, 1, size=(2_000_000, 3)).astype(np.float32)  # a 24 MB answer
+    url = httpx.URL(one_worker_server.url)
+    before = len(aligned_downloads(one_worker_server))
+    counted = downloads_counted(one_worker_server, "499")
+    with socket.create_connection((url.host, url.port), timeout=30) as reader:
+        reader.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        reader.sendall(aligned_request(points))
+        received = b""
+        while len(received) < 100_000:
+            received += reader.recv(4096)
+        assert received.startswith(b"HTTP/1.1 200")
+    deadline = time.monotonic() + 10
+    while len(lines := aligned_downloads(one_worker_server)) == before:
+        assert time.monotonic() < deadline, "no access line for the download"
+        time.sleep(0.2)
+    assert [line["status"] for line in lines[before:]] == [499]
+    assert downloads_counted(one_worker_server, "499") == counted + 1

@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import threading
 import time
+import weakref
 
 from starlette.requests import ClientDisconnect
 
@@ -58,3 +60,45 @@ def test_a_job_past_its_deadline_leaves_nothing_to_report() -> None:
     status, reports = run_and_collect_reports(InferenceLimiter(1, 0, timeout_s=0.05))
     assert status == 504
     assert reports == []
+
+
+class Upload:
+    """Stands for what a queued job holds: a request's spooled upload files."""
+
+
+def test_a_queued_job_dropped_before_it_starts_lets_go_of_what_it_holds() -> None:
+    """While the only worker is busy, a queued job whose client went away (or whose deadline passed) is dropped: what
+    its callable holds is freed then, not when the worker takes the dropped job off the executor's queue (before: 15
+    abandoned uploads held 30 spooled files open behind one long registration)."""
+    limiter = InferenceLimiter(1, 2, timeout_s=30.0)
+    busy, freed = threading.Event(), []
+
+    async def main() -> tuple[list[int], bool]:
+        statuses = []
+        with limiter.admit() as first:
+            running = asyncio.ensure_future(first.run(busy.wait))
+            await asyncio.sleep(0.1)
+            for _ in range(2):
+                upload = Upload()
+                weakref.finalize(upload, freed.append, 1)
+
+                async def route(held: Upload) -> int:
+                    try:
+                        with limiter.admit() as slot:
+                            await slot.run(lambda: held, gone)
+                    except ClientDisconnect:
+                        return 499
+                    return 200
+
+                statuses.append(await route(upload))
+                del upload
+            await asyncio.sleep(0.05)  # the loop passes the cancellation on to the executor's future
+            gc.collect()
+            let_go = len(freed) == 2 and limiter.running == 1  # the worker still runs the first job
+            busy.set()
+            await running
+        return statuses, let_go
+
+    statuses, let_go = asyncio.run(main())
+    limiter.shutdown()
+    assert statuses == [499, 499] and let_go

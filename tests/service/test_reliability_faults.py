@@ -244,6 +244,39 @@ def test_queued_json_bodies_wait_unread_within_max_buffered_bytes():
         server.stop()
 
 
+def test_a_wait_for_the_body_budget_ends_at_the_deadline():
+    """A JSON body that does not fit the body budget waits unread, and no longer than ``MFGNET_TIMEOUT_S``: then a 503
+    with ``Retry-After`` frees its slot. One client trickling a chunked body (no Content-Length, so it holds
+    ``MFGNET_MAX_BODY_BYTES`` of the budget) faster than ``MFGNET_BODY_MIN_RATE`` kept every JSON request behind it
+    waiting for as long as it kept sending, holding their slots after their clients had gone (before: 39 s for a
+    request with a 3 s deadline)."""
+    server = start_subprocess_server("budget_wait", MFGNET_MAX_BODY_BYTES=str(1 << 20),
+                                     MFGNET_MAX_BUFFERED_BYTES=str(1 << 20), MFGNET_BODY_MIN_RATE="1024",
+                                     MFGNET_BODY_TIMEOUT_S="60", MFGNET_TIMEOUT_S="2")
+    url = urlsplit(server.url)
+    try:
+        with socket.create_connection((url.hostname, url.port)) as slow:
+            slow.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                         b"Transfer-Encoding: chunked\r\n\r\n")
+            piece = b"400\r\n" + b" " * 1024 + b"\r\n"  # 1 KiB chunks of spaces: JSON's whitespace
+            slow.sendall(piece)
+            sender = ThreadPoolExecutor(1)
+            sender.submit(trickle, slow, piece, 0.05)  # 20 KiB/s for 20 s at most, far below the 1 MiB limit
+            wait_for(lambda: metric(server, "mfgnet_body_bytes_held") == 1 << 20, what="the budget held")
+            started = time.perf_counter()
+            waited = post(server, pair_json(modelnet_pair(1), **CHEAP))
+            elapsed = time.perf_counter() - started
+            assert_error(waited, 503, "request bodies", "MFGNET_MAX_BUFFERED_BYTES")
+            assert waited.headers["retry-after"] == "1" and 1.5 < elapsed < 10, elapsed
+            assert metric(server, "mfgnet_inference_slots_taken") == 1  # the trickling request's only
+            slow.shutdown(socket.SHUT_RDWR)
+            sender.shutdown(wait=True)
+        wait_for(lambda: metric(server, "mfgnet_body_bytes_held") == 0, what="the budget freed")
+        assert post(server, pair_json(modelnet_pair(1), **CHEAP)).status_code == 200
+    finally:
+        server.stop()
+
+
 def test_memory_stays_flat_over_144_requests():
     """RSS of the server process over three rounds of 48 requests after a warm-up: registrations and rejected
     bodies of each kind. A leak grows RSS in every round; the allocator's arenas may still grow once, in any round."""

@@ -226,7 +226,8 @@ async def _infer(name: str, request: Request) -> Response:
     kind = oip_request.check_media_type(request)
     length = oip_request.header_length(request)
     octet_stream = kind == OCTET_STREAM
-    with runner.admit() as slot, await read_body(request, runner.body_budget, settings.max_body_bytes) as held:
+    with runner.admit() as slot, await read_body(request, runner.body_budget, settings.max_body_bytes,
+                                     settings.timeout_s) as held:
         # a 413 the header or the value count tells (and the checks before it) before the wait for a worker
         await run_in_threadpool(oip_request.check_infer_head, held.peek(), settings.max_points, length, octet_stream)
 

@@ -87,7 +87,8 @@ async def register(request: Request) -> RenderedJSON:
     with runner.admit() as slot, ExitStack() as held_until_done:
         if kind == bodies.JSON:
             held = held_until_done.enter_context(
-                await bodies.read_body(request, runner.body_budget, settings.max_body_bytes))
+                await bodies.read_body(request, runner.body_budget, settings.max_body_bytes,
+                                     settings.timeout_s))
             # 413 before the wait for a worker
             await bodies.refuse_too_many_values(held, bodies.check_register_values, settings.max_points)
 
@@ -122,7 +123,8 @@ async def register(request: Request) -> RenderedJSON:
 async def register_batch(request: Request) -> RenderedJSON:
     settings, runner = get_settings(request), get_runner(request)
     bodies.require_media_type(request, bodies.JSON)
-    with runner.admit() as slot, await bodies.read_body(request, runner.body_budget, settings.max_body_bytes) as held:
+    with runner.admit() as slot, await bodies.read_body(request, runner.body_budget, settings.max_body_bytes,
+                                     settings.timeout_s) as held:
         # 413 before the wait for a worker
         await bodies.refuse_too_many_values(held, bodies.check_batch_values, settings.max_points)
 
