@@ -14,6 +14,7 @@ from service.quality import (
     RELIABLE_RELATIVE_RATIO_ON_SURFACE,
     RELIABLE_RELATIVE_RATIO_UNREFINED,
     RELIABLE_REVERSE_RATIO,
+    SHARED_POINTS_RATIO,
     TARGET_EXPLAINED,
     ReverseFit,
     assess,
@@ -113,7 +114,9 @@ def test_no_inliers_gives_zero_residual_and_a_warning() -> None:
 @pytest.mark.parametrize(("inliers", "reliable"), [(30, True), (29, False)])
 def test_reliability_threshold_on_the_inlier_ratio(inliers: int, reliable: bool) -> None:
     assert RELIABLE_INLIER_RATIO == 0.3
-    tgt = blob(100, seed=6) * 10
+    tgt = blob(100, seed=6) * 10  # points far apart, but for 20 pairs 0.05 apart: the density allows 0.4
+    tgt[60::2] = tgt[61::2] + np.array([0.0, 0.0, 0.05])
+    assert attainable_inlier_ratio(tgt, 0.1) == pytest.approx(0.4)  # 0.5 of it is below the fixed 0.3
     src = tgt.copy()
     src[inliers:] += 1000.0  # the others are far away
     assert assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1).reliable is reliable
@@ -164,13 +167,25 @@ def test_reliability_also_needs_the_points_near_the_target_to_lie_on_it(loose: i
     assert near_surface_share(src, tgt, np.eye(3), np.zeros(3), 0.1) == pytest.approx(70 / (70 + loose))
 
 
-def test_a_target_too_sparse_for_the_inlier_distance_falls_back_to_the_fixed_ratio() -> None:
-    tgt = blob(100, seed=6) * 10  # nearest neighbours far beyond 0.1: attainable ratio ~0
-    assert attainable_inlier_ratio(tgt, 0.1) < 0.5
+@pytest.mark.parametrize(("inliers", "reliable"), [(100, True), (90, True), (89, False), (65, False)])
+def test_on_a_target_too_sparse_for_the_inlier_distance_only_its_own_points_confirm_a_pose(inliers, reliable) -> None:
+    """A target whose points lie farther apart than the inlier distance (attainable ratio below the fixed 0.3): a
+    wrong pose lays as much of the source on it as a right one, so only the source landing on 0.9 of its own points
+    (clouds that share their points) is reliable; any other ratio warns (before: the fixed 0.3 judged alone, and the
+    README's cloud turned 90-180 deg came back 92 deg off, reliable)."""
+    assert SHARED_POINTS_RATIO == 0.9
+    tgt = blob(100, seed=6) * 10  # nearest neighbours far beyond 0.1: attainable ratio 0
+    assert attainable_inlier_ratio(tgt, 0.1) == 0.0
     src = tgt.copy()
-    src[35:] += 1000.0
+    src[inliers:] += 1000.0
     quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
-    assert quality.reliable and not any(w.startswith(("poor fit", "low overlap")) for w in quality.warnings)
+    assert quality.reliable is reliable and not any(w.startswith(("poor fit", "low overlap")) for w in quality.warnings)
+    expected = (f"sparse target: its working sample's points lie farther apart than the inlier distance (its density "
+                f"allows an inlier ratio of 0.00 < 0.3), so an inlier ratio of {inliers / 100:.2f} cannot tell a right "
+                "pose from a wrong one (only 0.9, the source on the target's own points, would)")
+    assert [w for w in quality.warnings if w.startswith("sparse target")] == ([] if reliable else [expected])
+    on_surface = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1, attainable=0.2)
+    assert on_surface.reliable  # judged against the surface estimate, not the density's: not sparse
 
 
 def plane_grid(spacing: float, side: int) -> np.ndarray:
@@ -191,13 +206,15 @@ def test_on_a_target_sampled_coarser_than_the_inlier_distance_its_surface_still_
 
 def test_a_poor_fit_is_judged_against_the_attainable_ratio_the_caller_gives() -> None:
     """A source point on the target's surface lies within the inlier distance of a sample, though no sample has
-    another that near: judged by the samples' density (0) only the fixed 0.3 counts; by the surface's, 0.45 of it."""
+    another that near: judged by the samples' density (0) the target is too sparse to judge; by the surface's, 0.45
+    of it."""
     assert RELIABLE_NEAR_SHARE_ON_SURFACE == 0.70
     tgt = plane_grid(1.0, 20)
     src = plane_grid(1.0, 20) + np.array([0.3, 0.3, 0.0])  # the target's samples moved 0.42: every one an inlier at 0.8
     src[160:] += np.array([0.0, 0.0, 100.0])  # 40% of the source near the target, the rest far away
     by_density = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8)
-    assert by_density.inlier_ratio == pytest.approx(0.4) and by_density.reliable
+    assert by_density.inlier_ratio == pytest.approx(0.4) and not by_density.reliable
+    assert [w.split(":")[0] for w in by_density.warnings] == ["target coplanar", "sparse target"]
     on_surface = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8, attainable=0.97)
     assert not on_surface.reliable
     assert "poor fit: inlier ratio 0.40 < 0.45 of the 0.97 a right pose reaches on the target's surface" in (
