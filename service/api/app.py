@@ -116,6 +116,21 @@ def _record_load(metrics: Metrics, entry: ModelEntry) -> None:
     metrics.model_load.labels(model=entry.name).set(entry.load_seconds or 0.0)
 
 
+REQUEST_ID_PARAMETER = {
+    "name": "X-Request-ID",
+    "in": "header",
+    "required": False,
+    "schema": {"type": "string"},
+    "description": "The request's id for the logs and the answer's X-Request-ID: kept where it is 1-128 letters, "
+    "digits and ._:- (another value is replaced by a new id, not refused).",
+}
+REQUEST_ID_HEADER = {
+    "schema": {"type": "string"},
+    "description": "The request's X-Request-ID where it sent a usable one, else a new id; the access log line's "
+    "request_id.",
+}
+
+
 def _openapi(app: FastAPI) -> dict:
     if app.openapi_schema is None:
         schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
@@ -137,6 +152,18 @@ def _openapi(app: FastAPI) -> dict:
                     }
         for name in ("HTTPValidationError", "ValidationError"):
             components.pop(name, None)
+        for path in schema.get("paths", {}).values():  # every answer carries a request id (RequestContextMiddleware)
+            for operation in path.values():
+                operation.setdefault("parameters", []).append(REQUEST_ID_PARAMETER)
+                for response in operation.get("responses", {}).values():
+                    response.setdefault("headers", {})["X-Request-ID"] = REQUEST_ID_HEADER
+        # Without MFGNET_API_KEY the key is not asked for: an empty requirement beside it says so to clients and
+        # generators (which otherwise demand a token); with it, the bearer token alone.
+        if not app.state.settings.api_key:
+            for path in schema.get("paths", {}).values():
+                for operation in path.values():
+                    if operation.get("security") == [{"HTTPBearer": []}]:
+                        operation["security"] = [{"HTTPBearer": []}, {}]
         app.openapi_schema = schema
     return app.openapi_schema
 

@@ -462,8 +462,10 @@ async def read_register_form(request: Request, file_fields: tuple[str, ...] = CL
                                 "Content-Disposition with filename=), the options as text fields") from None
         if not str(exc.detail).startswith("Too many files"):
             raise
-        raise APIError(400, f"more file uploads than {' and '.join(file_fields)}: every other field (the options) is a "
-                            "text field, not a file") from None
+        each = "one file" if len(file_fields) == 1 else "one file each"
+        raise APIError(400, f"more file uploads than {' and '.join(file_fields)} ({each}): a file field given twice, "
+                            "or an option sent as a file; every other field (the options) is a text field, not a "
+                            "file") from None
     if not seen[0]:  # python-multipart takes a body cut short for a whole one, less its last part
         await form.close()
         raise APIError(400, f"multipart body ends before its closing boundary {closing.strip().decode('latin-1')!r}: "

@@ -9,7 +9,16 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StrictInt, ValidationError, WrapValidator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StrictInt,
+    ValidationError,
+    WrapValidator,
+)
 from pydantic_core import PydanticCustomError
 
 from service.refine_modes import REFINE_POINTS_RANGE
@@ -21,6 +30,17 @@ from service.registrar import (
 )
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False, strict=True)]  # strict: no "1.5" or true for a number
+
+
+def _whole_float_as_int(value: Any) -> Any:
+    """``4.0`` as ``4``: JSON Schema's integer takes a number with no fractional part, and serializers that write
+    doubles (nlohmann::json, Jackson, JavaScript's own numbers) send one; strict validation then refuses the rest."""
+    return int(value) if type(value) is float and value.is_integer() else value
+
+
+# strict: no "4" or true, but 4.0 (the bounds before the validator, so that the JSON schema carries them)
+Iterations = Annotated[int, Field(ge=1, le=MAX_ITERATIONS), BeforeValidator(_whole_float_as_int)]
+Keypoints = Annotated[int, Field(ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1]), BeforeValidator(_whole_float_as_int)]
 Point = Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)]
 Cloud = Annotated[
     list[Point],
@@ -64,7 +84,8 @@ DROP_ISOLATED_DESCRIPTION = (
     "Leave out isolated points (flying pixels, sparse clutter: mean distance to their 8 nearest others above 3x "
     "the cloud's median) before sampling the working clouds; false keeps every point a candidate."
 )
-RefinePoints = Annotated[int, Field(ge=REFINE_POINTS_RANGE[0], le=REFINE_POINTS_RANGE[1])]
+RefinePoints = Annotated[int, Field(ge=REFINE_POINTS_RANGE[0], le=REFINE_POINTS_RANGE[1]),
+                         BeforeValidator(_whole_float_as_int)]
 REFINE_POINTS_DESCRIPTION = (
     "Points per cloud the refinement uses (all of them when fewer, else one per voxel); default: the network's "
     "working clouds (768). More points give a more precise pose on dense scans at a higher cost: 1536 independent "
@@ -127,12 +148,8 @@ class RegisterOptions(BaseModel):
 
     model: str | None = Field(None, min_length=1, max_length=128,
                               description="Model name (GET /v1/models); default: the server's.")
-    iterations: int | None = Field(
-        None, ge=1, le=MAX_ITERATIONS, description="Network iterations; default: the model's."
-    )
-    keypoints: int | None = Field(
-        None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1], description="Keypoints per cloud; default: the model's."
-    )
+    iterations: Iterations | None = Field(None, description="Network iterations; default: the model's.")
+    keypoints: Keypoints | None = Field(None, description="Keypoints per cloud; default: the model's.")
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
     refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
     drop_isolated: bool = Field(True, description=DROP_ISOLATED_DESCRIPTION)
@@ -475,8 +492,8 @@ class InferRequest(BaseModel):
 class InferParameters(BaseModel):
     """The request ``parameters`` this server understands (others are ignored, as OIP allows)."""
 
-    iterations: int | None = Field(None, ge=1, le=MAX_ITERATIONS)
-    keypoints: int | None = Field(None, ge=KEYPOINT_RANGE[0], le=KEYPOINT_RANGE[1])
+    iterations: Iterations | None = None
+    keypoints: Keypoints | None = None
     refine: Refine | None = Field(None, description=REFINE_DESCRIPTION)
     refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
     drop_isolated: bool = Field(True, description=DROP_ISOLATED_DESCRIPTION)

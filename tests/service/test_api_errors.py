@@ -58,6 +58,10 @@ JSON_CASES = {
     "iterations_zero": (valid(iterations=0), 422, ["iterations", "greater than or equal to 1"]),
     "iterations_nine": (valid(iterations=9), 422, ["iterations", "less than or equal to 8"]),
     "iterations_text": (valid(iterations="many"), 422, ["iterations", "integer"]),
+    "iterations_fraction": (valid(iterations=2.5), 422, ["iterations", "integer"]),
+    "iterations_digits_as_text": (valid(iterations="4"), 422, ["iterations", "integer"]),
+    "iterations_true": (valid(iterations=True), 422, ["iterations", "integer"]),
+    "whole_float_out_of_range": (valid(refine_points=1e300), 422, ["refine_points", "less than or equal to 8192"]),
     "keypoints_too_few": (valid(keypoints=8), 422, ["keypoints"]),
     "keypoints_too_many": (valid(keypoints=1024), 422, ["keypoints"]),
     "refine_unknown": (valid(refine="magic"), 422, ["refine"]),
@@ -100,6 +104,15 @@ def test_rejects_bad_json_request(client, still_serves, case):
 def test_rejects_malformed_body_or_wrong_content_type(client, still_serves, content, content_type, status, words):
     headers = {"content-type": content_type} if content_type else {}
     assert_error(client.post("/v1/register", content=content, headers=headers), status, *words)
+
+
+def test_whole_numbers_written_as_floats_are_taken(client, still_serves):
+    """JSON Schema's ``integer`` (OpenAPI 3.1) takes 4.0, as serializers that write doubles send it (before: 422)."""
+    as_ints = client.post("/v1/register", json=valid(iterations=2, keypoints=64, refine="icp", refine_points=1536))
+    as_floats = client.post("/v1/register", json=valid(iterations=2.0, keypoints=64.0, refine="icp",
+                                                          refine_points=1536.0))
+    assert as_ints.status_code == as_floats.status_code == 200, as_floats.text
+    assert as_floats.json()["transform"] == as_ints.json()["transform"] and as_floats.json()["iterations"] == 2
 
 
 def test_batch_rejects_bad_pair_naming_it(client, still_serves):

@@ -383,6 +383,9 @@ BAD_INPUTS: dict[str, Case] = {
     "initial_transform_as_a_file": case(lambda: {**form(), "files": {**form()["files"], "initial_transform": (
         "prior.json", b"[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]")}}, 400, "more file uploads than source and target",
         "the options) is a text field, not a file"),
+    "source_file_given_twice": case(lambda: {**form(), "files": [("source", form()["files"]["source"])] * 2 + [
+        ("target", form()["files"]["target"])]}, 400, "more file uploads than source and target (one file each)",
+        "a file field given twice"),
     "cloud_sent_as_a_text_field": case(lambda: {**form(), "files": {"target": form()["files"]["target"]},
                                             "data": {"source": "0.125 0.25 0.5\n" * 6000}}, 400,
                                        "a text field is over 64 KiB", "source and target as file uploads",

@@ -186,18 +186,39 @@ INFER_ROUTE = {
             "content": {
                 "application/json": {"schema": {"$ref": "#/components/schemas/InferRequest"}},
                 OCTET_STREAM: {
-                    "schema": {"type": "string", "format": "binary"},
-                    "description": f"Binary tensor data: the InferRequest JSON ({HEADER_LENGTH} bytes), then the "
-                    "binary inputs' bytes.",
+                    "schema": {
+                        "type": "string",
+                        "format": "binary",
+                        # a Media Type Object has no "description" in OpenAPI 3.1: the schema carries it
+                        "description": f"Binary tensor data: the InferRequest JSON ({HEADER_LENGTH} bytes), then "
+                        "the binary inputs' bytes.",
+                    },
                 },
             },
-        }
+        },
+        "parameters": [
+            {
+                "name": HEADER_LENGTH,
+                "in": "header",
+                "required": False,
+                "schema": {"type": "integer", "minimum": 0},
+                "description": "Binary tensor data extension: the length in bytes of the JSON InferRequest that "
+                "starts the body; the binary inputs follow it. Absent for a JSON-only body.",
+            }
+        ],
     },
     "responses": {
         200: {
             "description": f"The InferResponse as application/json, or, when an output is sent as binary data, as "
             f"{OCTET_STREAM}: the InferResponse JSON ({HEADER_LENGTH} bytes), then the binary outputs' bytes.",
             "content": {OCTET_STREAM: {"schema": {"type": "string", "format": "binary"}}},
+            "headers": {
+                HEADER_LENGTH: {
+                    "schema": {"type": "integer", "minimum": 0},
+                    "description": f"With {OCTET_STREAM}: the length in bytes of the InferResponse JSON that starts "
+                    "the body.",
+                },
+            },
         },
         **error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
     },
