@@ -13,7 +13,6 @@ import resource
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -25,9 +24,6 @@ from model.config import MFGNetConfig
 from model.data import TrainPairStream, load_shapes, protocol_for
 from model.losses import registration_losses, sample_training_keypoints
 from model.network import MFGNet
-
-if TYPE_CHECKING:
-    from torch.autograd.profiler_util import FunctionEventAvg
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -130,10 +126,10 @@ def product_dims(op: str, shapes: list) -> tuple[int, int, int, int] | None:
 
 def profiled_ops(step: Callable[[dict[str, np.ndarray]], None], batch: dict[str, np.ndarray], rows: int = 30) -> dict:
     """One ``step`` of ``batch`` under torch's profiler: the op table (``table``), the ``rows`` ops with the most self
-    CPU time by input shape (``ops``: with the rate of products, from their shapes), and the matrix products' share of
-    the step by width (``products_by_width``: the narrowest of a product's M, K and N, so that a layer's forward
-    product and its gradients count together; no rate, as sparse products, which the profiler does not tell apart,
-    would count as dense)."""
+    CPU time by input shape (``ops``), and the matrix products' share of the step by width (``products_by_width``: the
+    narrowest of a product's M, K and N, so that a layer's forward product and its gradients count together). No
+    rates: the profiler records shapes, not layouts, and a sparse product (the fused edge layer's scatter) would
+    count as a dense one."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
@@ -141,16 +137,11 @@ def profiled_ops(step: Callable[[dict[str, np.ndarray]], None], batch: dict[str,
     averages = prof.key_averages(group_by_input_shape=True)
     total_us = sum(event.self_cpu_time_total for event in averages)
 
-    def summary(us: float, flops: float | None) -> dict:
-        return {"self_cpu_ms": round(us / 1000, 3), "share": round(us / total_us, 4),
-                "gflops": round(flops / (us * 1e3), 1) if flops and us else None}
-
-    def flops(event: FunctionEventAvg) -> float | None:
-        dims = product_dims(event.key, event.input_shapes)
-        return None if dims is None else 2.0 * float(np.prod(dims)) * event.count
+    def summary(us: float) -> dict:
+        return {"self_cpu_ms": round(us / 1000, 3), "share": round(us / total_us, 4)}
 
     ops = [{"op": event.key, "input_shapes": str(event.input_shapes), "calls": event.count,
-            **summary(event.self_cpu_time_total, flops(event))}
+            **summary(event.self_cpu_time_total)}
            for event in sorted(averages, key=lambda event: event.self_cpu_time_total, reverse=True)[:rows]]
     by_width: dict[int, float] = {}
     for event in averages:
@@ -160,9 +151,10 @@ def profiled_ops(step: Callable[[dict[str, np.ndarray]], None], batch: dict[str,
     return {
         "table": averages.table(sort_by="self_cpu_time_total", row_limit=rows),
         "self_cpu_ms": round(total_us / 1000, 3),
-        "products_by_width": {str(width): summary(us, None) for width, us in sorted(by_width.items())},
+        "products_by_width": {str(width): summary(us) for width, us in sorted(by_width.items())},
         "ops": ops,
     }
+
 
 if __name__ == "__main__":
     main()
