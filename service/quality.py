@@ -60,13 +60,14 @@ WORKING_LOOSE_FIT = (f"{LOOSE_FIT}: of the source points within {NEAR_SURFACE_FA
 # fit RELIABLE_NEAR_SHARE_ON_SURFACE of it (docs/decisions/0084-a-cut-target-the-source-explains.md).
 RELIABLE_REVERSE_RATIO = 0.6
 TARGET_EXPLAINED = "target explained"  # first words of the note on a result whose ratio check passed that way
-# Where the target's density estimate (attainable_inlier_ratio) is below RELIABLE_INLIER_RATIO, its points lie
-# farther apart than the inlier distance (a sparse volume of points, not a sampled surface): a wrong pose then lays as
-# much of the source on it as a right one, and the ratio check judges nothing; such a result is not reliable unless
-# at least SHARED_POINTS_RATIO of the source lands on the target's own points, which no wrong pose of points that far
-# apart does: the two clouds share their points, and the pose maps one onto the other
-# (docs/decisions/0113-no-reliable-on-a-target-sparser-than-the-inlier-distance.md).
-SPARSE_TARGET = "sparse target"
+# Where both clouds' density estimates (attainable_inlier_ratio) are below SCATTERED_DENSITY, hardly a point of
+# either has another within the inlier distance: scattered volumes of points, not sampled surfaces (sparse ModelNet40
+# samples keep 0.24 and more). There a wrong pose lays as much of the source on the target as a right one, and the
+# ratio check judges nothing; such a result is not reliable unless at least SHARED_POINTS_RATIO of the source lands
+# on the target's own points, which no wrong pose of points that far apart does: the two clouds share their points
+# (docs/decisions/0113-no-reliable-on-scattered-points.md).
+SCATTERED_POINTS = "scattered points"
+SCATTERED_DENSITY = 0.1
 SHARED_POINTS_RATIO = 0.9
 DEGENERACY_RATIO = 1e-2  # an axis whose RMS spread is below this fraction of the largest is "flat"
 IDENTICAL_TOLERANCE = 1e-9  # largest deviation from the centroid, relative to the coordinates' size
@@ -318,11 +319,13 @@ def assess(src: np.ndarray, tgt: np.ndarray, R: np.ndarray, t: np.ndarray, inlie
         warnings.append(f"{WORKING_LOOSE_FIT} {near_share:.2f} lie within one, < {near_factor} of the {attainable:.2f} "
                         f"{allows}; a right pose lies on the target where they overlap")
     reliable = not degenerate and ratio_passes and tight
-    if reliable and not on_surface and attainable < RELIABLE_INLIER_RATIO and inlier_ratio < SHARED_POINTS_RATIO:
-        warnings.append(f"{SPARSE_TARGET}: its working sample's points lie farther apart than the inlier distance "
-                        f"(its density allows an inlier ratio of {attainable:.2f} < {RELIABLE_INLIER_RATIO}), so an "
-                        f"inlier ratio of {inlier_ratio:.2f} cannot tell a right pose from a wrong one (only "
-                        f"{SHARED_POINTS_RATIO}, the source on the target's own points, would)")
+    if (reliable and not on_surface and attainable < SCATTERED_DENSITY and inlier_ratio < SHARED_POINTS_RATIO
+            and (source_density := attainable_inlier_ratio(src, inlier_distance)) < SCATTERED_DENSITY):
+        warnings.append(f"{SCATTERED_POINTS}: hardly a point of either cloud has another within the inlier distance "
+                        f"({source_density:.2f} of the source's, {attainable:.2f} of the target's), as in volumes of "
+                        "scattered points rather than sampled surfaces; there a wrong pose lays as much of the source "
+                        f"on the target as a right one, and an inlier ratio of {inlier_ratio:.2f} confirms nothing "
+                        f"(only {SHARED_POINTS_RATIO}, the source laid on the target's own points, would)")
         reliable = False
     if reliable and unrefined and inlier_ratio < RELIABLE_RELATIVE_RATIO_UNREFINED * attainable:
         warnings.append(f"{POOR_FIT}: the unrefined pose's inlier ratio {inlier_ratio:.2f} < "

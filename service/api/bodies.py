@@ -151,8 +151,9 @@ async def read_body(request: Request, budget: BodyBudget, max_body_bytes: int,
         async with asyncio.timeout(wait_s):
             hold = await budget.hold(int(declared) if declared.isdigit() else max_body_bytes)
     except TimeoutError:
-        raise APIError(503, f"server is busy reading other request bodies (MFGNET_MAX_BUFFERED_BYTES); waited "
-                            f"{wait_s:g} s; retry later", headers={"Retry-After": "1"}) from None
+        raise APIError(503, f"server is busy: the bodies of earlier requests fill the memory for request bodies "
+                            f"(MFGNET_MAX_BUFFERED_BYTES) until they are decoded, and this one waited {wait_s:g} s "
+                            "(MFGNET_TIMEOUT_S) unread; retry later", headers={"Retry-After": "1"}) from None
     try:
         body = bytearray()
         async for chunk in request.stream():

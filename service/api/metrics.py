@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
 
-from service.quality import SPARSE_TARGET, TARGET_EXPLAINED
+from service.quality import SCATTERED_POINTS, TARGET_EXPLAINED
 from service.stages.consensus import CONFIRMED_BY_DESCRIPTORS, DESCRIPTOR_CONSENSUS
 from service.stages.float32_check import FLOAT32_ROUNDING
 from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
@@ -29,7 +29,7 @@ WARNING_KINDS = frozenset({
     SIZE_MISMATCH,  # clouds whose sizes differ as units do (service.stages.scale_check)
     FLOAT32_ROUNDING,  # float32 coordinates far from the origin (service.stages.float32_check)
     TARGET_EXPLAINED,  # a result whose source explains a cut target (service.quality)
-    SPARSE_TARGET,  # a target whose points lie farther apart than the inlier distance (service.quality)
+    SCATTERED_POINTS,  # clouds whose points lie farther apart than the inlier distance (service.quality)
     DESCRIPTOR_CONSENSUS,  # a result the descriptors' consensus gave (service.stages.consensus)
     CONFIRMED_BY_DESCRIPTORS,  # a result the descriptors made `reliable` (service.stages.consensus)
 })

@@ -222,7 +222,9 @@ class RequestContextMiddleware:
                 state["status"] = 500
         finally:
             self.metrics.in_flight.dec()
-            if state["started"] and not state["answered"] and state["status"] < 400:
+            # a HEAD answer is whole once its headers went out (HeadAsGetMiddleware serves it as a GET whose body the
+            # server drops; a client that closes on the headers can cancel a file response before its last body)
+            if state["started"] and not state["answered"] and state["status"] < 400 and scope["method"] != "HEAD":
                 state["status"] = 499  # an answer cut short: the client left part way through a download
             error = _error_message(state["status"], bytes(error_body))
             if (answered := scope["state"].get(ANSWERED_BELOW)) is not None:  # a malformed body: the protocol's 4xx

@@ -203,9 +203,9 @@ class Quality(BaseModel):
     )
     reliable: bool = Field(
         description="False when the quality checks or degeneracy warnings flag the result: an inlier ratio below "
-        "0.3 or below 0.45-0.5 of what a right pose can reach at the target's sampling, a target whose points lie "
-        "farther apart than the inlier distance (a 'sparse target' warning, unless 0.9 of the source lands on its "
-        "points), a loose fit (source "
+        "0.3 or below 0.45-0.5 of what a right pose can reach at the target's sampling, clouds whose points lie "
+        "farther apart than the inlier distance (a 'scattered points' warning, unless 0.9 of the source lands on the "
+        "target's points), a loose fit (source "
         "points near the target but off its surface: a 'loose fit' warning), identical / collinear points, a weakly "
         "constrained pose (stability below 0.01, 0.02 on a dense target: a 'weakly constrained' warning), or "
         "another pose -- turned far from the returned one, or placing the source elsewhere -- that fits almost as "

@@ -119,9 +119,9 @@ class Settings(BaseSettings):
         30.0,
         gt=0,
         allow_inf_nan=False,  # inf would turn the deadline off without a word
-        description="Deadline per request after its body is read, not "
-        "counting the decoding of its clouds (a body over a size limit is a 413 whatever the "
-        "deadline); then 504, and its registration stops at its next network call.",
+        description="Deadline per request after its body is read (and the longest wait for the body budget, "
+        "max_buffered_bytes, before it: then 503), not counting the decoding of its clouds (a body over a size limit "
+        "is a 413 whatever the deadline); then 504, and its registration stops at its next network call.",
     )
     body_timeout_s: float = Field(
         15.0,

@@ -14,6 +14,7 @@ from service.quality import (
     RELIABLE_RELATIVE_RATIO_ON_SURFACE,
     RELIABLE_RELATIVE_RATIO_UNREFINED,
     RELIABLE_REVERSE_RATIO,
+    SCATTERED_DENSITY,
     SHARED_POINTS_RATIO,
     TARGET_EXPLAINED,
     ReverseFit,
@@ -168,24 +169,37 @@ def test_reliability_also_needs_the_points_near_the_target_to_lie_on_it(loose: i
 
 
 @pytest.mark.parametrize(("inliers", "reliable"), [(100, True), (90, True), (89, False), (65, False)])
-def test_on_a_target_too_sparse_for_the_inlier_distance_only_its_own_points_confirm_a_pose(inliers, reliable) -> None:
-    """A target whose points lie farther apart than the inlier distance (attainable ratio below the fixed 0.3): a
-    wrong pose lays as much of the source on it as a right one, so only the source landing on 0.9 of its own points
-    (clouds that share their points) is reliable; any other ratio warns (before: the fixed 0.3 judged alone, and the
-    README's cloud turned 90-180 deg came back 92 deg off, reliable)."""
-    assert SHARED_POINTS_RATIO == 0.9
+def test_between_scattered_clouds_only_the_targets_own_points_confirm_a_pose(inliers: int, reliable: bool) -> None:
+    """Clouds whose points lie farther apart than the inlier distance (both density estimates below 0.1: scattered
+    volumes, not sampled surfaces): a wrong pose lays as much of the source on the target as a right one, so only the
+    source landing on 0.9 of the target's own points (clouds that share their points) is reliable (before: the fixed
+    0.3 judged alone, and the README's former cloud turned 90-180 deg came back 92 deg off, reliable)."""
+    assert SHARED_POINTS_RATIO == 0.9 and SCATTERED_DENSITY == 0.1
     tgt = blob(100, seed=6) * 10  # nearest neighbours far beyond 0.1: attainable ratio 0
     assert attainable_inlier_ratio(tgt, 0.1) == 0.0
     src = tgt.copy()
     src[inliers:] += 1000.0
     quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
     assert quality.reliable is reliable and not any(w.startswith(("poor fit", "low overlap")) for w in quality.warnings)
-    expected = (f"sparse target: its working sample's points lie farther apart than the inlier distance (its density "
-                f"allows an inlier ratio of 0.00 < 0.3), so an inlier ratio of {inliers / 100:.2f} cannot tell a right "
-                "pose from a wrong one (only 0.9, the source on the target's own points, would)")
-    assert [w for w in quality.warnings if w.startswith("sparse target")] == ([] if reliable else [expected])
+    expected = ("scattered points: hardly a point of either cloud has another within the inlier distance (0.00 of the "
+                "source's, 0.00 of the target's), as in volumes of scattered points rather than sampled surfaces; "
+                "there a wrong pose lays as much of the source on the target as a right one, and an inlier ratio of "
+                f"{inliers / 100:.2f} confirms nothing (only 0.9, the source laid on the target's own points, would)")
+    assert [w for w in quality.warnings if w.startswith("scattered points")] == ([] if reliable else [expected])
     on_surface = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1, attainable=0.2)
-    assert on_surface.reliable  # judged against the surface estimate, not the density's: not sparse
+    assert on_surface.reliable  # judged against the surface estimate, not the density's
+
+
+def test_a_dense_source_on_a_scattered_target_is_judged_as_before() -> None:
+    """A partial view whose points lie within the inlier distance of one another (which sets the distance from its
+    own size) against a larger target whose samples lie farther apart: the ratio a right pose reaches still tells it
+    from a wrong one, and the fixed 0.3 judges (a crop against its whole object, 0.76 right against 0.40-0.60 wrong,
+    stays reliable)."""
+    tgt = blob(100, seed=6) * 10
+    src = np.repeat(tgt[:65], 2, axis=0) + np.tile([[0.0, 0.0, 0.0], [0.0, 0.0, 0.05]], (65, 1))  # [130, 3] in pairs
+    assert attainable_inlier_ratio(tgt, 0.1) == 0.0 and attainable_inlier_ratio(src, 0.1) == 1.0
+    quality = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.1)
+    assert quality.reliable and not quality.warnings
 
 
 def plane_grid(spacing: float, side: int) -> np.ndarray:
@@ -214,7 +228,7 @@ def test_a_poor_fit_is_judged_against_the_attainable_ratio_the_caller_gives() ->
     src[160:] += np.array([0.0, 0.0, 100.0])  # 40% of the source near the target, the rest far away
     by_density = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8)
     assert by_density.inlier_ratio == pytest.approx(0.4) and not by_density.reliable
-    assert [w.split(":")[0] for w in by_density.warnings] == ["target coplanar", "sparse target"]
+    assert [w.split(":")[0] for w in by_density.warnings] == ["target coplanar", "scattered points"]
     on_surface = assess(src, tgt, np.eye(3), np.zeros(3), inlier_distance=0.8, attainable=0.97)
     assert not on_surface.reliable
     assert "poor fit: inlier ratio 0.40 < 0.45 of the 0.97 a right pose reaches on the target's surface" in (

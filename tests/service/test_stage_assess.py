@@ -167,10 +167,10 @@ def test_the_reverse_fit_is_offered_on_dense_targets_that_are_not_rooms():
     assert fit.attainable > 0.9 and fit.ratio > 0.5  # the source's surface estimate; the scans overlap by most
 
 
-def test_a_wrong_pose_on_a_target_sparser_than_the_inlier_distance_is_not_reliable():
+def test_a_wrong_pose_between_scattered_clouds_is_not_reliable():
     """A volume of random points (the README's former example cloud, density falling along y and z) turned 150 deg
     about z: the default request comes back 92 deg off with 0.38 of the source within an inlier distance of the
-    target, which a right pose of two independent samples would not beat, as the target's 768 working points lie
+    target, which a right pose of two independent samples would not beat, as the clouds' 768 working points lie
     farther apart than that distance; it was `reliable` with no warning. The same clouds 30 deg apart share their
     points: the right pose lays every point on one of the target's and stays `reliable`."""
     registrar = Registrar(GENERAL)
@@ -181,4 +181,4 @@ def test_a_wrong_pose_on_a_target_sparser_than_the_inlier_distance_is_not_reliab
                                     rotation_search="auto")
         error = np.degrees(np.arccos(np.clip((np.trace(result.rotation.T @ rotation) - 1) / 2, -1, 1)))
         assert bool(error < 1.0) is right and result.reliable is right, (degrees, error, result.warnings)
-        assert any(w.startswith("sparse target") for w in result.warnings) is not right
+        assert any(w.startswith("scattered points") for w in result.warnings) is not right

@@ -201,7 +201,7 @@ INFER_ROUTE = {
                 "name": HEADER_LENGTH,
                 "in": "header",
                 "required": False,
-                "schema": {"type": "integer", "minimum": 0},
+                "schema": {"type": "integer", "minimum": 1},  # the JSON inference request comes first: never empty
                 "description": "Binary tensor data extension: the length in bytes of the JSON InferRequest that "
                 "starts the body; the binary inputs follow it. Absent for a JSON-only body.",
             }
