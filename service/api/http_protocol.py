@@ -187,6 +187,8 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         super().handle_events()
         if self.cycle is not None:  # an answer that gives up on its client can close the connection at once
             self.cycle.scope.setdefault("state", {}).setdefault(ABORT_CONNECTION, self.transport.abort)
+            if not isinstance(self.cycle.transport, _LingeringClose):
+                self.cycle.transport = _LingeringClose(self)  # type: ignore[assignment]
 
     def _head_within_limit(self, data: bytes) -> bytes:
         """``data``, or where the request line and headers run on past ``h11_max_incomplete_event_size``, the part of it
@@ -298,6 +300,29 @@ class HeaderTimeoutH11Protocol(H11Protocol):
             "client": self.client[0] if self.client else "",
             "error": message,
         })
+
+
+class _LingeringClose:
+    """The transport as a request cycle sees it: where uvicorn closes the connection after an answer (the request
+    said ``Connection: close``) while the request's body is still arriving, the write side is shut and the rest of the
+    body dropped for up to ``LINGER_IDLE_S`` first, so the client reads the answer (a 413/415/503) instead of a
+    reset."""
+
+    def __init__(self, protocol: HeaderTimeoutH11Protocol):
+        self._protocol = protocol
+
+    def __getattr__(self, name: str):
+        return getattr(self._protocol.transport, name)
+
+    def close(self) -> None:
+        protocol, transport = self._protocol, self._protocol.transport
+        if protocol.conn.their_state is h11.SEND_BODY and not transport.is_closing() and transport.can_write_eof():
+            protocol._refused = True  # what it still sends is read and dropped
+            transport.write_eof()
+            protocol.loop.call_later(LINGER_IDLE_S, transport.close)
+            protocol.lingering[protocol] = None  # the cap may close it first
+            return
+        transport.close()
 
 
 UVICORN_BACKLOG = 2048  # uvicorn's listen backlog; asyncio accepts up to this many connections before any is handled

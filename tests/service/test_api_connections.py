@@ -132,6 +132,28 @@ def test_connections_answered_before_their_body_make_room(capped_server):
             sock.close()
 
 
+@pytest.fixture(scope="module")
+def plain_server():
+    server = start_subprocess_server("early_refusals")
+    yield server
+    server.stop()
+
+
+@pytest.mark.parametrize("connection", [b"", b"Connection: close\r\n"], ids=["keep-alive", "close"])
+def test_a_refusal_before_the_body_reaches_a_client_still_sending_it(plain_server, connection):
+    """A 415 answered before an 8 MB body is read: the client reads it whether or not it asked to close the connection
+    (Python's urllib always does); before, a closing connection was shut with the body unread and the client got a
+    reset instead of the answer."""
+    body = b"x" * (8 << 20)
+    with connect(plain_server) as sock:
+        sock.settimeout(20)
+        sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: text/plain\r\n"
+                     b"Content-Length: %d\r\n%s\r\n" % (len(body), connection))
+        sock.sendall(body)
+        reply = sock.recv(65536)
+    assert reply.startswith(b"HTTP/1.1 415"), reply[:200]
+
+
 @pytest.mark.slow
 def test_the_rest_of_an_answered_body_is_read_30_s_at_most(capped_server):
     with answered_early(capped_server) as sock:
