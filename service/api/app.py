@@ -152,18 +152,17 @@ def _openapi(app: FastAPI) -> dict:
                     }
         for name in ("HTTPValidationError", "ValidationError"):
             components.pop(name, None)
-        for path in schema.get("paths", {}).values():  # every answer carries a request id (RequestContextMiddleware)
+        key_optional = not app.state.settings.api_key
+        for path in schema.get("paths", {}).values():
             for operation in path.values():
+                # every answer carries a request id (RequestContextMiddleware)
                 operation.setdefault("parameters", []).append(REQUEST_ID_PARAMETER)
                 for response in operation.get("responses", {}).values():
                     response.setdefault("headers", {})["X-Request-ID"] = REQUEST_ID_HEADER
-        # Without MFGNET_API_KEY the key is not asked for: an empty requirement beside it says so to clients and
-        # generators (which otherwise demand a token); with it, the bearer token alone.
-        if not app.state.settings.api_key:
-            for path in schema.get("paths", {}).values():
-                for operation in path.values():
-                    if operation.get("security") == [{"HTTPBearer": []}]:
-                        operation["security"] = [{"HTTPBearer": []}, {}]
+                # without MFGNET_API_KEY the key is not asked for: an empty requirement beside it says so to clients
+                # and generators (which otherwise demand a token); with it, the bearer token alone
+                if key_optional and operation.get("security") == [{"HTTPBearer": []}]:
+                    operation["security"] = [{"HTTPBearer": []}, {}]
         app.openapi_schema = schema
     return app.openapi_schema
 
