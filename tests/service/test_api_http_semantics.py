@@ -136,7 +136,7 @@ def test_the_access_log_names_the_forwarded_client_only_behind_a_trusted_proxy(s
 def test_head_requests_of_the_page_files_are_200s_whenever_the_client_closes():
     """A HEAD answer is whole once its headers are out: a client (an uptime monitor, curl --head) that closes on them
     can cancel the file response it is served as, which must not make it a 499 in the access log and the metrics
-    (before: up to 10 of 60 such requests were)."""
+    (before, some such requests were)."""
     server = start_subprocess_server("head_requests")
     url = httpx.URL(server.url)
     try:

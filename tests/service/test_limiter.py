@@ -68,8 +68,8 @@ class Upload:
 
 def test_a_queued_job_dropped_before_it_starts_lets_go_of_what_it_holds() -> None:
     """While the only worker is busy, a queued job whose client went away (or whose deadline passed) is dropped: what
-    its callable holds is freed then, not when the worker takes the dropped job off the executor's queue (before: 15
-    abandoned uploads held 30 spooled files open behind one long registration)."""
+    its callable holds is freed then, not when the worker takes the dropped job off the executor's queue (before,
+    abandoned uploads held their spooled files open behind one long registration)."""
     limiter = InferenceLimiter(1, 2, timeout_s=30.0)
     busy, freed = threading.Event(), []
 
