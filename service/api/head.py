@@ -16,14 +16,18 @@ class HeadAsGetMiddleware:
             await self.app(scope, receive, send)
             return
 
+        def name_the_route() -> None:
+            if "route" in as_get:  # the route GET matched: the access line and metrics name it
+                scope["route"] = as_get["route"]
+
         async def send_headers_only(message: Message) -> None:
             if message["type"] == "http.response.body":  # the headers, Content-Length included, are GET's
                 message = {**message, "body": b""}
+            name_the_route()  # before the last body goes out, where the request context counts the answer
             await send(message)
 
         as_get = {**scope, "method": "GET"}
         try:
             await self.app(as_get, receive, send_headers_only)
         finally:
-            if "route" in as_get:  # the route GET matched: the access line and metrics name it
-                scope["route"] = as_get["route"]
+            name_the_route()
