@@ -86,6 +86,8 @@ class HeaderTimeoutH11Protocol(H11Protocol):
     # Its connections answered before their request's body was read whole, discarding the rest, the earliest first.
     lingering: ClassVar[OrderedDict[HeaderTimeoutH11Protocol, None]] = OrderedDict()
     _refused: bool = False
+    _dropping: bool = False  # closing after its answer: the rest of the body is dropped until the linger timers end
+    _shutting_down: bool = False
     _linger_timer: asyncio.TimerHandle | None = None
     _linger_until: float = 0.0
 
@@ -142,16 +144,31 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         super().on_response_complete()
         if self.conn.their_state is h11.SEND_BODY and not self.transport.is_closing():  # answered, its body unread
             self._unset_keepalive_if_required()
-            self._linger_until = self.loop.time() + LINGER_MAX_S
-            self._linger_timer = self.loop.call_later(LINGER_IDLE_S, self._stop_lingering)
-            self.lingering[self] = None
+            if self._linger_timer is None:  # (a closing answer's lingering, _LingeringClose, started already)
+                self._start_lingering()
             return
         if self.timeout_keep_alive_task is not None:  # idle again, until the next request's first bytes
             self.idle[self] = None
             self.idle.move_to_end(self)
 
+    def _start_lingering(self) -> None:
+        """Drop the rest of an answered body for at most ``LINGER_MAX_S``, closing once none came for ``LINGER_IDLE_S``
+        (once the server shuts down: ``REFUSED_LINGER_S``, within its grace)."""
+        idle_s = REFUSED_LINGER_S if self._shutting_down else LINGER_IDLE_S
+        self._linger_until = self.loop.time() + (REFUSED_LINGER_S if self._shutting_down else LINGER_MAX_S)
+        self._linger_timer = self.loop.call_later(idle_s, self._stop_lingering)
+        self.lingering[self] = None
+
+    def shutdown(self) -> None:
+        self._shutting_down = True
+        super().shutdown()
+
     def data_received(self, data: bytes) -> None:
         if self._refused:  # answered already: what it sends is not read
+            if self._dropping and self._linger_timer is not None:  # the rest of a closing answer's body: still coming
+                self._linger_timer.cancel()
+                left = self._linger_until - self.loop.time()
+                self._linger_timer = self.loop.call_later(max(0.0, min(LINGER_IDLE_S, left)), self._stop_lingering)
             return
         if self._linger_timer is not None:  # the rest of an answered request's body, read (and dropped) by uvicorn
             self._linger_timer.cancel()
@@ -305,8 +322,9 @@ class HeaderTimeoutH11Protocol(H11Protocol):
 class _LingeringClose:
     """The transport as a request cycle sees it: where uvicorn closes the connection after an answer (the request
     said ``Connection: close``) while the request's body is still arriving, the write side is shut and the rest of the
-    body dropped for up to ``LINGER_IDLE_S`` first, so the client reads the answer (a 413/415/503) instead of a
-    reset."""
+    body dropped as a kept-alive answer's rest is (``LINGER_IDLE_S`` idle, ``LINGER_MAX_S`` at most; a client on a
+    slow link still sending reads the answer once it has sent its body), so the client reads the answer (a
+    413/415/503) instead of a reset."""
 
     def __init__(self, protocol: HeaderTimeoutH11Protocol):
         self._protocol = protocol
@@ -317,10 +335,11 @@ class _LingeringClose:
     def close(self) -> None:
         protocol, transport = self._protocol, self._protocol.transport
         if protocol.conn.their_state is h11.SEND_BODY and not transport.is_closing() and transport.can_write_eof():
-            protocol._refused = True  # what it still sends is read and dropped
+            protocol._refused = protocol._dropping = True  # what it still sends is read and dropped
             transport.write_eof()
-            protocol.loop.call_later(LINGER_IDLE_S, transport.close)
-            protocol.lingering[protocol] = None  # the cap may close it first
+            protocol._unset_keepalive_if_required()
+            if protocol._linger_timer is None:
+                protocol._start_lingering()  # as a kept-alive answer's rest: LINGER_IDLE_S idle, LINGER_MAX_S at most
             return
         transport.close()
 

@@ -155,6 +155,22 @@ def test_a_refusal_before_the_body_reaches_a_client_still_sending_it(plain_serve
 
 
 @pytest.mark.slow
+def test_a_closing_client_that_sends_past_the_idle_linger_reads_its_refusal(plain_server):
+    """Connection: close (Python's urllib) and a body that goes on arriving for 8 s after its 415: its rest is dropped
+    as a kept-alive request's is (closed 5 s after the last piece, 30 s at most), so a client that reads only once its
+    body is sent reads the 415; a fixed 5 s after the answer gave it a broken pipe instead."""
+    with connect(plain_server) as sock:
+        sock.settimeout(20)
+        sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: text/plain\r\n"
+                     b"Content-Length: %d\r\nConnection: close\r\n\r\n" % (80 << 16))
+        for _ in range(80):
+            sock.sendall(b"x" * (1 << 16))
+            time.sleep(0.1)
+        reply = sock.recv(65536)
+    assert reply.startswith(b"HTTP/1.1 415"), reply[:200]
+
+
+@pytest.mark.slow
 def test_the_rest_of_an_answered_body_is_read_30_s_at_most(capped_server):
     with answered_early(capped_server) as sock:
         started = time.monotonic()
