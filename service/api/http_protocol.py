@@ -159,6 +159,12 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         self._linger_timer = self.loop.call_later(idle_s, self._stop_lingering)
         self.lingering[self] = None
 
+    def _linger_on(self) -> None:
+        """More of a lingering body came: close once none comes for ``LINGER_IDLE_S``, by ``_linger_until`` at the
+        latest."""
+        left = self._linger_until - self.loop.time()
+        self._linger_timer = self.loop.call_later(max(0.0, min(LINGER_IDLE_S, left)), self._stop_lingering)
+
     def shutdown(self) -> None:
         self._shutting_down = True
         super().shutdown()
@@ -167,8 +173,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         if self._refused:  # answered already: what it sends is not read
             if self._dropping and self._linger_timer is not None:  # the rest of a closing answer's body: still coming
                 self._linger_timer.cancel()
-                left = self._linger_until - self.loop.time()
-                self._linger_timer = self.loop.call_later(max(0.0, min(LINGER_IDLE_S, left)), self._stop_lingering)
+                self._linger_on()
             return
         if self._linger_timer is not None:  # the rest of an answered request's body, read (and dropped) by uvicorn
             self._linger_timer.cancel()
@@ -176,8 +181,7 @@ class HeaderTimeoutH11Protocol(H11Protocol):
             answered = self.cycle
             super().data_received(data)
             if self.cycle is answered and self.conn.their_state is h11.SEND_BODY:  # more of it to come
-                left = self._linger_until - self.loop.time()
-                self._linger_timer = self.loop.call_later(max(0.0, min(LINGER_IDLE_S, left)), self._stop_lingering)
+                self._linger_on()
                 return
             self.lingering.pop(self, None)  # its body ended: the connection serves its next request as any other
             if self.cycle is answered and not self.transport.is_closing():
