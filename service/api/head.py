@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.middleware import HEAD_ERROR_BODY, MAX_ERROR_BODY_BYTES
+
 
 class HeadAsGetMiddleware:
     def __init__(self, app: ASGIApp):
@@ -21,12 +23,19 @@ class HeadAsGetMiddleware:
                 scope["route"] = as_get["route"]
 
         async def send_headers_only(message: Message) -> None:
-            if message["type"] == "http.response.body":  # the headers, Content-Length included, are GET's
+            if message["type"] == "http.response.start":
+                status.append(message["status"])
+            elif message["type"] == "http.response.body":  # the headers, Content-Length included, are GET's
+                if status[0] >= 400:  # the error GET's body names, for the request context's access line
+                    kept = scope["state"].setdefault(HEAD_ERROR_BODY, bytearray())
+                    kept.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(kept)])
                 message = {**message, "body": b""}
             name_the_route()  # before the last body goes out, where the request context counts the answer
             await send(message)
 
-        as_get = {**scope, "method": "GET"}
+        status: list[int] = []
+        scope.setdefault("state", {})
+        as_get = {**scope, "method": "GET"}  # (the same ``state``)
         try:
             await self.app(as_get, receive, send_headers_only)
         finally:

@@ -56,7 +56,7 @@ from h11._connection import DEFAULT_MAX_INCOMPLETE_EVENT_SIZE  # as uvicorn's h1
 from uvicorn.protocols.http.h11_impl import STATUS_PHRASES, H11Protocol
 
 from service.api.metrics import Metrics
-from service.api.middleware import ABORT_CONNECTION, ANSWERED_BELOW, request_id_of
+from service.api.middleware import ABORT_CONNECTION, ANSWERED_BELOW, DROPPED_CLIENT, request_id_of
 from service.api.security_headers import CSP, HEADERS, NOTHING_ALLOWED
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
@@ -280,6 +280,8 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         self.transport.close()
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self.cycle is not None and not self.cycle.response_complete:  # its answer goes nowhere: a 499
+            self.cycle.scope.setdefault("state", {})[DROPPED_CLIENT] = True
         self._cancel_header_timer()
         self.idle.pop(self, None)
         self.lingering.pop(self, None)

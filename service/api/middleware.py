@@ -35,9 +35,12 @@ MAX_ERROR_BODY_BYTES = 4096  # of an error response, read back for the access li
 ANSWERED_BELOW = "mfgnet.answered_below"
 # ``scope["state"]`` keys: the connection's ``transport.abort`` (set by ``http_protocol.py``: an answer that gives up on
 # its client closes the connection at once, its unsent bytes dropped, rather than leaving it open until they drain),
-# and a flag set by an answer that gave up on a client that read none of it (logged and counted as 499)
+# and a flag set by an answer that gave up on a client that read none of it, or by the protocol where the connection
+# was lost before the answer went out whole (logged and counted as 499)
 ABORT_CONNECTION = "mfgnet.abort_connection"
 DROPPED_CLIENT = "mfgnet.dropped_client"
+# ``scope["state"]`` key of the start of a HEAD error's body, which ``head.py`` drops before this layer sees it
+HEAD_ERROR_BODY = "mfgnet.head_error_body"
 # A request still running when the shutdown grace ends is cancelled: its answer (a 503 the client may send again)
 SHUTDOWN_MESSAGE = ("the server is shutting down and the request did not finish within its grace; send it again (to "
                     "another replica or once the server is back)")
@@ -165,7 +168,7 @@ class RequestContextMiddleware:
                     error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
                 if not message.get("more_body", False):
                     state["answered"] = True  # the whole answer was handed to the server
-                    if scope["state"].get(ANSWERED_BELOW) is None:
+                    if scope["state"].get(ANSWERED_BELOW) is None and not scope["state"].get(DROPPED_CLIENT):
                         count()  # before the last bytes leave: a scrape the client sends after its answer counts it
             await send(message)
 
@@ -224,9 +227,11 @@ class RequestContextMiddleware:
             self.metrics.in_flight.dec()
             # a HEAD answer is whole once its headers went out (HeadAsGetMiddleware serves it as a GET whose body the
             # server drops; a client that closes on the headers can cancel a file response before its last body)
-            if state["started"] and not state["answered"] and state["status"] < 400 and scope["method"] != "HEAD":
-                state["status"] = 499  # an answer cut short: the client left part way through a download
-            error = _error_message(state["status"], bytes(error_body))
+            whole = scope["method"] == "HEAD" and state["started"]
+            cut_short = state["started"] and not state["answered"] and state["status"] < 400  # left during a download
+            if not whole and (cut_short or scope["state"].get(DROPPED_CLIENT)):  # or gone before it: it went nowhere
+                state["status"] = 499
+            error = _error_message(state["status"], bytes(error_body or scope["state"].get(HEAD_ERROR_BODY, b"")))
             if (answered := scope["state"].get(ANSWERED_BELOW)) is not None:  # a malformed body: the protocol's 4xx
                 state["status"], error = answered
             elapsed = time.perf_counter() - started

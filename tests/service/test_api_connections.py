@@ -14,8 +14,10 @@ import time
 from pathlib import Path
 from urllib.parse import urlsplit
 
+import numpy as np
 import pytest
 from api_server import REPO, start_subprocess_server
+from prometheus_client.parser import text_string_to_metric_families
 
 CAP = 8
 
@@ -291,3 +293,35 @@ def test_two_thousand_idle_connections_at_a_soft_nofile_of_1024_leave_the_probes
         for sock in idle:
             sock.close()
         server.stop()
+
+
+def registrations_counted(server) -> dict[str, float]:
+    """``mfgnet_http_requests_total`` of POST ``/v1/register`` by status, from the server's ``/metrics``."""
+    with server.client() as client:
+        families = text_string_to_metric_families(client.get("/metrics").text)
+    return {sample.labels["status"]: sample.value for family in families for sample in family.samples
+            if sample.name == "mfgnet_http_requests_total" and sample.labels.get("route") == "/v1/register"
+            and sample.labels.get("method") == "POST"}
+
+
+def test_a_client_that_shuts_its_write_side_after_its_request_is_logged_499(plain_server):
+    """A client that half-closes after its request (``shutdown(SHUT_WR)``, ``nc -N``) is taken as gone, as a full close
+    cannot be told from it until an answer is written (uvicorn closes the connection on the EOF, as nginx and Go's
+    server take it): the answer goes nowhere, and the access line and the metrics say 499. A registration that ended
+    before its first look for a disconnect was logged and counted 200."""
+    cloud = np.random.default_rng(0).normal(size=(256, 3)).round(4).tolist()
+    body = json.dumps({"source": cloud, "target": cloud}).encode()
+    before = registrations_counted(plain_server)
+    request_id = f"half-closed-{time.monotonic_ns()}"
+    with connect(plain_server) as sock:
+        sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                     b"Content-Length: %d\r\nX-Request-ID: %s\r\n\r\n%s" % (len(body), request_id.encode(), body))
+        sock.shutdown(socket.SHUT_WR)
+        assert answer(sock) == b""  # closed on the EOF, nothing answered
+    deadline = time.monotonic() + 10
+    while request_id not in plain_server.log_path.read_text() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    line = next(json.loads(text) for text in plain_server.log_path.read_text().splitlines() if request_id in text)
+    assert line["status"] == 499 and line["error"] == "the client closed the connection before the answer", line
+    after = registrations_counted(plain_server)
+    assert (after.get("499", 0) - before.get("499", 0), after.get("200", 0) - before.get("200", 0)) == (1, 0)

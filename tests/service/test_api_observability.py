@@ -140,6 +140,16 @@ def test_head_probes_and_requests_refused_before_routing_are_named_by_their_rout
     assert line["route"] == "/v1/register" and line["status"] == 413
 
 
+
+def test_a_head_request_refused_logs_what_its_get_would_say(server, client):
+    """A HEAD answer has no body, but its access line names the error as the GET's does: it logged none."""
+    request_ids = {method: f"{method.lower()}-{uuid.uuid4().hex}" for method in ("GET", "HEAD")}
+    for method, request_id in request_ids.items():
+        answer = client.request(method, "/v2/models/no-such-model", headers={"X-Request-ID": request_id})
+        assert answer.status_code == 404
+    get_line, head_line = (access_line(server, request_id)[0] for request_id in request_ids.values())
+    assert "no-such-model" in get_line["error"] and head_line["error"] == get_line["error"], (get_line, head_line)
+
 def test_a_thousand_unknown_paths_add_no_series(client):
     rng = random.Random(0)
     for method in ("GET", "POST", "PUT", "DELETE"):  # each method's <unmatched> 404 series exists first
