@@ -4,9 +4,12 @@ new one is answered 503 with Retry-After at once; the open-file limit is raised 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
+import select
+import signal
 import socket
 import subprocess
 import sys
@@ -325,3 +328,35 @@ def test_a_client_that_shuts_its_write_side_after_its_request_is_logged_499(plai
     assert line["status"] == 499 and line["error"] == "the client closed the connection before the answer", line
     after = registrations_counted(plain_server)
     assert (after.get("499", 0) - before.get("499", 0), after.get("200", 0) - before.get("200", 0)) == (1, 0)
+
+
+
+@pytest.mark.parametrize("connection", [b"", b"Connection: close\r\n"], ids=["keep-alive", "close"])
+def test_an_answer_that_starts_a_linger_during_shutdown_does_not_hold_it_up(connection):
+    """SIGTERM while a chunked upload is arriving; its 413 (over ``MFGNET_MAX_BODY_BYTES``) goes out during the grace,
+    the client still sending: the rest of its body is dropped for ``REFUSED_LINGER_S``, not ``LINGER_IDLE_S``, so the
+    server exits before its 5 s grace ends, with no error. The full linger held the server past its grace, which
+    cancelled it and logged an error."""
+    server = start_subprocess_server("linger_shutdown", MFGNET_MAX_BODY_BYTES=str(1 << 20))
+    proc = server.extra["proc"]
+    chunk = b"%x\r\n%s\r\n" % (1 << 16, b" " * (1 << 16))
+    reply = b""
+    try:
+        with connect(server) as sock:
+            sock.sendall(b"POST /v1/register HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                         b"Transfer-Encoding: chunked\r\n%s\r\n" % connection + chunk)
+            time.sleep(0.5)  # the app is reading the body
+            proc.terminate()
+            stopped = time.monotonic()
+            while proc.poll() is None and time.monotonic() - stopped < 15:
+                with contextlib.suppress(OSError):
+                    sock.sendall(chunk * 4)  # the body goes on arriving, over the limit after 16 chunks
+                    if select.select([sock], [], [], 0)[0]:
+                        reply += sock.recv(65536)
+                time.sleep(0.1)
+            elapsed = time.monotonic() - stopped
+    finally:
+        server.stop()
+    errors = [line for line in server.log_path.read_text().splitlines() if '"level": "error"' in line]
+    assert reply.startswith(b"HTTP/1.1 413"), reply[:200]
+    assert elapsed < 4.5 and proc.returncode in (0, -signal.SIGTERM) and not errors, (elapsed, proc.returncode, errors)
