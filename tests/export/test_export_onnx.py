@@ -129,6 +129,8 @@ def test_bundled_onnx_model_matches_bundled_checkpoint():
     assert report.max_rotation_diff_deg <= 1e-3 and report.max_translation_diff <= 1e-5
 
 
+@pytest.mark.filterwarnings("ignore:You are using the legacy TorchScript-based ONNX export:DeprecationWarning")
+@pytest.mark.filterwarnings("ignore:The feature will be removed:DeprecationWarning")  # (the legacy exporter's own)
 def test_runtime_still_runs_graphs_exported_before_their_precomputed_inputs(exported, tmp_path):
     """Graphs exported before the k-NN graph and the embedding distance became inputs (encoder takes
     ``points`` only, matchers no ``emb_dist``) still load and give the same results."""
