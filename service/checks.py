@@ -33,12 +33,26 @@ def max_abs(values: np.ndarray) -> float:
 LEAVE_NAN_ROWS_OUT = "leave such rows out (e.g. points[np.isfinite(points).all(axis=1)])"
 
 
+def columns_problem(rows: int, columns: int) -> str:
+    """What is wrong with a cloud of ``rows`` rows of ``columns`` numbers (``columns != 3``), and how to mend it; the
+    same words for arrays in process and for JSON clouds (``service/api/json_shapes.py``)."""
+    if rows == 3 and columns > 3:
+        return (f"expected shape [N, 3], got [3, {columns}]: one row per axis; send one [x, y, z] row per point (the "
+                "array transposed)")
+    extra = "; x, y, z only (a file upload takes extra columns)" if columns > 3 else ""
+    return f"expected shape [N, 3], rows of [x, y, z], got [{rows}, {columns}]{extra}"
+
+
 def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
     """``points`` as float64 ``[N, 3]`` with ``N >= MIN_POINTS`` and finite values, none beyond float32's largest
     and not all below ``SMALLEST_COORDINATES`` (all zero aside), or ``InputError``.
 
     A float64 array comes back as itself (or a view of it), not copied: a 2,000,000-point cloud is 46 MiB, and no
     stage writes to the caller's clouds (the anchor stage only records their centroids)."""
+    if isinstance(points, np.ma.MaskedArray) and np.ma.is_masked(points):  # np.asarray drops the mask
+        rows = int(np.ma.getmaskarray(points).reshape(len(points), -1).any(axis=1).sum())
+        raise InputError(f"{name}: a masked array with {rows} masked rows; its masked values would be used as points: "
+                         "leave them out first (e.g. points[~np.ma.getmaskarray(points).any(axis=1)])")
     try:
         arr = np.asarray(points)
     except ValueError:  # rows of different lengths
@@ -47,7 +61,9 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
         raise InputError(f"{name}: expected numbers, got dtype {arr.dtype}")
     if arr.ndim == 3 and arr.shape[0] == 1:
         arr = arr[0]
-    if arr.ndim != 2 or arr.shape[1] != 3:
+    if arr.ndim == 2 and arr.shape[1] != 3:
+        raise InputError(f"{name}: {columns_problem(*arr.shape)}")
+    if arr.ndim != 2:
         raise InputError(f"{name}: expected shape [N, 3], got {list(arr.shape)}")
     if arr.shape[0] < MIN_POINTS:
         raise InputError(f"{name}: needs at least {MIN_POINTS} points, got {arr.shape[0]}")

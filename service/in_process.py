@@ -19,6 +19,7 @@ from typing import Any
 
 from numpy.typing import ArrayLike
 
+from service.errors import InputError
 from service.manifest import Manifest, bundled_models_dir
 from service.options import check_flag
 from service.registrar import Registrar
@@ -75,6 +76,11 @@ class LocalRegistrar:
         """
         if "options" in options:  # Registrar.register's RegistrationOptions: its refine=None would mean "none"
             raise TypeError("LocalRegistrar.register takes options as keywords (refine=..., keypoints=...)")
+        known = Registrar.option_names | {"return_correspondences"}
+        if unknown := sorted(set(options) - known):  # the server's 422, not RegistrationOptions' TypeError
+            hint = "; the model is chosen by LocalRegistrar(model)" if "model" in unknown else ""
+            raise InputError(f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} (options: "
+                             f"{', '.join(sorted(known))}){hint}")
         if "return_correspondences" in options:  # the HTTP option; a result in process always holds them
             check_flag(options.pop("return_correspondences"), "return_correspondences")
         refine, rotation_search = request_defaults(options.pop("refine", None), options.pop("rotation_search", None))

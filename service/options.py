@@ -184,8 +184,8 @@ class RegistrationOptions:
         # pose (their own caps), so an unrefined pose, judged as one, is refine="none"
         if whole_number(self.icp_max_iterations, "icp_max_iterations") < 0:
             raise InputError(f"icp_max_iterations must be at least 0, got {self.icp_max_iterations}")
-        if self.search != "off":
-            search_rotations_for(whole_number(self.search_rotations, "search_rotations"))
+        search_mode(self.rotation_search)  # true, false or "auto"
+        search_rotations_for(whole_number(self.search_rotations, "search_rotations"))  # whether or not a search runs
         if self.initial_transform is not None:
             check_transform(self.initial_transform)
 

@@ -14,6 +14,7 @@ from typing import Any
 
 from service.api.errors import APIError
 from service.api.json_clouds import CLOUD_FIELDS
+from service.checks import columns_problem
 
 
 def check_cloud_shapes(obj: dict, prefix: str = "") -> None:
@@ -47,8 +48,4 @@ def shape_problem(cloud: Any) -> str | None:
     (columns,) = lengths
     if columns == 3:
         return None
-    if len(cloud) == 3 and columns > 3:
-        return (f"expected shape [N, 3], got [3, {columns}]: one row per axis; send one [x, y, z] row per point (the "
-                "array transposed)")
-    extra = "; x, y, z only (a file upload takes extra columns)" if columns > 3 else ""
-    return f"expected shape [N, 3], rows of [x, y, z], got [{len(cloud)}, {columns}]{extra}"
+    return columns_problem(len(cloud), columns)

@@ -33,9 +33,9 @@ def float32_check(work: Working, result: RegistrationResult, request: Request) -
     ``request.src[work.idx_s]``) are all float32 values and lie far enough out that float32's step there reaches
     ``STEP_SHARE`` of the cloud's RMS radius; else ``result`` itself. The pose and ``reliable`` are kept."""
     warnings = [
-        float32_rounding(name, float(np.abs(points).max()), rms_radius(points))
+        float32_rounding(name, float(np.abs(points).max()), rms_radius(points), dtype)
         for name, points in (("source", request.src[work.idx_s]), ("target", request.tgt[work.idx_t]))  # [Nw, 3]
-        if coarse_float32(points)
+        if (dtype := coarse_float(points)) is not None
     ]
     return dataclasses.replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
 
@@ -50,9 +50,24 @@ def coarse_float32(points: np.ndarray) -> bool:
     return bool(np.array_equal(points, points.astype(np.float32).astype(np.float64)))
 
 
-def float32_rounding(name: str, largest: float, radius: float) -> str:
-    """The warning of cloud ``name`` whose largest coordinate is ``largest`` and RMS radius ``radius``."""
-    step = float(np.spacing(np.float32(largest)))
-    return (f"{FLOAT32_ROUNDING}: the {name}'s coordinates are float32 values up to {largest:.4g} from the origin, "
-            f"where float32 holds them to {step:.3g} ({step / radius:.2%} of its RMS radius {radius:.4g}); send "
+def coarse_float(points: np.ndarray) -> type | None:
+    """``np.float16`` where ``points [N, 3]`` (float64) are all float16 values, not all whole numbers, and float16's
+    step at their largest coordinate is at least ``STEP_SHARE`` of their RMS radius (a float16 array: its step is
+    8,192 times float32's, 0.0156 at 16), else ``np.float32`` where :func:`coarse_float32` holds, else ``None``."""
+    largest, radius = float(np.abs(points).max()), rms_radius(points)
+    if (radius > 0 and largest <= float(np.finfo(np.float16).max)
+            and float(np.spacing(np.float16(largest))) >= STEP_SHARE * radius
+            and np.array_equal(points, points.astype(np.float16).astype(np.float64))
+            and not np.array_equal(points, np.round(points))):
+        return np.float16
+    return np.float32 if coarse_float32(points) else None
+
+
+def float32_rounding(name: str, largest: float, radius: float, dtype: type = np.float32) -> str:
+    """The warning of cloud ``name`` whose largest coordinate is ``largest`` and RMS radius ``radius``, its values
+    those of ``dtype`` (``np.float32`` or ``np.float16``)."""
+    step = float(np.spacing(dtype(largest)))
+    kind = np.dtype(dtype).name
+    return (f"{FLOAT32_ROUNDING}: the {name}'s coordinates are {kind} values up to {largest:.4g} from the origin, "
+            f"where {kind} holds them to {step:.3g} ({step / radius:.2%} of its RMS radius {radius:.4g}); send "
             "float64 coordinates (JSON, a float64 .npy, PLY or PCD doubles) or subtract an offset first (a map origin)")

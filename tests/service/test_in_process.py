@@ -176,6 +176,46 @@ def test_whole_numbers_and_numpy_flags_are_taken_as_the_server_takes_them(local)
     np.testing.assert_array_equal(plain.transform, spelled.transform)
 
 
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"model": "clean"}, "unknown option model .*the model is chosen by LocalRegistrar\\(model\\)"),
+    ({"keypoint": 64}, "unknown option keypoint \\(options: .*keypoints"),
+])
+def test_an_unknown_option_is_an_input_error_naming_it(local, options, message):
+    """As the server's 422; it was RegistrationOptions' own TypeError."""
+    source, target = synthetic_pair()
+    with pytest.raises(InputError, match=message):
+        local.register(source, target, **options)
+
+
+def test_search_rotations_is_checked_whether_or_not_a_search_runs(local):
+    source, target = synthetic_pair()
+    with pytest.raises(InputError, match="search_rotations"):
+        local.register(source, target, search_rotations=7, rotation_search=False)
+
+
+@pytest.mark.parametrize(("shape", "message"), [
+    ((3, 500), "got \\[3, 500\\]: one row per axis; .*the array transposed"),
+    ((500, 4), "got \\[500, 4\\]; x, y, z only"),
+    ((500, 2), "got \\[500, 2\\]$"),
+])
+def test_a_cloud_of_other_columns_is_named_as_the_server_names_it(local, shape, message):
+    _, target = synthetic_pair()
+    cloud = np.random.default_rng(0).normal(size=shape)
+    with pytest.raises(InputError, match="source: expected shape \\[N, 3\\], .*" + message):
+        local.register(cloud, target)
+
+
+def test_a_masked_array_with_masked_rows_is_refused(local):
+    """``np.asarray`` drops a mask: the masked rows were registered as points."""
+    source, target = synthetic_pair()
+    masked = np.ma.masked_array(source, mask=np.zeros_like(source, dtype=bool))
+    masked[:5] = np.ma.masked
+    with pytest.raises(InputError, match="source: a masked array with 5 masked rows"):
+        local.register(masked, target)
+    unmasked = local.register(np.ma.masked_array(source), target)  # nothing masked: its values are the points
+    np.testing.assert_array_equal(unmasked.transform, local.register(source, target).transform)
+
 def test_a_ragged_cloud_is_an_input_error(local):
     source, target = synthetic_pair()
     with pytest.raises(InputError, match="source: expected an \\[N, 3\\] array of numbers, got rows of different"):

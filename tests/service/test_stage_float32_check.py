@@ -64,6 +64,15 @@ def test_float32_clouds_far_out_are_warned_with_their_step(general, offset, dtyp
         assert "subtract an offset first" in warning
 
 
+
+def test_float16_clouds_are_warned_with_float16s_step(general) -> None:
+    """A float16 cloud 16 units out holds its coordinates to 0.0156, 8,192 times float32's step: it was not warned,
+    as only float32's step was measured."""
+    source, target = (cloud / 10.0 + 16.0 for cloud in scans(np.zeros(3), np.float64))  # a 2 m surface, 16 m out
+    found = rounded(general.register(source.astype(np.float16), target.astype(np.float16), refine="icp-plane").warnings)
+    assert len(found) == 2 and all("are float16 values" in w and "float16 holds them to 0.0156" in w for w in found)
+    assert rounded(general.register(source.astype(np.float32), target.astype(np.float32)).warnings) == []
+
 def test_the_warning_changes_neither_the_pose_nor_reliable() -> None:
     skip_without_general()
     source, target = scans(UTM, np.float32)

@@ -54,8 +54,11 @@ def test_bad_options_raise_the_former_messages(options, message) -> None:
         RegistrationOptions(**options)
 
 
-def test_search_rotations_is_checked_only_when_a_search_may_run() -> None:
-    assert RegistrationOptions(search_rotations=7).search == "off"
+def test_search_rotations_is_checked_whether_or_not_a_search_runs() -> None:
+    """A value no search takes is refused with the search off too: it was ignored then, and refused once on."""
+    with pytest.raises(InputError, match="search_rotations must be one of"):
+        RegistrationOptions(search_rotations=7)
+    assert RegistrationOptions(search_rotations=60).search == "off"
     assert RegistrationOptions(rotation_search=np.bool_(True)).search == "on"
     assert RegistrationOptions(rotation_search=None).search == "off"
 
