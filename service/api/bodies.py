@@ -146,7 +146,8 @@ async def read_body(request: Request, budget: BodyBudget, max_body_bytes: int,
     Unlike ``await request.body()`` this keeps no list of chunks beside the joined copy and does
     not cache the body on the request, so it can be freed as soon as it is parsed.
     """
-    declared = request.headers.get("content-length", "")
+    # a chunked body's Content-Length says nothing of its size (h11 frames it by the chunks): counted at the limit
+    declared = "" if "transfer-encoding" in request.headers else request.headers.get("content-length", "")
     try:  # a wait for the budget is bounded as a wait for a worker is (MFGNET_TIMEOUT_S): then 503, the slot freed
         async with asyncio.timeout(wait_s):
             hold = await budget.hold(int(declared) if declared.isdigit() else max_body_bytes)

@@ -204,6 +204,12 @@ class HeaderTimeoutH11Protocol(H11Protocol):
         if self.conn.their_state is not h11.IDLE:  # its headers are complete (or it was refused)
             self._cancel_header_timer()
 
+    def _should_upgrade(self) -> bool:
+        """Never: the service has no WebSocket route. uvicorn handed a WebSocket upgrade to its WebSocket protocol
+        (wsproto is installed), which answered a bare 403 (no JSON, hardening headers, X-Request-ID or access line), and
+        logged a warning per other upgrade (h2c); the request is served as the HTTP request it also is."""
+        return False
+
     def handle_events(self) -> None:
         super().handle_events()
         if self.cycle is not None:  # an answer that gives up on its client can close the connection at once

@@ -9,6 +9,7 @@ import logging
 import re
 import time
 import uuid
+from urllib.parse import parse_qsl
 
 from starlette.requests import ClientDisconnect
 from starlette.routing import Match, Mount, Route, compile_path
@@ -112,10 +113,43 @@ def _content_length(scope: Scope) -> int | None:
     return None
 
 
-def _differing_content_types(scope: Scope) -> bool:
-    """Whether the request has two Content-Type headers of different values: the routes read the first, a proxy in
-    front may have read the last (h11 refuses two different Content-Lengths itself)."""
-    return len({value.strip().lower() for key, value in scope.get("headers", []) if key == b"content-type"}) > 1
+def _framed_twice(scope: Scope) -> bool:
+    """Whether the request has both Transfer-Encoding and Content-Length: h11 frames its body by the chunked coding, a
+    proxy in front may have framed it by the length (request smuggling), and the body budget counts the length. RFC
+    9112 6.1: the server MUST close the connection after answering it; it is refused here."""
+    names = {key for key, _ in scope.get("headers", [])}
+    return b"transfer-encoding" in names and b"content-length" in names
+
+
+def _differing_header(scope: Scope) -> str | None:
+    """``Content-Type`` or ``Authorization`` where the request has two of different values: the routes read the first,
+    a proxy in front may have read the last (h11 refuses two different Content-Lengths itself); else ``None``."""
+    for name, fold in ((b"content-type", bytes.lower), (b"authorization", bytes)):
+        if len({fold(value.strip()) for key, value in scope.get("headers", []) if key == name}) > 1:
+            return name.decode().title()
+    return None
+
+
+_ABSOLUTE_FORM = re.compile(r"^https?://[^/]*", re.IGNORECASE)  # scheme and authority of an absolute-form target
+_ABSOLUTE_FORM_RAW = re.compile(rb"^https?://[^/]*", re.IGNORECASE)
+
+
+def _to_origin_form(scope: Scope) -> None:
+    """An absolute-form request target (``GET http://host/v2/health/live``, as sent to proxies), which a server MUST
+    accept (RFC 9112 3.2.2), reduced to its path: uvicorn takes the whole target for the path (a 404)."""
+    if match := _ABSOLUTE_FORM.match(scope.get("path", "")):
+        scope["path"] = scope["path"][match.end():] or "/"
+        if (raw := _ABSOLUTE_FORM_RAW.match(scope.get("raw_path") or b"")) is not None:
+            scope["raw_path"] = scope["raw_path"][raw.end():] or b"/"
+
+
+def _unread_query(scope: Scope) -> list[str]:
+    """The names of a POST request's query parameters: no POST route reads its query string, so an option sent there
+    (``?model=clean``) would be ignored."""
+    if scope["method"] != "POST" or not scope.get("query_string"):
+        return []
+    names = {name for name, _ in parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)}
+    return sorted(names) or [shortened(scope["query_string"].decode("latin-1"))]
 
 
 class RequestContextMiddleware:
@@ -142,6 +176,7 @@ class RequestContextMiddleware:
             await self.app(scope, receive, send)
             return
         started = time.perf_counter()
+        _to_origin_form(scope)
         request_id = scope.get("state", {}).get("request_id") or request_id_of(scope)  # the protocol's, if it answered
         scope.setdefault("state", {})["request_id"] = request_id
         state = {"status": 0, "started": False, "answered": False, "received": 0, "body_done": False,
@@ -201,12 +236,19 @@ class RequestContextMiddleware:
         self.metrics.in_flight.inc()
         try:
             length = _content_length(scope)
-            if length is not None and length > limit:  # refuse before reading anything
+            if _framed_twice(scope):
+                await self._answer(scope, receive, send_with_id, 400, "the request has both Transfer-Encoding and "
+                                   "Content-Length; send one (RFC 9112 6.1)", headers=[(b"connection", b"close")])
+            elif length is not None and length > limit:  # refuse before reading anything
                 too_large = BodyTooLargeError(limit, setting)
                 await self._answer(scope, receive, send_with_id, too_large.status, too_large.message)
-            elif _differing_content_types(scope):
-                await self._answer(scope, receive, send_with_id, 400, "the request has Content-Type headers that "
+            elif (differing := _differing_header(scope)) is not None:
+                await self._answer(scope, receive, send_with_id, 400, f"the request has {differing} headers that "
                                                                        "differ; send one (RFC 9110 5.3)")
+            elif unread := _unread_query(scope):
+                await self._answer(scope, receive, send_with_id, 400, shortened(
+                    f"query parameters are not read on POST routes ({', '.join(unread[:5])}); send options in the "
+                    "request body (JSON fields, form fields or OIP parameters)"))
             else:
                 await self.app(scope, receive_limited, send_with_id)
         except ClientDisconnect:
@@ -245,7 +287,7 @@ class RequestContextMiddleware:
                 "status": state["status"],
                 "ms": round(1000 * elapsed, 2),
                 "bytes_in": state["received"],
-                "client": (scope.get("client") or ("", 0))[0],
+                "client": shortened((scope.get("client") or ("", 0))[0]),  # (a trusted proxy's X-Forwarded-For)
             }
             if error is not None:
                 extra["error"] = error

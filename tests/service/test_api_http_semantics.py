@@ -86,6 +86,23 @@ def test_the_same_content_type_twice_is_read(server):
     assert reply.startswith(b"HTTP/1.1 200 "), reply[:300]
 
 
+
+@pytest.mark.parametrize("tokens", [(b"wrong", b"right"), (b"right", b"wrong")])
+def test_two_different_authorization_headers_are_a_400(server, tokens):
+    """As two Content-Types: the server read the first and a proxy may have read (or checked) the last."""
+    head = (b"POST /v1/register HTTP/1.1\r\nHost: test\r\nContent-Type: application/json\r\n"
+            + b"".join(b"Authorization: Bearer %s\r\n" % token for token in tokens))
+    reply = raw_request(server, head, json.dumps(pair()).encode())
+    assert reply.startswith(b"HTTP/1.1 400 ") and b"Authorization headers that differ" in reply, reply[:300]
+
+
+@pytest.mark.parametrize("path", ["/v1/register?model=clean&refine=icp", "/v2/models/general/infer?model_version=1"])
+def test_query_parameters_on_a_post_route_are_a_400_naming_them(client, path):
+    """No POST route reads its query string: ``?model=clean`` registered with the default model, silently."""
+    response = client.post(path, json=pair())
+    names = path.partition("?")[2].replace("=clean", "").replace("=icp", "").replace("=1", "").replace("&", ", ")
+    assert_error(response, 400, "query parameters are not read", f"({names})", "request body")
+
 def test_a_batch_pairs_unknown_model_is_named_by_its_index(client):
     response = client.post("/v1/register/batch", json={"pairs": [pair(), pair(model="nope")]})
     assert_error(response, 404, "pairs[1].model", "unknown model 'nope'")

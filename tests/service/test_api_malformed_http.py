@@ -127,3 +127,39 @@ def test_headers_within_the_limit_sent_whole_with_a_long_body_reach_the_app():
                      + str(len(body)).encode() + b"\r\n\r\n" + body)
         status, _, reply = parse(until_closed(sock))
     assert status == 422 and b"source" in reply, reply[:300]  # the body read and validated: not the headers' 431
+
+
+def test_a_request_with_both_content_length_and_transfer_encoding_is_refused_and_its_connection_closed():
+    """RFC 9112 6.1: a proxy in front may frame the body by the length where h11 frames it by the chunks (request
+    smuggling); the server MUST close the connection after answering. The pipelined GET is not answered."""
+    body = b'{"source": [], "target": []}'
+    with connect() as sock:
+        sock.sendall(REGISTER + b"Content-Length: 5\r\nTransfer-Encoding: chunked\r\n\r\n" + b"%x\r\n" % len(body)
+                     + body + b"\r\n0\r\n\r\nGET /v2/health/live HTTP/1.1\r\nHost: x\r\n\r\n")
+        reply = until_closed(sock)
+    status, headers, rest = parse(reply)
+    assert status == 400 and headers["connection"] == "close", reply[:300]
+    assert "Transfer-Encoding" in json.loads(rest)["error"]
+    assert reply.count(b"HTTP/1.1 ") == 1
+
+
+@pytest.mark.parametrize("upgrade", [b"websocket", b"h2c"])
+def test_an_upgrade_request_is_served_as_the_http_request_it_also_is(upgrade):
+    """The service has no WebSocket route: uvicorn handed a WebSocket upgrade to its WebSocket protocol, which answered
+    a bare 403 (no JSON, hardening headers or access line), and logged a warning per other upgrade (h2c)."""
+    with connect() as sock:
+        sock.sendall(b"GET /v2/health/live HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\nUpgrade: %s\r\n"
+                     b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n"
+                     b"X-Request-ID: upgrade-%s\r\nConnection: close\r\n\r\n" % (upgrade, upgrade))
+        status, headers, body = parse(until_closed(sock))
+    assert status == 200 and headers["x-content-type-options"] == "nosniff" and json.loads(body), (status, headers)
+    assert access_line(f"upgrade-{upgrade.decode()}")["status"] == 200
+
+
+def test_an_absolute_form_target_is_served_as_its_path():
+    """RFC 9112 3.2.2: a server MUST accept ``GET http://host/path`` (as clients send it to a proxy); it was a 404
+    for ``/http://host/path``."""
+    with connect() as sock:
+        sock.sendall(b"GET http://127.0.0.1/v2/health/live HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        status, _, body = parse(until_closed(sock))
+    assert status == 200 and json.loads(body), (status, body)

@@ -168,3 +168,12 @@ def test_metrics_export_no_created_series(client):
     """prometheus_client's ``_created`` gauges doubled the counters' series and were in no table."""
     text = client.get("/metrics").text
     assert not re.search(r"^mfgnet_\w+_created", text, flags=re.MULTILINE)
+
+
+def test_a_forwarded_client_address_is_logged_cut_short(server, client):
+    """uvicorn takes the client's address from a trusted proxy's ``X-Forwarded-For`` as it is: 5,000 characters were
+    logged whole, where every other field of the line is cut to 256."""
+    request_id = "forwarded-" + uuid.uuid4().hex
+    client.get("/v2/health/live", headers={"X-Forwarded-For": "a" * 5000, "X-Request-ID": request_id})
+    line, _ = access_line(server, request_id)
+    assert line["client"] == "a" * 256 + "...", len(line["client"])
