@@ -214,8 +214,14 @@ def ambiguity_warning(rotations: np.ndarray, ratios: np.ndarray, best: int, meas
     i = close_second(ratios, best, angles > AMBIGUOUS_DEGREES)
     if i is None:
         return None
-    return (f"ambiguous: a pose {angles[i]:.0f} deg away fits almost as well ({measure} {ratios[i]:.2f} vs "
-            f"{ratios[best]:.2f}); the shape may be symmetric")
+    return (f"ambiguous: a pose {angles[i]:.0f} deg away {fits_as(ratios[i], ratios[best])} ({measure} "
+            f"{ratios[i]:.2f} vs {ratios[best]:.2f}); the shape may be symmetric")
+
+
+def fits_as(other: float, best: float) -> str:
+    """How a close second's fit ``other`` compares with the kept pose's ``best``, in an ambiguity warning: a check
+    after the ranking (the symmetry check's refined turns) can find one that fits better."""
+    return "fits better" if other > best else "fits as well" if other == best else "fits almost as well"
 
 
 def close_second(ratios: np.ndarray, best: int, far: np.ndarray) -> int | None:

@@ -20,6 +20,7 @@ from service.rotation_search import (
     AMBIGUOUS_RATIO_GAP,
     ambiguity_warning,
     close_second,
+    fits_as,
     rank_hypotheses,
 )
 from service.stages.normalise import Working, samples_densely
@@ -162,5 +163,5 @@ def shift_ambiguity(work: Working, rotations: np.ndarray, translations: np.ndarr
     i = close_second(fits, best, shift > AMBIGUOUS_SHIFT * work.norm.scale)
     if i is None:
         return None
-    return (f"{SHIFT_AMBIGUITY} {shift[i]:.3g} further fits almost as well ({measure} "
+    return (f"{SHIFT_AMBIGUITY} {shift[i]:.3g} further {fits_as(fits[i], fits[best])} ({measure} "
             f"{fits[i]:.2f} vs {fits[best]:.2f}); the clouds may slide along flat or repeated surfaces")
