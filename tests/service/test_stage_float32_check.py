@@ -72,6 +72,8 @@ def test_float16_clouds_are_warned_with_float16s_step(general) -> None:
     found = rounded(general.register(source.astype(np.float16), target.astype(np.float16), refine="icp-plane").warnings)
     assert len(found) == 2 and all("are float16 values" in w and "float16 holds them to 0.0156" in w for w in found)
     assert rounded(general.register(source.astype(np.float32), target.astype(np.float32)).warnings) == []
+    near = [(cloud / 10.0).astype(np.float16) for cloud in scans(np.zeros(3), np.float64)]  # about the origin
+    assert rounded(general.register(*near).warnings) == []  # float16's own precision (ModelNet40 as stored)
 
 def test_the_warning_changes_neither_the_pose_nor_reliable() -> None:
     skip_without_general()
