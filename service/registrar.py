@@ -369,6 +369,7 @@ class Registrar:
             if agreed is not result:
                 result = stages.symmetry(work, stages.free_space(work, agreed, request.options, timing),
                                          request.options, timing)
+        result = stages.unrefined_check(work, result, request.options, timing)  # refine "none": a refinement leaves it
         result = anchors.result_to_caller(result)
         result = stages.guess_check(work, result, request, self.reference_radius)  # a warning far from the guess
         result = stages.scale_check(work, result)  # a warning where the clouds' sizes differ as units do

@@ -27,6 +27,7 @@ from service.stages.scale_check import scale_check
 from service.stages.search import auto_search, search
 from service.stages.slide import slide
 from service.stages.symmetry import symmetry
+from service.stages.unrefined_check import unrefined_check
 from service.stages.validate import validate
 
 
@@ -54,6 +55,9 @@ class Stages:
     fine: Callable = fine  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     symmetry: Callable = symmetry  # (Working, RegistrationResult, RegistrationOptions, timing) -> RegistrationResult
     free_space: Callable = free_space  # (Working, RegistrationResult, RegistrationOptions, timing) -> the same
+    # (Working, RegistrationResult, RegistrationOptions, timing) -> the same; refine "none": reliable if a short
+    # refinement leaves the pose
+    unrefined_check: Callable = unrefined_check
     guess_check: Callable = guess_check  # (Working, RegistrationResult, caller frames, Request, reference_radius)
     scale_check: Callable = scale_check  # (Working, RegistrationResult) -> the same, warned of a unit mismatch
     float32_check: Callable = float32_check  # (Working, RegistrationResult, Request) -> the same, warned of float32
