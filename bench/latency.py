@@ -293,7 +293,8 @@ def bench(
     accuracy_count: Annotated[
         int, typer.Option(min=0, help="pairs per accuracy figure (0: skip the accuracy stages)")
     ] = 30,
-    classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR")] = True,
+    classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR in the side-by-side "
+                                                 "accuracy (--accuracy-setting)")] = True,
     http_requests: Annotated[
         int, typer.Option(min=0, help="requests per concurrency level over HTTP (0: skip)")
     ] = 100,

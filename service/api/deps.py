@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import hmac
+from urllib.parse import parse_qsl
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.api.errors import APIError
+from service.api.errors import APIError, shortened
 from service.api.metrics import Metrics
 from service.api.registry import ModelRegistry
 from service.api.runner import Runner
@@ -43,3 +44,14 @@ async def require_api_key(
     if not given or not hmac.compare_digest(given.encode(), expected.get_secret_value().encode()):
         message = "missing or invalid API key; send 'Authorization: Bearer <key>'"
         raise APIError(401, message, headers={"WWW-Authenticate": "Bearer"})
+
+
+def refuse_query_on_post(request: Request) -> None:
+    """400 naming a POST request's query parameters: no route reads them, so an option sent there (``?model=clean``)
+    would be ignored without a word."""
+    query = request.url.query
+    if request.method != "POST" or not query:
+        return
+    names = sorted({name for name, _ in parse_qsl(query, keep_blank_values=True)}) or [query]
+    raise APIError(400, shortened(f"query parameters are not read on POST routes ({', '.join(names[:5])}); send "
+                                  "options in the request body (JSON fields, form fields or OIP parameters)"))

@@ -9,7 +9,6 @@ import logging
 import re
 import time
 import uuid
-from urllib.parse import parse_qsl
 
 from starlette.requests import ClientDisconnect
 from starlette.routing import Match, Mount, Route, compile_path
@@ -143,15 +142,6 @@ def _to_origin_form(scope: Scope) -> None:
             scope["raw_path"] = scope["raw_path"][raw.end():] or b"/"
 
 
-def _unread_query(scope: Scope) -> list[str]:
-    """The names of a POST request's query parameters: no POST route reads its query string, so an option sent there
-    (``?model=clean``) would be ignored."""
-    if scope["method"] != "POST" or not scope.get("query_string"):
-        return []
-    names = {name for name, _ in parse_qsl(scope["query_string"].decode("latin-1"), keep_blank_values=True)}
-    return sorted(names) or [shortened(scope["query_string"].decode("latin-1"))]
-
-
 class RequestContextMiddleware:
     def __init__(self, app: ASGIApp, metrics: Metrics, max_body_bytes: int, max_upload_bytes: int | None = None,
                  body_timeout_s: float | None = None, body_min_rate: int | None = None,
@@ -245,10 +235,6 @@ class RequestContextMiddleware:
             elif (differing := _differing_header(scope)) is not None:
                 await self._answer(scope, receive, send_with_id, 400, f"the request has {differing} headers that "
                                                                        "differ; send one (RFC 9110 5.3)")
-            elif unread := _unread_query(scope):
-                await self._answer(scope, receive, send_with_id, 400, shortened(
-                    f"query parameters are not read on POST routes ({', '.join(unread[:5])}); send options in the "
-                    "request body (JSON fields, form fields or OIP parameters)"))
             else:
                 await self.app(scope, receive_limited, send_with_id)
         except ClientDisconnect:

@@ -141,12 +141,12 @@ def sequence_command(
 
     if out == Path("-"):
         out = None
-    if len(frames) < 2:
-        fail(f"a sequence needs at least two frames, got {len(frames)}")
-    for index, path in enumerate(frames):
+    for index, path in enumerate(frames):  # first: an unmatched shell glob (scans/*.ply) is one missing frame
         problem = frame_problem(path)
         if problem:
             fail(f"frame {index} {path}: {problem}")
+    if len(frames) < 2:
+        fail(f"a sequence needs at least two frames, got {len(frames)}: {', '.join(map(str, frames))}")
     _check_sequence_outputs(frames, out, kitti)
     _check_aligned_folder(frames, write_aligned)
     check_server_flags(server, model_dir, threads, ctx)

@@ -329,14 +329,16 @@ def test_a_pair_the_pipeline_refuses_exits_2_naming_both_frames(tmp_path, frames
     assert f"frame 1 {few} onto frame 0 {frames[0]}:" in result.stderr and "Traceback" not in result.output
 
 
-@pytest.mark.parametrize("case", ["one-frame", "missing", "extension", "folder", "output-is-a-frame", "kitti-folder",
-                                  "same-outputs", "kitti-on-stdout", "keypoints", "iterations"])
+@pytest.mark.parametrize("case", ["one-frame", "missing", "unmatched-glob", "extension", "folder", "output-is-a-frame",
+                                  "kitti-folder", "same-outputs", "kitti-on-stdout", "keypoints", "iterations"])
 def test_usage_errors_exit_2_before_any_registration(tmp_path, frames, model_dir, case) -> None:
     out = tmp_path / "poses.jsonl"
     f0, f1, f2 = map(str, frames[:3])
     args, fragments = {
         "one-frame": ([f0], ["at least two frames, got 1"]),
         "missing": ([f0, f1, tmp_path / "nope.ply", f2], [f"frame 2 {tmp_path / 'nope.ply'}: no such file"]),
+        # a shell glob that matched nothing reaches the command as itself: named, not counted as one frame
+        "unmatched-glob": ([tmp_path / "scans" / "*.ply"], [f"frame 0 {tmp_path / 'scans' / '*.ply'}: no such file"]),
         "extension": ([f0, f1, tmp_path / "scan.bin"], ["frame 2", "unknown extension '.bin'", ".ply"]),
         "folder": ([f0, tmp_path], [f"frame 1 {tmp_path}: a folder"]),
         "output-is-a-frame": ([f0, f1, "--kitti", f1], ["--kitti", "is one of the frames"]),

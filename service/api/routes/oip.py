@@ -17,7 +17,7 @@ from starlette.responses import Response
 
 from service.api import oip_request
 from service.api.bodies import read_body
-from service.api.deps import get_registry, get_runner, get_settings, require_api_key
+from service.api.deps import get_registry, get_runner, get_settings, refuse_query_on_post, require_api_key
 from service.api.errors import APIError, error_docs
 from service.api.oip_request import HEADER_LENGTH, OCTET_STREAM
 from service.api.oip_response import infer_response
@@ -222,7 +222,7 @@ INFER_ROUTE = {
         },
         **error_docs(400, 401, 404, 408, 413, 415, 422, 503, 504),
     },
-    "dependencies": [Depends(require_api_key)],
+    "dependencies": [Depends(require_api_key), Depends(refuse_query_on_post)],
 }
 
 

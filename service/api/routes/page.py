@@ -31,7 +31,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
 from service.api import bodies
-from service.api.deps import get_runner, get_settings, require_api_key
+from service.api.deps import get_runner, get_settings, refuse_query_on_post, require_api_key
 from service.api.errors import APIError, TempStorageError, error_docs
 from service.api.middleware import ABORT_CONNECTION, DROPPED_CLIENT
 from service.api.responses import RenderedJSON
@@ -70,7 +70,7 @@ ALIGNED_MEDIA_TYPES = {
 STREAM_CHUNK_BYTES = 1 << 16  # each send must drain within MFGNET_BODY_TIMEOUT_S: ~4.4 KiB/s at the default
 
 page_router = APIRouter(include_in_schema=False)
-router = APIRouter(prefix="/v1", tags=["page"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1", tags=["page"], dependencies=[Depends(require_api_key), Depends(refuse_query_on_post)])
 
 
 @page_router.get("/")

@@ -7,7 +7,7 @@ from contextlib import ExitStack
 from fastapi import APIRouter, Depends, Request
 
 from service.api import bodies
-from service.api.deps import get_runner, get_settings, require_api_key
+from service.api.deps import get_runner, get_settings, refuse_query_on_post, require_api_key
 from service.api.errors import error_docs
 from service.api.responses import RenderedJSON
 from service.api.runner import register_response
@@ -17,7 +17,8 @@ from service.api.schemas import (
     RegisterResponse,
 )
 
-router = APIRouter(prefix="/v1", tags=["register"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1", tags=["register"],
+                   dependencies=[Depends(require_api_key), Depends(refuse_query_on_post)])
 
 FILE_DESCRIPTION = (
     "A point-cloud file, its format found from its content: PLY (ascii, binary), PCD (ascii, binary, "
