@@ -19,6 +19,7 @@ from service.api.head import HeadAsGetMiddleware
 from service.api.limiter import InferenceLimiter
 from service.api.metrics import Metrics
 from service.api.middleware import RequestContextMiddleware
+from service.api.ranges import IgnoreUnservableRanges
 from service.api.registry import ModelEntry, ModelRegistry, UnknownModelsError
 from service.api.routes import docs, models, oip, page, register
 from service.api.routes import metrics as metrics_routes
@@ -103,6 +104,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     docs.install(app)
     if settings.cors_origins:
         cors.install(app, settings.cors_origins)  # with the OIP binary extension's header; refusals as JSON
+    app.add_middleware(IgnoreUnservableRanges)  # the static files' Range: a unit or form they cannot serve is ignored
     app.add_middleware(HeadAsGetMiddleware)  # inside the request context: the access log and metrics say HEAD
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,

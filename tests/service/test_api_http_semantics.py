@@ -174,3 +174,20 @@ def test_head_requests_of_the_page_files_are_200s_named_by_their_route_whenever_
         assert {line["route"] for line in heads} == {"/", "/page"}
     finally:
         server.stop()
+
+
+@pytest.mark.parametrize("value", ["items=0-1", "bytes=5-1", "bytes=abc", "bytes=-0", "bytes="])
+@pytest.mark.parametrize("path", ["/", "/page/page.js"])
+def test_a_range_the_files_cannot_serve_is_ignored(client, path, value):
+    """RFC 9110 14.2: a server MUST ignore a range unit it does not understand (and may ignore a malformed range):
+    Starlette answered a plain-text 400, where every error is JSON."""
+    whole = client.get(path)
+    ranged = client.get(path, headers={"Range": value})
+    assert ranged.status_code == 200 and ranged.content == whole.content, (ranged.status_code, ranged.text[:100])
+
+
+def test_a_well_formed_byte_range_of_a_file_is_served(client):
+    whole = client.get("/page/page.js").content
+    ranged = client.get("/page/page.js", headers={"Range": "bytes=0-9"})
+    assert ranged.status_code == 206 and ranged.content == whole[:10]
+    assert client.get("/page/page.js", headers={"Range": f"bytes={len(whole) + 10}-"}).status_code == 416
