@@ -4,13 +4,19 @@ the in-process API on the README's surface."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
+from pair_checks import needs_dense
 from real_scan_cases import skip_without_general
 from stage_inputs import result_at, working_clouds
 
+from service.manifest import bundled_models_dir
 from service.quality import POOR_FIT
+from service.registrar import Registrar
 from service.rotation_search import rotation_between_deg
+from service.stages.pipeline import Stages
 from service.stages.unrefined_check import MOVE_DEG, SHIFT, unrefined_check
 
 
@@ -47,7 +53,7 @@ def test_the_true_pose_is_left_reliable(unrefined) -> None:
 def test_a_pose_degrees_off_is_withdrawn_naming_how_far_a_refinement_moves_it(unrefined, off_deg) -> None:
     work, options, R, t = unrefined
     checked = unrefined_check(work, result_at(about_z(off_deg) @ R, t), options, timing := {})
-    assert not checked.reliable and checked.warnings[-1].startswith(f"{POOR_FIT}: a short refinement moves the "
+    assert not checked.reliable and checked.warnings[-1].startswith(f"{POOR_FIT}: a short refinement turns the "
                                                                     "unrefined pose")
     moved = float(checked.warnings[-1].split("pose ")[1].split(" deg")[0])
     assert moved > MOVE_DEG and timing["postprocess"] > 0
@@ -80,3 +86,33 @@ def test_the_readmes_unrefined_request_is_not_reliable_where_it_is_20_deg_off() 
     result = LocalRegistrar("general", threads=1).register(source, target, refine="none")
     assert rotation_between_deg(result.rotation, R) > MOVE_DEG  # the network's pose, as it is
     assert not result.reliable and any(w.startswith(f"{POOR_FIT}: a short refinement") for w in result.warnings)
+
+
+@needs_dense
+def test_on_small_working_clouds_right_results_stay_reliable() -> None:
+    """Every working point is moved where the short points are fewer than ``CHECK_POINTS``, and a shift is measured
+    against the working target's spacing where it is wider than the inlier distance: at ``working_size`` 128, 40
+    short points turned right poses up to 27 deg, and right poses moved 1-2 inlier distances of a sparser cloud (11
+    right results of the first 40 dense pairs lost ``reliable``)."""
+    from model.data import make_test_pairs
+
+    skip_without_general()
+    pairs = make_test_pairs("dense", "test", 12, 0)
+    general = Registrar(bundled_models_dir() / "general", threads=1, warmup=False)
+    unchecked = Registrar(bundled_models_dir() / "general", threads=1, warmup=False,
+                          stages=dataclasses.replace(Stages(), unrefined_check=lambda work, result, options, t: result))
+    for i in range(12):
+        src, tgt = pairs["source"][i], pairs["target"][i]
+        options = {"refine": "none", "working_size": 128, "keypoints": 64}
+        plain, checked = unchecked.register(src, tgt, **options), general.register(src, tgt, **options)
+        right = (rotation_between_deg(plain.rotation, pairs["rotation"][i]) < 5
+                 and np.linalg.norm(plain.translation - pairs["translation"][i]) < 0.05)
+        assert checked.reliable or not (plain.reliable and right), (i, checked.warnings)
+
+
+def test_icp_max_distance_does_not_switch_the_check_off() -> None:
+    """The check refines at the default correspondence distance: ``icp_max_distance`` sets a refinement, which
+    ``refine: "none"`` does not run (0.001 let the README's pose 20.5 deg off stay ``reliable``)."""
+    source, target, R, t = surface()
+    work, options = working_clouds(source, target, {"refine": "none", "icp_max_distance": 0.001})
+    assert not unrefined_check(work, result_at(about_z(20.0) @ R, t), options, {}).reliable
