@@ -49,10 +49,6 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
 
     A float64 array comes back as itself (or a view of it), not copied: a 2,000,000-point cloud is 46 MiB, and no
     stage writes to the caller's clouds (the anchor stage only records their centroids)."""
-    if isinstance(points, np.ma.MaskedArray) and np.ma.is_masked(points):  # np.asarray drops the mask
-        rows = int(np.ma.getmaskarray(points).reshape(len(points), -1).any(axis=1).sum())
-        raise InputError(f"{name}: a masked array with {rows} masked rows; its masked values would be used as points: "
-                         "leave them out first (e.g. points[~np.ma.getmaskarray(points).any(axis=1)])")
     try:
         arr = np.asarray(points)
     except ValueError:  # rows of different lengths
@@ -65,6 +61,12 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
         raise InputError(f"{name}: {columns_problem(*arr.shape)}")
     if arr.ndim != 2:
         raise InputError(f"{name}: expected shape [N, 3], got {list(arr.shape)}")
+    if isinstance(points, np.ma.MaskedArray) and np.ma.is_masked(points):  # np.asarray drops the mask
+        mask = np.ma.getmaskarray(points).reshape(arr.shape)  # [N, 3], as arr ([1, N, 3] taken as [N, 3])
+        rows = int(mask.any(axis=1).sum())
+        raise InputError(f"{name}: a masked array with {rows} masked row{'s' if rows != 1 else ''}; its masked values "
+                         "would be used as points: leave them out first (e.g. "
+                         "points[~np.ma.getmaskarray(points).any(axis=-1)])")
     if arr.shape[0] < MIN_POINTS:
         raise InputError(f"{name}: needs at least {MIN_POINTS} points, got {arr.shape[0]}")
     arr = np.asarray(arr, dtype=np.float64)

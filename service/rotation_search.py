@@ -221,6 +221,7 @@ def ambiguity_warning(rotations: np.ndarray, ratios: np.ndarray, best: int, meas
 def fits_as(other: float, best: float) -> str:
     """How a close second's fit ``other`` compares with the kept pose's ``best``, in an ambiguity warning: a check
     after the ranking (the symmetry check's refined turns) can find one that fits better."""
+    other, best = round(float(other), 2), round(float(best), 2)  # as the warning prints them
     return "fits better" if other > best else "fits as well" if other == best else "fits almost as well"
 
 

@@ -26,6 +26,8 @@ from service.stages.validate import Request
 STEP_SHARE = 1e-3
 # float16 values are warned only this many RMS radii or more from the origin, where an offset would keep their digits
 FAR_OUT_RADII = 10.0
+# float16 holds every whole number up to this; beyond it a whole-number cloud may be float16's rounding itself
+FLOAT16_WHOLE = 2048.0
 # The kind (the text before the colon) of the warning this stage adds
 FLOAT32_ROUNDING = "float32 rounding"
 
@@ -62,7 +64,7 @@ def coarse_float(points: np.ndarray) -> type | None:
     if (radius > 0 and FAR_OUT_RADII * radius <= largest <= float(np.finfo(np.float16).max)
             and float(np.spacing(np.float16(largest))) >= STEP_SHARE * radius
             and np.array_equal(points, points.astype(np.float16).astype(np.float64))
-            and not np.array_equal(points, np.round(points))):
+            and not (largest <= FLOAT16_WHOLE and np.array_equal(points, np.round(points)))):
         return np.float16
     return np.float32 if coarse_float32(points) else None
 

@@ -213,6 +213,10 @@ def test_a_masked_array_with_masked_rows_is_refused(local):
     masked[:5] = np.ma.masked
     with pytest.raises(InputError, match="source: a masked array with 5 masked rows"):
         local.register(masked, target)
+    batched = np.ma.masked_array(source[None], mask=np.zeros((1, *source.shape), dtype=bool))  # [1, N, 3]
+    batched[0, :5, 2] = np.ma.masked
+    with pytest.raises(InputError, match="source: a masked array with 5 masked rows"):  # its rows, not its 1 batch
+        local.register(batched, target)
     unmasked = local.register(np.ma.masked_array(source), target)  # nothing masked: its values are the points
     np.testing.assert_array_equal(unmasked.transform, local.register(source, target).transform)
 

@@ -392,7 +392,8 @@ def test_ambiguity_needs_a_distant_pose_that_fits_almost_as_well() -> None:
 
 @pytest.mark.parametrize(("fits", "words"), [([0.80, 0.78], "fits almost as well (inlier ratio 0.78 vs 0.80)"),
                                              ([0.80, 0.80], "fits as well (inlier ratio 0.80 vs 0.80)"),
-                                             ([0.94, 1.00], "fits better (inlier ratio 1.00 vs 0.94)")])
+                                             ([0.94, 1.00], "fits better (inlier ratio 1.00 vs 0.94)"),
+                                             ([0.7999, 0.8004], "fits as well (inlier ratio 0.80 vs 0.80)")])
 def test_the_ambiguity_warning_says_how_the_other_pose_fits(fits, words) -> None:
     """A check after the ranking can find a turn that fits better than the kept pose (the symmetry check's refined
     turns): the warning said it fitted "almost as well" at 1.00 against 0.94."""
