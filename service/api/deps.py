@@ -49,7 +49,7 @@ async def require_api_key(
 def refuse_query_on_post(request: Request) -> None:
     """400 naming a POST request's query parameters: no route reads them, so an option sent there (``?model=clean``)
     would be ignored without a word."""
-    query = request.url.query
+    query = request.scope.get("query_string", b"").decode("latin-1")  # as sent: a "#" in it is no fragment here
     if request.method != "POST" or not query:
         return
     names = sorted({name for name, _ in parse_qsl(query, keep_blank_values=True)}) or [query]

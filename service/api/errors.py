@@ -118,8 +118,13 @@ def shortened(text: str) -> str:
     return text if len(text) <= MAX_LOGGED_CHARS else text[:MAX_LOGGED_CHARS] + "..."
 
 
+# ``scope["state"]`` key set by ``head.py``: the request is a HEAD served as its GET (its messages name HEAD)
+HEAD_REQUEST = "mfgnet.head_request"
+
+
 async def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
-    method, path = shortened(request.method), shortened(request.url.path)
+    method = "HEAD" if request.scope.get("state", {}).get(HEAD_REQUEST) else request.method
+    method, path = shortened(method), shortened(request.url.path)
     if exc.status_code == 404:
         message = f"not found: {method} {path}{_slash_hint(request)}"
     elif exc.status_code == 405:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.api.errors import HEAD_REQUEST
 from service.api.middleware import HEAD_ERROR_BODY, MAX_ERROR_BODY_BYTES
 
 
@@ -34,7 +35,7 @@ class HeadAsGetMiddleware:
             await send(message)
 
         status: list[int] = []
-        scope.setdefault("state", {})
+        scope.setdefault("state", {})[HEAD_REQUEST] = True  # the GET's 404/405 messages name HEAD
         as_get = {**scope, "method": "GET"}  # (the same ``state``)
         try:
             await self.app(as_get, receive, send_headers_only)

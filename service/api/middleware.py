@@ -9,6 +9,7 @@ import logging
 import re
 import time
 import uuid
+from urllib.parse import unquote
 
 from starlette.requests import ClientDisconnect
 from starlette.routing import Match, Mount, Route, compile_path
@@ -120,26 +121,32 @@ def _framed_twice(scope: Scope) -> bool:
     return b"transfer-encoding" in names and b"content-length" in names
 
 
+def _scheme_folded(credentials: bytes) -> bytes:
+    """An ``Authorization`` value with its scheme in lower case (RFC 9110 11.1: the scheme is case-insensitive)."""
+    scheme, _, rest = credentials.partition(b" ")
+    return scheme.lower() + b" " + rest.strip()
+
+
 def _differing_header(scope: Scope) -> str | None:
     """``Content-Type`` or ``Authorization`` where the request has two of different values: the routes read the first,
     a proxy in front may have read the last (h11 refuses two different Content-Lengths itself); else ``None``."""
-    for name, fold in ((b"content-type", bytes.lower), (b"authorization", bytes)):
+    for name, fold in ((b"content-type", bytes.lower), (b"authorization", _scheme_folded)):
         if len({fold(value.strip()) for key, value in scope.get("headers", []) if key == name}) > 1:
             return name.decode().title()
     return None
 
 
-_ABSOLUTE_FORM = re.compile(r"^https?://[^/]*", re.IGNORECASE)  # scheme and authority of an absolute-form target
-_ABSOLUTE_FORM_RAW = re.compile(rb"^https?://[^/]*", re.IGNORECASE)
+_ABSOLUTE_FORM = re.compile(rb"^https?://[^/]*", re.IGNORECASE)  # scheme and authority of an absolute-form target
 
 
 def _to_origin_form(scope: Scope) -> None:
     """An absolute-form request target (``GET http://host/v2/health/live``, as sent to proxies), which a server MUST
-    accept (RFC 9112 3.2.2), reduced to its path: uvicorn takes the whole target for the path (a 404)."""
-    if match := _ABSOLUTE_FORM.match(scope.get("path", "")):
-        scope["path"] = scope["path"][match.end():] or "/"
-        if (raw := _ABSOLUTE_FORM_RAW.match(scope.get("raw_path") or b"")) is not None:
-            scope["raw_path"] = scope["raw_path"][raw.end():] or b"/"
+    accept (RFC 9112 3.2.2), reduced to its path: uvicorn takes the whole target for the path (a 404). Matched on the
+    target as sent (``raw_path``), its path decoded as uvicorn decodes one."""
+    raw = scope.get("raw_path") or b""
+    if (match := _ABSOLUTE_FORM.match(raw)) is not None:
+        scope["raw_path"] = raw[match.end():] or b"/"
+        scope["path"] = unquote(scope["raw_path"].decode("ascii", errors="replace"))
 
 
 class RequestContextMiddleware:
@@ -175,12 +182,13 @@ class RequestContextMiddleware:
         error_body = bytearray()  # the start of a 4xx/5xx body: its "error" goes into the access line
         limit, setting = self._limit(scope)
 
-        counted: dict[str, str] = {}  # the route and method the request was counted under, once counted
+        counted: dict = {}  # the route, method and status the request was counted under, once counted
 
         def count() -> None:
             if not counted:
                 counted["route"] = route = _route_template(scope, path, root_path)
                 counted["method"] = method = scope["method"] if scope["method"] in KNOWN_METHODS else OTHER_METHOD
+                counted["status"] = state["status"]
                 self.metrics.requests.labels(route=route, method=method, status=str(state["status"])).inc()
                 self.metrics.latency.labels(route=route).observe(time.perf_counter() - started)
 
@@ -257,7 +265,9 @@ class RequestContextMiddleware:
             # server drops; a client that closes on the headers can cancel a file response before its last body)
             whole = scope["method"] == "HEAD" and state["started"]
             cut_short = state["started"] and not state["answered"] and state["status"] < 400  # left during a download
-            if not whole and (cut_short or scope["state"].get(DROPPED_CLIENT)):  # or gone before it: it went nowhere
+            if counted:  # its last body was handed to the server before a loss was seen: the line says what was counted
+                state["status"] = counted["status"]
+            elif not whole and (cut_short or scope["state"].get(DROPPED_CLIENT)):  # or gone before it: it went nowhere
                 state["status"] = 499
             error = _error_message(state["status"], bytes(error_body or scope["state"].get(HEAD_ERROR_BODY, b"")))
             if (answered := scope["state"].get(ANSWERED_BELOW)) is not None:  # a malformed body: the protocol's 4xx

@@ -96,6 +96,14 @@ def test_two_different_authorization_headers_are_a_400(server, tokens):
     assert reply.startswith(b"HTTP/1.1 400 ") and b"Authorization headers that differ" in reply, reply[:300]
 
 
+
+def test_one_credential_in_two_spellings_of_its_scheme_is_read(server):
+    """The scheme is case-insensitive (RFC 9110 11.1): ``Bearer x`` and ``bearer x`` are one credential, not two."""
+    head = (b"POST /v1/register HTTP/1.1\r\nHost: test\r\nContent-Type: application/json\r\n"
+            b"Authorization: Bearer same\r\nAuthorization: bearer  same\r\n")
+    reply = raw_request(server, head, json.dumps(pair()).encode())
+    assert reply.startswith(b"HTTP/1.1 200 "), reply[:300]
+
 @pytest.mark.parametrize("path", ["/v1/register?model=clean&refine=icp", "/v2/models/general/infer?model_version=1"])
 def test_query_parameters_on_a_post_route_are_a_400_naming_them(client, path):
     """No POST route reads its query string: ``?model=clean`` registered with the default model, silently."""
@@ -191,3 +199,12 @@ def test_a_well_formed_byte_range_of_a_file_is_served(client):
     ranged = client.get("/page/page.js", headers={"Range": "bytes=0-9"})
     assert ranged.status_code == 206 and ranged.content == whole[:10]
     assert client.get("/page/page.js", headers={"Range": f"bytes={len(whole) + 10}-"}).status_code == 416
+
+
+
+def test_a_query_behind_a_hash_is_read_as_sent(server):
+    """A "#" reaches the server only from a client that sends it: the query is taken as sent, not cut as a URL's
+    fragment (``?#model=clean`` was answered as if no query had been sent)."""
+    head = b"POST /v1/register?#model=clean HTTP/1.1\r\nHost: test\r\nContent-Type: application/json\r\n"
+    reply = raw_request(server, head, json.dumps(pair()).encode())
+    assert reply.startswith(b"HTTP/1.1 400 ") and b"query parameters are not read" in reply, reply[:300]

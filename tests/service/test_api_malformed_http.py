@@ -163,3 +163,12 @@ def test_an_absolute_form_target_is_served_as_its_path():
         sock.sendall(b"GET http://127.0.0.1/v2/health/live HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
         status, _, body = parse(until_closed(sock))
     assert status == 200 and json.loads(body), (status, body)
+
+
+
+def test_a_percent_encoded_scheme_is_no_absolute_form_target():
+    """Matched on the target as sent: ``http%3A//host/...`` decoded looked like one and was served."""
+    with connect() as sock:
+        sock.sendall(b"GET http%3A//127.0.0.1/v2/health/live HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        status, _, _ = parse(until_closed(sock))
+    assert status == 404

@@ -12,6 +12,7 @@ import time
 import uuid
 from urllib.parse import urlsplit
 
+import pytest
 from api_server import pair_json, synthetic_pair
 
 
@@ -177,3 +178,14 @@ def test_a_forwarded_client_address_is_logged_cut_short(server, client):
     client.get("/v2/health/live", headers={"X-Forwarded-For": "a" * 5000, "X-Request-ID": request_id})
     line, _ = access_line(server, request_id)
     assert line["client"] == "a" * 256 + "...", len(line["client"])
+
+
+
+@pytest.mark.parametrize(("path", "words"), [("/v1/register", "method HEAD not allowed on /v1/register"),
+                                             ("/page/no-such-file.js", "not found: HEAD /page/no-such-file.js")])
+def test_a_head_requests_refusal_names_head(server, client, path, words):
+    """HEAD is served as its GET: the 405's and 404's messages named GET."""
+    request_id = "head-" + uuid.uuid4().hex
+    assert client.head(path, headers={"X-Request-ID": request_id}).status_code in (404, 405)
+    line, _ = access_line(server, request_id)
+    assert line["method"] == "HEAD" and line["error"].startswith(words), line

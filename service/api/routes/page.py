@@ -269,7 +269,9 @@ class MovedFileResponse(StreamingResponse):
     dropped, as a stalled upload is."""
 
     def __init__(self, file: BinaryIO, releases: tuple[Callable[[], None], ...], stall_s: float, **kwargs: Any):
-        super().__init__(streamed(file), **kwargs)
+        size = file.seek(0, 2)
+        file.seek(0)
+        super().__init__(streamed(file, size), **kwargs)
         self._file, self._releases, self._stall_s = file, releases, stall_s
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
@@ -318,11 +320,14 @@ def moved_upload(upload: bodies.Upload, suffix: str, R: np.ndarray, t: np.ndarra
         shutil.rmtree(folder, ignore_errors=True)
 
 
-async def streamed(file: BinaryIO) -> AsyncIterator[bytes]:
-    """``file``'s bytes, :data:`STREAM_CHUNK_BYTES` at a time read in a worker thread; closed at the end or when the
-    response stops early (the client gone)."""
+async def streamed(file: BinaryIO, size: int) -> AsyncIterator[bytes]:
+    """``file``'s ``size`` bytes, :data:`STREAM_CHUNK_BYTES` at a time read in a worker thread; closed at the end or
+    when the response stops early (the client gone). No read after the last byte: the answer's end goes out at once
+    after it, before a client that read its Content-Length and closed is seen to have gone (a 499 otherwise)."""
+    left = size
     try:
-        while chunk := await run_in_threadpool(file.read, STREAM_CHUNK_BYTES):
+        while left > 0 and (chunk := await run_in_threadpool(file.read, min(STREAM_CHUNK_BYTES, left))):
+            left -= len(chunk)
             yield chunk
     finally:
         file.close()
