@@ -27,8 +27,8 @@ from service.stages.withdraw import withdrawn
 
 CHECK_ITERATIONS = 10  # updates of the short refinement
 # Points it moves at least: the search candidates' short points (every third working point) where they reach this
-# many (the default working size, 768, gives 256), else every working point: 40 points of a 128-point working cloud
-# turned right poses 38 deg
+# many (the default working size, 768, gives 256), else every working point: 43 points of a 128-point working cloud
+# turned right poses up to 27 deg
 CHECK_POINTS = 256
 MOVE_DEG = 5.0  # a right pose is within this of the truth: a refinement that turns it further found another fit
 SHIFT = 1.0  # the working source's centroid may move this many inlier distances (or target spacings, if wider)
