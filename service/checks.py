@@ -61,6 +61,8 @@ def check_cloud(points: ArrayLike, name: str) -> np.ndarray:
         raise InputError(f"{name}: {columns_problem(*arr.shape)}")
     if arr.ndim != 2:
         raise InputError(f"{name}: expected shape [N, 3], got {list(arr.shape)}")
+    if isinstance(points, list | tuple) and points and isinstance(points[0], np.ma.MaskedArray):  # [masked], rows
+        points = np.ma.array(points)  # their masks, which np.asarray drops
     if isinstance(points, np.ma.MaskedArray) and np.ma.is_masked(points):  # np.asarray drops the mask
         mask = np.ma.getmaskarray(points).reshape(arr.shape)  # [N, 3], as arr ([1, N, 3] taken as [N, 3])
         rows = int(mask.any(axis=1).sum())

@@ -124,7 +124,7 @@ HEAD_REQUEST = "mfgnet.head_request"
 
 async def _http_exception(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     method = "HEAD" if request.scope.get("state", {}).get(HEAD_REQUEST) else request.method
-    method, path = shortened(method), shortened(request.url.path)
+    method, path = shortened(method), shortened(request.scope.get("path") or request.url.path)  # as the access line
     if exc.status_code == 404:
         message = f"not found: {method} {path}{_slash_hint(request)}"
     elif exc.status_code == 405:

@@ -196,14 +196,16 @@ class RequestContextMiddleware:
             if message["type"] == "http.response.start":
                 state["status"], state["started"] = message["status"], True
                 message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
-            elif message["type"] == "http.response.body":
-                if state["status"] >= 400:
-                    error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
-                if not message.get("more_body", False):
-                    state["answered"] = True  # the whole answer was handed to the server
-                    if scope["state"].get(ANSWERED_BELOW) is None and not scope["state"].get(DROPPED_CLIENT):
-                        count()  # before the last bytes leave: a scrape the client sends after its answer counts it
+            elif message["type"] == "http.response.body" and state["status"] >= 400:
+                error_body.extend(message.get("body", b"")[:MAX_ERROR_BODY_BYTES - len(error_body)])
             await send(message)
+            if message["type"] == "http.response.body" and not message.get("more_body", False):
+                state["answered"] = True  # the whole answer was handed to the server
+                # counted once the server took the last bytes (its send does not yield after writing them, so a scrape
+                # the client sends after its answer counts it), not before: a send that stalls and is given up on
+                # (MovedFileResponse's stall_s) never delivered them, a 499
+                if scope["state"].get(ANSWERED_BELOW) is None and not scope["state"].get(DROPPED_CLIENT):
+                    count()
 
         async def receive_limited() -> Message:
             if state["body_done"] or self.body_timeout_s is None:  # after the body: the wait for a disconnect

@@ -37,7 +37,8 @@ def float32_check(work: Working, result: RegistrationResult, request: Request) -
     ``request.src[work.idx_s]``) are all float32 values and lie far enough out that float32's step there reaches
     ``STEP_SHARE`` of the cloud's RMS radius; else ``result`` itself. The pose and ``reliable`` are kept."""
     warnings = [
-        float32_rounding(name, float(np.abs(points).max()), rms_radius(points), dtype)
+        float32_rounding(name, float(np.abs(points).max()), rms_radius(points), dtype,
+                         whole=bool(np.array_equal(points, np.round(points))))
         for name, points in (("source", request.src[work.idx_s]), ("target", request.tgt[work.idx_t]))  # [Nw, 3]
         if (dtype := coarse_float(points)) is not None
     ]
@@ -69,11 +70,14 @@ def coarse_float(points: np.ndarray) -> type | None:
     return np.float32 if coarse_float32(points) else None
 
 
-def float32_rounding(name: str, largest: float, radius: float, dtype: type = np.float32) -> str:
+def float32_rounding(name: str, largest: float, radius: float, dtype: type = np.float32, whole: bool = False) -> str:
     """The warning of cloud ``name`` whose largest coordinate is ``largest`` and RMS radius ``radius``, its values
-    those of ``dtype`` (``np.float32`` or ``np.float16``)."""
+    those of ``dtype`` (``np.float32`` or ``np.float16``); ``whole``: all whole numbers, which beyond 2,048 may as well
+    be a grid of whole numbers as coarse as float16's (the values cannot tell)."""
     step = float(np.spacing(dtype(largest)))
     kind = np.dtype(dtype).name
-    return (f"{FLOAT32_ROUNDING}: the {name}'s coordinates are {kind} values up to {largest:.4g} from the origin, "
+    values = f"{kind} values" if not (whole and dtype is np.float16) else "whole numbers on float16's grid (float16 " \
+        "values, or a grid as coarse)"
+    return (f"{FLOAT32_ROUNDING}: the {name}'s coordinates are {values} up to {largest:.4g} from the origin, "
             f"where {kind} holds them to {step:.3g} ({step / radius:.2%} of its RMS radius {radius:.4g}); send "
             "float64 coordinates (JSON, a float64 .npy, PLY or PCD doubles) or subtract an offset first (a map origin)")

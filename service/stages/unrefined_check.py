@@ -54,10 +54,13 @@ def unrefined_check(
     turned = rotation_between_deg(R, R_s[0])
     centre = work.working_source.mean(axis=0)  # [3]
     unit = max(work.inlier_distance, float(np.median(work.target_spacings)))  # sparse working clouds: their spacing
-    shifted = float(np.linalg.norm((R_s[0] @ centre + t_s[0]) - (R @ centre + t))) / unit
+    moved_by = float(np.linalg.norm((R_s[0] @ centre + t_s[0]) - (R @ centre + t)))  # caller's units
+    shifted = moved_by / unit
     timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
     if turned <= MOVE_DEG and shifted <= SHIFT:
         return result
+    # the message counts inlier distances, as it says, and names the allowed shift in them (wider on sparse clouds)
     return withdrawn(result, f"{POOR_FIT}: a short refinement turns the unrefined pose {turned:.1f} deg and moves it "
-                             f"{shifted:.1f} inlier distances (more than {MOVE_DEG:g} deg or {SHIFT:g}); a "
+                             f"{moved_by / work.inlier_distance:.1f} inlier distances (more than {MOVE_DEG:g} deg or "
+                             f"{SHIFT * unit / work.inlier_distance:.3g}); a "
                              "refinement (refine: icp-plane) settles it or shows it wrong")

@@ -172,3 +172,12 @@ def test_a_percent_encoded_scheme_is_no_absolute_form_target():
         sock.sendall(b"GET http%3A//127.0.0.1/v2/health/live HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
         status, _, _ = parse(until_closed(sock))
     assert status == 404
+
+
+
+def test_a_404_names_the_path_the_access_line_names():
+    """The message took the URL's path, which percent-encodes what the target sent as it is (``#`` as ``%23``)."""
+    with connect() as sock:
+        sock.sendall(b"GET /v2/health/live#frag HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        status, _, body = parse(until_closed(sock))
+    assert status == 404 and json.loads(body)["error"].startswith("not found: GET /v2/health/live#frag"), body

@@ -217,6 +217,9 @@ def test_a_masked_array_with_masked_rows_is_refused(local):
     batched[0, :5, 2] = np.ma.masked
     with pytest.raises(InputError, match="source: a masked array with 5 masked rows"):  # its rows, not its 1 batch
         local.register(batched, target)
+    for listed in ([masked], list(masked)):  # a list of one masked array, or of its masked rows
+        with pytest.raises(InputError, match="source: a masked array with 5 masked rows"):
+            local.register(listed, target)
     unmasked = local.register(np.ma.masked_array(source), target)  # nothing masked: its values are the points
     np.testing.assert_array_equal(unmasked.transform, local.register(source, target).transform)
 

@@ -16,7 +16,13 @@ from shapes import asymmetric_blob
 
 from service.client import MfgnetClient
 from service.registrar import Registrar
-from service.stages.float32_check import FLOAT32_ROUNDING, STEP_SHARE, coarse_float, coarse_float32
+from service.stages.float32_check import (
+    FLOAT32_ROUNDING,
+    STEP_SHARE,
+    coarse_float,
+    coarse_float32,
+    float32_rounding,
+)
 from service.stages.pipeline import Stages
 
 UTM = np.array([500_000.0, 5_000_000.0, 100.0])  # a UTM easting and northing in metres: float32's step there is 0.5
@@ -74,6 +80,8 @@ def test_float16_clouds_are_warned_with_float16s_step(general) -> None:
     assert rounded(general.register(source.astype(np.float32), target.astype(np.float32)).warnings) == []
     whole = coarse_float((asymmetric_blob(500, seed=0) * 50 + 3000).astype(np.float16).astype(np.float64))
     assert whole is np.float16  # whole numbers beyond 2,048: float16's rounding itself (its step 2 there), not ints
+    grid = float32_rounding("source", 3150.0, 50.0, np.float16, whole=True)
+    assert "whole numbers on float16's grid (float16 values, or a grid as coarse)" in grid  # the values cannot tell
     near = [(cloud / 10.0).astype(np.float16) for cloud in scans(np.zeros(3), np.float64)]  # about the origin
     assert rounded(general.register(*near).warnings) == []  # float16's own precision (ModelNet40 as stored)
 

@@ -5,6 +5,7 @@ the in-process API on the README's surface."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -116,3 +117,18 @@ def test_icp_max_distance_does_not_switch_the_check_off() -> None:
     source, target, R, t = surface()
     work, options = working_clouds(source, target, {"refine": "none", "icp_max_distance": 0.001})
     assert not unrefined_check(work, result_at(about_z(20.0) @ R, t), options, {}).reliable
+
+
+
+def test_the_warning_counts_inlier_distances_and_names_the_bound_applied() -> None:
+    """On a sparse working cloud the bound is the target's spacing, wider than an inlier distance: the warning gave
+    the shift in spacings and called them inlier distances, against a bound of 1."""
+    source, target, R, t = surface()
+    work, options = working_clouds(source, target, {"refine": "none", "working_size": 64, "keypoints": 32})
+    spacing = float(np.median(work.target_spacings)) / work.inlier_distance  # in inlier distances
+    assert spacing > 1.5
+    slid = t + np.array([0.0, 0.0, 2 * spacing * work.inlier_distance])
+    warning = unrefined_check(work, result_at(R, slid), options, {}).warnings[-1]
+    found = re.search(r"moves it ([\d.]+) inlier distances \(more than 5 deg or ([\d.]+)\)", warning)
+    moved, bound = float(found[1]), float(found[2])
+    assert bound == pytest.approx(spacing, rel=0.01) and moved > bound, warning
