@@ -5,8 +5,10 @@ float32 keeps 24 bits: at 5,000,000 (a UTM northing in metres) its step is 0.5, 
 coordinates has lost its shape to a half-metre grid before the service sees it, and the pose comes out degrees off,
 sometimes `reliable`. Where a cloud's working points are all float32 values (so the file or array held float32) and
 float32's step at their largest coordinate is at least ``STEP_SHARE`` of the cloud's RMS radius, the result carries a
-warning naming the distance, the step and what to send instead. The pose and ``reliable`` stay as they are. Clouds
-in float64 (JSON, float64 ``.npy`` or PLY/PCD doubles, LAS's scaled integers) or near the origin never get it.
+warning naming the distance, the step and what to send instead; so does a cloud of float16 values at least
+``FAR_OUT_RADII`` RMS radii out (its step 8,192 times float32's). The pose and ``reliable`` stay as they are. Clouds
+in float64 (JSON, float64 ``.npy`` or PLY/PCD doubles, LAS's scaled integers) or near the origin do not get it, but
+for whole numbers far out on float16's grid, which the values cannot tell from float16 (the warning says so).
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ FLOAT32_ROUNDING = "float32 rounding"
 def float32_check(work: Working, result: RegistrationResult, request: Request) -> RegistrationResult:
     """``result`` with :func:`float32_rounding`'s warning for each cloud whose working points (in the caller's values,
     ``request.src[work.idx_s]``) are all float32 values and lie far enough out that float32's step there reaches
-    ``STEP_SHARE`` of the cloud's RMS radius; else ``result`` itself. The pose and ``reliable`` are kept."""
+    ``STEP_SHARE`` of the cloud's RMS radius, or all float16 values far out (:func:`coarse_float`); else ``result``
+    itself. The pose and ``reliable`` are kept."""
     warnings = [
         float32_rounding(name, float(np.abs(points).max()), rms_radius(points), dtype,
                          whole=bool(np.array_equal(points, np.round(points))))
@@ -56,7 +59,8 @@ def coarse_float32(points: np.ndarray) -> bool:
 
 
 def coarse_float(points: np.ndarray) -> type | None:
-    """``np.float16`` where ``points [N, 3]`` (float64) are all float16 values, not all whole numbers, that lie at
+    """``np.float16`` where ``points [N, 3]`` (float64) are all float16 values, not all whole numbers up to
+    ``FLOAT16_WHOLE`` (integer data float16 holds exactly), that lie at
     least ``FAR_OUT_RADII`` RMS radii out where float16's step reaches ``STEP_SHARE`` of the radius (a float16 array
     far out: its step is 8,192 times float32's, 0.0156 at 16), else ``np.float32`` where :func:`coarse_float32` holds,
     else ``None``. About the origin float16 holds any cloud to about 0.1% of its radius, its format's own precision,
