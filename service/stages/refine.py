@@ -4,7 +4,8 @@ With several candidates (the rotation search) each, and each one's rotation at i
 (:func:`service.stages.ranking.with_translations`), first gets a short refinement -- the refinement's stages with
 at most ``CANDIDATE_ITERATIONS`` updates each -- and they are ranked again, by their close fit to a dense target
 (:mod:`service.stages.ranking`); the winner gets the full refinement, then ``icp-plane-multistart`` tries turned
-starts (:func:`service.multistart.multistart`).
+starts (:func:`service.multistart.multistart`). Without a refinement the network's pose is returned as it is, or the
+caller's guess where its basin fits better (:func:`unrefined_pick`).
 """
 
 from __future__ import annotations
@@ -96,10 +97,11 @@ def icp_distance(work: Working, options: RegistrationOptions) -> float:
 
 
 def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: RegistrationOptions) -> Refined:
-    """The refined pose from the candidate ``starts`` (caller's units, best first); ``refine="none"``: the first."""
+    """The refined pose from the candidate ``starts`` (caller's units, best first); ``refine="none"``: the first, or
+    where the caller's guess is among them, the better fit of the two unrefined (:func:`unrefined_pick`)."""
     mode = options.refine_mode
     if mode == "none":
-        return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
+        return unrefined_pick(work, starts, options)
     scale = work.norm.scale
     distance = icp_distance(work, options)
     surface = work.target_surface if mode != "icp" else None  # one target surface for every stage
@@ -121,3 +123,30 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
     if mode == "icp-plane-multistart":
         refined = multistart(work.src_r, work.tgt_r, refined, scale, distance, options.icp_max_iterations, surface)
     return Refined(refined.rotation, refined.translation, pick, refined.warnings, ambiguity, surface)
+
+
+def unrefined_pick(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: RegistrationOptions
+                   ) -> Refined:
+    """``refine="none"``: the network's (or the search's) pose ``starts[0]``; where the caller's guess follows it, the
+    one of the two nearer the basin that fits best (:func:`nearest_start`), returned as it is: the network, started
+    from a guess at the truth, can leave it 8-63 deg on real scans
+    (``docs/decisions/0117-an-unrefined-guess-competes.md``)."""
+    if len(starts) == 1:
+        return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
+    short = partial(short_refine, work, refine="icp-plane", distance=icp_distance(work, options),
+                    surface=work.target_surface)
+    ranked = rank_candidates(work, starts, short)
+    pick = nearest_start(work, starts, ranked.rotation, ranked.translation)
+    return Refined(*starts[pick], pick, warnings=(), ambiguity=ranked.ambiguity, surface=None)
+
+
+def nearest_start(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], rotation: np.ndarray,
+                  translation: np.ndarray) -> int:
+    """Which of the ``starts`` (caller's units) places the short points nearest (RMS) where the pose ``rotation
+    [3, 3]``, ``translation [3]`` does: the best basin's short refinement, ranked as the refinement ranks its
+    candidates (:func:`service.stages.ranking.rank_candidates`). Two starts in one basin are told apart by which lies
+    nearer its bottom, not by where their short refinements stopped."""
+    points = work.short_points  # [S, 3] caller's frame
+    goal = points @ rotation.T + translation  # [S, 3]
+    apart = [np.sqrt(np.mean(np.sum((points @ R.T + t - goal) ** 2, axis=1))) for R, t in starts]
+    return int(np.argmin(apart))  # the first on a tie

@@ -96,6 +96,25 @@ def test_a_guess_the_network_moves_away_is_kept(general, rotation_search) -> Non
     assert rotation_between_deg(result.rotation, R) < 1.0 and np.linalg.norm(result.translation - T_TRUE) < 0.02
 
 
+@pytest.mark.parametrize("rotation_search", [False, True])
+def test_without_a_refinement_a_guess_the_network_moves_away_is_returned(general, rotation_search) -> None:
+    """``refine="none"``: the guess and the network's pose (or the search's) compete as they are."""
+    source, target, _, guess = pair_and_guess(5)
+    stages = dataclasses.replace(Stages(), network=turning_network, search=turning_search)
+    result = Registrar(GENERAL, threads=1, stages=stages).register(
+        source, target, refine="none", rotation_search=rotation_search, initial_transform=guess)
+    np.testing.assert_allclose(result.transform, guess, atol=1e-5)
+
+
+def test_without_a_refinement_a_real_range_image_keeps_its_true_pose_as_the_guess() -> None:
+    """``dragon_120_96`` as scanned, started at its truth with ``refine="none"``: the network alone leaves it about
+    11 deg off."""
+    case = real_case("dragon_120_96", 0, "scanned")
+    result = Registrar(GENERAL).register(case.source, case.target, refine="none", initial_transform=case.src_to_tgt)
+    degrees, error = pose_errors(result.rotation, result.translation, case.src_to_tgt)
+    assert degrees < 1.0 and error < 1e-3, (degrees, error)
+
+
 def test_a_guess_that_overlays_well_asks_for_no_feature_candidate(general) -> None:
     """The plain pass's overlay is its best candidate's: a right guess beside a network pose turned away is enough."""
     source, target, R, guess = pair_and_guess(5)

@@ -31,12 +31,23 @@ def angle_deg(R_a, R_b) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R_a.T @ R_b) - 1) / 2, -1, 1))))
 
 
-def test_without_a_refinement_the_first_start_is_returned_unchanged() -> None:
+def test_without_a_refinement_a_single_start_is_returned_unchanged() -> None:
     work, options = working()
-    start = (R_TRUE, T_TRUE)
-    refined = refine(work, [start, (np.eye(3), np.zeros(3))], options)
+    refined = refine(work, [(R_TRUE, T_TRUE)], options)
     assert refined.rotation is R_TRUE and refined.translation is T_TRUE
     assert (refined.pick, refined.warnings, refined.ambiguity, refined.surface) == (0, (), None, None)
+
+
+@pytest.mark.parametrize("truth_at", [0, 1])
+def test_without_a_refinement_the_better_fitting_of_two_starts_is_returned_as_it_is(truth_at) -> None:
+    """The caller's guess beside the network's pose: whichever fits better, unrefined."""
+    work, options = working()
+    wrong = (Rotation.from_euler("x", 40, degrees=True).as_matrix() @ R_TRUE, T_TRUE)
+    starts = [wrong, (R_TRUE, T_TRUE)] if truth_at == 1 else [(R_TRUE, T_TRUE), wrong]
+    refined = refine(work, starts, options)
+    assert refined.pick == truth_at and (refined.warnings, refined.ambiguity, refined.surface) == ((), None, None)
+    np.testing.assert_array_equal(refined.rotation, R_TRUE)
+    np.testing.assert_array_equal(refined.translation, T_TRUE)
 
 
 @pytest.mark.parametrize(("mode", "within"), [("icp", 5.0), ("icp-plane", 0.5), ("icp-plane-multistart", 0.5)])
