@@ -39,7 +39,8 @@ def columns_problem(rows: int, columns: int) -> str:
     if rows == 3 and columns > 3:
         return (f"expected shape [N, 3], got [3, {columns}]: one row per axis; send one [x, y, z] row per point (the "
                 "array transposed)")
-    extra = "; x, y, z only (a file upload takes extra columns)" if columns > 3 else ""
+    extra = ("; x, y, z only: the first three columns (cloud[:, :3]) where they are x, y, z; a point-cloud file may "
+             "carry other fields") if columns > 3 else ""
     return f"expected shape [N, 3], rows of [x, y, z], got [{rows}, {columns}]{extra}"
 
 
