@@ -101,7 +101,7 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
     where the caller's guess is among them, the better fit of the two unrefined (:func:`unrefined_pick`)."""
     mode = options.refine_mode
     if mode == "none":
-        return unrefined_pick(work, starts, options)
+        return unrefined_pick(work, starts)
     scale = work.norm.scale
     distance = icp_distance(work, options)
     surface = work.target_surface if mode != "icp" else None  # one target surface for every stage
@@ -125,15 +125,15 @@ def refine(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: 
     return Refined(refined.rotation, refined.translation, pick, refined.warnings, ambiguity, surface)
 
 
-def unrefined_pick(work: Working, starts: list[tuple[np.ndarray, np.ndarray]], options: RegistrationOptions
-                   ) -> Refined:
+def unrefined_pick(work: Working, starts: list[tuple[np.ndarray, np.ndarray]]) -> Refined:
     """``refine="none"``: the network's (or the search's) pose ``starts[0]``; where the caller's guess follows it, the
     one of the two nearer the basin that fits best (:func:`nearest_start`), returned as it is: the network, started
     from a guess at the truth, can leave it 8-63 deg on real scans
     (``docs/decisions/0117-an-unrefined-guess-competes.md``)."""
     if len(starts) == 1:
         return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
-    short = partial(short_refine, work, refine="icp-plane", distance=icp_distance(work, options),
+    # at the default correspondence distance: icp_max_distance sets a refinement, which refine "none" does not run
+    short = partial(short_refine, work, refine="icp-plane", distance=ICP_DISTANCE * work.norm.scale,
                     surface=work.target_surface)
     ranked = rank_candidates(work, starts, short)
     pick = nearest_start(work, starts, ranked.rotation, ranked.translation)
