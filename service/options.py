@@ -98,7 +98,8 @@ class RegistrationOptions:
     ``iterations`` / ``keypoints``: ``None`` = the model's. ``refine``: one of
     :data:`service.refine_modes.REFINE_MODES` (``None`` = ``"none"``, the network's pose alone).
     ``initial_transform``: a rigid 4x4 ``src_to_tgt`` guess; the source is moved by it before sampling, and the
-    guess itself is a candidate beside the network's poses (:mod:`service.stages.guess`; ranked with a refinement).
+    guess itself is a candidate beside the network's poses (:mod:`service.stages.guess`; ranked by short refinements,
+    also with ``refine`` ``"none"``, which returns the winner unrefined).
     ``working_size``: points per working cloud; ``return_iterations``: the pose after every network iteration.
 
     ``rotation_search=True`` starts the network from ``search_rotations`` initial rotations of the

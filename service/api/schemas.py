@@ -76,8 +76,8 @@ REFINE_DESCRIPTION = (
     "(closer and more often right for two independently sampled scans); 'icp-plane-multistart' = icp-plane, then "
     "12 turns of the pose (+-15 and +-30 deg about each axis) refined and compared by a two-way point-to-plane fit "
     "(more often right on sparse or ambiguous clouds; 3.3-3.9x the refinement time, 1.8x a registration's). "
-    "Default: the server's "
-    "(MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's pose alone."
+    "Default: the server's (MFGNET_DEFAULT_REFINE; icp-plane unless the operator changed it); 'none' = the network's "
+    "pose alone, unrefined (or the initial_transform where it fits better)."
 )
 
 DROP_ISOLATED_DESCRIPTION = (

@@ -40,8 +40,8 @@ RefineOpt = Annotated[
         "symmetric stage, then point-to-plane ICP (best for two independently sampled scans), "
         "icp-plane-multistart = icp-plane, then 12 turned restarts kept by a two-way fit (sparse "
         "clouds; 3.3-3.9x the refinement time, 1.8x a registration's), "
-        f"none = the network's pose alone [default: {SERVICE_DEFAULT_REFINE} in-process, the "
-        "server's MFGNET_DEFAULT_REFINE with --server]"
+        "none = the network's pose alone, unrefined (or the initial transform where it fits better) "
+        f"[default: {SERVICE_DEFAULT_REFINE} in-process, the server's MFGNET_DEFAULT_REFINE with --server]"
     ),
 ]
 RefinePointsOpt = Annotated[
