@@ -384,16 +384,14 @@ class Registrar:
 
     def beside_unguessed(self, work: Working, request: Request, result: RegistrationResult,
                          timing: dict[str, float]) -> tuple[RegistrationResult, bool]:
-        """The plain ``result`` of a request whose guess it does not keep, against the network's pose from the
-        caller's own frame (stage ``unguessed``: the request's start without the guess), refined and assessed alone
-        as that request's plain pass does, unless ``result`` lies in its basin
-        (:func:`service.stages.guess.better_than_unguessed`); and whether ``auto`` should search the result kept
+        """The plain ``result`` of a request whose guess it does not keep, against the network's pose from the caller's
+        own frame (stage ``unguessed``: the request's start without the guess), refined (as the request asks; unrefined
+        with ``refine: "none"``) and assessed alone as that request's plain pass does, unless ``result`` lies in its
+        basin (:func:`service.stages.guess.better_than_unguessed`); and whether ``auto`` should search the result kept
         although it may look right: it is the guessed one, that pose lies elsewhere, and it looks wrong
         (:func:`service.stages.search.looks_wrong`), so the request without the guess searches; nothing but a wrong
         guess led to the result (``docs/decisions/0068-the-unguessed-start-competes.md``)."""
         o = request.options
-        if o.refine_mode == "none":
-            return result, False
         found = self.stages.unguessed(self, work, request.iterations, request.keypoints, timing)
         distance, pose = icp_distance(work, o), (result.rotation, result.translation)
         if found is None or same_basin(work, to_caller(work, found.poses[0].rotation, found.poses[0].translation), pose,

@@ -8,7 +8,7 @@ from service.quality import SCATTERED_POINTS, TARGET_EXPLAINED
 from service.stages.consensus import CONFIRMED_BY_DESCRIPTORS, DESCRIPTOR_CONSENSUS
 from service.stages.float32_check import FLOAT32_ROUNDING
 from service.stages.free_space import CONFIRMED_BY_FREE_SPACE, THROUGH_FREE_SPACE
-from service.stages.guess_check import FAR_FROM_GUESS
+from service.stages.guess_check import FAR_FROM_GUESS, GUESS_RETURNED
 from service.stages.scale_check import SIZE_MISMATCH
 from service.stages.search import RETRY_WARNING
 
@@ -26,6 +26,7 @@ WARNING_KINDS = frozenset({
       for kind in ("empty", "identical", "collinear", "few distinct points", "coplanar")),
     THROUGH_FREE_SPACE, CONFIRMED_BY_FREE_SPACE, RETRY_WARNING.split(":", 1)[0],  # the closing checks'
     FAR_FROM_GUESS,  # a result far from the caller's initial_transform (service.stages.guess_check)
+    GUESS_RETURNED,  # an unrefined result that is the caller's initial_transform as given, not reliable (same stage)
     SIZE_MISMATCH,  # clouds whose sizes differ as units do (service.stages.scale_check)
     FLOAT32_ROUNDING,  # float32 coordinates far from the origin (service.stages.float32_check)
     TARGET_EXPLAINED,  # a result whose source explains a cut target (service.quality)

@@ -176,8 +176,10 @@ def sequence_command(
         steps = register_sequence(frames, read_frame, register_pair, constant_velocity=constant_velocity)
         unreliable = _write_steps(steps, frames, out, kitti, write_aligned, clouds)
     written = ", ".join(str(path) for path in (out, kitti) if path is not None)
+    rests = f" (every accumulated pose from step {unreliable[0]} on rests on an unreliable step)" if unreliable else ""
     typer.echo(
-        f"{len(frames) - 1} steps, {len(unreliable)} not reliable" + (f"; wrote {written}" if written else ""), err=True
+        f"{len(frames) - 1} steps, {len(unreliable)} not reliable{rests}" + (f"; wrote {written}" if written else ""),
+        err=True,
     )
     if require_reliable and unreliable:
         which = f"step{'s' if len(unreliable) > 1 else ''} {', '.join(map(str, unreliable))}"
@@ -325,6 +327,8 @@ def _step_progress(step: Step, count: int) -> str:
     shift = step.centroid_motion
     total = step.record["timing_ms"].get("total")
     state = "reliable" if step.reliable else "NOT reliable"
+    if step.reliable and not step.accumulated_reliable:
+        state += " (its accumulated pose rests on a step that is not)"
     return (
         f"[{step.index}/{count}] {step.source.name} -> {step.target.name}: {state}, turn {turn:.2f} deg, "
         f"centroid moved {shift:.4g}, {number(total, '.0f')} ms"

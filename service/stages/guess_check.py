@@ -38,6 +38,12 @@ FAR_SHIFT = 0.25
 INVERSE_DEG = 5.0
 # The kind (the text before the colon) of the warning this stage adds
 FAR_FROM_GUESS = "far from initial transform"
+# ... and of its warning on an unrefined result that is the guess as given and not reliable
+GUESS_RETURNED = "initial transform returned"
+# A result within this angle and this share of the source's RMS radius of the guess is the guess as given (a refined
+# result always moves; an unrefined one is the guess where it fitted better than the network's pose from it)
+AS_GIVEN_DEG = 1e-4
+AS_GIVEN_SHIFT = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,15 +72,21 @@ def guess_check(work: Working, result: RegistrationResult, request: Request,
                 reference_radius: float) -> RegistrationResult:
     """``result`` (caller's frames) with :func:`far_from_guess`'s warning where the caller gave an
     ``initial_transform`` and the result lies more than ``FAR_DEG`` or ``FAR_SHIFT`` of the source's size
-    (:func:`source_size`) from it; else ``result`` itself. The pose and ``reliable`` are kept."""
+    (:func:`source_size`) from it, or :func:`guess_returned`'s where an unrefined result (``refine: "none"``) that is
+    not ``reliable`` is the guess as given (within ``AS_GIVEN_DEG`` and ``AS_GIVEN_SHIFT`` of the source's size);
+    else ``result`` itself. The pose and ``reliable`` are kept."""
     guess = request.options.initial_transform
     if guess is None:
         return result
     R_g, t_g = check_transform(guess)  # [3, 3], [3]: T_target_source, caller's frames, as the validate stage read it
     centroid = request.src_anchor  # [3] caller's source frame
-    tolerance = FAR_SHIFT * source_size(work, reference_radius)
+    size = source_size(work, reference_radius)
+    tolerance = FAR_SHIFT * size
     gap = pose_gap(result.rotation, result.translation, R_g, t_g, centroid)
     if gap.degrees <= FAR_DEG and gap.shift <= tolerance:
+        as_given = gap.degrees <= AS_GIVEN_DEG and gap.shift <= AS_GIVEN_SHIFT * size
+        if as_given and not result.reliable and request.options.refine_mode == "none":
+            return dataclasses.replace(result, warnings=[*result.warnings, guess_returned()])
         return result
     inverse = pose_gap(result.rotation, result.translation, R_g.T, -R_g.T @ t_g, centroid)
     near_inverse = inverse.degrees <= INVERSE_DEG and inverse.shift <= tolerance
@@ -93,3 +105,11 @@ def far_from_guess(gap: GuessGap, tolerance: float, inverse: GuessGap | None = N
     return (text + f", but the result lies within {inverse.degrees:.1f} deg and {inverse.shift:.4g} of its inverse: "
             "initial_transform looks given target-to-source (T_source_target); invert it and pass T_target_source, "
             "which takes source points into the target's frame")
+
+
+def guess_returned() -> str:
+    """The warning of an unrefined result that is the caller's guess as given and not ``reliable``: the prior itself
+    may be what is wrong."""
+    return (f"{GUESS_RETURNED}: the result is initial_transform as given (with refine: none it fitted better than the "
+            "network's pose from it) and is not reliable; if the prior may be wrong, leave it out or refine (refine: "
+            "icp-plane)")

@@ -26,7 +26,8 @@ from service.cli import app
 runner = CliRunner()
 RECORD_KEYS = {"rotation", "translation", "transform", "euler_zyx_deg", "yaw_pitch_roll_deg", "quaternion_xyzw",
                "quality", "warnings", "model", "iterations", "timing_ms"}  # `mfgnet register --json`
-STEP_KEYS = {"index", "source", "target", *RECORD_KEYS, "initial_transform", "accumulated_transform"}
+STEP_KEYS = {"index", "source", "target", *RECORD_KEYS, "initial_transform", "accumulated_transform",
+             "accumulated_reliable"}
 MAX_DEG, MAX_SHIFT = 1.0, 0.01  # chained pose against the truth (the shape's radius is about 1)
 
 
@@ -186,6 +187,12 @@ def test_constant_velocity_passes_the_last_step_as_the_guess(plain_run, velocity
         assert step["initial_transform"] == before["transform"]
     far = [step["index"] for step in steps if any(w.startswith("far from initial transform") for w in step["warnings"])]
     assert far == [3, 4]  # +12 deg guessed, -25 turned; then -25 guessed, +11 turned
+    for step in steps[2:]:  # said of the prior the sequence passed, not advice to mend a prior the caller gave
+        warning = next(w for w in step["warnings"] if w.startswith("far from initial transform"))
+        assert "departs from the previous step's (the --constant-velocity prior) by " in warning, warning
+        assert "invert it" not in warning and "leave it out" not in warning
+        turned = gap(step["transform"], step["initial_transform"])[0]
+        assert f"by {turned:.1f} deg and " in warning, (turned, warning)
     assert not any(w.startswith("far from") for step in plain_run["steps"] for w in step["warnings"])  # no guess
     for step in steps:
         degrees, shift = gap(step["transform"], MOTIONS[step["index"] - 1])
@@ -308,6 +315,31 @@ def test_require_reliable_exits_3_on_spheres_and_still_writes_every_step(tmp_pat
     assert result.exit_code == 3, result.output
     assert "steps 1, 2 not reliable (--require-reliable)" in result.stderr
     assert [step["quality"]["reliable"] for step in steps_of(out.read_text())] == [False, False]
+
+
+def test_the_warnings_said_of_the_prior_are_the_guess_checks_kinds() -> None:
+    from service.sequence import FAR_FROM_PRIOR, PRIOR_RETURNED
+    from service.stages.guess_check import FAR_FROM_GUESS, GUESS_RETURNED
+
+    assert (FAR_FROM_PRIOR, PRIOR_RETURNED) == (FAR_FROM_GUESS, GUESS_RETURNED)
+
+
+def test_steps_after_an_unreliable_one_say_their_accumulated_pose_rests_on_it(tmp_path, frames, model_dir) -> None:
+    """A sphere in place of frame 2: steps 2 and 3 are not reliable; step 4 is, but its ``T_0_4`` chains theirs."""
+    paths = list(frames)
+    paths[2] = tmp_path / "frame_2.npy"
+    np.save(paths[2], unit_directions(np.random.default_rng(0), 1500))
+    result = sequence(*paths, model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    steps = steps_of(result.stdout)
+    assert [step["quality"]["reliable"] for step in steps] == [True, False, False, True]
+    assert [step["accumulated_reliable"] for step in steps] == [True, False, False, False]
+    progress = result.stderr.splitlines()
+    assert progress[3].startswith("[4/4] frame_4.npy -> frame_3.npy: reliable (its accumulated pose rests on a step "
+                                  "that is not), "), progress[3]
+    assert "reliable (its accumulated" not in progress[0]
+    assert "4 steps, 2 not reliable (every accumulated pose from step 2 on rests on an unreliable step)" in (
+        result.stderr)
 
 
 def test_a_frame_unreadable_midway_exits_2_naming_it_after_the_steps_before(tmp_path, frames, model_dir) -> None:

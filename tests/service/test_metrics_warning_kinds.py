@@ -17,7 +17,7 @@ from service.stages.free_space import (
     confirmed_by_free_space,
     through_free_space,
 )
-from service.stages.guess_check import GuessGap, far_from_guess
+from service.stages.guess_check import GuessGap, far_from_guess, guess_returned
 from service.stages.search import RETRY_WARNING
 
 # The warnings of the closing checks, as the stages write them (the others' kinds are listed in metrics.WARNING_KINDS)
@@ -26,6 +26,7 @@ CLOSING_WARNINGS = {
     "confirmed by free space": confirmed_by_free_space(CONFIRMS_BELOW / 2),
     "found by the second, denser rotation search only (the first fitted poorly)": RETRY_WARNING,
     "far from initial transform": far_from_guess(GuessGap(40.0, 0.01), 0.1, GuessGap(0.5, 0.001)),
+    "initial transform returned": guess_returned(),
     "target explained": target_explained(0.27, ReverseFit(0.98, 0.98, 1.0)),
     "descriptor consensus": consensus_note(54, 3),
     "confirmed by descriptors": confirmed_note(41),

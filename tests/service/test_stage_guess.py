@@ -242,6 +242,31 @@ def test_a_guess_given_target_to_source_does_not_make_the_answer_worse(model, sh
     assert result.reliable == alone.reliable
 
 
+@pytest.mark.parametrize("shape", [asymmetric_blob, lumpy_sphere])
+def test_without_a_refinement_a_guess_given_target_to_source_gives_the_pose_without_it(general, shape) -> None:
+    """``refine="none"``: the network's pose from the caller's own frame competes as with a refinement (before, the
+    inverse guess left both 86 deg off, where the request without it is 21 and 47 deg off)."""
+    source, target, truth = turned_pair(shape, 60)
+    alone = general.register(source, target, refine="none")
+    result = general.register(source, target, refine="none", initial_transform=np.linalg.inv(truth))
+    assert rotation_between_deg(result.rotation, alone.rotation) < 1e-3
+    assert np.linalg.norm(result.translation - alone.translation) < 1e-4
+
+
+@pytest.mark.parametrize(("pair", "returned"), [("dragon_120_72", True), ("dragon_144_120", False)])
+def test_without_a_refinement_a_guess_returned_as_given_and_not_reliable_says_so(pair, returned) -> None:
+    """The exact truth as the guess: ``dragon_120_72``'s comes back as given, not ``reliable`` (a poor fit of the
+    unrefined pose); ``dragon_144_120``'s as given and ``reliable``, without the warning."""
+    case = real_case(pair, 0, "scanned")
+    result = Registrar(GENERAL).register(case.source, case.target, refine="none", initial_transform=case.src_to_tgt)
+    np.testing.assert_allclose(result.transform, case.src_to_tgt, atol=1e-6)
+    warned = [w for w in result.warnings if w.startswith("initial transform returned: ")]
+    assert result.reliable != returned and len(warned) == int(returned), result.warnings
+    refined = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane",
+                                          initial_transform=case.src_to_tgt)
+    assert not any(w.startswith("initial transform returned") for w in refined.warnings)
+
+
 def test_the_unguessed_candidate_is_the_networks_pose_from_the_callers_frame(general) -> None:
     source, target, truth = turned_pair(asymmetric_blob, 60)
     request, _ = anchor(validate(source, target, None, {"initial_transform": np.linalg.inv(truth)}, 4, 128))
