@@ -42,7 +42,7 @@ from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
 from service.stages.features import DESCRIBE_BELOW, describable, feature_confirmed
-from service.stages.guess import better_than_unguessed, keeps_guess, same_basin
+from service.stages.guess import better_than_unguessed, doubtful_with_guess, keeps_guess, same_basin
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
@@ -348,7 +348,8 @@ class Registrar:
                     if len(more.poses) > len(found.poses):
                         found, result = more, self.solve(work, request, None, timing, found=more)
                 strayed = False  # a result that does not keep the caller's guess and that the unguessed pose denies
-                if request.options.initial_transform is not None and not keeps_guess(work, result):
+                if request.options.initial_transform is not None and (not keeps_guess(work, result)
+                                                                      or doubtful_with_guess(result, request.options)):
                     result, strayed = self.beside_unguessed(work, request, result, timing)
                 if mode == "auto":  # the search only when the plain result looks wrong
                     solve = searched_ahead(partial(self.solve, work, request), ahead)

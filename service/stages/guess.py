@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from service.options import RegistrationOptions
 from service.rotation_search import DUPLICATE_DEGREES, SearchCandidate, network_from, rotation_between_deg
 from service.stages.network import Candidates
 from service.stages.normalise import Working
@@ -56,6 +57,15 @@ def keeps_guess(work: Working, result: RegistrationResult) -> bool:
     which of a room's frame rotations is right, and ``auto`` does not search a room for being one
     (:func:`service.stages.search.looks_wrong`). The registrar asks only where the caller gave a guess."""
     return rotation_between_deg(work.R_init, result.rotation) < KEPT_DEG
+
+
+def doubtful_with_guess(result: RegistrationResult, options: RegistrationOptions) -> bool:
+    """Whether a refined ``result`` that keeps the caller's guess is not ``reliable``: a wrong guess can hold the
+    network and the refinement near its turn, metres from the truth, so the request's start without the guess competes
+    (:meth:`service.registrar.Registrar.beside_unguessed`) as it does where the result leaves the guess. Not with
+    ``refine: "none"``, whose unrefined poses are seldom ``reliable`` and compete by their fit as they are
+    (``docs/decisions/0118-a-doubtful-guessed-result-competes.md``)."""
+    return options.refine_mode != "none" and not result.reliable
 
 
 def unguessed_candidate(registrar: Registrar, work: Working, iterations: int, keypoints: int,

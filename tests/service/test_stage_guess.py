@@ -15,11 +15,13 @@ from shapes import asymmetric_blob, lumpy_sphere, room_scene
 
 from bench.real_scans import near_truth_starts, pose_errors, thresholds, turned
 from service.in_process import LocalRegistrar
+from service.options import RegistrationOptions
 from service.registrar import Registrar
 from service.rotation_search import SearchCandidate, rotation_between_deg
 from service.stages.anchor import anchor
 from service.stages.guess import (
     KEPT_DEG,
+    doubtful_with_guess,
     guess_candidate,
     keeps_guess,
     unguessed_candidate,
@@ -265,6 +267,41 @@ def test_without_a_refinement_a_guess_returned_as_given_and_not_reliable_says_so
     refined = Registrar(GENERAL).register(case.source, case.target, refine="icp-plane",
                                           initial_transform=case.src_to_tgt)
     assert not any(w.startswith("initial transform returned") for w in refined.warnings)
+
+
+def lidar_frames(motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two frames cut from the set's LiDAR target as a sensor ``motion`` ``[4, 4]`` apart sees them (35 m about the
+    sensor, a seeded 70% of the points each): (the moved frame, the first), float32."""
+    world = real_case("lidar_small_gicp", 0, "scanned").target.astype(np.float64)
+    rng = np.random.default_rng(1)
+    frames = []
+    for T in (np.eye(4), motion):
+        points = (world - T[:3, 3]) @ T[:3, :3]  # [N, 3] in the sensor's frame
+        keep = (np.linalg.norm(points[:, :2], axis=1) < 35) & (rng.random(len(points)) < 0.7)
+        frames.append(points[keep].astype(np.float32))
+    return frames[1], frames[0]
+
+
+def test_a_doubtful_result_that_keeps_a_wrong_guess_competes_with_the_pose_without_it() -> None:
+    """LiDAR frames 1 m and 3 deg apart, the guess turned 60 deg off about the vertical, no search: the refinement
+    kept the guess's turn and landed 87 deg and 6.5 m off, not ``reliable``; the request's start without the guess
+    competes, as where a result leaves the guess, and is right."""
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = Rotation.from_euler("z", 3, degrees=True).as_matrix(), [1.0, 0.0, 0.0]
+    source, target = lidar_frames(truth)
+    guess = truth.copy()
+    guess[:3, :3] = truth[:3, :3] @ Rotation.from_euler("z", 60, degrees=True).as_matrix()
+    result = Registrar(GENERAL).register(source, target, refine="icp-plane", rotation_search=False,
+                                         initial_transform=guess)
+    degrees, error = pose_errors(result.rotation, result.translation, truth)
+    assert degrees < 1.0 and error < 0.2, (degrees, error)
+
+
+def test_only_a_refined_result_that_is_not_reliable_is_doubtful_with_a_guess() -> None:
+    for refine, reliable, doubtful in (("icp-plane", False, True), ("icp-plane", True, False), ("icp", False, True),
+                                       ("none", False, False)):
+        result = SimpleNamespace(reliable=reliable)
+        assert doubtful_with_guess(result, RegistrationOptions(refine=refine)) is doubtful
 
 
 def test_the_unguessed_candidate_is_the_networks_pose_from_the_callers_frame(general) -> None:
