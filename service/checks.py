@@ -39,6 +39,9 @@ def columns_problem(rows: int, columns: int) -> str:
     if rows == 3 and columns > 3:
         return (f"expected shape [N, 3], got [3, {columns}]: one row per axis; send one [x, y, z] row per point (the "
                 "array transposed)")
+    if rows == 4 and columns > 4:
+        return (f"expected shape [N, 3], got [4, {columns}]: one row per axis, as homogeneous coordinates are; send "
+                "one [x, y, z] row per point (the first three rows transposed, cloud[:3].T, where the fourth is all 1)")
     extra = ("; x, y, z only: the first three columns (cloud[:, :3]) where they are x, y, z; a point-cloud file may "
              "carry other fields") if columns > 3 else ""
     return f"expected shape [N, 3], rows of [x, y, z], got [{rows}, {columns}]{extra}"

@@ -42,7 +42,13 @@ from service.result import IterationPose, RegistrationResult
 from service.selection import top_k
 from service.speculation import Helpers, Speculation, check, shared_helpers
 from service.stages.features import DESCRIBE_BELOW, describable, feature_confirmed
-from service.stages.guess import better_than_unguessed, doubtful_with_guess, keeps_guess, same_basin
+from service.stages.guess import (
+    better_than_unguessed,
+    better_unrefined,
+    doubtful_with_guess,
+    keeps_guess,
+    same_basin,
+)
 from service.stages.network import Candidates
 from service.stages.normalise import ICP_DISTANCE, INLIER_DISTANCE, Working, to_caller
 from service.stages.pipeline import Stages
@@ -349,7 +355,7 @@ class Registrar:
                         found, result = more, self.solve(work, request, None, timing, found=more)
                 strayed = False  # a result that does not keep the caller's guess and that the unguessed pose denies
                 if request.options.initial_transform is not None and (not keeps_guess(work, result)
-                                                                      or doubtful_with_guess(result, request.options)):
+                                                                      or doubtful_with_guess(result)):
                     result, strayed = self.beside_unguessed(work, request, result, timing)
                 if mode == "auto":  # the search only when the plain result looks wrong
                     solve = searched_ahead(partial(self.solve, work, request), ahead)
@@ -385,11 +391,12 @@ class Registrar:
 
     def beside_unguessed(self, work: Working, request: Request, result: RegistrationResult,
                          timing: dict[str, float]) -> tuple[RegistrationResult, bool]:
-        """The plain ``result`` of a request whose guess it does not keep, against the network's pose from the caller's
-        own frame (stage ``unguessed``: the request's start without the guess), refined (as the request asks; unrefined
-        with ``refine: "none"``) and assessed alone as that request's plain pass does, unless ``result`` lies in its
-        basin (:func:`service.stages.guess.better_than_unguessed`); and whether ``auto`` should search the result kept
-        although it may look right: it is the guessed one, that pose lies elsewhere, and it looks wrong
+        """The plain ``result`` of a request whose guess it does not keep (or keeps, not ``reliable``), against the
+        network's pose from the caller's own frame (stage ``unguessed``: the request's start without the guess), refined
+        (as the request asks; unrefined with ``refine: "none"``) and assessed alone as that request's plain pass does,
+        unless ``result`` lies in its basin (:func:`service.stages.guess.better_than_unguessed`; unrefined,
+        :func:`service.stages.guess.better_unrefined`); and whether ``auto`` should search the result kept although it
+        may look right: it is the guessed one, that pose lies elsewhere, and it looks wrong
         (:func:`service.stages.search.looks_wrong`), so the request without the guess searches; nothing but a wrong
         guess led to the result (``docs/decisions/0068-the-unguessed-start-competes.md``)."""
         o = request.options
@@ -402,7 +409,10 @@ class Registrar:
         alone = self.solve(work, request, None, alone_timing, found=found)
         for stage in ("refine", "postprocess"):  # its refinement and assessment, beside the plain pass's
             timing[stage] = timing.get(stage, 0.0) + alone_timing.get(stage, 0.0)
-        kept, unconfirmed = better_than_unguessed(work, result, alone, distance)
+        if o.refine_mode == "none":  # unrefined poses: ranked by short refinements, as the guess is (decision 0117)
+            kept, unconfirmed = better_unrefined(work, result, alone), False
+        else:
+            kept, unconfirmed = better_than_unguessed(work, result, alone, distance)
         if kept is alone:
             kept.timing_ms = timing
         return kept, unconfirmed and looks_wrong(work, alone)  # where the request without the guess searches

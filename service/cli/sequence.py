@@ -59,8 +59,8 @@ SequenceOutOpt = Annotated[
     Path | None,
     typer.Option(
         help="write one JSON line per step here ('-': standard output, the default): index, "
-        "source, target, the pair's `register --json` record, initial_transform and "
-        "accumulated_transform (T_0_i)"
+        "source, target, the pair's `register --json` record, initial_transform, "
+        "accumulated_transform (T_0_i) and accumulated_reliable (false from the first step that is not reliable on)"
     ),
 ]
 KittiOpt = Annotated[

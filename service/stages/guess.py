@@ -22,11 +22,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from service.options import RegistrationOptions
 from service.rotation_search import DUPLICATE_DEGREES, SearchCandidate, network_from, rotation_between_deg
 from service.stages.network import Candidates
 from service.stages.normalise import Working
 from service.stages.ranking import candidate_fits, ranking_ambiguity
+from service.stages.refine import unrefined_pick
 
 if TYPE_CHECKING:
     from service.registrar import Registrar
@@ -59,13 +59,12 @@ def keeps_guess(work: Working, result: RegistrationResult) -> bool:
     return rotation_between_deg(work.R_init, result.rotation) < KEPT_DEG
 
 
-def doubtful_with_guess(result: RegistrationResult, options: RegistrationOptions) -> bool:
-    """Whether a refined ``result`` that keeps the caller's guess is not ``reliable``: a wrong guess can hold the
-    network and the refinement near its turn, metres from the truth, so the request's start without the guess competes
-    (:meth:`service.registrar.Registrar.beside_unguessed`) as it does where the result leaves the guess. Not with
-    ``refine: "none"``, whose unrefined poses are seldom ``reliable`` and compete by their fit as they are
-    (``docs/decisions/0118-a-doubtful-guessed-result-competes.md``)."""
-    return options.refine_mode != "none" and not result.reliable
+def doubtful_with_guess(result: RegistrationResult) -> bool:
+    """Whether a ``result`` that keeps the caller's guess is not ``reliable``: a wrong guess can hold the network and
+    the refinement near its turn, metres from the truth, or (``refine: "none"``) be returned as it is, so the
+    request's start without the guess competes (:meth:`service.registrar.Registrar.beside_unguessed`) as it does where
+    the result leaves the guess (``docs/decisions/0118-a-doubtful-guessed-result-competes.md``)."""
+    return not result.reliable
 
 
 def unguessed_candidate(registrar: Registrar, work: Working, iterations: int, keypoints: int,
@@ -109,3 +108,16 @@ def better_than_unguessed(work: Working, guessed: RegistrationResult, alone: Reg
         kept = replace(kept, reliable=False, warnings=[*kept.warnings, warning])
     pose = (guessed.rotation, guessed.translation)
     return kept, best == 0 and not same_basin(work, pose, (alone.rotation, alone.translation), distance)
+
+
+def better_unrefined(work: Working, guessed: RegistrationResult, alone: RegistrationResult) -> RegistrationResult:
+    """``refine: "none"``: whichever of the ``guessed`` result and ``alone`` (the network's pose from the caller's own
+    frame) lies nearer the basin that fits better, ranked by short refinements as the guess and the network's pose are
+    (:func:`service.stages.refine.unrefined_pick`; ``guessed`` on a tie), not ``reliable`` and with the ranking's
+    ambiguity warning where it has one: unrefined poses' own fits cannot rank them (a near-symmetric surface fits a
+    pose turned far away about as well)."""
+    picked = unrefined_pick(work, [(guessed.rotation, guessed.translation), (alone.rotation, alone.translation)])
+    kept = (guessed, alone)[picked.pick]
+    if picked.ambiguity is not None and kept.reliable:
+        kept = replace(kept, reliable=False, warnings=[*kept.warnings, picked.ambiguity])
+    return kept

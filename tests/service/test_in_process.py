@@ -198,6 +198,7 @@ def test_search_rotations_is_checked_whether_or_not_a_search_runs(local):
     ((3, 500), "got \\[3, 500\\]: one row per axis; .*the array transposed"),
     ((500, 4), "got \\[500, 4\\]; x, y, z only: the first three columns \\(cloud\\[:, :3\\]\\)"),
     ((500, 2), "got \\[500, 2\\]$"),
+    ((4, 500), "got \\[4, 500\\]: one row per axis, as homogeneous coordinates are; .*cloud\\[:3\\]\\.T"),
 ])
 def test_a_cloud_of_other_columns_is_named_as_the_server_names_it(local, shape, message):
     _, target = synthetic_pair()
