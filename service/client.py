@@ -42,6 +42,9 @@ READY_PATH = "/v2/health/ready"
 # Above this magnitude (caller's units) float32 rounds coordinates by more than ~1/1000 of a unit, so binary
 # uploads of arrays are sent recentred by a shared offset and the pose is mapped back (shared_offset).
 LARGE_COORDINATE = 1.0e4
+# ... or where float32's step at a cloud's largest coordinate reaches this share of its RMS radius: a small object far
+# from the origin (the server's float32 check warns at 0.001 of the radius; service/stages/float32_check.py)
+FLOAT32_STEP_SHARE = 1.0e-4
 BUSY_RETRIES = 2  # MfgnetClient's default: see its docstring
 MAX_RETRY_WAIT_S = 10.0  # the longest wait before a retry, whatever Retry-After asks
 RETRY_JITTER = 0.2  # each wait is Retry-After x U(1, 1.2), so clients refused together do not all return together
@@ -152,7 +155,8 @@ class MfgnetClient:
             drop_isolated: ``False`` keeps isolated points as sampling candidates (``None``: the server's, true).
             binary: send the clouds as multipart ``.npy`` float32 files ``source`` / ``target`` with
                 the options as form fields (smaller and faster than JSON for large clouds). Coordinates
-                beyond ``LARGE_COORDINATE`` (e.g. UTM) are first moved near the origin (:func:`cloud_offsets`: one
+                float32 rounds coarsely (beyond ``LARGE_COORDINATE``, e.g. UTM, or a small object far from the
+                origin) are first moved near the origin (:func:`cloud_offsets`: one
                 offset for both where that serves, else each cloud its own), and the returned pose is moved back: it
                 is in the caller's frame. Where the clouds need offsets of their own and an ``initial_transform`` is
                 given, they go as float64 ``.npy`` unmoved instead, so that the server can still tell a prior given
@@ -294,11 +298,12 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.ndarray] | None:
-    """``None`` when every coordinate of both clouds is within ``LARGE_COORDINATE``, else the offsets ``[3]``, ``[3]``
+    """``None`` when float32 rounds neither cloud coarsely (:func:`rounds_coarsely`), else the offsets ``[3]``, ``[3]``
     that the source and the target are moved by before float32: one for both (the source's centroid, rounded to whole
     units), so that the server sees the clouds as the caller placed them, where that brings both within
     ``LARGE_COORDINATE``; else each cloud's own centroid where it has a coordinate beyond ``LARGE_COORDINATE`` and zero
-    where not (a local scan beside a map in UTM keeps its coordinates, and the map comes near the origin too). A far
+    where not (a local scan beside a map in UTM keeps its coordinates, and the map comes near the origin too); a small
+    object far from the origin counts as far. A far
     cloud whose coordinates are float32 values already is not moved (offset zero, and no shared offset): it loses
     nothing to float32, and the server sees it as it is.
 
@@ -310,7 +315,7 @@ def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.
     src, tgt = (_usable_rows(np.asarray(cloud, np.float64)) for cloud in (source, target))  # [N', 3], [M', 3]
     if src is None or tgt is None:
         return None
-    far = [np.abs(rows).max(initial=0.0) > LARGE_COORDINATE for rows in (src, tgt)]
+    far = [rounds_coarsely(rows) for rows in (src, tgt)]
     if not any(far):
         return None
     # float32 values already (a float32 file or array): nothing rounds them, so they are sent as they are and the
@@ -326,6 +331,18 @@ def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.
     own = tuple(np.round(rows.mean(0)) if is_far and not is_exact else np.zeros(3)
                 for rows, is_far, is_exact in zip((src, tgt), far, exact, strict=True))
     return own[0], own[1]
+
+
+def rounds_coarsely(rows: np.ndarray) -> bool:
+    """Whether float32 would round the cloud ``rows [N, 3]`` coarsely: a coordinate beyond ``LARGE_COORDINATE``, or
+    float32's step at its largest coordinate at least ``FLOAT32_STEP_SHARE`` of its RMS radius."""
+    if not len(rows):
+        return False
+    largest = float(np.abs(rows).max())
+    if largest > LARGE_COORDINATE:
+        return True
+    radius = float(np.sqrt(np.mean(np.sum((rows - rows.mean(axis=0)) ** 2, axis=1))))
+    return float(np.spacing(np.float32(largest))) >= FLOAT32_STEP_SHARE * radius
 
 
 def recentred_transform(transform: ArrayLike, source_offset: np.ndarray, target_offset: np.ndarray) -> list:

@@ -91,6 +91,14 @@ def check_refinement(refine: str | None, refine_points: int | None) -> None:
         raise InputError(f"refine_points must be in {low}..{high}, got {refine_points}")
 
 
+def check_refine_points_refined(refine: str, refine_points: int | None, defaulted: bool = False) -> None:
+    """``InputError`` where ``refine_points`` comes with ``refine`` ``"none"`` (``defaulted``: the server's default,
+    not the request's), which runs no refinement for it to shape; the command line's usage error says the same."""
+    if refine == "none" and refine_points is not None:
+        whose = " (the server's default, MFGNET_DEFAULT_REFINE)" if defaulted else ""
+        raise InputError(f"refine_points sets the refinement's clouds; refine none{whose} runs no refinement")
+
+
 @dataclass(frozen=True, eq=False)
 class RegistrationOptions:
     """How ``Registrar.register`` registers a pair.

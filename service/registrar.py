@@ -408,9 +408,12 @@ class Registrar:
         alone_timing: dict[str, float] = {}
         alone = self.solve(work, request, None, alone_timing, found=found)
         for stage in ("refine", "postprocess"):  # its refinement and assessment, beside the plain pass's
-            timing[stage] = timing.get(stage, 0.0) + alone_timing.get(stage, 0.0)
+            if stage in alone_timing:  # refine "none" runs no refinement: no "refine" key
+                timing[stage] = timing.get(stage, 0.0) + alone_timing[stage]
         if o.refine_mode == "none":  # unrefined poses: ranked by short refinements, as the guess is (decision 0117)
+            started = time.perf_counter()
             kept, unconfirmed = better_unrefined(work, result, alone), False
+            timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)
         else:
             kept, unconfirmed = better_than_unguessed(work, result, alone, distance)
         if kept is alone:
@@ -453,7 +456,11 @@ class Registrar:
         if hypotheses is not None:  # a searched pose turned half a turn from the truth (docs/decisions/0016)
             check(cancelled)
             refined = stages.flip(work, refined, o)
+        elapsed = 1000 * (time.perf_counter() - started)
         if o.refine_mode != "none":
-            timing["refine"] = 1000 * (time.perf_counter() - started)
-        return stages.assess(work, found, refined, request.iterations, o.return_iterations, timing,
-                             unrefined=o.refine_mode == "none")
+            timing["refine"] = elapsed
+        result = stages.assess(work, found, refined, request.iterations, o.return_iterations, timing,
+                               unrefined=o.refine_mode == "none")
+        if o.refine_mode == "none":  # the short refinements that rank a guess (decision 0117): a check, no refinement
+            timing["postprocess"] = timing.get("postprocess", 0.0) + elapsed
+        return result

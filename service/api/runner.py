@@ -19,6 +19,7 @@ from service.api.metrics import Metrics
 from service.api.registry import ModelEntry, ModelRegistry
 from service.api.schemas import RegisterOptions
 from service.checks import max_abs
+from service.options import check_refine_points_refined
 from service.pose_json import pose_fields
 from service.refine_modes import SERVICE_DEFAULT_REFINE
 from service.registrar import (
@@ -94,6 +95,10 @@ class Runner:
         o = pair.options
         refine, search = request_defaults(o.refine, o.rotation_search, default_refine=self.default_refine,
                                           default_rotation_search=self.default_rotation_search)
+        try:
+            check_refine_points_refined(refine, o.refine_points, defaulted=o.refine is None)
+        except InputError as exc:
+            raise APIError(422, f"invalid request: {prefix}{exc}") from None
         kwargs: dict[str, Any] = {
             "iterations": o.iterations,
             "keypoints": o.keypoints,

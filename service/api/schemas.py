@@ -90,7 +90,7 @@ REFINE_POINTS_DESCRIPTION = (
     "Points per cloud the refinement uses (all of them when fewer, else one per voxel); default: the network's "
     "working clouds (768). More points give a more precise pose on dense scans at a higher cost: 1536 independent "
     "points per cloud, median rotation error 0.162 -> 0.112 deg. At or below the working size it changes nothing (a "
-    "thinner refinement moved right poses off by degrees). Ignored with refine 'none'."
+    "thinner refinement moved right poses off by degrees). With refine 'none' (named or the server's default) a 422."
 )
 
 ROTATION_SEARCH_DESCRIPTION = (

@@ -52,8 +52,8 @@ InitialTransformOpt = Annotated[
     Path | None,
     typer.Option(
         help="initial source->target guess (T_target_source, e.g. from odometry): .json (a "
-        "4x4 list, or a --out file), .npy 4x4 or .txt (4 rows of 4 numbers); with a refinement, "
-        "kept where it fits better than the network's poses"
+        "4x4 list, or a --out file), .npy 4x4 or .txt (4 rows of 4 numbers); kept where it fits "
+        "better than the network's poses (with --refine none too, returned unrefined)"
     ),
 ]
 OutOpt = Annotated[

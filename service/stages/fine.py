@@ -25,7 +25,7 @@ from service.icp import icp_plane
 from service.options import RegistrationOptions
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
-from service.stages.normalise import Working
+from service.stages.normalise import FINE_SOURCE_POINTS, Working
 from service.stages.ranking import samples_the_surface
 
 FINE_ITERATIONS = 15  # most updates
@@ -34,9 +34,11 @@ FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a w
 
 
 def applies(work: Working, options: RegistrationOptions) -> bool:
-    """Whether the fine refinement runs: a point-to-plane refinement on the working clouds (no ``refine_points``)
-    and a target dense enough that its working samples lie far apart."""
-    return options.refine_mode in PLANE_MODES and options.extra_refine_points is None and samples_the_surface(work)
+    """Whether the fine refinement runs: a point-to-plane refinement on clouds thinner than the fine ones (the working
+    clouds, or ``refine_points`` below ``FINE_SOURCE_POINTS``) and a target dense enough that its working samples lie
+    far apart."""
+    thinner = options.extra_refine_points is None or options.extra_refine_points < FINE_SOURCE_POINTS
+    return options.refine_mode in PLANE_MODES and thinner and samples_the_surface(work)
 
 
 def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:

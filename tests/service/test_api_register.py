@@ -229,6 +229,10 @@ def test_refine_points_goes_through_every_route_and_is_range_checked(client):
         assert_error(client.post("/v1/register", json=pair_json(pair, refine_points=value)), 422, "refine_points")
         response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, refine_points=value))
         assert_error(response, 422, "refine_points")
+    unrefined = "refine_points sets the refinement's clouds; refine none runs no refinement"  # it was ignored
+    assert_error(client.post("/v1/register", json=pair_json(pair, refine_points=1000, refine="none")), 422, unrefined)
+    response = client.post(f"/v2/models/{MODEL}/infer", json=oip_request(pair, refine_points=1000, refine="none"))
+    assert_error(response, 422, unrefined)
 
 
 def test_drop_isolated_can_be_turned_off_on_every_route(client):

@@ -42,6 +42,24 @@ def test_utm_arrays_register_like_the_same_clouds_near_the_origin():
     np.testing.assert_allclose(t1, t0 + UTM - R0 @ UTM, atol=1e-6 * extent + 1e-9 * np.abs(UTM).max())
 
 
+def test_a_small_object_far_from_the_origin_is_recentred_too():
+    """A ModelNet40 pair scaled to 6 cm across and 6 km from the origin: within ``LARGE_COORDINATE``, yet float32's step
+    there (0.5 mm) is coarse for the object; sent as it was, the server warned `float32 rounding` and asked for float64
+    coordinates, which the caller had sent."""
+    pair = modelnet_pair(3)
+    near = np.asarray(pair.source, np.float64) * 0.06, np.asarray(pair.target, np.float64) * 0.06
+    offset = np.array([6_000.0, -2_500.0, 40.0])
+    far = near[0] + offset, near[1] + offset
+    assert cloud_offsets(*far) is not None and cloud_offsets(*near) is None
+    with MfgnetClient(main_server().url, timeout=60) as client:
+        R0, t0 = pose_from_response(client.register(*near, binary=True, rotation_search=False))
+        response = client.register(*far, binary=True, rotation_search=False)
+    R1, t1 = pose_from_response(response)
+    assert not any(w.startswith("float32 rounding") for w in response["warnings"]), response["warnings"]
+    assert np.arccos(np.clip((np.trace(R0.T @ R1) - 1) / 2, -1, 1)) < 1e-6
+    np.testing.assert_allclose(t1, t0 + offset - R0 @ offset, atol=1e-6)
+
+
 def test_cloud_offsets_leave_out_the_rows_the_server_refuses():
     points = np.random.default_rng(1).normal(size=(50, 3)) + UTM
     with_bad_rows = np.array(points)

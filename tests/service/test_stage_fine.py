@@ -1,7 +1,7 @@
-"""The fine refinement on its own: on a dense target it takes a pose two degrees off to within a quarter of a
-degree and changes the result's pose only; it does nothing where the target is no denser than its working cloud,
-without a point-to-plane refinement, or where the caller chose the refinement's clouds (``refine_points``); it does
-not take a pose that leaves the basin the pipeline judged."""
+"""The fine refinement on its own: on a dense target it takes a pose two degrees off to within a quarter of a degree and
+changes the result's pose only; it does nothing where the target is no denser than its working cloud, without a
+point-to-plane refinement, or where the caller chose refinement clouds as dense as its own (``refine_points`` of 2,048
+or more); it does not take a pose that leaves the basin the pipeline judged."""
 
 from __future__ import annotations
 
@@ -92,10 +92,20 @@ def test_a_target_no_denser_than_its_working_cloud_is_left_alone():
 
 
 def test_without_a_point_to_plane_refinement_or_with_chosen_refinement_clouds_nothing_is_done():
-    for chosen in ({"refine": "icp"}, {"refine": "none"}, {"refine_points": 4096}):
+    for chosen in ({"refine": "icp"}, {"refine": "none"}, {"refine_points": 4096}, {"refine_points": 2048}):
         work, options = working(20_000, **chosen)
         before = made_up_result(*two_degrees_off(work))
         assert fine(work, before, options, {}) is before, chosen
+
+
+def test_refinement_clouds_thinner_than_the_fine_ones_leave_it_to_run():
+    """``refine_points`` between the working size and the fine clouds' 2,048: the fine refinement still runs (without
+    it such a request gave a less precise pose than the default on dense scans)."""
+    for points in (800, 1536, 2047):
+        work, options = working(20_000, refine_points=points)
+        assert applies(work, options), points
+        after = fine(work, made_up_result(*two_degrees_off(work)), options, {})
+        assert errors(work, after.rotation, after.translation)[0] < 0.25, points
 
 
 def test_a_dragon_range_image_registers_within_a_degree_and_a_half():

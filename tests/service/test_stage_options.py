@@ -68,3 +68,13 @@ def test_network_fills_in_the_models_defaults_and_checks_them() -> None:
     assert RegistrationOptions(iterations=2.0, keypoints=np.int64(64)).network(3, 128) == (2, 64)
     with pytest.raises(InputError, match=r"keypoints \(128\) cannot exceed the working size \(64\)"):
         RegistrationOptions(working_size=64).network(3, 128)
+
+
+def test_refine_points_with_the_servers_default_of_no_refinement_names_that_default():
+    from service.errors import InputError
+    from service.options import check_refine_points_refined
+
+    check_refine_points_refined("icp-plane", 1000)
+    check_refine_points_refined("none", None, defaulted=True)
+    with pytest.raises(InputError, match=r"refine none \(the server's default, MFGNET_DEFAULT_REFINE\) runs no "):
+        check_refine_points_refined("none", 1000, defaulted=True)
