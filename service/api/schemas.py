@@ -332,7 +332,8 @@ class RegisterResponse(BaseModel):
     )
     iteration_poses: list[IterationPoseOut] | None = Field(
         None, description="Cumulative network pose src_to_tgt after each iteration (when return_iterations), "
-        "caller's units, before refinement."
+        "caller's units, before refinement; with refine 'none' the last is the transform unless the caller's "
+        "initial_transform fitted better and was returned."
     )
 
 
