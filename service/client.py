@@ -300,10 +300,10 @@ def pose_from_response(response: dict) -> tuple[np.ndarray, np.ndarray]:
 def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.ndarray] | None:
     """``None`` when float32 rounds neither cloud coarsely (:func:`rounds_coarsely`), else the offsets ``[3]``, ``[3]``
     that the source and the target are moved by before float32: one for both (the source's centroid, rounded to whole
-    units), so that the server sees the clouds as the caller placed them, where that brings both within
-    ``LARGE_COORDINATE``; else each cloud's own centroid where it has a coordinate beyond ``LARGE_COORDINATE`` and zero
-    where not (a local scan beside a map in UTM keeps its coordinates, and the map comes near the origin too); a small
-    object far from the origin counts as far. A far
+    units), so that the server sees the clouds as the caller placed them, where float32 then rounds neither coarsely;
+    else each cloud's own centroid where float32 rounds it coarsely and zero where not (a local scan beside a map in UTM
+    keeps its coordinates, and the map comes near the origin too; a small object far from the origin counts as far). A
+    far
     cloud whose coordinates are float32 values already is not moved (offset zero, and no shared offset): it loses
     nothing to float32, and the server sees it as it is.
 
@@ -326,7 +326,9 @@ def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.
         return None
     if not any(exact):
         shared = np.round((src if len(src) else tgt).mean(0))
-        if max(np.abs(src - shared).max(initial=0.0), np.abs(tgt - shared).max(initial=0.0)) <= LARGE_COORDINATE:
+        # one offset only where it leaves neither cloud rounded coarsely: a small object near the origin moved by a
+        # far cloud's centroid (or left beside it where that centroid rounds to zero) would lose what it had
+        if not rounds_coarsely(src - shared) and not rounds_coarsely(tgt - shared):
             return shared, shared
     own = tuple(np.round(rows.mean(0)) if is_far and not is_exact else np.zeros(3)
                 for rows, is_far, is_exact in zip((src, tgt), far, exact, strict=True))

@@ -145,7 +145,7 @@ class RegistrationOptions:
     many target points (every point up to that many, else one per voxel: :func:`service.sampling.spread_indices`)
     instead of the working clouds; more points give a more precise pose on dense scans at a
     higher cost (``docs/ACCURACY.md``, "Refinement on more points"). ``quality`` stays measured on the
-    working clouds. Ignored without refinement.
+    working clouds. With ``refine`` ``None`` / ``"none"``, an ``InputError`` (no refinement to shape).
     ``timing_ms["search"]`` is the whole search (network, short ICPs, ranking) and
     ``timing_ms["search_per_hypothesis"]`` that divided by the number of hypotheses.
 
@@ -184,6 +184,7 @@ class RegistrationOptions:
         if self.keypoints is not None:
             check_keypoints(whole_number(self.keypoints, "keypoints"), self.working_size)
         check_refinement(self.refine, self.refine_points)
+        check_refine_points_refined(self.refine or "none", self.refine_points)
         check_flag(self.return_iterations, "return_iterations")
         check_flag(self.drop_isolated, "drop_isolated")
         if self.icp_max_distance is not None and not (

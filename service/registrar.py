@@ -410,7 +410,9 @@ class Registrar:
         for stage in ("refine", "postprocess"):  # its refinement and assessment, beside the plain pass's
             if stage in alone_timing:  # refine "none" runs no refinement: no "refine" key
                 timing[stage] = timing.get(stage, 0.0) + alone_timing[stage]
-        if o.refine_mode == "none":  # unrefined poses: ranked by short refinements, as the guess is (decision 0117)
+        if o.refine_mode == "none" and keeps_guess(work, result):  # doubtful: only a reliable pose replaces it
+            kept, unconfirmed = (alone if alone.reliable else result), False  # (decision 0118)
+        elif o.refine_mode == "none":  # unrefined poses: ranked by short refinements, as the guess is (decision 0117)
             started = time.perf_counter()
             kept, unconfirmed = better_unrefined(work, result, alone), False
             timing["postprocess"] = timing.get("postprocess", 0.0) + 1000 * (time.perf_counter() - started)

@@ -154,8 +154,9 @@ class RegisterOptions(BaseModel):
     refine_points: RefinePoints | None = Field(None, description=REFINE_POINTS_DESCRIPTION)
     drop_isolated: bool = Field(True, description=DROP_ISOLATED_DESCRIPTION)
     initial_transform: Matrix4 | None = Field(
-        None, description="Rigid 4x4 src_to_tgt guess; the network starts from the source moved by it, and with a "
-        "refinement the guess itself is kept where it fits better than the network's poses. A rotation part within "
+        None, description="Rigid 4x4 src_to_tgt guess; the network starts from the source moved by it, and the guess "
+        "itself is kept where it fits better than the network's poses (with refine 'none' too, unrefined). A "
+        "rotation part within "
         "0.002 of orthonormal (a pose printed with three decimals) is taken as its nearest rotation."
     )
     return_correspondences: bool = Field(True, description="Include the keypoint correspondences.")

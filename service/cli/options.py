@@ -49,8 +49,8 @@ RefinePointsOpt = Annotated[
     typer.Option(
         min=REFINE_POINTS_RANGE[0],
         max=REFINE_POINTS_RANGE[1],
-        help="points per cloud the refinement uses (more: a more precise pose on dense scans, slower) "
-        "[default: the network's working clouds, 768]",
+        help="points per cloud the refinement uses (more: a more precise pose on dense scans, slower; "
+        "not with --refine none) [default: the network's working clouds, 768]",
     ),
 ]
 DropIsolatedOpt = Annotated[

@@ -226,6 +226,11 @@ def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
         raise InvalidPointsError(
             f"shape {list(shape)} holds one row per axis; send one row per point, [N, 3] (the array transposed)"
         )
+    if shape[0] == 4 and shape[1] * dtype.itemsize > MAX_ROW_BYTES:  # [4, N]: homogeneous coordinates, one row per axis
+        raise InvalidPointsError(
+            f"shape {list(shape)} holds one row per axis, as homogeneous coordinates are; send one row per point, "
+            "[N, 3] (the first three rows transposed, cloud[:3].T, where the fourth is all 1)"
+        )
     return int(shape[0])
 
 

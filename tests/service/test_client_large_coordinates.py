@@ -60,6 +60,19 @@ def test_a_small_object_far_from_the_origin_is_recentred_too():
     np.testing.assert_allclose(t1, t0 + offset - R0 @ offset, atol=1e-6)
 
 
+def test_a_small_object_beside_one_at_the_origin_gets_its_own_offset():
+    """One offset for both would move the object at the origin 3 km out (the far one's centroid), or leave the far one
+    where it is (an offset rounding to zero): each is moved by its own."""
+    near = np.asarray(modelnet_pair(3).source, np.float64) * 0.06  # [N, 3] 6 cm across
+    far = near + np.array([3_000.123, 0.3, 0.2])
+    source_offset, target_offset = cloud_offsets(far, near)
+    np.testing.assert_array_equal(source_offset, [3_000.0, 0.0, 0.0])
+    np.testing.assert_array_equal(target_offset, np.zeros(3))
+    source_offset, target_offset = cloud_offsets(near, far)
+    np.testing.assert_array_equal(source_offset, np.zeros(3))
+    np.testing.assert_array_equal(target_offset, [3_000.0, 0.0, 0.0])
+
+
 def test_cloud_offsets_leave_out_the_rows_the_server_refuses():
     points = np.random.default_rng(1).normal(size=(50, 3)) + UTM
     with_bad_rows = np.array(points)

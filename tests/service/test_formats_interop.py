@@ -102,3 +102,12 @@ def test_a_transposed_npy_is_refused_naming_the_shape_it_needs(tmp_path: Path) -
     np.save(tmp_path / "a.npy", np.ascontiguousarray(points.T))  # [3, N]: one row per axis
     with pytest.raises(InvalidPointsError, match=r"\[3, 500\].*\[N, 3\].*transposed"):
         read_cloud(tmp_path / "a.npy")
+
+
+def test_a_homogeneous_npy_of_four_rows_is_refused_naming_the_rows_to_send(tmp_path: Path) -> None:
+    """[4, N]: x, y, z and w rows; the row-size check had named 2,000 bytes per row instead."""
+    points = np.random.default_rng(0).normal(size=(500, 3)).astype(np.float32)
+    homogeneous = np.ascontiguousarray(np.vstack([points.T, np.ones((1, 500), np.float32)]))  # [4, N]
+    np.save(tmp_path / "a.npy", homogeneous)
+    with pytest.raises(InvalidPointsError, match=r"\[4, 500\].*homogeneous.*cloud\[:3\]\.T"):
+        read_cloud(tmp_path / "a.npy")

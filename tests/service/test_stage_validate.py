@@ -70,8 +70,8 @@ def test_sample_takes_working_rows_and_refinement_clouds() -> None:
     np.testing.assert_array_equal(s.src_r, s.working_source)
     more = sample(request(working_size=256, refine="icp-plane", refine_points=600))
     assert 256 < len(more.src_r) <= 600 and 256 < len(more.tgt_r) <= 600  # one per voxel: about 600
-    unrefined = sample(request(working_size=256, refine_points=600))  # no refinement: nothing to use them for
-    assert unrefined.tgt_r is unrefined.tgt_w
+    with pytest.raises(InputError, match="refine none runs no refinement"):  # nothing to use them for
+        request(working_size=256, refine_points=600)
 
 
 def test_sample_moves_the_source_by_the_initial_guess() -> None:
