@@ -15,6 +15,7 @@ from typing import BinaryIO, TypeVar
 
 import numpy as np
 
+from service.checks import MIN_POINTS
 from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns, xyz_in_blocks
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -218,18 +219,22 @@ def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
         return math.prod(shape)
     if dtype.kind not in "fiu":
         raise InvalidPointsError(f"coordinates must be real numbers, got dtype {dtype} ({dtype.kind=})")
+    sent = list(shape)  # as the caller sent it, for the messages
     if len(shape) == 3 and shape[0] == 1:
         shape = shape[1:]
     if len(shape) != 2 or shape[1] < 3:
         raise InvalidPointsError(f"expected shape [N, 3] (or [N, >3]: the first three columns), got {list(shape)}")
-    if shape[0] == 3 and shape[1] * dtype.itemsize > MAX_ROW_BYTES:  # wider than any point's row: [3, N]
+    # one row per axis: rows wider than any point's, or as many columns as a cloud needs points (3 or 4 rows are never
+    # enough points, whatever the dtype's width)
+    per_axis = shape[1] * dtype.itemsize > MAX_ROW_BYTES or shape[1] >= MIN_POINTS
+    if shape[0] == 3 and per_axis:  # [3, N]
         raise InvalidPointsError(
-            f"shape {list(shape)} holds one row per axis; send one row per point, [N, 3] (the array transposed)"
+            f"shape {sent} holds one row per axis; send one row per point, [N, 3] (the array transposed)"
         )
-    if shape[0] == 4 and shape[1] * dtype.itemsize > MAX_ROW_BYTES:  # [4, N]: homogeneous coordinates, one row per axis
+    if shape[0] == 4 and per_axis:  # [4, N]: homogeneous coordinates
         raise InvalidPointsError(
-            f"shape {list(shape)} holds one row per axis, as homogeneous coordinates are; send one row per point, "
-            "[N, 3] (the first three rows transposed, cloud[:3].T, where the fourth is all 1)"
+            f"shape {sent} holds one row per axis, as homogeneous coordinates are; send one row per point, [N, 3] "
+            "(the first three rows transposed, cloud[:3].T, where the fourth is all 1)"
         )
     return int(shape[0])
 

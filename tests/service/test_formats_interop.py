@@ -111,3 +111,13 @@ def test_a_homogeneous_npy_of_four_rows_is_refused_naming_the_rows_to_send(tmp_p
     np.save(tmp_path / "a.npy", homogeneous)
     with pytest.raises(InvalidPointsError, match=r"\[4, 500\].*homogeneous.*cloud\[:3\]\.T"):
         read_cloud(tmp_path / "a.npy")
+
+
+@pytest.mark.parametrize(("shape", "dtype", "named"), [
+    ((4, 40), np.int16, "homogeneous"), ((3, 40), np.int16, "transposed"), ((1, 4, 40), np.float64, "homogeneous"),
+])
+def test_narrow_rows_per_axis_are_named_as_wide_ones_are(tmp_path: Path, shape, dtype, named) -> None:
+    """80-byte rows passed the row-size check and were read as 3 or 4 points ("needs at least 32 points")."""
+    np.save(tmp_path / "a.npy", np.ones(shape, dtype))
+    with pytest.raises(InvalidPointsError, match=rf"shape \[{', '.join(map(str, shape))}\] .*{named}"):
+        read_cloud(tmp_path / "a.npy")
