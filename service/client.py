@@ -303,8 +303,7 @@ def cloud_offsets(source: ArrayLike, target: ArrayLike) -> tuple[np.ndarray, np.
     units), so that the server sees the clouds as the caller placed them, where float32 then rounds neither coarsely;
     else each cloud's own centroid where float32 rounds it coarsely and zero where not (a local scan beside a map in UTM
     keeps its coordinates, and the map comes near the origin too; a small object far from the origin counts as far). A
-    far
-    cloud whose coordinates are float32 values already is not moved (offset zero, and no shared offset): it loses
+    far cloud whose coordinates are float32 values already is not moved (offset zero, and no shared offset): it loses
     nothing to float32, and the server sees it as it is.
 
     Only the rows the server can take count (``x, y, z`` finite and within float32's range): a NaN row

@@ -395,7 +395,8 @@ class Registrar:
         network's pose from the caller's own frame (stage ``unguessed``: the request's start without the guess), refined
         (as the request asks; unrefined with ``refine: "none"``) and assessed alone as that request's plain pass does,
         unless ``result`` lies in its basin (:func:`service.stages.guess.better_than_unguessed`; unrefined,
-        :func:`service.stages.guess.better_unrefined`); and whether ``auto`` should search the result kept although it
+        :func:`service.stages.guess.better_unrefined`, or where ``result`` keeps the guess, that pose only if it is
+        ``reliable``); and whether ``auto`` should search the result kept although it
         may look right: it is the guessed one, that pose lies elsewhere, and it looks wrong
         (:func:`service.stages.search.looks_wrong`), so the request without the guess searches; nothing but a wrong
         guess led to the result (``docs/decisions/0068-the-unguessed-start-competes.md``)."""
