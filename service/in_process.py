@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike
 
 from service.errors import InputError
 from service.manifest import Manifest, bundled_models_dir
-from service.options import check_flag, check_refine_points_refined
+from service.options import check_flag
 from service.registrar import Registrar
 from service.request_defaults import DEFAULT_MODEL, THREAD_RANGE, request_defaults
 from service.result import RegistrationResult
@@ -84,7 +84,6 @@ class LocalRegistrar:
         if "return_correspondences" in options:  # the HTTP option; a result in process always holds them
             check_flag(options.pop("return_correspondences"), "return_correspondences")
         refine, rotation_search = request_defaults(options.pop("refine", None), options.pop("rotation_search", None))
-        check_refine_points_refined(refine, options.get("refine_points"))
         return self.registrar.register(read_cloud(source), read_cloud(target), refine=refine,
                                        rotation_search=rotation_search, **options)
 

@@ -44,7 +44,7 @@ def sample(request: Request) -> Sampled:
     local_t = resample_indices(tgt_e, o.working_size, o.drop_isolated)  # [Nt] rows of tgt_e
     working_source, src_w, tgt_w = src_e[local_s], src_moved[local_s], tgt_e[local_t]
     src_r, tgt_r = working_source, tgt_w
-    if o.extra_refine_points is not None and o.refine_mode != "none":
+    if o.extra_refine_points is not None:  # RegistrationOptions refuses refine_points without a refinement
         src_r = src_e[spread_indices(src_moved, o.extra_refine_points, o.drop_isolated)]  # [Nr, 3]
         tgt_r = tgt_e[spread_indices(tgt_e, o.extra_refine_points, o.drop_isolated)]  # [Mr, 3]
     return Sampled(working_source, to_s(local_s), to_t(local_t), src_w, tgt_w, src_r, tgt_r, request.R_init,
