@@ -132,6 +132,18 @@ def test_npy_with_four_int32_columns_works_over_http(client, clouds, tmp_path) -
     assert np.abs(R - R0).max() < 1e-5 and np.abs(t / 1024 - t0).max() < 1e-5 * extent(grid(TARGET))
 
 
+def test_form_booleans_are_read_as_text_and_a_misspelt_one_is_a_422(client, clouds) -> None:
+    """Form fields are text: ``false``, ``off``, ``no``, ``0``, ``f`` (any case) are one value, as RELIABILITY says."""
+    searched = {value: "search" in upload(client, *clouds["npy"], rotation_search=value)["timing_ms"]
+                for value in ("false", "OFF", "no", "0", "f", "true", "On", "yes", "1", "Y")}
+    assert searched == {"false": False, "OFF": False, "no": False, "0": False, "f": False,
+                        "true": True, "On": True, "yes": True, "1": True, "Y": True}, searched
+    source, target = clouds["npy"]
+    files = {"source": (source.name, source.read_bytes()), "target": (target.name, target.read_bytes())}
+    response = client.post("/v1/register", files=files, data={**OPTIONS, "drop_isolated": "nope"}, timeout=120)
+    assert_error(response, 422, "drop_isolated", "boolean")
+
+
 def test_utm_las_pose_stays_in_the_callers_frame(client, tmp_path) -> None:
     """Both clouds moved by a UTM offset: the same rotation, and the translation of the original frame
     ``t = t0 + offset - R offset`` (the server keeps float64 until its own recentring before float32)."""
