@@ -45,8 +45,12 @@ def sample(request: Request) -> Sampled:
     working_source, src_w, tgt_w = src_e[local_s], src_moved[local_s], tgt_e[local_t]
     src_r, tgt_r = working_source, tgt_w
     if o.extra_refine_points is not None:  # RegistrationOptions refuses refine_points without a refinement
-        src_r = src_e[spread_indices(src_moved, o.extra_refine_points, o.drop_isolated)]  # [Nr, 3]
-        tgt_r = tgt_e[spread_indices(tgt_e, o.extra_refine_points, o.drop_isolated)]  # [Mr, 3]
+        spread_s = spread_indices(src_moved, o.extra_refine_points, o.drop_isolated)  # [Nr] rows of src_e
+        spread_t = spread_indices(tgt_e, o.extra_refine_points, o.drop_isolated)  # [Mr] rows of tgt_e
+        # a spread sample may hold fewer points than asked (one per voxel, less sparse voxels and isolated points):
+        # the refinement never runs on fewer points than the working cloud (decision 0119)
+        src_r = src_e[spread_s] if len(spread_s) >= len(local_s) else working_source  # [Nr, 3]
+        tgt_r = tgt_e[spread_t] if len(spread_t) >= len(local_t) else tgt_w  # [Mr, 3]
     return Sampled(working_source, to_s(local_s), to_t(local_t), src_w, tgt_w, src_r, tgt_r, request.R_init,
                    request.t_init, src_e, tgt_e)
 
