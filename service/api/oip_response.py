@@ -58,7 +58,7 @@ def infer_parameters(result: RegistrationResult) -> dict[str, Any]:
         "inlier_ratio": float(result.inlier_ratio),
         "residual_rms": float(result.residual_rms),
         "reliable": bool(result.reliable),
-        "warnings": "; ".join(result.warnings),
+        "warnings": "\n".join(result.warnings),  # a warning's own text holds "; "
         "total_ms": float(result.timing_ms["total"]),
     }
     if result.stability is not None:  # OIP parameter values cannot be null

@@ -492,7 +492,8 @@ class InferRequest(BaseModel):
 
 
 class InferParameters(BaseModel):
-    """The request ``parameters`` this server understands (others are ignored, as OIP allows)."""
+    """The request ``parameters`` this server understands (others are ignored, as OIP allows, but for
+    ``initial_transform``: a 422 naming the INITIAL_TRANSFORM input)."""
 
     iterations: Iterations | None = None
     keypoints: Keypoints | None = None
@@ -530,8 +531,8 @@ class InferResponse(BaseModel):
     id: str | None = Field(None, description="The request's id, echoed (absent when the request had none).")
     parameters: Parameters | None = Field(
         None, description="iterations (count), inlier_ratio (0..1), residual_rms (caller's units), reliable (bool), "
-        "warnings ('; '-joined text), total_ms (pipeline time, ms), stability (unitless; when defined), search_ms "
-        "(rotation search time, ms; when it ran). Meanings as in RegisterResponse.quality and timing_ms."
+        "warnings (one per line: '\\n'-joined text), total_ms (pipeline time, ms), stability (unitless; when defined), "
+        "search_ms (rotation search time, ms; when it ran). Meanings as in RegisterResponse.quality and timing_ms."
     )
     outputs: list[InferOutputTensor] = Field(description="The outputs asked for, in request order (default: all "
                                              "four in the order TRANSFORM, SOURCE_INDEX, TARGET_INDEX, CREDIBILITY).")

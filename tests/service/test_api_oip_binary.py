@@ -310,3 +310,23 @@ def test_a_binary_initial_transform_of_the_wrong_size_is_named(client):
     head = json.dumps(request).encode()
     response = client.post(INFER, content=head + body[length:] + bytes(60), headers={HEADER: str(len(head))})
     assert_error(response, 422, "INITIAL_TRANSFORM", "60 bytes", "64")
+
+
+def test_initial_transform_as_a_parameter_is_told_to_be_the_input(client):
+    request = json_infer(PAIR, {"shape": [4, 4], "datatype": "FP32", "data": RIGID})
+    request["inputs"] = request["inputs"][:2]
+    request["parameters"] = {**CHEAP, "initial_transform": np.eye(4).tolist()}  # /v1's option name
+    assert_error(client.post(INFER, content=json.dumps(request).encode()), 422, "parameters.initial_transform",
+                 "INITIAL_TRANSFORM input")
+
+
+def test_oip_warnings_are_one_per_line_as_v1_lists_them(client):
+    """A warning's own text may hold '; ' (the separator before): the list is only recoverable line by line."""
+    truth = np.eye(4)
+    truth[:3, :3], truth[:3, 3] = PAIR.rotation, PAIR.translation
+    inverted = np.linalg.inv(truth)  # a guess given target-to-source: warned, with '; ' in the warning
+    v1 = client.post("/v1/register", json=pair_json(PAIR, **CHEAP, initial_transform=inverted.tolist())).json()
+    oip = client.post(INFER, json=json_infer(PAIR, {"shape": [4, 4], "datatype": "FP32",
+                                                    "data": inverted.astype(np.float32).ravel().tolist()})).json()
+    assert any("; " in w for w in v1["warnings"]), v1["warnings"]
+    assert oip["parameters"]["warnings"].split("\n") == v1["warnings"]

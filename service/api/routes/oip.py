@@ -144,12 +144,13 @@ INFER_DESCRIPTION = f"""Register SOURCE onto TARGET.
 **Inputs** SOURCE and TARGET: FP32, shape [N, 3] or [1, N, 3] (x, y, z rows, any units: the outputs are in the
 same units), each either as JSON `data` (flat and row-major, or nested as the shape) or as binary tensor data. Optional
 INITIAL_TRANSFORM: FP32, shape [4, 4] or [1, 4, 4], a rigid src_to_tgt guess (row-major, the clouds' units), as
-`initial_transform` of `/v1/register`: the network starts from it, and with a refinement it is kept where it fits
-better than the network's poses.
+`initial_transform` of `/v1/register`: the network starts from it, and it is kept where it fits better than the
+network's poses (with refine 'none' too, unrefined).
 
 **Request parameters** (all optional): iterations, keypoints, refine ({', '.join(REFINE_MODES)}), refine_points,
 drop_isolated, rotation_search (true, false or 'auto'), binary_data_output (true: every output as binary data
-unless the output's own `binary_data` says otherwise). Others are ignored. Triton's shared memory
+unless the output's own `binary_data` says otherwise). Others are ignored, but for `initial_transform`: a 422
+naming the INITIAL_TRANSFORM input, which takes the guess. Triton's shared memory
 (`shared_memory_region`, ... on an input or output) and classification (`classification` on an output) extensions
 are not served: a 422 naming the parameter.
 
@@ -160,9 +161,11 @@ are not served: a 422 naming the parameter.
 - TARGET_INDEX, INT64 [K]: the row of the TARGET input it was matched to.
 - CREDIBILITY, FP32 [K]: the predicted probability (0..1) that the match is correct.
 
-K is the number of keypoint matches (the model's keypoints, or the `keypoints` parameter).
+K is the number of keypoint matches (the model's keypoints, or the `keypoints` parameter; after a refined rotation
+search on a model that searches a subsample, that subsample's, 32 for `general`).
 **Response parameters**: iterations, inlier_ratio (0..1), residual_rms (caller's units), reliable, warnings
-('; '-joined), total_ms (pipeline time, ms), stability (when defined), search_ms (when the rotation search ran).
+(one per line, '\\n'-joined), total_ms (pipeline time, ms), stability (when defined), search_ms (when the rotation
+search ran).
 
 **Binary tensor data** (`binary_tensor_data` in `GET /v2`): a request may put any input's values after the
 JSON object, as little-endian float32 bytes (row-major, no padding): the input gets
