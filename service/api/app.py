@@ -26,6 +26,7 @@ from service.api.routes import metrics as metrics_routes
 from service.api.runner import Runner
 from service.api.schemas import BatchRequest, InferRequest, RegisterRequest
 from service.api.security_headers import SecurityHeadersMiddleware
+from service.api.server_options import ServerOptionsMiddleware
 from service.blas_threads import use_one_blas_thread
 from service.core.config import Settings
 from service.core.logging import configure_logging
@@ -106,6 +107,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         cors.install(app, settings.cors_origins)  # with the OIP binary extension's header; refusals as JSON
     app.add_middleware(IgnoreUnservableRanges)  # the static files' Range: a unit or form they cannot serve is ignored
     app.add_middleware(HeadAsGetMiddleware)  # inside the request context: the access log and metrics say HEAD
+    app.add_middleware(ServerOptionsMiddleware)  # OPTIONS *: inside the request context (logged, counted)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, max_body_bytes=settings.max_body_bytes,
                        max_upload_bytes=settings.max_upload_bytes, body_timeout_s=settings.body_timeout_s,
                        body_min_rate=settings.body_min_rate, cors_origins=settings.cors_origins)

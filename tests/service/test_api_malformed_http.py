@@ -166,6 +166,20 @@ def test_an_absolute_form_target_is_served_as_its_path():
 
 
 
+def test_options_asterisk_is_answered_for_the_server():
+    """RFC 9110 9.3.7: ``OPTIONS *`` asks about the server (HAProxy's ``option httpchk OPTIONS *`` health check); it
+    was a 404."""
+    with connect() as sock:
+        sock.sendall(b"OPTIONS * HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Request-ID: options-asterisk\r\n"
+                     b"Connection: close\r\n\r\n")
+        status, headers, body = parse(until_closed(sock))
+    assert status == 200 and body == b"", (status, body)
+    assert {"GET", "HEAD", "POST"} <= {m.strip() for m in headers["allow"].split(",")}, headers
+    assert headers["x-content-type-options"] == "nosniff"
+    line = access_line("options-asterisk")
+    assert (line["route"], line["status"]) == ("*", 200), line
+
+
 def test_a_percent_encoded_scheme_is_no_absolute_form_target():
     """Matched on the target as sent: ``http%3A//host/...`` decoded looked like one and was served."""
     with connect() as sock:
