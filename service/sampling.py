@@ -51,9 +51,9 @@ REGRID_SHARE = 0.5
 # the grid, and it is made again without them (_near_rows): a point 1e5 times a 0.2 m scan's size away left 122
 # voxels, 1e6 times 2, and a `collinear` working cloud; 1e4 times still leaves thousands.
 FAR_EXTENT_RATIO = 1000.0
-# spread_indices: where the sparse voxels and isolated points leave fewer than SPREAD_SHARE of the points asked for, the
-# grid is made finer for the share they took, at most SPREAD_REGRIDS times (refine_points 2048 of a 64,000-point
-# LiDAR frame kept 1,040 points on one grid)
+# spread_indices: where the grid holds fewer than SPREAD_SHARE of the points asked for (once the sparse voxels and
+# isolated points are dropped), it is made finer for the share missing, at most SPREAD_REGRIDS times (refine_points
+# 2048 of a 64,000-point LiDAR frame kept 1,040 points on one grid)
 SPREAD_SHARE = 0.85
 SPREAD_REGRIDS = 2
 VOXEL_MAX_TRIES = 6  # voxel-size adjustments (each counts the occupied voxels of N keys once)
@@ -117,11 +117,11 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False, r
     :func:`resample_indices` for large ``size`` (the refinement's clouds, ``refine_points``).
 
     Every point when ``N <= size``; else one point per occupied voxel of a grid sized for about ``size`` of
-    them (:func:`_voxel_grid`; made finer, at most ``SPREAD_REGRIDS`` times, where ``drop_isolated``'s sparse voxels
-    and isolated points leave fewer than ``SPREAD_SHARE`` of ``size``), and where that gives more than ``size``, those
-    whose coordinates hash lowest (:func:`coordinate_hash`) -- no farthest-point sampling, whose cost grows with
-    ``size`` times the candidates (8192 of 200,000 points: 0.8 s). Order-independent like :func:`resample_indices`;
-    ``drop_isolated`` and ``regrid`` (here: only where far points sized the grid) as there.
+    them (:func:`_voxel_grid`; made finer, at most ``SPREAD_REGRIDS`` times, where it holds fewer than
+    ``SPREAD_SHARE`` of ``size`` once ``drop_isolated`` dropped sparse voxels and isolated points), and where that gives
+    more than ``size``, those whose coordinates hash lowest (:func:`coordinate_hash`) -- no farthest-point sampling,
+    whose cost grows with ``size`` times the candidates (8192 of 200,000 points: 0.8 s). Order-independent like
+    :func:`resample_indices`; ``drop_isolated`` and ``regrid`` (here: only where far points sized the grid) as there.
     """
     points = _checked(points, size)
     n = points.shape[0]
@@ -139,7 +139,7 @@ def spread_indices(points: np.ndarray, size: int, drop_isolated: bool = False, r
             candidates = kept_unless_too_few(candidates, isolated_points(points[candidates]))
         if candidates.shape[0] >= SPREAD_SHARE * size or voxels >= n:
             break
-        # the sparse voxels and isolated points took a share of the grid (a LiDAR frame's far range: half of it)
+        # the drops took a share of the grid (a LiDAR frame's far range: half of it), or far points sized it
         voxels = min(n, int(np.ceil(voxels * size / max(candidates.shape[0], 1))))
     if candidates.shape[0] > size:
         candidates = candidates[np.argsort(coordinate_hash(points[candidates]), kind="stable")[:size]]

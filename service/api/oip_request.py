@@ -366,9 +366,9 @@ def _infer_head(body: bytes | bytearray, length: int | None, max_points: int, oc
         params = InferParameters.model_validate(req.parameters or {}, strict=True)
     except ValidationError as exc:
         raise from_pydantic(exc) from None
-    if "initial_transform" in (req.parameters or {}):  # /v1's option name: ignored, the guess would go unused
-        raise APIError(422, f"invalid request: parameters.initial_transform: send the guess as the {GUESS_INPUT} input "
-                            "(FP32, shape [4, 4]), not as a parameter")
+    if (req.parameters or {}).get("initial_transform") is not None:  # /v1's option name, else ignored: a guess unused
+        raise APIError(422, f"invalid request: parameters.initial_transform: the guess goes in the {GUESS_INPUT} input "
+                            "(FP32, shape [4, 4]), not in parameters")
     by_name: dict[str, InferInputTensor] = {}
     for tensor in req.inputs:
         if tensor.name not in OIP_INPUTS and tensor.name != GUESS_INPUT:

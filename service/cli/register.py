@@ -260,6 +260,13 @@ def summary_decimals(T: np.ndarray) -> int:
     return min(17, 6 + int(np.ceil(np.log10(reach)))) if 1.0 < reach < np.inf else 6
 
 
+def warning_lines(warnings: list[str]) -> list[str]:
+    """The summary's warnings, one per line (a warning's own text may hold "; "), ``none`` where there is none."""
+    if not warnings:
+        return ["warnings     none"]
+    return [f"warnings     {warnings[0]}", *(f"             {warning}" for warning in warnings[1:])]
+
+
 def _summary(record: dict) -> str:
     T = np.asarray(record["transform"])
     matrix = np.array2string(T, precision=summary_decimals(T), suppress_small=True, floatmode="fixed", sign=" ",
@@ -272,7 +279,7 @@ def _summary(record: dict) -> str:
         f"model        {model.get('name', '?')} {model.get('version', '')}".rstrip(),
         f"inlier ratio {number(quality.get('inlier_ratio'))}   residual rms {number(quality.get('residual_rms'))}",
         f"reliable     {'yes' if quality.get('reliable') else 'no'}   stability {number(quality.get('stability'))}",
-        f"warnings     {'; '.join(record['warnings']) or 'none'}",
+        *warning_lines(record["warnings"]),
         f"total        {number(total, '.1f')} ms",
     ]
     return "\n".join(lines)

@@ -189,7 +189,7 @@ def share_to_keep(work: Working, result: RegistrationResult, options: Registrati
     refinement is point to plane (the fine clouds' normals), both entered clouds are dense enough to describe, and the
     result is not ``reliable`` (``CONSENSUS_SHARE``) or is a room's that overlays its source in part
     (``RELIABLE_CONSENSUS_SHARE``)."""
-    if options.refine_mode not in PLANE_MODES or options.extra_refine_points is not None:
+    if options.refine_mode not in PLANE_MODES or not work.refines_on_working_clouds:
         return None
     if not dense_enough_to_describe(work):
         return None

@@ -37,7 +37,7 @@ def applies(work: Working, options: RegistrationOptions) -> bool:
     """Whether the fine refinement runs: a point-to-plane refinement on clouds thinner than the fine ones (the working
     clouds, or ``refine_points`` below ``FINE_SOURCE_POINTS``) and a target dense enough that its working samples lie
     far apart."""
-    thinner = options.extra_refine_points is None or options.extra_refine_points < FINE_SOURCE_POINTS
+    thinner = work.refines_on_working_clouds or options.extra_refine_points < FINE_SOURCE_POINTS
     return options.refine_mode in PLANE_MODES and thinner and samples_the_surface(work)
 
 

@@ -32,6 +32,12 @@ class Sampled:
     src_e: np.ndarray  # [Ne, 3] the source after the entry reduction (all of it up to ENTRY_LIMIT), about its origin
     tgt_e: np.ndarray  # [Me, 3] the target after the entry reduction, the same
 
+    @property
+    def refines_on_working_clouds(self) -> bool:
+        """Whether the refinements move the working source onto the working target: ``refine_points`` unset, at or
+        below the working size, or giving a sample thinner than a working cloud (decision 0119)."""
+        return self.src_r is self.working_source and self.tgt_r is self.tgt_w
+
 
 def sample(request: Request) -> Sampled:
     """``working_size`` rows of each cloud (:func:`service.sampling.resample_indices`; isolated points left out
@@ -48,9 +54,9 @@ def sample(request: Request) -> Sampled:
         spread_s = spread_indices(src_moved, o.extra_refine_points, o.drop_isolated)  # [Nr] rows of src_e
         spread_t = spread_indices(tgt_e, o.extra_refine_points, o.drop_isolated)  # [Mr] rows of tgt_e
         # a spread sample may hold fewer points than asked (one per voxel, less sparse voxels and isolated points):
-        # the refinement never runs on fewer points than the working cloud (decision 0119)
-        src_r = src_e[spread_s] if len(spread_s) >= len(local_s) else working_source  # [Nr, 3]
-        tgt_r = tgt_e[spread_t] if len(spread_t) >= len(local_t) else tgt_w  # [Mr, 3]
+        # where either is thinner than its working cloud, the request refines as without refine_points (decision 0119)
+        if len(spread_s) >= len(local_s) and len(spread_t) >= len(local_t):
+            src_r, tgt_r = src_e[spread_s], tgt_e[spread_t]  # [Nr, 3], [Mr, 3]
     return Sampled(working_source, to_s(local_s), to_t(local_t), src_w, tgt_w, src_r, tgt_r, request.R_init,
                    request.t_init, src_e, tgt_e)
 

@@ -318,6 +318,8 @@ def test_initial_transform_as_a_parameter_is_told_to_be_the_input(client):
     request["parameters"] = {**CHEAP, "initial_transform": np.eye(4).tolist()}  # /v1's option name
     assert_error(client.post(INFER, content=json.dumps(request).encode()), 422, "parameters.initial_transform",
                  "INITIAL_TRANSFORM input")
+    request["parameters"]["initial_transform"] = None  # as other parameters' null: left out
+    assert client.post(INFER, content=json.dumps(request).encode()).status_code == 200
 
 
 def test_oip_warnings_are_one_per_line_as_v1_lists_them(client):

@@ -119,7 +119,10 @@ def model_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module", autouse=True)
 def shared_registrars():
-    """One loaded ``Registrar`` per model folder for the whole module (loading costs more than a small run)."""
+    """One loaded ``Registrar`` per model folder for the whole module (loading costs more than a small run), where
+    ``LocalRegistrar`` builds one. (Patched in ``service.registrar`` alone, it took effect only where this module
+    imported ``service.in_process`` first, and then broke ``Registrar.option_names``: the file failed run alone.)"""
+    import service.in_process
     import service.registrar
 
     loaded: dict[tuple[str, int | None], service.registrar.Registrar] = {}
@@ -131,8 +134,9 @@ def shared_registrars():
             loaded[key] = real(directory, threads=threads, warmup=warmup)
         return loaded[key]
 
+    cached.option_names = real.option_names  # what LocalRegistrar.register checks keywords against
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(service.registrar, "Registrar", cached)
+        patch.setattr(service.in_process, "Registrar", cached)
         yield
 
 
@@ -187,6 +191,21 @@ def test_summary_prints_the_matrix_model_quality_and_time(tmp_path, model_dir) -
     for label in ("model        clean 0", "inlier ratio", "reliable", "warnings", "total"):
         assert label in out
     assert "wrote" in result.stderr and "wrote" not in out
+
+
+def test_the_summary_prints_one_warning_per_line(tmp_path, model_dir) -> None:
+    """A warning's own text may hold '; ' (the separator before): the summary's list is read line by line."""
+    rng = np.random.default_rng(4)
+    np.save(tmp_path / "src.npy", rng.normal(size=(300, 3)))
+    np.save(tmp_path / "tgt.npy", rng.normal(size=(300, 3)) * [1, 1, 0.01])  # flat: coplanar, weakly constrained
+    result = register(tmp_path / "src.npy", tmp_path / "tgt.npy", "--out", tmp_path / "pose.json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    warnings = json.loads((tmp_path / "pose.json").read_text())["warnings"]
+    assert len(warnings) >= 2 and any("; " in warning for warning in warnings), warnings
+    lines = result.stdout.splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("warnings"))
+    assert [line[13:] for line in lines[first:first + len(warnings)]] == warnings
+    assert lines[first + len(warnings)].startswith("total")
 
 
 def test_the_printed_matrix_places_map_coordinates_as_the_record_does(tmp_path, model_dir) -> None:

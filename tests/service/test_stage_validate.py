@@ -80,8 +80,8 @@ def test_sample_never_refines_on_fewer_points_than_the_working_clouds() -> None:
     s = sample(request(bumpy_ellipsoid(20_000), bumpy_ellipsoid(20_000, seed=1), refine="icp-plane",
                        refine_points=800))
     assert len(s.src_r) >= len(s.src_w) and len(s.tgt_r) >= len(s.tgt_w), (len(s.src_r), len(s.tgt_r))
-    if len(s.src_r) == len(s.src_w):  # a thinner spread sample: the working cloud itself
-        np.testing.assert_array_equal(s.src_r, s.working_source)
+    assert s.refines_on_working_clouds  # either sample thinner: both working clouds, as without the option
+    assert s.src_r is s.working_source and s.tgt_r is s.tgt_w
 
 
 def test_sample_moves_the_source_by_the_initial_guess() -> None:
