@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.baselines import refuse_without_open3d
 from bench.real_scans import scan_set, thresholds, turned
 from bench.report_io import json_destination, provenance
 from bench.scan_pairs import THRESHOLD_FIELDS, read_pair, read_pairs
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
+    if not args.no_fpfh:  # before the service's cases, not after them
+        refuse_without_open3d(parser)
     directory = scan_set(parser, args.dir, args.pairs)
     for pair in read_pairs(directory, args.pairs):  # before any registration, as bench.real_scans refuses them
         if pair.limits is None:

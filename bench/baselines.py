@@ -6,19 +6,35 @@ the scale of the paper's protocol).
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import time
 from collections.abc import Callable
 
 import numpy as np
 
 DEFAULT_VOXEL = 0.05
+# In a checkout, after `make install-dev` (docs/BENCHMARKS.md); `pip install 'mfgnet[bench]'` looked for the package on
+# an index
+OPEN3D_HINT = "classical baselines need Open3D (the bench extra): .venv/bin/pip install -e '.[bench]' in the checkout"
+
+
+def open3d_missing() -> str | None:
+    """:data:`OPEN3D_HINT` where Open3D is not installed, else ``None``: asked before a run, not after its stages."""
+    return OPEN3D_HINT if importlib.util.find_spec("open3d") is None else None
+
+
+def refuse_without_open3d(parser: argparse.ArgumentParser, instead: str | None = "--no-fpfh") -> None:
+    """``parser.error`` (exit 2) naming the install, and ``instead`` where given, where Open3D is not installed."""
+    if (hint := open3d_missing()) is not None:
+        parser.error(hint + (f"; or {instead}" if instead else ""))
 
 
 def _o3d():
     try:
         import open3d as o3d
     except ImportError as exc:  # pragma: no cover - depends on the extra
-        raise ImportError("classical baselines need Open3D: pip install 'mfgnet[bench]'") from exc
+        raise ImportError(OPEN3D_HINT) from exc
     return o3d
 
 

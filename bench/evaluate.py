@@ -13,6 +13,7 @@ from typing import Annotated
 import typer
 
 from bench.baselines import METHODS as BASELINES  # Open3D is imported only when one runs (the bench extra)
+from bench.baselines import open3d_missing
 from bench.report_io import machine_info, provenance
 from model.cli import (
     MaxAngle,
@@ -124,6 +125,8 @@ def evaluate(
     refuse_options_of_other_methods(ctx, checkpoint, model, baseline)
     if baseline is not None and baseline not in BASELINES:
         raise typer.BadParameter(f"unknown baseline {baseline!r}; expected one of {', '.join(BASELINES)}")
+    if baseline is not None and (hint := open3d_missing()) is not None:
+        raise typer.BadParameter(hint, param_hint="--baseline")
     if model is not None:
         from service.refine_modes import REFINE_MODES
 

@@ -284,14 +284,16 @@ def bench(
     model: Annotated[str, typer.Option(help="bundled model name or model folder")] = "clean",
     checkpoint: Annotated[str, typer.Option(help="checkpoint with the same weights (torch eager)")] = "clean",
     repeats: Annotated[int, typer.Option(min=1, help="timed calls per figure")] = 30,
-    setting: str = "clean",
+    setting: Annotated[str, typer.Option(help="setting of the latency pairs")] = "clean",
     seed: Annotated[int, typer.Option(min=0, help="seed of the test pairs")] = 0,
     threads: Annotated[int, typer.Option(min=1, help="ONNX Runtime and torch threads")] = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="write the report here")] = None,
     compare: Annotated[Path | None, typer.Option(help="baseline report: print the change per figure")] = None,
-    accuracy_setting: Annotated[list[str] | None, typer.Option(help="settings for the side-by-side accuracy")] = None,
+    accuracy_setting: Annotated[list[str] | None, typer.Option(
+        help="settings for the side-by-side accuracy (repeat the option; none: no accuracy stages)")] = None,
     accuracy_count: Annotated[
-        int, typer.Option(min=0, help="pairs per accuracy figure (0: skip the accuracy stages)")
+        int, typer.Option(min=0, help="pairs per accuracy figure, with --accuracy-setting (0: skip the accuracy "
+                                      "stages)")
     ] = 30,
     classical: Annotated[bool, typer.Option(help="include Open3D FPFH+RANSAC+ICP and FGR in the side-by-side "
                                                  "accuracy (--accuracy-setting)")] = True,
@@ -299,8 +301,9 @@ def bench(
         int, typer.Option(min=0, help="requests per concurrency level over HTTP (0: skip)")
     ] = 100,
 ) -> None:
-    """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager, and accuracy and
-    time side by side with Open3D FPFH + RANSAC + ICP and FGR on the same seeded pairs."""
+    """Latency of the ONNX pipeline (per stage, sizes, iterations) against PyTorch eager on the --setting pairs, and,
+    with --accuracy-setting, accuracy and time side by side with Open3D FPFH + RANSAC + ICP and FGR on the same seeded
+    pairs."""
     from model.cli_inputs import checkpoint_model, model_dir, output_file, require_shapes
     from model.data import DATA_ENV
 
@@ -312,6 +315,11 @@ def bench(
     same_network(folder, path, model, checkpoint)
     for name in (setting, *(accuracy_setting or () if accuracy_count else ())):
         require_shapes("test", name, None, hint=f"set ${DATA_ENV}")
+    if classical and accuracy_setting and accuracy_count:
+        from bench.baselines import open3d_missing
+
+        if (hint := open3d_missing()) is not None:  # before the latency stages, not after them
+            raise typer.BadParameter(f"{hint}; or --no-classical", param_hint="--classical")
     report = run_bench(
         model,
         checkpoint,

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.baselines import refuse_without_open3d
 from bench.real_scans import scan_set, turned
 from bench.report_io import json_destination, provenance
 from bench.variant_runs import registered, report
@@ -94,6 +95,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--odometry", nargs=2, type=float, metavar=("DEG", "METRES"),
                         help="send each request an initial_transform this far off the truth, as odometry would")
     args = parser.parse_args(argv)
+    if not args.no_fpfh:  # before the service's cases, not after them
+        refuse_without_open3d(parser)
     directory = scan_set(parser, args.dir)
     if not (directory / f"{PAIR}.npz").is_file():
         parser.error(f"no LiDAR pair {PAIR}.npz in the real-scan set {directory}")

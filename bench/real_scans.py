@@ -50,6 +50,7 @@ import httpx
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.baselines import refuse_without_open3d
 from bench.http_latency import Server
 from bench.report_io import (
     checked,
@@ -561,6 +562,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--start-near-truth starts from the clouds' own frames: not with --offset")
     if args.densify is not None and not 1 <= args.densify <= MAX_FILE_POINTS:
         parser.error(f"--densify must be 1 to {MAX_FILE_POINTS:,} points (the service's file limit): {args.densify}")
+    if not args.no_fpfh:  # before the service's cases, not after them
+        refuse_without_open3d(parser)
     directory = scan_set(parser, args.directory, args.pairs, args.derived)
     json_destination(args.json, create_folders=True)
     require_checkouts(parser, args.compare_root)

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.baselines import refuse_without_open3d
 from bench.real_scans import INDOOR_THRESHOLDS, fpfh_ransac_icp, scan_set, thresholds, turned
 from bench.report_io import json_destination, machine_info, non_negative_int, positive_int, provenance
 from bench.scan_pairs import read_pairs
@@ -185,6 +186,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
+    if not args.no_fpfh:  # before the service's cases, not after them
+        refuse_without_open3d(parser)
     directory = scan_set(parser, args.dir)
     known = [name for name, _, _ in fragments(directory)]
     if not known:

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bench.baselines import refuse_without_open3d
 from bench.failures import CLASSES, failure_row
 from bench.real_scans import (
     THRESHOLDS,
@@ -288,6 +289,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
+    if not args.no_fpfh:  # before the service's cases, not after them
+        refuse_without_open3d(parser)
     shapes = chosen_shapes(parser, args.shapes, args.data)
     angles = angle_list(parser, args.angles)
     json_destination(args.json, create_folders=True)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.baselines import fpfh_ransac_icp
+from bench.baselines import fpfh_ransac_icp, refuse_without_open3d
 from bench.report_io import checked, emit_report, json_destination, positive_int
 from model.cli_inputs import model_dir, pairs_file
 from model.data import load_pairs  # reads every array once (an NpzFile re-reads per access)
@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> None:
     checked(pairs_file, args.pairs)
     checked(model_dir, args.model)
     json_destination(args.json)
+    refuse_without_open3d(parser, instead=None)
     emit_report(run(args.pairs, args.count, args.rounds, args.refine, args.model, args.rotation_search), args.json)
 
 

@@ -435,6 +435,7 @@ def train(
     """
     from model.train import (
         RunFolderInUseError,
+        TooFewShapesError,
         TrainOptions,
         check_run_folder,
         init_config,
@@ -527,8 +528,11 @@ def train(
                 + ": fine-tuning keeps the checkpoint's network; leave these out or give its values"
             )
         opts.config = dict(init_data["config"])
-    with finite_shapes():  # checked as run_training loads them, before its first batch
-        outcome = run_training(opts)
+    try:
+        with finite_shapes():  # checked as run_training loads them, before its first batch
+            outcome = run_training(opts)
+    except TooFewShapesError as err:
+        fail(f"--data {data or 'MFGNET_DATA'}: {err}")
     if outcome.stopped_by:
         code = 128 + signal.Signals[outcome.stopped_by].value
         typer.echo(

@@ -156,6 +156,11 @@ def epoch_batches(
 RUN_FILES = ("last.pt", "best.pt", "log.jsonl", "snapshots")  # what a run leaves in its folder (config.json: at start)
 
 
+class TooFewShapesError(ValueError):
+    """The training shapes (after the validation split) make no batch: every epoch would end without a step and the
+    run's checkpoint would be its initial weights."""
+
+
 class RunFolderInUseError(FileExistsError):
     """Training into ``out`` would overwrite the run it holds (its ``files``, of :data:`RUN_FILES`): a new run
     (``resume`` false) without ``overwrite``, or a resumed one where there is no ``last.pt`` to continue from."""
@@ -297,6 +302,9 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
     draw = (recipe_draw(opts.recipe, opts.max_angle, opts.outliers, opts.views_share, opts.sensor_share)
             if opts.recipe else protocol)
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
+    if stream.batches_per_epoch(opts.batch_size) == 0:
+        raise TooFewShapesError(f"{len(train_idx)} training shapes ({len(val_idx)} of {len(shapes)} held out to "
+                                f"validate) make no batch of {opts.batch_size}: add shapes or lower --batch-size")
     val_shapes = shapes[val_idx][: opts.val_pairs]
     if len(val_shapes) < opts.val_pairs:  # one pair per held-out shape: a small data folder holds out few
         print(f"validating on {len(val_shapes)} pairs, not {opts.val_pairs} (val_pairs): one per held-out shape, "

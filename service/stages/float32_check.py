@@ -6,7 +6,8 @@ coordinates has lost its shape to a half-metre grid before the service sees it, 
 sometimes `reliable`. Where a cloud's working points are all float32 values (so the file or array held float32) and
 float32's step at their largest coordinate is at least ``STEP_SHARE`` of the cloud's RMS radius, the result carries a
 warning naming the distance, the step and what to send instead; so does a cloud of float16 values at least
-``FAR_OUT_RADII`` RMS radii out (its step 8,192 times float32's). The pose and ``reliable`` stay as they are. Clouds
+``FAR_OUT_RADII`` RMS radii out (its step 8,192 times float32's). The pose stays, and ``reliable`` as it is but where
+the step reaches ``UNRELIABLE_STEP_SHARE`` of a warned cloud's RMS radius (its shape lost to the grid). Clouds
 in float64 (JSON, float64 ``.npy`` or PLY/PCD doubles, LAS's scaled integers) or near the origin do not get it, but
 for whole numbers far out on float16's grid, which the values cannot tell from float16 (the warning says so).
 """
@@ -26,6 +27,9 @@ from service.stages.validate import Request
 # LiDAR frame 10 m across at a UTM northing (step 0.5 m) is 5% off its grid; one 1 km from the origin (step 6e-5 m)
 # is not warned.
 STEP_SHARE = 1e-3
+# float32's step as a share of the RMS radius from which the cloud's shape is lost to the grid and the result is not
+# reliable (decision 0120)
+UNRELIABLE_STEP_SHARE = 0.2
 # float16 values are warned only this many RMS radii or more from the origin, where an offset would keep their digits
 FAR_OUT_RADII = 10.0
 # float16 holds every whole number up to this; beyond it a whole-number cloud may be float16's rounding itself
@@ -38,14 +42,20 @@ def float32_check(work: Working, result: RegistrationResult, request: Request) -
     """``result`` with :func:`float32_rounding`'s warning for each cloud whose working points (in the caller's values,
     ``request.src[work.idx_s]``) are all float32 values and lie far enough out that float32's step there reaches
     ``STEP_SHARE`` of the cloud's RMS radius, or all float16 values far out (:func:`coarse_float`); else ``result``
-    itself. The pose and ``reliable`` are kept."""
-    warnings = [
-        float32_rounding(name, float(np.abs(points).max()), rms_radius(points), dtype,
-                         whole=bool(np.array_equal(points, np.round(points))))
-        for name, points in (("source", request.src[work.idx_s]), ("target", request.tgt[work.idx_t]))  # [Nw, 3]
-        if (dtype := coarse_float(points)) is not None
-    ]
-    return dataclasses.replace(result, warnings=[*result.warnings, *warnings]) if warnings else result
+    itself. The pose is kept, and ``reliable`` but where the step reaches ``UNRELIABLE_STEP_SHARE`` of such a cloud's
+    RMS radius."""
+    warnings, coarse = [], False
+    for name, points in (("source", request.src[work.idx_s]), ("target", request.tgt[work.idx_t])):  # [Nw, 3]
+        if (dtype := coarse_float(points)) is None:
+            continue
+        largest, radius = float(np.abs(points).max()), rms_radius(points)
+        warnings.append(float32_rounding(name, largest, radius, dtype,
+                                         whole=bool(np.array_equal(points, np.round(points)))))
+        coarse |= float(np.spacing(dtype(largest))) >= UNRELIABLE_STEP_SHARE * radius
+    if not warnings:
+        return result
+    return dataclasses.replace(result, warnings=[*result.warnings, *warnings],
+                               reliable=result.reliable and not coarse)
 
 
 def coarse_float32(points: np.ndarray) -> bool:

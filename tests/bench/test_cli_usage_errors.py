@@ -7,6 +7,7 @@ from __future__ import annotations
 import importlib
 import json
 import socket
+import sys
 
 import click
 import numpy as np
@@ -166,6 +167,35 @@ def test_mistake_is_a_usage_error_before_any_work(module, argv, work, fragment, 
     assert ended.value.code == 2
     message = capsys.readouterr().err.strip().splitlines()[-1]
     assert "error: " in message and fragment in message
+
+
+@pytest.mark.parametrize(("module", "argv", "work"), [
+    ("real_scans", [], "load_cases"), ("altered_scans", [], "general_registrar"), ("lidar_variants", [], "variants"),
+    ("room_crops", [], "fragments"), ("turntable_scans", [], "chosen_shapes"),
+    ("vs_fpfh", ["--pairs", "{pairs}"], "run"),
+])
+def test_a_benchmark_beside_fpfh_without_open3d_says_how_to_install_it_before_any_work(module, argv, work, files,
+                                                                                       monkeypatch, capsys):
+    """Without the bench extra these ran the service's cases first, then ended in an ImportError traceback."""
+    bench = importlib.import_module(f"bench.{module}")
+    monkeypatch.setattr(bench, work, _no_work)
+    monkeypatch.setitem(sys.modules, "open3d", None)  # as where the bench extra is not installed
+    with pytest.raises(SystemExit) as ended:
+        bench.main([arg.format(**files) for arg in argv])
+    assert ended.value.code == 2
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "pip install -e '.[bench]'" in message, message
+    assert ("--no-fpfh" in message) == (module != "vs_fpfh"), message
+
+
+def test_evaluate_with_a_baseline_without_open3d_is_a_usage_error(files, monkeypatch):
+    from typer.testing import CliRunner
+
+    from service.cli import app
+
+    monkeypatch.setitem(sys.modules, "open3d", None)
+    result = CliRunner().invoke(app, ["evaluate", "--baseline", "fpfh-ransac-icp", "--pairs", files["pairs"]])
+    assert result.exit_code == 2 and "pip install -e '.[bench]'" in result.output, result.output
 
 
 @pytest.mark.parametrize(

@@ -201,6 +201,17 @@ def test_the_made_folder_trains_and_evaluates_by_its_class_names(tmp_path, tiny_
     assert [entry["name"] for entry in by_label.values()] == ["box", "cylinder", "scan cloud"]
 
 
+def test_training_on_shapes_too_few_for_a_batch_is_a_usage_error(tmp_path) -> None:
+    """Five training shapes and a batch of 8 ran every epoch without a step and exited 0 with the initial weights."""
+    src, out = tmp_path / "src", tmp_path / "data"
+    write_source(src, boxes=2, cylinders=2, clouds=2)
+    assert make(src, out, "--dense-points", "0").exit_code == 0
+    args = ["train", "--data", str(out), "--out", str(tmp_path / "run"), "--epochs", "1", "--batch-size", "8",
+            "--device", "cpu"]
+    assert_usage_error(runner.invoke(app, args), "make no batch of 8", "lower --batch-size")
+    assert not (tmp_path / "run" / "best.pt").exists()
+
+
 def test_unseen_setting_on_too_few_classes_is_a_usage_error(tmp_path) -> None:
     src, out = tmp_path / "src", tmp_path / "data"
     write_source(src, boxes=2, cylinders=2, clouds=2)
