@@ -303,8 +303,10 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
             if opts.recipe else protocol)
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     if stream.batches_per_epoch(opts.batch_size) == 0:
-        raise TooFewShapesError(f"{len(train_idx)} training shapes ({len(val_idx)} of {len(shapes)} held out to "
-                                f"validate) make no batch of {opts.batch_size}: add shapes or lower --batch-size")
+        mend = ("a resumed run keeps its batch size: resume on the run's data, or start a new run" if opts.resume
+                else "add shapes or lower --batch-size")
+        raise TooFewShapesError(f"{data_file.parent}: {len(train_idx)} training shapes ({len(val_idx)} of "
+                                f"{len(shapes)} held out to validate) make no batch of {opts.batch_size}: {mend}")
     val_shapes = shapes[val_idx][: opts.val_pairs]
     if len(val_shapes) < opts.val_pairs:  # one pair per held-out shape: a small data folder holds out few
         print(f"validating on {len(val_shapes)} pairs, not {opts.val_pairs} (val_pairs): one per held-out shape, "

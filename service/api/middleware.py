@@ -18,6 +18,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from service.api.cors import with_cors
 from service.api.errors import BodyTimeoutError, BodyTooLargeError, BodyTooSlowError, shortened
 from service.api.metrics import Metrics
+from service.api.server_options import SERVER_ROUTE
 from service.core.logging import ACCESS_LOGGER, APP_LOGGER
 
 access_log = logging.getLogger(ACCESS_LOGGER)
@@ -77,6 +78,8 @@ def _route_template(scope: Scope, path: str, root_path: str) -> str:
     route = scope.get("route")
     if route is not None and getattr(route, "path", None):
         return route.path
+    if path == SERVER_ROUTE.path:  # OPTIONS * answered before routing (a 413 from its Content-Length)
+        return SERVER_ROUTE.path
     app = scope.get("app")
     probe = {"type": "http", "path": path, "root_path": root_path, "method": scope["method"]}
     for candidate in getattr(app, "routes", ()):

@@ -29,7 +29,7 @@ from service.stages.validate import Request
 STEP_SHARE = 1e-3
 # float32's step as a share of the RMS radius from which the cloud's shape is lost to the grid and the result is not
 # reliable (decision 0120)
-UNRELIABLE_STEP_SHARE = 0.2
+UNRELIABLE_STEP_SHARE = 0.13
 # float16 values are warned only this many RMS radii or more from the origin, where an offset would keep their digits
 FAR_OUT_RADII = 10.0
 # float16 holds every whole number up to this; beyond it a whole-number cloud may be float16's rounding itself

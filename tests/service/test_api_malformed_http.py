@@ -178,6 +178,12 @@ def test_options_asterisk_is_answered_for_the_server():
     assert headers["x-content-type-options"] == "nosniff"
     line = access_line("options-asterisk")
     assert (line["route"], line["status"]) == ("*", 200), line
+    with connect() as sock:  # a body over the limit is refused before the middleware: still named by its route
+        sock.sendall(b"OPTIONS * HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Request-ID: options-asterisk-413\r\n"
+                     b"Content-Length: 999999999999\r\nConnection: close\r\n\r\n")
+        status, _, _ = parse(until_closed(sock))
+    line = access_line("options-asterisk-413")
+    assert (status, line["route"], line["status"]) == (413, "*", 413), (status, line)
 
 
 def test_a_percent_encoded_scheme_is_no_absolute_form_target():
