@@ -257,7 +257,11 @@ def summary_decimals(T: np.ndarray) -> int:
     translation above 1 (a pose about a far origin, such as map coordinates 4e6 m out, turns points metres away from
     a rotation rounded to 6 decimals)."""
     reach = float(np.abs(T[:3, 3]).max())
-    return min(17, 6 + int(np.ceil(np.log10(reach)))) if 1.0 < reach < np.inf else 6
+    if 1.0 < reach < np.inf:
+        return min(17, 6 + int(np.ceil(np.log10(reach))))
+    if 0.0 < reach < 1e-3:  # clouds small in their unit (a part in kilometres): 3 significant digits of the translation
+        return min(17, 3 + int(np.ceil(-np.log10(reach))))
+    return 6
 
 
 def warning_lines(warnings: list[str]) -> list[str]:

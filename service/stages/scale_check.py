@@ -35,14 +35,15 @@ def rms_radius(points: np.ndarray) -> float:
 
 
 def scale_check(work: Working, result: RegistrationResult) -> RegistrationResult:
-    """``result`` with :func:`size_mismatch`'s warning where the working clouds' RMS radii differ by ``UNITS_RATIO``
-    or more; else ``result`` itself. The pose and ``reliable`` are kept."""
+    """``result`` with :func:`size_mismatch`'s warning first where the working clouds' RMS radii differ by
+    ``UNITS_RATIO`` or more (the poor fit, low overlap, sparse target or symmetric shape warned before it follow from
+    it); else ``result`` itself. The pose and ``reliable`` are kept."""
     if any(warning.startswith(ONE_POINT) for warning in result.warnings):
         return result
     source, target = rms_radius(work.src_w), rms_radius(work.tgt_w)
     if max(source, target) < UNITS_RATIO * min(source, target):
         return result
-    return dataclasses.replace(result, warnings=[*result.warnings, size_mismatch(source, target)])
+    return dataclasses.replace(result, warnings=[size_mismatch(source, target), *result.warnings])
 
 
 def size_mismatch(source: float, target: float) -> str:

@@ -208,6 +208,18 @@ def test_the_summary_prints_one_warning_per_line(tmp_path, model_dir) -> None:
     assert lines[first + len(warnings)].startswith("total")
 
 
+def test_the_printed_translation_of_clouds_small_in_their_unit_is_not_rounded_to_zero(tmp_path, model_dir) -> None:
+    """Clouds a micrometre across in their unit: a translation of about 1e-7 printed as 0.000000."""
+    np.save(tmp_path / "src.npy", SOURCE.astype(np.float64) * 1e-6)
+    np.save(tmp_path / "tgt.npy", TARGET.astype(np.float64) * 1e-6)
+    result = register(tmp_path / "src.npy", tmp_path / "tgt.npy", "--out", tmp_path / "pose.json", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    printed = np.array([[float(v) for v in line.strip(" []").split()] for line in result.stdout.splitlines()[1:5]])
+    record = np.asarray(json.loads((tmp_path / "pose.json").read_text())["transform"])
+    assert 0 < np.abs(record[:3, 3]).max() < 1e-3
+    np.testing.assert_allclose(printed[:3, 3], record[:3, 3], rtol=0.01, atol=1e-3 * np.abs(record[:3, 3]).max())
+
+
 def test_the_printed_matrix_places_map_coordinates_as_the_record_does(tmp_path, model_dir) -> None:
     offset = np.array([512345.25, 4000000.5, 120.0])  # a UTM easting and northing
     np.save(tmp_path / "src.npy", SOURCE.astype(np.float64) + offset)

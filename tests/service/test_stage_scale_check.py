@@ -38,10 +38,12 @@ def test_rms_radius_is_the_rms_distance_from_the_centroid() -> None:
 
 @pytest.mark.parametrize(("scale", "larger"), [(1000.0, "source"), (0.01, "target"), (1 / 39.37, "target")])
 def test_a_source_in_other_units_is_warned_with_both_sizes(general, scale, larger) -> None:
-    """Millimetres, centimetres or inches against metres: one warning, naming the larger cloud and the ratio."""
+    """Millimetres, centimetres or inches against metres: one warning, first (the poor fit and low overlap it causes
+    after it), naming the larger cloud and the ratio."""
     source, target = asymmetric_blob(3000, seed=1), asymmetric_blob(3000, seed=2)
     result = general.register(source * scale, target, refine="icp-plane", rotation_search="auto")
     [warning] = mismatched(result.warnings)
+    assert result.warnings[0] == warning and len(result.warnings) > 1, result.warnings
     found = RATIO.search(warning)
     ratio = max(scale, 1 / scale)
     assert float(found["ratio"]) == pytest.approx(ratio, rel=0.05), warning
