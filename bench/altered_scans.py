@@ -90,8 +90,6 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
-    if not args.no_fpfh:  # before the service's cases, not after them
-        refuse_without_open3d(parser)
     directory = scan_set(parser, args.dir, args.pairs)
     for pair in read_pairs(directory, args.pairs):  # before any registration, as bench.real_scans refuses them
         if pair.limits is None:
@@ -100,6 +98,8 @@ def main(argv: list[str] | None = None) -> dict:
             except ValueError as err:
                 parser.error(f"{pair.name}: {err}; give them with {' and '.join(THRESHOLD_FIELDS)} in its pair file")
     json_destination(args.json)
+    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
+        refuse_without_open3d(parser)
     made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     registrar = general_registrar()
     groups = {kind: registered(cases(directory, kind, args.scattered, args.pairs), not args.no_fpfh, registrar)

@@ -95,12 +95,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--odometry", nargs=2, type=float, metavar=("DEG", "METRES"),
                         help="send each request an initial_transform this far off the truth, as odometry would")
     args = parser.parse_args(argv)
-    if not args.no_fpfh:  # before the service's cases, not after them
-        refuse_without_open3d(parser)
     directory = scan_set(parser, args.dir)
     if not (directory / f"{PAIR}.npz").is_file():
         parser.error(f"no LiDAR pair {PAIR}.npz in the real-scan set {directory}")
     json_destination(args.json)
+    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
+        refuse_without_open3d(parser)
     made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(directory))
     guess = None if args.odometry is None else odometry_guesses(*args.odometry)

@@ -562,8 +562,6 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--start-near-truth starts from the clouds' own frames: not with --offset")
     if args.densify is not None and not 1 <= args.densify <= MAX_FILE_POINTS:
         parser.error(f"--densify must be 1 to {MAX_FILE_POINTS:,} points (the service's file limit): {args.densify}")
-    if not args.no_fpfh:  # before the service's cases, not after them
-        refuse_without_open3d(parser)
     directory = scan_set(parser, args.directory, args.pairs, args.derived)
     json_destination(args.json, create_folders=True)
     require_checkouts(parser, args.compare_root)
@@ -581,6 +579,8 @@ def main(argv: list[str] | None = None) -> dict:
     require_thresholds(parser, cases, "--thresholds")
     if args.url:
         answering(parser, args.url)
+    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
+        refuse_without_open3d(parser)
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
     starts = None if args.start_near_truth is None else near_truth_starts(cases, args.start_near_truth, args.seed)

@@ -186,8 +186,6 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="the service only")
     parser.add_argument("--json", type=Path, help="write every row here")
     args = parser.parse_args(argv)
-    if not args.no_fpfh:  # before the service's cases, not after them
-        refuse_without_open3d(parser)
     directory = scan_set(parser, args.dir)
     known = [name for name, _, _ in fragments(directory)]
     if not known:
@@ -196,6 +194,8 @@ def main(argv: list[str] | None = None) -> dict:
     if unknown:
         parser.error(f"--fragments: no indoor cloud {', '.join(unknown)} (there: {', '.join(known)})")
     json_destination(args.json)
+    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
+        refuse_without_open3d(parser)
     made_by = provenance(
         [bundled_models_dir() / "general"]
     )  # before the run: the shared checkout may move on during it

@@ -289,8 +289,6 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--no-fpfh", action="store_true", help="skip FPFH + RANSAC + ICP (no Open3D needed)")
     parser.add_argument("--json", type=Path, help="write the report here")
     args = parser.parse_args(argv)
-    if not args.no_fpfh:  # before the service's cases, not after them
-        refuse_without_open3d(parser)
     shapes = chosen_shapes(parser, args.shapes, args.data)
     angles = angle_list(parser, args.angles)
     json_destination(args.json, create_folders=True)
@@ -298,6 +296,8 @@ def main(argv: list[str] | None = None) -> dict:
         from model.cli_inputs import model_dir
 
         checked(model_dir, args.model_dir, "--model-dir")
+    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
+        refuse_without_open3d(parser)
     model = args.model_dir or bundled_models_dir() / "general"
     made_by = provenance([model])  # before the run: the shared checkout may move on during it
     classes = [name for name in shapes if name not in ANALYTIC]

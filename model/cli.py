@@ -532,7 +532,7 @@ def train(
         with finite_shapes():  # checked as run_training loads them, before its first batch
             outcome = run_training(opts)
     except TooFewShapesError as err:
-        fail(f"--data {err}")
+        fail(f"{'--data' if data else '$MFGNET_DATA'} {err}")
     if outcome.stopped_by:
         code = 128 + signal.Signals[outcome.stopped_by].value
         typer.echo(

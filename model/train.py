@@ -303,7 +303,8 @@ def run_training(opts: TrainOptions) -> TrainOutcome:
             if opts.recipe else protocol)
     stream = TrainPairStream(shapes[train_idx], draw, opts.seed)
     if stream.batches_per_epoch(opts.batch_size) == 0:
-        mend = ("a resumed run keeps its batch size: resume on the run's data, or start a new run" if opts.resume
+        resumed = opts.resume and "last.pt" in run_files  # --resume where out holds no run starts a new one
+        mend = ("a resumed run keeps its batch size: resume on the run's data, or start a new run" if resumed
                 else "add shapes or lower --batch-size")
         raise TooFewShapesError(f"{data_file.parent}: {len(train_idx)} training shapes ({len(val_idx)} of "
                                 f"{len(shapes)} held out to validate) make no batch of {opts.batch_size}: {mend}")

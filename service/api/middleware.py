@@ -78,7 +78,7 @@ def _route_template(scope: Scope, path: str, root_path: str) -> str:
     route = scope.get("route")
     if route is not None and getattr(route, "path", None):
         return route.path
-    if path == SERVER_ROUTE.path:  # OPTIONS * answered before routing (a 413 from its Content-Length)
+    if path == SERVER_ROUTE.path and scope["method"] == "OPTIONS":  # OPTIONS * answered before routing (a 413)
         return SERVER_ROUTE.path
     app = scope.get("app")
     probe = {"type": "http", "path": path, "root_path": root_path, "method": scope["method"]}

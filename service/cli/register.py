@@ -138,7 +138,10 @@ def register_command(
         record = _register_local(src, tgt, model, model_dir or [], threads, options,
                                  initial_transform.name if initial_transform is not None else None)
     _write_outputs(record, src, out, write_aligned, source)
-    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record))
+    sample = src[:: max(1, len(src) // 100_000)]  # [<=~100,000, 3]: the size of the cloud, not every row of it
+    finite = sample[np.isfinite(sample).all(axis=1)]
+    size = float(np.sqrt(((finite - finite.mean(0)) ** 2).sum(1).mean())) if len(finite) else None
+    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record, size))
     if require_reliable and not record["quality"].get("reliable"):
         typer.echo("mfgnet: the result is not reliable (--require-reliable)", err=True)
         raise typer.Exit(UNRELIABLE_EXIT)
@@ -252,15 +255,17 @@ def _register_remote(
             fail(str(exc), code=exc.code)
 
 
-def summary_decimals(T: np.ndarray) -> int:
+def summary_decimals(T: np.ndarray, size: float | None = None) -> int:
     """Decimals that print the pose ``T [4, 4]`` closely enough to apply: 6, and one more per digit of its largest
     translation above 1 (a pose about a far origin, such as map coordinates 4e6 m out, turns points metres away from
-    a rotation rounded to 6 decimals)."""
+    a rotation rounded to 6 decimals); for clouds of ``size`` (the source's RMS radius) below 1e-3 of their unit (a
+    part in kilometres), one more per digit of that size below 1. A translation that is only rounding noise (a cloud
+    onto itself) adds none."""
     reach = float(np.abs(T[:3, 3]).max())
     if 1.0 < reach < np.inf:
         return min(17, 6 + int(np.ceil(np.log10(reach))))
-    if 0.0 < reach < 1e-3:  # clouds small in their unit (a part in kilometres): 3 significant digits of the translation
-        return min(17, 3 + int(np.ceil(-np.log10(reach))))
+    if size is not None and 0.0 < size < 1e-3:  # clouds small in their unit: their size, not the translation's noise
+        return min(17, 6 + int(np.ceil(-np.log10(size))))
     return 6
 
 
@@ -271,9 +276,9 @@ def warning_lines(warnings: list[str]) -> list[str]:
     return [f"warnings     {warnings[0]}", *(f"             {warning}" for warning in warnings[1:])]
 
 
-def _summary(record: dict) -> str:
+def _summary(record: dict, size: float | None = None) -> str:
     T = np.asarray(record["transform"])
-    matrix = np.array2string(T, precision=summary_decimals(T), suppress_small=True, floatmode="fixed", sign=" ",
+    matrix = np.array2string(T, precision=summary_decimals(T, size), suppress_small=True, floatmode="fixed", sign=" ",
                              max_line_width=400)
     model, quality = record["model"], record["quality"]
     total = record["timing_ms"].get("total")

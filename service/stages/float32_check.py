@@ -49,9 +49,10 @@ def float32_check(work: Working, result: RegistrationResult, request: Request) -
         if (dtype := coarse_float(points)) is None:
             continue
         largest, radius = float(np.abs(points).max()), rms_radius(points)
+        flattened = float(np.spacing(dtype(largest))) >= UNRELIABLE_STEP_SHARE * radius
         warnings.append(float32_rounding(name, largest, radius, dtype,
-                                         whole=bool(np.array_equal(points, np.round(points)))))
-        coarse |= float(np.spacing(dtype(largest))) >= UNRELIABLE_STEP_SHARE * radius
+                                         whole=bool(np.array_equal(points, np.round(points))), flattened=flattened))
+        coarse |= flattened
     if not warnings:
         return result
     return dataclasses.replace(result, warnings=[*result.warnings, *warnings],
@@ -84,14 +85,18 @@ def coarse_float(points: np.ndarray) -> type | None:
     return np.float32 if coarse_float32(points) else None
 
 
-def float32_rounding(name: str, largest: float, radius: float, dtype: type = np.float32, whole: bool = False) -> str:
+def float32_rounding(name: str, largest: float, radius: float, dtype: type = np.float32, whole: bool = False,
+                     flattened: bool = False) -> str:
     """The warning of cloud ``name`` whose largest coordinate is ``largest`` and RMS radius ``radius``, its values
     those of ``dtype`` (``np.float32`` or ``np.float16``); ``whole``: all whole numbers, which beyond 2,048 may as well
-    be a grid of whole numbers as coarse as float16's (the values cannot tell)."""
+    be a grid of whole numbers as coarse as float16's (the values cannot tell); ``flattened``: the step reaches
+    ``UNRELIABLE_STEP_SHARE`` of the radius, and the warning says the result is not reliable for it."""
     step = float(np.spacing(dtype(largest)))
     kind = np.dtype(dtype).name
     values = f"{kind} values" if not (whole and dtype is np.float16) else "whole numbers on float16's grid (float16 " \
         "values, or a grid as coarse)"
+    unreliable = f"; at {UNRELIABLE_STEP_SHARE:.0%} or more of the radius the result is not reliable" * flattened
     return (f"{FLOAT32_ROUNDING}: the {name}'s coordinates are {values} up to {largest:.4g} from the origin, "
             f"where {kind} holds them to {step:.3g} ({step / radius:.2%} of its RMS radius {radius:.4g}); send "
-            "float64 coordinates (JSON, a float64 .npy, PLY or PCD doubles) or subtract an offset first (a map origin)")
+            "float64 coordinates (JSON, a float64 .npy, PLY or PCD doubles) or subtract an offset first (a map origin)"
+            + unreliable)

@@ -170,13 +170,21 @@ def test_mistake_is_a_usage_error_before_any_work(module, argv, work, fragment, 
 
 
 @pytest.mark.parametrize(("module", "argv", "work"), [
-    ("real_scans", [], "load_cases"), ("altered_scans", [], "general_registrar"), ("lidar_variants", [], "variants"),
-    ("room_crops", [], "fragments"), ("turntable_scans", [], "chosen_shapes"),
+    ("real_scans", [], "run_service"), ("altered_scans", [], "general_registrar"),
+    ("lidar_variants", ["{sensors}"], "variants"), ("room_crops", ["{sensors}"], "general_registrar"),
+    ("turntable_scans", ["--shapes", "cup", "--count", "1"], "modelnet_shapes"),
     ("vs_fpfh", ["--pairs", "{pairs}"], "run"),
 ])
 def test_a_benchmark_beside_fpfh_without_open3d_says_how_to_install_it_before_any_work(module, argv, work, files,
-                                                                                       monkeypatch, capsys):
-    """Without the bench extra these ran the service's cases first, then ended in an ImportError traceback."""
+                                                                                       tmp_path, monkeypatch, capsys):
+    """Without the bench extra these ran the service's cases first, then ended in an ImportError traceback. The
+    other usage errors come first (the CI's environment has no Open3D)."""
+    sensors = tmp_path / "sensors"  # a LiDAR pair and a room pair, as the LiDAR and room benchmarks need
+    sensors.mkdir()
+    cloud = np.random.default_rng(1).normal(size=(40, 3)).astype(np.float32)
+    for name, sensor in (("lidar_small_gicp", "lidar"), ("3dm_room_1_0", "kinect-v1")):
+        np.savez(sensors / f"{name}.npz", source=cloud, target=cloud, transform=np.eye(4), sensor=sensor)
+    files = {**files, "sensors": str(sensors)}
     bench = importlib.import_module(f"bench.{module}")
     monkeypatch.setattr(bench, work, _no_work)
     monkeypatch.setitem(sys.modules, "open3d", None)  # as where the bench extra is not installed

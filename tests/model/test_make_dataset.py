@@ -210,6 +210,10 @@ def test_training_on_shapes_too_few_for_a_batch_is_a_usage_error(tmp_path) -> No
             "--device", "cpu"]
     assert_usage_error(runner.invoke(app, args), "make no batch of 8", "lower --batch-size")
     assert not (tmp_path / "run" / "best.pt").exists()
+    # --resume of a folder that holds no run starts a new one: the same advice; $MFGNET_DATA named as such
+    without_data = [arg for arg in args if arg not in ("--data", str(out))]
+    result = CliRunner(env={"MFGNET_DATA": str(out)}).invoke(app, [*without_data, "--resume"])
+    assert_usage_error(result, f"$MFGNET_DATA {out}", "lower --batch-size")
 
 
 def test_unseen_setting_on_too_few_classes_is_a_usage_error(tmp_path) -> None:

@@ -184,6 +184,11 @@ def test_options_asterisk_is_answered_for_the_server():
         status, _, _ = parse(until_closed(sock))
     line = access_line("options-asterisk-413")
     assert (status, line["route"], line["status"]) == (413, "*", 413), (status, line)
+    with connect() as sock:  # another method on * is no request about the server: a 404 of no route
+        sock.sendall(b"GET * HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Request-ID: get-asterisk\r\nConnection: close\r\n\r\n")
+        status, _, _ = parse(until_closed(sock))
+    line = access_line("get-asterisk")
+    assert (status, line["route"]) == (404, "<unmatched>"), (status, line)
 
 
 def test_a_percent_encoded_scheme_is_no_absolute_form_target():

@@ -220,6 +220,15 @@ def test_the_printed_translation_of_clouds_small_in_their_unit_is_not_rounded_to
     np.testing.assert_allclose(printed[:3, 3], record[:3, 3], rtol=0.01, atol=1e-3 * np.abs(record[:3, 3]).max())
 
 
+def test_a_cloud_onto_itself_prints_six_decimals_not_its_rounding_noise(tmp_path, model_dir) -> None:
+    """A translation of 1e-15 (rounding noise) printed 17 decimals: the digits follow the clouds' size."""
+    np.save(tmp_path / "src.npy", SOURCE.astype(np.float64))
+    result = register(tmp_path / "src.npy", tmp_path / "src.npy", model_dir=model_dir)
+    assert result.exit_code == 0, result.output
+    values = " ".join(result.stdout.splitlines()[1:5]).replace("[", " ").replace("]", " ").split()
+    assert {len(v.split(".")[1]) for v in values} == {6}, result.stdout
+
+
 def test_the_printed_matrix_places_map_coordinates_as_the_record_does(tmp_path, model_dir) -> None:
     offset = np.array([512345.25, 4000000.5, 120.0])  # a UTM easting and northing
     np.save(tmp_path / "src.npy", SOURCE.astype(np.float64) + offset)

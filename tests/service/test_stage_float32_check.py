@@ -105,6 +105,7 @@ def test_a_cloud_float32_holds_coarser_than_013_of_its_radius_is_not_reliable() 
             *clouds, refine="icp-plane", rotation_search="auto")
         np.testing.assert_array_equal(checked.transform, plain.transform)  # the pose stays
         assert len(rounded(checked.warnings)) == 2
+        assert all(("the result is not reliable" in w) == flattened for w in rounded(checked.warnings))  # says why
         assert checked.reliable == (plain.reliable and not flattened), (offset, checked.reliable, plain.reliable)
     assert plain.reliable  # at 100 km the fit still holds
 
