@@ -138,9 +138,11 @@ def register_command(
         record = _register_local(src, tgt, model, model_dir or [], threads, options,
                                  initial_transform.name if initial_transform is not None else None)
     _write_outputs(record, src, out, write_aligned, source)
+    from service.stages.scale_check import rms_radius
+
     sample = src[:: max(1, len(src) // 100_000)]  # [<=~100,000, 3]: the size of the cloud, not every row of it
     finite = sample[np.isfinite(sample).all(axis=1)]
-    size = float(np.sqrt(((finite - finite.mean(0)) ** 2).sum(1).mean())) if len(finite) else None
+    size = rms_radius(finite) if len(finite) else None
     typer.echo(json.dumps(record, indent=2) if json_output else _summary(record, size))
     if require_reliable and not record["quality"].get("reliable"):
         typer.echo("mfgnet: the result is not reliable (--require-reliable)", err=True)
