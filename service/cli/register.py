@@ -138,12 +138,7 @@ def register_command(
         record = _register_local(src, tgt, model, model_dir or [], threads, options,
                                  initial_transform.name if initial_transform is not None else None)
     _write_outputs(record, src, out, write_aligned, source)
-    from service.stages.scale_check import rms_radius
-
-    sample = src[:: max(1, len(src) // 100_000)]  # [<=~100,000, 3]: the size of the cloud, not every row of it
-    finite = sample[np.isfinite(sample).all(axis=1)]
-    size = rms_radius(finite) if len(finite) else None
-    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record, size))
+    typer.echo(json.dumps(record, indent=2) if json_output else _summary(record, cloud_size(src)))
     if require_reliable and not record["quality"].get("reliable"):
         typer.echo("mfgnet: the result is not reliable (--require-reliable)", err=True)
         raise typer.Exit(UNRELIABLE_EXIT)
@@ -269,6 +264,15 @@ def summary_decimals(T: np.ndarray, size: float | None = None) -> int:
     if size is not None and 0.0 < size < 1e-3:  # clouds small in their unit: their size, not the translation's noise
         return min(17, 6 + int(np.ceil(-np.log10(size))))
     return 6
+
+
+def cloud_size(src: np.ndarray) -> float | None:
+    """The RMS radius of ``src [N, 3]``'s finite rows, from at most about 100,000 of them (the summary's digits)."""
+    from service.stages.scale_check import rms_radius
+
+    sample = src[:: max(1, len(src) // 100_000)]  # [<=~100,000, 3]: the size of the cloud, not every row of it
+    finite = sample[np.isfinite(sample).all(axis=1)]
+    return rms_radius(finite) if len(finite) else None
 
 
 def warning_lines(warnings: list[str]) -> list[str]:
