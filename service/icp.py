@@ -241,6 +241,30 @@ class Surface:
         tree = KDTree(points)
         return cls(tree, *target_normals(points, neighbours, tree, nearest_rows=nearest_rows))
 
+    def at(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The normals ``[R, 3]`` and ``defined [R]`` of the points ``rows [R]``."""
+        return self.normals[rows], self.defined[rows]
+
+
+class LazySurface:
+    """A cloud's KD-tree, with each point's PCA normal (:func:`target_normals`) computed when a caller first reads it:
+    for a dense cloud of which a refinement pairs only a few thousand points."""
+
+    def __init__(self, points: np.ndarray, tree: KDTree, neighbours: int = NORMAL_NEIGHBOURS) -> None:
+        self.points, self.tree, self.neighbours = points, tree, neighbours  # [M, 3] float64, its tree
+        self.normals = np.zeros((len(points), 3))  # [M, 3] those computed so far
+        self.defined = np.zeros(len(points), dtype=bool)  # [M]
+        self.known = np.zeros(len(points), dtype=bool)  # [M] whose normal is computed
+
+    def at(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The normals ``[R, 3]`` and ``defined [R]`` of the points ``rows [R]``, computing those not yet known."""
+        missing = np.unique(rows[~self.known[rows]])  # [U]
+        if missing.size:
+            self.normals[missing], self.defined[missing] = target_normals(self.points, self.neighbours, self.tree,
+                                                                          at=missing)
+            self.known[missing] = True
+        return self.normals[rows], self.defined[rows]
+
 
 def icp_symmetric(
     src: np.ndarray,
@@ -349,7 +373,7 @@ def icp_plane(
     tolerance: float = 1e-6,
     reciprocal: bool = True,
     normal_neighbours: int = NORMAL_NEIGHBOURS,
-    target_surface: Surface | None = None,
+    target_surface: Surface | LazySurface | None = None,
     source_surface: Surface | None = None,
 ) -> IcpResult:
     """Refine ``(R0, t0)`` with point-to-plane ICP: minimise ``sum_i (n_i . (R src_i + t - tgt_j(i)))^2``.
@@ -364,7 +388,8 @@ def icp_plane(
     Args:
         src, tgt, R0, t0, max_distance, max_iterations, tolerance, reciprocal: as :func:`icp`.
         normal_neighbours: neighbourhood size of the target normals.
-        target_surface: ``Surface.of(tgt, normal_neighbours)`` when the caller has it.
+        target_surface: ``Surface.of(tgt, normal_neighbours)`` (or a :class:`LazySurface` of ``tgt``) when the
+            caller has it.
         source_surface: ``Surface.of(src)`` when the caller has it (only its KD-tree is used, for the mutual check).
 
     Returns:
@@ -380,14 +405,16 @@ def icp_plane(
     """
     src, tgt, R, t = _checked(src, tgt, R0, t0, max_distance, max_iterations)
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
-    tree, normals, defined = surface.tree, surface.normals, surface.defined  # [M, 3], [M]
+    tree = surface.tree
     src_tree = None if not reciprocal else KDTree(src) if source_surface is None else source_surface.tree
     scale = rms_radius(tgt)
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]
         inlier, nearest = _pairs(tree, src_tree, src_in_tgt, tgt, R, t, max_distance)  # [N], [N]
-        inlier[inlier] = defined[nearest[inlier]]
+        normals, defined = surface.at(nearest[inlier])  # [C, 3], [C] of the paired target points
+        inlier[inlier] = defined
+        normals = normals[defined]  # [K, 3]
         if history.recurred(inlier, nearest):
             break  # a limit cycle: further updates only alternate between the same poses
         count = int(np.count_nonzero(inlier))
@@ -397,7 +424,7 @@ def icp_plane(
                 f"defined target normal (needs {PLANE_MIN_INLIERS}); kept the pose after {iterations} updates"
             )
             break
-        p, q, n = src_in_tgt[inlier], tgt[nearest[inlier]], normals[nearest[inlier]]  # [K, 3] each
+        p, q, n = src_in_tgt[inlier], tgt[nearest[inlier]], normals  # [K, 3] each
         step = _plane_step(p, n, np.einsum("kc,kc->k", n, p - q), None, scale)
         if isinstance(step, float):
             warnings.append(

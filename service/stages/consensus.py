@@ -116,7 +116,7 @@ UNIQUE_SHARE = 0.6
 # none passed it (decisions/0093).
 ONE_PLACE_OBJECT_DOUBTS = (WEAK_SLIDE, WORKING_LOOSE_FIT)
 CONSENSUS_ITERATIONS = 30  # point-to-plane updates from the feature pose (it lies up to about 0.3 m off on rooms)
-CONSENSUS_TOLERANCE = 1e-5  # as the fine stage's
+CONSENSUS_TOLERANCE = 1e-5  # stop on updates below this (rad, x RMS radius)
 DESCRIPTOR_CONSENSUS = "descriptor consensus"  # first words of the note on a result this stage gave
 
 

@@ -4,9 +4,10 @@ The network and every refinement before this one work on the 768-point working c
 samples lie far apart, and point-to-plane ICP against normals estimated from them stops a degree or more from the
 truth (several millimetres on a range image). Where the caller's target is much denser than its working cloud
 (:func:`service.stages.ranking.samples_the_surface`), reciprocal point-to-plane ICP (:func:`service.icp.icp_plane`)
-moves up to ``FINE_SOURCE_POINTS`` points of the entered source onto up to ``FINE_TARGET_POINTS`` of the entered
-target (uniform subsamples; :mod:`service.stages.normalise`), pairing points closer than one inlier distance
-(``docs/decisions/0018-fine-refinement-on-denser-clouds.md``).
+moves up to ``PRECISE_SOURCE_POINTS`` points of the entered source (a uniform subsample;
+:mod:`service.stages.normalise`) onto every point of the entered target, with the normals of the target points it
+pairs, pairing points closer than one inlier distance (``docs/decisions/0018-fine-refinement-on-denser-clouds.md``,
+``docs/decisions/0122-the-fine-stage-on-the-whole-target.md``).
 
 It runs once, on the result the pipeline chose (after the rotation search's comparison), and changes its pose only:
 the result's quality (``inlier_ratio``, ``reliable``, warnings, stability) is what the pipeline measured on the
@@ -25,29 +26,29 @@ from service.icp import icp_plane
 from service.options import RegistrationOptions
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
-from service.stages.normalise import FINE_SOURCE_POINTS, Working
+from service.stages.normalise import Working
 from service.stages.ranking import samples_the_surface
 
 FINE_ITERATIONS = 15  # most updates
-FINE_TOLERANCE = 1e-5  # stop on updates below this (rad, x RMS radius), as the precise stage of icp-plane
+FINE_TOLERANCE = 3e-4  # stop on updates below this (rad, x RMS radius; 3e-4 rad is 0.017 deg)
 FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a working source point
 
 
 def applies(work: Working, options: RegistrationOptions) -> bool:
-    """Whether the fine refinement runs: a point-to-plane refinement on clouds thinner than the fine ones (the working
-    clouds, or ``refine_points`` below ``FINE_SOURCE_POINTS``) and a target dense enough that its working samples lie
-    far apart."""
-    thinner = work.refines_on_working_clouds or options.extra_refine_points < FINE_SOURCE_POINTS
-    return options.refine_mode in PLANE_MODES and thinner and samples_the_surface(work)
+    """Whether the fine refinement runs: a point-to-plane refinement and a target dense enough that its working samples
+    lie far apart, whatever ``refine_points`` asks: its clouds hold at most 8,192 of the target's points, and the
+    fine stage pairs with every point of the entered target (``docs/decisions/0122-the-fine-stage-on-the-whole-
+    target.md``)."""
+    return options.refine_mode in PLANE_MODES and samples_the_surface(work)
 
 
 def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """The caller's pose ``R [3, 3], t [3]`` refined on the fine clouds (:attr:`Working.fine_source`,
-    :attr:`Working.fine_target`), or ``None`` where that refinement stops early (a degenerate system, too few pairs:
-    it warns) or moves a working source point more than ``FINE_MAX_MOVE`` inlier distances."""
-    fitted = icp_plane(work.fine_source, work.fine_target, R, t, max_distance=work.inlier_distance,
-                       max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE,
-                       target_surface=work.fine_target_surface)
+    """The caller's pose ``R [3, 3], t [3]`` refined from :attr:`Working.precise_source` onto the entered target
+    (:attr:`Working.entered_target_surface`), or ``None`` where that refinement stops early (a degenerate system, too
+    few pairs: it warns) or moves a working source point more than ``FINE_MAX_MOVE`` inlier distances."""
+    surface = work.entered_target_surface
+    fitted = icp_plane(work.precise_source, surface.points, R, t, max_distance=work.inlier_distance,
+                       max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE, target_surface=surface)
     if fitted.warnings:
         return None
     moved = work.working_source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves

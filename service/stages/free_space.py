@@ -63,7 +63,7 @@ def free_space_of(work: Working, result: RegistrationResult,
     :attr:`Working.confirming_views`)."""
     source_view, target_view = views
     if source_view is None and target_view is None:
-        return None  # before the fine points are asked for: a cloud that skips the fine stage has none built
+        return None  # before the fine points are asked for: they are built only where they are used
     return pose_free_space(source_view, target_view, work.fine_source, work.fine_target, result.rotation,
                            result.translation)
 

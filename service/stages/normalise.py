@@ -8,7 +8,7 @@ import numpy as np
 
 from service.feature_match import FeaturePose, feature_pose
 from service.free_space import COARSE_VIEW_NEIGHBOURS, RangeView, range_view
-from service.icp import NORMAL_NEIGHBOURS, Surface
+from service.icp import NORMAL_NEIGHBOURS, LazySurface, Surface
 from service.kdtree import KDTree
 from service.neighbours import knn_graph
 from service.normalization import Normalization
@@ -24,10 +24,13 @@ ICP_DISTANCE = 0.1  # normalised units: default ICP correspondence distance
 # The candidates' short refinements (service.stages.refine.short_refine) move every SHORT_REFINE_STRIDE-th point of
 # the refinement's source: they only rank basins, and the winner's full refinement moves every point.
 SHORT_REFINE_STRIDE = 3
-# The fine refinement (service.stages.fine) moves up to FINE_SOURCE_POINTS of the entered source onto up to
-# FINE_TARGET_POINTS of the entered target (docs/decisions/0018-fine-refinement-on-denser-clouds.md).
+# The fine clouds: up to FINE_SOURCE_POINTS of the entered source and FINE_TARGET_POINTS of the entered target, on
+# which the free-space check and the descriptor consensus judge a pose (docs/decisions/0018-fine-refinement-on-denser-
+# clouds.md). The fine stage (service.stages.fine) moves up to PRECISE_SOURCE_POINTS of the entered source onto every
+# point of the entered target (docs/decisions/0122-the-fine-stage-on-the-whole-target.md).
 FINE_SOURCE_POINTS = 2048
 FINE_TARGET_POINTS = 2048
+PRECISE_SOURCE_POINTS = 8192
 # An entered cloud with at least this many times its working cloud's points samples its surface densely: the target's
 # surface then stands in for its working samples (service.stages.ranking.close_fit), and either cloud's density can
 # tell a range image (Working.range_views).
@@ -182,7 +185,8 @@ class Working(Sampled):
     @per_instance_cached_property
     def fine_source(self) -> np.ndarray:
         """``[Nf, 3]`` float64: up to ``FINE_SOURCE_POINTS`` points of the entered source ``src_e``, a uniform
-        subsample (:func:`service.sampling.hashed_indices`), caller's frame: what the fine refinement moves."""
+        subsample (:func:`service.sampling.hashed_indices`), caller's frame: what the descriptor consensus moves and
+        the free-space check projects."""
         return np.asarray(self.src_e[hashed_indices(self.src_e, FINE_SOURCE_POINTS)], dtype=np.float64)
 
     @per_instance_cached_property
@@ -195,6 +199,18 @@ class Working(Sampled):
     def fine_target_surface(self) -> Surface:
         """KD-tree and normals of :attr:`fine_target`, built once per registration."""
         return Surface.of(self.fine_target)
+
+    @per_instance_cached_property
+    def precise_source(self) -> np.ndarray:
+        """``[Np, 3]`` float64: up to ``PRECISE_SOURCE_POINTS`` points of the entered source, a uniform subsample as
+        :attr:`fine_source` (whose points are its first rows): what the fine stage moves."""
+        return np.asarray(self.src_e[hashed_indices(self.src_e, PRECISE_SOURCE_POINTS)], dtype=np.float64)
+
+    @per_instance_cached_property
+    def entered_target_surface(self) -> LazySurface:
+        """The entered target's KD-tree (:attr:`entered_target_tree`), with the normals of the points a refinement
+        pairs, computed as it pairs them: what the fine stage moves :attr:`precise_source` onto."""
+        return LazySurface(np.asarray(self.tgt_e, dtype=np.float64), self.entered_target_tree)
 
     @per_instance_cached_property
     def short_points(self) -> np.ndarray:

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from shapes import ellipsoid_and_box, ellipsoid_surface, unit_directions
 
 from service.icp import (
+    LazySurface,
     PairingHistory,
     Surface,
     cross,
@@ -233,6 +234,31 @@ def test_target_normals_from_the_callers_neighbour_rows_equal_its_own_query() ->
     np.testing.assert_allclose(np.abs(np.sum(with_hood[0] * own[0], axis=1)), 1.0, atol=1e-12)  # up to sign
     shuffled = target_normals(points, nearest_rows=np.random.default_rng(6).permutation(hood))  # rows of other points
     assert np.abs(np.sum(shuffled[0] * own[0], axis=1)).min() < 0.9
+
+
+def test_a_lazy_surface_computes_only_the_normals_read_and_equals_the_whole_ones() -> None:
+    points = smooth_shape(3000, 7)
+    whole = Surface.of(points)
+    lazy = LazySurface(points, KDTree(points))
+    rows = np.array([5, 17, 5, 2999, 17, 0])  # repeats, both ends
+    normals, defined = lazy.at(rows)
+    assert lazy.known.sum() == 4  # the distinct rows read, no other
+    np.testing.assert_array_equal(defined, whole.defined[rows])
+    np.testing.assert_allclose(np.abs(np.sum(normals * whole.normals[rows], axis=1)), 1.0, atol=1e-12)  # up to sign
+    lazy.normals[5] = 0.0  # computed once: a second read returns what the first stored
+    assert not lazy.at(np.array([5]))[0].any()
+
+
+def test_plane_icp_on_a_lazy_surface_ends_where_it_ends_on_the_whole_normals() -> None:
+    src, tgt, _, _ = resampled_pair(1, n=2000)
+    src = src[:300]  # [300, 3]: fewer points than the target pairs
+    whole = icp_plane(src, tgt, np.eye(3), np.zeros(3), max_distance=0.2, target_surface=Surface.of(tgt))
+    surface = LazySurface(tgt, KDTree(tgt))
+    lazy = icp_plane(src, tgt, np.eye(3), np.zeros(3), max_distance=0.2, target_surface=surface)
+    assert lazy.iterations == whole.iterations > 0
+    np.testing.assert_allclose(lazy.rotation, whole.rotation, atol=1e-12)
+    np.testing.assert_allclose(lazy.translation, whole.translation, atol=1e-12)
+    assert 0 < surface.known.sum() < len(tgt)  # only the paired target points' normals were computed
 
 
 def degenerate_target(kind: str) -> np.ndarray:

@@ -139,7 +139,7 @@ def test_the_feature_pose_counts_the_matched_pairs_that_agree_with_another_pose(
 
 def test_a_room_crop_at_30_percent_overlap_registers_from_the_descriptors_consensus(registrar) -> None:
     """Cut from one 3DLoMatch fragment with a third of each window shared: the refinement lays more of the source on
-    the target's walls half a turn off (172 deg) than at the truth; 54 matched patches agree with the truth, 3 with
+    the target's walls half a turn off (172 deg) than at the truth; 54 matched patches agree with the truth, 5 with
     that pose. The pose refined from theirs lays 0.34 of the source on the target, a poor fit, and 52 pairs agree with
     it: the descriptors confirm it."""
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o30/cut")
@@ -150,7 +150,7 @@ def test_a_room_crop_at_30_percent_overlap_registers_from_the_descriptors_consen
     assert "consensus" in result.timing_ms and result.reliable
     kinds = [w.split(":")[0] for w in result.warnings]
     assert kinds == ["poor fit", "descriptor consensus", CONFIRMED_BY_DESCRIPTORS], result.warnings
-    assert result.warnings[1].startswith("descriptor consensus: 54 matched surface patches agree with this pose, 3")
+    assert result.warnings[1].startswith("descriptor consensus: 54 matched surface patches agree with this pose, 5")
     assert result.warnings[2].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: 52 matched surface patches agree with this pose")
     assert len(result.source_index) == len(result.target_index) > 0 and result.source_index.max() < len(source)
     with_poses = registrar.register(source, target, refine="icp-plane", rotation_search="auto", return_iterations=True)
@@ -179,24 +179,26 @@ def test_a_reliable_room_result_half_a_turn_off_is_replaced(registrar) -> None:
 
 
 def test_a_reliable_room_result_that_keeps_half_of_one_strong_place_gives_way_to_it(registrar) -> None:
-    """A kitchen window at 70% overlap (seed 7) registers 6.5 deg and 0.44 m off and passes every check. The feature
-    pose is 1.4 deg off: 118 matched pairs agree with it, no other place gets 0.3 of them, and the result keeps 0.55,
-    more than the 0.3 a `reliable` room must keep. Of one strong place it must keep 0.8, so the pose replaces it."""
+    """A kitchen window at 70% overlap (seed 7) registers 4.4 deg and 0.28 m off (within the 0.3 m of the room
+    thresholds, barely) and passes every check. The feature pose is 1.4 deg off: 118 matched pairs agree with it, no
+    other place gets 0.3 of them, and the result keeps 0.66, more than the 0.3 a `reliable` room must keep. Of one
+    strong place it must keep 0.8, so the pose replaces it: 0.18 deg and 8 mm off."""
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o70/turned", seed=7)
-    result, right = registered(without_consensus(), source, target, truth, limits)
-    assert not right and result.reliable
+    result, _ = registered(without_consensus(), source, target, truth, limits)
+    assert result.reliable and pose_errors(result.rotation, result.translation, truth)[1] > 0.25
     pose = working(registrar, source, target).feature_pose
     assert pose.support == 118 and one_strong_place(pose)
     assert RELIABLE_CONSENSUS_SHARE * pose.support <= pose.support_of(result.rotation, result.translation) < (
         ONE_PLACE_SHARE * pose.support)
-    result, right = registered(registrar, source, target, truth, limits)
-    assert right, pose_errors(result.rotation, result.translation, truth)
+    result, _ = registered(registrar, source, target, truth, limits)
+    degrees, metres = pose_errors(result.rotation, result.translation, truth)
+    assert degrees < 1.0 and metres < 0.02, (degrees, metres)
     (note,) = (w for w in result.warnings if w.startswith(DESCRIPTOR_CONSENSUS))
-    assert note.startswith(f"{DESCRIPTOR_CONSENSUS}: 118 matched surface patches agree with this pose, 65 with"), note
+    assert note.startswith(f"{DESCRIPTOR_CONSENSUS}: 118 matched surface patches agree with this pose, 78 with"), note
 
 
 def test_only_a_reliable_room_must_keep_more_of_one_strong_place(registrar) -> None:
-    """The kitchen window's result as registered without the stage keeps 65 of the strong pose's 118 pairs: `reliable`,
+    """The kitchen window's result as registered without the stage keeps 78 of the strong pose's 118 pairs: `reliable`,
     the pose replaces it; not `reliable`, it keeps more than half of them, as any doubtful result must."""
     source, target, truth, limits = room_crop("3dlo_kitchen_34_21/source/o70/turned", seed=7)
     result, _ = registered(without_consensus(), source, target, truth, limits)
@@ -406,8 +408,8 @@ def test_a_round_objects_turn_the_descriptors_pin_is_confirmed(registrar) -> Non
 @needs_modelnet
 def test_a_round_object_turned_off_the_descriptors_pose_stays_doubtful(registrar) -> None:
     """A lamp (ModelNet40's second test lamp) scanned 24 deg apart, turned as row O turns it (its pair is the 31st of
-    `bench.turntable_scans`' default run: the 31st rotation drawn from seed 0): registered 21 deg off about its axis,
-    weakly constrained; 65 matched pairs agree with it, but only 0.80 of the feature pose's 81: not confirmed."""
+    `bench.turntable_scans`' default run: the 31st rotation drawn from seed 0): registered 24 deg off about its axis,
+    weakly constrained; 54 matched pairs agree with it, but only 0.67 of the feature pose's 81: not confirmed."""
     pair = turntable_pairs(modelnet_shapes(["lamp"], 2)[1], [24.0], THINNED_TURNTABLE)[0]
     rng = np.random.default_rng(0)
     rotation = [Rotation.random(random_state=rng) for _ in range(31)][-1].as_matrix()
@@ -416,7 +418,7 @@ def test_a_round_object_turned_off_the_descriptors_pose_stays_doubtful(registrar
     assert not right and not result.reliable
     assert [w.split(":")[0] for w in result.warnings] == ["weakly constrained"], result.warnings
     pose = working(registrar, source, pair.target).feature_pose
-    assert pose.support == 81 and pose.support_of(result.rotation, result.translation) == 65
+    assert pose.support == 81 and pose.support_of(result.rotation, result.translation) == 54
 
 
 @needs_modelnet
@@ -442,7 +444,7 @@ def test_a_round_objects_feature_pose_in_one_place_put_in_the_results_place_is_c
 @needs_modelnet
 def test_an_objects_slide_the_descriptors_place_in_one_place_is_confirmed(registrar) -> None:
     """A cup (ModelNet40's first test cup) scanned 24 deg apart, turned by the first rotation seed 0 draws: right,
-    but a slide hardly changes the fit. 56 matched pairs agree with it, of the feature pose's 58, and no other place
+    but a slide hardly changes the fit. 57 matched pairs agree with it, of the feature pose's 58, and no other place
     the descriptors point to gets more than 14: kept and `reliable`. Its scans are not range images (their density
     hardly follows the incidence angle), so a loose fit of the working target would be settled too; the entered
     target's loose fit never is."""
@@ -454,14 +456,14 @@ def test_an_objects_slide_the_descriptors_place_in_one_place_is_confirmed(regist
     assert cup.range_views == (None, None)
     assert (cup.feature_pose.support, cup.feature_pose.rival()) == (58, 14)
     loose = dataclasses.replace(result, warnings=[f"{WORKING_LOOSE_FIT} 0.63 lie within one, < 0.7 of the 0.96"])
-    assert confirmed(cup, loose, 56, cup.feature_pose, replaced=False).reliable
+    assert confirmed(cup, loose, 57, cup.feature_pose, replaced=False).reliable
     entered = dataclasses.replace(result, warnings=[
         "loose fit: of the source points within 3 inlier distances of the target's points only 0.600 lie within one"])
-    assert confirmed(cup, entered, 56, cup.feature_pose, replaced=False) is entered
+    assert confirmed(cup, entered, 57, cup.feature_pose, replaced=False) is entered
     result, right = registered_case(registrar, case)
     assert right and result.reliable, result.warnings
     assert [w.split(":")[0] for w in result.warnings] == ["weakly constrained", CONFIRMED_BY_DESCRIPTORS]
-    assert result.warnings[-1].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: 56 matched surface patches"), result.warnings
+    assert result.warnings[-1].startswith(f"{CONFIRMED_BY_DESCRIPTORS}: 57 matched surface patches"), result.warnings
 
 
 def test_over_objects_a_weak_turn_and_in_one_place_a_slide_are_settled(registrar) -> None:
