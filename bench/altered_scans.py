@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.baselines import refuse_without_open3d
+from bench.baselines import refuse_fpfh_without_open3d
 from bench.real_scans import scan_set, thresholds, turned
 from bench.report_io import json_destination, provenance
 from bench.scan_pairs import THRESHOLD_FIELDS, read_pair, read_pairs
@@ -98,8 +98,7 @@ def main(argv: list[str] | None = None) -> dict:
             except ValueError as err:
                 parser.error(f"{pair.name}: {err}; give them with {' and '.join(THRESHOLD_FIELDS)} in its pair file")
     json_destination(args.json)
-    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
-        refuse_without_open3d(parser)
+    refuse_fpfh_without_open3d(parser, args)
     made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     registrar = general_registrar()
     groups = {kind: registered(cases(directory, kind, args.scattered, args.pairs), not args.no_fpfh, registrar)

@@ -30,6 +30,13 @@ def refuse_without_open3d(parser: argparse.ArgumentParser, instead: str | None =
         parser.error(hint + (f"; or {instead}" if instead else ""))
 
 
+def refuse_fpfh_without_open3d(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """:func:`refuse_without_open3d` where the run compares with FPFH + RANSAC + ICP (``args.no_fpfh`` unset). Called
+    after the run's other usage checks, before the service's cases (not after them)."""
+    if not args.no_fpfh:
+        refuse_without_open3d(parser)
+
+
 def _o3d():
     try:
         import open3d as o3d

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.baselines import refuse_without_open3d
+from bench.baselines import refuse_fpfh_without_open3d
 from bench.real_scans import scan_set, turned
 from bench.report_io import json_destination, provenance
 from bench.variant_runs import registered, report
@@ -99,8 +99,7 @@ def main(argv: list[str] | None = None) -> dict:
     if not (directory / f"{PAIR}.npz").is_file():
         parser.error(f"no LiDAR pair {PAIR}.npz in the real-scan set {directory}")
     json_destination(args.json)
-    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
-        refuse_without_open3d(parser)
+    refuse_fpfh_without_open3d(parser, args)
     made_by = provenance([bundled_models_dir() / "general"])  # before the run: the checkout may move on during it
     cases = ((label, "lidar", src, tgt, truth) for label, src, tgt, truth in variants(directory))
     guess = None if args.odometry is None else odometry_guesses(*args.odometry)

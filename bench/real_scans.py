@@ -50,7 +50,7 @@ import httpx
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.baselines import refuse_without_open3d
+from bench.baselines import refuse_fpfh_without_open3d
 from bench.http_latency import Server
 from bench.report_io import (
     checked,
@@ -579,8 +579,7 @@ def main(argv: list[str] | None = None) -> dict:
     require_thresholds(parser, cases, "--thresholds")
     if args.url:
         answering(parser, args.url)
-    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
-        refuse_without_open3d(parser)
+    refuse_fpfh_without_open3d(parser, args)
     if args.offset:
         cases = moved_away(cases, np.asarray(args.offset))
     starts = None if args.start_near_truth is None else near_truth_starts(cases, args.start_near_truth, args.seed)

@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.baselines import refuse_without_open3d
+from bench.baselines import refuse_fpfh_without_open3d
 from bench.real_scans import INDOOR_THRESHOLDS, fpfh_ransac_icp, scan_set, thresholds, turned
 from bench.report_io import json_destination, machine_info, non_negative_int, positive_int, provenance
 from bench.scan_pairs import read_pairs
@@ -194,8 +194,7 @@ def main(argv: list[str] | None = None) -> dict:
     if unknown:
         parser.error(f"--fragments: no indoor cloud {', '.join(unknown)} (there: {', '.join(known)})")
     json_destination(args.json)
-    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
-        refuse_without_open3d(parser)
+    refuse_fpfh_without_open3d(parser, args)
     made_by = provenance(
         [bundled_models_dir() / "general"]
     )  # before the run: the shared checkout may move on during it

@@ -48,7 +48,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bench.baselines import refuse_without_open3d
+from bench.baselines import refuse_fpfh_without_open3d
 from bench.failures import CLASSES, failure_row
 from bench.real_scans import (
     THRESHOLDS,
@@ -296,8 +296,7 @@ def main(argv: list[str] | None = None) -> dict:
         from model.cli_inputs import model_dir
 
         checked(model_dir, args.model_dir, "--model-dir")
-    if not args.no_fpfh:  # after the other checks, before the service's cases (not after them)
-        refuse_without_open3d(parser)
+    refuse_fpfh_without_open3d(parser, args)
     model = args.model_dir or bundled_models_dir() / "general"
     made_by = provenance([model])  # before the run: the shared checkout may move on during it
     classes = [name for name in shapes if name not in ANALYTIC]

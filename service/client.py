@@ -36,6 +36,8 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike
 
+from service.normalization import rms_radius
+
 REGISTER_PATH = "/v1/register"
 MODELS_PATH = "/v1/models"
 READY_PATH = "/v2/health/ready"
@@ -342,8 +344,7 @@ def rounds_coarsely(rows: np.ndarray) -> bool:
     largest = float(np.abs(rows).max())
     if largest > LARGE_COORDINATE:
         return True
-    radius = float(np.sqrt(np.mean(np.sum((rows - rows.mean(axis=0)) ** 2, axis=1))))
-    return float(np.spacing(np.float32(largest))) >= FLOAT32_STEP_SHARE * radius
+    return float(np.spacing(np.float32(largest))) >= FLOAT32_STEP_SHARE * rms_radius(rows)
 
 
 def recentred_transform(transform: ArrayLike, source_offset: np.ndarray, target_offset: np.ndarray) -> list:
