@@ -112,8 +112,8 @@ def test_chosen_refinement_clouds_of_any_size_leave_it_to_run():
 @pytest.mark.parametrize("variant", ["scanned", "turned"])
 def test_the_lidar_pair_comes_within_a_fifth_of_a_degree(variant: str):
     """``lidar_small_gicp``: 2,048 source points moved onto 2,048 target points with normals from 12 of them (metres
-    apart in the far range) left it 0.40 deg off as scanned and 0.89 turned; 8,192 onto every target point, 0.08 and
-    0.11 deg (``docs/decisions/0122-the-fine-stage-on-the-whole-target.md``)."""
+    apart in the far range) left it 0.41 deg off as scanned and 0.89 turned; 8,192 onto every target point, 0.10 and
+    0.12 deg (``docs/decisions/0122-the-fine-stage-on-the-whole-target.md``)."""
     _, degrees, metres = register_with_defaults(real_case("lidar_small_gicp", 0, variant))
     assert degrees < 0.2 and metres < 0.05, (degrees, metres)
 
