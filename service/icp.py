@@ -375,6 +375,7 @@ def icp_plane(
     normal_neighbours: int = NORMAL_NEIGHBOURS,
     target_surface: Surface | LazySurface | None = None,
     source_surface: Surface | None = None,
+    point_fallback: bool = True,
 ) -> IcpResult:
     """Refine ``(R0, t0)`` with point-to-plane ICP: minimise ``sum_i (n_i . (R src_i + t - tgt_j(i)))^2``.
 
@@ -391,13 +392,16 @@ def icp_plane(
         target_surface: ``Surface.of(tgt, normal_neighbours)`` (or a :class:`LazySurface` of ``tgt``) when the
             caller has it.
         source_surface: ``Surface.of(src)`` when the caller has it (only its KD-tree is used, for the mutual check).
+        point_fallback: on a degenerate system, continue with point-to-point :func:`icp`; ``False``: stop there (for
+            a caller that takes no pose from a refinement that warns).
 
     Returns:
         :class:`IcpResult`.  With fewer than ``PLANE_MIN_INLIERS`` usable pairs, or normal equations
         whose smallest eigenvalue is below ``PLANE_MIN_EIGEN_RATIO`` of the largest (a planar,
         linear or symmetric target leaves some motion unobserved), the pose of the last good
         iteration is kept, ``converged`` is False and ``warnings`` says why -- except for a degenerate
-        system, where point-to-point :func:`icp` continues from that pose (``converged`` is then its own).
+        system with ``point_fallback``, where point-to-point :func:`icp` continues from that pose (``converged`` is
+        then its own).
         ``inlier_ratio`` and ``residual_rms`` are point-to-point distances, as for :func:`icp`.
 
     Raises:
@@ -430,9 +434,12 @@ def icp_plane(
             warnings.append(
                 "refinement: point-to-plane ICP stopped on a degenerate system (the target's normals leave a "
                 f"motion unobserved: eigenvalue ratio {step:.1e} < {PLANE_MIN_EIGEN_RATIO:.0e}; planar, linear or "
-                f"symmetric surface) after {iterations} updates; "
-                "continued with point-to-point ICP, which can still use a planar target's outline"
+                f"symmetric surface) after {iterations} updates"
+                + ("; continued with point-to-point ICP, which can still use a planar target's outline"
+                   if point_fallback else "")
             )
+            if not point_fallback:
+                break
             fallback = icp(src, tgt, R, t, max_distance=max_distance, max_iterations=max_iterations - iterations,
                            tolerance=tolerance, reciprocal=reciprocal)
             return dataclasses.replace(fallback, iterations=iterations + fallback.iterations,

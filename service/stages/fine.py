@@ -48,7 +48,8 @@ def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, 
     few pairs: it warns) or moves a working source point more than ``FINE_MAX_MOVE`` inlier distances."""
     surface = work.entered_target_surface
     fitted = icp_plane(work.precise_source, surface.points, R, t, max_distance=work.inlier_distance,
-                       max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE, target_surface=surface)
+                       max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE, target_surface=surface,
+                       point_fallback=False)  # a pose that warns is not taken: no point-to-point ICP of every point
     if fitted.warnings:
         return None
     moved = work.working_source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves

@@ -474,3 +474,17 @@ def test_icp_many_rejects_misshapen_starts() -> None:
     src, tgt, _, _ = partial_pair(0)
     with pytest.raises(ValueError, match="R0"):
         icp_many(src, tgt, np.eye(3), np.zeros(3), max_distance=0.3)
+
+
+def test_plane_icp_without_the_point_fallback_stops_on_a_planar_target() -> None:
+    """``point_fallback=False``: a degenerate system ends the refinement at the last good pose (no point-to-point ICP of
+    every point, for a caller that takes no pose from a refinement that warns)."""
+    tgt = degenerate_target("planar")
+    R0, t0 = perturbed(np.eye(3), np.zeros(3), degrees=0.0, shift=0.05)
+    stopped = icp_plane(tgt[:200], tgt, R0, t0, max_distance=0.2, point_fallback=False)
+    assert not stopped.converged and stopped.iterations == 0
+    assert stopped.warnings[0].startswith("refinement: point-to-plane ICP stopped on a degenerate system")
+    assert "continued with point-to-point" not in stopped.warnings[0]
+    np.testing.assert_array_equal(stopped.translation, t0)
+    fell_back = icp_plane(tgt[:200], tgt, R0, t0, max_distance=0.2)
+    assert "continued with point-to-point" in fell_back.warnings[0] and fell_back.iterations > 0

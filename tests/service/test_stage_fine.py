@@ -100,7 +100,7 @@ def test_without_a_point_to_plane_refinement_nothing_is_done():
 
 
 def test_chosen_refinement_clouds_of_any_size_leave_it_to_run():
-    """``refine_points`` up to its largest, 8,192: the fine stage still runs (its clouds hold fewer of the target's
+    """``refine_points`` up to its largest, 8,192: the fine stage still runs (its clouds hold no more of the target's
     points than the fine stage pairs with; without it the LiDAR pair came back 0.15-0.40 deg off at 2,048-8,192)."""
     for points in (800, 2048, 4096, 8192):
         work, options = working(20_000, refine_points=points)
