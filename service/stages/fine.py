@@ -37,8 +37,7 @@ FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a w
 def applies(work: Working, options: RegistrationOptions) -> bool:
     """Whether the fine refinement runs: a point-to-plane refinement and a target dense enough that its working samples
     lie far apart, whatever ``refine_points`` asks: its clouds hold at most 8,192 of the target's points, and the
-    fine stage pairs with every point of the entered target (``docs/decisions/0122-the-fine-stage-on-the-whole-
-    target.md``)."""
+    fine stage pairs with every point of the entered target (decision 0122)."""
     return options.refine_mode in PLANE_MODES and samples_the_surface(work)
 
 

@@ -186,8 +186,9 @@ class Working(Sampled):
     def fine_source(self) -> np.ndarray:
         """``[Nf, 3]`` float64: up to ``FINE_SOURCE_POINTS`` points of the entered source ``src_e``, a uniform
         subsample (:func:`service.sampling.hashed_indices`), caller's frame: what the descriptor consensus moves and
-        the free-space check projects."""
-        return np.asarray(self.src_e[hashed_indices(self.src_e, FINE_SOURCE_POINTS)], dtype=np.float64)
+        the free-space check projects. The first rows of :attr:`precise_source` (in hash order: the lowest hashes),
+        so the entered source is hashed once."""
+        return self.precise_source[:FINE_SOURCE_POINTS]
 
     @per_instance_cached_property
     def fine_target(self) -> np.ndarray:
@@ -202,8 +203,8 @@ class Working(Sampled):
 
     @per_instance_cached_property
     def precise_source(self) -> np.ndarray:
-        """``[Np, 3]`` float64: up to ``PRECISE_SOURCE_POINTS`` points of the entered source, a uniform subsample as
-        :attr:`fine_source` (whose points are its first rows): what the fine stage moves."""
+        """``[Np, 3]`` float64: up to ``PRECISE_SOURCE_POINTS`` points of the entered source, a uniform subsample
+        (:func:`service.sampling.hashed_indices`, in hash order), caller's frame: what the fine stage moves."""
         return np.asarray(self.src_e[hashed_indices(self.src_e, PRECISE_SOURCE_POINTS)], dtype=np.float64)
 
     @per_instance_cached_property

@@ -140,3 +140,18 @@ def test_on_a_plane_the_refinement_stops_and_the_pose_is_left_as_it_was():
     plane = np.column_stack([rng.random((20_000, 2)), np.zeros(20_000)])  # [20000, 3] in z = 0
     work, _ = working_clouds(plane[plane[:, 0] < 0.7], plane @ R_TRUE.T + T_TRUE, reference_radius=1.0)
     assert fine_pose(work, R_TRUE, T_TRUE + np.array([0.0, 0.0, 0.002])) is None
+
+
+def test_the_fine_source_is_the_entered_sources_2048_lowest_hashes_whatever_is_asked_first():
+    """:attr:`Working.fine_source` is taken from :attr:`Working.precise_source`'s first rows (one hash of the entered
+    source): the same rows as hashing for 2,048 alone, duplicates and a stack of sensor zeros included."""
+    from service.sampling import hashed_indices
+
+    for first in ("fine", "precise"):
+        work, _ = working(20_000)
+        src_e = np.vstack([work.src_e, work.src_e[:3000], np.zeros((50, 3), work.src_e.dtype)])
+        work = dataclasses.replace(work, src_e=src_e)
+        getattr(work, f"{first}_source")
+        expected = np.asarray(src_e[hashed_indices(src_e, 2048)], dtype=np.float64)
+        np.testing.assert_array_equal(work.fine_source, expected)
+        assert len(work.precise_source) == 8192
