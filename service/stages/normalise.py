@@ -150,10 +150,15 @@ class Working(Sampled):
         return KDTree(np.asarray(self.src_e, dtype=np.float64))
 
     @per_instance_cached_property
+    def entered_target64(self) -> np.ndarray:
+        """``[Me, 3]`` float64: the entered target ``tgt_e``, converted once for its tree and its surface."""
+        return np.ascontiguousarray(self.tgt_e, dtype=np.float64)
+
+    @per_instance_cached_property
     def entered_target_tree(self) -> KDTree:
         """KD-tree of the entered target ``tgt_e`` (all of the caller's target up to the entry limit), built when a
         stage first measures distances to the target's surface rather than to its working samples."""
-        return KDTree(np.asarray(self.tgt_e, dtype=np.float64))
+        return KDTree(self.entered_target64)
 
     @per_instance_cached_property
     def working_graphs(self) -> tuple[np.ndarray, np.ndarray]:
@@ -211,7 +216,7 @@ class Working(Sampled):
     def entered_target_surface(self) -> LazySurface:
         """The entered target's KD-tree (:attr:`entered_target_tree`), with the normals of the points a refinement
         pairs, computed as it pairs them: what the fine stage moves :attr:`precise_source` onto."""
-        return LazySurface(np.asarray(self.tgt_e, dtype=np.float64), self.entered_target_tree)
+        return LazySurface(self.entered_target64, self.entered_target_tree)
 
     @per_instance_cached_property
     def short_points(self) -> np.ndarray:
