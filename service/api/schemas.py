@@ -95,7 +95,7 @@ REFINE_POINTS_DESCRIPTION = (
 
 ROTATION_SEARCH_DESCRIPTION = (
     "Search over initial rotations covering SO(3), for any relative orientation (1.4-2.6x the time with a "
-    "refinement, 7-18x without): true = always; "
+    "refinement, 7-15x without): true = always; "
     "'auto' = only when the plain result may be wrong (inlier ratio below "
     f"{AUTO_SEARCH_RELATIVE_RATIO} of what the target's point density allows, or off a dense target's surface, or "
     "both clouds built of orthogonal planes like rooms over a dense target; never on degenerate clouds), then "

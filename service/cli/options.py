@@ -82,7 +82,7 @@ RotationSearchOpt = Annotated[
     bool | None,
     typer.Option(
         help="always start from 24 rotations covering SO(3) (any relative orientation; 1.4-2.6x the "
-        "time with a refinement, 7-18x without); = --rotation-search-mode on"
+        "time with a refinement, 7-15x without); = --rotation-search-mode on"
     ),
 ]
 RotationSearchModeOpt = Annotated[
