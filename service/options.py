@@ -145,7 +145,8 @@ class RegistrationOptions:
     many target points (every point up to that many, else one per voxel: :func:`service.sampling.spread_indices`)
     instead of the working clouds; more points give a more precise pose on dense scans at a
     higher cost (``docs/ACCURACY.md``, "Refinement on more points"). ``quality`` stays measured on the
-    working clouds. With ``refine`` ``None`` / ``"none"``, an ``InputError`` (no refinement to shape).
+    working clouds. With ``refine`` ``None`` / ``"none"``, an ``InputError`` (no refinement to shape), as is
+    ``icp_max_distance``.
     ``timing_ms["search"]`` is the whole search (network, short ICPs, ranking) and
     ``timing_ms["search_per_hypothesis"]`` that divided by the number of hypotheses.
 
@@ -190,6 +191,8 @@ class RegistrationOptions:
         if self.icp_max_distance is not None and not (
                 isinstance(self.icp_max_distance, (int, float, np.number)) and 0 < self.icp_max_distance < np.inf):
             raise InputError(f"icp_max_distance must be a positive number, got {self.icp_max_distance!r}")
+        if self.icp_max_distance is not None and self.refine_mode == "none":  # as refine_points: it would be ignored
+            raise InputError("icp_max_distance sets the refinement's pairing distance; refine none runs no refinement")
         # 0: the refinement stage keeps its start; the slide check and the fine refinement after it still move the
         # pose (their own caps), so an unrefined pose, judged as one, is refine="none"
         if whole_number(self.icp_max_iterations, "icp_max_iterations") < 0:

@@ -132,7 +132,7 @@ def unrefined_pick(work: Working, starts: list[tuple[np.ndarray, np.ndarray]]) -
     (``docs/decisions/0117-an-unrefined-guess-competes.md``)."""
     if len(starts) == 1:
         return Refined(*starts[0], pick=0, warnings=(), ambiguity=None, surface=None)
-    # at the default correspondence distance: icp_max_distance sets a refinement, which refine "none" does not run
+    # at the default correspondence distance: refine "none" refuses icp_max_distance (it sets a refinement)
     short = partial(short_refine, work, refine="icp-plane", distance=ICP_DISTANCE * work.norm.scale,
                     surface=work.target_surface)
     ranked = rank_candidates(work, starts, short)

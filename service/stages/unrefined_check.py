@@ -47,7 +47,7 @@ def unrefined_check(
     short = len(work.short_points) >= CHECK_POINTS
     moved, surface = (work.short_points, work.short_surface) if short else (
         np.asarray(work.src_r, dtype=np.float64), work.source_surface)  # [Nc, 3]
-    # at the default correspondence distance: icp_max_distance sets a refinement, which refine "none" does not run
+    # at the default correspondence distance: refine "none" refuses icp_max_distance (it sets a refinement)
     R_s, t_s = refine_plane_many(moved, work.tgt_r, R[None], t[None], max_distance=ICP_DISTANCE * work.norm.scale,
                                  max_iterations=CHECK_ITERATIONS, target=work.target_surface,
                                  source=surface)  # [1, 3, 3], [1, 3]

@@ -157,6 +157,7 @@ BAD_OPTIONS = [  # each the server's 422; in process they were cut (64.7 -> 64),
     ({"drop_isolated": "false"}, "drop_isolated must be true or false"),
     ({"return_correspondences": "no"}, "return_correspondences must be true or false"),
     ({"icp_max_distance": -1.0}, "icp_max_distance must be a positive number"),
+    ({"refine": "none", "icp_max_distance": 0.01}, "icp_max_distance sets the refinement's pairing distance; refine "),
     ({"initial_transform": "pose.json"}, "initial_transform must be a 4x4 matrix of numbers"),
     ({"initial_transform": [[1, 0, 0], [0, 1, 0, 0]]}, "initial_transform must be a 4x4 matrix of numbers"),
 ]

@@ -111,15 +111,6 @@ def test_on_small_working_clouds_right_results_stay_reliable() -> None:
         assert checked.reliable or not (plain.reliable and right), (i, checked.warnings)
 
 
-def test_icp_max_distance_does_not_switch_the_check_off() -> None:
-    """The check refines at the default correspondence distance: ``icp_max_distance`` sets a refinement, which
-    ``refine: "none"`` does not run (0.001 let the README's pose 20.5 deg off stay ``reliable``)."""
-    source, target, R, t = surface()
-    work, options = working_clouds(source, target, {"refine": "none", "icp_max_distance": 0.001})
-    assert not unrefined_check(work, result_at(about_z(20.0) @ R, t), options, {}).reliable
-
-
-
 def test_the_warning_counts_inlier_distances_and_names_the_bound_applied() -> None:
     """On a sparse working cloud the bound is the target's spacing, wider than an inlier distance: the warning gave
     the shift in spacings and called them inlier distances, against a bound of 1."""
