@@ -33,15 +33,22 @@ def max_abs(values: np.ndarray) -> float:
 LEAVE_NAN_ROWS_OUT = "leave such rows out (e.g. points[np.isfinite(points).all(axis=1)])"
 
 
+def per_axis_problem(shape: list[int]) -> str:
+    """What is wrong with a cloud sent as one row per axis (``shape``: as sent, ``[3, N]`` or ``[4, N]``, homogeneous
+    coordinates, perhaps after a leading 1), and how to mend it; the same words for arrays in process, JSON clouds
+    (``service/api/json_shapes.py``) and ``.npy`` files (``service/formats/arrays.py``)."""
+    if shape[-2] == 3:
+        return f"expected shape [N, 3], got {shape}: one row per axis; send one [x, y, z] row per point (the array " \
+            "transposed)"
+    return (f"expected shape [N, 3], got {shape}: one row per axis, as homogeneous coordinates are; send one [x, y, z] "
+            "row per point (the first three rows transposed, cloud[:3].T, where the fourth is all 1)")
+
+
 def columns_problem(rows: int, columns: int) -> str:
     """What is wrong with a cloud of ``rows`` rows of ``columns`` numbers (``columns != 3``), and how to mend it; the
     same words for arrays in process and for JSON clouds (``service/api/json_shapes.py``)."""
-    if rows == 3 and columns > 3:
-        return (f"expected shape [N, 3], got [3, {columns}]: one row per axis; send one [x, y, z] row per point (the "
-                "array transposed)")
-    if rows == 4 and columns > 4:
-        return (f"expected shape [N, 3], got [4, {columns}]: one row per axis, as homogeneous coordinates are; send "
-                "one [x, y, z] row per point (the first three rows transposed, cloud[:3].T, where the fourth is all 1)")
+    if (rows == 3 and columns > 3) or (rows == 4 and columns > 4):
+        return per_axis_problem([rows, columns])
     extra = ("; x, y, z only: the first three columns (cloud[:, :3]) where they are x, y, z; a point-cloud file may "
              "carry other fields") if columns > 3 else ""
     return f"expected shape [N, 3], rows of [x, y, z], got [{rows}, {columns}]{extra}"

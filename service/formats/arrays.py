@@ -15,7 +15,7 @@ from typing import BinaryIO, TypeVar
 
 import numpy as np
 
-from service.checks import MIN_POINTS
+from service.checks import MIN_POINTS, per_axis_problem
 from service.formats.checks import MAX_ROW_BYTES, check_count, checked, xyz_columns, xyz_in_blocks
 from service.formats.errors import InvalidPointsError, PointCloudFormatError
 
@@ -227,15 +227,8 @@ def _rows(shape: tuple[int, ...], dtype: np.dtype) -> int:
     # one row per axis: rows wider than any point's, or as many columns as a cloud needs points (3 or 4 rows are never
     # enough points, whatever the dtype's width)
     per_axis = shape[1] * dtype.itemsize > MAX_ROW_BYTES or shape[1] >= MIN_POINTS
-    if shape[0] == 3 and per_axis:  # [3, N]
-        raise InvalidPointsError(
-            f"shape {sent} holds one row per axis; send one row per point, [N, 3] (the array transposed)"
-        )
-    if shape[0] == 4 and per_axis:  # [4, N]: homogeneous coordinates
-        raise InvalidPointsError(
-            f"shape {sent} holds one row per axis, as homogeneous coordinates are; send one row per point, [N, 3] "
-            "(the first three rows transposed, cloud[:3].T, where the fourth is all 1)"
-        )
+    if shape[0] in (3, 4) and per_axis:  # [3, N], or [4, N]: homogeneous coordinates
+        raise InvalidPointsError(per_axis_problem(sent))
     return int(shape[0])
 
 
