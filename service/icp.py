@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from service import normalization
 from service.kdtree import KDTree
 from service.procrustes import compose, weighted_procrustes
 
@@ -545,9 +546,9 @@ def _checked(src: np.ndarray, tgt: np.ndarray, R0: np.ndarray, t0: np.ndarray, m
 
 
 def rms_radius(points: np.ndarray) -> float:
-    """RMS distance of ``points (M, 3)`` from their centroid (at least the smallest positive float)."""
-    radius = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
-    return max(radius, np.finfo(np.float64).tiny)
+    """:func:`service.normalization.rms_radius` of ``points (M, 3)``, at least the smallest positive float (a
+    divisor)."""
+    return max(normalization.rms_radius(points), np.finfo(np.float64).tiny)
 
 
 def _pairs(tree: KDTree, src_tree: KDTree | None, src_in_tgt: np.ndarray, tgt: np.ndarray, R: np.ndarray,

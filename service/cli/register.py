@@ -268,7 +268,7 @@ def summary_decimals(T: np.ndarray, size: float | None = None) -> int:
 
 def cloud_size(src: np.ndarray) -> float | None:
     """The RMS radius of ``src [N, 3]``'s finite rows, from at most about 100,000 of them (the summary's digits)."""
-    from service.stages.scale_check import rms_radius
+    from service.normalization import rms_radius
 
     sample = src[:: max(1, len(src) // 100_000)]  # [<=~100,000, 3]: the size of the cloud, not every row of it
     finite = sample[np.isfinite(sample).all(axis=1)]

@@ -18,9 +18,9 @@ import dataclasses
 
 import numpy as np
 
+from service.normalization import rms_radius
 from service.result import RegistrationResult
 from service.stages.normalise import Working
-from service.stages.scale_check import rms_radius
 from service.stages.validate import Request
 
 # float32's step at the largest coordinate, as a share of the cloud's RMS radius, from which the warning is given: a

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
-
+from service.normalization import rms_radius
 from service.quality import IDENTICAL
 from service.result import RegistrationResult
 from service.stages.normalise import Working
@@ -26,12 +25,6 @@ UNITS_RATIO = 30.0
 ONE_POINT = (f"source {IDENTICAL}", f"target {IDENTICAL}")
 # The kind (the text before the colon) of the warning this stage adds
 SIZE_MISMATCH = "size mismatch"
-
-
-def rms_radius(points: np.ndarray) -> float:
-    """RMS distance of ``points [N, 3]`` from their centroid (their units)."""
-    centred = points - points.mean(axis=0)  # [N, 3]
-    return float(np.sqrt(np.einsum("ij,ij->", centred, centred) / len(points)))
 
 
 def scale_check(work: Working, result: RegistrationResult) -> RegistrationResult:

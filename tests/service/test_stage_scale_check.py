@@ -13,9 +13,10 @@ from prometheus_client.parser import text_string_to_metric_families
 from real_scan_cases import GENERAL, skip_without_general
 from shapes import asymmetric_blob
 
+from service.normalization import rms_radius
 from service.registrar import Registrar
 from service.stages.pipeline import Stages
-from service.stages.scale_check import SIZE_MISMATCH, UNITS_RATIO, rms_radius, size_mismatch
+from service.stages.scale_check import SIZE_MISMATCH, UNITS_RATIO, size_mismatch
 
 RATIO = re.compile(r"RMS radius is (?P<ratio>\d+)x the (?P<smaller>source|target)'s \((?P<larger_size>[\d.e+-]+) "
                    r"against (?P<smaller_size>[\d.e+-]+)\)")
