@@ -377,6 +377,7 @@ def icp_plane(
     target_surface: Surface | LazySurface | None = None,
     source_surface: Surface | None = None,
     point_fallback: bool = True,
+    scale: float | None = None,
 ) -> IcpResult:
     """Refine ``(R0, t0)`` with point-to-plane ICP: minimise ``sum_i (n_i . (R src_i + t - tgt_j(i)))^2``.
 
@@ -384,8 +385,8 @@ def icp_plane(
     source point with its nearest target point, keeps pairs closer than ``max_distance`` (mutual
     nearest neighbours when ``reciprocal``) whose target normal is defined, and solves the
     linearised 6-DoF least squares (small rotation ``w`` about the pairs' centroid, translation)
-    through its 6x6 normal equations, scaled by the target's RMS radius so the test below does not
-    depend on units; the update applies the exact rotation of ``w`` (Rodrigues).
+    through its 6x6 normal equations, scaled by ``scale`` (default: the target's RMS radius) so the test below
+    does not depend on units; the update applies the exact rotation of ``w`` (Rodrigues).
 
     Args:
         src, tgt, R0, t0, max_distance, max_iterations, tolerance, reciprocal: as :func:`icp`.
@@ -395,6 +396,8 @@ def icp_plane(
         source_surface: ``Surface.of(src)`` when the caller has it (only its KD-tree is used, for the mutual check).
         point_fallback: on a degenerate system, continue with point-to-point :func:`icp`; ``False``: stop there (for
             a caller that takes no pose from a refinement that warns).
+        scale: the length that scales the normal equations and the translation ``tolerance``: the extent of the
+            surface the pairs can cover, where the target reaches far beyond it (one far point, a background).
 
     Returns:
         :class:`IcpResult`.  With fewer than ``PLANE_MIN_INLIERS`` usable pairs, or normal equations
@@ -412,7 +415,7 @@ def icp_plane(
     surface = Surface.of(tgt, normal_neighbours) if target_surface is None else target_surface
     tree = surface.tree
     src_tree = None if not reciprocal else KDTree(src) if source_surface is None else source_surface.tree
-    scale = rms_radius(tgt)
+    scale = rms_radius(tgt) if scale is None else scale
     iterations, warnings, history = 0, [], PairingHistory()
     for _ in range(max_iterations):
         src_in_tgt = src @ R.T + t  # [N, 3]

@@ -373,7 +373,8 @@ class Registrar:
         if mode == "auto":  # a doubtful result against the pose the descriptors agree on, checked as any result
             agreed = stages.consensus(self, work, result, request.options, request.iterations, request.keypoints,
                                       timing)
-            if agreed is not result:
+            if agreed is not result:  # refined on the 2,048-point fine clouds only: the fine stage as well
+                agreed = stages.fine(work, agreed, request.options, timing)
                 result = stages.symmetry(work, stages.free_space(work, agreed, request.options, timing),
                                          request.options, timing)
         result = stages.unrefined_check(work, result, request.options, timing)  # refine "none": a refinement leaves it

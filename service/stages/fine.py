@@ -9,7 +9,8 @@ moves up to ``PRECISE_SOURCE_POINTS`` points of the entered source (a uniform su
 pairs, pairing points closer than one inlier distance (``docs/decisions/0018-fine-refinement-on-denser-clouds.md``,
 ``docs/decisions/0122-the-fine-stage-on-the-whole-target.md``).
 
-It runs once, on the result the pipeline chose (after the rotation search's comparison), and changes its pose only:
+It runs on the result the pipeline chose (after the rotation search's comparison), and again on a result the
+descriptor consensus puts in its place (:mod:`service.stages.consensus`), and changes its pose only:
 the result's quality (``inlier_ratio``, ``reliable``, warnings, stability) is what the pipeline measured on the
 working clouds at the pose before it. A fine pose that moves a working source point more than ``FINE_MAX_MOVE``
 inlier distances from that pose has left the basin those checks judged, and is not taken.
@@ -22,7 +23,7 @@ import time
 
 import numpy as np
 
-from service.icp import icp_plane
+from service.icp import icp_plane, rms_radius
 from service.options import RegistrationOptions
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
@@ -30,7 +31,7 @@ from service.stages.normalise import Working
 from service.stages.ranking import samples_the_surface
 
 FINE_ITERATIONS = 15  # most updates
-FINE_TOLERANCE = 3e-4  # stop on updates below this (rad, x RMS radius; 3e-4 rad is 0.017 deg)
+FINE_TOLERANCE = 3e-4  # stop on updates below this (rad, x the moved points' RMS radius; 3e-4 rad is 0.017 deg)
 FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a working source point
 
 
@@ -46,9 +47,12 @@ def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, 
     (:attr:`Working.entered_target_surface`), or ``None`` where that refinement stops early (a degenerate system, too
     few pairs: it warns) or moves a working source point more than ``FINE_MAX_MOVE`` inlier distances."""
     surface = work.entered_target_surface
+    # scaled by the moved points' extent, not the whole target's: one point a kilometre out, or a background far
+    # behind the overlap, made every system look degenerate and the stage silently keep the coarser pose
     fitted = icp_plane(work.precise_source, surface.points, R, t, max_distance=work.inlier_distance,
                        max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE, target_surface=surface,
-                       point_fallback=False)  # a pose that warns is not taken: no point-to-point ICP of every point
+                       point_fallback=False,  # a pose that warns is not taken: no point-to-point ICP of every point
+                       scale=rms_radius(work.precise_source))
     if fitted.warnings:
         return None
     moved = work.working_source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves
