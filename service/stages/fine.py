@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from service.icp import icp_plane, rms_radius
+from service.icp import PLANE_MIN_INLIERS, LazySurface, icp_plane, rms_radius
 from service.options import RegistrationOptions
 from service.refine_modes import PLANE_MODES
 from service.result import RegistrationResult
@@ -31,7 +31,7 @@ from service.stages.normalise import Working
 from service.stages.ranking import samples_the_surface
 
 FINE_ITERATIONS = 15  # most updates
-FINE_TOLERANCE = 3e-4  # stop on updates below this (rad, x the moved points' RMS radius; 3e-4 rad is 0.017 deg)
+FINE_TOLERANCE = 3e-4  # stop on updates below this (rad, x overlap_radius; 3e-4 rad is 0.017 deg)
 FINE_MAX_MOVE = 3.0  # inlier distances: the farthest the fine pose may move a working source point
 
 
@@ -47,18 +47,27 @@ def fine_pose(work: Working, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, 
     (:attr:`Working.entered_target_surface`), or ``None`` where that refinement stops early (a degenerate system, too
     few pairs: it warns) or moves a working source point more than ``FINE_MAX_MOVE`` inlier distances."""
     surface = work.entered_target_surface
-    # scaled by the moved points' extent, not the whole target's: one point a kilometre out, or a background far
-    # behind the overlap, made every system look degenerate and the stage silently keep the coarser pose
     fitted = icp_plane(work.precise_source, surface.points, R, t, max_distance=work.inlier_distance,
                        max_iterations=FINE_ITERATIONS, tolerance=FINE_TOLERANCE, target_surface=surface,
                        point_fallback=False,  # a pose that warns is not taken: no point-to-point ICP of every point
-                       scale=rms_radius(work.precise_source))
+                       scale=overlap_radius(work, surface, R, t))
     if fitted.warnings:
         return None
     moved = work.working_source @ (fitted.rotation - R).T + (fitted.translation - t)  # [Ns, 3] how far each point moves
     if np.sqrt((moved**2).sum(axis=1).max()) > FINE_MAX_MOVE * work.inlier_distance:
         return None
     return fitted.rotation, fitted.translation
+
+
+def overlap_radius(work: Working, surface: LazySurface, R: np.ndarray, t: np.ndarray) -> float:
+    """The RMS radius of the :attr:`Working.precise_source` points that lie within an inlier distance of the target at
+    the pose ``R [3, 3], t [3]`` (all of them where fewer than ``PLANE_MIN_INLIERS`` do): the extent the pairs cover,
+    which scales the refinement's normal equations. The whole target's radius, or the whole source's, grows with one
+    point a kilometre out or a background beyond the overlap until every system looks degenerate, and the stage
+    silently kept the coarser pose."""
+    moved = work.precise_source @ R.T + t  # [Np, 3]
+    near = np.isfinite(surface.tree.query(moved, k=1, distance_upper_bound=work.inlier_distance)[0])  # [Np]
+    return rms_radius(work.precise_source[near] if near.sum() >= PLANE_MIN_INLIERS else work.precise_source)
 
 
 def fine(work: Working, result: RegistrationResult, options: RegistrationOptions,
