@@ -14,7 +14,7 @@ from typing import Any
 
 from service.api.errors import APIError
 from service.api.json_clouds import CLOUD_FIELDS
-from service.checks import columns_problem
+from service.checks import columns_problem, per_axis_problem
 
 
 def check_cloud_shapes(obj: dict, prefix: str = "") -> None:
@@ -41,6 +41,8 @@ def shape_problem(cloud: Any) -> str | None:
     lengths = {len(row) for row in cloud if isinstance(row, list)}
     if len(lengths) != 1 or any(not isinstance(row, list) for row in cloud):
         return None
+    if len(cloud) == 1 and per_axis(cloud[0]):  # [1, 3, N] or [1, 4, N]: one row per axis, with a leading 1
+        return per_axis_problem([1, len(cloud[0]), len(cloud[0][0])])
     if all(row and all(isinstance(value, list) for value in row) for row in cloud):  # [N, 1, 3]: OpenCV's layout
         inner = {len(value) for row in cloud for value in row}
         return (f"expected shape [N, 3], rows of [x, y, z], got [{len(cloud)}, {lengths.pop()}, "
@@ -49,3 +51,11 @@ def shape_problem(cloud: Any) -> str | None:
     if columns == 3:
         return None
     return columns_problem(len(cloud), columns)
+
+
+def per_axis(rows: list) -> bool:
+    """Whether ``rows`` are 3 or 4 lists of one length longer than the row count: one row per axis, not points."""
+    if len(rows) not in (3, 4) or not all(isinstance(row, list) for row in rows):
+        return False
+    lengths = {len(row) for row in rows}
+    return len(lengths) == 1 and lengths.pop() > len(rows)

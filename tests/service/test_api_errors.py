@@ -72,6 +72,14 @@ JSON_CASES = {
     "four_column_row": (with_row([0.1, 0.2, 0.3, 0.4]), 422, ["source[5]", "at most 3"]),
     "text_coordinate": (with_row([0.1, "x", 0.3]), 422, ["source[5][1]"]),
     "flat_cloud": ({**valid(), "target": [0.1, 0.2, 0.3] * 40}, 422, ["target: a flat list of 120", "[40, 3]"]),
+    # one row per axis inside a leading 1 (an array [1, 3, N] or [1, 4, N]): the advice was to reshape it, which
+    # scrambles the points
+    "one_row_per_axis_in_a_batch_of_one": ({**valid(), "target": [np.asarray(valid()["target"]).T.tolist()]}, 422,
+                                           ["target: expected shape [N, 3], got [1, 3, ", "one row per axis",
+                                            "transposed"]),
+    "homogeneous_rows_in_a_batch_of_one": (
+        {**valid(), "target": [np.vstack([np.asarray(valid()["target"]).T, np.ones(len(valid()["target"]))]).tolist()]},
+        422, ["target: expected shape [N, 3], got [1, 4, ", "homogeneous", "cloud[:3].T"]),
     "too_few_points": ({**valid(), "source": [[0.0, 0.0, 0.1 * i] for i in range(10)]}, 422, ["source", "32"]),
     "missing_target": ({"source": valid()["source"]}, 422, ["target", "required"]),
     "not_an_object": ([1, 2, 3], 422, ["object"]),
