@@ -33,6 +33,12 @@ def max_abs(values: np.ndarray) -> float:
 LEAVE_NAN_ROWS_OUT = "leave such rows out (e.g. points[np.isfinite(points).all(axis=1)])"
 
 
+def one_row_per_axis(rows: int, columns: int) -> bool:
+    """Whether ``rows`` rows of ``columns`` numbers read as one row per axis: 3 (x, y, z) or 4 (homogeneous) rows of
+    more numbers than rows."""
+    return rows in (3, 4) and columns > rows
+
+
 def per_axis_problem(shape: list[int]) -> str:
     """What is wrong with a cloud sent as one row per axis (``shape``: as sent, ``[3, N]`` or ``[4, N]``, homogeneous
     coordinates, perhaps after a leading 1), and how to mend it; the same words for arrays in process, JSON clouds
@@ -47,7 +53,7 @@ def per_axis_problem(shape: list[int]) -> str:
 def columns_problem(rows: int, columns: int) -> str:
     """What is wrong with a cloud of ``rows`` rows of ``columns`` numbers (``columns != 3``), and how to mend it; the
     same words for arrays in process and for JSON clouds (``service/api/json_shapes.py``)."""
-    if (rows == 3 and columns > 3) or (rows == 4 and columns > 4):
+    if one_row_per_axis(rows, columns):
         return per_axis_problem([rows, columns])
     extra = ("; x, y, z only: the first three columns (cloud[:, :3]) where they are x, y, z; a point-cloud file may "
              "carry other fields") if columns > 3 else ""

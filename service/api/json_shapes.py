@@ -14,7 +14,7 @@ from typing import Any
 
 from service.api.errors import APIError
 from service.api.json_clouds import CLOUD_FIELDS
-from service.checks import columns_problem, per_axis_problem
+from service.checks import columns_problem, one_row_per_axis, per_axis_problem
 
 
 def check_cloud_shapes(obj: dict, prefix: str = "") -> None:
@@ -54,8 +54,8 @@ def shape_problem(cloud: Any) -> str | None:
 
 
 def per_axis(rows: list) -> bool:
-    """Whether ``rows`` are 3 or 4 lists of one length longer than the row count: one row per axis, not points."""
-    if len(rows) not in (3, 4) or not all(isinstance(row, list) for row in rows):
-        return False
-    lengths = {len(row) for row in rows}
-    return len(lengths) == 1 and lengths.pop() > len(rows)
+    """Whether ``rows`` are lists of one length that read as one row per axis (:func:`service.checks.one_row_per_axis`),
+    not points."""
+    lengths = {len(row) for row in rows if isinstance(row, list)}
+    return len(lengths) == 1 and all(isinstance(row, list) for row in rows) and one_row_per_axis(len(rows),
+                                                                                                 lengths.pop())
