@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service import normalization
+from service.distinct_neighbours import DistinctPoints, copied_neighbourhoods
 from service.kdtree import KDTree
 from service.procrustes import compose, weighted_procrustes
 
@@ -163,25 +164,33 @@ def icp_many(
 
 
 def target_normals(tgt: np.ndarray, neighbours: int = NORMAL_NEIGHBOURS, tree: KDTree | None = None,
-                   at: np.ndarray | None = None, nearest_rows: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included).
+                   at: np.ndarray | None = None, nearest_rows: np.ndarray | None = None,
+                   distinct: DistinctPoints | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals of ``tgt (M, 3)`` by PCA of each point's ``neighbours`` nearest points (itself included), each
+    place counted once: a neighbourhood that holds copies of a point takes its neighbours from the distinct points
+    (:mod:`service.distinct_neighbours`).
 
     Returns ``normals (M, 3)`` (sign arbitrary: the point-to-plane residual is squared) and ``defined (M,)``:
     False where the neighbourhood is (nearly) a line or a single point, so that no plane is defined.
     ``at (A,)``: only the normals of ``tgt[at]`` (``(A, 3)`` and ``(A,)``). ``nearest_rows (M, K)``: each point's
-    nearest rows, nearest first, ``K >= neighbours``, when the caller has them (no query then).
+    nearest rows, nearest first, ``K >= neighbours``, when the caller has them (no query then, and no search for
+    copies: a farthest-point sample holds none). ``distinct``: ``DistinctPoints(tgt)`` where the caller keeps one.
     """
     points = tgt if at is None else tgt[at]  # [A, 3]
     k = min(int(neighbours), tgt.shape[0])
     if k < 3:
         return np.zeros_like(points), np.zeros(points.shape[0], dtype=bool)
     if nearest_rows is not None and at is None and len(nearest_rows) == len(tgt) and nearest_rows.shape[1] >= k:
-        idx = nearest_rows[:, :k]  # [M, k]
+        hood = tgt[nearest_rows[:, :k]]  # [M, k, 3]
     else:
         tree = KDTree(tgt) if tree is None else tree
-        _, idx = tree.query(points, k=k)  # [A, k]
-    hood = tgt[idx]  # [A, k, 3]
+        dist, idx = tree.query(points, k=k)  # [A, k]
+        hood = tgt[idx]  # [A, k, 3]
+        copied = copied_neighbourhoods(dist, hood)  # [A]
+        if copied.any():
+            apart = (DistinctPoints(tgt) if distinct is None else distinct).neighbourhoods(points[copied], k)
+            if apart is not None:
+                hood[copied] = apart
     centred = hood - hood.mean(axis=1, keepdims=True)  # [A, k, 3]
     cov = centred.transpose(0, 2, 1) @ centred / k  # [A, 3, 3] (batched matmul: 3x faster than einsum here)
     variance, normals = smallest_eigenvectors(cov)  # [A, 3] ascending, [A, 3]
@@ -253,6 +262,7 @@ class LazySurface:
 
     def __init__(self, points: np.ndarray, tree: KDTree, neighbours: int = NORMAL_NEIGHBOURS) -> None:
         self.points, self.tree, self.neighbours = points, tree, neighbours  # [M, 3] float64, its tree
+        self.distinct = DistinctPoints(points)  # hashed only where a neighbourhood holds copies
         self.normals = np.zeros((len(points), 3))  # [M, 3] those computed so far
         self.defined = np.zeros(len(points), dtype=bool)  # [M]
         self.known = np.zeros(len(points), dtype=bool)  # [M] whose normal is computed
@@ -262,7 +272,7 @@ class LazySurface:
         missing = np.unique(rows[~self.known[rows]])  # [U]
         if missing.size:
             self.normals[missing], self.defined[missing] = target_normals(self.points, self.neighbours, self.tree,
-                                                                          at=missing)
+                                                                          at=missing, distinct=self.distinct)
             self.known[missing] = True
         return self.normals[rows], self.defined[rows]
 

@@ -16,7 +16,7 @@ from service.per_instance_cache import per_instance_cached_property
 from service.plane_frames import CloudFrame, cloud_frame, frame_rotations
 from service.procrustes import compose
 from service.quality import attainable_inlier_ratio, attainable_on_surface, degenerate, nearest_other_distances
-from service.sampling import distinct_rows, hashed_indices
+from service.sampling import hashed_indices
 from service.stages.sample import Sampled
 
 INLIER_DISTANCE = 0.05  # normalised units (the paper's match threshold): quality inliers
@@ -216,23 +216,9 @@ class Working(Sampled):
     def entered_target_surface(self) -> LazySurface:
         """The entered target's KD-tree (:attr:`entered_target_tree`), with the normals of the points a refinement
         pairs, computed as it pairs them: what the fine stage moves :attr:`precise_source` onto. A target that
-        repeats its points gets the surface of its distinct points (:attr:`entered_target_distinct`)."""
-        distinct = self.entered_target_distinct
-        if distinct is None:
-            return LazySurface(self.entered_target64, self.entered_target_tree)
-        points = self.entered_target64[distinct]  # [D, 3]
-        return LazySurface(points, KDTree(points))
-
-    @per_instance_cached_property
-    def entered_target_distinct(self) -> np.ndarray | None:
-        """``[D]`` rows of the entered target, each coordinate's first (:func:`service.sampling.distinct_rows`), where
-        its rows repeat points (mesh vertices written once per face, merged scans): copies would fill a normal's 12
-        neighbours with 2-3 places, a line or a 3-point plane. ``None`` where no point of the working target has a
-        copy (a query of those points; the whole target is hashed only where one has)."""
-        second = self.entered_target_tree.query(self.tgt_w, k=2)[0][:, 1]  # [Nt] each one's nearest other row
-        if not (second == 0).any():
-            return None
-        return distinct_rows(self.entered_target64, np.arange(len(self.entered_target64)))
+        repeats its points gives a normal its neighbours from its distinct points (:mod:`service.distinct_neighbours`).
+        """
+        return LazySurface(self.entered_target64, self.entered_target_tree)
 
     @per_instance_cached_property
     def short_points(self) -> np.ndarray:
