@@ -29,9 +29,9 @@ def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarra
                registrar: Registrar | None = None,
                guess: Callable[[np.ndarray], np.ndarray] | None = None) -> list[dict]:
     """One row per ``(label, sensor, source [N, 3], target [M, 3], src_to_tgt [4, 4])`` case (printed as it comes):
-    errors, success, ``reliable`` and seconds of the service (``registrar``, default :func:`general_registrar`), and
-    FPFH + RANSAC + ICP's success and seconds. ``guess``: the service's ``initial_transform [4, 4]`` for a case's
-    truth (none without it; FPFH + RANSAC + ICP never takes one)."""
+    errors, success, ``reliable``, inlier ratio, warnings and seconds of the service (``registrar``, default
+    :func:`general_registrar`), and FPFH + RANSAC + ICP's success and seconds. ``guess``: the service's
+    ``initial_transform [4, 4]`` for a case's truth (none without it; FPFH + RANSAC + ICP never takes one)."""
     registrar = general_registrar() if registrar is None else registrar
     rows = []
     for label, sensor, src, tgt, truth, *own in cases:
@@ -43,7 +43,8 @@ def registered(cases: Iterable[tuple[str, str, np.ndarray, np.ndarray, np.ndarra
         degrees, error = pose_errors(result.rotation, result.translation, truth)
         row = {"variant": label, "service_success": bool(degrees < max_deg and error < max_error),
                "reliable": bool(result.reliable), "rotation_error_deg": round(degrees, 3),
-               "translation_error": float(f"{error:.4g}"), "service_seconds": round(seconds, 4)}
+               "translation_error": float(f"{error:.4g}"), "service_seconds": round(seconds, 4),
+               "inlier_ratio": round(float(result.inlier_ratio), 3), "warnings": list(result.warnings)}
         if fpfh:
             started = time.perf_counter()
             R, t = fpfh_ransac_icp(src, tgt)

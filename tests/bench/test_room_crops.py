@@ -74,6 +74,7 @@ def test_the_run_totals_its_rows(tmp_path):
     assert figures == report["totals_all"] == report["by_fragment"][FRAGMENT]
     assert figures["cases"] == 2 and figures["service_successes"] == sum(r["service_success"] for r in rows)
     assert "fpfh_success" not in rows[0]
+    assert all(0.0 <= r["inlier_ratio"] <= 1.0 and isinstance(r["warnings"], list) for r in rows)  # what prose cites
     assert out.read_text().count('"variant"') == 2
 
 
